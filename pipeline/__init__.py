@@ -1,0 +1,1 @@
+"""Dagster wiring for quadcore: assets, partitions, sensors, resources. No physics here."""

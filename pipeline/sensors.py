@@ -1,0 +1,64 @@
+"""Watch the raw folder: every new or changed log becomes a flight partition and a run."""
+
+
+import json
+
+import dagster as dg
+
+from pipeline.partitions import flights
+from pipeline.resources import DataRoot
+from quadcore import flight, logformat, store
+
+
+def scan_raw(data_root: DataRoot) -> dict[str, str]:
+    """Flight id -> a fingerprint (size and mtime) of every candidate log in the raw folder."""
+    if not data_root.raw_path.is_dir():
+        return {}
+    out = {}
+    for p in flight.discover_logs(data_root.raw_path):
+        st = p.stat()
+        out[flight.flight_id_of(p)] = f"{st.st_size}-{st.st_mtime_ns}"
+    return out
+
+
+def header_problem(path) -> str | None:
+    """The reason a file cannot be a log (checked on its header only), or None."""
+    try:
+        with open(path, "rb") as f:
+            logformat.parse_header(f.read(64 * 1024))
+    except logformat.LogFormatError as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot):
+    seen = json.loads(context.cursor) if context.cursor else {}
+    current = scan_raw(data_root)
+    changed = {fid: fp for fid, fp in current.items() if seen.get(fid) != fp}
+    if not changed:
+        return dg.SkipReason(f"no new logs in {data_root.raw_path}")
+    known = set(context.instance.get_dynamic_partitions(flights.name))
+    runs, add = [], []
+    for fid, fp in sorted(changed.items()):
+        problem = header_problem(data_root.raw_log(fid))
+        if problem:
+            store.write_quarantine(data_root.root_path, fid, str(data_root.raw_log(fid)), problem, "header")
+            context.log.warning(f"quarantined {fid}: {problem}")
+            continue
+        if fid not in known:
+            add.append(fid)
+        runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid))
+    return dg.SensorResult(
+        run_requests=runs,
+        cursor=json.dumps(current),
+        dynamic_partitions_requests=[flights.build_add_request(add)] if add else [],
+    )
+
+
+PER_FLIGHT = dg.AssetSelection.groups("decode", "physics")
+
+
+@dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=dg.DefaultSensorStatus.RUNNING)
+def raw_log_sensor(context: dg.SensorEvaluationContext, data_root: DataRoot):
+    """New or changed files in the raw folder -> flight partitions and runs; bad files -> quarantine."""
+    return new_flight_requests(context, data_root)

@@ -1,0 +1,83 @@
+"""Plausibility checks on a decoded flight, as plain data (the pipeline turns them into
+asset checks). Each returns ``(passed, description, metrics)``; none raises.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+
+# Physically plausible ranges for a small quadrotor (SI). Values outside are flagged, not dropped.
+VALUE_RANGES = {
+    "p_w_x_m": (-20.0, 20.0),
+    "p_w_y_m": (-20.0, 20.0),
+    "p_w_z_m": (-1.0, 20.0),
+    "v_w_x_mps": (-15.0, 15.0),
+    "v_w_y_mps": (-15.0, 15.0),
+    "v_w_z_mps": (-15.0, 15.0),
+    "omega_b_x_radps": (-35.0, 35.0),  # the gyro's 2000 deg/s full scale
+    "omega_b_y_radps": (-35.0, 35.0),
+    "omega_b_z_radps": (-35.0, 35.0),
+    "sf_b_x_mps2": (-160.0, 160.0),  # the accelerometer's 16 g full scale
+    "sf_b_y_mps2": (-160.0, 160.0),
+    "sf_b_z_mps2": (-160.0, 160.0),
+    "vbat_V": (2.5, 4.5),
+    "pwm_1": (0.0, 1.0),
+    "pwm_2": (0.0, 1.0),
+    "pwm_3": (0.0, 1.0),
+    "pwm_4": (0.0, 1.0),
+}
+GAP_WARN_S = 0.05
+
+
+def monotonic_time(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    t = df["t_s"].to_numpy()
+    backwards = int(np.count_nonzero(np.diff(t) <= 0)) if len(t) > 1 else 0
+    return backwards == 0, f"{backwards} non-increasing timestamps", {"non_increasing": backwards}
+
+
+def sample_gaps(df: pl.DataFrame, limit_s: float = GAP_WARN_S) -> tuple[bool, str, dict]:
+    t = df["t_s"].to_numpy()
+    dt = np.diff(t) if len(t) > 1 else np.zeros(1)
+    n = int(np.count_nonzero(dt > limit_s))
+    return n == 0, f"{n} gaps longer than {limit_s * 1e3:.0f} ms (longest {dt.max() * 1e3:.1f} ms)", {
+        "gaps": n,
+        "dt_max_ms": float(dt.max() * 1e3),
+    }
+
+
+def value_ranges(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    bad = {}
+    for col, (lo, hi) in VALUE_RANGES.items():
+        if col in df.columns:
+            n = df.filter((pl.col(col) < lo) | (pl.col(col) > hi)).height
+            if n:
+                bad[col] = n
+    desc = "all values in range" if not bad else "out of range: " + ", ".join(f"{c} ({n} rows)" for c, n in bad.items())
+    return not bad, desc, {"columns_out_of_range": len(bad)}
+
+
+def no_nans(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    counts = {c: int(df[c].is_nan().sum()) for c, dt in df.schema.items() if dt.is_float()}
+    bad = {c: n for c, n in counts.items() if n}
+    desc = "no NaN" if not bad else "NaN in " + ", ".join(f"{c} ({n})" for c, n in bad.items())
+    return not bad, desc, {"nan_values": sum(bad.values())}
+
+
+def stuck_sensors(df: pl.DataFrame, min_rows: int = 500) -> tuple[bool, str, dict]:
+    """A sensor column that never changes over a whole flight is stuck (e.g. vbat at 3.7 V)."""
+    if df.height < min_rows:
+        return True, "too short to judge", {"stuck_columns": 0}
+    skip = {"t_s", "timestamp_us"}
+    stuck = [c for c, dt in df.schema.items() if dt.is_numeric() and c not in skip and df[c].n_unique() == 1]
+    desc = "no stuck sensor" if not stuck else "constant over the whole flight: " + ", ".join(stuck)
+    return not stuck, desc, {"stuck_columns": len(stuck)}
+
+
+ALL_CHECKS = {
+    "monotonic_time": monotonic_time,
+    "sample_gaps": sample_gaps,
+    "value_ranges": value_ranges,
+    "no_nans": no_nans,
+    "stuck_sensors": stuck_sensors,
+}

@@ -1,0 +1,199 @@
+"""The ``quadcore`` command: one command, one verb per stage.
+
+    quadcore decode LOG_OR_FOLDER... --out DIR
+    quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
+    quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
+
+User errors (missing paths, unreadable logs) print a clear message and exit
+non-zero; they never end in a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from importlib import resources
+
+import numpy as np
+import polars as pl
+
+from quadcore import flight as flightmod
+from quadcore import logformat, residuals, store, thrustfit, vehicle
+
+MAIN_EVENT = "fixedFrequency"
+
+
+class UserError(Exception):
+    """A mistake in what the user asked for: printed as a message, exit code 2."""
+
+
+def _print_table(rows: list[list[str]], header: list[str]) -> None:
+    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
+    for r in [header, ["-" * w for w in widths], *rows]:
+        print("  ".join(str(c).ljust(w) for c, w in zip(r, widths)))
+
+
+def load_flights(
+    paths: list[str], out: Path | None = None, log=print
+) -> tuple[list[flightmod.Flight], dict[str, str]]:
+    """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
+    there. Returns (flights, quarantined: id -> reason)."""
+    try:
+        logs = flightmod.discover_logs(*paths)
+    except FileNotFoundError as exc:
+        raise UserError(str(exc)) from None
+    if not logs:
+        raise UserError(f"no log files found in {', '.join(map(str, paths))}")
+    flights, quarantined = [], {}
+    for i, path in enumerate(logs, 1):
+        fid = flightmod.flight_id_of(path)
+        try:
+            fl = flightmod.decode_flight(path)
+        except logformat.LogFormatError as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+            if out is not None:
+                store.write_quarantine(out, fid, str(path), str(exc), type(exc).__name__)
+            quarantined[fid] = reason
+            log(f"[{i}/{len(logs)}] {fid}: QUARANTINED ({reason})")
+            continue
+        if out is not None:
+            store.write_decoded(out, fl)
+            store.clear_quarantine(out, fid)
+        flights.append(fl)
+        warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""
+        log(f"[{i}/{len(logs)}] {fid}: {fl.provenance['rows']}{warn}")
+    return flights, quarantined
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    flights, quarantined = load_flights(args.paths, out)
+    events = sorted({e for f in flights for e in f.tables})
+    rows = [[f.flight_id, *[str(f.provenance["rows"].get(e, 0)) for e in events], str(len(f.warnings))] for f in flights]
+    totals = ["TOTAL", *[str(sum(f.provenance["rows"].get(e, 0) for f in flights)) for e in events], str(sum(len(f.warnings) for f in flights))]
+    print()
+    _print_table(rows + [totals], ["flight", *events, "warnings"])
+    print(f"\n{len(flights)} flights decoded to {out.resolve() / 'decoded'}")
+    for e in events:
+        print(f"  {e}: {out.resolve() / 'decoded' / e}/flight=*/data.parquet")
+    if quarantined:
+        print(f"{len(quarantined)} file(s) quarantined (see {out.resolve() / 'quarantine'}):")
+        for fid, reason in quarantined.items():
+            print(f"  {fid}: {reason}")
+    return 0 if flights else 1
+
+
+def _vehicle(args: argparse.Namespace):
+    try:
+        v = vehicle.load(args.vehicle)
+        return v.with_thrust_map(args.thrust_map) if args.thrust_map else v
+    except vehicle.VehicleFileError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _main_tables(flights: list[flightmod.Flight]) -> dict[str, "pl.DataFrame"]:
+    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
+    if not tables:
+        raise UserError(f"no flight has a {MAIN_EVENT!r} table")
+    return tables
+
+
+def cmd_residuals(args: argparse.Namespace) -> int:
+    veh = _vehicle(args)
+    flights, _ = load_flights(args.paths, None, log=lambda m: None)
+    rows, all_tables = [], []
+    for fid, df in _main_tables(flights).items():
+        try:
+            table = residuals.residual_table(df, veh)
+        except vehicle.VehicleFileError as exc:
+            raise UserError(str(exc)) from None
+        if args.out:
+            store.write_parquet(table, store.table_path(Path(args.out), "residuals", fid),
+                                {"flight": fid, "vehicle": veh.name, "units": residuals.column_units(table)})
+        all_tables.append(table.with_columns(pl.lit(fid).alias("flight")))
+        rows.append(_residual_row(fid, table))
+    rows.append(_residual_row("ALL", pl.concat(all_tables)))
+    print(f"vehicle: {veh.name} ({veh.source}), thrust map: {veh.thrust_map_kind}")
+    print("force residual f_res_b in N, torque residual tau_res_b in mN m; corr = corr(f_res_b, v_b) per axis\n")
+    _print_table(rows, ["flight", "rows", "Fx rmse", "Fy rmse", "Fz rmse", "Fz mean", "Fz/T mean",
+                        "Tx rmse", "Ty rmse", "Tz rmse", "corr x", "corr y"])
+    if args.out:
+        print(f"\nresidual tables: {Path(args.out).resolve() / 'residuals'}/flight=*/data.parquet")
+    return 0
+
+
+def _residual_row(fid: str, table: "pl.DataFrame") -> list[str]:
+    s = residuals.summary(table)
+    ok = table.filter(~pl.col("near_gap"))
+    corr = [np.corrcoef(ok[f"f_res_b_{a}_N"], ok[f"v_b_{a}_mps"])[0, 1] for a in "xy"]
+    weight = float(ok["f_model_b_z_N"].mean() or 1.0)
+    return [fid, str(table.height), *(f"{s[f'force_rmse_{a}_N']:.4f}" for a in "xyz"), f"{s['force_mean_z_N']:+.4f}",
+            f"{s['force_mean_z_N'] / weight:+.1%}", *(f"{s[f'torque_rmse_{a}_Nm'] * 1e3:.3f}" for a in "xyz"),
+            *(f"{c:+.2f}" for c in corr)]
+
+
+def cmd_fit_thrust(args: argparse.Namespace) -> int:
+    veh = _vehicle(args)
+    flights, _ = load_flights(args.paths, None, log=lambda m: None)
+    tables = _main_tables(flights)
+    missing = [fid for fid, df in tables.items() if "motor_1_radps" not in df.columns]
+    if missing:
+        raise UserError(f"no motor speed logged in {', '.join(missing)}: cannot fit f = k_F omega^2")
+    try:
+        k_F, per_flight = thrustfit.fit_k_F(tables, veh)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    _print_table([[fid, f"{k:.4e}"] for fid, k in per_flight.items()] + [["ALL", f"{k_F:.4e}"]],
+                 ["flight", "k_F [N/(rad/s)^2]"])
+    spread = np.std(list(per_flight.values())) / k_F
+    print(f"\nk_F = {k_F:.4e} N/(rad/s)^2 (spread between flights {spread:.1%})")
+    if spread > 0.05:
+        print("warning: k_F differs between flights by more than 5%: the speed-to-thrust relation is not the "
+              "same in all of them; consider fitting groups of flights separately")
+    if args.write:
+        src = Path(veh.source) if veh.source and not veh.source.startswith("builtin:") else None
+        text = src.read_text() if src else resources.files("quadcore").joinpath(
+            f"vehicles/{vehicle.DEFAULT_VEHICLE}.toml").read_text()
+        print(f"wrote {thrustfit.write_k_F(text, k_F, Path(args.write))}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="quadcore", description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
+    sub = parser.add_subparsers(dest="verb", required=True)
+    p = sub.add_parser("decode", help="decode uSD logs into SI Parquet")
+    p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
+    p.add_argument("--out", required=True, metavar="DIR", help="output data root")
+    p.set_defaults(func=cmd_decode)
+
+    def vehicle_args(p):
+        p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
+        p.add_argument("--thrust-map", default=None, choices=vehicle.THRUST_MAP_KINDS, help="override the file's thrust map")
+
+    p = sub.add_parser("residuals", help="residual force and torque statistics per flight")
+    p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
+    p.add_argument("--out", default=None, metavar="DIR", help="also write residual Parquet under DIR/residuals")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_residuals)
+
+    p = sub.add_parser("fit-thrust", help="fit k_F of the motor-speed thrust map f = k_F omega^2")
+    p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
+    p.add_argument("--write", default=None, metavar="OUT.toml", help="write a vehicle file with the fitted k_F")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_fit_thrust)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except UserError as exc:
+        print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

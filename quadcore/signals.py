@@ -1,0 +1,58 @@
+"""Smoothing and differentiation of logged signals, zero phase.
+
+We use a Savitzky-Golay filter: a least-squares polynomial fit over a symmetric window
+of ``window`` samples. Being symmetric, it has **no phase lag** (a pure low-pass in
+amplitude). With the defaults (order 2, 31 samples at 500 Hz, a 62 ms window) the
+amplitude response falls to -3 dB at 17 Hz (computed from the filter's coefficients):
+above the rigid-body dynamics of a small quadrotor, below motor vibration.
+
+Derivatives come from the same fit (``deriv=1``), scaled by the median sample period.
+Samples within half a window of a gap longer than ``GAP_S`` are less accurate: see
+:func:`near_gap`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+WINDOW = 31
+ORDER = 2
+GAP_S = 0.02
+
+
+def _window(n: int, window: int) -> int:
+    w = min(window, n if n % 2 else n - 1)
+    return max(w, ORDER + 1 + (ORDER % 2 == 0))
+
+
+def smooth(x: np.ndarray, window: int = WINDOW) -> np.ndarray:
+    """Zero-phase Savitzky-Golay smoothing along axis 0 (x: (n,) or (n, k))."""
+    if len(x) <= ORDER + 2:
+        return np.asarray(x, dtype=float)
+    return savgol_filter(x, _window(len(x), window), ORDER, axis=0, mode="interp")
+
+
+def derivative(x: np.ndarray, t_s: np.ndarray, window: int = WINDOW) -> np.ndarray:
+    """Zero-phase smoothed time derivative dx/dt along axis 0, per second."""
+    if len(x) <= ORDER + 2:
+        return np.gradient(np.asarray(x, dtype=float), t_s, axis=0)
+    dt = float(np.median(np.diff(t_s)))
+    return savgol_filter(x, _window(len(x), window), ORDER, deriv=1, delta=dt, axis=0, mode="interp")
+
+
+def near_gap(t_s: np.ndarray, window: int = WINDOW, gap_s: float = GAP_S) -> np.ndarray:
+    """True for samples whose filter window spans a gap in the log longer than ``gap_s``."""
+    n = len(t_s)
+    flag = np.zeros(n, dtype=bool)
+    if n < 2:
+        return flag
+    gaps = np.flatnonzero(np.diff(t_s) > gap_s)
+    if len(gaps) == 0:
+        return flag
+    half = window // 2
+    # mark [g - half + 1, g + half] around each gap with a difference array (no loop per gap)
+    marks = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(marks, np.clip(gaps - half + 1, 0, n), 1)
+    np.add.at(marks, np.clip(gaps + half + 1, 0, n), -1)
+    return np.cumsum(marks[:-1]) > 0

@@ -1,0 +1,90 @@
+"""Where things live under the data root, and atomic Parquet with metadata.
+
+Layout (hive-style, so ``polars.scan_parquet`` and DuckDB read all flights at once)::
+
+    <root>/raw/<flight>                                raw uSD logs (the input)
+    <root>/decoded/<event>/flight=<flight>/data.parquet
+    <root>/residuals/flight=<flight>/data.parquet
+    <root>/quarantine/<flight>.json                    why a file was refused
+
+The flight id lives in the path, not in the file, so that hive partitioning adds it
+as a column without a clash. Each file's schema metadata holds, under the key
+``quadcore``, a JSON document with column units and provenance.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import polars as pl
+import pyarrow.parquet as pq
+
+METADATA_KEY = b"quadcore"
+
+
+def decoded_path(root: Path, event: str, flight: str) -> Path:
+    return Path(root) / "decoded" / event / f"flight={flight}" / "data.parquet"
+
+
+def table_path(root: Path, stage: str, flight: str) -> Path:
+    return Path(root) / stage / f"flight={flight}" / "data.parquet"
+
+
+def quarantine_path(root: Path, flight: str) -> Path:
+    return Path(root) / "quarantine" / f"{flight}.json"
+
+
+def _atomic(path: Path, write) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
+    """Write ``df`` to ``path`` atomically (temp file + rename) with JSON schema metadata."""
+    table = df.to_arrow()
+    existing = table.schema.metadata or {}
+    table = table.replace_schema_metadata({**existing, METADATA_KEY: json.dumps(metadata, default=str)})
+    return _atomic(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
+
+
+def read_metadata(path: Path) -> dict:
+    meta = pq.read_schema(path).metadata or {}
+    return json.loads(meta.get(METADATA_KEY, b"{}"))
+
+
+def write_json(obj: dict, path: Path) -> Path:
+    return _atomic(path, lambda tmp: Path(tmp).write_text(json.dumps(obj, indent=2, default=str)))
+
+
+def write_decoded(root: Path, flight) -> dict[str, Path]:
+    """Write every event table of a :class:`quadcore.flight.Flight`; returns event -> path."""
+    paths = {}
+    for event, df in flight.tables.items():
+        meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event], **flight.provenance}
+        paths[event] = write_parquet(df, decoded_path(root, event, flight.flight_id), meta)
+    return paths
+
+
+def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:
+    return pl.read_parquet(decoded_path(root, event, flight))
+
+
+def write_quarantine(root: Path, flight: str, source: str, reason: str, error_type: str) -> Path:
+    record = {"flight": flight, "source_file": source, "reason": reason, "error_type": error_type}
+    return write_json(record, quarantine_path(root, flight))
+
+
+def clear_quarantine(root: Path, flight: str) -> None:
+    quarantine_path(root, flight).unlink(missing_ok=True)
