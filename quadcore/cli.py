@@ -3,6 +3,8 @@
     quadcore decode LOG_OR_FOLDER... --out DIR
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
+    quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
+                      [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
 
 User errors (missing paths, unreadable logs) print a clear message and exit
 non-zero; they never end in a traceback.
@@ -160,6 +162,50 @@ def cmd_fit_thrust(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Simulate closed-loop flights with known effects: uSD logs + ``<log>.truth.json`` under --out."""
+    from dataclasses import replace
+
+    from quadcore import simulation
+
+    veh = _vehicle(args)
+    try:
+        effects: dict[str, dict[str, float]] = {}
+        for spec in args.effect or []:
+            name, params = simulation.parse_effect_spec(spec)
+            if name in effects:
+                raise simulation.SimulationError(f"effect {name!r} given twice; put all its parameters in one --effect")
+            effects[name] = params
+        if args.flights is not None and args.flights < 1:
+            raise simulation.SimulationError("--flights must be at least 1")
+        if args.kind == "default-set":
+            configs = simulation.default_flights(args.seed)
+            n = args.flights or len(configs)
+            configs = [replace(configs[i % len(configs)], seed=args.seed + i) for i in range(n)]
+        else:
+            configs = [simulation.SimConfig(kind=args.kind, seed=args.seed + i) for i in range(args.flights or 1)]
+        if args.duration is not None:
+            configs = [replace(c, duration_s=args.duration) for c in configs]
+        for c in configs:
+            c.validate()
+        written = simulation.simulate_set(args.out, configs, effects, veh)
+    except simulation.SimulationError as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"cannot write to {args.out}: {exc}") from None
+    rows = []
+    for (log_path, truth_path), cfg in zip(written, configs):
+        truth = simulation.read_truth(log_path)
+        rows.append([log_path.name, cfg.kind, f"{truth['duration_s']:.1f}", str(truth["samples"]), str(truth["gaps"]),
+                     truth_path.name])
+    print(f"vehicle: {veh.name} ({veh.source}); effects: "
+          + (", ".join(f"{n}({', '.join(f'{k}={v:g}' for k, v in p.items())})" for n, p in effects.items()) or "none"))
+    _print_table(rows, ["log", "kind", "duration s", "samples", "gaps", "truth"])
+    out = Path(args.out).resolve()
+    print(f"\n{len(written)} simulated log(s) in {out}; ground truth beside each log as <log>{simulation.TRUTH_SUFFIX}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadcore", description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
     sub = parser.add_subparsers(dest="verb", required=True)
@@ -183,6 +229,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write", default=None, metavar="OUT.toml", help="write a vehicle file with the fitted k_F")
     vehicle_args(p)
     p.set_defaults(func=cmd_fit_thrust)
+
+    p = sub.add_parser("simulate", help="simulate flights with known effects as uSD logs + ground truth JSON")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the logs (sim000, ...) and <log>.truth.json")
+    p.add_argument("--kind", default="default-set",
+                   choices=["figure8", "circle0", "yaw0", "random", "hover", "low_pass", "default-set"],
+                   help="what to fly (default: the default set of 6 varied flights)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="flight length in seconds")
+    p.add_argument("--flights", type=int, default=None, metavar="N", help="number of flights (seeds SEED, SEED+1, ...)")
+    p.add_argument("--effect", action="extend", nargs="+", default=None, metavar="NAME:param=value,...",
+                   help="an effect to switch on, e.g. rotor_drag:k_x_s_per_m=0.4,k_y_s_per_m=0.4 (repeatable)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
+    p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
+    p.set_defaults(func=cmd_simulate, thrust_map=None)
     return parser
 
 

@@ -203,8 +203,11 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         n = len(region)
         if n < 2 or not types_by_id:
             return np.empty(0, np.int64), np.empty(0, np.uint16), ("end" if n == 0 else "garbage"), 0
-        ids_at = region[:-1].astype(np.uint16) | (region[1:].astype(np.uint16) << 8)
-        size_lut = np.zeros(65536, dtype=np.int64)
+        # the u16 at every byte offset: even offsets from one aligned view, odd from another
+        ids_at = np.empty(n - 1, dtype=np.uint16)
+        ids_at[0::2] = np.frombuffer(buf, dtype="<u2", count=n // 2, offset=data_start)
+        ids_at[1::2] = np.frombuffer(buf, dtype="<u2", count=(n - 1) // 2, offset=data_start + 1)
+        size_lut = np.zeros(65536, dtype=np.int32)
         for eid, size in sizes.items():
             size_lut[eid] = size
         cand = np.flatnonzero(size_lut[ids_at] > 0)
@@ -213,7 +216,7 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         m = len(cand)
         # Two sinks: END (chain hits exactly the end) and BREAK (anything else).
         END, BREAK = m, m + 1
-        node_of_offset = np.full(n + 1, BREAK, dtype=np.int64)
+        node_of_offset = np.full(n + 1, BREAK, dtype=np.int32 if m + 2 < 2**31 else np.int64)
         node_of_offset[cand] = np.arange(m)
         node_of_offset[n] = END
         nxt_offset = cand + size_lut[ids_at[cand]]
@@ -225,11 +228,11 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         starts = cand[nodes]
         if sink == END:
             return starts, ids_at[starts], "end", n
-        # BREAK: the last good record ends at its own start + size, or the walk broke before any.
-        stop = int(starts[-1] + size_lut[ids_at[starts[-1]]]) if len(starts) else 0
-        if stop <= n and len(nodes) and nxt_offset[nodes[-1]] > n:
+        if len(nodes) and nxt_offset[nodes[-1]] > n:
             # the final record runs past the end: a partial last record
             return starts[:-1], ids_at[starts[:-1]], "partial", int(starts[-1])
+        # the chain hit bytes that are no record: keep what came before
+        stop = int(nxt_offset[nodes[-1]]) if len(nodes) else 0
         return starts, ids_at[starts], "garbage", stop
 
     if crc_ok is None:
@@ -240,10 +243,11 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         starts, ids, reason, stop = walk(data_end)
         end_used = data_end
         if reason != "end":
-            # Either the trailer is missing (truncated file) or the data is damaged: try the
-            # whole file as data, and keep whichever reading recovers more.
+            # Either the trailer is missing (a truncated file) or the data is damaged. A file
+            # whose records end cleanly or mid-record at its very end, read without a trailer,
+            # was truncated; otherwise keep whichever reading recovers more.
             starts2, ids2, reason2, stop2 = walk(n_total)
-            if reason2 == "end" or len(starts2) > len(starts):
+            if reason2 in ("end", "partial") or len(starts2) > len(starts):
                 starts, ids, reason, stop, end_used = starts2, ids2, reason2, stop2, n_total
                 crc_ok = None
                 warnings.append("no valid CRC trailer: file looks truncated; decoded what was there")

@@ -239,13 +239,6 @@ def test_missing_crc_keeps_every_row(tmp_path, good_log):
         _assert_tables_equal(log.tables[event], clean.tables[event])
 
 
-PARTIAL_RECORD_BUG = (
-    "quadcore/logformat.py decode_bytes.walk(): the 'partial' branch (lines 229-233) is unreachable "
-    "(stop == nxt_offset[nodes[-1]], so 'stop <= n and nxt_offset[nodes[-1]] > n' is never true); "
-    "the partial record is returned as a complete one and the gather raises IndexError"
-)
-
-
 def _cut_mid_last_record(buf: bytes, records: list) -> tuple[bytes, int, int]:
     """The file cut in the middle of its last record (trailer gone).
     Returns (cut bytes, complete records left, bytes of the partial record)."""
@@ -254,7 +247,6 @@ def _cut_mid_last_record(buf: bytes, records: list) -> tuple[bytes, int, int]:
     return buf[: off + fragment], len(records) - 1, fragment
 
 
-@pytest.mark.xfail(raises=IndexError, strict=True, reason=PARTIAL_RECORD_BUG)
 def test_partial_last_record_keeps_all_complete_records(tmp_path, good_log, record_offsets):
     buf, clean = good_log
     cut, n_complete, _ = _cut_mid_last_record(buf, record_offsets(buf))
@@ -269,12 +261,6 @@ def test_partial_last_record_keeps_all_complete_records(tmp_path, good_log, reco
         np.testing.assert_array_equal(log.timestamps_us[event], clean.timestamps_us[event][:n])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=PARTIAL_RECORD_BUG + "; and once fixed, a truncated file is still read as data + CRC "
-    "(decode_bytes line 246 keeps the first reading on a tie): it reports a 'CRC mismatch' "
-    "and bytes_dropped 4 too few",
-)
 def test_partial_last_record_reports_the_bytes_dropped(good_log, record_offsets):
     buf, _ = good_log
     cut, _, fragment = _cut_mid_last_record(buf, record_offsets(buf))

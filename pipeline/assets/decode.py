@@ -37,15 +37,13 @@ def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg
     main = fl.tables.get(MAIN_EVENT)
     stats = flight.sample_statistics(main["t_s"].to_numpy()) if main is not None else {}
     check_results = []
-    if main is not None:
-        for name, check in checks.ALL_CHECKS.items():
-            passed, desc, metrics = check(main)
-            check_results.append(
-                dg.AssetCheckResult(
-                    check_name=name, passed=passed, severity=dg.AssetCheckSeverity.WARN,
-                    description=desc, metadata=metrics,
-                )
+    for name, check in checks.ALL_CHECKS.items():
+        passed, desc, metrics = check(main) if main is not None else (False, f"no {MAIN_EVENT} table", {})
+        check_results.append(
+            dg.AssetCheckResult(
+                check_name=name, passed=passed, severity=dg.AssetCheckSeverity.WARN, description=desc, metadata=metrics
             )
+        )
     return dg.MaterializeResult(
         metadata={
             **{f"rows_{e}": n for e, n in fl.provenance["rows"].items()},

@@ -1,0 +1,40 @@
+"""Motor lag: each rotor's thrust follows its command through a first-order lag::
+
+    τ_m df/dt = f_cmd - f        (per rotor; f_cmd from the thrust map)
+
+The extra wrench is what the lag takes away: ``A (f - f_cmd)``, force along body z and
+torque about all three axes. Nonlinear in the time constant τ_m (s); evaluated with an
+exact discretisation at the median sample period.
+"""
+
+import numpy as np
+from scipy.signal import lfilter
+
+from quadcore import dynamics
+from quadcore.effects.base import Effect, Parameter, body_z
+
+
+def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """Filter columns of ``x`` through ``1 / (tau s + 1)``, starting at steady state."""
+    if tau_s <= 0 or len(x) < 2:
+        return x.copy()
+    dt = float(np.median(np.diff(t_s)))
+    a = np.exp(-dt / tau_s)
+    y, _ = lfilter([1 - a], [1, -a], x, axis=0, zi=a * x[:1])
+    return y
+
+
+class MotorLag(Effect):
+    name = "motor_lag"
+    target = "both"
+    linear = False
+    parameters = (Parameter("tau_s", "s", 0.0, 0.0, 0.2, "first-order time constant of rotor thrust"),)
+    doc = __doc__
+
+    def wrench(self, state, vehicle, params):
+        lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
+        dT, dtau = dynamics.wrench_from_thrusts(vehicle, lagged - state.f_rotor_N)
+        return body_z(dT), dtau
+
+
+EFFECT = MotorLag()

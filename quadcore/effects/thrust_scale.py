@@ -1,0 +1,27 @@
+"""Thrust scale: the rotors give ``s`` times what the thrust map says (a worn or different
+propeller, a map fitted on another vehicle)::
+
+    f_b = (s - 1) (0, 0, T),     tau_b = (s - 1) tau_rotors
+
+Linear in (s - 1). In force it is indistinguishable from an unmodelled payload
+(``added_mass``); only the torque part can tell them apart.
+"""
+
+from quadcore import dynamics
+from quadcore.effects.base import Effect, Parameter, body_z
+
+
+class ThrustScale(Effect):
+    name = "thrust_scale"
+    target = "both"
+    linear = True
+    parameters = (Parameter("scale", "1", 1.0, 0.3, 2.0, "true thrust / mapped thrust"),)
+    doc = __doc__
+
+    def wrench(self, state, vehicle, params):
+        T, tau = dynamics.wrench_from_thrusts(vehicle, state.f_rotor_N)
+        k = params["scale"] - 1.0
+        return body_z(k * T), k * tau
+
+
+EFFECT = ThrustScale()

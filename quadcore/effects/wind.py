@@ -1,0 +1,61 @@
+"""Wind: a constant horizontal air velocity ``w`` (world frame) that the rotors feel through
+rotor drag on the airspeed instead of the ground speed::
+
+    v_air,b = R^T (v_w - w),     f_b,xy = -k T v_air,b,xy              [k] = s/m, [w] = m/s
+
+With ``w = 0`` this is rotor drag; a wind shows as a drag force that depends on heading
+and attitude. Fitted linearly in (k, k w_x, k w_y), then ``w = (k w) / k``.
+"""
+
+import numpy as np
+
+from quadcore import rotations
+from quadcore.effects.base import Effect, Parameter, collective_thrust_N
+
+
+class Wind(Effect):
+    name = "wind"
+    target = "force"
+    linear = True
+    parameters = (
+        Parameter("k_s_per_m", "s/m", 0.0, 0.0, 5.0, "rotor-drag coefficient acting on airspeed"),
+        Parameter("w_x_mps", "m/s", 0.0, -10.0, 10.0, "air velocity, world x"),
+        Parameter("w_y_mps", "m/s", 0.0, -10.0, 10.0, "air velocity, world y"),
+    )
+    doc = __doc__
+
+    def wrench(self, state, vehicle, params):
+        k = params["k_s_per_m"]
+        w = np.array([params["w_x_mps"], params["w_y_mps"], 0.0])
+        v_air_b = rotations.world_to_body(state.R_wb, state.v_w_mps - w)
+        f = np.zeros((state.n, 3))
+        f[:, :2] = -k * collective_thrust_N(state)[:, None] * v_air_b[:, :2]
+        return f, np.zeros((state.n, 3))
+
+    def basis(self, state, vehicle):
+        T = collective_thrust_N(state)[:, None]
+        zero = np.zeros((state.n, 3))
+        out = []
+        for col in range(3):  # coefficients of k, k w_x, k w_y
+            f = np.zeros((state.n, 3))
+            if col == 0:
+                f[:, :2] = -T * state.v_b_mps[:, :2]
+            else:
+                e = np.zeros(3)
+                e[col - 1] = 1.0
+                f[:, :2] = T * rotations.world_to_body(state.R_wb, np.broadcast_to(e, (state.n, 3)))[:, :2]
+            out.append((f, zero))
+        return out
+
+    def from_linear(self, coefficients, vehicle):
+        k = float(coefficients[0])
+        if k <= 1e-9:
+            return {"k_s_per_m": max(k, 0.0), "w_x_mps": 0.0, "w_y_mps": 0.0}
+        return {"k_s_per_m": k, "w_x_mps": float(coefficients[1]) / k, "w_y_mps": float(coefficients[2]) / k}
+
+    def to_linear(self, params, vehicle):
+        k = params["k_s_per_m"]
+        return [k, k * params["w_x_mps"], k * params["w_y_mps"]]
+
+
+EFFECT = Wind()

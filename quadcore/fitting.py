@@ -1,0 +1,283 @@
+"""Fitting effect parameters to residuals, and scoring them on flights they never saw.
+
+Targets are the residual force (N) and torque (N m) of each flight, body frame, on
+samples away from logging gaps. Force and torque are weighted by the inverse of their
+mean square on the training flights, so that both count alike::
+
+    J(θ) = Σ_flights  |r_f - p_f(θ)|² / σ_f²  +  |r_τ - p_τ(θ)|² / σ_τ²
+
+Linear effects (all built-ins but ``motor_lag``) are solved in closed form from normal
+equations accumulated flight by flight; nonlinear parameters are found by bounded
+least squares (``scipy.optimize.least_squares``) with the linear ones solved inside
+(variable projection). Several effects are fitted jointly.
+
+Standard errors come from the curvature of ``J`` at the optimum, inflated by the
+smoother's window length because neighbouring samples of a smoothed residual are not
+independent (about one independent sample per window).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from quadcore import dynamics, residuals, signals
+from quadcore.dynamics import FlightState
+from quadcore.effects import Effect
+from quadcore.vehicle import Vehicle
+
+SAMPLES_PER_INDEPENDENT = signals.WINDOW
+
+
+@dataclass
+class FlightData:
+    """One flight ready for fitting: its state, the nominal residual and the usable samples."""
+
+    flight: str
+    state: FlightState
+    r_f: np.ndarray  # (n, 3) nominal residual force, N
+    r_tau: np.ndarray  # (n, 3) nominal residual torque, N m
+    mask: np.ndarray  # (n,) samples away from gaps
+    _basis: dict = field(default_factory=dict, repr=False)
+    _predictions: dict = field(default_factory=dict, repr=False)
+    _designs: dict = field(default_factory=dict, repr=False)
+
+    def basis(self, effect: Effect, vehicle: Vehicle) -> np.ndarray:
+        """(n, 6, k) smoothed basis of a linear effect (cached per flight)."""
+        if effect.name not in self._basis:
+            cols = [np.concatenate([signals.smooth(f), signals.smooth(t)], axis=1) for f, t in effect.basis(self.state, vehicle)]
+            self._basis[effect.name] = np.stack(cols, axis=2)
+        return self._basis[effect.name]
+
+
+    def design(self, lin: list[Effect], vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray]:
+        """Masked stacked basis (m, 6, k) of linear effects and its Gram matrix per channel
+        (6, k, k), cached: the weights change between fits, the basis does not."""
+        key = tuple(e.name for e in lin)
+        if key not in self._designs:
+            X = np.concatenate([self.basis(e, vehicle) for e in lin], axis=2)[self.mask]
+            self._designs[key] = (X, np.einsum("nci,ncj->cij", X, X))
+        return self._designs[key]
+
+    def cached_prediction(self, effect: Effect, params: dict, vehicle: Vehicle) -> np.ndarray:
+        """(n, 6) smoothed prediction of a nonlinear effect, cached for repeated parameter values
+        (the grid search evaluates the same values in every fold)."""
+        key = (effect.name, tuple(sorted(params.items())))
+        if key not in self._predictions:
+            if len(self._predictions) > 64:
+                self._predictions.clear()
+            self._predictions[key] = prediction(effect, params, self, vehicle)
+        return self._predictions[key]
+
+
+def flight_data(flight: str, decoded, vehicle: Vehicle) -> FlightData:
+    """Nominal residuals of a decoded ``fixedFrequency`` table."""
+    state = dynamics.flight_state(decoded, vehicle)
+    r = residuals.residual_arrays(state, vehicle)
+    return FlightData(flight, state, r["f_res_b"], r["tau_res_b"], ~signals.near_gap(state.t_s))
+
+
+def prediction(effect: Effect, params: dict, fd: FlightData, vehicle: Vehicle) -> np.ndarray:
+    """(n, 6) smoothed force and torque of an effect on a flight."""
+    f, t = effect.wrench(fd.state, vehicle, params)
+    return np.concatenate([signals.smooth(f), signals.smooth(t)], axis=1)
+
+
+@dataclass
+class Fit:
+    """Fitted parameters per effect (SI), standard errors, and the weights used."""
+
+    params: dict[str, dict[str, float]]
+    std: dict[str, dict[str, float]]
+    weights: np.ndarray  # (6,) per channel: 1/σ_f² ×3, 1/σ_τ² ×3
+
+    def predict(self, effects: list[Effect], fd: FlightData, vehicle: Vehicle) -> np.ndarray:
+        out = np.zeros((fd.state.n, 6))
+        for e in effects:
+            out += prediction(e, self.params[e.name], fd, vehicle)
+        return out
+
+
+def channel_weights(targets: list[np.ndarray]) -> np.ndarray:
+    """1/σ² for force and torque channels from stacked (n, 6) targets."""
+    y = np.concatenate(targets)
+    ms_f = float(np.mean(y[:, :3] ** 2)) or 1.0
+    ms_t = float(np.mean(y[:, 3:] ** 2)) or 1.0
+    return np.array([1 / ms_f] * 3 + [1 / ms_t] * 3)
+
+
+def _linear_solve(lin: list[Effect], flights: list[FlightData], ys: list[np.ndarray], w: np.ndarray, vehicle: Vehicle):
+    """Weighted least squares for the stacked linear coordinates: (θ, A, rss, n_rows)."""
+    k = sum(len(e.parameters) for e in lin)
+    A, b, yy, n = np.zeros((k, k)), np.zeros(k), 0.0, 0
+    for fd, y in zip(flights, ys):
+        ym = y[fd.mask]
+        yy += float((ym**2).sum(axis=0) @ w)
+        n += ym.size
+        if lin:
+            X, gram = fd.design(lin, vehicle)
+            A += np.tensordot(w, gram, axes=1)
+            b += np.einsum("nck,nc->k", X, ym * w)
+    theta = np.linalg.lstsq(A, b, rcond=None)[0] if k else np.zeros(0)
+    rss = yy - 2 * theta @ b + theta @ A @ theta
+    return theta, A, max(rss, 0.0), n
+
+
+def _linear_prediction(lin: list[Effect], theta: np.ndarray, fd: FlightData, vehicle: Vehicle) -> np.ndarray:
+    if not lin:
+        return np.zeros((fd.state.n, 6))
+    X = np.concatenate([fd.basis(e, vehicle) for e in lin], axis=2)
+    return X @ theta
+
+
+def _params_with_std(effect: Effect, coeffs: np.ndarray, cov: np.ndarray, vehicle: Vehicle):
+    """SI parameters from linear coordinates, standard errors by the delta method."""
+    params = effect.from_linear(coeffs, vehicle)
+    names = [p.name for p in effect.parameters]
+    base = np.array([params[n] for n in names])
+    jac = np.zeros((len(names), len(coeffs)))
+    for j in range(len(coeffs)):
+        h = 1e-6 * max(1.0, abs(coeffs[j]))
+        c2 = coeffs.copy()
+        c2[j] += h
+        p2 = effect.from_linear(c2, vehicle)
+        jac[:, j] = (np.array([p2[n] for n in names]) - base) / h
+    var = np.diag(jac @ cov @ jac.T)
+    return params, {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(names, var)}
+
+
+def fit_effects(
+    effects: list[Effect],
+    flights: list[FlightData],
+    targets: list[np.ndarray],
+    vehicle: Vehicle,
+    fixed: dict[str, dict[str, float]] | None = None,
+) -> Fit:
+    """Jointly fit ``effects`` to ``targets`` ((n, 6) residual per flight) on ``flights``.
+
+    Effects named in ``fixed`` keep the given parameters and are subtracted first.
+    """
+    fixed = fixed or {}
+    w = channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
+    ys = [y.copy() for y in targets]
+    params: dict[str, dict[str, float]] = {}
+    std: dict[str, dict[str, float]] = {}
+    for e in effects:
+        if e.name in fixed:
+            params[e.name] = {**e.defaults(), **fixed[e.name]}
+            std[e.name] = {p.name: 0.0 for p in e.parameters}
+            ys = [y - prediction(e, params[e.name], fd, vehicle) for fd, y in zip(flights, ys)]
+    free = [e for e in effects if e.name not in fixed]
+    lin = [e for e in free if e.linear]
+    nonlin = [e for e in free if not e.linear]
+    if nonlin:
+        n_nonlin = sum(len(e.parameters) for e in nonlin)
+        search = _scalar_search if n_nonlin == 1 else _vector_search
+        x, cov = search(nonlin, lin, flights, ys, w, vehicle)
+        nl = _unpack(nonlin, x)
+        i = 0
+        for e in nonlin:
+            params[e.name] = nl[e.name]
+            std[e.name] = {p.name: float(np.sqrt(max(cov[i + j, i + j], 0.0))) for j, p in enumerate(e.parameters)}
+            i += len(e.parameters)
+        ys = _after(nonlin, nl, flights, ys, vehicle)
+
+    if lin:
+        theta, A, rss, n = _linear_solve(lin, flights, ys, w, vehicle)
+        s2 = rss / max(n - len(theta), 1)
+        try:
+            cov_all = np.linalg.inv(A) * s2 * SAMPLES_PER_INDEPENDENT
+        except np.linalg.LinAlgError:
+            cov_all = np.full((len(theta), len(theta)), np.inf)
+        i = 0
+        for e in lin:
+            k = len(e.parameters)
+            params[e.name], std[e.name] = _params_with_std(e, theta[i: i + k], cov_all[i: i + k, i: i + k], vehicle)
+            i += k
+    return Fit(params, std, w)
+
+
+def _unpack(nonlin: list[Effect], x: np.ndarray) -> dict[str, dict[str, float]]:
+    out, i = {}, 0
+    for e in nonlin:
+        out[e.name] = {p.name: float(x[i + j]) for j, p in enumerate(e.parameters)}
+        i += len(e.parameters)
+    return out
+
+
+def _after(nonlin, nl, flights, ys, vehicle) -> list[np.ndarray]:
+    """Targets minus the nonlinear effects' predictions (cached per flight and value)."""
+    out = []
+    for fd, y in zip(flights, ys):
+        p = np.zeros_like(y)
+        for e in nonlin:
+            p += fd.cached_prediction(e, nl[e.name], vehicle)
+        out.append(y - p)
+    return out
+
+
+def _objective(nonlin, lin, flights, ys, w, vehicle, x) -> tuple[float, int]:
+    """Weighted residual sum of squares with the linear effects solved for (variable projection)."""
+    ys2 = _after(nonlin, _unpack(nonlin, x), flights, ys, vehicle)
+    _, _, rss, n = _linear_solve(lin, flights, ys2, w, vehicle)
+    return rss, n
+
+
+def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
+    """One nonlinear parameter: a geometric grid over its bounds, then Brent's method
+    between the grid neighbours of the best point. Variance from the curvature of J."""
+    (p,) = [q for e in nonlin for q in e.parameters]
+    span = p.upper - p.lower
+    grid = np.unique(np.concatenate([[p.lower], p.lower + span * np.geomspace(1e-3, 1.0, 23)]))
+    costs = [_objective(nonlin, lin, flights, ys, w, vehicle, np.array([g]))[0] for g in grid]
+    i = int(np.argmin(costs))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    best = grid[i]
+    if hi > lo:
+        res = minimize_scalar(lambda v: _objective(nonlin, lin, flights, ys, w, vehicle, np.array([v]))[0],
+                              bounds=(lo, hi), method="bounded", options={"xatol": 1e-4 * span})
+        if res.fun <= costs[i]:
+            best = float(res.x)
+    j0, n = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([best]))
+    h = max(1e-3 * span, 0.01 * abs(best))
+    jp = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([min(best + h, p.upper)]))[0]
+    jm = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([max(best - h, p.lower)]))[0]
+    curvature = (jp - 2 * j0 + jm) / h**2
+    s2 = j0 / max(n - 1, 1)
+    var = 2 * s2 / curvature * SAMPLES_PER_INDEPENDENT if curvature > 0 else np.inf
+    return np.array([best]), np.array([[var]])
+
+
+def _vector_search(nonlin, lin, flights, ys, w, vehicle):
+    """Several nonlinear parameters: bounded least squares (trust region reflective)."""
+    sw = np.sqrt(w)
+
+    def resid(x):
+        ys2 = _after(nonlin, _unpack(nonlin, x), flights, ys, vehicle)
+        theta = _linear_solve(lin, flights, ys2, w, vehicle)[0]
+        return np.concatenate([((y - _linear_prediction(lin, theta, fd, vehicle))[fd.mask] * sw).reshape(-1)
+                               for fd, y in zip(flights, ys2)])
+
+    lo = np.array([p.lower for e in nonlin for p in e.parameters])
+    hi = np.array([p.upper for e in nonlin for p in e.parameters])
+    sol = least_squares(resid, lo + 0.1 * (hi - lo), bounds=(lo, hi), x_scale=hi - lo, diff_step=1e-3)
+    s2 = 2 * sol.cost / max(sol.fun.size - len(lo), 1)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2 * SAMPLES_PER_INDEPENDENT
+    except np.linalg.LinAlgError:
+        cov = np.full((len(lo), len(lo)), np.inf)
+    return sol.x, cov
+
+
+def targets_of(flights: list[FlightData]) -> list[np.ndarray]:
+    """(n, 6) nominal residual per flight."""
+    return [np.concatenate([fd.r_f, fd.r_tau], axis=1) for fd in flights]
+
+
+def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
+    """Deterministic folds over flights (round robin over the sorted ids)."""
+    ids = sorted(flight_ids)
+    k = max(1, min(k, len(ids)))
+    return [ids[i::k] for i in range(k)]

@@ -1,0 +1,158 @@
+"""The physics model a flight is compared against: a vehicle plus a list of effects.
+
+A model file (TOML) names them; a user "adds an effect" by adding its name::
+
+    vehicle = "crazyflie21"          # built-in name or a path to a vehicle file
+    thrust_map = "pwm_vbat"          # optional: override the vehicle file's map
+    effects = ["rotor_drag"]         # fitted on training flights
+    plugins = ["my_effects/prop_wash.py"]   # optional: user effect modules
+
+    [parameters.rotor_drag]          # optional: fixed values instead of fitting
+    k_x_s_per_m = 0.01
+
+Relative paths are relative to the model file.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from quadcore import dynamics, effects, residuals, signals, vehicle as vehiclemod
+from quadcore.dynamics import FlightState
+from quadcore.vehicle import Vehicle
+
+
+class ModelFileError(ValueError):
+    """A model file that is missing, unreadable or names unknown things."""
+
+
+@dataclass
+class EffectTerm:
+    """An effect in the model with its parameter values (SI) and their standard errors."""
+
+    name: str
+    params: dict[str, float]
+    std: dict[str, float] = field(default_factory=dict)
+    fixed: bool = False
+
+    @property
+    def effect(self) -> effects.Effect:
+        return effects.get(self.name)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "params": self.params, "std": self.std, "fixed": self.fixed}
+
+
+@dataclass
+class PhysicsModel:
+    """Nominal vehicle + effects. ``label`` reads like ``nominal+rotor_drag``."""
+
+    vehicle: Vehicle
+    terms: list[EffectTerm] = field(default_factory=list)
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [t.name for t in self.terms]
+
+    @property
+    def label(self) -> str:
+        return "+".join(["nominal", *self.effect_names])
+
+    def extra_wrench(self, state: FlightState) -> tuple[np.ndarray, np.ndarray]:
+        """Sum of the effects' body-frame force and torque over a flight."""
+        f, tau = np.zeros((state.n, 3)), np.zeros((state.n, 3))
+        for t in self.terms:
+            df, dtau = t.effect.wrench(state, self.vehicle, t.params)
+            f, tau = f + df, tau + dtau
+        return f, tau
+
+    def residual_table(self, decoded: pl.DataFrame) -> pl.DataFrame:
+        state = dynamics.flight_state(decoded, self.vehicle)
+        f, tau = self.extra_wrench(state) if self.terms else (None, None)
+        return residuals.residual_table(decoded, self.vehicle, f, tau)
+
+    def to_dict(self) -> dict:
+        return {
+            "label": self.label,
+            "vehicle": self.vehicle.name,
+            "vehicle_source": self.vehicle.source,
+            "thrust_map": self.vehicle.thrust_map_kind,
+            "effects": [t.to_dict() for t in self.terms],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, vehicle: Vehicle) -> "PhysicsModel":
+        terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False))
+                 for e in d.get("effects", [])]
+        return cls(vehicle, terms)
+
+
+@dataclass
+class ModelSpec:
+    """What a model file asks for, before fitting."""
+
+    vehicle: Vehicle
+    effects: list[str]
+    fixed: dict[str, dict[str, float]] = field(default_factory=dict)
+    source: str = ""
+
+
+def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = None) -> ModelSpec:
+    for name in effect_names:
+        effects.get(name)  # raises UnknownEffectError with the known names
+    if len(set(effect_names)) != len(effect_names):
+        raise ModelFileError(f"an effect is listed twice: {effect_names}")
+    return ModelSpec(vehicle, list(effect_names), dict(fixed or {}))
+
+
+def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
+    """Read a model file (see module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"model file not found: {path}")
+    try:
+        d = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelFileError(f"{path}: not valid TOML: {exc}") from None
+    base = path.parent
+
+    def resolve(p: str) -> str:
+        return str((base / p).resolve()) if not Path(p).is_absolute() else p
+
+    for plugin in d.get("plugins", []):
+        try:
+            effects.load_plugin(resolve(plugin))
+        except (FileNotFoundError, TypeError) as exc:
+            raise ModelFileError(f"{path}: plugin {plugin!r}: {exc}") from None
+    veh_name = vehicle_override or d.get("vehicle", vehiclemod.DEFAULT_VEHICLE)
+    if veh_name != vehiclemod.DEFAULT_VEHICLE and not vehicle_override:
+        veh_name = resolve(veh_name)
+    veh = vehiclemod.load(veh_name)
+    if d.get("thrust_map"):
+        veh = veh.with_thrust_map(d["thrust_map"])
+    names = list(d.get("effects", []))
+    fixed = d.get("parameters", {})
+    for name, params in fixed.items():
+        if name not in names:
+            raise ModelFileError(f"{path}: [parameters.{name}] given but {name!r} is not in effects")
+        known = {p.name for p in effects.get(name).parameters}
+        unknown = set(params) - known
+        if unknown:
+            raise ModelFileError(f"{path}: unknown parameters for {name}: {sorted(unknown)}; known: {sorted(known)}")
+    try:
+        spec = spec_from(veh, names, fixed)
+    except effects.UnknownEffectError as exc:
+        raise ModelFileError(f"{path}: {exc}") from None
+    spec.source = str(path)
+    return spec
+
+
+def smoothed_wrench(effect: effects.Effect, state: FlightState, vehicle: Vehicle, params: dict) -> tuple[np.ndarray, np.ndarray]:
+    """An effect's wrench through the residuals' zero-phase smoother (so it compares with them)."""
+    f, tau = effect.wrench(state, vehicle, params)
+    return signals.smooth(f), signals.smooth(tau)
