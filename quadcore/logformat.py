@@ -203,37 +203,34 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         n = len(region)
         if n < 2 or not types_by_id:
             return np.empty(0, np.int64), np.empty(0, np.uint16), ("end" if n == 0 else "garbage"), 0
-        # the u16 at every byte offset: even offsets from one aligned view, odd from another
-        ids_at = np.empty(n - 1, dtype=np.uint16)
-        ids_at[0::2] = np.frombuffer(buf, dtype="<u2", count=n // 2, offset=data_start)
-        ids_at[1::2] = np.frombuffer(buf, dtype="<u2", count=(n - 1) // 2, offset=data_start + 1)
-        size_lut = np.zeros(65536, dtype=np.int32)
-        for eid, size in sizes.items():
-            size_lut[eid] = size
-        cand = np.flatnonzero(size_lut[ids_at] > 0)
+        # Candidate record starts: offsets holding a declared event id (two byte compares per id).
+        per_id = [np.flatnonzero((region[:-1] == (eid & 0xFF)) & (region[1:] == (eid >> 8))) for eid in sizes]
+        cand = np.sort(np.concatenate(per_id)) if len(per_id) > 1 else per_id[0]
         if len(cand) == 0 or cand[0] != 0:
             return np.empty(0, np.int64), np.empty(0, np.uint16), "garbage", 0
+        cand_ids = region[cand].astype(np.uint16) | (region[cand + 1].astype(np.uint16) << 8)
+        size_lut = np.zeros(65536, dtype=np.int64)
+        for eid, size in sizes.items():
+            size_lut[eid] = size
         m = len(cand)
         # Two sinks: END (chain hits exactly the end) and BREAK (anything else).
         END, BREAK = m, m + 1
-        node_of_offset = np.full(n + 1, BREAK, dtype=np.int32 if m + 2 < 2**31 else np.int64)
-        node_of_offset[cand] = np.arange(m)
-        node_of_offset[n] = END
-        nxt_offset = cand + size_lut[ids_at[cand]]
-        nxt = np.where(nxt_offset <= n, node_of_offset[np.minimum(nxt_offset, n)], BREAK)
+        nxt_offset = cand + size_lut[cand_ids]
+        j = np.minimum(np.searchsorted(cand, nxt_offset), m - 1)
+        nxt = np.where(cand[j] == nxt_offset, j, np.where(nxt_offset == n, END, BREAK))
         nxt = np.concatenate([nxt, [END, BREAK]])
         order = _chain(cand, nxt)
         sink = order[-1]
         nodes = order[:-1]
-        starts = cand[nodes]
+        starts, ids = cand[nodes], cand_ids[nodes]
         if sink == END:
-            return starts, ids_at[starts], "end", n
+            return starts, ids, "end", n
         if len(nodes) and nxt_offset[nodes[-1]] > n:
             # the final record runs past the end: a partial last record
-            return starts[:-1], ids_at[starts[:-1]], "partial", int(starts[-1])
+            return starts[:-1], ids[:-1], "partial", int(starts[-1])
         # the chain hit bytes that are no record: keep what came before
         stop = int(nxt_offset[nodes[-1]]) if len(nodes) else 0
-        return starts, ids_at[starts], "garbage", stop
+        return starts, ids, "garbage", stop
 
     if crc_ok is None:
         warnings.append("no CRC trailer: file is truncated; decoded what was there")
@@ -270,12 +267,20 @@ def decode_bytes(buf: bytes) -> DecodedLog:
     for eid, et in types_by_id.items():
         rec_starts = starts[ids == eid]
         dtype = et.record_dtype(version)
-        gather = rec_starts[:, None] + np.arange(dtype.itemsize)
-        records = region[gather].reshape(-1).view(dtype) if len(rec_starts) else np.empty(0, dtype)
-        payload = np.empty(len(records), dtype=et.payload_dtype())
-        for var in et.variables:
-            payload[var] = records[var]
-        tables[et.name] = payload
+        size = dtype.itemsize
+        if len(rec_starts) and len(region) >= size:
+            # every record start as a row of a strided byte matrix: one row gather, no index arrays
+            rows = np.lib.stride_tricks.as_strided(region, shape=(len(region) - size + 1, size), strides=(1, 1))
+            records = rows[rec_starts].reshape(-1).view(dtype)
+        else:
+            records = np.empty(0, dtype)
+        # the variables only: a view of the same records that skips id and timestamp
+        tables[et.name] = records.view(np.dtype({
+            "names": list(et.variables),
+            "formats": [dtype.fields[v][0] for v in et.variables],
+            "offsets": [dtype.fields[v][1] for v in et.variables],
+            "itemsize": size,
+        }))
         timestamps[et.name] = records["timestamp"].astype(np.int64) * TIMESTAMP_TO_US[version]
 
     return DecodedLog(

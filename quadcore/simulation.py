@@ -145,7 +145,7 @@ class Battery:
     sag per newton of total thrust fitted on the real logs jana00..jana11; their in-flight
     voltage is 3.27-3.58 V and falls by 2-5 mV/s."""
 
-    ocv_start_V: float = 3.95
+    ocv_start_V: float = 3.9
     ocv_rate_V_per_s: float = -0.003
     ocv_min_V: float = 3.3
     r_internal_ohm: float = 0.105
@@ -180,7 +180,7 @@ class SimConfig:
     seed: int = 0
     battery: Battery = field(default_factory=Battery)
     noise: SensorNoise = field(default_factory=SensorNoise)
-    drop_prob: float = 2.0e-4  # per sample: probability that a gap starts
+    drop_prob: float = 3.0e-4  # per sample: probability that a gap starts (~1.5 gaps per 10 s)
     drop_max_samples: int = 25  # gap length uniform in 1..this many samples (up to 50 ms)
     # Real estPose: median spacing 10.3-11.1 ms (90-97 Hz) but ~55 Hz on average (lost packets).
     mocap_rate_hz: float = 95.0

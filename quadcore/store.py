@@ -8,8 +8,9 @@ Layout (hive-style, so ``polars.scan_parquet`` and DuckDB read all flights at on
     <root>/quarantine/<flight>.json                    why a file was refused
 
 The flight id lives in the path, not in the file, so that hive partitioning adds it
-as a column without a clash. Each file's schema metadata holds, under the key
-``quadcore``, a JSON document with column units and provenance.
+as a column without a clash (pass ``hive_schema={"flight": pl.String}`` to polars so that
+an all-digit flight id stays a string). Each file's Parquet key-value metadata holds,
+under the key ``quadcore``, a JSON document with column units and provenance.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import tempfile
 from pathlib import Path
 
 import polars as pl
-import pyarrow.parquet as pq
 
 METADATA_KEY = b"quadcore"
 
@@ -52,16 +52,15 @@ def _atomic(path: Path, write) -> Path:
 
 
 def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
-    """Write ``df`` to ``path`` atomically (temp file + rename) with JSON schema metadata."""
-    table = df.to_arrow()
-    existing = table.schema.metadata or {}
-    table = table.replace_schema_metadata({**existing, METADATA_KEY: json.dumps(metadata, default=str)})
-    return _atomic(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
+    """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata."""
+    meta = {METADATA_KEY.decode(): json.dumps(metadata, default=str)}
+    return _atomic(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
 
 
 def read_metadata(path: Path) -> dict:
-    meta = pq.read_schema(path).metadata or {}
-    return json.loads(meta.get(METADATA_KEY, b"{}"))
+    """The ``quadcore`` document from a file's key-value metadata (also readable with DuckDB's
+    ``parquet_kv_metadata`` or pyarrow's ``ParquetFile(path).metadata.metadata``)."""
+    return json.loads(pl.read_parquet_metadata(path).get(METADATA_KEY.decode(), "{}"))
 
 
 def write_json(obj: dict, path: Path) -> Path:

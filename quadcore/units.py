@@ -94,6 +94,8 @@ def to_si(
     }
     for var in values.dtype.names or ():
         name, scale, unit, desc = SI_COLUMNS.get(var, (si_name(var), 1.0, "raw", "unconverted"))
-        columns[name] = values[var].astype(np.float64) * scale
+        # float32 keeps the logged precision (float32 or 16-bit values, scaled); time stays float64
+        col = values[var].astype(np.float32)
+        columns[name] = col if scale == 1.0 else col * np.float32(scale)
         units[name] = {"unit": unit, "description": desc, "source": var}
     return pl.DataFrame(columns), units
