@@ -3,15 +3,18 @@
 import dagster as dg
 
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
-from pipeline.resources import data_root_from_env, physics_model_from_env
+from pipeline.resources import data_root_from_env, model_config_from_env
 from pipeline.sensors import raw_log_sensor
 
-# Everything computed per flight partition (the sensor and the main job run these).
+# Computed per flight partition (the sensor's runs and the main job run these).
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors]
+# Computed over all flights.
+FLEET = [physics_model, model_diagnosis, error_history]
 
 defs = dg.Definitions(
-    assets=[*PER_FLIGHT],
+    assets=[*PER_FLIGHT, *FLEET],
     sensors=[raw_log_sensor],
-    resources={"data_root": data_root_from_env(), "physics": physics_model_from_env()},
+    resources={"data_root": data_root_from_env(), "model": model_config_from_env()},
 )

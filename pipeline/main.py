@@ -2,6 +2,10 @@
 
     python -m pipeline            (what ``make run`` calls)
 
+Where the raw folder holds no logs, it first simulates a small set of flights with one
+hidden effect (``DEMO_EFFECT``), so that a new user sees the whole loop: decode ->
+residuals -> fitted model -> diagnosis naming the hidden effect -> error history.
+
 It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 ``<data root>/.dagster``), so ``dagster dev`` shows these runs afterwards.
 """
@@ -13,10 +17,10 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipeline.definitions import PER_FLIGHT
+from pipeline.definitions import FLEET, PER_FLIGHT
 from pipeline.partitions import flights
-from pipeline.resources import DataRoot, PhysicsModel, data_root_from_env, physics_model_from_env
-from quadcore import flight
+from pipeline.resources import DataRoot, ModelConfig, data_root_from_env, model_config_from_env
+from quadcore import flight, store
 
 DAGSTER_YAML = """\
 # Written by `python -m pipeline`. SQLite storage: keep concurrent runs low.
@@ -27,6 +31,8 @@ telemetry:
   enabled: false
 """
 
+# The effect hidden in the demo flights, and its true parameters (SI).
+DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
 
 # Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
@@ -42,55 +48,98 @@ def ensure_dagster_home(root: Path) -> Path:
     return home
 
 
-def run_flights(
-    instance: dg.DagsterInstance, data_root: DataRoot, physics: PhysicsModel, flight_ids: list[str], log=print
-) -> dict[str, str]:
-    """Materialise the per-flight assets for each flight. Returns flight -> failure reason."""
+def simulate_demo_flights(raw: Path, log=print) -> list[Path]:
+    """The embedded default: six simulated flights with ``DEMO_EFFECT`` hidden in them."""
+    from quadcore import simulation
+
+    log(f"No logs in {raw}: simulating 6 demo flights with a hidden effect (see {raw}/*.truth.json) ...")
+    written = simulation.simulate_set(raw, simulation.default_flights(seed=0), DEMO_EFFECT)
+    return [log_path for log_path, _ in written]
+
+
+def _failure_reason(result) -> str:
+    reasons = [
+        e.step_failure_data.error.message.strip().splitlines()[0]
+        for e in result.all_events
+        if e.is_step_failure and e.step_failure_data and e.step_failure_data.error
+    ]
+    return "; ".join(reasons) or "failed"
+
+
+def materialize(assets, resources, instance, partition_key=None):
+    return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
+                          run_config=QUIET, raise_on_error=False)
+
+
+def run_flights(instance, resources: dict, flight_ids: list[str], assets, label: str, log=print) -> dict[str, str]:
+    """Materialise per-flight ``assets`` for each flight. Returns flight -> failure reason."""
     new = [f for f in flight_ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)
     failures = {}
     for i, fid in enumerate(flight_ids, 1):
         t0 = time.perf_counter()
-        result = dg.materialize(
-            PER_FLIGHT,
-            partition_key=fid,
-            instance=instance,
-            resources={"data_root": data_root, "physics": physics},
-            run_config=QUIET,
-            raise_on_error=False,
-        )
+        result = materialize(assets, resources, instance, partition_key=fid)
         if result.success:
-            log(f"[{i}/{len(flight_ids)}] {fid}: ok ({time.perf_counter() - t0:.1f} s)")
+            log(f"  [{i}/{len(flight_ids)}] {label} {fid}: ok ({time.perf_counter() - t0:.1f} s)")
         else:
-            reasons = [
-                e.step_failure_data.error.message.strip().splitlines()[0]
-                for e in result.all_events
-                if e.is_step_failure and e.step_failure_data and e.step_failure_data.error
-            ]
-            failures[fid] = "; ".join(reasons) or "failed"
-            log(f"[{i}/{len(flight_ids)}] {fid}: FAILED: {failures[fid]}")
+            failures[fid] = _failure_reason(result)
+            log(f"  [{i}/{len(flight_ids)}] {label} {fid}: FAILED: {failures[fid]}")
     return failures
+
+
+def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
+    raw = data_root.raw_path
+    logs = flight.discover_logs(raw) if raw.is_dir() else []
+    if not logs:
+        raw.mkdir(parents=True, exist_ok=True)
+        logs = simulate_demo_flights(raw, log)
+    ids = [flight.flight_id_of(p) for p in logs]
+    resources = {"data_root": data_root, "model": model}
+    root = data_root.root_path
+
+    log(f"1/3 decode and per-flight physics ({len(ids)} flights)")
+    failures = run_flights(instance, resources, ids, PER_FLIGHT, "flight", log)
+    good = [f for f in ids if f not in failures]
+    if len(good) < 2:
+        log("fewer than two flights decoded: stopping before the fleet-wide stages")
+        return 1
+    log("2/3 fit the model, diagnose, record the error history")
+    result = materialize(FLEET, resources, instance)
+    if not result.success:
+        log(f"  FAILED: {_failure_reason(result)}")
+        return 1
+    log("3/3 residuals and rollouts against the fitted model")
+    failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flight", log))
+
+    log("\nOutputs:")
+    log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")
+    log(f"  residual tables    {root / 'residuals'}/flight=<id>/data.parquet")
+    log(f"  rollout errors     {root / 'rollouts'}/flight=<id>/data.parquet")
+    log(f"  fitted model       {root / 'models' / 'physics_model.json'}")
+    log(f"  diagnosis report   {root / 'reports' / 'diagnosis.html'} (and .md, .json)")
+    log(f"  error history      {root / 'history'}/*.parquet")
+    diag = store.read_json(root / "reports" / "diagnosis.json")
+    log(f"\nDiagnosis: {diag['verdict']}")
+    if failures:
+        log(f"\n{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
+        for fid, why in failures.items():
+            log(f"  {fid}: {why}")
+    log("\nSee it in the UI:  make ui   (dagster dev on http://127.0.0.1:3000)")
+    return 0
 
 
 def main() -> int:
     data_root = data_root_from_env()
     home = ensure_dagster_home(data_root.root_path)
-    logs = flight.discover_logs(data_root.raw_path) if data_root.raw_path.is_dir() else []
-    if not logs:
-        print(f"No logs in {data_root.raw_path}. Put uSD logs there or set QUADCORE_RAW_DIR.", file=sys.stderr)
+    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}\n")
+    try:
+        model = model_config_from_env()
+        model.spec()  # a bad model file is a user error: say so before any work
+    except (ValueError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path} ({len(logs)} files)\nDagster:   {home}\n")
-    instance = dg.DagsterInstance.get()
-    failures = run_flights(instance, data_root, physics_model_from_env(), [flight.flight_id_of(p) for p in logs])
-    root = data_root.root_path
-    print(f"\nDecoded Parquet: {root / 'decoded'}/<event>/flight=<id>/data.parquet")
-    if failures:
-        print(f"{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
-        for fid, why in failures.items():
-            print(f"  {fid}: {why}")
-    print("\nSee it in the UI:  make ui   (dagster dev on http://127.0.0.1:3000)")
-    return 0 if len(failures) < len(logs) else 1
+    return run_all(data_root, model, dg.DagsterInstance.get())
 
 
 if __name__ == "__main__":

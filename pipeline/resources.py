@@ -43,24 +43,43 @@ def data_root_from_env() -> DataRoot:
     return DataRoot(root=default_data_root(), raw=default_raw_dir())
 
 
-class PhysicsModel(dg.ConfigurableResource):
-    """Which vehicle the model uses: a vehicle file path or a built-in name, and optionally
-    a thrust map that overrides the file's (``pwm_vbat`` or ``motor_speed``).
+class ModelConfig(dg.ConfigurableResource):
+    """The physics model: a model file (vehicle + effects, see ``model.toml``), or just a
+    vehicle; an optional thrust-map override; and the flights held out of fitting.
 
-    Environment: ``QUADCORE_VEHICLE``, ``QUADCORE_THRUST_MAP``.
+    Environment: ``QUADCORE_MODEL`` (default ``model.toml`` if present), ``QUADCORE_VEHICLE``,
+    ``QUADCORE_THRUST_MAP``, ``QUADCORE_HOLDOUT`` (comma-separated flight ids).
     """
 
+    model_file: str = ""
     vehicle: str = ""
     thrust_map: str = ""
+    holdout: str = ""
+
+    def spec(self):
+        from quadcore import model, vehicle
+
+        if self.model_file:
+            spec = model.load_model_file(self.model_file, vehicle_override=self.vehicle or None)
+        else:
+            spec = model.spec_from(vehicle.load(self.vehicle or None), [])
+        if self.thrust_map:
+            spec.vehicle = spec.vehicle.with_thrust_map(self.thrust_map)
+        return spec
 
     def load_vehicle(self):
-        from quadcore import vehicle
+        return self.spec().vehicle
 
-        v = vehicle.load(self.vehicle or None)
-        return v.with_thrust_map(self.thrust_map) if self.thrust_map else v
+    @property
+    def holdout_flights(self) -> list[str]:
+        return [h.strip() for h in self.holdout.split(",") if h.strip()]
 
 
-def physics_model_from_env() -> PhysicsModel:
-    return PhysicsModel(
-        vehicle=os.environ.get("QUADCORE_VEHICLE", ""), thrust_map=os.environ.get("QUADCORE_THRUST_MAP", "")
+def model_config_from_env() -> ModelConfig:
+    default_file = "model.toml" if Path("model.toml").is_file() else ""
+    return ModelConfig(
+        model_file=os.environ.get("QUADCORE_MODEL", default_file),
+        vehicle=os.environ.get("QUADCORE_VEHICLE", ""),
+        thrust_map=os.environ.get("QUADCORE_THRUST_MAP", ""),
+        holdout=os.environ.get("QUADCORE_HOLDOUT", ""),
     )

@@ -3,6 +3,7 @@
     quadcore decode LOG_OR_FOLDER... --out DIR
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
+    quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
 
@@ -13,16 +14,16 @@ non-zero; they never end in a traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-from pathlib import Path
-
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import polars as pl
 
 from quadcore import flight as flightmod
-from quadcore import logformat, residuals, store, thrustfit, vehicle
+from quadcore import diagnosis, effects, logformat, model, report, residuals, store, thrustfit, vehicle
 
 MAIN_EVENT = "fixedFrequency"
 
@@ -206,6 +207,49 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    data = Path(args.data)
+    if not data.exists():
+        raise UserError(f"no such folder: {data}")
+    veh = _vehicle(args)
+    names = [n.strip() for n in (args.effects or "").split(",") if n.strip()]
+    try:
+        spec = model.spec_from(veh, names)
+    except (effects.UnknownEffectError, model.ModelFileError) as exc:
+        raise UserError(str(exc)) from None
+    flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
+    for fid, why in quarantined.items():
+        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
+    tables = _main_tables(flights)
+    holdout = [h.strip() for h in (args.holdout or "").split(",") if h.strip()]
+    unknown = [h for h in holdout if h not in tables]
+    if unknown:
+        raise UserError(f"holdout flight(s) not found in {data}: {', '.join(unknown)}; flights: {', '.join(tables)}")
+    if holdout and len(holdout) == len(tables):
+        raise UserError("every flight is held out: nothing left to fit on")
+    log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
+    log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
+    result = diagnosis.diagnose(tables, spec, holdout or None, log=log)
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2, default=float))
+    b = result["baseline"]
+    print(f"model: {result['model']['label']}  ({result['evaluation']['mode']}, "
+          f"{len(result['evaluation']['eval_flights'])} flights evaluated)")
+    print("baseline residual RMSE  force [N]: " + " ".join(f"{v:.4f}" for v in b["force_rmse_N"])
+          + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b["torque_rmse_Nm"]))
+    print()
+    _print_table([[r["effect"], r["target"], f"{r['explained_variance']:.1%}",
+                   ", ".join(f"{k}={v:.4g}" for k, v in r["parameters"].items()),
+                   ", ".join(r["indistinguishable_from"]) or "-"] for r in result["candidates"]],
+                 ["candidate", "target", "explained", "parameters", "indistinguishable from"])
+    print(f"\n{result['verdict']}\n\nwrote {out}")
+    if args.report:
+        md, page = report.write(result, Path(args.report))
+        print(f"wrote {md} and {page}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadcore", description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
     sub = parser.add_subparsers(dest="verb", required=True)
@@ -242,6 +286,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
     p.set_defaults(func=cmd_simulate, thrust_map=None)
+
+    p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")
+    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
+    p.add_argument("--json", required=True, metavar="OUT.json")
+    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (default: none)")
+    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
+                   "cross-validation over flights)")
+    p.add_argument("--report", default=None, metavar="DIR", help="also write diagnosis.md and diagnosis.html")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_diagnose)
     return parser
 
 

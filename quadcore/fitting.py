@@ -281,3 +281,15 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     ids = sorted(flight_ids)
     k = max(1, min(k, len(ids)))
     return [ids[i::k] for i in range(k)]
+
+
+def fit_model(spec, decoded: dict, train: list[str]):
+    """Fit the effects a :class:`quadcore.model.ModelSpec` names on the ``train`` flights."""
+    from quadcore.effects import get
+    from quadcore.model import EffectTerm, PhysicsModel
+
+    fds = [flight_data(f, decoded[f], spec.vehicle) for f in train]
+    effect_list = [get(n) for n in spec.effects]
+    fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed) if effect_list else None
+    terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
+    return PhysicsModel(spec.vehicle, terms)

@@ -71,6 +71,12 @@ class PhysicsModel:
             f, tau = f + df, tau + dtau
         return f, tau
 
+    def rollout_wrench(self, state: FlightState):
+        """The effects' wrench for :func:`quadcore.propagation.rollout`, evaluated on the logged
+        state along each window (a simplification: the rollout's own state is not fed back)."""
+        f, tau = self.extra_wrench(state)
+        return lambda p, v, q, w, i: (f[i], tau[i])
+
     def residual_table(self, decoded: pl.DataFrame) -> pl.DataFrame:
         state = dynamics.flight_state(decoded, self.vehicle)
         f, tau = self.extra_wrench(state) if self.terms else (None, None)
@@ -156,3 +162,16 @@ def smoothed_wrench(effect: effects.Effect, state: FlightState, vehicle: Vehicle
     """An effect's wrench through the residuals' zero-phase smoother (so it compares with them)."""
     f, tau = effect.wrench(state, vehicle, params)
     return signals.smooth(f), signals.smooth(tau)
+
+
+def save(model: PhysicsModel, path: Path, trained_on: list[str]) -> Path:
+    from quadcore import store
+
+    return store.write_json({**model.to_dict(), "trained_on": trained_on}, path)
+
+
+def load_fitted(path: Path, vehicle: Vehicle) -> PhysicsModel:
+    """A fitted model saved by :func:`save`, on the given vehicle."""
+    import json
+
+    return PhysicsModel.from_dict(json.loads(Path(path).read_text()), vehicle)

@@ -482,7 +482,7 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     gz = -G0_MPS2
 
     # recorded arrays
-    P, V, Q, W, SF = (np.zeros((n, 3)) for _ in range(5))
+    P, V, W, SF = (np.zeros((n, 3)) for _ in range(4))
     Q = np.zeros((n, 4))
     F_MAP, F_ACT = np.zeros((n, 4)), np.zeros((n, 4))
     PWM = np.zeros((n, 4), dtype=np.int64)
@@ -624,7 +624,8 @@ def _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, k_F, n_pos, n_vel, n
 
     # motion capture: packets every 1/rate with jitter, some lost; pose interpolated + noise
     period = 1.0 / config.mocap_rate_hz
-    tm = np.arange(0.0, t[-1], period) + mocap_rng.uniform(0.0, config.mocap_jitter_s, size=len(np.arange(0.0, t[-1], period)))
+    tm = np.arange(0.0, t[-1], period)
+    tm = tm + mocap_rng.uniform(0.0, config.mocap_jitter_s, size=len(tm))
     tm = tm[(tm >= t[0]) & (tm <= t[-1])]
     tm = tm[mocap_rng.random(len(tm)) >= config.mocap_drop_prob]
     pm = np.column_stack([np.interp(tm, t, P[:, i]) for i in range(3)])

@@ -80,6 +80,18 @@ def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:
     return pl.read_parquet(decoded_path(root, event, flight))
 
 
+def decoded_flights(root: Path, event: str) -> list[str]:
+    """Flight ids that have a decoded table of ``event`` under ``root``, sorted."""
+    folder = Path(root) / "decoded" / event
+    return sorted(p.parent.name.split("=", 1)[1] for p in folder.glob("flight=*/data.parquet"))
+
+
+def read_all_decoded(root: Path, event: str, flights: list[str] | None = None) -> dict[str, pl.DataFrame]:
+    """Decoded tables of ``event`` by flight (all of them, or the ones named)."""
+    ids = decoded_flights(root, event) if flights is None else flights
+    return {f: read_decoded(root, event, f) for f in ids}
+
+
 def write_quarantine(root: Path, flight: str, source: str, reason: str, error_type: str) -> Path:
     record = {"flight": flight, "source_file": source, "reason": reason, "error_type": error_type}
     return write_json(record, quarantine_path(root, flight))
@@ -87,3 +99,7 @@ def write_quarantine(root: Path, flight: str, source: str, reason: str, error_ty
 
 def clear_quarantine(root: Path, flight: str) -> None:
     quarantine_path(root, flight).unlink(missing_ok=True)
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(Path(path).read_text())

@@ -4,22 +4,24 @@ import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.partitions import flights
-from pipeline.resources import DataRoot, PhysicsModel
+from pipeline.assets.model import current_model, physics_model
+from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight], kinds={"parquet"})
-def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, physics: PhysicsModel) -> dg.MaterializeResult:
-    """Measured minus modelled force and torque for one flight, body and world frames."""
+@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"})
+def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
+    """Measured minus modelled force and torque for one flight, body and world frames, against
+    the current model (the vehicle plus the fitted effects of the model file)."""
     fid = context.partition_key
-    vehicle = physics.load_vehicle()
+    current = current_model(data_root, model)
+    vehicle = current.vehicle
     decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    table = residuals.residual_table(decoded, vehicle)
+    table = current.residual_table(decoded)
     path = store.write_parquet(
         table,
         store.table_path(data_root.root_path, "residuals", fid),
-        {"flight": fid, "vehicle": vehicle.name, "vehicle_source": vehicle.source,
-         "thrust_map": vehicle.thrust_map_kind, "units": residuals.column_units(table)},
+        {"flight": fid, "model": current.to_dict(), "units": residuals.column_units(table)},
     )
     stats = residuals.summary(table)
     png = plots.model_vs_measured(table, f"{fid}: model vs measured (body frame)")
@@ -27,6 +29,7 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, physi
         metadata={
             **{k: dg.MetadataValue.float(v) for k, v in stats.items()},
             "rows": table.height,
+            "model": current.label,
             "vehicle": vehicle.name,
             "thrust_map": vehicle.thrust_map_kind,
             "model_vs_measured": dg.MetadataValue.md(plots.markdown_image(png, "model vs measured")),
@@ -35,15 +38,17 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, physi
     )
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight], kinds={"parquet"})
-def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, physics: PhysicsModel) -> dg.MaterializeResult:
-    """Open-loop error growth of the model from the logged state, per horizon."""
+@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"})
+def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
+    """Open-loop error growth of the current model from the logged state, per horizon."""
     fid = context.partition_key
-    vehicle = physics.load_vehicle()
+    current = current_model(data_root, model)
+    vehicle = current.vehicle
     decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    growth = propagation.error_growth(dynamics.flight_state(decoded, vehicle), vehicle)
+    state = dynamics.flight_state(decoded, vehicle)
+    growth = propagation.error_growth(state, vehicle, extra_wrench=current.rollout_wrench(state) if current.terms else None)
     path = store.write_parquet(
-        growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "vehicle": vehicle.name}
+        growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
     )
     ends = propagation.horizon_summary(growth)
     meta = {}

@@ -8,19 +8,24 @@ exact discretisation at the median sample period.
 """
 
 import numpy as np
-from scipy.signal import lfilter
+from scipy.signal import lfilter, lfilter_zi
 
 from quadcore import dynamics
 from quadcore.effects.base import Effect, Parameter, body_z
 
 
 def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Filter columns of ``x`` through ``1 / (tau s + 1)``, starting at steady state."""
+    """Filter columns of ``x`` through ``1 / (tau s + 1)``, starting at steady state.
+
+    Causal, zero-order hold: a command logged at sample k acts from sample k + 1,
+    ``y[k+1] = a y[k] + (1 - a) x[k]`` with ``a = exp(-dt / tau)``.
+    """
     if tau_s <= 0 or len(x) < 2:
         return x.copy()
     dt = float(np.median(np.diff(t_s)))
     a = np.exp(-dt / tau_s)
-    y, _ = lfilter([1 - a], [1, -a], x, axis=0, zi=a * x[:1])
+    b, den = [0.0, 1.0 - a], [1.0, -a]
+    y, _ = lfilter(b, den, x, axis=0, zi=lfilter_zi(b, den)[:, None] * x[:1])
     return y
 
 

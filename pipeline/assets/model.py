@@ -1,0 +1,101 @@
+"""Stage 3: the physics model (vehicle + fitted effects), its diagnosis, and the history of
+its errors. Fan-in over all decoded flights."""
+
+import json
+
+import dagster as dg
+import polars as pl
+
+from pipeline.assets.decode import MAIN_EVENT, decoded_flight
+from pipeline.resources import DataRoot, ModelConfig
+from quadcore import diagnosis, fitting, history, plots, report, store
+from quadcore import model as modelmod
+
+ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
+
+
+def fitted_model_path(data_root: DataRoot):
+    return data_root.root_path / "models" / "physics_model.json"
+
+
+@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"})
+def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
+    """The model file's effects, fitted on the training flights (all decoded flights but the holdout)."""
+    spec = model.spec()
+    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    train = [f for f in decoded if f not in model.holdout_flights]
+    if not train:
+        raise dg.Failure(description=f"no decoded flights to fit on in {data_root.root_path / 'decoded'}")
+    context.log.info(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
+    fitted = fitting.fit_model(spec, decoded, train)
+    path = modelmod.save(fitted, fitted_model_path(data_root), train)
+    params = [{"effect": t.name, "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
+              for t in fitted.terms for k, v in t.params.items()]
+    return dg.MaterializeResult(metadata={
+        "model": fitted.label,
+        "effects": dg.MetadataValue.json(fitted.effect_names),
+        "parameters": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
+        "trained_on": len(train),
+        "model_file": spec.source or "(none: nominal)",
+        "path": dg.MetadataValue.path(str(path)),
+    })
+
+
+def current_model(data_root: DataRoot, model: ModelConfig):
+    """The fitted model if it matches the model file's effects, else the nominal vehicle."""
+    spec = model.spec()
+    path = fitted_model_path(data_root)
+    if path.is_file():
+        fitted = modelmod.load_fitted(path, spec.vehicle)
+        if fitted.effect_names == spec.effects:
+            return fitted
+    return modelmod.PhysicsModel(spec.vehicle, [])
+
+
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"html"})
+def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
+    """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
+    held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
+    spec = model.spec()
+    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    if len(decoded) < 2:
+        raise dg.Failure(description="the diagnosis needs at least two decoded flights (one to fit, one to score)")
+    result = diagnosis.diagnose(decoded, spec, model.holdout_flights or None, log=context.log.info)
+    out = data_root.root_path / "reports"
+    store.write_json(result, out / "diagnosis.json")
+    b = result["baseline"]
+    history.record(data_root.root_path, "diagnosis", result["model"]["label"], b["force_rmse_N"], b["torque_rmse_Nm"],
+                   spec.effects, {e["name"]: e["params"] for e in result["model"]["effects"]},
+                   result["evaluation"]["mode"], result["evaluation"]["eval_flights"])
+    md, page = report.write(result, out, history.read(data_root.root_path))
+    top = result["candidates"][:5]
+    return dg.MaterializeResult(metadata={
+        "verdict": dg.MetadataValue.md(result["verdict"]),
+        "model": result["model"]["label"],
+        **{f"force_rmse_{a}_N": dg.MetadataValue.float(v) for a, v in zip("xyz", b["force_rmse_N"])},
+        **{f"torque_rmse_{a}_Nm": dg.MetadataValue.float(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
+        "candidates": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame([
+            {"effect": r["effect"], "target": r["target"], "explained": r["explained_variance"],
+             "parameters": json.dumps({k: round(v, 6) for k, v in r["parameters"].items()}),
+             "alike": ", ".join(r["indistinguishable_from"])} for r in top]))),
+        "candidates_plot": dg.MetadataValue.md(plots.markdown_image(report.candidates_plot(result), "candidates")),
+        "regimes_plot": dg.MetadataValue.md(plots.markdown_image(report.regimes_plot(result), "regimes")),
+        "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
+        "report": dg.MetadataValue.path(str(page)),
+    })
+
+
+@dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"})
+def error_history(data_root: DataRoot) -> dg.MaterializeResult:
+    """Every evaluation so far, oldest first: the error of nominal -> +effect -> ... -> +learned."""
+    hist = history.read(data_root.root_path)
+    if hist.height == 0:
+        return dg.MaterializeResult(metadata={"evaluations": 0})
+    last = hist.row(-1, named=True)
+    return dg.MaterializeResult(metadata={
+        "evaluations": hist.height,
+        "latest_model": last["model_label"],
+        **{c: dg.MetadataValue.float(last[c]) for c in history.RMSE_COLUMNS},
+        "history_plot": dg.MetadataValue.md(plots.markdown_image(report.history_plot(hist), "history")),
+        "folder": dg.MetadataValue.path(str(history.history_dir(data_root.root_path))),
+    })

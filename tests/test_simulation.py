@@ -1,0 +1,329 @@
+"""The simulator: real-format logs, realistic statistics, determinism, and the residual contract
+(an effect switched on in the simulator shows up in the residuals as that effect's wrench)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from quadcore import cli, dynamics, effects, flight, logformat, residuals, signals, simulation, trajectories, vehicle
+from quadcore.simulation import SimConfig
+
+# Measured on the real logs (jana00..jana33) in steady hover: |v| < 0.1 m/s, z > 0.2 m, in
+# 61-sample windows away from gaps (15 flights have enough hover). Noise = std of the signal
+# minus its ``signals.smooth`` trend, times 1/sqrt(1 - h0) = 1.038 (the share of white noise
+# the 31-sample quadratic Savitzky-Golay trend absorbs), median over flights.
+REAL_HOVER_ACC_NOISE_G = np.array([0.0050, 0.0065, 0.0051])
+REAL_HOVER_GYRO_NOISE_DPS = np.array([0.70, 0.74, 0.29])
+# Per-motor mean PWM in hover over the real flights: 43840 .. 54262 (vbat 3.29-3.70 V).
+REAL_HOVER_PWM = (43000, 55000)
+# In-flight battery voltage of the real logs: 3.25 .. 3.61 V (jana20..33 stuck at 3.70 V).
+REAL_VBAT_V = (3.2, 3.9)
+# The header of every real log, as parse_header reads it.
+REAL_FIXED_FREQUENCY_VARIABLES = (
+    "stateEstimate.x", "stateEstimate.y", "stateEstimate.z", "stateEstimate.qx", "stateEstimate.qy",
+    "stateEstimate.qz", "stateEstimate.qw", "stateEstimate.vx", "stateEstimate.vy", "stateEstimate.vz",
+    "gyro.x", "gyro.y", "gyro.z", "acc.x", "acc.y", "acc.z", "rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4",
+    "pwm.m1_pwm", "pwm.m2_pwm", "pwm.m3_pwm", "pwm.m4_pwm", "pm.vbatMV",
+)
+REAL_FIXED_FREQUENCY_TYPES = "ffffffffffffffffHHHHHHHIH"
+REAL_EST_POSE_VARIABLES = ("locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qx", "locSrv.qy", "locSrv.qz", "locSrv.qw")
+SMOOTH_DE_NOISE = 1.0 / np.sqrt(1.0 - 0.07270704823541138)
+
+VEHICLE = vehicle.load()
+F_COLS = residuals.F_RES_B
+TAU_COLS = residuals.TAU_RES_B
+
+
+def _random(seed: int, duration: float = 8.0, **kw) -> SimConfig:
+    kw = {"speed_min_mps": 0.5, "speed_max_mps": 1.5, **kw}
+    return SimConfig(kind="random", duration_s=duration, seed=seed, **kw)
+
+
+def _fly(tmp_path, config: SimConfig, effs: dict | None = None, name: str = "sim"):
+    """Simulate, write, decode. Returns (SimFlight, decoded fixedFrequency table, log path)."""
+    sim = simulation.simulate(config, VEHICLE, effs or {})
+    path = tmp_path / name
+    simulation.write_flight(sim, path)
+    fl = flight.decode_flight(path)
+    return sim, fl, path
+
+
+def _compare(df, sim):
+    """Residuals of the decoded flight and the sum of the true effects' wrenches on it (smoothed
+    as the residuals are). Returns (f_res, tau_res, f_eff, tau_eff), rows away from gaps/edges."""
+    table = residuals.residual_table(df, VEHICLE)
+    state = dynamics.flight_state(df, VEHICLE)
+    f_eff, tau_eff = np.zeros((state.n, 3)), np.zeros((state.n, 3))
+    for name, params in sim.effects.items():
+        f, tau = effects.get(name).wrench(state, VEHICLE, params)
+        f_eff += f
+        tau_eff += tau
+    ok = ~table["near_gap"].to_numpy()
+    ok[:50] = ok[-50:] = False  # filter edges
+    return (table.select(F_COLS).to_numpy()[ok], table.select(TAU_COLS).to_numpy()[ok],
+            signals.smooth(f_eff)[ok], signals.smooth(tau_eff)[ok])
+
+
+def _assert_matches(res: np.ndarray, eff: np.ndarray, label: str, min_corr: float = 0.9, max_rel: float = 0.2):
+    rms_eff = float(np.sqrt(np.mean(eff**2)))
+    rms_diff = float(np.sqrt(np.mean((res - eff) ** 2)))
+    corr = float(np.corrcoef(res, eff)[0, 1])
+    assert rms_eff > 0, f"{label}: the effect is zero on this flight"
+    assert corr > min_corr, f"{label}: corr(residual, wrench) = {corr:.3f}"
+    assert rms_diff < max_rel * rms_eff, f"{label}: rms(residual - wrench) {rms_diff:.2e} vs rms(wrench) {rms_eff:.2e}"
+
+
+# ---------------------------------------------------------------------------------------
+# Format and statistics
+# ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def hover(tmp_path_factory):
+    return _fly(tmp_path_factory.mktemp("hover"), SimConfig(kind="hover", duration_s=6.0, seed=11))
+
+
+def test_log_has_the_real_header_and_rates(hover):
+    sim, fl, path = hover
+    log = logformat.decode_file(path)
+    assert log.version == 2 and log.crc_ok is True and not log.warnings
+    ff, ep = log.event_types["fixedFrequency"], log.event_types["estPose"]
+    assert ff.event_id == 0xFFFF and ep.event_id == 8
+    assert ff.variables == REAL_FIXED_FREQUENCY_VARIABLES
+    assert "".join(ff.type_chars) == REAL_FIXED_FREQUENCY_TYPES
+    assert ep.variables == REAL_EST_POSE_VARIABLES and set(ep.type_chars) == {"f"}
+    stats = flight.sample_statistics(fl.tables["fixedFrequency"]["t_s"].to_numpy())
+    assert abs(stats["rate_hz_median"] - 500) < 5
+    assert abs(stats["duration_s"] - 6.0) < 0.01
+    pose = flight.sample_statistics(fl.tables["estPose"]["t_s"].to_numpy())
+    assert 80 < pose["rate_hz_median"] < 110  # real: 90-97 Hz median, ~55 Hz on average
+    assert 40 < fl.tables["estPose"].height / stats["duration_s"] < 75
+
+
+def test_header_equals_a_real_logs_header(real_logs):
+    _, types, _ = logformat.parse_header((real_logs / "jana00").read_bytes())
+    assert sorted(types.values(), key=lambda e: e.event_id) == sorted(simulation.LOG_EVENT_TYPES, key=lambda e: e.event_id)
+
+
+def test_statistics_look_like_the_real_logs(hover):
+    sim, fl, _ = hover
+    df = fl.tables["fixedFrequency"]
+    steady = df["t_s"].to_numpy() > 2.5  # after the take-off
+    for cols, scale, real in (
+        (dynamics.cols("sf_b", "mps2"), 1 / 9.80665, REAL_HOVER_ACC_NOISE_G),
+        (dynamics.cols("omega_b", "radps"), 180 / np.pi, REAL_HOVER_GYRO_NOISE_DPS),
+    ):
+        x = df.select(cols).to_numpy()
+        noise = ((x - signals.smooth(x))[steady] * SMOOTH_DE_NOISE * scale).std(axis=0)
+        assert np.all(noise > real / 2) and np.all(noise < real * 2), (cols, noise, real)
+    pwm = df.select([f"pwm_{i}" for i in range(1, 5)]).to_numpy()[steady] * 65535
+    assert np.all((pwm.mean(axis=0) > REAL_HOVER_PWM[0]) & (pwm.mean(axis=0) < REAL_HOVER_PWM[1]))
+    vbat = df["vbat_V"].to_numpy()
+    assert REAL_VBAT_V[0] < vbat.min() and vbat.max() < REAL_VBAT_V[1] and vbat.std() > 0
+    acc_z_g = df["sf_b_z_mps2"].to_numpy()[steady].mean() / 9.80665
+    assert abs(acc_z_g - 1.0) < 0.01
+    rpm = df.select([f"motor_{i}_radps" for i in range(1, 5)]).to_numpy()[steady] * 60 / (2 * np.pi)
+    assert np.all((rpm.mean(axis=0) > 15000) & (rpm.mean(axis=0) < 21000))  # real hover: 15200-19900
+    z = df["p_w_z_m"].to_numpy()[steady]
+    assert abs(z.mean() - 0.5) < 0.01
+
+
+def test_actuation_chain_is_reproduced_by_the_log(hover):
+    sim, fl, _ = hover
+    df = fl.tables["fixedFrequency"]
+    state = dynamics.flight_state(df, VEHICLE)
+    kept = sim.kept
+    # logged PWM + logged vbat through the thrust map = the thrust the rotors made (no effect on);
+    # exact up to the float32 the decoded SI tables are stored in
+    np.testing.assert_allclose(state.f_rotor_N, sim.f_actual_N[kept], rtol=1e-6, atol=1e-9)
+    # motor speed: f = k_F omega^2 with the actual thrust (15 rpm noise, 1 rpm rounding)
+    rpm_expected = np.sqrt(sim.f_actual_N[kept] / VEHICLE.motor_speed.k_F_N_per_radps2) * 60 / (2 * np.pi)
+    rpm = state.motor_radps * 60 / (2 * np.pi)
+    assert np.abs(rpm - rpm_expected).max() < 100
+    assert 5 < (rpm - rpm_expected).std() < 30
+
+
+def test_dropped_samples_make_gaps():
+    config = SimConfig(kind="hover", duration_s=6.0, seed=3, drop_prob=2e-3, drop_max_samples=20)
+    sim = simulation.simulate(config, VEHICLE)
+    log = logformat.decode_bytes(sim.data)
+    dt_us = np.diff(log.timestamps_us["fixedFrequency"])
+    assert len(dt_us) + 1 == sim.kept.sum() < len(sim.t_s)
+    assert dt_us.max() > 2000 and dt_us.max() <= 21 * 2000
+    assert set(np.unique(dt_us) % 2000) == {0}
+    quiet = simulation.simulate(replace(config, drop_prob=0.0), VEHICLE)
+    assert quiet.kept.all()
+
+
+# ---------------------------------------------------------------------------------------
+# Determinism
+# ---------------------------------------------------------------------------------------
+
+def test_same_seed_same_bytes_other_seed_differs():
+    eff = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}
+    a = simulation.simulate(_random(5, duration=3.0), VEHICLE, eff)
+    b = simulation.simulate(_random(5, duration=3.0), VEHICLE, eff)
+    c = simulation.simulate(_random(6, duration=3.0), VEHICLE, eff)
+    assert a.data == b.data
+    assert a.data != c.data
+
+
+# ---------------------------------------------------------------------------------------
+# The residual contract
+# ---------------------------------------------------------------------------------------
+
+def test_no_effect_residuals_are_at_noise_level(tmp_path):
+    sim, fl, _ = _fly(tmp_path, _random(1))
+    f_res, tau_res, _, _ = _compare(fl.tables["fixedFrequency"], sim)
+    weight = VEHICLE.weight_N
+    assert np.all(np.abs(f_res.mean(axis=0)) < 2e-4), f_res.mean(axis=0)  # < 0.06% of the weight
+    assert np.all(np.sqrt(np.mean(f_res**2, axis=0)) < 1.5e-3), np.sqrt(np.mean(f_res**2, axis=0))
+    assert np.all(np.sqrt(np.mean(f_res**2, axis=0)) < 0.005 * weight)
+    assert np.all(np.abs(tau_res.mean(axis=0)) < 5e-6), tau_res.mean(axis=0)
+    assert np.all(np.sqrt(np.mean(tau_res**2, axis=0)) < 1e-4)
+
+
+EFFECT_CASES = {
+    # name: (config, params, [(target, axes)])
+    "rotor_drag": (_random(1), {"k_x_s_per_m": 0.6, "k_y_s_per_m": 0.5}, [("force", (0, 1))]),
+    "parasitic_drag": (_random(1, speed_min_mps=0.8), {"c_xy_kg_per_m": 0.02, "c_z_kg_per_m": 0.03},
+                       [("force", (0, 1, 2))]),
+    "ground_effect": (SimConfig(kind="low_pass", duration_s=10.0, low_pass_height_m=0.04, seed=2),
+                      {"k_ge": 15.0}, [("force", (2,))]),
+    "motor_lag": (_random(3, speed_min_mps=0.8), {"tau_s": 0.04}, [("force", (2,)), ("torque", (0, 1, 2))]),
+    "com_offset": (_random(4), {"x_c_m": 0.003, "y_c_m": -0.002}, [("torque", (0, 1))]),
+    "thrust_scale": (_random(5), {"scale": 0.9}, [("force", (2,))]),
+    "added_mass": (_random(6), {"m_p_kg": 0.005}, [("force", (2,))]),
+    "wind": (_random(7), {"k_s_per_m": 0.5, "w_x_mps": 1.0, "w_y_mps": -0.5}, [("force", (0, 1))]),
+}
+
+
+@pytest.mark.parametrize("name", list(EFFECT_CASES))
+def test_each_effect_shows_up_as_its_wrench(tmp_path, name):
+    config, params, checks = EFFECT_CASES[name]
+    sim, fl, _ = _fly(tmp_path, config, {name: params})
+    f_res, tau_res, f_eff, tau_eff = _compare(fl.tables["fixedFrequency"], sim)
+    for target, axes in checks:
+        res, eff = (f_res, f_eff) if target == "force" else (tau_res, tau_eff)
+        for a in axes:
+            _assert_matches(res[:, a], eff[:, a], f"{name} {target} {'xyz'[a]}")
+    # and nothing where the effect does not act (at noise level)
+    if all(target == "force" for target, _ in checks) and name not in ("thrust_scale",):
+        assert np.all(np.sqrt(np.mean(tau_res**2, axis=0)) < 1e-4)
+    if all(target == "torque" for target, _ in checks):
+        assert np.all(np.sqrt(np.mean(f_res**2, axis=0)) < 1.5e-3)
+
+
+def test_added_mass_is_true_mass_in_the_dynamics(tmp_path):
+    sim = simulation.simulate(SimConfig(kind="hover", duration_s=4.0, seed=1), VEHICLE, {"added_mass": {"m_p_kg": 0.01}})
+    assert sim.true_mass_kg == pytest.approx(VEHICLE.mass_kg + 0.01)
+    steady = sim.t_s > 2.5
+    thrust = sim.f_actual_N[steady].sum(axis=1).mean()
+    assert thrust == pytest.approx(sim.true_mass_kg * 9.80665, rel=0.01)  # it must carry the payload
+    assert sim.sf_true[steady, 2].mean() == pytest.approx(9.80665, rel=0.01)  # accelerometer reads 1 g
+
+
+def test_gusting_wind_still_matches_on_average(tmp_path):
+    config = _random(9, wind_gust_std_mps=0.3, wind_gust_tau_s=1.0)
+    params = {"k_s_per_m": 0.5, "w_x_mps": 0.8, "w_y_mps": 0.0}
+    sim, fl, _ = _fly(tmp_path, config, {"wind": params})
+    assert sim.wind_w_mps[:, 0].std() > 0.05  # the wind really gusts
+    f_res, _, f_eff, _ = _compare(fl.tables["fixedFrequency"], sim)
+    _assert_matches(f_res[:, 0], f_eff[:, 0], "gusty wind x", min_corr=0.8, max_rel=0.6)
+
+
+def test_two_effects_compose(tmp_path):
+    effs = {"rotor_drag": {"k_x_s_per_m": 0.6, "k_y_s_per_m": 0.5}, "com_offset": {"x_c_m": 0.003, "y_c_m": -0.002}}
+    sim, fl, _ = _fly(tmp_path, _random(8), effs)
+    f_res, tau_res, f_eff, tau_eff = _compare(fl.tables["fixedFrequency"], sim)
+    for a in (0, 1):
+        _assert_matches(f_res[:, a], f_eff[:, a], f"composed force {'xyz'[a]}")
+        _assert_matches(tau_res[:, a], tau_eff[:, a], f"composed torque {'xyz'[a]}")
+
+
+# ---------------------------------------------------------------------------------------
+# Truth files, sets, references
+# ---------------------------------------------------------------------------------------
+
+def test_simulate_set_writes_logs_and_truth(tmp_path):
+    configs = [SimConfig(kind="hover", duration_s=1.5, seed=s) for s in (0, 1)]
+    eff = {"thrust_scale": {"scale": 0.95}}
+    written = simulation.simulate_set(tmp_path, configs, eff, VEHICLE)
+    assert [p.name for p, _ in written] == ["sim000", "sim001"]
+    assert flight.discover_logs(tmp_path) == [tmp_path / "sim000", tmp_path / "sim001"]  # sidecars skipped
+    truth = json.loads((tmp_path / "sim001.truth.json").read_text())
+    assert truth["effects"] == {"thrust_scale": {"scale": 0.95}}
+    assert truth["vehicle"] == "crazyflie21" and truth["seed"] == 1 and truth["true_mass_kg"] == VEHICLE.mass_kg
+    assert SimConfig.from_dict(truth["config"]) == replace(configs[1], name="sim001")
+
+
+def test_default_flights_are_varied_and_fast():
+    configs = simulation.default_flights(0)
+    kinds = [c.kind for c in configs]
+    assert {"figure8", "circle0", "yaw0", "random", "low_pass"} <= set(kinds)
+    assert sum(simulation.flight_duration(c) for c in configs) < 80
+    low = next(c for c in configs if c.kind == "low_pass")
+    ref = simulation.build_reference(low, np.arange(0, simulation.flight_duration(low), 0.002), np.random.default_rng(0))
+    assert 0.03 <= ref.p_w_m[:, 2].min() <= 0.08
+    fast = max((c for c in configs if c.kind == "random"), key=lambda c: c.speed_max_mps)
+    ref = simulation.build_reference(fast, np.arange(0, 10, 0.002), np.random.default_rng(fast.seed))
+    assert np.linalg.norm(ref.v_w_mps, axis=1).max() > 1.0
+
+
+def test_plan_reference_is_relative_in_position_absolute_in_yaw_and_time_scaled():
+    plan = trajectories.load_plan("circle0")
+    assert plan.duration_s == pytest.approx(2.0)
+    t = np.arange(0, 15, 0.002)
+    ref = trajectories.plan_reference(t, plan, height_m=0.4, timescale=3.0, start_height_m=0.1, takeoff_s=2.0, hover_s=1.0)
+    start = np.searchsorted(t, 3.0)
+    np.testing.assert_allclose(ref.p_w_m[start], [0, 0, 0.4], atol=1e-6)  # plan starts at the hover point
+    speed = np.linalg.norm(ref.v_w_mps, axis=1).max()
+    raw_speed = np.linalg.norm(plan.evaluate(np.linspace(0, 2, 4001), 1)[:, :3], axis=1).max()
+    assert speed == pytest.approx(raw_speed / 3.0, rel=0.01)
+    yaw = trajectories.load_plan("yaw0")
+    assert yaw.evaluate(np.zeros(1))[0, 3] == pytest.approx(1.26012)  # absolute yaw, radians
+    assert trajectories.load_plan("figure8").duration_s == pytest.approx(7.283185)
+
+
+# ---------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------
+
+def _run(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_cli_simulate_writes_logs_and_truth(tmp_path):
+    out = tmp_path / "sims"
+    code, stdout, _ = _run(["simulate", "--out", str(out), "--kind", "hover", "--duration", "2", "--flights", "2",
+                            "--effect", "rotor_drag:k_x_s_per_m=0.3,k_y_s_per_m=0.2", "--seed", "4"])
+    assert code == 0
+    assert sorted(p.name for p in out.iterdir()) == ["sim000", "sim000.truth.json", "sim001", "sim001.truth.json"]
+    assert str(out.resolve()) in stdout and "truth.json" in stdout
+    truth = json.loads((out / "sim000.truth.json").read_text())
+    assert truth["effects"] == {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.2}}
+    assert truth["seed"] == 4 and truth["config"]["kind"] == "hover"
+    fl = flight.decode_flight(out / "sim001")
+    assert fl.tables["fixedFrequency"].height > 900
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("bogus:x=1", "unknown effect 'bogus'"),
+    ("rotor_drag:k=1", "has no parameter 'k'"),
+    ("rotor_drag:k_x_s_per_m=fast", "must be a number"),
+    ("rotor_drag", "needs parameters"),
+])
+def test_cli_simulate_bad_effect_is_a_user_error(tmp_path, spec, message):
+    code, _, stderr = _run(["simulate", "--out", str(tmp_path / "x"), "--kind", "hover", "--duration", "1",
+                            "--effect", spec])
+    assert code == 2
+    assert message in stderr and "Traceback" not in stderr
+    assert not (tmp_path / "x").exists()
