@@ -22,3 +22,4 @@ ui:
 
 bench:
 	$(PYTHON) benchmarks/bench_decode.py
+	$(PYTHON) benchmarks/bench_physics.py

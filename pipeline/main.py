@@ -20,7 +20,7 @@ import dagster as dg
 from pipeline.definitions import FLEET, PER_FLIGHT
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig, data_root_from_env, model_config_from_env
-from quadcore import flight, store
+from quadcore import flight, history, store
 
 DAGSTER_YAML = """\
 # Written by `python -m pipeline`. SQLite storage: keep concurrent runs low.
@@ -88,10 +88,30 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
     return failures
 
 
+def _suggestion(diag: dict) -> str | None:
+    """The top candidate if the diagnosis found one that explains something."""
+    from quadcore.diagnosis import MIN_EXPLAINED
+
+    useful = [r for r in diag["candidates"] if r["explained_variance"] >= MIN_EXPLAINED and r["physical"]]
+    return useful[0]["effect"] if useful else None
+
+
+def _print_history(root: Path, log) -> None:
+    hist = history.read(root)
+    if hist.height == 0:
+        return
+    log("\nError history (held-out residual RMSE, force N / torque mN m):")
+    for row in hist.tail(8).iter_rows(named=True):
+        f = " ".join(f"{row[f'force_rmse_{a}_N']:.4f}" for a in "xyz")
+        t = " ".join(f"{row[f'torque_rmse_{a}_Nm'] * 1e3:.4f}" for a in "xyz")
+        log(f"  {row['evaluated_at']:%Y-%m-%d %H:%M:%S}  {row['model_label']:<32} force {f}   torque {t}")
+
+
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
     raw = data_root.raw_path
     logs = flight.discover_logs(raw) if raw.is_dir() else []
-    if not logs:
+    demo = not logs
+    if demo:
         raw.mkdir(parents=True, exist_ok=True)
         logs = simulate_demo_flights(raw, log)
     ids = [flight.flight_id_of(p) for p in logs]
@@ -109,6 +129,22 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     if not result.success:
         log(f"  FAILED: {_failure_reason(result)}")
         return 1
+    diag = store.read_json(root / "reports" / "diagnosis.json")
+    log(f"  {diag['verdict']}")
+    suggested = _suggestion(diag)
+    if demo and suggested:
+        # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
+        names = [*model.spec().effects, suggested]
+        log(f"2b  demo: adding {suggested!r} to the model (as a user would in model.toml) and diagnosing again")
+        model = ModelConfig(model_file=model.model_file, vehicle=model.vehicle, thrust_map=model.thrust_map,
+                            effects=",".join(names), holdout=model.holdout)
+        resources["model"] = model
+        result = materialize(FLEET, resources, instance)
+        if not result.success:
+            log(f"  FAILED: {_failure_reason(result)}")
+            return 1
+        diag = store.read_json(root / "reports" / "diagnosis.json")
+        log(f"  {diag['verdict']}")
     log("3/3 residuals and rollouts against the fitted model")
     failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flight", log))
 
@@ -119,8 +155,9 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     log(f"  fitted model       {root / 'models' / 'physics_model.json'}")
     log(f"  diagnosis report   {root / 'reports' / 'diagnosis.html'} (and .md, .json)")
     log(f"  error history      {root / 'history'}/*.parquet")
-    diag = store.read_json(root / "reports" / "diagnosis.json")
-    log(f"\nDiagnosis: {diag['verdict']}")
+    _print_history(root, log)
+    if suggested and not demo:
+        log(f"\nNext step: add {suggested!r} to `effects` in {model.model_file or 'model.toml'} and run again.")
     if failures:
         log(f"\n{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
         for fid, why in failures.items():

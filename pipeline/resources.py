@@ -48,12 +48,14 @@ class ModelConfig(dg.ConfigurableResource):
     vehicle; an optional thrust-map override; and the flights held out of fitting.
 
     Environment: ``QUADCORE_MODEL`` (default ``model.toml`` if present), ``QUADCORE_VEHICLE``,
-    ``QUADCORE_THRUST_MAP``, ``QUADCORE_HOLDOUT`` (comma-separated flight ids).
+    ``QUADCORE_THRUST_MAP``, ``QUADCORE_EFFECTS`` (comma-separated: replaces the file's effect
+    list), ``QUADCORE_HOLDOUT`` (comma-separated flight ids).
     """
 
     model_file: str = ""
     vehicle: str = ""
     thrust_map: str = ""
+    effects: str = ""
     holdout: str = ""
 
     def spec(self):
@@ -63,6 +65,9 @@ class ModelConfig(dg.ConfigurableResource):
             spec = model.load_model_file(self.model_file, vehicle_override=self.vehicle or None)
         else:
             spec = model.spec_from(vehicle.load(self.vehicle or None), [])
+        if self.effects:
+            names = [n.strip() for n in self.effects.split(",") if n.strip()]
+            spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
         if self.thrust_map:
             spec.vehicle = spec.vehicle.with_thrust_map(self.thrust_map)
         return spec
@@ -81,5 +86,6 @@ def model_config_from_env() -> ModelConfig:
         model_file=os.environ.get("QUADCORE_MODEL", default_file),
         vehicle=os.environ.get("QUADCORE_VEHICLE", ""),
         thrust_map=os.environ.get("QUADCORE_THRUST_MAP", ""),
+        effects=os.environ.get("QUADCORE_EFFECTS", ""),
         holdout=os.environ.get("QUADCORE_HOLDOUT", ""),
     )
