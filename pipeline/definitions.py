@@ -3,13 +3,14 @@
 import dagster as dg
 
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.export import flight_mcap
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import data_root_from_env, model_config_from_env
 from pipeline.sensors import raw_log_sensor
 
 # Computed per flight partition (the sensor's runs and the main job run these).
-PER_FLIGHT = [decoded_flight, residual_table, rollout_errors]
+PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
 # Computed over all flights.
 FLEET = [physics_model, model_diagnosis, error_history]
 

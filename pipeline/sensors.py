@@ -55,7 +55,7 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
     )
 
 
-PER_FLIGHT = dg.AssetSelection.groups("decode", "physics")
+PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export")
 
 
 @dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=dg.DefaultSensorStatus.RUNNING)

@@ -3,6 +3,7 @@
     quadcore decode LOG_OR_FOLDER... --out DIR
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
+    quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
@@ -23,7 +24,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import flight as flightmod
-from quadcore import diagnosis, effects, logformat, model, report, residuals, store, thrustfit, vehicle
+from quadcore import diagnosis, effects, export, logformat, model, report, residuals, store, thrustfit, vehicle
 
 MAIN_EVENT = "fixedFrequency"
 
@@ -207,6 +208,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    veh = _vehicle(args)
+    flights, _ = load_flights(args.paths, None)
+    out = Path(args.out)
+    for fid, df in _main_tables(flights).items():
+        table = residuals.residual_table(df, veh)
+        src = next(f.provenance["source_file"] for f in flights if f.flight_id == fid)
+        start_ns = export.anchor_from_file(src, float(table["t_s"][-1]))
+        counts = export.write_mcap(table, out / f"{fid}.mcap", start_ns, {"flight": fid, "vehicle": veh.name})
+        print(f"{out / f'{fid}.mcap'}: {sum(counts.values())} messages on {len(counts)} topics")
+    return 0
+
+
 def cmd_diagnose(args: argparse.Namespace) -> int:
     data = Path(args.data)
     if not data.exists():
@@ -286,6 +300,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
     p.set_defaults(func=cmd_simulate, thrust_map=None)
+
+    p = sub.add_parser("export", help="flights as MCAP for Foxglove (pose, IMU, motors, model vs measured)")
+    p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
+    p.add_argument("--out", required=True, metavar="DIR")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")
     p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")

@@ -80,6 +80,10 @@ def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:
     return pl.read_parquet(decoded_path(root, event, flight))
 
 
+def read_table(root: Path, stage: str, flight: str) -> pl.DataFrame:
+    return pl.read_parquet(table_path(root, stage, flight))
+
+
 def decoded_flights(root: Path, event: str) -> list[str]:
     """Flight ids that have a decoded table of ``event`` under ``root``, sorted."""
     folder = Path(root) / "decoded" / event
