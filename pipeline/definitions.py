@@ -7,15 +7,24 @@ from pipeline.assets.export import flight_mcap
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import data_root_from_env, model_config_from_env
-from pipeline.sensors import raw_log_sensor
+from pipeline.sensors import QUARANTINE, raw_log_sensor
 
 # Computed per flight partition (the sensor's runs and the main job run these).
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
 # Computed over all flights.
 FLEET = [physics_model, model_diagnosis, error_history]
 
+# One flight through every per-flight stage: what the sensor launches, and a button in the UI.
+process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
+
+# Evaluates the automation conditions (retraining when flights arrive).
+automation = dg.AutomationConditionSensorDefinition(
+    "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=dg.DefaultSensorStatus.RUNNING
+)
+
 defs = dg.Definitions(
-    assets=[*PER_FLIGHT, *FLEET],
-    sensors=[raw_log_sensor],
+    assets=[*PER_FLIGHT, *FLEET, QUARANTINE],
+    jobs=[process_flight],
+    sensors=[raw_log_sensor, automation],
     resources={"data_root": data_root_from_env(), "model": model_config_from_env()},
 )

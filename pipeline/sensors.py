@@ -38,24 +38,47 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
     if not changed:
         return dg.SkipReason(f"no new logs in {data_root.raw_path}")
     known = set(context.instance.get_dynamic_partitions(flights.name))
-    runs, add = [], []
+    runs, add, refused = [], [], {}
     for fid, fp in sorted(changed.items()):
         problem = header_problem(data_root.raw_log(fid))
         if problem:
             store.write_quarantine(data_root.root_path, fid, str(data_root.raw_log(fid)), problem, "header")
             context.log.warning(f"quarantined {fid}: {problem}")
+            refused[fid] = problem
             continue
         if fid not in known:
             add.append(fid)
         runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid))
+    events = [quarantine_report(data_root)] if refused else []
     return dg.SensorResult(
         run_requests=runs,
         cursor=json.dumps(current),
         dynamic_partitions_requests=[flights.build_add_request(add)] if add else [],
+        asset_events=events,
     )
 
 
-PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export")
+# Files refused at the door: not assets we compute, but a record the UI shows with the reasons.
+QUARANTINE = dg.AssetSpec(
+    "quarantine", group_name="decode", description="Raw files that are not readable logs, with the reason. "
+    "Fix or remove the file; a readable replacement is picked up and leaves quarantine."
+)
+
+
+def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
+    records = store.quarantined(data_root.root_path)
+    rows = "\n".join(f"| {r['flight']} | {r['error_type']} | {r['reason']} |" for r in records)
+    return dg.AssetMaterialization(
+        asset_key="quarantine",
+        metadata={
+            "files": len(records),
+            "quarantined": dg.MetadataValue.md("| file | kind | reason |\n|---|---|---|\n" + rows),
+            "folder": dg.MetadataValue.path(str(data_root.root_path / "quarantine")),
+        },
+    )
+
+
+PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export") - dg.AssetSelection.assets("quarantine")
 
 
 @dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=dg.DefaultSensorStatus.RUNNING)

@@ -74,10 +74,27 @@ def stuck_sensors(df: pl.DataFrame, min_rows: int = 500) -> tuple[bool, str, dic
     return not stuck, desc, {"stuck_columns": len(stuck)}
 
 
+def has_flight_phase(df: pl.DataFrame, min_move_m: float = 0.05, min_height_m: float = 0.1,
+                     min_pwm: float = 0.3) -> tuple[bool, str, dict]:
+    """A flight log should contain flight: motors driven, and the vehicle moving or off the ground."""
+    pos = [c for c in ("p_w_x_m", "p_w_y_m", "p_w_z_m") if c in df.columns]
+    pwm_cols = [c for c in df.columns if c.startswith("pwm_")]
+    if df.height == 0 or len(pos) < 3 or not pwm_cols:
+        return False, "no position or PWM columns to judge", {}
+    move = max(float(df[c].max() - df[c].min()) for c in pos)
+    z_max = float(df["p_w_z_m"].max())
+    pwm_max = float(df.select(pwm_cols).max().max_horizontal()[0])
+    ok = pwm_max >= min_pwm and (move >= min_move_m or z_max >= min_height_m)
+    desc = (f"largest position range {move:.2f} m, highest z {z_max:.2f} m, highest PWM {pwm_max:.2f}"
+            + ("" if ok else ": no flight phase (motors idle, or the vehicle never moved nor left the ground)"))
+    return ok, desc, {"position_range_m": move, "z_max_m": z_max, "pwm_max": pwm_max}
+
+
 ALL_CHECKS = {
     "monotonic_time": monotonic_time,
     "sample_gaps": sample_gaps,
     "value_ranges": value_ranges,
     "no_nans": no_nans,
     "stuck_sensors": stuck_sensors,
+    "has_flight_phase": has_flight_phase,
 }

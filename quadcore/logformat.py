@@ -119,7 +119,7 @@ class DecodedLog:
 def _read_cstring(buf: bytes, pos: int) -> tuple[str, int]:
     end = buf.find(b"\x00", pos)
     if end < 0:
-        raise CorruptHeaderError(f"unterminated string in header at byte {pos}")
+        raise CorruptHeaderError(f"header is truncated: unterminated name at byte {pos}")
     try:
         return buf[pos:end].decode("ascii"), end + 1
     except UnicodeDecodeError as exc:

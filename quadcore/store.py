@@ -101,6 +101,11 @@ def write_quarantine(root: Path, flight: str, source: str, reason: str, error_ty
     return write_json(record, quarantine_path(root, flight))
 
 
+def quarantined(root: Path) -> list[dict]:
+    """Every quarantine record under ``root``, by flight id."""
+    return [json.loads(p.read_text()) for p in sorted((Path(root) / "quarantine").glob("*.json"))]
+
+
 def clear_quarantine(root: Path, flight: str) -> None:
     quarantine_path(root, flight).unlink(missing_ok=True)
 

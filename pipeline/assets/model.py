@@ -13,12 +13,20 @@ from quadcore import model as modelmod
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
+# Retrain when flights have arrived or changed (not on every tick when nothing changed); a
+# flight that was registered but never decoded (quarantined) does not block retraining.
+RETRAIN = (
+    dg.AutomationCondition.eager()
+    .without(~dg.AutomationCondition.any_deps_missing())
+    .with_label("retrain when flights arrive")
+)
+
 
 def fitted_model_path(data_root: DataRoot):
     return data_root.root_path / "models" / "physics_model.json"
 
 
-@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"})
+@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"}, automation_condition=RETRAIN)
 def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """The model file's effects, fitted on the training flights (all decoded flights but the holdout)."""
     spec = model.spec()
@@ -52,7 +60,7 @@ def current_model(data_root: DataRoot, model: ModelConfig):
     return modelmod.PhysicsModel(spec.vehicle, [])
 
 
-@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"html"})
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"html"}, automation_condition=RETRAIN)
 def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
     held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
@@ -85,7 +93,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     })
 
 
-@dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"})
+@dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"}, automation_condition=RETRAIN)
 def error_history(data_root: DataRoot) -> dg.MaterializeResult:
     """Every evaluation so far, oldest first: the error of nominal -> +effect -> ... -> +learned."""
     hist = history.read(data_root.root_path)

@@ -1,0 +1,187 @@
+"""Running it for real: new flights, retraining, bad input, atomic and idempotent outputs,
+and the README's queries. Real Dagster instances, real files."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+
+import dagster as dg
+import duckdb
+import polars as pl
+import pytest
+
+from pipeline.assets.decode import decoded_flight
+from pipeline.definitions import FLEET, PER_FLIGHT, defs
+from pipeline.resources import DataRoot, ModelConfig
+from pipeline.sensors import raw_log_sensor
+from quadcore import logformat, simulation, store
+
+QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
+
+
+@pytest.fixture(scope="module")
+def sim_logs(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("simlogs")
+    configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (21, 22, 23)]
+    simulation.simulate_set(folder, configs, {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}})
+    return folder
+
+
+def sensor_tick(instance, data_root, cursor=None):
+    ctx = dg.build_sensor_context(instance=instance, cursor=cursor, resources={"data_root": data_root})
+    result = raw_log_sensor(ctx)
+    if isinstance(result, dg.SensorResult):
+        for req in result.dynamic_partitions_requests or []:
+            instance.add_dynamic_partitions(req.partitions_def_name, list(req.partition_keys))
+    return result
+
+
+def run(assets, resources, instance, key=None):
+    res = dg.materialize(assets, partition_key=key, instance=instance, resources=resources, run_config=QUIET,
+                         raise_on_error=False)
+    assert res.success
+    return res
+
+
+def materialization_count(instance, asset: str, key: str) -> int:
+    records = instance.fetch_materializations(dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset),
+                                                                    asset_partitions=[key]), limit=100)
+    return len(records.records)
+
+
+def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_path):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001"):
+        (raw / name).symlink_to(sim_logs / name)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    resources = {"data_root": data_root, "model": ModelConfig()}
+    with dg.instance_for_test() as instance:
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance)  # the daemon's first tick
+        assert auto.total_requested == 0
+        first = sensor_tick(instance, data_root)
+        assert sorted(r.partition_key for r in first.run_requests) == ["sim000", "sim001"]
+        for r in first.run_requests:
+            run(PER_FLIGHT, resources, instance, r.partition_key)
+        # the automation retrains once flights are there ...
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
+        run(FLEET, resources, instance)
+        # ... and not again while nothing changed
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        assert auto.total_requested == 0
+        assert isinstance(sensor_tick(instance, data_root, first.cursor), dg.SkipReason)
+
+        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        second = sensor_tick(instance, data_root, first.cursor)
+        assert [r.partition_key for r in second.run_requests] == ["sim002"]
+        run(PER_FLIGHT, resources, instance, "sim002")
+        assert materialization_count(instance, "residual_table", "sim000") == 1
+        assert materialization_count(instance, "residual_table", "sim002") == 1
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: retrain
+
+
+def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_logs, tmp_path):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    good = (sim_logs / "sim000").read_bytes()
+    (raw / "sim000").symlink_to(sim_logs / "sim000")
+    (raw / "empty").write_bytes(b"")
+    (raw / "foreign").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    (raw / "cut_header").write_bytes(good[:40])
+    (raw / "truncated").write_bytes(good[: len(good) // 2 + 7])
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    with dg.instance_for_test() as instance:
+        result = sensor_tick(instance, data_root)
+        assert sorted(r.partition_key for r in result.run_requests) == ["sim000", "truncated"]
+        reasons = {r["flight"]: r["reason"] for r in store.quarantined(data_root.root_path)}
+        assert set(reasons) == {"empty", "foreign", "cut_header"}
+        assert "empty" in reasons["empty"] and "0xBC" in reasons["foreign"] and "truncated" in reasons["cut_header"]
+        (event,) = result.asset_events
+        assert event.asset_key == dg.AssetKey("quarantine")
+        assert "foreign" in event.metadata["quarantined"].value
+
+        # the truncated log still decodes, with what was dropped in its metadata and a warning
+        res = run([decoded_flight], {"data_root": data_root}, instance, "truncated")
+        meta = res.asset_materializations_for_node("decoded_flight")[0].metadata
+        assert meta["warning_count"].value >= 1 and meta["bytes_dropped"].value > 0
+        assert "truncated" in meta["decode_warnings"].value
+
+
+def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
+    log = logformat.decode_file(sim_logs / "sim000")
+    ff = log.tables["fixedFrequency"].copy()
+    ff["pm.vbatMV"] = 3700  # stuck battery voltage, as in jana20..33
+    ff["stateEstimate.x"] = ff["stateEstimate.y"] = 0.0
+    ff["stateEstimate.z"] = 0.01  # never left the ground
+    t = log.timestamps_us["fixedFrequency"].copy()
+    t[len(t) // 2:] += 200_000  # a 200 ms hole
+    data = logformat.encode(list(simulation.LOG_EVENT_TYPES), [("fixedFrequency", t, ff)])
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    (raw / "odd").write_bytes(data)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["odd"])
+        res = run([decoded_flight], {"data_root": data_root}, instance, "odd")  # warnings, not a crash
+        checks = {e.check_name: e for e in res.get_asset_check_evaluations()}
+    assert not checks["stuck_sensors"].passed and "vbat_V" in checks["stuck_sensors"].description
+    assert not checks["sample_gaps"].passed
+    assert not checks["has_flight_phase"].passed
+    assert all(c.severity == dg.AssetCheckSeverity.WARN for c in checks.values())
+
+
+def test_writes_are_atomic_and_reruns_idempotent(sim_logs, tmp_path, monkeypatch):
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(sim_logs))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim001"])
+        run([decoded_flight], {"data_root": data_root}, instance, "sim001")
+        path = store.decoded_path(data_root.root_path, "fixedFrequency", "sim001")
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        run([decoded_flight], {"data_root": data_root}, instance, "sim001")
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == digest  # same bytes on a re-run
+
+        def crash(self, file, **kwargs):  # a crash half-way through writing
+            with open(file, "wb") as fh:
+                fh.write(b"PAR1 half a file")
+            raise OSError("disk full")
+
+        monkeypatch.setattr(pl.DataFrame, "write_parquet", crash)
+        res = dg.materialize([decoded_flight], partition_key="sim001", instance=instance,
+                             resources={"data_root": data_root}, run_config=QUIET, raise_on_error=False)
+        assert not res.success
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == digest  # the earlier output is intact
+    assert not list(path.parent.glob(".*.tmp"))  # and no half-written file is left behind
+
+
+def test_readme_queries_run(sim_logs, tmp_path):
+    root = tmp_path / "root"
+    data_root = DataRoot(root=str(root), raw=str(sim_logs))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim000", "sim001"])
+        for key in ("sim000", "sim001"):
+            run(PER_FLIGHT[:2], {"data_root": data_root, "model": ModelConfig()}, instance, key)
+    speed = (pl.col("v_w_x_mps") ** 2 + pl.col("v_w_y_mps") ** 2 + pl.col("v_w_z_mps") ** 2).sqrt()
+    by_polars = (
+        pl.scan_parquet(root / "residuals" / "**" / "*.parquet", hive_partitioning=True,
+                        hive_schema={"flight": pl.String})
+        .with_columns((speed // 0.5 * 0.5).alias("speed_bin_mps"))
+        .group_by("flight", "speed_bin_mps")
+        .agg((pl.col("f_res_b_x_N") ** 2).mean().sqrt().alias("rmse_x_N"), pl.len().alias("n"))
+        .sort("flight", "speed_bin_mps")
+        .collect()
+    )
+    by_duckdb = duckdb.sql(f"""
+        SELECT flight, floor(sqrt(v_w_x_mps^2 + v_w_y_mps^2 + v_w_z_mps^2) / 0.5) * 0.5 AS speed_bin_mps,
+               sqrt(avg(f_res_b_x_N ^ 2)) AS rmse_x_N, count(*) AS n
+        FROM read_parquet('{root}/residuals/*/*.parquet', hive_partitioning = true)
+        GROUP BY ALL ORDER BY flight, speed_bin_mps
+    """).pl()
+    assert set(by_polars["flight"]) == {"sim000", "sim001"}
+    assert by_polars["n"].sum() == by_duckdb["n"].sum()
+    assert by_polars["rmse_x_N"].to_list() == pytest.approx(by_duckdb["rmse_x_N"].to_list(), rel=1e-6)
+    # drag: the residual grows with speed
+    one = by_polars.filter(pl.col("flight") == "sim000")
+    assert one["rmse_x_N"][-1] > one["rmse_x_N"][0]
