@@ -6,7 +6,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.assets.export import flight_mcap
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
-from pipeline.resources import data_root_from_env, model_config_from_env
+from pipeline.resources import automation_status, data_root_from_env, model_config_from_env
 from pipeline.sensors import QUARANTINE, raw_log_sensor
 
 # Computed per flight partition (the sensor's runs and the main job run these).
@@ -19,7 +19,7 @@ process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
 
 # Evaluates the automation conditions (retraining when flights arrive).
 automation = dg.AutomationConditionSensorDefinition(
-    "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=dg.DefaultSensorStatus.RUNNING
+    "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=automation_status()
 )
 
 defs = dg.Definitions(

@@ -17,6 +17,12 @@ def default_data_root() -> str:
     return os.environ.get("QUADCORE_DATA_ROOT", "data")
 
 
+def automation_status():
+    """Sensors start running unless ``QUADCORE_AUTOMATION=off`` (e.g. to browse without processing)."""
+    off = os.environ.get("QUADCORE_AUTOMATION", "on").lower() in ("off", "0", "false", "no")
+    return dg.DefaultSensorStatus.STOPPED if off else dg.DefaultSensorStatus.RUNNING
+
+
 def default_raw_dir() -> str:
     return os.environ.get("QUADCORE_RAW_DIR", "")
 

@@ -6,7 +6,7 @@ import json
 import dagster as dg
 
 from pipeline.partitions import flights
-from pipeline.resources import DataRoot
+from pipeline.resources import DataRoot, automation_status
 from quadcore import flight, logformat, store
 
 
@@ -81,7 +81,7 @@ def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
 PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export") - dg.AssetSelection.assets("quarantine")
 
 
-@dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=dg.DefaultSensorStatus.RUNNING)
+@dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=automation_status())
 def raw_log_sensor(context: dg.SensorEvaluationContext, data_root: DataRoot):
     """New or changed files in the raw folder -> flight partitions and runs; bad files -> quarantine."""
     return new_flight_requests(context, data_root)

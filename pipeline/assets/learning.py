@@ -1,0 +1,130 @@
+"""Stage 4: what the physics cannot explain, learned. Fan-in over the residual tables of all
+flights: feature sets -> trained models (XGBoost, MLP) -> report with baselines and plots."""
+
+import dagster as dg
+import polars as pl
+
+from pipeline.assets.physics import residual_table
+from pipeline.resources import DataRoot
+from quadcore import evaluation, learning, plots, store
+from quadcore import features as feat
+
+ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
+
+
+class FeatureConfig(dg.Config):
+    """Feature sets to build: built-in names, or ``name=col1+col2`` (empty: every built-in set)."""
+
+    feature_sets: list[str] = []
+
+
+class LearningConfig(dg.Config):
+    """What to train. ``holdout``: the held-out flight (the last flight if it is absent);
+    ``models``: model kinds; ``xgboost`` / ``mlp``: options such as ``depth=4,trees=300`` or
+    ``hidden=64x64``; ``compare``: also the complexity and training-size comparisons; ``loo``:
+    also leave-one-flight-out; ``flights_csv``: flight kinds (empty: ``flights.csv`` beside or
+    above the raw folder); ``stride``: fit on every stride-th sample; ``threads``: XGBoost threads."""
+
+    holdout: str = learning.DEFAULT_HOLDOUT
+    models: list[str] = ["xgboost", "mlp"]
+    xgboost: str = ""
+    mlp: str = ""
+    compare: bool = True
+    loo: bool = False
+    flights_csv: str = ""
+    stride: int = 5
+    seed: int = 0
+    threads: int = 2  # XGBoost threads
+
+
+def _physics(root) -> dict:
+    """The physics model the residual tables were computed against (their metadata), with the
+    flights its effects were fitted on when the fitted model file matches."""
+    files = sorted((root / "residuals").glob("flight=*/data.parquet"))
+    physics = store.read_metadata(files[0]).get("model", {}) if files else {}
+    fitted = root / "models" / "physics_model.json"
+    if fitted.is_file():
+        saved = store.read_json(fitted)
+        if [e["name"] for e in saved.get("effects", [])] == [e["name"] for e in physics.get("effects", [])]:
+            physics["trained_on"] = saved.get("trained_on")
+    return physics
+
+
+@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"})
+def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.MaterializeResult:
+    """Named feature sets with their targets (residual force and torque, body frame) per flight:
+    ``<root>/features/<set>/flight=<id>/data.parquet``."""
+    root = data_root.root_path
+    res = feat.read_residual_tables(root)
+    if not res:
+        raise dg.Failure(description=f"no residual tables in {root / 'residuals'}: materialise residual_table first")
+    try:
+        sets = feat.parse(config.feature_sets)
+        feat.clear_feature_tables(root)
+        feat.write_feature_tables(root, res, sets, {"model": _physics(root).get("label", "")})
+    except feat.FeatureError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    return dg.MaterializeResult(metadata={
+        "feature_sets": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+            [{"set": fs.name, "columns": ", ".join(fs.columns), "causal": str(fs.causal), "note": fs.note} for fs in sets]))),
+        "flights": len(res),
+        "targets": dg.MetadataValue.json(feat.TARGETS),
+        "folder": dg.MetadataValue.path(str(root / "features")),
+    })
+
+
+@dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"})
+def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, data_root: DataRoot) -> dg.MaterializeResult:
+    """XGBoost and MLP residual models per feature set (and the comparison runs), trained on all
+    flights but the holdout with early stopping on validation flights; artefacts and held-out
+    predictions under ``<root>/learned/<run>/``."""
+    root = data_root.root_path
+    sets, tables = feat.read_feature_tables(root)
+    if not sets:
+        raise dg.Failure(description=f"no feature tables in {root / 'features'}: materialise learning_features first")
+    flights = sorted(next(iter(tables.values())))
+    csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
+    kinds = feat.read_flight_kinds(csv_path)
+    try:
+        holdout, note = learning.resolve_holdout(config.holdout, flights)
+        specs = {k: learning.parse_spec(f"{k}:{getattr(config, k, '')}") for k in config.models}
+        plan = learning.plan(flights, sets, config.models, holdout, kinds, config.loo, config.compare, specs)
+    except learning.LearningError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    for n in ([note] if note else []) + plan.notes:
+        context.log.warning(n)
+    records = learning.run_plan(plan, tables, root / "learned", _physics(root),
+                                learning.TrainConfig(stride=config.stride, seed=config.seed, threads=config.threads), kinds, log=context.log.info)
+    return dg.MaterializeResult(metadata={
+        "holdout": holdout,
+        "models": len(records),
+        "runs": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame([
+            {"run": r["name"], "train s": r["train_time_s"], "val loss": r["val_loss"], "rows": r["rows_fit"],
+             "µs/sample": r["latency_us"]} for r in records]))),
+        "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in ([note] if note else []) + plan.notes) or "none"),
+        "folder": dg.MetadataValue.path(str(root / "learned")),
+    })
+
+
+@dg.asset(group_name="learning", deps=[learned_models], kinds={"html"})
+def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
+    """Held-out MAE / RMSE / R² per axis beside the baselines (physics-only, zero, training mean)
+    and the study's figures; comparison tables and plots. Writes reports/learning.{md,html,json}
+    and appends the headline results to the history (source ``learned``)."""
+    root = data_root.root_path
+    try:
+        index, _ = learning.read_runs(root / "learned")
+    except learning.LearningError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    physics = index.get("physics_model", {})
+    report, pngs, paths = evaluation.full_report(root / "learned", feat.read_residual_tables(root),
+                                                 learning.vehicle_of(physics), root / "reports", root,
+                                                 index.get("flight_kinds"), physics.get("trained_on"))
+    md = {k: dg.MetadataValue.md(plots.markdown_image(v, k)) for k, v in pngs.items()}
+    return dg.MaterializeResult(metadata={
+        "verdict": dg.MetadataValue.md(report["verdict"]),
+        "headline": dg.MetadataValue.md(plots.markdown_table(evaluation.frame(report["tables"]["headline"]))),
+        "holdout_table": dg.MetadataValue.md(plots.markdown_table(evaluation.frame(report["tables"]["holdout"]))),
+        **{f"{k}_plot": v for k, v in md.items()},
+        "report": dg.MetadataValue.path(str(paths["html"])),
+    })
