@@ -89,10 +89,8 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
 
 
 def _suggestion(diag: dict) -> str | None:
-    """The top candidate if the diagnosis found one that explains something."""
-    from quadcore.diagnosis import MIN_EXPLAINED
-
-    useful = [r for r in diag["candidates"] if r["explained_variance"] >= MIN_EXPLAINED and r["physical"]]
+    """The top candidate if the diagnosis found one that explains something, significantly."""
+    useful = [r for r in diag["candidates"] if r["useful"]]
     return useful[0]["effect"] if useful else None
 
 

@@ -98,9 +98,9 @@ def _vehicle(args: argparse.Namespace):
 
 
 def _main_tables(flights: list[flightmod.Flight]) -> dict[str, "pl.DataFrame"]:
-    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
+    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables and f.tables[MAIN_EVENT].height}
     if not tables:
-        raise UserError(f"no flight has a {MAIN_EVENT!r} table")
+        raise UserError(f"no readable flight logs (none has {MAIN_EVENT!r} records)")
     return tables
 
 
@@ -225,11 +225,17 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     data = Path(args.data)
     if not data.exists():
         raise UserError(f"no such folder: {data}")
-    veh = _vehicle(args)
     names = [n.strip() for n in (args.effects or "").split(",") if n.strip()]
     try:
-        spec = model.spec_from(veh, names)
-    except (effects.UnknownEffectError, model.ModelFileError) as exc:
+        if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
+            spec = model.load_model_file(args.model, vehicle_override=args.vehicle)
+            if args.thrust_map:
+                spec.vehicle = spec.vehicle.with_thrust_map(args.thrust_map)
+            if names:
+                spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
+        else:
+            spec = model.spec_from(_vehicle(args), names)
+    except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError) as exc:
         raise UserError(str(exc)) from None
     flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
     for fid, why in quarantined.items():
@@ -261,6 +267,83 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.report:
         md, page = report.write(result, Path(args.report))
         print(f"wrote {md} and {page}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
+    from quadcore import evaluation, fitting, learning
+    from quadcore import features as feat
+
+    data = Path(args.data)
+    if not data.exists():
+        raise UserError(f"no such folder: {data}")
+    veh = _vehicle(args)
+    names = [n.strip() for n in (args.effects or "").split(",") if n.strip()]
+    kinds_of_model = [k.strip() for k in (args.models or "").split(",") if k.strip()]
+    if args.stride < 1 or args.threads < 1:
+        raise UserError("--stride and --threads must be at least 1")
+    try:
+        spec = model.spec_from(veh, names)
+        sets = feat.parse(args.feature_sets)
+        if not kinds_of_model:
+            raise learning.LearningError("--models names no model kind")
+        specs = {k: learning.parse_spec(f"{k}:{getattr(args, k)}" if getattr(args, k, None) else k) for k in kinds_of_model}
+    except (effects.UnknownEffectError, model.ModelFileError, feat.FeatureError, learning.LearningError) as exc:
+        raise UserError(str(exc)) from None
+    csv_path = Path(args.flights_csv) if args.flights_csv else feat.find_flights_csv(data)
+    if args.flights_csv and not csv_path.is_file():
+        raise UserError(f"flights CSV not found: {csv_path}")
+    log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
+
+    flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
+    for fid, why in quarantined.items():
+        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
+    tables = _main_tables(flights)
+    try:
+        holdout, note = learning.resolve_holdout(args.holdout or learning.DEFAULT_HOLDOUT, list(tables),
+                                                 explicit=args.holdout is not None)
+    except learning.LearningError as exc:
+        raise UserError(str(exc)) from None
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    train = sorted(f for f in tables if f != holdout)
+    fitted_on = f", fitted on {len(train)} flights (not {holdout})" if spec.effects else ""
+    log(f"physics model: {spec.effects or 'nominal'}{fitted_on}")
+    physics = fitting.fit_model(spec, tables, train) if spec.effects else model.PhysicsModel(veh, [])
+    try:
+        res = {fid: physics.residual_table(df) for fid, df in tables.items()}
+        by_set = feat.feature_tables(res, sets)
+    except (vehicle.VehicleFileError, feat.FeatureError) as exc:
+        raise UserError(str(exc)) from None
+    kinds = feat.read_flight_kinds(csv_path)
+    if not kinds:
+        print("note: no flights.csv (flight,kind): the training-size comparison (random vs preplanned) is skipped",
+              file=sys.stderr)
+    out = Path(args.out)
+    try:
+        plan = learning.plan(sorted(res), sets, kinds_of_model, holdout, kinds, loo=args.loo,
+                             compare=not args.no_compare, specs=specs)
+    except learning.LearningError as exc:
+        raise UserError(str(exc)) from None
+    log(f"training {len(plan.experiments)} models on {len(train)} flights, holdout {holdout} -> {out.resolve() / 'learned'}")
+    physics_info = {**physics.to_dict(), "trained_on": train}
+    config = learning.TrainConfig(stride=args.stride, seed=args.seed, threads=args.threads)
+    try:
+        learning.run_plan(plan, by_set, out / "learned", physics_info, config, kinds, log=log)
+        report, _, paths = evaluation.full_report(out / "learned", res, veh, out / "reports", out, kinds, train)
+    except OSError as exc:
+        raise UserError(f"cannot write to {out}: {exc}") from None
+    print(f"physics model: {physics.label}; held out: {holdout}; trained on {len(train)} flights\n")
+    for key in ("headline", "feature_sets", "training_size", "complexity", "lofo"):
+        rows = report["tables"].get(key)
+        if rows:
+            print(f"{evaluation.TABLE_TITLES[key]}:\n{evaluation.text_table(rows)}\n")
+    for n in report["notes"]:
+        print(f"note: {n}")
+    print(f"\n{report['verdict']}\n")
+    print(f"report: {paths['html']} (and .md, .json)\nmodels: {out.resolve() / 'learned'}/<run>/\n"
+          f"history: {len(report.get('history_files', []))} row(s) added under {out.resolve() / 'history'}")
     return 0
 
 
@@ -310,13 +393,38 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")
     p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
     p.add_argument("--json", required=True, metavar="OUT.json")
-    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (default: none)")
+    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (default: none, "
+                   "or the model file's)")
+    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file (vehicle, effects, plugins)")
     p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
                    "cross-validation over flights)")
     p.add_argument("--report", default=None, metavar="DIR", help="also write diagnosis.md and diagnosis.html")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser("train", help="learn the residual the physics model leaves (XGBoost, MLP) and report")
+    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
+    p.add_argument("--holdout", default=None, metavar="FLIGHT",
+                   help="the held-out flight (default jana02, or the last flight when there is no jana02)")
+    p.add_argument("--loo", action="store_true", help="also leave-one-flight-out cross-validation over all flights")
+    p.add_argument("--models", default="xgboost,mlp", metavar="KIND,...", help="model kinds (default xgboost,mlp)")
+    p.add_argument("--xgboost", default="", metavar="OPTS", help="XGBoost options, e.g. depth=4,trees=300,eta=0.1")
+    p.add_argument("--mlp", default="", metavar="OPTS", help="MLP options, e.g. hidden=64x64,epochs=100,lr=0.001")
+    p.add_argument("--feature-sets", default="", metavar="SET,...",
+                   help="feature sets (default: all built-in; define one as name=col1+col2+...)")
+    p.add_argument("--effects", default="", metavar="e1,e2,...",
+                   help="effects in the physics model, fitted on the training flights (default: none)")
+    p.add_argument("--out", default="data", metavar="DIR", help="data root for learned/, reports/, history/ (default: data)")
+    p.add_argument("--flights-csv", default=None, metavar="FILE",
+                   help="flight kinds (flight,kind; default: flights.csv beside or above DATA)")
+    p.add_argument("--no-compare", action="store_true", help="skip the training-size and complexity comparisons")
+    p.add_argument("--stride", type=int, default=5, metavar="N", help="fit on every N-th sample (default 5)")
+    p.add_argument("--seed", type=int, default=0, metavar="N")
+    p.add_argument("--threads", type=int, default=1, metavar="N", help="XGBoost threads (default 1, measured faster here)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_train)
     return parser
 
 

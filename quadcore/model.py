@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore import dynamics, effects, residuals, signals, vehicle as vehiclemod
+from quadcore import dynamics, effects, residuals, vehicle as vehiclemod
 from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
 
@@ -156,12 +156,6 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
         raise ModelFileError(f"{path}: {exc}") from None
     spec.source = str(path)
     return spec
-
-
-def smoothed_wrench(effect: effects.Effect, state: FlightState, vehicle: Vehicle, params: dict) -> tuple[np.ndarray, np.ndarray]:
-    """An effect's wrench through the residuals' zero-phase smoother (so it compares with them)."""
-    f, tau = effect.wrench(state, vehicle, params)
-    return signals.smooth(f), signals.smooth(tau)
 
 
 def save(model: PhysicsModel, path: Path, trained_on: list[str]) -> Path:

@@ -83,9 +83,12 @@ def sections(d: dict, hist: pl.DataFrame | None = None) -> list[tuple[str, str, 
         ("Model", "text", f"{d['model']['label']} on vehicle {d['model']['vehicle']} "
                           f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
                           f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)."),
-        ("Baseline residual (held-out)", "table", pl.DataFrame({
-            "quantity": ["force [N]", "torque [N m]"],
-            **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i]] for i, a in enumerate("xyz")},
+        ("Baseline residual (held-out) and sensor-noise floor", "table", pl.DataFrame({
+            "quantity": ["force RMSE [N]", "torque RMSE [N m]"]
+            + (["force noise floor [N]", "torque noise floor [N m]"] if "noise_floor" in d else []),
+            **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i]]
+               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i]] if "noise_floor" in d else [])
+               for i, a in enumerate("xyz")},
         })),
     ]
     if d["model"]["effects"]:
@@ -97,7 +100,10 @@ def sections(d: dict, hist: pl.DataFrame | None = None) -> list[tuple[str, str, 
         "effect": r["effect"], "target": r["target"], "explained": r["explained_variance"],
         "force": r["explained_variance_force"], "torque": r["explained_variance_torque"],
         "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}" for k, v in r["parameters"].items()),
+        "significance_sigma": r.get("significance_sigma", float("nan")),
+        "useful": r.get("useful", True),
         "alike": ", ".join(r["indistinguishable_from"]),
+        "tied_with": ", ".join(r.get("tied_with", [])),
         "notes": "; ".join(r["notes"]),
     } for r in d["candidates"]]) if d["candidates"] else pl.DataFrame()
     out += [

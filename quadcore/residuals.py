@@ -11,10 +11,12 @@ For each sample of a flight (body frame ``b``, world frame ``w``; see :mod:`quad
 
 and the same residuals rotated to the world frame (``f_res_w = R f_res_b``).
 
-Every measured and modelled signal passes through the same zero-phase smoother
-(:mod:`quadcore.signals`), so the two sides have the same bandwidth and no relative
-delay; ``dω/dt`` is the smoother's derivative. Samples whose filter window spans a
-logging gap are flagged in ``near_gap``.
+Measured and modelled forces pass through the same zero-phase smoother
+(:mod:`quadcore.signals`); ``dω/dt`` is the smoother's derivative, and the modelled torque
+passes through that same derivative filter (integrated, then differentiated:
+:func:`quadcore.signals.matched_to_derivative`), so each pair has the same bandwidth and
+no relative delay. Samples whose filter window spans a logging gap are flagged in
+``near_gap``.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ def residual_arrays(
     f_meas_b = vehicle.mass_kg * signals.smooth(state.sf_b_mps2)
     f_model_b = signals.smooth(f_model_b)
     tau_meas_b = dynamics.torque_for_angular_acceleration(vehicle, omega_s, omega_dot)
-    tau_model_b = signals.smooth(tau_model_b)
+    tau_model_b = signals.matched_to_derivative(tau_model_b, state.t_s)
     f_res_b = f_meas_b - f_model_b
     tau_res_b = tau_meas_b - tau_model_b
     R = state.R_wb

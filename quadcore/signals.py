@@ -56,3 +56,19 @@ def near_gap(t_s: np.ndarray, window: int = WINDOW, gap_s: float = GAP_S) -> np.
     np.add.at(marks, np.clip(gaps - half + 1, 0, n), 1)
     np.add.at(marks, np.clip(gaps + half + 1, 0, n), -1)
     return np.cumsum(marks[:-1]) > 0
+
+
+def matched_to_derivative(x: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """``x`` through the filter that :func:`derivative` applies to a signal's rate of change.
+
+    A measured torque is ``J dω/dt`` with the derivative taken by :func:`derivative`, which
+    attenuates more than :func:`smooth` does. To compare a modelled torque with it at the
+    same bandwidth and timing, integrate the model (zero-order hold: sample ``k`` acts over
+    ``[t_k, t_k+1)``) and differentiate it the same way: ``d/dt ∫ x dt``.
+    """
+    x = np.asarray(x, dtype=float)
+    if len(x) < 2:
+        return x.copy()
+    dt = np.diff(t_s)[:, None] if x.ndim == 2 else np.diff(t_s)
+    integral = np.concatenate([np.zeros_like(x[:1]), np.cumsum(x[:-1] * dt, axis=0)])
+    return derivative(integral, t_s)

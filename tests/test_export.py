@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from datetime import datetime, timezone
 
-import polars as pl
 import pytest
 from mcap.reader import make_reader
 

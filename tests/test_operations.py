@@ -4,7 +4,6 @@ and the README's queries. Real Dagster instances, real files."""
 from __future__ import annotations
 
 import hashlib
-import shutil
 
 import dagster as dg
 import duckdb

@@ -9,7 +9,6 @@ import polars as pl
 import pytest
 
 from quadcore import cli, dynamics, flight, propagation, residuals, rotations, signals, simulation, vehicle
-from quadcore.units import G0_MPS2
 
 VEH = vehicle.load()
 RATE_HZ = 500.0

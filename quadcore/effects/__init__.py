@@ -4,7 +4,9 @@ Built in: ``rotor_drag``, ``parasitic_drag``, ``ground_effect``, ``motor_lag``,
 ``com_offset``, ``thrust_scale``, ``added_mass``, ``wind``. Each lives in its own module
 with an ``EFFECT`` instance (see :mod:`quadcore.effects.base` for the shape). Every
 module in this package is picked up; user modules elsewhere are loaded with
-:func:`load_plugin` (the model file's ``plugins`` list does this).
+:func:`load_plugin` (the model file's ``plugins`` list does this; a module that cannot be
+used raises :class:`PluginError`) and forgotten with :func:`unregister`. A worked example:
+``docs/adding-an-effect.md`` and ``examples/effects/linear_drag.py``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from pathlib import Path
 
 from quadcore.effects.base import Effect, Parameter
 
-__all__ = ["Effect", "Parameter", "registry", "get", "load_plugin", "UnknownEffectError", "BUILTIN"]
+__all__ = ["Effect", "Parameter", "registry", "get", "load_plugin", "unregister", "PluginError", "UnknownEffectError",
+           "BUILTIN"]
 
 BUILTIN = (
     "rotor_drag", "parasitic_drag", "ground_effect", "motor_lag",
@@ -62,13 +65,38 @@ def get(name: str) -> Effect:
     return effects[name]
 
 
+class PluginError(TypeError):
+    """A user effect module that cannot be used (does not import, has no ``EFFECT``, or
+    reuses a built-in name). A ``TypeError`` so that callers reporting bad plugins catch it."""
+
+
 def load_plugin(path: str | Path) -> Effect:
-    """Load a user's effect module from a file and register its ``EFFECT``."""
+    """Load a user's effect module from a file and register its ``EFFECT``.
+
+    Raises ``FileNotFoundError`` for a missing file and :class:`PluginError` for a module
+    that fails to import, has no ``EFFECT`` or would replace a built-in effect.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"effect module not found: {path}")
     spec = importlib.util.spec_from_file_location(f"quadcore_plugin_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)  # type: ignore[union-attr]
+    try:
+        spec.loader.exec_module(module)  # type: ignore[union-attr]
+    except Exception as exc:  # a user's module: report, do not crash
+        raise PluginError(f"cannot import effect module {path}: {type(exc).__name__}: {exc}") from exc
     _discover()
-    return _register(module)
+    effect = getattr(module, "EFFECT", None)
+    if isinstance(effect, Effect) and effect.name in BUILTIN:
+        raise PluginError(f"effect module {path} names its effect {effect.name!r}, a built-in effect; choose another name")
+    try:
+        return _register(module)
+    except TypeError as exc:
+        raise PluginError(str(exc)) from None
+
+
+def unregister(name: str) -> None:
+    """Forget a plugin effect (built-in effects stay)."""
+    if name in BUILTIN:
+        raise ValueError(f"{name!r} is built in and cannot be unregistered")
+    _REGISTRY.pop(name, None)
