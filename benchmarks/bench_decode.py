@@ -23,9 +23,10 @@ from __future__ import annotations
 import struct
 import sys
 import tempfile
-import time
 import zlib
 from pathlib import Path
+
+from _common import best_of
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a clone without installing
@@ -98,15 +99,6 @@ def find_logs(folder: Path) -> list[Path]:
     from quadcore import flight
 
     return flight.discover_logs(folder)
-
-
-def best_of(fn, repeats: int = REPEATS) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def main(argv: list[str]) -> int:

@@ -88,6 +88,17 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
     return failures
 
 
+def run_fleet(instance, resources: dict, log) -> dict | None:
+    """Fit, diagnose, record; returns the diagnosis (None if the run failed)."""
+    result = materialize(FLEET, resources, instance)
+    if not result.success:
+        log(f"  FAILED: {_failure_reason(result)}")
+        return None
+    diag = store.read_json(resources["data_root"].root_path / "reports" / "diagnosis.json")
+    log(f"  {diag['verdict']}")
+    return diag
+
+
 def _suggestion(diag: dict) -> str | None:
     """The top candidate if the diagnosis found one that explains something, significantly."""
     useful = [r for r in diag["candidates"] if r["useful"]]
@@ -123,12 +134,9 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
     log("2/3 fit the model, diagnose, record the error history")
-    result = materialize(FLEET, resources, instance)
-    if not result.success:
-        log(f"  FAILED: {_failure_reason(result)}")
+    diag = run_fleet(instance, resources, log)
+    if diag is None:
         return 1
-    diag = store.read_json(root / "reports" / "diagnosis.json")
-    log(f"  {diag['verdict']}")
     suggested = _suggestion(diag)
     if demo and suggested:
         # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
@@ -137,12 +145,8 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         model = ModelConfig(model_file=model.model_file, vehicle=model.vehicle, thrust_map=model.thrust_map,
                             effects=",".join(names), holdout=model.holdout)
         resources["model"] = model
-        result = materialize(FLEET, resources, instance)
-        if not result.success:
-            log(f"  FAILED: {_failure_reason(result)}")
+        if run_fleet(instance, resources, log) is None:
             return 1
-        diag = store.read_json(root / "reports" / "diagnosis.json")
-        log(f"  {diag['verdict']}")
     log("3/3 residuals and rollouts against the fitted model")
     failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flight", log))
 
