@@ -23,3 +23,4 @@ ui:
 bench:
 	$(PYTHON) benchmarks/bench_decode.py
 	$(PYTHON) benchmarks/bench_physics.py
+	$(PYTHON) benchmarks/bench_learning.py

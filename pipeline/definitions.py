@@ -4,6 +4,7 @@ import dagster as dg
 
 from pipeline.assets.decode import decoded_flight
 from pipeline.assets.export import flight_mcap
+from pipeline.assets.learning import learned_models, learning_features, learning_report
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import automation_status, data_root_from_env, model_config_from_env
@@ -13,6 +14,8 @@ from pipeline.sensors import QUARANTINE, raw_log_sensor
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
 # Computed over all flights.
 FLEET = [physics_model, model_diagnosis, error_history]
+# Learned residual models on top of the physics model (fan-in over all residual tables).
+LEARNING = [learning_features, learned_models, learning_report]
 
 # One flight through every per-flight stage: what the sensor launches, and a button in the UI.
 process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
@@ -23,7 +26,7 @@ automation = dg.AutomationConditionSensorDefinition(
 )
 
 defs = dg.Definitions(
-    assets=[*PER_FLIGHT, *FLEET, QUARANTINE],
+    assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING],
     jobs=[process_flight],
     sensors=[raw_log_sensor, automation],
     resources={"data_root": data_root_from_env(), "model": model_config_from_env()},

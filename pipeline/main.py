@@ -17,7 +17,7 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipeline.definitions import FLEET, PER_FLIGHT
+from pipeline.definitions import FLEET, LEARNING, PER_FLIGHT
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig, data_root_from_env, model_config_from_env
 from quadcore import flight, history, store
@@ -109,11 +109,13 @@ def _print_history(root: Path, log) -> None:
     hist = history.read(root)
     if hist.height == 0:
         return
-    log("\nError history (held-out residual RMSE, force N / torque mN m):")
+    log("\nError history (held-out residual RMSE, force N / torque mN m; the diagnosis scores by "
+        "cross-validation over flights, the learning stage on its held-out flight):")
     for row in hist.tail(8).iter_rows(named=True):
         f = " ".join(f"{row[f'force_rmse_{a}_N']:.4f}" for a in "xyz")
         t = " ".join(f"{row[f'torque_rmse_{a}_Nm'] * 1e3:.4f}" for a in "xyz")
-        log(f"  {row['evaluated_at']:%Y-%m-%d %H:%M:%S}  {row['model_label']:<32} force {f}   torque {t}")
+        log(f"  {row['evaluated_at']:%Y-%m-%d %H:%M:%S}  {row['source']:<9} {row['model_label']:<40} "
+            f"force {f}   torque {t}")
 
 
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
@@ -133,7 +135,7 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
-    log("2/3 fit the model, diagnose, record the error history")
+    log("2/4 fit the model, diagnose, record the error history")
     diag = run_fleet(instance, resources, log)
     if diag is None:
         return 1
@@ -147,8 +149,13 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         resources["model"] = model
         if run_fleet(instance, resources, log) is None:
             return 1
-    log("3/3 residuals and rollouts against the fitted model")
+    log("3/4 residuals, rollouts and MCAP against the fitted model")
     failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flight", log))
+    log("4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines")
+    result = materialize(LEARNING, resources, instance)
+    if not result.success:
+        log(f"  FAILED: {_failure_reason(result)}")
+        return 1
 
     log("\nOutputs:")
     log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")
@@ -156,6 +163,9 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     log(f"  rollout errors     {root / 'rollouts'}/flight=<id>/data.parquet")
     log(f"  fitted model       {root / 'models' / 'physics_model.json'}")
     log(f"  diagnosis report   {root / 'reports' / 'diagnosis.html'} (and .md, .json)")
+    log(f"  learned models     {root / 'learned'}/<run>/ (model, scaler, features, manifest)")
+    log(f"  learning report    {root / 'reports' / 'learning.html'} (and .md, .json)")
+    log(f"  flights as MCAP    {root / 'mcap'}/<flight>.mcap (open in Foxglove)")
     log(f"  error history      {root / 'history'}/*.parquet")
     _print_history(root, log)
     if suggested and not demo:

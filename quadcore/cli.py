@@ -4,6 +4,7 @@
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
     quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
+    quadcore train DATA [--holdout F] [--loo] [--models xgboost,mlp] [--feature-sets ...] [--effects ...] [--out DIR]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
@@ -331,7 +332,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     config = learning.TrainConfig(stride=args.stride, seed=args.seed, threads=args.threads)
     try:
         learning.run_plan(plan, by_set, out / "learned", physics_info, config, kinds, log=log)
-        report, _, paths = evaluation.full_report(out / "learned", res, veh, out / "reports", out, kinds, train)
+        report, _, paths = evaluation.full_report(out / "learned", res, veh, out / "reports", out, train)
     except OSError as exc:
         raise UserError(f"cannot write to {out}: {exc}") from None
     print(f"physics model: {physics.label}; held out: {holdout}; trained on {len(train)} flights\n")

@@ -117,14 +117,16 @@ def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
     except learning.LearningError as exc:
         raise dg.Failure(description=str(exc)) from None
     physics = index.get("physics_model", {})
-    report, pngs, paths = evaluation.full_report(root / "learned", feat.read_residual_tables(root),
-                                                 learning.vehicle_of(physics), root / "reports", root,
-                                                 index.get("flight_kinds"), physics.get("trained_on"))
+    try:
+        report, pngs, paths = evaluation.full_report(root / "learned", feat.read_residual_tables(root),
+                                                     learning.vehicle_of(physics), root / "reports", root)
+    except learning.LearningError as exc:
+        raise dg.Failure(description=str(exc)) from None
     md = {k: dg.MetadataValue.md(plots.markdown_image(v, k)) for k, v in pngs.items()}
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(report["verdict"]),
-        "headline": dg.MetadataValue.md(plots.markdown_table(evaluation.frame(report["tables"]["headline"]))),
-        "holdout_table": dg.MetadataValue.md(plots.markdown_table(evaluation.frame(report["tables"]["holdout"]))),
+        "headline": dg.MetadataValue.md(evaluation.markdown_table(evaluation.frame(report["tables"]["headline"]))),
+        "holdout_table": dg.MetadataValue.md(evaluation.markdown_table(evaluation.frame(report["tables"]["holdout"]))),
         **{f"{k}_plot": v for k, v in md.items()},
         "report": dg.MetadataValue.path(str(paths["html"])),
     })
