@@ -129,7 +129,7 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     resources = {"data_root": data_root, "model": model}
     root = data_root.root_path
 
-    log(f"1/3 decode and per-flight physics ({len(ids)} flights)")
+    log(f"1/4 decode and per-flight physics ({len(ids)} flights)")
     failures = run_flights(instance, resources, ids, PER_FLIGHT, "flight", log)
     good = [f for f in ids if f not in failures]
     if len(good) < 2:
