@@ -66,6 +66,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         # the automation retrains once flights are there ...
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1  # and relearns
         run(FLEET, resources, instance)
         # ... and not again while nothing changed
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
@@ -80,6 +81,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert materialization_count(instance, "residual_table", "sim002") == 1
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: retrain
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1
 
 
 def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_logs, tmp_path):

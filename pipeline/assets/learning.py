@@ -4,6 +4,7 @@ flights: feature sets -> trained models (XGBoost, MLP) -> report with baselines 
 import dagster as dg
 import polars as pl
 
+from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
 from pipeline.resources import DataRoot
 from quadcore import evaluation, learning, plots, store
@@ -50,7 +51,7 @@ def _physics(root) -> dict:
     return physics
 
 
-@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"})
+@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=RETRAIN)
 def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.MaterializeResult:
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
     ``<root>/features/<set>/flight=<id>/data.parquet``."""
@@ -73,7 +74,7 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
     })
 
 
-@dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"})
+@dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"}, automation_condition=RETRAIN)
 def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, data_root: DataRoot) -> dg.MaterializeResult:
     """XGBoost and MLP residual models per feature set (and the comparison runs), trained on all
     flights but the holdout with early stopping on validation flights; artefacts and held-out
@@ -106,7 +107,7 @@ def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, da
     })
 
 
-@dg.asset(group_name="learning", deps=[learned_models], kinds={"html"})
+@dg.asset(group_name="learning", deps=[learned_models], kinds={"html"}, automation_condition=RETRAIN)
 def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
     """Held-out MAE / RMSE / R² per axis beside the baselines (physics-only, zero, training mean)
     and the study's figures; comparison tables and plots. Writes reports/learning.{md,html,json}
