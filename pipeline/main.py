@@ -109,13 +109,14 @@ def _print_history(root: Path, log) -> None:
     hist = history.read(root)
     if hist.height == 0:
         return
-    log("\nError history (held-out residual RMSE, force N / torque mN m; the diagnosis scores by "
-        "cross-validation over flights, the learning stage on its held-out flight):")
+    log("\nError history (held-out residual RMSE, force N / torque mN m). Compare rows scored on the "
+        "same flights only:")
     for row in hist.tail(8).iter_rows(named=True):
         f = " ".join(f"{row[f'force_rmse_{a}_N']:.4f}" for a in "xyz")
         t = " ".join(f"{row[f'torque_rmse_{a}_Nm'] * 1e3:.4f}" for a in "xyz")
-        log(f"  {row['evaluated_at']:%Y-%m-%d %H:%M:%S}  {row['source']:<9} {row['model_label']:<40} "
-            f"force {f}   torque {t}")
+        n = len([x for x in row["eval_flights"].split(",") if x])
+        scored = f"{row['eval_mode']} on {n} flight{'s' if n != 1 else ''}"
+        log(f"  {row['source']:<9} {row['model_label']:<40} {scored:<28} force {f}   torque {t}")
 
 
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:

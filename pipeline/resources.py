@@ -83,7 +83,21 @@ class ModelConfig(dg.ConfigurableResource):
 
     @property
     def holdout_flights(self) -> list[str]:
+        """The flights named in ``holdout`` (empty: the diagnosis cross-validates over flights)."""
         return [h.strip() for h in self.holdout.split(",") if h.strip()]
+
+    def held_out(self, flights: list[str]) -> tuple[list[str], str]:
+        """(flights never fitted on, note): the named holdout, or else the project's default
+        held-out flight (jana02, or the last flight where there is no jana02). The physics
+        model and the learned models both leave these out, so neither is scored on a flight
+        it has seen."""
+        from quadcore import learning
+
+        named = [f for f in self.holdout_flights if f in flights]
+        if named:
+            return named, ""
+        flight, note = learning.resolve_holdout(learning.DEFAULT_HOLDOUT, flights)
+        return [flight], note
 
 
 def model_config_from_env() -> ModelConfig:

@@ -25,7 +25,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import flight as flightmod
-from quadcore import diagnosis, effects, export, logformat, model, report, residuals, store, thrustfit, vehicle
+from quadcore import diagnosis, dynamics, effects, export, logformat, model, report, residuals, store, thrustfit, vehicle
 
 MAIN_EVENT = "fixedFrequency"
 
@@ -433,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except UserError as exc:
+    except (UserError, dynamics.MissingColumnsError, vehicle.VehicleFileError, model.ModelFileError) as exc:
         print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
         return 2
 

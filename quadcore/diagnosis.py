@@ -80,7 +80,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore import fitting, rotations
+from quadcore import fitting, rotations, signals
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
@@ -113,10 +113,10 @@ class RegimeColumns:
     phase: np.ndarray
 
 
-def regime_columns(fd: FlightData, residual: np.ndarray, vehicle) -> RegimeColumns:
+def regime_columns(fd: FlightData, vehicle) -> RegimeColumns:
     s = fd.state
-    f_meas_b = residual[:, :3] * 0 + vehicle.mass_kg * s.sf_b_mps2
-    a_w = GRAVITY_W_MPS2 + rotations.body_to_world(s.R_wb, f_meas_b) / vehicle.mass_kg
+    sf_w = rotations.body_to_world(s.R_wb, signals.smooth(s.sf_b_mps2))
+    a_w = GRAVITY_W_MPS2 + sf_w  # kinematic acceleration, from the smoothed accelerometer
     speed = np.linalg.norm(s.v_w_mps, axis=1)
     vz = s.v_w_mps[:, 2]
     tw = s.f_rotor_N.sum(axis=1) / vehicle.weight_N
@@ -147,7 +147,7 @@ def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle)
     frames = []
     for fd in flights:
         r = resid[fd.flight]
-        rc = regime_columns(fd, r, vehicle)
+        rc = regime_columns(fd, vehicle)
         m = fd.mask
         frame = {
             "flight": np.full(m.sum(), fd.flight),
@@ -222,6 +222,19 @@ def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
 TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
 
 
+def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
+    """Grouped-jackknife standard error of each parameter from fits that each leave out one
+    group of flights: ``sqrt((K-1)/K Σ_k (θ_k - θ̄)²)``; empty with fewer than two groups."""
+    if len(fold_params) < 2:
+        return {}
+    k = len(fold_params)
+    out = {}
+    for name in fold_params[0]:
+        vals = np.array([p[name] for p in fold_params])
+        out[name] = float(np.sqrt((k - 1) / k * np.sum((vals - vals.mean()) ** 2)))
+    return out
+
+
 def diagnose(
     decoded: dict[str, pl.DataFrame],
     spec: ModelSpec,
@@ -252,6 +265,7 @@ def diagnose(
     eval_resid: dict[str, np.ndarray] = {}
     cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in cands}
     fold_fits: dict[str, fitting.Fit] = {}
+    fold_params: dict[str, list[dict]] = {c.name: [] for c in cands}  # per fold: the flight-to-flight spread
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
         tr = [fds[f] for f in train]
@@ -259,6 +273,7 @@ def diagnose(
         resid = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in {*train, *test}}
         for c in cands:
             fit_c = fold_fits[c.name] = fitting.fit_effects([c], tr, [resid[f] for f in train], vehicle)
+            fold_params[c.name].append(fit_c.params[c.name])
             for f in test:
                 cand_pred[c.name][f] = fit_c.predict([c], fds[f], vehicle)
         for f in test:
@@ -273,6 +288,14 @@ def diagnose(
     model = PhysicsModel(vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name], e.name in spec.fixed)
                                    for e in model_effects])
     resid_train = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in train_all}
+    if reuse and len(train_all) >= 3:
+        # one split only: refit each candidate leaving out groups of training flights, for the spread
+        for group in fitting.folds(train_all, n_folds):
+            sub = [f for f in train_all if f not in group]
+            for c in cands:
+                fit_g = fitting.fit_effects([c], [fds[f] for f in sub], [resid_train[f] for f in sub], vehicle)
+                fold_params[c.name].append(fit_g.params[c.name])
+        fold_params = {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
 
     eval_ids = sorted(eval_resid)
     before = sum(_ss(eval_resid[f], fds[f].mask) for f in eval_ids)
@@ -295,7 +318,11 @@ def diagnose(
         ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
         target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
         fit_c = fold_fits[c.name] if reuse else fitting.fit_effects([c], tr, [resid_train[f] for f in train_all], vehicle)
-        params, std = fit_c.params[c.name], fit_c.std[c.name]
+        params = fit_c.params[c.name]
+        spread = _jackknife_std(fold_params[c.name])
+        # the larger of the sample-based error and the spread between groups of flights: flights
+        # differ (battery, propellers, a stuck log variable) more than samples within a flight do
+        std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
         bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
         outside = [k for k, v in params.items() if not bounds[k][0] <= v <= bounds[k][1]]
         at_bound = [k for k, v in params.items()
@@ -318,6 +345,7 @@ def diagnose(
             "force_rmse_N": [float(np.sqrt(after[j] / n_eval)) for j in range(3)],
             "torque_rmse_Nm": [float(np.sqrt(after[3 + j] / n_eval)) for j in range(3)],
             "parameters": params,
+            "parameter_spread_between_flights": spread,
             "parameter_std": std,
             "n_parameters": len(c.parameters),
             "explained_variance_per_axis": {

@@ -59,8 +59,35 @@ class FlightState:
         return len(self.t_s)
 
 
+class MissingColumnsError(ValueError):
+    """A flight table lacks what the dynamics need (a variable not logged, or a vehicle file
+    with more rotors than the log has motors)."""
+
+
+def required_columns(vehicle: Vehicle) -> list[str]:
+    """The SI columns :func:`flight_state` needs for this vehicle and thrust map."""
+    need = ["t_s", *cols("p_w", "m"), *cols("v_w", "mps"), "q_x", "q_y", "q_z", "q_w",
+            *cols("omega_b", "radps"), *cols("sf_b", "mps2"), "vbat_V"]
+    need += [f"pwm_{i}" for i in range(1, vehicle.n_rotors + 1)]
+    if vehicle.thrust_map_kind == "motor_speed":
+        need += [f"motor_{i}_radps" for i in range(1, vehicle.n_rotors + 1)]
+    return need
+
+
 def flight_state(df: pl.DataFrame, vehicle: Vehicle) -> FlightState:
-    """Arrays for the dynamics from a decoded ``fixedFrequency`` SI table."""
+    """Arrays for the dynamics from a decoded ``fixedFrequency`` SI table.
+
+    Raises :class:`MissingColumnsError` naming the logged variables that are missing."""
+    missing = [c for c in required_columns(vehicle) if c not in df.columns]
+    if missing:
+        from quadcore.units import SI_COLUMNS
+
+        logged = {si: var for var, (si, *_rest) in SI_COLUMNS.items()}
+        names = ", ".join(f"{c} (log variable {logged[c]})" if c in logged else c for c in missing)
+        raise MissingColumnsError(
+            f"the flight lacks {names}, needed by vehicle {vehicle.name!r} ({vehicle.n_rotors} rotors, "
+            f"thrust map {vehicle.thrust_map_kind})")
+
     def block(names):
         return df.select(names).to_numpy().astype(np.float64)
 

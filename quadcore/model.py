@@ -75,7 +75,7 @@ class PhysicsModel:
         """The effects' wrench for :func:`quadcore.propagation.rollout`, evaluated on the logged
         state along each window (a simplification: the rollout's own state is not fed back)."""
         f, tau = self.extra_wrench(state)
-        return lambda p, v, q, w, i: (f[i], tau[i])
+        return lambda i: (f[i], tau[i])
 
     def residual_table(self, decoded: pl.DataFrame) -> pl.DataFrame:
         state = dynamics.flight_state(decoded, self.vehicle)

@@ -27,8 +27,9 @@ from quadcore.vehicle import Vehicle
 
 HORIZONS_S = (0.1, 0.5, 1.0)
 
-# f(p_w, v_w, q_xyzw, omega_b, sample index) -> (extra force, extra torque), body frame
-ExtraWrench = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+# sample indices -> (extra force, extra torque) of the model's effects, body frame, evaluated on
+# the logged state at those samples (the rollout's own state is not fed back to the effects)
+ExtraWrench = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 def rollout(
@@ -56,7 +57,7 @@ def rollout(
         f_b[:, 2] = T_all[i]
         tau_b = tau_all[i].copy()
         if extra_wrench is not None:
-            ef, et = extra_wrench(p, v, q, w, i)
+            ef, et = extra_wrench(i)
             f_b += ef
             tau_b += et
         a_w = dynamics.linear_acceleration_w(vehicle, rotations.rotation_matrix(q), f_b)

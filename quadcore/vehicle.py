@@ -128,6 +128,15 @@ def _require(d: dict, key: str, where: str):
 
 def from_dict(d: dict, source: str = "") -> Vehicle:
     where = source or "vehicle"
+    try:
+        return _from_dict(d, source, where)
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, VehicleFileError):
+            raise
+        raise VehicleFileError(f"{where}: a value is not a number or has the wrong shape: {exc}") from None
+
+
+def _from_dict(d: dict, source: str, where: str) -> Vehicle:
     inertia = np.asarray(_require(d, "inertia_kgm2", where), dtype=float)
     if inertia.shape != (3, 3) or not np.allclose(inertia, inertia.T):
         raise VehicleFileError(f"{where}: inertia_kgm2 must be a symmetric 3x3 matrix")

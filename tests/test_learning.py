@@ -364,7 +364,7 @@ def test_dagster_assets(tmp_path, residual_tables):
     import dagster as dg
 
     from pipeline.assets.learning import learned_models, learning_features, learning_report
-    from pipeline.resources import DataRoot
+    from pipeline.resources import DataRoot, ModelConfig
 
     physics = model.PhysicsModel(VEHICLE, []).to_dict()
     for f, t in residual_tables.items():
@@ -375,8 +375,26 @@ def test_dagster_assets(tmp_path, residual_tables):
                                       "mlp": "hidden=16,epochs=8", "threads": 1, "stride": 3}},
     }}
     with dg.instance_for_test() as instance:
-        result = dg.materialize([learning_features, learned_models, learning_report], instance=instance,
-                                resources={"data_root": DataRoot(root=str(tmp_path))}, run_config=run_config)
+        resources = {"data_root": DataRoot(root=str(tmp_path)), "model": ModelConfig()}
+        assets = [learning_features, learned_models, learning_report]
+        result = dg.materialize(assets, instance=instance, resources=resources, run_config=run_config)
+        # a physics model fitted on the held-out flight would leak it: refused with the reason
+        store.write_json({**physics, "trained_on": sorted(residual_tables)}, tmp_path / "models" / "physics_model.json")
+        leaky = dg.materialize(assets, instance=instance, resources=resources, run_config=run_config,
+                               raise_on_error=False)
+        # residual tables against different models: refused, naming the stale flights
+        store.write_json({**physics, "trained_on": []}, tmp_path / "models" / "physics_model.json")
+        stale_flight = sorted(residual_tables)[0]
+        other = model.PhysicsModel(VEHICLE, [model.EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1})])
+        store.write_parquet(residual_tables[stale_flight], store.table_path(tmp_path, "residuals", stale_flight),
+                            {"flight": stale_flight, "model": other.to_dict()})
+        mixed = dg.materialize(assets, instance=instance, resources=resources, run_config=run_config,
+                               raise_on_error=False)
+    failures = {name: [e.event_specific_data.user_failure_data.description for e in r.all_events
+                       if e.is_step_failure and e.event_specific_data.user_failure_data]
+                for name, r in (("leaky", leaky), ("mixed", mixed))}
+    assert not leaky.success and "fitted on" in failures["leaky"][0] and HOLDOUT in failures["leaky"][0]
+    assert not mixed.success and stale_flight in failures["mixed"][0]
     assert result.success
     assert (tmp_path / "features" / "physics" / f"flight={HOLDOUT}" / "data.parquet").is_file()
     (mat,) = result.asset_materializations_for_node("learning_report")

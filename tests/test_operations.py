@@ -68,7 +68,15 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1  # and relearns
         run(FLEET, resources, instance)
-        # ... and not again while nothing changed
+        # the refit makes every flight's residual table stale: they are recomputed ...
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        assert auto.get_requested_partitions(dg.AssetKey("residual_table")) == {"sim000", "sim001"}
+        for key in ("sim000", "sim001"):
+            run(PER_FLIGHT[1:], resources, instance, key)
+        # ... the learned models follow the fresh residuals, and then nothing runs while nothing changes
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 0
+        assert auto.get_num_requested(dg.AssetKey("residual_table")) == 0
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.total_requested == 0
         assert isinstance(sensor_tick(instance, data_root, first.cursor), dg.SkipReason)
@@ -77,7 +85,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         second = sensor_tick(instance, data_root, first.cursor)
         assert [r.partition_key for r in second.run_requests] == ["sim002"]
         run(PER_FLIGHT, resources, instance, "sim002")
-        assert materialization_count(instance, "residual_table", "sim000") == 1
+        assert materialization_count(instance, "residual_table", "sim000") == 2  # first run + the refresh
         assert materialization_count(instance, "residual_table", "sim002") == 1
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: retrain

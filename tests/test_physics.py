@@ -203,3 +203,26 @@ def test_motor_speed_thrust_map_is_selectable(real_logs):
     # both maps give roughly the weight on average
     for t in (by_speed, by_pwm):
         assert t["T_N"].mean() == pytest.approx(VEH.weight_N, rel=0.2)
+
+
+def test_bad_vehicle_values_and_missing_columns_are_typed_errors(tmp_path, sim_flight, capsys):
+    text = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("mass_kg = 0.0347", 'mass_kg = "heavy"'))
+    with pytest.raises(vehicle.VehicleFileError, match="not a number"):
+        vehicle.load(bad)
+    hexa = tmp_path / "hexa.toml"
+    extra = "\n".join(f"[[rotors]]\narm_m = 0.046\nangle_deg = {a}\nyaw_sign = 1\n" for a in (90.0, -90.0))
+    hexa.write_text(text.replace("[thrust_map]", extra + "\n[thrust_map]", 1))
+    six = vehicle.load(hexa)
+    assert six.n_rotors == 6
+    with pytest.raises(dynamics.MissingColumnsError, match="pwm_5"):
+        residuals.residual_table(sim_flight, six)
+    without_vbat = sim_flight.drop("vbat_V")
+    with pytest.raises(dynamics.MissingColumnsError, match="pm.vbatMV"):
+        residuals.residual_table(without_vbat, VEH)
+    folder = tmp_path / "raw"
+    simulation.simulate_set(folder, [simulation.SimConfig(kind="hover", duration_s=3.0, seed=3)], {})
+    assert cli.main(["residuals", str(folder), "--vehicle", str(hexa)]) == 2
+    assert "pwm_5" in capsys.readouterr().err
+    assert cli.main(["residuals", str(folder), "--vehicle", str(bad)]) == 2

@@ -2,13 +2,15 @@
 
 import dagster as dg
 
+from pipeline.assets.model import REFRESH
 from pipeline.assets.physics import residual_table
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot
 from quadcore import export, store
 
 
-@dg.asset(partitions_def=flights, group_name="export", deps=[residual_table], kinds={"mcap"})
+@dg.asset(partitions_def=flights, group_name="export", deps=[residual_table], kinds={"mcap"},
+          automation_condition=REFRESH)
 def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.MaterializeResult:
     """`<root>/mcap/<flight>.mcap`: open it in Foxglove (3D panel: the /tf frame 'body')."""
     fid = context.partition_key

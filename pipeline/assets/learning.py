@@ -1,12 +1,14 @@
 """Stage 4: what the physics cannot explain, learned. Fan-in over the residual tables of all
 flights: feature sets -> trained models (XGBoost, MLP) -> report with baselines and plots."""
 
+import json
+
 import dagster as dg
 import polars as pl
 
 from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
-from pipeline.resources import DataRoot
+from pipeline.resources import DataRoot, ModelConfig
 from quadcore import evaluation, learning, plots, store
 from quadcore import features as feat
 
@@ -20,13 +22,13 @@ class FeatureConfig(dg.Config):
 
 
 class LearningConfig(dg.Config):
-    """What to train. ``holdout``: the held-out flight (the last flight if it is absent);
+    """What to train. ``holdout``: the held-out flight (empty: the one the physics model left out);
     ``models``: model kinds; ``xgboost`` / ``mlp``: options such as ``depth=4,trees=300`` or
     ``hidden=64x64``; ``compare``: also the complexity and training-size comparisons; ``loo``:
     also leave-one-flight-out; ``flights_csv``: flight kinds (empty: ``flights.csv`` beside or
     above the raw folder); ``stride``: fit on every stride-th sample; ``threads``: XGBoost threads."""
 
-    holdout: str = learning.DEFAULT_HOLDOUT
+    holdout: str = ""  # empty: the physics model's held-out flight (see ModelConfig.held_out)
     models: list[str] = ["xgboost", "mlp"]
     xgboost: str = ""
     mlp: str = ""
@@ -40,9 +42,18 @@ class LearningConfig(dg.Config):
 
 def _physics(root) -> dict:
     """The physics model the residual tables were computed against (their metadata), with the
-    flights its effects were fitted on when the fitted model file matches."""
+    flights its effects were fitted on when the fitted model file matches. Fails when the
+    tables were computed against different models (some not refreshed after a refit)."""
     files = sorted((root / "residuals").glob("flight=*/data.parquet"))
-    physics = store.read_metadata(files[0]).get("model", {}) if files else {}
+    models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
+    distinct = {json.dumps(m, sort_keys=True) for m in models.values()}
+    if len(distinct) > 1:
+        latest = json.loads(max(distinct, key=lambda d: sum(json.dumps(m, sort_keys=True) == d for m in models.values())))
+        stale = sorted(f for f, m in models.items() if m != latest)
+        raise dg.Failure(description=(
+            f"the residual tables were computed against different physics models (not refreshed after a "
+            f"refit?): re-materialise residual_table for {', '.join(stale)}"))
+    physics = next(iter(models.values()), {})
     fitted = root / "models" / "physics_model.json"
     if fitted.is_file():
         saved = store.read_json(fitted)
@@ -56,6 +67,7 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
     ``<root>/features/<set>/flight=<id>/data.parquet``."""
     root = data_root.root_path
+    _physics(root)  # every residual table against one physics model, or a clear failure
     res = feat.read_residual_tables(root)
     if not res:
         raise dg.Failure(description=f"no residual tables in {root / 'residuals'}: materialise residual_table first")
@@ -75,7 +87,9 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
 
 
 @dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"}, automation_condition=RETRAIN)
-def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, data_root: DataRoot) -> dg.MaterializeResult:
+def learned_models(
+    context: dg.AssetExecutionContext, config: LearningConfig, data_root: DataRoot, model: ModelConfig
+) -> dg.MaterializeResult:
     """XGBoost and MLP residual models per feature set (and the comparison runs), trained on all
     flights but the holdout with early stopping on validation flights; artefacts and held-out
     predictions under ``<root>/learned/<run>/``."""
@@ -86,8 +100,16 @@ def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, da
     flights = sorted(next(iter(tables.values())))
     csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     kinds = feat.read_flight_kinds(csv_path)
+    physics = _physics(root)
     try:
-        holdout, note = learning.resolve_holdout(config.holdout, flights)
+        if config.holdout:
+            holdout, note = learning.resolve_holdout(config.holdout, flights)
+        else:
+            (holdout, *_), note = model.held_out(flights)
+        if holdout in (physics.get("trained_on") or []):
+            raise learning.LearningError(
+                f"the physics model's effects were fitted on {holdout}, the flight the learned models are scored "
+                f"on: re-materialise physics_model with the same holdout, then residual_table")
         specs = {k: learning.parse_spec(f"{k}:{getattr(config, k, '')}") for k in config.models}
         plan = learning.plan(flights, sets, config.models, holdout, kinds, config.loo, config.compare, specs)
     except learning.LearningError as exc:
@@ -95,7 +117,7 @@ def learned_models(context: dg.AssetExecutionContext, config: LearningConfig, da
     for n in ([note] if note else []) + plan.notes:
         context.log.warning(n)
     train_config = learning.TrainConfig(stride=config.stride, seed=config.seed, threads=config.threads)
-    records = learning.run_plan(plan, tables, root / "learned", _physics(root), train_config, kinds, log=context.log.info)
+    records = learning.run_plan(plan, tables, root / "learned", physics, train_config, kinds, log=context.log.info)
     return dg.MaterializeResult(metadata={
         "holdout": holdout,
         "models": len(records),

@@ -4,20 +4,24 @@ import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.partitions import flights
-from pipeline.assets.model import current_model, physics_model
+from pipeline.assets.model import REFRESH, current_model, physics_model
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"})
+@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"},
+          automation_condition=REFRESH)
 def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Measured minus modelled force and torque for one flight, body and world frames, against
     the current model (the vehicle plus the fitted effects of the model file)."""
     fid = context.partition_key
-    current = current_model(data_root, model)
+    current = current_model(data_root, model, context.log)
     vehicle = current.vehicle
     decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    table = current.residual_table(decoded)
+    try:
+        table = current.residual_table(decoded)
+    except dynamics.MissingColumnsError as exc:
+        raise dg.Failure(description=f"{fid}: {exc}") from None
     path = store.write_parquet(
         table,
         store.table_path(data_root.root_path, "residuals", fid),
@@ -38,14 +42,18 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
     )
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"})
+@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"},
+          automation_condition=REFRESH)
 def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Open-loop error growth of the current model from the logged state, per horizon."""
     fid = context.partition_key
-    current = current_model(data_root, model)
+    current = current_model(data_root, model, context.log)
     vehicle = current.vehicle
     decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    state = dynamics.flight_state(decoded, vehicle)
+    try:
+        state = dynamics.flight_state(decoded, vehicle)
+    except dynamics.MissingColumnsError as exc:
+        raise dg.Failure(description=f"{fid}: {exc}") from None
     growth = propagation.error_growth(state, vehicle, extra_wrench=current.rollout_wrench(state) if current.terms else None)
     path = store.write_parquet(
         growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
