@@ -273,13 +273,27 @@ def write_feature_tables(root: Path, residual_tables: dict[str, pl.DataFrame], s
     return out
 
 
-def clear_feature_tables(root: Path) -> None:
-    """Remove ``<root>/features`` (written only by :func:`write_feature_tables`)."""
+def replace_feature_tables(root: Path, residual_tables: dict[str, pl.DataFrame], sets: list[FeatureSet],
+                           provenance: dict | None = None) -> dict[str, list[Path]]:
+    """Write every feature table into a staging folder, then swap it for ``<root>/features`` in
+    two renames: a failure half-way leaves the previous tables whole, and readers never see a
+    half-written set."""
     import shutil
+    import tempfile
 
-    folder = Path(root) / "features"
-    if folder.is_dir():
-        shutil.rmtree(folder)
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".features-", dir=root))
+    try:
+        write_feature_tables(staging, residual_tables, sets, provenance)
+        final, old = root / "features", root / f".features-old-{staging.name}"
+        if final.exists():
+            final.rename(old)
+        (staging / "features").rename(final)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return {fs.name: [feature_path(root, fs.name, f) for f in residual_tables] for fs in sets}
 
 
 def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, dict[str, pl.DataFrame]]]:

@@ -67,14 +67,13 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
     ``<root>/features/<set>/flight=<id>/data.parquet``."""
     root = data_root.root_path
-    _physics(root)  # every residual table against one physics model, or a clear failure
+    physics = _physics(root)  # every residual table against one physics model, or a clear failure
     res = feat.read_residual_tables(root)
     if not res:
         raise dg.Failure(description=f"no residual tables in {root / 'residuals'}: materialise residual_table first")
     try:
         sets = feat.parse(config.feature_sets)
-        feat.clear_feature_tables(root)
-        feat.write_feature_tables(root, res, sets, {"model": _physics(root).get("label", "")})
+        feat.replace_feature_tables(root, res, sets, {"model": physics.get("label", "")})
     except feat.FeatureError as exc:
         raise dg.Failure(description=str(exc)) from None
     return dg.MaterializeResult(metadata={
