@@ -128,8 +128,8 @@ def regime_columns(fd: FlightData, vehicle) -> RegimeColumns:
                          np.linalg.norm(a_w, axis=1), phase)
 
 
-def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
-    """Label each value with its bin: ``<e1``, ``e1-e2``, ..., ``ek+`` (edges ascending)."""
+def bin_labels(edges: list[float], unit: str = "") -> list[str]:
+    """The label of each bin: ``<e1``, ``e1-e2``, ..., ``ek+`` (edges ascending, first may be -inf)."""
     labels = []
     for i, lo in enumerate(edges):
         if i + 1 == len(edges):
@@ -138,8 +138,13 @@ def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
             labels.append(f"<{edges[i + 1]:g} {unit}")
         else:
             labels.append(f"{lo:g}-{edges[i + 1]:g} {unit}")
+    return [label.strip() for label in labels]
+
+
+def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
+    """Label each value with its bin (see :func:`bin_labels`)."""
     idx = np.searchsorted(np.asarray(edges[1:]), x, side="right")
-    return np.char.strip(np.asarray(labels))[idx]
+    return np.asarray(bin_labels(edges, unit))[idx]
 
 
 def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle) -> pl.DataFrame:

@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
 from quadcore import features as feat  # noqa: E402
-from quadcore import dynamics, history, learning, plots, residuals, store  # noqa: E402
+from quadcore import diagnosis, dynamics, history, learning, plots, residuals, store  # noqa: E402
 from quadcore.dynamics import XYZ  # noqa: E402
 from quadcore.features import TARGETS  # noqa: E402
 from quadcore.learning import PRED_COLUMNS  # noqa: E402
@@ -485,11 +485,11 @@ def _empty(text: str) -> bytes:
     return plots._png(fig)
 
 
-REGIME_BINS = {
-    "speed [m/s]": [0.0, 0.25, 0.5, 1.0, 1.5],
-    "height [m]": [-np.inf, 0.1, 0.3, 0.6, 1.0],
-    "angular rate [rad/s]": [0.0, 0.5, 1.0, 2.0, 4.0],
-    "thrust / weight": [0.0, 0.8, 0.95, 1.05, 1.2],
+REGIME_BINS = {  # the diagnosis's bins, so both reports cut the flight envelope alike
+    "speed [m/s]": diagnosis.SPEED_BINS,
+    "height [m]": diagnosis.HEIGHT_BINS,
+    "angular rate [rad/s]": diagnosis.RATE_BINS,
+    "thrust / weight": diagnosis.THRUST_BINS,
 }
 
 
@@ -500,20 +500,6 @@ def regime_values(table: pl.DataFrame, vehicle) -> dict[str, np.ndarray]:
         "angular rate [rad/s]": np.linalg.norm(table.select([f"omega_b_{a}_radps" for a in XYZ]).to_numpy(), axis=1),
         "thrust / weight": table["T_N"].to_numpy() / vehicle.weight_N,
     }
-
-
-def _bin_labels(edges: list[float]) -> list[str]:
-    labels = []
-    for i in range(len(edges)):
-        lo = edges[i]
-        hi = edges[i + 1] if i + 1 < len(edges) else None
-        if np.isinf(lo):
-            labels.append(f"<{hi:g}")
-        elif hi is None:
-            labels.append(f"{lo:g}+")
-        else:
-            labels.append(f"{lo:g}-{hi:g}")
-    return labels
 
 
 def regime_table(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFrame], vehicle) -> pl.DataFrame:
@@ -535,7 +521,7 @@ def regime_table(report: dict, out_dir: Path, residual_tables: dict[str, pl.Data
         for regime, edges in REGIME_BINS.items():
             x = values[regime][rows]
             idx = np.clip(np.searchsorted(np.asarray(edges[1:]), x, side="right"), 0, len(edges) - 1)
-            labels = _bin_labels(edges)
+            labels = diagnosis.bin_labels(edges)
             for b in np.unique(idx):
                 sel = idx == b
                 frames.append({"model": name, "regime": regime, "bin": labels[b], "bin_index": int(b),
