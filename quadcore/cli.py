@@ -222,11 +222,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_diagnose(args: argparse.Namespace) -> int:
+def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
+    """The DATA folder (which must exist) and the ``--effects`` names."""
     data = Path(args.data)
     if not data.exists():
         raise UserError(f"no such folder: {data}")
-    names = [n.strip() for n in (args.effects or "").split(",") if n.strip()]
+    return data, [n.strip() for n in (args.effects or "").split(",") if n.strip()]
+
+
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    data, names = _data_and_effects(args)
     try:
         if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
             spec = model.load_model_file(args.model, vehicle_override=args.vehicle)
@@ -276,11 +281,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from quadcore import evaluation, fitting, learning
     from quadcore import features as feat
 
-    data = Path(args.data)
-    if not data.exists():
-        raise UserError(f"no such folder: {data}")
+    data, names = _data_and_effects(args)
     veh = _vehicle(args)
-    names = [n.strip() for n in (args.effects or "").split(",") if n.strip()]
     kinds_of_model = [k.strip() for k in (args.models or "").split(",") if k.strip()]
     if args.stride < 1 or args.threads < 1:
         raise UserError("--stride and --threads must be at least 1")

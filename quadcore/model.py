@@ -15,7 +15,6 @@ Relative paths are relative to the model file.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,12 +118,7 @@ def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = No
 def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
     """Read a model file (see module docstring)."""
     path = Path(path)
-    if not path.is_file():
-        raise ModelFileError(f"model file not found: {path}")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ModelFileError(f"{path}: not valid TOML: {exc}") from None
+    d = vehiclemod.read_toml(path, ModelFileError, "model file")
     base = path.parent
 
     def resolve(p: str) -> str:

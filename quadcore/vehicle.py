@@ -175,11 +175,15 @@ def load(path_or_name: str | Path | None = None) -> Vehicle:
         text = resources.files("quadcore").joinpath(f"vehicles/{DEFAULT_VEHICLE}.toml").read_text()
         return from_dict(tomllib.loads(text), source=f"builtin:{DEFAULT_VEHICLE}")
     path = Path(path_or_name)
+    return from_dict(read_toml(path, VehicleFileError, "vehicle file"), source=str(path))
+
+
+def read_toml(path: Path, error: type[Exception], what: str) -> dict:
+    """A TOML file as a dict; a missing or malformed file raises ``error`` saying which."""
     if not path.is_file():
-        raise VehicleFileError(f"vehicle file not found: {path}")
+        raise error(f"{what} not found: {path}")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
-        raise VehicleFileError(f"{path}: not valid TOML: {exc}") from None
-    return from_dict(data, source=str(path))
+        raise error(f"{path}: not valid TOML: {exc}") from None
 
