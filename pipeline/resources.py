@@ -78,9 +78,6 @@ class ModelConfig(dg.ConfigurableResource):
             spec.vehicle = spec.vehicle.with_thrust_map(self.thrust_map)
         return spec
 
-    def load_vehicle(self):
-        return self.spec().vehicle
-
     @property
     def holdout_flights(self) -> list[str]:
         """The flights named in ``holdout`` (empty: the diagnosis cross-validates over flights)."""

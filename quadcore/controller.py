@@ -76,10 +76,6 @@ class Controller:
         self.i_p = [0.0, 0.0, 0.0]
         self.i_R = [0.0, 0.0, 0.0]
 
-    def reset(self) -> None:
-        self.i_p = [0.0, 0.0, 0.0]
-        self.i_R = [0.0, 0.0, 0.0]
-
     def step(self, dt, p, v, R, w, p_ref, v_ref, a_ref, yaw, yaw_rate, yaw_acc):
         """One control step. ``R`` is row-major ((r00, r01, r02), ...), body->world; ``w`` the
         measured body rate. Returns ``(f_cmd tuple of rotor thrusts, T, tau)``."""

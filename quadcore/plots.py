@@ -13,7 +13,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
 from quadcore.dynamics import XYZ  # noqa: E402
@@ -82,12 +81,3 @@ def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
     fig.suptitle(title or "open-loop rollout error growth")
     return _png(fig)
 
-
-def scatter(x: np.ndarray, y: np.ndarray, xlabel: str, ylabel: str, title: str = "") -> bytes:
-    fig, ax = plt.subplots(figsize=(4.5, 4))
-    ax.plot(x, y, ".", ms=1, alpha=0.3)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.grid(alpha=0.3)
-    ax.set_title(title)
-    return _png(fig)

@@ -40,12 +40,3 @@ def angle_between_rad(q1_xyzw: np.ndarray, q2_xyzw: np.ndarray) -> np.ndarray:
     """Angle (rad, 0..pi) of the rotation taking attitude q1 to attitude q2."""
     return (Rotation.from_quat(q1_xyzw).inv() * Rotation.from_quat(q2_xyzw)).magnitude()
 
-
-def euler_rpy_rad(q_xyzw: np.ndarray) -> np.ndarray:
-    """(n, 3) roll, pitch, yaw (rad), extrinsic x-y-z, for plots and regime tables."""
-    return Rotation.from_quat(q_xyzw).as_euler("xyz")
-
-
-def from_euler_rpy(rpy_rad: np.ndarray) -> np.ndarray:
-    """(n, 4) quaternions from roll, pitch, yaw (rad), extrinsic x-y-z."""
-    return Rotation.from_euler("xyz", rpy_rad).as_quat()

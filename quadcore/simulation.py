@@ -567,7 +567,7 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
             if tau_m > 0:
                 f_lag = [f_map[i] + (f_lag[i] - f_map[i]) * lag_a for i in range(4)]
 
-    data, kept = _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, k_F,
+    data, kept = _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, veh.motor_speed,
                          n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm, drop_rng, mocap_rng, clock_rng)
     return SimFlight(
         config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=m_true, nominal_mass_kg=m_nom, data=data,
@@ -589,7 +589,7 @@ def _drop_mask(n: int, config: SimConfig, rng: np.random.Generator) -> np.ndarra
     return kept
 
 
-def _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, k_F, n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm,
+def _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, motor_map, n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm,
             drop_rng, mocap_rng, clock_rng) -> tuple[bytes, np.ndarray]:
     n = len(t)
     noise = config.noise
@@ -598,8 +598,8 @@ def _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, k_F, n_pos, n_vel, n
     ts = t0_us + np.rint(t * 1e6).astype(np.int64)
 
     q_est = _quat_noise(Q, n_att)
-    if k_F > 0:
-        rpm = np.sqrt(np.maximum(F_ACT, 0.0) / k_F) / RPM_TO_RADPS + n_rpm
+    if motor_map.k_F_N_per_radps2 > 0:
+        rpm = motor_map.speed_for_thrust(F_ACT) / RPM_TO_RADPS + n_rpm
     else:
         rpm = np.zeros_like(F_ACT)
     ff = np.empty(n, dtype=FIXED_FREQUENCY.payload_dtype())

@@ -70,11 +70,6 @@ def si_name(variable: str) -> str:
     return re.sub(r"[^0-9A-Za-z]+", "_", variable).strip("_") + "_raw"
 
 
-def raw_from_si(variable: str) -> float:
-    """Multiply an SI value by this to get the logged (firmware) value."""
-    return 1.0 / SI_COLUMNS[variable][1] if variable in SI_COLUMNS else 1.0
-
-
 def to_si(
     values: np.ndarray, timestamps_us: np.ndarray, t0_us: int
 ) -> tuple[pl.DataFrame, dict[str, dict[str, str]]]:

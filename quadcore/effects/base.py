@@ -84,10 +84,6 @@ class Effect:
         return f"<effect {self.name}: {', '.join(p.name for p in self.parameters)}>"
 
 
-def zeros(state: FlightState) -> np.ndarray:
-    return np.zeros((state.n, 3))
-
-
 def body_z(values: np.ndarray) -> np.ndarray:
     """(n, 3) vectors along body z with the given magnitudes."""
     out = np.zeros((len(values), 3))
