@@ -6,6 +6,7 @@
     quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
     quadcore train DATA [--holdout F] [--loo] [--models xgboost,mlp] [--feature-sets ...] [--effects ...] [--out DIR]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
+    quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--write-effect DIR/NAME.py]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
 
@@ -230,7 +231,9 @@ def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
     return data, [n.strip() for n in (args.effects or "").split(",") if n.strip()]
 
 
-def cmd_diagnose(args: argparse.Namespace) -> int:
+def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict, list[str]]:
+    """The model (``--model`` file or ``--effects``), the flights of DATA and the ``--holdout``
+    names, checked: what ``diagnose`` and ``discover`` start from."""
     data, names = _data_and_effects(args)
     try:
         if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
@@ -253,6 +256,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         raise UserError(f"holdout flight(s) not found in {data}: {', '.join(unknown)}; flights: {', '.join(tables)}")
     if holdout and len(holdout) == len(tables):
         raise UserError("every flight is held out: nothing left to fit on")
+    return spec, tables, holdout
+
+
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    spec, tables, holdout = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
     log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(tables, spec, holdout or None, log=log)
@@ -273,6 +281,53 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.report:
         md, page = report.write(result, Path(args.report))
         print(f"wrote {md} and {page}")
+    return 0
+
+
+def _rmse_line(label: str, d: dict) -> str:
+    return (f"{label} force [N]: " + " ".join(f"{v:.4f}" for v in d["force_rmse_N"])
+            + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in d["torque_rmse_Nm"]))
+
+
+def cmd_discover(args: argparse.Namespace) -> int:
+    """Terms the effect library lacks: sparse regression of the residual on candidate terms."""
+    from quadcore import discovery
+
+    spec, tables, holdout = _model_and_flights(args)
+    if len(tables) - len(holdout) < 2:
+        raise UserError("discovery needs at least two training flights (its folds are grouped by flight)")
+    if args.write_effect:
+        target = Path(args.write_effect)
+        if target.suffix != ".py" or not discovery.NAME_RE.match(target.stem):
+            raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
+    log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
+    result = discovery.discover(tables, spec, holdout or None, log=log)
+    out = Path(args.json)
+    try:
+        store.write_json(result.to_dict(), out)
+    except OSError as exc:
+        raise UserError(f"cannot write {out}: {exc}") from None
+    ev = result.evaluation
+    print(f"model: {'+'.join(['nominal', *spec.effects])}  ({ev['mode']}, {len(ev['eval_flights'])} flights evaluated)")
+    print(_rmse_line("held-out residual RMSE before", result.baseline))
+    print(_rmse_line("held-out residual RMSE after ", result.after))
+    print()
+    print(result.summary)
+    for a in result.axes:
+        for note in a.notes:
+            print(f"note ({a.target}): {note}")
+    for t in result.terms:
+        if t.matches_effects or t.collinear_with:
+            print(f"  {t.target} {t.expression}: "
+                  + "; ".join(filter(None, [f"matches {', '.join(t.matches_effects)}" if t.matches_effects else "",
+                                            f"collinear with {', '.join(t.collinear_with[:4])}" if t.collinear_with else ""])))
+    print(f"\nwrote {out}")
+    if args.write_effect:
+        try:
+            path = discovery.write_effect(result, Path(args.write_effect))
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        print(f"wrote {path}: add it to the model file's plugins and its name ({path.stem}) to effects")
     return 0
 
 
@@ -405,6 +460,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser("discover", help="terms the effect library lacks: sparse regression on the residual (JSON)")
+    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
+    p.add_argument("--json", required=True, metavar="OUT.json")
+    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file: discover on top of its effects")
+    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (instead of the file's)")
+    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
+                   "cross-validation over flights)")
+    p.add_argument("--write-effect", default=None, metavar="DIR/NAME.py",
+                   help="write the kept terms as a linear effect plugin module NAME")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_discover)
 
     p = sub.add_parser("train", help="learn the residual the physics model leaves (XGBoost, MLP) and report")
     p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")

@@ -63,6 +63,11 @@ def read_metadata(path: Path) -> dict:
     return json.loads(pl.read_parquet_metadata(path).get(METADATA_KEY.decode(), "{}"))
 
 
+def write_text(text: str, path: Path) -> Path:
+    """Write ``text`` to ``path`` atomically (temp file + rename)."""
+    return _atomic(path, lambda tmp: Path(tmp).write_text(text))
+
+
 def write_json(obj: dict, path: Path) -> Path:
     return _atomic(path, lambda tmp: Path(tmp).write_text(json.dumps(obj, indent=2, default=str)))
 
