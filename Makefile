@@ -24,3 +24,4 @@ bench:
 	$(PYTHON) benchmarks/bench_decode.py
 	$(PYTHON) benchmarks/bench_physics.py
 	$(PYTHON) benchmarks/bench_learning.py
+	$(PYTHON) benchmarks/bench_discover.py

@@ -3,17 +3,22 @@
 import dagster as dg
 
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.discovery import term_discovery
 from pipeline.assets.export import flight_mcap
 from pipeline.assets.learning import learned_models, learning_features, learning_report
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
-from pipeline.resources import automation_status, data_root_from_env, model_config_from_env
+from pipeline.resources import (
+    automation_status,
+    data_root_from_env,
+    model_config_from_env,
+)
 from pipeline.sensors import QUARANTINE, raw_log_sensor
 
 # Computed per flight partition (the sensor's runs and the main job run these).
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
 # Computed over all flights.
-FLEET = [physics_model, model_diagnosis, error_history]
+FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 # Learned residual models on top of the physics model (fan-in over all residual tables).
 LEARNING = [learning_features, learned_models, learning_report]
 

@@ -80,7 +80,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore import fitting, rotations, signals
+from quadcore import fitting, rotations, signals, spectrum
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
@@ -422,6 +422,7 @@ def diagnose(
         "regimes": regime_table(long).to_dicts(),
         "flights": flight_table(long).to_dicts(),
         "worst_segments": worst_segments(long).to_dicts(),
+        "frequency": spectrum.frequency_view([fds[f] for f in eval_ids], eval_resid, vehicle),
     }
 
 

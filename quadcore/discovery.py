@@ -20,10 +20,18 @@ residual table's columns, every term with its unit (:func:`library`):
 side of the *same* residual reconstructs it without any physics (the gyro derivative
 ``omega_dot_b`` rebuilds the torque residual exactly; the accelerometer the force
 residual). So the torque library never holds ``omega_dot_b``, the force library never holds
-``sf_b``, and neither holds the modelled side of its own axis (``T_N`` alone for ``f_z``).
-Per-rotor thrusts stay (a per-rotor map error is physics), but when the terms kept for an
-axis rebuild a multiple of that axis' modelled force or torque, the result says so: the
-model's own term is mis-scaled (or cancelled by something), which is not a new mechanism.
+``sf_b``, and neither holds the modelled side of its own axis: ``T_N`` and the per-rotor
+map thrusts for ``f_z``, the per-rotor map thrusts and their differences for the torques
+(the rotor torque is a combination of them). This matters more than it seems: in closed
+loop the attitude controller holds off any slow disturbance torque with rotor-thrust
+differences, so the modelled rotor torque *is* minus the disturbance at low frequency, and
+a library holding it "explains" every disturbance as "the model's torque does not act"
+(on the 19 real flights: -0.9 × the modelled torque, hiding a flapping moment ``∝ T v``).
+As a second line, when the terms kept for an axis still rebuild a multiple of its modelled
+force or torque, the result says so: the model's own term is mis-scaled or cancelled by
+something, which is not a new mechanism by itself. Per-rotor thrusts stay in the
+horizontal force library, motor speeds (a separate measurement) and time derivatives of
+the map thrusts (timing) in every library.
 
 **Every term goes through the residual's own filter** (force: the smoother; torque: the
 gyro derivative's filter, :func:`quadcore.fitting.smoothed_wrench`), so a coefficient found
@@ -254,7 +262,10 @@ def excluded(term: Term, target: str) -> bool:
     channel = "force" if target.startswith("f_") else "torque"
     if term.channel not in ("both", channel):
         return True
-    return target == "f_res_b_z_N" and term.expression == "T_N"
+    per_rotor = re.fullmatch(r"f_rotor_\d+_N", term.expression) is not None
+    if channel == "torque":  # the rotor torque is a combination of the map's rotor thrusts
+        return per_rotor or re.fullmatch(r"\(f_rotor_\d+_N-f_rotor_\d+_N\)", term.expression) is not None
+    return target == "f_res_b_z_N" and (term.expression == "T_N" or per_rotor)
 
 
 # --- results --------------------------------------------------------------------------------

@@ -54,6 +54,82 @@ def regimes_plot(d: dict) -> bytes:
     return plots._png(fig)
 
 
+def frequency_plot(freq: dict) -> bytes:
+    """Residual RMS by frequency band (top) and coherence / gain of modelled vs measured
+    (bottom), force left and torque right."""
+    labels = [f"{lo:g}-{hi:g}" for lo, hi in freq["bands_hz"]]
+    x = np.arange(len(labels))
+    rows = {r["channel"]: r for r in freq["channels"]}
+    fig, axes = plt.subplots(2, 2, figsize=(12, 6), layout="constrained", sharex=True)
+    for col, (kind, unit, scale) in enumerate((("force", "N", 1.0), ("torque", "mN m", 1e3))):
+        for j, a in enumerate("xyz"):
+            r = rows.get(f"{kind}_{a}")
+            if r is None:
+                continue
+            axes[0, col].bar(x + (j - 1) * 0.27, np.asarray(r["residual_rms"]) * scale, 0.27, label=f"{kind} {a}")
+            line = axes[1, col].plot(x, r["coherence"], "o-", label=f"coherence {a}")[0]
+            axes[1, col].plot(x, r["gain"], "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
+        axes[0, col].set_ylabel(f"residual RMS in band [{unit}]")
+        axes[0, col].legend(fontsize=7)
+        axes[1, col].set_ylabel("model vs measured")
+        axes[1, col].set_ylim(0, 1.6)
+        axes[1, col].axhline(1.0, color="k", lw=0.5)
+        axes[1, col].legend(fontsize=6, ncol=3)
+        axes[1, col].set_xticks(x, labels)
+        axes[1, col].set_xlabel("frequency band [Hz]")
+        for ax in axes[:, col]:
+            ax.grid(alpha=0.3)
+    return plots._png(fig)
+
+
+def frequency_table(freq: dict) -> pl.DataFrame:
+    """One row per channel and band: residual RMS, its share, coherence, gain, phase."""
+    return pl.DataFrame([
+        {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}", "residual_rms": r["residual_rms"][i],
+         "share": r["residual_share"][i], "coherence": r["coherence"][i], "gain": r["gain"][i],
+         "phase_deg": r["phase_deg"][i]}
+        for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])])
+
+
+def discovery_table(disc: dict) -> pl.DataFrame:
+    """The kept terms of a discovery (:mod:`quadcore.discovery`), one row each."""
+    return pl.DataFrame([
+        {"target": t["target"], "term": t["expression"], "coefficient": t["coefficient"], "std": t["std"],
+         "unit": t["unit"], "explained_held_out": t["explained_variance"], "stability": t["stability"],
+         "matches": ", ".join(t.get("matches_effects", [])), "literature": t.get("literature", ""),
+         "collinear_with": ", ".join(t.get("collinear_with", [])[:4])}
+        for t in disc["terms"]])
+
+
+def discovery_plot(disc: dict) -> bytes:
+    """Held-out residual RMSE per axis before and after the discovered terms, relative."""
+    fig, ax = plt.subplots(figsize=(7, 3), layout="constrained")
+    labels = [f"F{a}" for a in "xyz"] + [f"τ{a}" for a in "xyz"]
+    before = np.array(disc["baseline"]["force_rmse_N"] + disc["baseline"]["torque_rmse_Nm"])
+    after = np.array(disc["after"]["force_rmse_N"] + disc["after"]["torque_rmse_Nm"])
+    x = np.arange(6)
+    ax.bar(x - 0.2, np.ones(6), 0.4, label="current model")
+    ax.bar(x + 0.2, np.divide(after, before, out=np.ones(6), where=before > 0), 0.4, label="+ discovered terms")
+    ax.set_xticks(x, labels)
+    ax.set_ylabel("held-out residual RMSE (relative)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, axis="y")
+    return plots._png(fig)
+
+
+def discovery_sections(disc: dict) -> list[tuple[str, str, object]]:
+    """The discovery's part of the diagnosis report."""
+    notes = [f"{a['target']}: {n}" for a in disc["axes"] for n in a["notes"]]
+    out = [("Terms the library lacks (quadcore discover)", "text",
+            f"On top of {'+'.join(['nominal', *disc['effects_in_model']])}, {disc['evaluation']['mode']}: "
+            + ("; ".join(t["formula"] for t in disc["terms"]) if disc["terms"] else "no term kept") + "."
+            + (" Notes: " + " ".join(notes) if notes else ""))]
+    if disc["terms"]:
+        out += [("Discovered terms", "table", discovery_table(disc)),
+                ("Held-out error with the discovered terms", "image", discovery_plot(disc))]
+    return out
+
+
 def history_plot(hist: pl.DataFrame) -> bytes:
     """Error per axis for each evaluation, in order: the falling-error plot."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), layout="constrained")
@@ -74,7 +150,7 @@ def _table(df: pl.DataFrame) -> pl.DataFrame:
     return df.with_columns(pl.col(pl.Float64).round_sig_figs(3))
 
 
-def sections(d: dict, hist: pl.DataFrame | None = None) -> list[tuple[str, str, object]]:
+def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None) -> list[tuple[str, str, object]]:
     """(title, kind, content) with kind in text / table / image."""
     b = d["baseline"]
     ev = d["evaluation"]
@@ -114,6 +190,15 @@ def sections(d: dict, hist: pl.DataFrame | None = None) -> list[tuple[str, str, 
         ("Residual by flight", "table", pl.DataFrame(d["flights"])),
         ("Worst segments", "table", pl.DataFrame(d["worst_segments"])),
     ]
+    freq = d.get("frequency")
+    if freq and freq.get("channels"):
+        out += [
+            ("Where it fails, in frequency", "text", " ".join(freq["reading"])),
+            ("Residual by frequency band; coherence and gain of modelled vs measured", "image", frequency_plot(freq)),
+            ("Frequency bands", "table", frequency_table(freq)),
+        ]
+    if disc is not None:
+        out += discovery_sections(disc)
     if hist is not None and hist.height:
         out.append(("History: the error, evaluation after evaluation", "image", history_plot(hist)))
         out.append(("History", "table", hist.select("evaluated_at", "source", "model_label", *RMSE_COLUMNS)))
@@ -154,11 +239,12 @@ def to_html(secs) -> str:
     return "\n".join(parts)
 
 
-def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None) -> tuple[Path, Path]:
-    """Write ``diagnosis.md`` and ``diagnosis.html`` into ``out_dir``."""
+def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None) -> tuple[Path, Path]:
+    """Write ``diagnosis.md`` and ``diagnosis.html`` into ``out_dir`` (with a discovery's
+    section when ``disc`` is given)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    secs = sections(d, hist)
+    secs = sections(d, hist, disc)
     md, page = out_dir / "diagnosis.md", out_dir / "diagnosis.html"
     md.write_text(to_markdown(secs))
     page.write_text(to_html(secs))

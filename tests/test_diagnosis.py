@@ -425,3 +425,21 @@ def test_real_logs_diagnosis_is_well_formed_and_physical(real_logs, tmp_path):
     # unphysical fits are never ranked above physical ones
     phys = [r["physical"] for r in d["candidates"]]
     assert phys == sorted(phys, reverse=True)
+
+
+def test_frequency_view_shows_a_hidden_lag_as_timing(hidden):
+    """A motor lag the model lacks: at 2-10 Hz the modelled and measured torque stay
+    coherent, but the measurement lags (first order, 30 ms: -54° and gain 0.59 at 7.5 Hz)."""
+    nominal, with_it = hidden("motor_lag")
+    freq = nominal["frequency"]
+    bands = [tuple(b) for b in freq["bands_hz"]]
+    k = bands.index((5.0, 10.0))
+    for channel in ("torque_x", "torque_y"):
+        row = next(r for r in freq["channels"] if r["channel"] == channel)
+        assert row["coherence"][k] > 0.8, row
+        assert -80 < row["phase_deg"][k] < -30, row
+        assert 0.4 < row["gain"][k] < 0.8, row
+        assert abs(sum(row["residual_share"]) - 1) < 0.05
+    fixed = next(r for r in with_it["frequency"]["channels"] if r["channel"] == "torque_x")
+    assert abs(fixed["phase_deg"][k]) < 15 and abs(fixed["gain"][k] - 1) < 0.15, fixed
+    assert any("late or early" in line for line in freq["reading"]), freq["reading"]

@@ -10,6 +10,7 @@ import polars as pl
 import pytest
 
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import DataRoot, ModelConfig
@@ -17,7 +18,7 @@ from quadcore import history, simulation, store
 
 HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}}
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors]
-FLEET = [physics_model, model_diagnosis, error_history]
+FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +65,14 @@ def test_the_loop_in_dagster(raw, tmp_path):
         report = json.loads((root / "reports" / "diagnosis.json").read_text())
         assert report["candidates"][0]["effect"] == "rotor_drag"
         assert (root / "reports" / "diagnosis.html").stat().st_size > 10_000
+        # beside the library's candidates: the terms discovery finds, and where it fails in frequency
+        found = metadata(res, "term_discovery")
+        assert "v_b_x_mps" in found["terms"] and "data:image/png;base64," in found["discovery_plot"]
+        disc = json.loads((root / "reports" / "discovery.json").read_text())
+        assert any(t["target"] == "f_res_b_x_N" and "v_b_x_mps" in t["variables"] for t in disc["terms"])
+        md = (root / "reports" / "diagnosis.md").read_text()
+        assert "Terms the library lacks" in md and "Where it fails, in frequency" in md
+        assert "data:image/png;base64," in diag["frequency_plot"] and "force_x" in diag["frequency"]
 
         # the user adds it: the model is refitted, the error falls, the history shows both
         with_drag = {"data_root": data_root, "model": ModelConfig(effects="rotor_drag")}

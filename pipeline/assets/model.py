@@ -60,6 +60,18 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     })
 
 
+def discovery_path(data_root: DataRoot):
+    """Where the ``term_discovery`` asset writes its result."""
+    return data_root.root_path / "reports" / "discovery.json"
+
+
+def _discovery_for(data_root: DataRoot, effects: list[str]) -> dict | None:
+    """The last discovery, if it was made on top of these effects (else it is stale)."""
+    path = discovery_path(data_root)
+    disc = store.read_json(path) if path.is_file() else None
+    return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
+
+
 def current_model(data_root: DataRoot, model: ModelConfig, log=None):
     """The fitted model if it matches the model file's effects, else the nominal vehicle (said
     in the log: the model file names effects that physics_model has not fitted yet)."""
@@ -75,7 +87,8 @@ def current_model(data_root: DataRoot, model: ModelConfig, log=None):
     return modelmod.PhysicsModel(spec.vehicle, [])
 
 
-@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"html"}, automation_condition=RETRAIN)
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model, dg.AssetKey("term_discovery")], kinds={"html"},
+          automation_condition=RETRAIN)
 def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
     held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
@@ -90,7 +103,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     history.record(data_root.root_path, "diagnosis", result["model"]["label"], b["force_rmse_N"], b["torque_rmse_Nm"],
                    spec.effects, {e["name"]: e["params"] for e in result["model"]["effects"]},
                    result["evaluation"]["mode"], result["evaluation"]["eval_flights"])
-    md, page = report.write(result, out, history.read(data_root.root_path))
+    md, page = report.write(result, out, history.read(data_root.root_path), _discovery_for(data_root, spec.effects))
     top = result["candidates"][:5]
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(result["verdict"]),
@@ -104,8 +117,17 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "candidates_plot": dg.MetadataValue.md(plots.markdown_image(report.candidates_plot(result), "candidates")),
         "regimes_plot": dg.MetadataValue.md(plots.markdown_image(report.regimes_plot(result), "regimes")),
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
+        **_frequency_metadata(result.get("frequency")),
         "report": dg.MetadataValue.path(str(page)),
     })
+
+
+def _frequency_metadata(freq: dict | None) -> dict:
+    """Where the model fails in frequency: the reading, and the band plot."""
+    if not freq or not freq.get("channels"):
+        return {}
+    return {"frequency": dg.MetadataValue.md("\n\n".join(freq["reading"])),
+            "frequency_plot": dg.MetadataValue.md(plots.markdown_image(report.frequency_plot(freq), "frequency"))}
 
 
 @dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"}, automation_condition=RETRAIN)

@@ -1,0 +1,37 @@
+"""Stage 3b: terms the effect library lacks, found in the residual of the current model
+(:mod:`quadcore.discovery`). Fan-in over all decoded flights; the diagnosis report shows them."""
+
+import dagster as dg
+
+from pipeline.assets.model import ALL_FLIGHTS, RETRAIN, discovery_path, physics_model
+from pipeline.resources import DataRoot, ModelConfig
+from quadcore import discovery, plots, report, store
+from quadcore.cli import MAIN_EVENT
+
+
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=RETRAIN)
+def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
+    """Sparse regression of the model's residual on a library of candidate terms, grouped by
+    flight: the formulas the model lacks, each with its coefficient, uncertainty, held-out
+    share and stability. Writes reports/discovery.json."""
+    spec = model.spec()
+    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    holdout = [f for f in model.holdout_flights if f in decoded]
+    if len(decoded) - len(holdout) < 2:
+        raise dg.Failure(description="discovery needs at least two training flights (folds are grouped by flight)")
+    result = discovery.discover(decoded, spec, holdout or None, log=context.log.info)
+    path = store.write_json(result.to_dict(), discovery_path(data_root))
+    b, a = result.baseline, result.after
+    return dg.MaterializeResult(metadata={
+        "summary": dg.MetadataValue.md(result.summary.replace("\n", "\n\n")),
+        "terms": dg.MetadataValue.md(plots.markdown_table(report.discovery_table(result.to_dict()))
+                                     if result.terms else "no term kept"),
+        "discovery_plot": dg.MetadataValue.md(plots.markdown_image(report.discovery_plot(result.to_dict()), "discovery")),
+        "notes": dg.MetadataValue.md("\n\n".join(f"{x.target}: {n}" for x in result.axes for n in x.notes) or "none"),
+        **{f"after_force_rmse_{ax}_N": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["force_rmse_N"])},
+        **{f"after_torque_rmse_{ax}_Nm": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
+        "baseline": dg.MetadataValue.json(b),
+        "path": dg.MetadataValue.path(str(path)),
+        "flights": len(decoded),
+    })
+
