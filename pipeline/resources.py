@@ -42,7 +42,10 @@ class DataRoot(dg.ConfigurableResource):
         return Path(self.raw).resolve() if self.raw else self.root_path / "raw"
 
     def raw_log(self, flight: str) -> Path:
-        return self.raw_path / flight
+        """The raw log of a flight id (``FileNotFoundError`` if it is gone)."""
+        from quadcore.flight import find_log
+
+        return find_log(self.raw_path, flight)
 
 
 def data_root_from_env() -> DataRoot:

@@ -2,6 +2,7 @@
 
 
 import json
+from pathlib import Path
 
 import dagster as dg
 
@@ -10,39 +11,46 @@ from pipeline.resources import DataRoot, automation_status
 from quadcore import flight, logformat, store
 
 
-def scan_raw(data_root: DataRoot) -> dict[str, str]:
-    """Flight id -> a fingerprint (size and mtime) of every candidate log in the raw folder."""
+def raw_logs(data_root: DataRoot) -> dict[str, Path]:
+    """Flight id -> path of every candidate log in the raw folder."""
     if not data_root.raw_path.is_dir():
         return {}
-    out = {}
-    for p in flight.discover_logs(data_root.raw_path):
-        st = p.stat()
-        out[flight.flight_id_of(p)] = f"{st.st_size}-{st.st_mtime_ns}"
-    return out
+    return {flight.flight_id_of(p): p for p in flight.discover_logs(data_root.raw_path)}
+
+
+def fingerprint(path: Path) -> str:
+    """Size and mtime: a changed file is a new version of the flight."""
+    try:
+        st = path.stat()
+    except OSError:  # removed since the listing: the next tick will not see it
+        return "gone"
+    return f"{st.st_size}-{st.st_mtime_ns}"
 
 
 def header_problem(path) -> str | None:
-    """The reason a file cannot be a log (checked on its header only), or None."""
+    """The reason a file cannot be a log (checked on its header only; an unreadable file is
+    one), or None."""
     try:
         with open(path, "rb") as f:
             logformat.parse_header(f.read(64 * 1024))
-    except logformat.LogFormatError as exc:
+    except (logformat.LogFormatError, OSError) as exc:
         return f"{type(exc).__name__}: {exc}"
     return None
 
 
 def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot):
     seen = json.loads(context.cursor) if context.cursor else {}
-    current = scan_raw(data_root)
+    paths = raw_logs(data_root)
+    current = {fid: fingerprint(p) for fid, p in paths.items()}
     changed = {fid: fp for fid, fp in current.items() if seen.get(fid) != fp}
     if not changed:
         return dg.SkipReason(f"no new logs in {data_root.raw_path}")
     known = set(context.instance.get_dynamic_partitions(flights.name))
     runs, add, refused = [], [], {}
     for fid, fp in sorted(changed.items()):
-        problem = header_problem(data_root.raw_log(fid))
+        problem = header_problem(paths[fid])
         if problem:
-            store.write_quarantine(data_root.root_path, fid, str(data_root.raw_log(fid)), problem, "header")
+            store.write_quarantine(data_root.root_path, fid, str(paths[fid]), problem, "header")
             context.log.warning(f"quarantined {fid}: {problem}")
             refused[fid] = problem
             continue

@@ -57,7 +57,7 @@ def load_flights(
         fid = flightmod.flight_id_of(path)
         try:
             fl = flightmod.decode_flight(path)
-        except logformat.LogFormatError as exc:
+        except (logformat.LogFormatError, OSError) as exc:
             reason = f"{type(exc).__name__}: {exc}"
             if out is not None:
                 store.write_quarantine(out, fid, str(path), str(exc), type(exc).__name__)
@@ -73,8 +73,16 @@ def load_flights(
     return flights, quarantined
 
 
+def _output_folder(path: str) -> Path:
+    """``path`` as an output folder: it must be a folder or not exist yet."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file, not a folder")
+    return out
+
+
 def cmd_decode(args: argparse.Namespace) -> int:
-    out = Path(args.out)
+    out = _output_folder(args.out)
     flights, quarantined = load_flights(args.paths, out)
     events = sorted({e for f in flights for e in f.tables})
     rows = [[f.flight_id, *[str(f.provenance["rows"].get(e, 0)) for e in events], str(len(f.warnings))] for f in flights]
@@ -505,6 +513,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (UserError, dynamics.MissingColumnsError, vehicle.VehicleFileError, model.ModelFileError) as exc:
         print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a folder that cannot be written, a file where a folder should be, ...
+        print(f"quadcore {args.verb}: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return 2
 
 

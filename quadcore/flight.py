@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore import logformat, units
+from quadcore import logformat, names, units
 
 
 @dataclass
@@ -31,7 +31,19 @@ class Flight:
 
 
 def flight_id_of(path: str | Path) -> str:
-    return Path(path).name
+    """The flight id of a log: its file name, or a safe stand-in for a name that cannot be a
+    path component (see :func:`quadcore.names.safe_component`)."""
+    return names.safe_component(Path(path).name)
+
+
+def find_log(folder: str | Path, flight_id: str) -> Path:
+    """The log in ``folder`` whose flight id is ``flight_id`` (``FileNotFoundError`` if none)."""
+    if names.is_safe(flight_id) and (Path(folder) / flight_id).is_file():
+        return Path(folder) / flight_id
+    for path in discover_logs(folder) if Path(folder).is_dir() else []:
+        if flight_id_of(path) == flight_id:
+            return path
+    raise FileNotFoundError(f"no log with flight id {flight_id!r:.120} in {folder}")
 
 
 def from_decoded(flight_id: str, log: logformat.DecodedLog, provenance: dict) -> Flight:

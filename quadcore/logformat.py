@@ -19,32 +19,47 @@ Layout of a file (all integers little-endian)::
 
 Decoding is vectorised. Records of different event types have different sizes, so
 record boundaries form a chain ``next = start + size(id at start)``.  We read the
-u16 at *every* byte offset, keep the offsets that hold a known event id (the
-candidates), and enumerate the chain from the first record by pointer doubling:
-``O(n log n)`` numpy gathers, no Python loop per record.  Records are then
-gathered into one ``(rows, record_size)`` byte matrix per event type and viewed
-through a structured dtype.
+u16 at *every* byte offset once, keep the offsets that hold a declared event id (the
+candidates: one table lookup, linear in the file size whatever the header declares), and
+enumerate the chain from the first record by pointer doubling: ``O(n log n)`` numpy
+gathers, no Python loop per record.  Records are then gathered into one
+``(rows, record_size)`` byte matrix per event type and viewed through a structured dtype.
 
 Bad input never raises for something that can be recovered: a CRC mismatch,
 a missing CRC, a partial last record or bytes that break the record chain are
 reported in ``DecodedLog.warnings`` together with what was kept and dropped.
+After bytes that break the chain (a corrupt record), decoding resynchronises: it
+resumes at the next offset from which ``RESYNC_RECORDS`` records chain without a
+break, and reports each skipped stretch (bytes and time range) in ``DecodedLog.skipped``.
 Only a file with nothing to recover (empty, wrong magic byte, unknown version,
-unreadable header) raises a :class:`LogFormatError`.
+unreadable header, a header beyond the limits below) raises a :class:`LogFormatError`.
+
+Event names become path components under the data root, so the decoder hands out
+safe, unique names (:mod:`quadcore.names`); a renamed or repeated event is a warning.
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+
+from quadcore import names as namesmod
 
 MAGIC = 0xBC
 CRC_SIZE = 4
 TIMESTAMP_DTYPE = {1: np.dtype("<u4"), 2: np.dtype("<u8")}
 TIMESTAMP_TO_US = {1: 1000, 2: 1}
+# Limits of the header: generous for real firmware (2 event types, 25 variables, names under 40
+# characters), and they make a crafted header fail fast instead of costing time and folders.
+MAX_EVENT_TYPES = 256
+MAX_VARIABLES = 1024  # per event type
+MAX_NAME_CHARS = 255
+RESERVED_VARIABLES = ("event_id", "timestamp")  # the record's own fields
+RESYNC_RECORDS = 8  # records that must chain without a break where decoding resumes
 TYPE_CHARS = {
     "B": "<u1",
     "b": "<i1",
@@ -111,19 +126,34 @@ class DecodedLog:
     bytes_total: int = 0
     bytes_dropped: int = 0
     crc_ok: bool | None = None  # None: no CRC present
+    skipped: list = field(default_factory=list)  # SkippedStretch, where decoding resynchronised
 
     def rows(self) -> dict[str, int]:
         return {name: len(table) for name, table in self.tables.items()}
 
 
 def _read_cstring(buf: bytes, pos: int) -> tuple[str, int]:
-    end = buf.find(b"\x00", pos)
+    end = buf.find(b"\x00", pos, pos + MAX_NAME_CHARS + 1)
     if end < 0:
-        raise CorruptHeaderError(f"header is truncated: unterminated name at byte {pos}")
+        if buf.find(b"\x00", pos) < 0:
+            raise CorruptHeaderError(f"header is truncated: unterminated name at byte {pos}")
+        raise CorruptHeaderError(f"name at byte {pos} is longer than {MAX_NAME_CHARS} characters")
     try:
         return buf[pos:end].decode("ascii"), end + 1
     except UnicodeDecodeError as exc:
         raise CorruptHeaderError(f"non-ASCII name in header at byte {pos}") from exc
+
+
+def _variable(spec: str, event: str) -> tuple[str, str]:
+    """(name, type character) of a ``"name(t)"`` spec, or :class:`CorruptHeaderError`."""
+    if not (spec.endswith(")") and "(" in spec):
+        raise CorruptHeaderError(f"variable spec {spec!r:.60} is not 'name(t)'")
+    var, t = spec[:-1].split("(", 1)
+    if t not in TYPE_CHARS:
+        raise CorruptHeaderError(f"variable {var!r:.60} has unknown type {t!r:.10}")
+    if not var or var in RESERVED_VARIABLES:
+        raise CorruptHeaderError(f"event {event!r:.60} has a variable named {var!r}: empty or reserved")
+    return var, t
 
 
 def parse_header(buf: bytes) -> tuple[int, dict[int, EventType], int]:
@@ -137,6 +167,8 @@ def parse_header(buf: bytes) -> tuple[int, dict[int, EventType], int]:
     version, n_types = struct.unpack_from("<HH", buf, 1)
     if version not in TIMESTAMP_DTYPE:
         raise UnsupportedVersionError(f"format version {version} is not supported (known: 1, 2)")
+    if n_types > MAX_EVENT_TYPES:
+        raise CorruptHeaderError(f"header declares {n_types} event types; at most {MAX_EVENT_TYPES} are supported")
     pos = 5
     types: dict[int, EventType] = {}
     try:
@@ -145,14 +177,14 @@ def parse_header(buf: bytes) -> tuple[int, dict[int, EventType], int]:
             name, pos = _read_cstring(buf, pos + 2)
             (n_vars,) = struct.unpack_from("<H", buf, pos)
             pos += 2
+            if n_vars > MAX_VARIABLES:
+                raise CorruptHeaderError(f"event {name!r:.60} declares {n_vars} variables; at most {MAX_VARIABLES}")
             names, chars = [], []
             for _ in range(n_vars):
                 spec, pos = _read_cstring(buf, pos)
-                if not (spec.endswith(")") and "(" in spec):
-                    raise CorruptHeaderError(f"variable spec {spec!r} is not 'name(t)'")
-                var, t = spec[:-1].split("(", 1)
-                if t not in TYPE_CHARS:
-                    raise CorruptHeaderError(f"variable {var!r} has unknown type {t!r}")
+                var, t = _variable(spec, name)
+                if var in names:
+                    raise CorruptHeaderError(f"event {name!r:.60} declares variable {var!r} twice")
                 names.append(var)
                 chars.append(t)
             if event_id in types:
@@ -163,13 +195,14 @@ def parse_header(buf: bytes) -> tuple[int, dict[int, EventType], int]:
     return version, types, pos
 
 
-def _chain(starts: np.ndarray, nxt: np.ndarray) -> np.ndarray:
-    """Indices of the nodes reached from node 0 by following ``nxt``, in order.
+def _chain(nxt: np.ndarray, start: int) -> np.ndarray:
+    """Indices of the nodes reached from ``start`` by following ``nxt``, in order, ending
+    with the sink reached.
 
     ``nxt`` maps node -> node; sink nodes map to themselves. Pointer doubling:
     after step k the list holds the first 2**k nodes of the chain.
     """
-    order = np.zeros(1, dtype=np.int64)
+    order = np.array([start], dtype=np.int64)
     jump = nxt
     while True:
         last = order[-1]
@@ -182,10 +215,139 @@ def _chain(starts: np.ndarray, nxt: np.ndarray) -> np.ndarray:
     return order[: first_sink + 1]
 
 
+@dataclass(frozen=True)
+class SkippedStretch:
+    """Bytes skipped to resynchronise after a corrupt record: ``[byte_start, byte_end)`` in the
+    file, between the records kept at ``t_before_us`` and ``t_after_us`` (None: no such record)."""
+
+    byte_start: int
+    byte_end: int
+    t_before_us: int | None
+    t_after_us: int | None
+
+
+@dataclass(frozen=True)
+class _Walk:
+    """The record chain over a region: kept record starts and ids (region offsets), why it
+    stopped ("end", "partial", "garbage"), where, and the stretches skipped on the way."""
+
+    starts: np.ndarray
+    ids: np.ndarray
+    reason: str
+    stop: int
+    skips: np.ndarray  # (k, 2) region byte ranges
+    skip_neighbours: np.ndarray  # (k, 2) region offsets of the records kept before / after (-1: none)
+
+
+def _empty_walk(reason: str) -> _Walk:
+    none = np.empty((0, 2), np.int64)
+    return _Walk(np.empty(0, np.int64), np.empty(0, np.uint16), reason, 0, none, none)
+
+
+def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
+    """Follow the record chain over ``region``, resynchronising after bytes that break it.
+
+    Candidates are offsets whose u16 is a declared event id; ``nxt`` links a candidate to the
+    candidate where its record ends (or to the sinks END / BREAK). Where the chain breaks, it
+    resumes at the first later candidate from which ``RESYNC_RECORDS`` records chain (or which
+    starts at least two records that end the region exactly); a broken record that overlaps
+    the resumed chain was no record and is dropped.
+    """
+    n = len(region)
+    if n < 2:
+        return _empty_walk("end" if n == 0 else "garbage")
+    word = region[:-1].astype(np.uint16) | (region[1:].astype(np.uint16) << 8)
+    cand = np.flatnonzero(size_lut[word] > 0)
+    if len(cand) == 0:
+        return _empty_walk("garbage")
+    cand_ids = word[cand]
+    m = len(cand)
+    END, BREAK = m, m + 1
+    nxt_offset = cand + size_lut[cand_ids]
+    j = np.minimum(np.searchsorted(cand, nxt_offset), m - 1)
+    nxt = np.where(cand[j] == nxt_offset, j, np.where(nxt_offset == n, END, BREAK))
+    nxt = np.concatenate([nxt, [END, BREAK]])
+
+    ahead = nxt
+    for _ in range(RESYNC_RECORDS - 1):
+        ahead = nxt[ahead]
+    sync = np.flatnonzero((ahead[:m] != BREAK) & (nxt[:m] < m))
+    breaks = np.flatnonzero(nxt[:m] == BREAK)
+    k = np.searchsorted(sync, breaks, side="right")
+    target = np.where(k < len(sync), sync[np.minimum(k, max(len(sync) - 1, 0))] if len(sync) else BREAK, BREAK)
+    resumed = nxt.copy()
+    resumed[breaks] = target
+    dropped = np.zeros(m + 2, dtype=bool)
+    dropped[breaks] = (target != BREAK) & (cand[np.minimum(target, m - 1)] < nxt_offset[breaks])
+
+    first = 0 if cand[0] == 0 else (int(sync[0]) if len(sync) else -1)
+    if first < 0:
+        return _empty_walk("garbage")
+    order = _chain(resumed, first)
+    sink, nodes = order[-1], order[:-1]
+    jumps = nodes[(nxt[nodes] == BREAK) & (resumed[nodes] != BREAK)]
+    kept = nodes[~dropped[nodes]]
+
+    skip_from = np.where(dropped[jumps], cand[jumps], nxt_offset[jumps])
+    skip_to = cand[resumed[jumps]]
+    after = resumed[jumps]
+    pos = np.searchsorted(kept, after)
+    before = np.where(pos > 0, cand[kept[np.maximum(pos - 1, 0)]], -1)
+    if first != 0:
+        skip_from, skip_to = np.r_[0, skip_from], np.r_[cand[first], skip_to]
+        before, after = np.r_[-1, before], np.r_[first, after]
+    skips = np.stack([skip_from, skip_to], axis=1).astype(np.int64)
+    neighbours = np.stack([before, cand[after]], axis=1).astype(np.int64)
+
+    starts, ids = cand[kept], cand_ids[kept]
+    if sink == END:
+        return _Walk(starts, ids, "end", n, skips, neighbours)
+    last = nodes[-1]
+    if nxt_offset[last] > n:  # the final record runs past the end: a partial last record
+        return _Walk(starts[:-1], ids[:-1], "partial", int(cand[last]), skips, neighbours)
+    return _Walk(starts, ids, "garbage", int(nxt_offset[last]), skips, neighbours)
+
+
+def _timestamps_at(region: np.ndarray, offsets: np.ndarray, ts_dtype: np.dtype) -> np.ndarray:
+    """The raw timestamps of the records starting at ``offsets`` (region offsets)."""
+    idx = offsets[:, None] + 2 + np.arange(ts_dtype.itemsize)
+    return region[idx].copy().view(ts_dtype).reshape(-1).astype(np.int64)
+
+
+def _skipped_stretches(walk: _Walk, region: np.ndarray, data_start: int, version: int) -> list[SkippedStretch]:
+    ts_dtype = TIMESTAMP_DTYPE[version]
+    nb = walk.skip_neighbours
+    ts = _timestamps_at(region, np.maximum(nb, 0).reshape(-1), ts_dtype).reshape(-1, 2) * TIMESTAMP_TO_US[version]
+    return [
+        SkippedStretch(int(a) + data_start, int(b) + data_start,
+                       int(t0) if i0 >= 0 else None, int(t1) if i1 >= 0 else None)
+        for (a, b), (i0, i1), (t0, t1) in zip(walk.skips, nb, ts)
+    ]
+
+
+def _skip_warning(skipped: list[SkippedStretch], t0_us: int) -> str:
+    total = sum(s.byte_end - s.byte_start for s in skipped)
+
+    def at(t):
+        return "start" if t is None else f"{(t - t0_us) * 1e-6:.3f} s"
+
+    where = "; ".join(f"bytes {s.byte_start}..{s.byte_end} ({at(s.t_before_us)} to {at(s.t_after_us)})"
+                      for s in skipped[:5])
+    more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+    return (f"resynchronised after {len(skipped)} corrupt stretch(es): skipped {total} bytes: {where}{more}")
+
+
+def _safe_event_types(types_by_id: dict[int, EventType]) -> tuple[dict[int, EventType], list[str]]:
+    """Event types renamed to safe, distinct names (they become folders), and what was renamed."""
+    names, warnings = namesmod.unique_safe_names([et.name for et in types_by_id.values()])
+    renamed = {eid: replace(et, name=name) for (eid, et), name in zip(types_by_id.items(), names)}
+    return renamed, [f"event type: {w}" for w in warnings]
+
+
 def decode_bytes(buf: bytes) -> DecodedLog:
     """Decode a whole uSD log held in memory. See the module docstring."""
     version, types_by_id, data_start = parse_header(buf)
-    warnings: list[str] = []
+    types_by_id, warnings = _safe_event_types(types_by_id)
     n_total = len(buf)
 
     crc_ok: bool | None = None
@@ -195,77 +357,46 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         crc_ok = (zlib.crc32(buf[:data_end]) & 0xFFFFFFFF) == crc_stored
 
     ts_dtype = TIMESTAMP_DTYPE[version]
-    sizes = {eid: 2 + ts_dtype.itemsize + et.payload_dtype().itemsize for eid, et in types_by_id.items()}
+    size_lut = np.zeros(65536, dtype=np.int64)
+    for eid, et in types_by_id.items():
+        size_lut[eid] = 2 + ts_dtype.itemsize + et.payload_dtype().itemsize
 
-    def walk(end: int):
-        """Follow the record chain over buf[data_start:end]. Returns (starts, ids, stop_reason, stop_at)."""
-        region = np.frombuffer(buf, dtype=np.uint8, count=end - data_start, offset=data_start)
-        n = len(region)
-        if n < 2 or not types_by_id:
-            return np.empty(0, np.int64), np.empty(0, np.uint16), ("end" if n == 0 else "garbage"), 0
-        # Candidate record starts: offsets holding a declared event id (two byte compares per id).
-        per_id = [np.flatnonzero((region[:-1] == (eid & 0xFF)) & (region[1:] == (eid >> 8))) for eid in sizes]
-        cand = np.sort(np.concatenate(per_id)) if len(per_id) > 1 else per_id[0]
-        if len(cand) == 0 or cand[0] != 0:
-            return np.empty(0, np.int64), np.empty(0, np.uint16), "garbage", 0
-        cand_ids = region[cand].astype(np.uint16) | (region[cand + 1].astype(np.uint16) << 8)
-        size_lut = np.zeros(65536, dtype=np.int64)
-        for eid, size in sizes.items():
-            size_lut[eid] = size
-        m = len(cand)
-        # Two sinks: END (chain hits exactly the end) and BREAK (anything else).
-        END, BREAK = m, m + 1
-        nxt_offset = cand + size_lut[cand_ids]
-        j = np.minimum(np.searchsorted(cand, nxt_offset), m - 1)
-        nxt = np.where(cand[j] == nxt_offset, j, np.where(nxt_offset == n, END, BREAK))
-        nxt = np.concatenate([nxt, [END, BREAK]])
-        order = _chain(cand, nxt)
-        sink = order[-1]
-        nodes = order[:-1]
-        starts, ids = cand[nodes], cand_ids[nodes]
-        if sink == END:
-            return starts, ids, "end", n
-        if len(nodes) and nxt_offset[nodes[-1]] > n:
-            # the final record runs past the end: a partial last record
-            return starts[:-1], ids[:-1], "partial", int(starts[-1])
-        # the chain hit bytes that are no record: keep what came before
-        stop = int(nxt_offset[nodes[-1]]) if len(nodes) else 0
-        return starts, ids, "garbage", stop
+    def walk(end: int) -> _Walk:
+        return _walk(np.frombuffer(buf, dtype=np.uint8, count=max(end - data_start, 0), offset=data_start), size_lut)
 
     if crc_ok is None:
         warnings.append("no CRC trailer: file is truncated; decoded what was there")
-        starts, ids, reason, stop = walk(n_total)
-        end_used = n_total
+        w, end_used = walk(n_total), n_total
     else:
-        starts, ids, reason, stop = walk(data_end)
-        end_used = data_end
-        if reason != "end":
+        w, end_used = walk(data_end), data_end
+        if w.reason != "end" or len(w.skips):
             # Either the trailer is missing (a truncated file) or the data is damaged. A file
             # whose records end cleanly or mid-record at its very end, read without a trailer,
             # was truncated; otherwise keep whichever reading recovers more.
-            starts2, ids2, reason2, stop2 = walk(n_total)
-            if reason2 in ("end", "partial") or len(starts2) > len(starts):
-                starts, ids, reason, stop, end_used = starts2, ids2, reason2, stop2, n_total
-                crc_ok = None
+            w2 = walk(n_total)
+            if (w2.reason in ("end", "partial") and not len(w2.skips)) or len(w2.starts) > len(w.starts):
+                w, end_used, crc_ok = w2, n_total, None
                 warnings.append("no valid CRC trailer: file looks truncated; decoded what was there")
         if crc_ok is False:
             warnings.append("CRC mismatch: the file is damaged; values may be wrong")
 
     region_len = end_used - data_start
-    bytes_dropped = region_len - stop if reason != "end" else 0
-    if reason == "partial":
-        warnings.append(f"partial last record: dropped {bytes_dropped} bytes at the end")
-    elif reason == "garbage":
+    region = np.frombuffer(buf, dtype=np.uint8, count=region_len, offset=data_start)
+    skipped = _skipped_stretches(w, region, data_start, version)
+    bytes_skipped = int(sum(s.byte_end - s.byte_start for s in skipped))
+    bytes_dropped = (region_len - w.stop if w.reason != "end" else 0) + bytes_skipped
+    if w.reason == "partial":
+        warnings.append(f"partial last record: dropped {region_len - w.stop} bytes at the end")
+    elif w.reason == "garbage":
         warnings.append(
-            f"record chain broken at byte {data_start + stop}: kept {len(starts)} records, "
-            f"dropped {bytes_dropped} bytes"
+            f"record chain broken at byte {data_start + w.stop}: kept {len(w.starts)} records, "
+            f"dropped {region_len - w.stop} bytes"
         )
 
     tables: dict[str, np.ndarray] = {}
     timestamps: dict[str, np.ndarray] = {}
-    region = np.frombuffer(buf, dtype=np.uint8, count=region_len, offset=data_start)
     for eid, et in types_by_id.items():
-        rec_starts = starts[ids == eid]
+        rec_starts = w.starts[w.ids == eid]
         dtype = et.record_dtype(version)
         size = dtype.itemsize
         if len(rec_starts) and len(region) >= size:
@@ -283,6 +414,9 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         }))
         timestamps[et.name] = records["timestamp"].astype(np.int64) * TIMESTAMP_TO_US[version]
 
+    if skipped:
+        firsts = [int(ts[0]) for ts in timestamps.values() if len(ts)]
+        warnings.append(_skip_warning(skipped, min(firsts) if firsts else 0))
     return DecodedLog(
         version=version,
         event_types={et.name: et for et in types_by_id.values()},
@@ -292,6 +426,7 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         bytes_total=n_total,
         bytes_dropped=int(bytes_dropped),
         crc_ok=crc_ok,
+        skipped=skipped,
     )
 
 

@@ -9,7 +9,9 @@ Layout (hive-style, so ``polars.scan_parquet`` and DuckDB read all flights at on
 
 The flight id lives in the path, not in the file, so that hive partitioning adds it
 as a column without a clash (pass ``hive_schema={"flight": pl.String}`` to polars so that
-an all-digit flight id stays a string). Each file's Parquet key-value metadata holds,
+an all-digit flight id stays a string). Every name that becomes a path component (event,
+flight, stage) is checked by :func:`quadcore.names.check_component`: nothing built from a log's
+content or a file's name can leave the data root. Each file's Parquet key-value metadata holds,
 under the key ``quadcore``, a JSON document with column units and provenance.
 """
 
@@ -22,19 +24,23 @@ from pathlib import Path
 
 import polars as pl
 
+from quadcore.names import check_component
+
 METADATA_KEY = b"quadcore"
 
 
 def decoded_path(root: Path, event: str, flight: str) -> Path:
+    event, flight = check_component(event, "event name"), check_component(flight, "flight id")
     return Path(root) / "decoded" / event / f"flight={flight}" / "data.parquet"
 
 
 def table_path(root: Path, stage: str, flight: str) -> Path:
+    stage, flight = check_component(stage, "stage"), check_component(flight, "flight id")
     return Path(root) / stage / f"flight={flight}" / "data.parquet"
 
 
 def quarantine_path(root: Path, flight: str) -> Path:
-    return Path(root) / "quarantine" / f"{flight}.json"
+    return Path(root) / "quarantine" / f"{check_component(flight, 'flight id')}.json"
 
 
 def _atomic(path: Path, write) -> Path:

@@ -272,7 +272,7 @@ def test_partial_last_record_reports_the_bytes_dropped(good_log, record_offsets)
 
 
 @pytest.mark.parametrize("how", ["overwrite", "insert"])
-def test_garbage_in_the_middle_keeps_records_before_it(tmp_path, good_log, record_offsets, how):
+def test_garbage_in_the_middle_is_skipped_and_decoding_resynchronises(tmp_path, good_log, record_offsets, how):
     buf, clean = good_log
     records = record_offsets(buf)
     k = len(records) // 2
@@ -280,17 +280,25 @@ def test_garbage_in_the_middle_keeps_records_before_it(tmp_path, good_log, recor
     garbage = b"\xaa" * 30
     damaged = buf[:at] + garbage + buf[at + (len(garbage) if how == "overwrite" else 0):]
     (tmp_path / "garbage").write_bytes(damaged)
+    # overwritten: the records the garbage touches are lost; inserted: none is
+    lost = {i for i, (off, _, size) in enumerate(records) if how == "overwrite" and off < at + len(garbage)
+            and off + size > at}
 
     log = logformat.decode_file(tmp_path / "garbage")
-    assert sum(log.rows().values()) == k
-    assert any("chain broken" in w and f"kept {k} records" in w for w in log.warnings), log.warnings
+    assert sum(log.rows().values()) == len(records) - len(lost)
     assert log.crc_ok is False
-    assert log.bytes_dropped == len(damaged) - 4 - at
+    [skip] = log.skipped
+    resume = max(lost) + 1 if lost else k
+    assert skip.byte_start == at
+    assert skip.byte_end == records[resume][0] + (len(garbage) if how == "insert" else 0)
+    assert log.bytes_dropped == skip.byte_end - skip.byte_start
+    assert any("resynchronised after 1 corrupt stretch" in w for w in log.warnings), log.warnings
     for event in clean.tables:
-        n = len(log.tables[event])
-        assert n == sum(1 for _, eid, _ in records[:k] if eid == clean.event_types[event].event_id)
-        _assert_tables_equal(log.tables[event], clean.tables[event][:n])
-        np.testing.assert_array_equal(log.timestamps_us[event], clean.timestamps_us[event][:n])
+        eid = clean.event_types[event].event_id
+        wanted = [i for i, (_, e, _) in enumerate(records) if e == eid and i not in lost]
+        _assert_tables_equal(log.tables[event], clean.tables[event][[
+            sum(1 for _, e, _ in records[:i] if e == eid) for i in wanted]])
+        assert np.all(np.diff(log.timestamps_us[event]) >= 0)
 
 
 # ---------------------------------------------------------------------------------------

@@ -19,8 +19,9 @@ def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg
     and the run fails with the reason; earlier outputs of that flight stay untouched.
     """
     fid = context.partition_key
-    path = data_root.raw_log(fid)
+    path = data_root.raw_path / fid
     try:
+        path = data_root.raw_log(fid)
         fl = flight.decode_flight(path)
     except (logformat.LogFormatError, OSError) as exc:
         store.write_quarantine(data_root.root_path, fid, str(path), str(exc), type(exc).__name__)
