@@ -19,21 +19,18 @@ same log format, header, rates and roughly the same noise as the real Crazyflie 
 * Battery: open-circuit voltage falling linearly from ``ocv_start_V``, minus an internal
   resistance times a load current proportional to the total thrust (1.05 V per newton of
   thrust, fitted on jana00..jana11: ``vbat = a + b t - 1.05 T``), plus ADC noise, in whole mV.
-* Effects (the vocabulary and parameter names of :mod:`quadcore.effects`), composed:
-
-  - ``motor_lag``: each rotor's thrust follows its map thrust through a first-order lag
-    (time constant ``tau_s``), integrated exactly per physics step;
-  - ``thrust_scale``: actual rotor thrust = ``scale`` x (lagged) map thrust;
-  - ``added_mass``: the body's true mass is ``m + m_p`` (payload at the CoM; inertia
-    unchanged) in Newton's law and in the accelerometer;
-  - ``wind``: the air velocity ``w = (w_x, w_y, 0) + gust`` (gust: Ornstein-Uhlenbeck,
-    ``SimConfig.wind_gust_std_mps`` and ``wind_gust_tau_s``) enters the wind effect's
-    rotor-drag-on-airspeed law; with ``parasitic_drag`` on as well, parasitic drag acts on
-    the airspeed too;
-  - every other effect (``rotor_drag``, ``parasitic_drag``, ``ground_effect``, ``com_offset``,
-    plugins): its own ``wrench(state, vehicle, params)`` evaluated on the TRUE state at every
-    physics step (a one-sample FlightState whose ``f_rotor_N`` is the map thrust), added
-    to the force and torque. (Effects evaluated this way must not depend on the history.)
+* Effects (the vocabulary and parameter names of :mod:`quadcore.effects`), composed. The
+  simulator names no effect: each effect either flies its own mechanism through a
+  :class:`~quadcore.effects.base.SimHook` (true mass, true inertia, air velocity, the chain
+  from map thrust to actual rotor thrust, an extra wrench with memory), or, by default, has
+  its ``wrench(state, vehicle, params)`` evaluated on the TRUE state at every physics step (a
+  one-sample FlightState whose ``f_rotor_N`` is the map thrust and ``motor_radps`` the true
+  rotor speed) and added to the force and torque. Effects that ``acts_on_airspeed`` see
+  the velocity relative to the air when a hook sets one (a wind). For example
+  ``motor_lag`` lags each rotor's thrust (integrated exactly per physics step),
+  ``thrust_scale`` scales it, ``added_mass`` changes the true mass (Newton and
+  accelerometer), ``wind`` blows (mean + Ornstein-Uhlenbeck gust, ``SimConfig``'s
+  ``wind_gust_std_mps`` and ``wind_gust_tau_s``).
 
   So the residual of :func:`quadcore.residuals.residual_table` on the decoded log equals
   the sum of the effects' wrenches evaluated on the decoded flight, within noise (the tests
@@ -64,7 +61,6 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import lfilter
 
 from quadcore import effects as effects_mod
 from quadcore import logformat, trajectories
@@ -74,7 +70,6 @@ from quadcore.dynamics import FlightState
 from quadcore.units import DEG_TO_RAD, G0_MPS2, PWM_FULL_SCALE, RPM_TO_RADPS
 
 KINDS = ("figure8", "circle0", "yaw0", "random", "hover", "low_pass")
-PHYSICAL_EFFECTS = ("motor_lag", "thrust_scale", "added_mass", "wind")  # simulated as mechanisms
 TRUTH_SUFFIX = ".truth.json"
 TRUTH_FORMAT = "quadcore-sim-truth/1"
 
@@ -309,12 +304,33 @@ def validate_effects(effects: dict[str, dict[str, float]] | None) -> dict[str, d
                 raise SimulationError(f"effect {name!r}: parameter {k!r} must be a number, got {v!r}") from None
             if not math.isfinite(full[k]):
                 raise SimulationError(f"effect {name!r}: parameter {k!r} must be finite")
-        if name == "motor_lag" and full["tau_s"] < 0:
-            raise SimulationError("motor_lag: tau_s must be >= 0")
-        if name == "thrust_scale" and full["scale"] <= 0:
-            raise SimulationError("thrust_scale: scale must be > 0")
+        try:
+            eff.check(full)
+        except ValueError as exc:
+            raise SimulationError(f"{name}: {exc}") from None
         out[name] = full
     return out
+
+
+def _effect_hooks(eff: dict[str, dict[str, float]], context) -> tuple[list, list]:
+    """The effects' simulator hooks, and the (effect, params) pairs simulated through their
+    memoryless wrench (those without a hook)."""
+    hooks, generic = [], []
+    for name, params in eff.items():
+        effect = effects_mod.get(name)
+        try:
+            hook = effect.simulator(params, context)
+        except ValueError as exc:
+            raise SimulationError(f"{name}: {exc}") from None
+        if hook is not None:
+            hooks.append(hook)
+        else:
+            generic.append((effect, params))
+    return hooks, generic
+
+
+def _overrides(hook, method: str) -> bool:
+    return getattr(type(hook), method) is not getattr(effects_mod.SimHook, method)
 
 
 def _one_sample_state(t, p, v, q, w, sf, pwm, vbat, motor, R, v_b, f_map) -> FlightState:
@@ -427,30 +443,24 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     ref = build_reference(config, t, ref_rng)
     noise = config.noise
 
-    # --- true parameters --------------------------------------------------------------
+    # --- effects: hooks (mechanisms) and memoryless wrenches -----------------------------
+    context = effects_mod.SimContext(t_s=t, dt_s=dt, h_s=h, vehicle=veh, config=config, rng=gust_rng)
+    hooks, generic = _effect_hooks(eff, context)
     m_nom = float(veh.mass_kg)
-    m_true = m_nom + (eff["added_mass"]["m_p_kg"] if "added_mass" in eff else 0.0)
+    m_true, J, air = m_nom, np.asarray(veh.inertia_kgm2, float), np.zeros((n, 3))
+    try:
+        for hook in hooks:
+            m_true = float(hook.true_mass_kg(m_true))
+            J = np.asarray(hook.true_inertia_kgm2(J), float)
+            hook_air = hook.air_velocity_w_mps()
+            air = air + hook_air if hook_air is not None else air
+    except ValueError as exc:
+        raise SimulationError(f"effects {', '.join(eff)}: {exc}") from None
     if m_true <= 0:
-        raise SimulationError("added_mass: m + m_p must be positive")
-    scale = eff["thrust_scale"]["scale"] if "thrust_scale" in eff else 1.0
-    tau_m = eff["motor_lag"]["tau_s"] if "motor_lag" in eff else 0.0
-    lag_a = math.exp(-h / tau_m) if tau_m > 0 else 0.0
-    wind_on = "wind" in eff
-    generic = [(effects_mod.get(name), params) for name, params in eff.items()
-               if name not in PHYSICAL_EFFECTS and not (name == "parasitic_drag" and wind_on)]
-    parasitic = eff.get("parasitic_drag") if wind_on else None
-    parasitic_effect = effects_mod.get("parasitic_drag")
-    wind_effect = effects_mod.get("wind")
-
-    # --- wind (world, horizontal), at the log rate -------------------------------------
-    wind = np.zeros((n, 3))
-    if wind_on:
-        wind[:, 0], wind[:, 1] = eff["wind"]["w_x_mps"], eff["wind"]["w_y_mps"]
-        if config.wind_gust_std_mps > 0:
-            a = math.exp(-dt / max(config.wind_gust_tau_s, 1e-6))
-            drive = gust_rng.normal(0.0, config.wind_gust_std_mps * math.sqrt(1 - a * a), size=(n, 2))
-            zi = (gust_rng.normal(0.0, config.wind_gust_std_mps, size=2) * a)[None, :]
-            wind[:, :2] += lfilter([1.0], [1.0, -a], drive, axis=0, zi=zi)[0]
+        raise SimulationError(f"effects {', '.join(eff)}: the true mass must be positive")
+    chain = [hk for hk in hooks if _overrides(hk, "rotor_thrusts")]
+    extra = [hk for hk in hooks if _overrides(hk, "wrench")]
+    airspeed = bool(np.any(air))
 
     # --- noise drawn up front (the controller sees the same noisy readings as the log) --
     n_pos = noise_rng.normal(0.0, 1.0, (n, 3)) * noise.pos_m
@@ -469,12 +479,9 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     yaw0 = float(ref.yaw_rad[0])
     q = (0.0, 0.0, math.sin(0.5 * yaw0), math.cos(0.5 * yaw0))
     w = [0.0, 0.0, 0.0]
-    J = np.asarray(veh.inertia_kgm2, float)
     Jt = tuple(tuple(float(x) for x in row) for row in J)
     Ji = tuple(tuple(float(x) for x in row) for row in np.linalg.inv(J))
     A = tuple(tuple(float(x) for x in row) for row in veh.allocation)
-    hover_f = m_true * G0_MPS2 / (4 * scale)
-    f_lag = [hover_f] * 4
     T_prev = m_true * G0_MPS2
     ctrl = Controller(veh, config.gains)
     pv = veh.pwm_vbat
@@ -492,7 +499,7 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     ryaw, ryr, rya = ref.yaw_rad.tolist(), ref.yaw_rate_radps.tolist(), ref.yaw_acc_radps2.tolist()
     npos, nvel, ngyro = n_pos.tolist(), n_vel.tolist(), n_gyro.tolist()
     vbat_noisy = (ocv + n_vbat).tolist()
-    windl = wind.tolist()
+    airl = air.tolist()
     att_noise = n_att.tolist()
 
     for k in range(n):
@@ -517,33 +524,34 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
         F_MAP[k] = f_map_arr
         f_map = f_map_arr.tolist()
         pwm_si = (pwm_raw / PWM_FULL_SCALE).tolist()
-        wk = windl[k]
+        wk = airl[k]
 
         for j in range(S):
-            f_src = f_lag if tau_m > 0 else f_map
-            fa = [scale * f_src[i] for i in range(4)]
+            fa = f_map
+            for hook in chain:
+                fa = hook.rotor_thrusts(fa, k, j)
             T = fa[0] + fa[1] + fa[2] + fa[3]
             tau = [A[r][0] * fa[0] + A[r][1] * fa[1] + A[r][2] * fa[2] + A[r][3] * fa[3] for r in (1, 2, 3)]
             Fb = [0.0, 0.0, T]
             R = _rot(q)
-            if generic or wind_on:
+            if generic or extra:
                 vb = [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
                 motor = [math.sqrt(max(x, 0.0) / k_F) if k_F > 0 else 0.0 for x in fa]
                 st = _one_sample_state(tk + j * h, p, v, q, w, [0.0, 0.0, 0.0], pwm_si, vbat, motor, R, vb, f_map)
+                if airspeed:
+                    va = [v[i] - wk[i] for i in range(3)]
+                    vab = [R[0][i] * va[0] + R[1][i] * va[1] + R[2][i] * va[2] for i in range(3)]
+                    st_air = replace(st, v_w_mps=np.array([va]), v_b_mps=np.array([vab]))
                 for effect, params in generic:
-                    fe, te = effect.wrench(st, veh, params)
+                    fe, te = effect.wrench(st_air if airspeed and effect.acts_on_airspeed else st, veh, params)
                     Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
                     tau[0] += te[0, 0]; tau[1] += te[0, 1]; tau[2] += te[0, 2]
-                if wind_on:
-                    params = {**eff["wind"], "w_x_mps": wk[0], "w_y_mps": wk[1]}
-                    fe, _ = wind_effect.wrench(st, veh, params)
-                    Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
-                    if parasitic is not None:
-                        va = [v[i] - wk[i] for i in range(3)]
-                        vab = [R[0][i] * va[0] + R[1][i] * va[1] + R[2][i] * va[2] for i in range(3)]
-                        sta = replace(st, v_w_mps=np.array([va]), v_b_mps=np.array([vab]))
-                        fe, _ = parasitic_effect.wrench(sta, veh, parasitic)
-                        Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
+                for hook in extra:
+                    out = hook.wrench(st, k, j)
+                    if out is not None:
+                        (f0, f1, f2), (t0, t1, t2) = out
+                        Fb[0] += f0; Fb[1] += f1; Fb[2] += f2
+                        tau[0] += t0; tau[1] += t1; tau[2] += t2
             sf = (Fb[0] / m_true, Fb[1] / m_true, Fb[2] / m_true)
             if j == 0:
                 P[k], V[k], Q[k], W[k], SF[k] = p, v, q, w, sf
@@ -564,15 +572,13 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
             g2 = tau[2] - (w[0] * Jw[1] - w[1] * Jw[0])
             w = [w[r] + h * (Ji[r][0] * g0 + Ji[r][1] * g1 + Ji[r][2] * g2) for r in range(3)]
             q = _qmul_exp(q, w[0], w[1], w[2], h)
-            if tau_m > 0:
-                f_lag = [f_map[i] + (f_lag[i] - f_map[i]) * lag_a for i in range(4)]
 
     data, kept = _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, veh.motor_speed,
                          n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm, drop_rng, mocap_rng, clock_rng)
     return SimFlight(
         config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=m_true, nominal_mass_kg=m_nom, data=data,
         t_s=t, kept=kept, p_true=P, v_true=V, q_true=Q, omega_true=W, sf_true=SF, f_map_N=F_MAP,
-        f_actual_N=F_ACT, pwm_raw=PWM, vbat_V=VBAT_MV * 1e-3, wind_w_mps=wind, reference=ref,
+        f_actual_N=F_ACT, pwm_raw=PWM, vbat_V=VBAT_MV * 1e-3, wind_w_mps=air, reference=ref,
     )
 
 

@@ -395,6 +395,26 @@ def test_plugin_errors_are_clear(tmp_path):
     with pytest.raises(effects.PluginError, match="built-in"):
         effects.load_plugin(clash)
     assert effects.get("rotor_drag").__class__.__name__ == "RotorDrag"
+    no_wrench = tmp_path / "no_wrench.py"
+    no_wrench.write_text(LINEAR_DRAG.read_text().replace("def wrench(", "def not_the_wrench(")
+                         .replace('"linear_drag"', '"no_wrench"'))
+    with pytest.raises(effects.PluginError, match="abstract"):
+        effects.load_plugin(no_wrench)
+    bad_target = tmp_path / "bad_target.py"
+    bad_target.write_text(LINEAR_DRAG.read_text().replace('target = "force"', 'target = "forces"')
+                          .replace('"linear_drag"', '"bad_target"'))
+    with pytest.raises(effects.PluginError, match="target 'forces'"):
+        effects.load_plugin(bad_target)
+    assert "no_wrench" not in effects.registry() and "bad_target" not in effects.registry()
+
+
+def test_builtin_effects_are_the_modules_of_the_package():
+    package = Path(effects.__file__).parent
+    modules = {p.stem for p in package.glob("*.py")} - {"__init__", "base"}
+    assert set(effects.builtin_names()) == modules
+    for name in effects.builtin_names():
+        effect = effects.get(name)
+        assert effect.name == name and effect.target in ("force", "torque", "both")
 
 
 # ---------------------------------------------------------------------------------------
@@ -409,7 +429,7 @@ def test_real_logs_diagnosis_is_well_formed_and_physical(real_logs, tmp_path):
     json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"non-finite number {c} in the JSON"))
     _check_contract(d)
     assert d["evaluation"]["eval_flights"] == ["jana02"] and len(d["evaluation"]["train_flights"]) == 18
-    assert len(d["candidates"]) == len(effects.BUILTIN)
+    assert len(d["candidates"]) == len(effects.builtin_names())
     f, t = np.array(d["baseline"]["force_rmse_N"]), np.array(d["baseline"]["torque_rmse_Nm"])
     assert np.all((f > 1e-3) & (f < 0.1)) and np.all((t > 1e-6) & (t < 1e-2))  # mN and uN m to mN m scale
     top = d["candidates"][0]

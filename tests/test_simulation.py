@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import io
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -235,6 +237,62 @@ def test_gusting_wind_still_matches_on_average(tmp_path):
     assert sim.wind_w_mps[:, 0].std() > 0.05  # the wind really gusts
     f_res, _, f_eff, _ = _compare(fl.tables["fixedFrequency"], sim)
     _assert_matches(f_res[:, 0], f_eff[:, 0], "gusty wind x", min_corr=0.8, max_rel=0.6)
+
+
+def test_the_simulator_names_no_effect():
+    """Effects with a mechanism fly through their own ``SimHook``: no effect name appears in
+    the simulator's code (docstrings aside)."""
+    tree = ast.parse(Path(simulation.__file__).read_text())
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.FunctionDef, ast.ClassDef)) and node.body
+                  and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    literals = {node.value for node in ast.walk(tree)
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings}
+    names = set(effects.builtin_names())
+    assert not literals & names
+
+
+def test_a_plugin_mechanism_flies_through_its_hook(tmp_path):
+    """A user effect with a simulator hook (here: one rotor weaker) is flown without any
+    change to the simulator, and its wrench is what the residual shows."""
+    module = tmp_path / "weak_rotor.py"
+    module.write_text('''
+import numpy as np
+from quadcore import dynamics
+from quadcore.effects import Effect, Parameter, SimHook
+from quadcore.effects.base import body_z
+
+class WeakRotor(SimHook):
+    def __init__(self, gain):
+        self.gain = gain
+    def rotor_thrusts(self, f_N, k, j):
+        return [f_N[0] * self.gain, *f_N[1:]]
+
+class WeakFirstRotor(Effect):
+    name = "weak_first_rotor"
+    target = "both"
+    linear = True
+    parameters = (Parameter("gain", "1", 1.0, 0.5, 1.5, "rotor 1 thrust / mapped thrust"),)
+    def wrench(self, state, vehicle, params):
+        df = np.zeros_like(state.f_rotor_N)
+        df[:, 0] = (params["gain"] - 1.0) * state.f_rotor_N[:, 0]
+        T, tau = dynamics.wrench_from_thrusts(vehicle, df)
+        return body_z(T), tau
+    def simulator(self, params, context):
+        return WeakRotor(params["gain"])
+
+EFFECT = WeakFirstRotor()
+''')
+    effects.load_plugin(module)
+    try:
+        sim, fl, _ = _fly(tmp_path, _random(12), {"weak_first_rotor": {"gain": 0.9}})
+        assert np.allclose(sim.f_actual_N[:, 0], 0.9 * sim.f_map_N[:, 0])
+        f_res, tau_res, f_eff, tau_eff = _compare(fl.tables["fixedFrequency"], sim)
+        _assert_matches(f_res[:, 2], f_eff[:, 2], "weak rotor force z")
+        for a in (0, 1):
+            _assert_matches(tau_res[:, a], tau_eff[:, a], f"weak rotor torque {'xyz'[a]}")
+    finally:
+        effects.unregister("weak_first_rotor")
 
 
 def test_two_effects_compose(tmp_path):

@@ -1,9 +1,8 @@
 """The effect library: physical effects the nominal model may be missing.
 
-Built in: ``rotor_drag``, ``parasitic_drag``, ``ground_effect``, ``motor_lag``,
-``com_offset``, ``thrust_scale``, ``added_mass``, ``wind``. Each lives in its own module
-with an ``EFFECT`` instance (see :mod:`quadcore.effects.base` for the shape). Every
-module in this package is picked up; user modules elsewhere are loaded with
+Each built-in effect lives in its own module of this package with an ``EFFECT`` instance
+(see :mod:`quadcore.effects.base` for the contract); every module here is picked up, so
+:func:`builtin_names` is whatever the package holds. User modules elsewhere are loaded with
 :func:`load_plugin` (the model file's ``plugins`` list does this; a module that cannot be
 used raises :class:`PluginError`) and forgotten with :func:`unregister`. A worked example:
 ``docs/adding-an-effect.md`` and ``examples/effects/linear_drag.py``.
@@ -16,16 +15,33 @@ import importlib.util
 import pkgutil
 from pathlib import Path
 
-from quadcore.effects.base import Effect, Parameter
-
-__all__ = ["Effect", "Parameter", "registry", "get", "load_plugin", "unregister", "PluginError", "UnknownEffectError",
-           "BUILTIN"]
-
-BUILTIN = (
-    "rotor_drag", "parasitic_drag", "ground_effect", "motor_lag",
-    "com_offset", "thrust_scale", "added_mass", "wind",
+from quadcore.effects.base import (
+    TARGETS,
+    Effect,
+    Parameter,
+    SimContext,
+    SimHook,
+    Target,
 )
+
+__all__ = [
+    "Effect",
+    "Parameter",
+    "PluginError",
+    "SimContext",
+    "SimHook",
+    "Target",
+    "UnknownEffectError",
+    "builtin_names",
+    "get",
+    "load_plugin",
+    "registry",
+    "unregister",
+]
+
+_NOT_EFFECTS = ("base",)  # modules of this package that define no effect
 _REGISTRY: dict[str, Effect] = {}
+_BUILTIN: list[str] = []  # names of the effects found in this package, in module order
 
 
 class UnknownEffectError(KeyError):
@@ -39,22 +55,30 @@ def _register(module) -> Effect:
     effect = getattr(module, "EFFECT", None)
     if not isinstance(effect, Effect) or not effect.name:
         raise TypeError(f"module {module.__name__} has no EFFECT (an Effect instance with a name)")
+    if effect.target not in TARGETS:
+        raise TypeError(f"effect {effect.name!r} has target {effect.target!r}; one of {', '.join(TARGETS)}")
     _REGISTRY[effect.name] = effect
     return effect
 
 
 def _discover() -> None:
-    if _REGISTRY:
+    if _BUILTIN:
         return
-    for info in pkgutil.iter_modules(__path__):
-        if info.name != "base":
-            _register(importlib.import_module(f"{__name__}.{info.name}"))
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda i: i.name):
+        if info.name not in _NOT_EFFECTS:
+            _BUILTIN.append(_register(importlib.import_module(f"{__name__}.{info.name}")).name)
+
+
+def builtin_names() -> tuple[str, ...]:
+    """The effects this package defines (one per module, alphabetical by module)."""
+    _discover()
+    return tuple(_BUILTIN)
 
 
 def registry() -> dict[str, Effect]:
     """All known effects by name (built in, then plugins), in a stable order."""
-    _discover()
-    order = [n for n in BUILTIN if n in _REGISTRY] + sorted(n for n in _REGISTRY if n not in BUILTIN)
+    builtin = builtin_names()
+    order = [*builtin, *sorted(n for n in _REGISTRY if n not in builtin)]
     return {n: _REGISTRY[n] for n in order}
 
 
@@ -85,9 +109,8 @@ def load_plugin(path: str | Path) -> Effect:
         spec.loader.exec_module(module)  # type: ignore[union-attr]
     except Exception as exc:  # a user's module: report, do not crash
         raise PluginError(f"cannot import effect module {path}: {type(exc).__name__}: {exc}") from exc
-    _discover()
     effect = getattr(module, "EFFECT", None)
-    if isinstance(effect, Effect) and effect.name in BUILTIN:
+    if isinstance(effect, Effect) and effect.name in builtin_names():
         raise PluginError(f"effect module {path} names its effect {effect.name!r}, a built-in effect; choose another name")
     try:
         return _register(module)
@@ -97,6 +120,6 @@ def load_plugin(path: str | Path) -> Effect:
 
 def unregister(name: str) -> None:
     """Forget a plugin effect (built-in effects stay)."""
-    if name in BUILTIN:
+    if name in builtin_names():
         raise ValueError(f"{name!r} is built in and cannot be unregistered")
     _REGISTRY.pop(name, None)

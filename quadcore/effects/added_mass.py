@@ -10,7 +10,25 @@ linearly in ``c = m_p / (m + m_p)``, then ``m_p = c m / (1 - c)``.
 
 import numpy as np
 
-from quadcore.effects.base import Effect, Parameter, body_z, collective_thrust_N
+from quadcore.effects.base import (
+    Effect,
+    Parameter,
+    SimHook,
+    body_z,
+    collective_thrust_N,
+)
+
+
+class PayloadHook(SimHook):
+    """The body carries ``m_p`` more than the vehicle file says (at the CoM; inertia unchanged)."""
+
+    def __init__(self, m_p_kg: float):
+        self.m_p_kg = m_p_kg
+
+    def true_mass_kg(self, mass_kg):
+        if mass_kg + self.m_p_kg <= 0:
+            raise ValueError("m + m_p must be positive")
+        return mass_kg + self.m_p_kg
 
 
 class AddedMass(Effect):
@@ -36,6 +54,9 @@ class AddedMass(Effect):
     def to_linear(self, params, vehicle):
         m_p = params["m_p_kg"]
         return [m_p / (vehicle.mass_kg + m_p)]
+
+    def simulator(self, params, context):
+        return PayloadHook(params["m_p_kg"])
 
 
 EFFECT = AddedMass()

@@ -11,7 +11,13 @@ Effects compose by adding their wrenches. An effect that is *linear in its param
 basis ``B_k`` through :meth:`Effect.basis`; it is fitted by linear least squares. An
 effect linear in some other coordinates ``c`` (e.g. ``m_p / (m + m_p)``) gives its basis
 per unit of ``c`` and maps back with ``from_linear`` / ``to_linear``. Any other effect is
-fitted by a bounded nonlinear least-squares (:func:`quadcore.effects.fit`).
+fitted by a bounded nonlinear search (:func:`quadcore.fitting.fit_effects`).
+
+**In the simulator** an effect is by default evaluated through :meth:`Effect.wrench` on the
+true state at every physics step. An effect that is a *mechanism* rather than a memoryless
+force (a lag, a delay, a different mass or inertia, a wind that gusts) returns a
+:class:`SimHook` from :meth:`Effect.simulator` instead; the simulator calls its methods at
+fixed points of its loop and names no effect itself.
 
 To add an effect, write one module with a subclass of :class:`Effect` and an instance
 named ``EFFECT`` (see ``docs/adding-an-effect.md``); drop it into ``quadcore/effects/`` or
@@ -20,7 +26,9 @@ name its file in the model file's ``plugins`` list.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
@@ -28,6 +36,8 @@ from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
 
 Wrench = tuple[np.ndarray, np.ndarray]  # (f_b (n, 3) N, tau_b (n, 3) N m)
+Target = Literal["force", "torque", "both"]
+TARGETS: tuple[Target, ...] = ("force", "torque", "both")
 
 
 @dataclass(frozen=True)
@@ -43,21 +53,102 @@ class Parameter:
     doc: str = ""
 
 
-class Effect:
-    """Base class. Subclasses set the class attributes and implement :meth:`wrench`."""
+@dataclass(frozen=True)
+class SimContext:
+    """What a simulator hook may know about the flight it is part of.
 
-    name: str = ""
-    target: str = "force"  # "force", "torque" or "both": where the effect shows up
-    linear: bool = False
-    parameters: tuple[Parameter, ...] = ()
-    doc: str = ""
+    ``t_s`` (n,) are the control/log instants, ``dt_s`` their spacing, ``h_s`` the physics
+    step (``dt_s / substeps``); ``vehicle`` is the NOMINAL vehicle (what the controller
+    believes); ``config`` the :class:`quadcore.simulation.SimConfig`; ``rng`` a random
+    stream reserved for effects (deterministic given the flight's seed).
+    """
+
+    t_s: np.ndarray
+    dt_s: float
+    h_s: float
+    vehicle: Vehicle
+    config: Any
+    rng: np.random.Generator
+
+
+class SimHook:
+    """One effect's part in one simulated flight (it may keep state between calls).
+
+    Every method has a neutral default; override only the ones the mechanism needs. The
+    simulator calls, per flight: :meth:`true_mass_kg`, :meth:`true_inertia_kgm2` and
+    :meth:`air_velocity_w_mps` once; then at every physics step (``k`` the control sample,
+    ``j`` the substep), in the order of the model's effects: :meth:`rotor_thrusts` on the
+    rotor thrusts (starting from the thrust map's), and :meth:`wrench` for an extra body
+    wrench on the true state. Raise ``ValueError`` for parameters the mechanism cannot fly.
+    """
+
+    def true_mass_kg(self, mass_kg: float) -> float:
+        """The body's true mass, given the mass so far (nominal, or changed by another hook)."""
+        return mass_kg
+
+    def true_inertia_kgm2(self, inertia_kgm2: np.ndarray) -> np.ndarray:
+        """The body's true (3, 3) inertia tensor about the centre of mass, body frame."""
+        return inertia_kgm2
+
+    def air_velocity_w_mps(self) -> np.ndarray | None:
+        """(n, 3) air velocity in the world frame at the log instants, or None for still air.
+        Effects with ``acts_on_airspeed`` are evaluated on ``v - air`` in the simulator."""
+        return None
+
+    def rotor_thrusts(self, f_N: list[float], k: int, j: int) -> list[float]:
+        """The rotor thrusts (N, one per rotor) acting during physics step (k, j), given
+        those of the previous stage of the chain (the thrust map's at the start)."""
+        return f_N
+
+    def wrench(self, state: FlightState, k: int, j: int) -> tuple[list[float], list[float]] | None:
+        """Extra body force (N) and torque (N m) during physics step (k, j), from the
+        one-sample true ``state`` (its ``f_rotor_N`` is the map thrust, ``motor_radps`` the
+        true rotor speed), or None."""
+        return None
+
+
+class ScaleRotorThrusts(SimHook):
+    """Simulator hook: every rotor gives ``gains[i]`` times the thrust it is asked for."""
+
+    def __init__(self, gains: list[float]):
+        self.gains = [float(g) for g in gains]
+
+    def rotor_thrusts(self, f_N, k, j):
+        return [g * f for g, f in zip(self.gains, f_N)]
+
+
+class Effect(ABC):
+    """Base class. Subclasses set the class attributes and implement :meth:`wrench`.
+
+    ``name``: unique, the name users write in model files. ``target``: where the effect
+    shows up (the diagnosis scores it there). ``linear``: the wrench is linear in the
+    parameters (fitted in closed form). ``acts_on_airspeed``: in a simulated wind, the
+    simulator evaluates the effect on the velocity relative to the air.
+    """
+
+    name: ClassVar[str] = ""
+    target: ClassVar[Target] = "force"
+    linear: ClassVar[bool] = False
+    parameters: ClassVar[tuple[Parameter, ...]] = ()
+    acts_on_airspeed: ClassVar[bool] = False
+    doc: ClassVar[str] = ""
 
     def defaults(self) -> dict[str, float]:
         return {p.name: p.default for p in self.parameters}
 
+    @abstractmethod
     def wrench(self, state: FlightState, vehicle: Vehicle, params: dict[str, float]) -> Wrench:
         """Body-frame force and torque added to the model, over the whole flight."""
-        raise NotImplementedError
+
+    def simulator(self, params: dict[str, float], context: SimContext) -> SimHook | None:
+        """The mechanism to fly in the simulator, or None (the default): then the simulator
+        adds :meth:`wrench` evaluated on the true state at every physics step, which is
+        right for effects without memory."""
+        return None
+
+    def check(self, params: dict[str, float]) -> None:
+        """Raise ``ValueError`` for parameter values that make no sense at all (wider than
+        the fitting bounds: a simulation may go beyond those)."""
 
     def basis(self, state: FlightState, vehicle: Vehicle) -> list[Wrench]:
         """For linear effects: the wrench per unit of each linear coordinate, in order.

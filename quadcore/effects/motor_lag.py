@@ -7,11 +7,13 @@ torque about all three axes. Nonlinear in the time constant τ_m (s); evaluated 
 exact discretisation at the median sample period.
 """
 
+import math
+
 import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
 from quadcore import dynamics
-from quadcore.effects.base import Effect, Parameter, body_z
+from quadcore.effects.base import Effect, Parameter, SimHook, body_z
 
 
 def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
@@ -29,6 +31,20 @@ def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
     return y
 
 
+class LagHook(SimHook):
+    """Each rotor's thrust relaxes toward its input, integrated exactly per physics step
+    (the input is held over the step); starts at steady state on the first input."""
+
+    def __init__(self, tau_s: float, h_s: float):
+        self.a = math.exp(-h_s / tau_s) if tau_s > 0 else 0.0
+        self.f_N: list[float] | None = None
+
+    def rotor_thrusts(self, f_N, k, j):
+        out = self.f_N if self.f_N is not None else list(f_N)
+        self.f_N = [x + (y - x) * self.a for y, x in zip(out, f_N)]
+        return out
+
+
 class MotorLag(Effect):
     name = "motor_lag"
     target = "both"
@@ -40,6 +56,13 @@ class MotorLag(Effect):
         lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
         dT, dtau = dynamics.wrench_from_thrusts(vehicle, lagged - state.f_rotor_N)
         return body_z(dT), dtau
+
+    def check(self, params):
+        if params["tau_s"] < 0:
+            raise ValueError("tau_s must be >= 0")
+
+    def simulator(self, params, context):
+        return LagHook(params["tau_s"], context.h_s) if params["tau_s"] > 0 else SimHook()  # no lag: nothing to fly
 
 
 EFFECT = MotorLag()

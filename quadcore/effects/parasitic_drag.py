@@ -2,7 +2,8 @@
 
     f_b = -|v| (c_xy v_b,x, c_xy v_b,y, c_z v_b,z),     c = ½ ρ C_d A   [kg/m]
 
-Linear in (c_xy, c_z). The velocity is the ground velocity (no wind in the model).
+Linear in (c_xy, c_z). The velocity is the ground velocity (no wind in the model); in a
+simulated wind the simulator applies it to the airspeed.
 """
 
 import numpy as np
@@ -14,6 +15,7 @@ class ParasiticDrag(Effect):
     name = "parasitic_drag"
     target = "force"
     linear = True
+    acts_on_airspeed = True
     parameters = (
         Parameter("c_xy_kg_per_m", "kg/m", 0.0, 0.0, 1.0, "½ρC_dA in the body x-y plane"),
         Parameter("c_z_kg_per_m", "kg/m", 0.0, 0.0, 1.0, "½ρC_dA along body z"),

@@ -8,7 +8,7 @@ Linear in (s - 1). In force it is indistinguishable from an unmodelled payload
 """
 
 from quadcore import dynamics
-from quadcore.effects.base import Effect, Parameter, body_z
+from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
 
 
 class ThrustScale(Effect):
@@ -22,6 +22,13 @@ class ThrustScale(Effect):
         T, tau = dynamics.wrench_from_thrusts(vehicle, state.f_rotor_N)
         k = params["scale"] - 1.0
         return body_z(k * T), k * tau
+
+    def check(self, params):
+        if params["scale"] <= 0:
+            raise ValueError("scale must be > 0")
+
+    def simulator(self, params, context):
+        return ScaleRotorThrusts([params["scale"]] * context.vehicle.n_rotors)
 
 
 EFFECT = ThrustScale()

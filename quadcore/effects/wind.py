@@ -5,12 +5,42 @@ rotor drag on the airspeed instead of the ground speed::
 
 With ``w = 0`` this is rotor drag; a wind shows as a drag force that depends on heading
 and attitude. Fitted linearly in (k, k w_x, k w_y), then ``w = (k w) / k``.
+
+Simulated as a real wind: ``w`` plus a horizontal gust (Ornstein-Uhlenbeck with the
+``SimConfig``'s ``wind_gust_std_mps`` and ``wind_gust_tau_s``), felt by this effect and by
+every effect that ``acts_on_airspeed``.
 """
 
+import math
+
 import numpy as np
+from scipy.signal import lfilter
 
 from quadcore import rotations
-from quadcore.effects.base import Effect, Parameter, collective_thrust_N
+from quadcore.effects.base import Effect, Parameter, SimHook, collective_thrust_N
+
+
+class WindHook(SimHook):
+    """The air velocity of one flight (mean + gust, drawn once) and its rotor-drag wrench."""
+
+    def __init__(self, effect: "Wind", params: dict[str, float], context):
+        n, dt, cfg = len(context.t_s), context.dt_s, context.config
+        air = np.zeros((n, 3))
+        air[:, 0], air[:, 1] = params["w_x_mps"], params["w_y_mps"]
+        if cfg.wind_gust_std_mps > 0:
+            a = math.exp(-dt / max(cfg.wind_gust_tau_s, 1e-6))
+            drive = context.rng.normal(0.0, cfg.wind_gust_std_mps * math.sqrt(1 - a * a), size=(n, 2))
+            zi = (context.rng.normal(0.0, cfg.wind_gust_std_mps, size=2) * a)[None, :]
+            air[:, :2] += lfilter([1.0], [1.0, -a], drive, axis=0, zi=zi)[0]
+        self.air, self.effect, self.params, self.vehicle = air, effect, params, context.vehicle
+
+    def air_velocity_w_mps(self):
+        return self.air
+
+    def wrench(self, state, k, j):
+        params = {**self.params, "w_x_mps": self.air[k, 0], "w_y_mps": self.air[k, 1]}
+        f, _ = self.effect.wrench(state, self.vehicle, params)
+        return f[0].tolist(), [0.0, 0.0, 0.0]
 
 
 class Wind(Effect):
@@ -56,6 +86,9 @@ class Wind(Effect):
     def to_linear(self, params, vehicle):
         k = params["k_s_per_m"]
         return [k, k * params["w_x_mps"], k * params["w_y_mps"]]
+
+    def simulator(self, params, context):
+        return WindHook(self, params, context)
 
 
 EFFECT = Wind()
