@@ -734,7 +734,7 @@ def write_effect(result: Discovery, path: str | Path) -> Path:
     name = path.stem
     if path.suffix != ".py" or not NAME_RE.match(name):
         raise ValueError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {path}")
-    if name in effectlib.BUILTIN:
+    if name in effectlib.builtin_names():
         raise ValueError(f"{name!r} is a built-in effect; choose another name")
     if not result.terms:
         raise ValueError("no term was kept: there is no effect to write")
