@@ -36,3 +36,9 @@ defs = dg.Definitions(
     sensors=[raw_log_sensor, automation],
     resources={"data_root": data_root_from_env(), "model": model_config_from_env()},
 )
+
+
+def process_flight_job():
+    """``process_flight`` for ``dg.reconstructable``: executors that run steps in other processes
+    (multiprocess, Celery, Kubernetes) import it from here."""
+    return defs.resolve_job_def("process_flight")

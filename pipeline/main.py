@@ -16,9 +16,10 @@ import time
 from pathlib import Path
 
 import dagster as dg
+from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
 
 from pipeline.definitions import FLEET, LEARNING, PER_FLIGHT
-from pipeline.partitions import flights
+from pipeline.partitions import failed_flights, flights
 from pipeline.resources import DataRoot, ModelConfig, data_root_from_env, model_config_from_env
 from quadcore import flight, history, store
 
@@ -66,36 +67,70 @@ def _failure_reason(result) -> str:
     return "; ".join(reasons) or "failed"
 
 
-def materialize(assets, resources, instance, partition_key=None):
+def materialize(assets, resources, instance, partition_key=None, tags=None):
     return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
-                          run_config=QUIET, raise_on_error=False)
+                          run_config=QUIET, raise_on_error=False, tags=tags)
+
+
+def flight_ranges(registered: list[str], wanted: list[str]) -> list[list[str]]:
+    """``wanted`` flights as runs of consecutive partitions (in the instance's order): a run
+    covers one range of partitions, so a flight not wanted splits the range."""
+    want, ranges, current = set(wanted), [], []
+    for fid in registered:
+        if fid in want:
+            current.append(fid)
+        elif current:
+            ranges.append(current)
+            current = []
+    return ranges + ([current] if current else [])
+
+
+def range_tags(keys: list[str]) -> dict[str, str]:
+    return {ASSET_PARTITION_RANGE_START_TAG: keys[0], ASSET_PARTITION_RANGE_END_TAG: keys[-1]}
 
 
 def run_flights(instance, resources: dict, flight_ids: list[str], assets, label: str, log=print) -> dict[str, str]:
-    """Materialise per-flight ``assets`` for each flight. Returns flight -> failure reason."""
+    """Materialise per-flight ``assets`` for the flights, in as few runs as possible: one run per
+    range of consecutive flight partitions (one run in all for a fresh data root). A flight
+    that fails is retried alone, so that it fails in a run of its own and the others' runs
+    succeed. Returns flight -> failure reason."""
     new = [f for f in flight_ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)
-    failures = {}
-    for i, fid in enumerate(flight_ids, 1):
+    registered = instance.get_dynamic_partitions(flights.name)
+    failures: dict[str, str] = {}
+    pending = flight_ranges(registered, flight_ids)
+    while pending:
+        keys = pending.pop(0)
         t0 = time.perf_counter()
-        result = materialize(assets, resources, instance, partition_key=fid)
+        result = materialize(assets, resources, instance, tags=range_tags(keys))
         if result.success:
-            log(f"  [{i}/{len(flight_ids)}] {label} {fid}: ok ({time.perf_counter() - t0:.1f} s)")
-        else:
-            failures[fid] = _failure_reason(result)
-            log(f"  [{i}/{len(flight_ids)}] {label} {fid}: FAILED: {failures[fid]}")
+            log(f"  {label} {keys[0]}..{keys[-1]}: {len(keys)} flight(s) in one run ({time.perf_counter() - t0:.1f} s)"
+                if len(keys) > 1 else f"  {label} {keys[0]}: ok ({time.perf_counter() - t0:.1f} s)")
+            continue
+        failed = failed_flights(result) if len(keys) > 1 else {keys[0]: _failure_reason(result)}
+        if not failed:  # a failure not tied to a flight: retry each flight alone to find it
+            pending = [[k] for k in keys] + pending
+            continue
+        for fid, why in failed.items():
+            if len(keys) > 1:
+                pending.insert(0, [fid])  # its own failed run, with its reason, in the UI
+            else:
+                failures[fid] = why
+                log(f"  {label} {fid}: FAILED: {why}")
+        pending = flight_ranges(registered, [k for k in keys if k not in failed]) + pending
     return failures
 
 
 def run_fleet(instance, resources: dict, log) -> dict | None:
     """Fit, diagnose, record; returns the diagnosis (None if the run failed)."""
+    t0 = time.perf_counter()
     result = materialize(FLEET, resources, instance)
     if not result.success:
         log(f"  FAILED: {_failure_reason(result)}")
         return None
     diag = store.read_json(resources["data_root"].root_path / "reports" / "diagnosis.json")
-    log(f"  {diag['verdict']}")
+    log(f"  {diag['verdict']}\n  (one run, {time.perf_counter() - t0:.1f} s)")
     return diag
 
 
@@ -130,8 +165,8 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     resources = {"data_root": data_root, "model": model}
     root = data_root.root_path
 
-    log(f"1/4 decode and per-flight physics ({len(ids)} flights)")
-    failures = run_flights(instance, resources, ids, PER_FLIGHT, "flight", log)
+    log(f"1/4 decode ({len(ids)} flights)")
+    failures = run_flights(instance, resources, ids, PER_FLIGHT[:1], "decode", log)
     good = [f for f in ids if f not in failures]
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
@@ -151,12 +186,14 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         if run_fleet(instance, resources, log) is None:
             return 1
     log("3/4 residuals, rollouts and MCAP against the fitted model")
-    failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flight", log))
+    failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flights", log))
     log("4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines")
+    t0 = time.perf_counter()
     result = materialize(LEARNING, resources, instance)
     if not result.success:
         log(f"  FAILED: {_failure_reason(result)}")
         return 1
+    log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
 
     log("\nOutputs:")
     log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")

@@ -222,10 +222,19 @@ def cmd_export(args: argparse.Namespace) -> int:
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None)
     out = Path(args.out)
+    from quadcore import features as feat
+
+    try:
+        given = flightmod.read_flight_starts(args.flights or feat.find_flights_csv(*map(Path, args.paths)))
+        if args.start:
+            given = {f.flight_id: flightmod.parse_start(args.start) for f in flights}
+    except (ValueError, OSError) as exc:
+        raise UserError(str(exc)) from None
     for fid, df in _main_tables(flights).items():
         table = residuals.residual_table(df, veh)
-        src = next(f.provenance["source_file"] for f in flights if f.flight_id == fid)
-        start_ns = export.anchor_from_file(src, float(table["t_s"][-1]))
+        fl = next(f for f in flights if f.flight_id == fid)
+        flightmod.settle_start_time(fl, None, given.get(fid))
+        start_ns = fl.provenance["start_ns"]
         counts = export.write_mcap(table, out / f"{fid}.mcap", start_ns, {"flight": fid, "vehicle": veh.name})
         print(f"{out / f'{fid}.mcap'}: {sum(counts.values())} messages on {len(counts)} topics")
     return 0
@@ -453,6 +462,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="flights as MCAP for Foxglove (pose, IMU, motors, model vs measured)")
     p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
     p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--start", metavar="ISO_TIME", help="the flight's start (UTC, e.g. 2024-05-01T12:00:00Z); default: "
+                   "the flights file's start_utc, else the log file's modification time taken as the end of the flight")
+    p.add_argument("--flights", metavar="FLIGHTS.csv", help="flights file with a start_utc column "
+                   "(default: flights.csv beside or above the logs)")
     vehicle_args(p)
     p.set_defaults(func=cmd_export)
 

@@ -1,6 +1,6 @@
-"""Export a flight as MCAP for Foxglove.
+"""Export a flight as MCAP for Foxglove, protobuf-encoded.
 
-Channels (JSON-encoded, one message per logged sample)::
+Channels (one message per logged sample)::
 
     /tf               foxglove.FrameTransform   world -> body: the 3D panel shows the vehicle
     /pose             foxglove.PoseInFrame      the same pose, for plots and the pose panel
@@ -10,39 +10,40 @@ Channels (JSON-encoded, one message per logged sample)::
     /model/force      quadcore.Wrench3          measured, modelled, residual body force N
     /model/torque     quadcore.Wrench3          measured, modelled, residual body torque N m
 
-Time: the logs count from power-on, so absolute time is anchored at the log file's
-modification time taken as the end of the flight (the deck closes the file when logging
-stops); the anchor and the flight-relative ``t_s`` are in the file's metadata record
-``quadcore``. Pass ``start_ns`` to anchor elsewhere.
+The pose topics use Foxglove's well-known schemas (``foxglove-schemas-protobuf``), which
+Foxglove renders natively; the others are small ``quadcore.*`` messages built on
+``foxglove.Vector3`` and ``google.protobuf.Timestamp``. Each schema record holds the full
+``FileDescriptorSet``, so any protobuf reader decodes the file without our code.
+
+Time: the logs count from power-on; ``start_ns`` (ns since the Unix epoch) anchors the first
+sample. The decoder records it once per flight in its provenance (see
+:func:`quadcore.flight.start_time_ns`); it and the flight-relative ``t_s`` are in the file's
+metadata record ``quadcore``.
 """
 
 from __future__ import annotations
 
-import json
+import os
+import time
 from pathlib import Path
 
 import numpy as np
 import polars as pl
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from google.protobuf.timestamp_pb2 import Timestamp
 
-TIME_SCHEMA = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
-VEC3 = {"type": "object", "properties": {a: {"type": "number"} for a in "xyz"}}
-QUAT = {"type": "object", "properties": {a: {"type": "number"} for a in "xyzw"}}
+XYZ = "xyz"
+_F = descriptor_pb2.FieldDescriptorProto
 
-
-def _obj(**props) -> dict:
-    return {"type": "object", "properties": props}
-
-
-SCHEMAS = {
-    "foxglove.FrameTransform": _obj(timestamp=TIME_SCHEMA, parent_frame_id={"type": "string"},
-                                    child_frame_id={"type": "string"}, translation=VEC3, rotation=QUAT),
-    "foxglove.PoseInFrame": _obj(timestamp=TIME_SCHEMA, frame_id={"type": "string"},
-                                 pose=_obj(position=VEC3, orientation=QUAT)),
-    "quadcore.Imu": _obj(t_s={"type": "number"}, gyro_b_radps=VEC3, specific_force_b_mps2=VEC3),
-    "quadcore.Motors": _obj(t_s={"type": "number"}, pwm={"type": "array"}, thrust_N={"type": "array"},
-                            speed_radps={"type": "array"}),
-    "quadcore.Battery": _obj(t_s={"type": "number"}, vbat_V={"type": "number"}),
-    "quadcore.Wrench3": _obj(t_s={"type": "number"}, measured=VEC3, model=VEC3, residual=VEC3),
+# Our own messages: field name -> (type, repeated). Vectors are foxglove.Vector3.
+QUADCORE_MESSAGES = {
+    "Imu": {"gyro_b_radps": ".foxglove.Vector3", "specific_force_b_mps2": ".foxglove.Vector3"},
+    "Motors": {"pwm": "repeated double", "thrust_N": "repeated double", "speed_radps": "repeated double"},
+    "Battery": {"vbat_V": "double"},
+    "Wrench3": {"measured": ".foxglove.Vector3", "model": ".foxglove.Vector3", "residual": ".foxglove.Vector3"},
 }
 TOPICS = {
     "/tf": "foxglove.FrameTransform",
@@ -55,67 +56,177 @@ TOPICS = {
 }
 
 
-def _vec(arr: np.ndarray, keys: str = "xyz") -> list[dict]:
-    return [dict(zip(keys, row)) for row in arr.tolist()]
+def _quadcore_file() -> descriptor_pb2.FileDescriptorProto:
+    """``quadcore/flight.proto``: every message has ``timestamp`` and the flight-relative ``t_s``."""
+    fdp = descriptor_pb2.FileDescriptorProto(
+        name="quadcore/flight.proto", package="quadcore", syntax="proto3",
+        dependency=["google/protobuf/timestamp.proto", "foxglove/Vector3.proto"])
+    for name, fields in QUADCORE_MESSAGES.items():
+        msg = fdp.message_type.add(name=name)
+        msg.field.add(name="timestamp", number=1, type=_F.TYPE_MESSAGE, type_name=".google.protobuf.Timestamp",
+                      label=_F.LABEL_OPTIONAL)
+        msg.field.add(name="t_s", number=2, type=_F.TYPE_DOUBLE, label=_F.LABEL_OPTIONAL)
+        for number, (field, kind) in enumerate(fields.items(), start=3):
+            if kind.startswith("."):
+                msg.field.add(name=field, number=number, type=_F.TYPE_MESSAGE, type_name=kind, label=_F.LABEL_OPTIONAL)
+            else:
+                label = _F.LABEL_REPEATED if kind.startswith("repeated") else _F.LABEL_OPTIONAL
+                msg.field.add(name=field, number=number, type=_F.TYPE_DOUBLE, label=label)
+    return fdp
+
+
+def _file_protos(descriptor) -> list[descriptor_pb2.FileDescriptorProto]:
+    """The file of a message descriptor and every file it imports, dependencies first."""
+    out, seen = [], set()
+
+    def visit(file):
+        if file.name in seen:
+            return
+        seen.add(file.name)
+        for dep in file.dependencies:
+            visit(dep)
+        proto = descriptor_pb2.FileDescriptorProto()
+        file.CopyToProto(proto)
+        out.append(proto)
+
+    visit(descriptor.file)
+    return out
+
+
+def _build_classes() -> tuple[dict[str, type], dict[str, bytes]]:
+    """Message classes and schema records (serialized ``FileDescriptorSet``) by full name."""
+    pool = descriptor_pool.DescriptorPool()
+    for proto in [*_file_protos(Vector3.DESCRIPTOR), *_file_protos(Timestamp.DESCRIPTOR), _quadcore_file()]:
+        try:
+            pool.Add(proto)
+        except TypeError:  # already added (Timestamp is a dependency of several files)
+            pass
+    classes = {"foxglove.FrameTransform": FrameTransform, "foxglove.PoseInFrame": PoseInFrame}
+    for name in QUADCORE_MESSAGES:
+        classes[f"quadcore.{name}"] = message_factory.GetMessageClass(pool.FindMessageTypeByName(f"quadcore.{name}"))
+    schemas = {name: descriptor_pb2.FileDescriptorSet(file=_file_protos(cls.DESCRIPTOR)).SerializeToString()
+               for name, cls in classes.items()}
+    return classes, schemas
+
+
+CLASSES, SCHEMAS = _build_classes()
+
+
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        out.append((value & 0x7F) | (0x80 if value > 0x7F else 0))
+        value >>= 7
+        if not value:
+            return bytes(out)
+
+
+def _constant(data: bytes, n: int) -> np.ndarray:
+    return np.tile(np.frombuffer(data, np.uint8), (n, 1))
+
+
+def _varint5(values: np.ndarray) -> np.ndarray:
+    """Integers 0 <= v < 2**35 as five-byte varints (padded with continuation bytes, which every
+    protobuf parser accepts), so that every message of a topic has the same length."""
+    v = np.asarray(values, np.int64)
+    if v.size and (v.min() < 0 or v.max() >= 1 << 35):
+        raise ValueError("timestamp out of range for the MCAP export (before 1970 or after 3058)")
+    return np.stack([((v >> (7 * k)) & 0x7F) | (0x80 if k < 4 else 0) for k in range(5)], axis=1).astype(np.uint8)
+
+
+def _encode(descriptor, values: dict, n: int) -> np.ndarray:
+    """``n`` protobuf messages of type ``descriptor`` as an (n, width) byte array, built column by
+    column (no per-row Python). ``values``: field name -> a constant string, an (n,) or (n, k)
+    array (scalar or repeated double, integer), or a dict for a message field. Field numbers
+    and types come from the descriptor; every field is written, so each row has one width."""
+    blocks = []
+    for name, value in values.items():
+        field = descriptor.fields_by_name[name]
+        if field.type == _F.TYPE_MESSAGE:
+            body = _encode(field.message_type, value, n)
+            blocks += [_constant(_varint(field.number << 3 | 2) + _varint(body.shape[1]), n), body]
+        elif field.type == _F.TYPE_STRING:
+            data = value.encode()
+            blocks.append(_constant(_varint(field.number << 3 | 2) + _varint(len(data)) + data, n))
+        elif field.type == _F.TYPE_DOUBLE:
+            arr = np.ascontiguousarray(np.asarray(value, "<f8").reshape(n, -1))
+            raw = arr.view(np.uint8).reshape(n, -1)
+            if field.is_repeated:  # packed
+                head = _varint(field.number << 3 | 2) + _varint(raw.shape[1])
+            else:
+                head = _varint(field.number << 3 | 1)
+            blocks += [_constant(head, n), raw]
+        else:  # int32 / int64 (the Timestamp's seconds and nanos)
+            blocks += [_constant(_varint(field.number << 3 | 0), n), _varint5(value)]
+    return np.hstack(blocks) if blocks else np.zeros((n, 0), np.uint8)
 
 
 def _cols(table: pl.DataFrame, names: list[str]) -> np.ndarray:
-    return table.select(names).to_numpy().astype(float)
+    return table.select(names).to_numpy().astype(np.float64)
 
 
-def messages(table: pl.DataFrame, start_ns: int) -> dict[str, tuple[np.ndarray, list[dict]]]:
-    """Topic -> (log times in ns, message dicts), from a residual table."""
-    t_ns = start_ns + np.round(table["t_s"].to_numpy() * 1e9).astype(np.int64)
-    stamps = [{"sec": int(v // 1_000_000_000), "nsec": int(v % 1_000_000_000)} for v in t_ns.tolist()]
-    t_s = table["t_s"].to_list()
-    p = _vec(_cols(table, ["p_w_x_m", "p_w_y_m", "p_w_z_m"]))
-    q = _vec(_cols(table, ["q_x", "q_y", "q_z", "q_w"]), "xyzw")
-    xyz = "xyz"
-    motors = sorted(c for c in table.columns if c.startswith("pwm_"))
-    n_rot = len(motors)
-    speed_cols = [f"motor_{i}_radps" for i in range(1, n_rot + 1)]
-    speed = _cols(table, speed_cols).tolist() if all(c in table.columns for c in speed_cols) else [[]] * table.height
+def _vec(table: pl.DataFrame, names: list[str], keys: str = "xyz") -> dict:
+    arr = _cols(table, names)
+    return {k: arr[:, i] for i, k in enumerate(keys)}
+
+
+def topic_values(table: pl.DataFrame, stamp: dict) -> dict[str, dict]:
+    """Topic -> field values for :func:`_encode`, from a residual table; ``stamp`` is the
+    Timestamp's {seconds, nanos} per row."""
+    p = _vec(table, ["p_w_x_m", "p_w_y_m", "p_w_z_m"])
+    q = _vec(table, ["q_x", "q_y", "q_z", "q_w"], "xyzw")
+    t = {"timestamp": stamp, "t_s": table["t_s"].to_numpy()}
+    pwm = sorted(c for c in table.columns if c.startswith("pwm_"))
+    rotors = range(1, len(pwm) + 1)
+    speed = [f"motor_{i}_radps" for i in rotors]
+    motors = {"pwm": _cols(table, pwm), "thrust_N": _cols(table, [f"f_rotor_{i}_N" for i in rotors])}
+    if all(c in table.columns for c in speed):
+        motors["speed_radps"] = _cols(table, speed)
     out = {
-        "/tf": [{"timestamp": s, "parent_frame_id": "world", "child_frame_id": "body", "translation": a, "rotation": b}
-                for s, a, b in zip(stamps, p, q)],
-        "/pose": [{"timestamp": s, "frame_id": "world", "pose": {"position": a, "orientation": b}}
-                  for s, a, b in zip(stamps, p, q)],
-        "/imu": [{"t_s": t, "gyro_b_radps": g, "specific_force_b_mps2": f} for t, g, f in zip(
-            t_s, _vec(_cols(table, [f"omega_b_{a}_radps" for a in xyz])), _vec(_cols(table, [f"sf_b_{a}_mps2" for a in xyz])))],
-        "/motors": [{"t_s": t, "pwm": a, "thrust_N": b, "speed_radps": c} for t, a, b, c in zip(
-            t_s, _cols(table, motors).tolist(), _cols(table, [f"f_rotor_{i}_N" for i in range(1, n_rot + 1)]).tolist(), speed)],
-        "/battery": [{"t_s": t, "vbat_V": v} for t, v in zip(t_s, table["vbat_V"].to_list())],
+        "/tf": {"timestamp": stamp, "parent_frame_id": "world", "child_frame_id": "body", "translation": p,
+                "rotation": q},
+        "/pose": {"timestamp": stamp, "frame_id": "world", "pose": {"position": p, "orientation": q}},
+        "/imu": {**t, "gyro_b_radps": _vec(table, [f"omega_b_{a}_radps" for a in XYZ]),
+                 "specific_force_b_mps2": _vec(table, [f"sf_b_{a}_mps2" for a in XYZ])},
+        "/motors": {**t, **motors},
+        "/battery": {**t, "vbat_V": table["vbat_V"].to_numpy()},
     }
     for topic, kind, unit in (("/model/force", "f", "N"), ("/model/torque", "tau", "Nm")):
-        meas, mod, res = (_vec(_cols(table, [f"{kind}_{w}_b_{a}_{unit}" for a in xyz])) for w in ("meas", "model", "res"))
-        out[topic] = [{"t_s": t, "measured": a, "model": b, "residual": c} for t, a, b, c in zip(t_s, meas, mod, res)]
-    return {topic: (t_ns, msgs) for topic, msgs in out.items()}
+        out[topic] = {**t, **{field: _vec(table, [f"{kind}_{col}_b_{a}_{unit}" for a in XYZ])
+                              for field, col in (("measured", "meas"), ("model", "model"), ("residual", "res"))}}
+    return out
 
 
 def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int, metadata: dict[str, str] | None = None) -> dict[str, int]:
-    """Write a residual table as MCAP; returns messages per topic."""
-    from mcap.writer import Writer
+    """Write a residual table as MCAP (protobuf messages, zstd chunks, written by the Foxglove
+    SDK's MCAP writer); returns messages per topic. Log time of a sample = ``start_ns`` + its ``t_s``."""
+    import foxglove
+    from foxglove.mcap import MCAPWriteOptions
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
+    t_ns = start_ns + np.round(table["t_s"].to_numpy() * 1e9).astype(np.int64)
+    stamp = {"seconds": t_ns // 1_000_000_000, "nanos": t_ns % 1_000_000_000}
+    times = t_ns.tolist()
+    context = foxglove.Context()  # this file's channels only
+    options = MCAPWriteOptions(profile="", compression_threads=0)
     counts = {}
-    with open(tmp, "wb") as fh:
-        writer = Writer(fh)
-        writer.start(profile="", library="quadcore")
-        schema_ids = {name: writer.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()}
-        channels = {topic: writer.register_channel(topic, "json", schema_ids[schema]) for topic, schema in TOPICS.items()}
-        for topic, (t_ns, msgs) in messages(table, start_ns).items():
-            ch = channels[topic]
-            for seq, (t, m) in enumerate(zip(t_ns.tolist(), msgs)):
-                writer.add_message(ch, log_time=t, data=json.dumps(m).encode(), publish_time=t, sequence=seq)
-            counts[topic] = len(msgs)
-        writer.add_metadata("quadcore", {"start_ns": str(start_ns), **(metadata or {})})
-        writer.finish()
-    tmp.replace(path)
+    try:
+        with foxglove.open_mcap(tmp, context=context, writer_options=options) as writer:
+            for topic, values in topic_values(table, stamp).items():
+                name = TOPICS[topic]
+                schema = foxglove.Schema(name=name, encoding="protobuf", data=SCHEMAS[name])
+                channel = foxglove.Channel(topic, message_encoding="protobuf", schema=schema, context=context)
+                rows = _encode(CLASSES[name].DESCRIPTOR, values, table.height)
+                data, width = rows.tobytes(), rows.shape[1]
+                log = channel.log
+                for i, t in enumerate(times):
+                    log(data[i * width:(i + 1) * width], log_time=t)
+                counts[topic] = len(times)
+            writer.write_metadata("quadcore", {"start_ns": str(start_ns), **(metadata or {})})
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return counts
-
-
-def anchor_from_file(log_path: str | Path, duration_s: float) -> int:
-    """Start time (ns since the Unix epoch): the log file's mtime taken as the end of the flight."""
-    return Path(log_path).stat().st_mtime_ns - int(duration_s * 1e9)

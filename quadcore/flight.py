@@ -48,7 +48,9 @@ def find_log(folder: str | Path, flight_id: str) -> Path:
 
 def from_decoded(flight_id: str, log: logformat.DecodedLog, provenance: dict) -> Flight:
     starts = [ts[0] for ts in log.timestamps_us.values() if len(ts)]
+    ends = [ts[-1] for ts in log.timestamps_us.values() if len(ts)]
     t0_us = int(min(starts)) if starts else 0
+    duration_ns = (int(max(ends)) - t0_us) * 1000 if ends else 0
     tables, columns = {}, {}
     for event, values in log.tables.items():
         tables[event], columns[event] = units.to_si(values, log.timestamps_us[event], t0_us)
@@ -61,6 +63,8 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, provenance: dict) ->
         "decode_warnings": list(log.warnings),
         "rows": log.rows(),
     }
+    if "source_mtime_ns" in provenance:
+        provenance.update(start_ns=provenance.pop("source_mtime_ns") - duration_ns, start_source=START_FROM_MTIME)
     return Flight(flight_id, tables, columns, provenance)
 
 
@@ -72,8 +76,57 @@ def decode_flight(path: str | Path) -> Flight:
     provenance = {
         "source_file": str(path.resolve()),
         "source_sha256": hashlib.sha256(buf).hexdigest(),
+        "source_mtime_ns": path.stat().st_mtime_ns,
     }
     return from_decoded(flight_id_of(path), log, provenance)
+
+
+START_FROM_MTIME = "log file modification time at first decode, taken as the end of the flight"
+
+
+def settle_start_time(fl: Flight, recorded: dict | None, override_ns: int | None = None) -> None:
+    """Fix the flight's absolute start time (``provenance["start_ns"]``, ns since the Unix epoch;
+    the logs count from power-on). In order: the user's ``override_ns`` (a flights file, a CLI
+    option); else the time ``recorded`` at the first decode of the same log (same SHA-256), so
+    that a copy of the log, with a new modification time, never moves it; else this decode's
+    estimate from the file's modification time."""
+    if override_ns is not None:
+        fl.provenance.update(start_ns=int(override_ns), start_source="given by the user")
+    elif recorded and recorded.get("source_sha256") == fl.provenance.get("source_sha256") and "start_ns" in recorded:
+        fl.provenance.update(start_ns=int(recorded["start_ns"]), start_source=recorded.get("start_source", START_FROM_MTIME))
+
+
+def read_flight_starts(path: str | Path | None) -> dict[str, int]:
+    """Start times given by the user: the ``start_utc`` column (ISO 8601) of a flights file
+    (``flights.csv``: columns ``flight``, ..., ``start_utc``); {} when absent. A bad time is a
+    ``ValueError`` naming the flight."""
+    import csv
+
+    if not path or not Path(path).is_file():
+        return {}
+    out = {}
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            text, fid = (row.get("start_utc") or "").strip(), (row.get("flight") or "").strip()
+            if text and fid:
+                try:
+                    out[fid] = parse_start(text)
+                except ValueError as exc:
+                    raise ValueError(f"{path}: flight {fid}: {exc}") from None
+    return out
+
+
+def parse_start(text: str) -> int:
+    """An ISO 8601 time (``2024-05-01T12:00:00Z``; no zone means UTC) as ns since the Unix epoch."""
+    from datetime import datetime, timezone
+
+    try:
+        when = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(f"not an ISO 8601 time: {text!r} (e.g. 2024-05-01T12:00:00Z)") from None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return int(when.timestamp()) * 1_000_000_000 + when.microsecond * 1000
 
 
 def sample_statistics(t_s: np.ndarray, gap_threshold_s: float = 0.02) -> dict[str, float]:

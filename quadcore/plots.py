@@ -13,16 +13,23 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import NullLocator  # noqa: E402
 import polars as pl  # noqa: E402
 
 from quadcore.dynamics import XYZ  # noqa: E402
 
 
-def _png(fig, dpi: int = 80) -> bytes:
+def _png(fig, dpi: int = 80, tight: bool = True) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     plt.close(fig)
     return buf.getvalue()
+
+
+# Per-flight plots go into every materialisation's metadata: small and quick (about 0.1 s,
+# 30-50 kB), with a fixed layout (a layout engine or a tight bounding box costs more than the drawing).
+THUMB_DPI = 60
+THUMB_POINTS = 600
 
 
 def markdown_image(png: bytes, alt: str = "plot") -> str:
@@ -40,12 +47,13 @@ def markdown_table(df: pl.DataFrame, digits: int = 4) -> str:
     return "\n".join(lines)
 
 
-def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = 4000) -> bytes:
+def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = THUMB_POINTS) -> bytes:
     """Measured and modelled body force and torque over time, with the residual, per axis."""
     step = max(1, res.height // max_points)
     d = res.gather_every(step)
     t = d["t_s"].to_numpy()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 6.5), sharex=True, layout="constrained")
+    fig, axes = plt.subplots(3, 2, figsize=(9, 5.5), sharex=True)
+    fig.subplots_adjust(left=0.09, right=0.98, top=0.92, bottom=0.09, wspace=0.3, hspace=0.15)
     for row, axis in enumerate(XYZ):
         for col, (kind, unit) in enumerate((("f", "N"), ("tau", "Nm"))):
             ax = axes[row, col]
@@ -58,12 +66,13 @@ def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = 4000
     axes[-1, 0].set_xlabel("t [s]")
     axes[-1, 1].set_xlabel("t [s]")
     fig.suptitle(title or "model vs measurement")
-    return _png(fig)
+    return _png(fig, THUMB_DPI, tight=False)
 
 
 def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
     """Open-loop rollout error against time ahead, one line per horizon."""
-    fig, axes = plt.subplots(1, 4, figsize=(13, 3.2), layout="constrained")
+    fig, axes = plt.subplots(1, 4, figsize=(11, 3))
+    fig.subplots_adjust(left=0.06, right=0.99, top=0.86, bottom=0.16, wspace=0.35)
     panels = (("pos_err_m", "position error [m]"), ("vel_err_mps", "velocity error [m/s]"),
               ("att_err_deg", "attitude error [deg]"), ("rate_err_radps", "rate error [rad/s]"))
     horizons = sorted(growth["horizon_s"].unique().to_list())
@@ -76,8 +85,9 @@ def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
         ax.set_xlabel("time ahead [s]")
         ax.set_ylabel(label)
         ax.set_yscale("log")
-        ax.grid(alpha=0.3, which="both")
+        ax.yaxis.set_minor_locator(NullLocator())  # minor ticks of a log axis cost more than the plot
+        ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, title="horizon")
     fig.suptitle(title or "open-loop rollout error growth")
-    return _png(fig)
+    return _png(fig, THUMB_DPI, tight=False)
 

@@ -87,6 +87,12 @@ def write_decoded(root: Path, flight) -> dict[str, Path]:
     return paths
 
 
+def recorded_provenance(root: Path, event: str, flight: str) -> dict | None:
+    """The provenance written with a flight's decoded ``event`` table, or None if not decoded yet."""
+    path = decoded_path(root, event, flight)
+    return read_metadata(path) if path.is_file() else None
+
+
 def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:
     return pl.read_parquet(decoded_path(root, event, flight))
 

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from datetime import datetime, timezone
 
 import pytest
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 from quadcore import cli, export, residuals, simulation, vehicle
 from quadcore import flight as flightmod
@@ -29,7 +29,8 @@ def test_schemas_channels_and_counts(exported):
         summary = make_reader(fh).get_summary()
     schemas = {s.name for s in summary.schemas.values()}
     assert {"foxglove.FrameTransform", "foxglove.PoseInFrame"} <= schemas
-    assert all(s.encoding == "jsonschema" for s in summary.schemas.values())
+    assert all(s.encoding == "protobuf" for s in summary.schemas.values())
+    assert all(c.message_encoding == "protobuf" for c in summary.channels.values())
     topics = {c.topic: c for c in summary.channels.values()}
     assert set(topics) == set(export.TOPICS)
     counts = summary.statistics.channel_message_counts
@@ -42,20 +43,31 @@ def test_values_match_the_parquet(exported):
     table, path, _ = exported
     rows = {20: None, table.height // 2: None, table.height - 1: None}
     seen: dict[str, list] = {}
-    with open(path, "rb") as fh:
-        for _schema, channel, message in make_reader(fh).iter_messages(topics=["/pose", "/model/force", "/battery"]):
-            seen.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+    topics = ["/tf", "/pose", "/model/force", "/battery", "/motors", "/imu"]
+    with open(path, "rb") as fh:  # decoded from the schemas in the file alone (no quadcore code)
+        for _schema, channel, message, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=topics):
+            seen.setdefault(channel.topic, []).append((message.log_time, decoded))
     for k in rows:
         r = table.row(k, named=True)
-        _, pose = seen["/pose"][k]
-        assert pose["frame_id"] == "world"
-        assert pose["pose"]["position"]["z"] == pytest.approx(r["p_w_z_m"], abs=1e-6)
-        assert pose["pose"]["orientation"]["w"] == pytest.approx(r["q_w"], abs=1e-6)
+        t_ns, pose = seen["/pose"][k]
+        assert pose.frame_id == "world"
+        assert pose.pose.position.z == pytest.approx(r["p_w_z_m"], abs=1e-6)
+        assert pose.pose.orientation.w == pytest.approx(r["q_w"], abs=1e-6)
+        assert pose.timestamp.seconds * 10**9 + pose.timestamp.nanos == t_ns
+        _, tf = seen["/tf"][k]
+        assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "body")
+        assert tf.translation.x == pytest.approx(r["p_w_x_m"], abs=1e-6)
         _, force = seen["/model/force"][k]
-        assert force["residual"]["x"] == pytest.approx(r["f_res_b_x_N"], abs=1e-9)
-        assert force["measured"]["z"] == pytest.approx(r["f_meas_b_z_N"], abs=1e-9)
+        assert force.residual.x == pytest.approx(r["f_res_b_x_N"], abs=1e-9)
+        assert force.measured.z == pytest.approx(r["f_meas_b_z_N"], abs=1e-9)
+        assert force.t_s == pytest.approx(r["t_s"], abs=1e-9)
         _, bat = seen["/battery"][k]
-        assert bat["vbat_V"] == pytest.approx(r["vbat_V"], abs=1e-6)
+        assert bat.vbat_V == pytest.approx(r["vbat_V"], abs=1e-6)
+        _, motors = seen["/motors"][k]
+        assert list(motors.pwm) == pytest.approx([r[f"pwm_{i}"] for i in range(1, 5)], abs=1e-6)
+        assert list(motors.thrust_N) == pytest.approx([r[f"f_rotor_{i}_N"] for i in range(1, 5)], abs=1e-9)
+        _, imu = seen["/imu"][k]
+        assert imu.gyro_b_radps.y == pytest.approx(r["omega_b_y_radps"], abs=1e-6)
     # log time: seconds from the first sample, anchored at a real date
     t0, _ = seen["/pose"][0]
     tk, _ = seen["/pose"][-1]
@@ -63,14 +75,45 @@ def test_values_match_the_parquet(exported):
     assert datetime.fromtimestamp(t0 / 1e9, timezone.utc).year >= 2020
 
 
+def _start_ns(path) -> int:
+    with open(path, "rb") as fh:
+        return int({m.name: m.metadata for m in make_reader(fh).iter_metadata()}["quadcore"]["start_ns"])
+
+
 def test_anchor_is_the_file_time_at_the_end_of_the_flight(exported):
     table, path, log = exported
-    with open(path, "rb") as fh:
-        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
-    start_ns = int(meta["quadcore"]["start_ns"])
-    end_ns = start_ns + int(table["t_s"][-1] * 1e9)
-    assert abs(end_ns - log.stat().st_mtime_ns) < 1e6
-    assert meta["quadcore"]["flight"] == "sim000"
+    fl = flightmod.decode_flight(log)
+    start_ns = _start_ns(path)
+    assert start_ns == fl.provenance["start_ns"]
+    # the file was closed when logging stopped: its time is the end of the last sample of any event
+    last_s = max(float(df["t_s"][-1]) for df in fl.tables.values() if df.height)
+    assert abs(start_ns + int(last_s * 1e9) - log.stat().st_mtime_ns) < 1e3
+
+
+def test_the_user_gives_the_start_time(exported, tmp_path):
+    _, _, log = exported
+    out = tmp_path / "given"
+    assert cli.main(["export", str(log), "--out", str(out), "--start", "2024-05-01T12:00:00Z"]) == 0
+    assert _start_ns(out / "sim000.mcap") == int(datetime(2024, 5, 1, 12, tzinfo=timezone.utc).timestamp()) * 10**9
+    flights_csv = tmp_path / "flights.csv"
+    flights_csv.write_text("flight,kind,start_utc\nsim000,random,2023-01-02T03:04:05.5\n")
+    assert cli.main(["export", str(log), "--out", str(out), "--flights", str(flights_csv)]) == 0
+    assert _start_ns(out / "sim000.mcap") == int(datetime(2023, 1, 2, 3, 4, 5, tzinfo=timezone.utc).timestamp()) * 10**9 + 500_000_000
+    assert cli.main(["export", str(log), "--out", str(out), "--start", "yesterday"]) == 2
+
+
+def test_a_copy_of_the_log_keeps_the_recorded_start_time(exported, tmp_path):
+    _, _, log = exported
+    first = flightmod.decode_flight(log)
+    copy = tmp_path / "sim000"
+    copy.write_bytes(log.read_bytes())  # a copy: a new modification time
+    again = flightmod.decode_flight(copy)
+    assert again.provenance["start_ns"] != first.provenance["start_ns"]
+    flightmod.settle_start_time(again, first.provenance)
+    assert again.provenance["start_ns"] == first.provenance["start_ns"]
+    changed = flightmod.decode_flight(copy)
+    flightmod.settle_start_time(changed, {**first.provenance, "source_sha256": "another log"})
+    assert changed.provenance["start_ns"] != first.provenance["start_ns"]
 
 
 def test_export_of_a_missing_log_is_a_user_error(tmp_path, capsys):

@@ -1,24 +1,21 @@
 """Stage 1: raw uSD log -> SI Parquet, one partition per flight."""
 
+from datetime import datetime, timezone
 
 import dagster as dg
 
-from pipeline.partitions import flights
+from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
 from quadcore import checks, flight, logformat, store
+from quadcore.features import find_flights_csv
 
 MAIN_EVENT = "fixedFrequency"
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
 
 
-@dg.asset(partitions_def=flights, group_name="decode", check_specs=CHECKS, kinds={"parquet"})
-def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.MaterializeResult:
-    """Decode one raw log into SI Parquet (one file per event type) with provenance metadata.
-
-    A file with nothing recoverable is quarantined (``<root>/quarantine/<flight>.json``)
-    and the run fails with the reason; earlier outputs of that flight stay untouched.
-    """
-    fid = context.partition_key
+def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log) -> tuple[dict, dict]:
+    """Decode and write one flight; returns (its metadata, check name -> (passed, description, metrics)).
+    Its start time is the user's (``given_starts``), else the one recorded at its first decode."""
     path = data_root.raw_path / fid
     try:
         path = data_root.raw_log(fid)
@@ -30,32 +27,72 @@ def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg
             metadata={"source_file": str(path), "reason": str(exc)},
             allow_retries=False,
         ) from None
+    recorded = store.recorded_provenance(data_root.root_path, MAIN_EVENT, fid)
+    flight.settle_start_time(fl, recorded, given_starts.get(fid))
     paths = store.write_decoded(data_root.root_path, fl)
     store.clear_quarantine(data_root.root_path, fid)
     for w in fl.warnings:
-        context.log.warning(f"{fid}: {w}")
-
+        log.warning(f"{fid}: {w}")
     main = fl.tables.get(MAIN_EVENT)
     stats = flight.sample_statistics(main["t_s"].to_numpy()) if main is not None else {}
-    check_results = []
-    for name, check in checks.ALL_CHECKS.items():
-        passed, desc, metrics = check(main) if main is not None else (False, f"no {MAIN_EVENT} table", {})
-        check_results.append(
-            dg.AssetCheckResult(
-                check_name=name, passed=passed, severity=dg.AssetCheckSeverity.WARN, description=desc, metadata=metrics
-            )
-        )
-    return dg.MaterializeResult(
-        metadata={
-            **{f"rows_{e}": n for e, n in fl.provenance["rows"].items()},
-            **stats,
-            "decode_warnings": dg.MetadataValue.md("\n".join(f"- {w}" for w in fl.warnings) or "none"),
-            "warning_count": len(fl.warnings),
-            "crc_ok": str(fl.provenance["crc_ok"]),
-            "bytes_dropped": fl.provenance["bytes_dropped"],
-            "format_version": fl.provenance["format_version"],
-            "source_sha256": fl.provenance["source_sha256"],
-            "parquet": dg.MetadataValue.path(str(paths.get(MAIN_EVENT, next(iter(paths.values()), "")))),
-        },
-        check_results=check_results,
-    )
+    outcomes = {name: check(main) if main is not None else (False, f"no {MAIN_EVENT} table", {})
+                for name, check in checks.ALL_CHECKS.items()}
+    metadata = {
+        **{f"rows_{e}": n for e, n in fl.provenance["rows"].items()},
+        **stats,
+        "decode_warnings": dg.MetadataValue.md("\n".join(f"- {w}" for w in fl.warnings) or "none"),
+        "warning_count": len(fl.warnings),
+        "crc_ok": str(fl.provenance["crc_ok"]),
+        "bytes_dropped": fl.provenance["bytes_dropped"],
+        "format_version": fl.provenance["format_version"],
+        "source_sha256": fl.provenance["source_sha256"],
+        "start_utc": _utc(fl.provenance["start_ns"]),
+        "start_source": fl.provenance["start_source"],
+        "checks_failed": ", ".join(n for n, (ok, _, _) in outcomes.items() if not ok) or "none",
+        "parquet": dg.MetadataValue.path(str(paths.get(MAIN_EVENT, next(iter(paths.values()), "")))),
+    }
+    return metadata, outcomes
+
+
+def _utc(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _check_results(outcomes: dict[str, dict]) -> list[dg.AssetCheckResult]:
+    """One result per check for the run's flights: a flight's own result when the run has one
+    flight; else passed when every flight passes, the failing flights and reasons named."""
+    results = []
+    for name in checks.ALL_CHECKS:
+        per_flight = {fid: o[name] for fid, o in outcomes.items()}
+        if len(per_flight) == 1:
+            passed, desc, metrics = next(iter(per_flight.values()))
+        else:
+            failing = {fid: d for fid, (ok, d, _) in per_flight.items() if not ok}
+            passed, metrics = not failing, {"flights": len(per_flight), "flights_failing": len(failing)}
+            desc = "; ".join(f"{fid}: {d}" for fid, d in failing.items()) or f"all {len(per_flight)} flights pass"
+        results.append(dg.AssetCheckResult(check_name=name, passed=passed, severity=dg.AssetCheckSeverity.WARN,
+                                           description=desc, metadata=metrics))
+    return results
+
+
+@dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="decode", check_specs=CHECKS,
+          kinds={"parquet"})
+def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.MaterializeResult:
+    """Decode each raw log of the run into SI Parquet (one file per event type) with provenance
+    metadata and plausibility checks.
+
+    A file with nothing recoverable is quarantined (``<root>/quarantine/<flight>.json``)
+    and its partition fails with the reason; earlier outputs of that flight stay untouched.
+    """
+    outcomes = {}
+    try:
+        given_starts = flight.read_flight_starts(find_flights_csv(data_root.raw_path, data_root.root_path))
+    except ValueError as exc:
+        raise dg.Failure(description=str(exc)) from None
+
+    def work(fid):
+        metadata, outcomes[fid] = _decode_one(fid, data_root, given_starts, context.log)
+        return metadata
+
+    for_each_flight(context, work)
+    return dg.MaterializeResult(check_results=_check_results(outcomes))

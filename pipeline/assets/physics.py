@@ -3,74 +3,75 @@
 import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
-from pipeline.partitions import flights
+from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.assets.model import REFRESH, current_model, physics_model
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"},
-          automation_condition=REFRESH)
+@dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="physics", deps=[decoded_flight, physics_model],
+          kinds={"parquet"}, automation_condition=REFRESH)
 def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
-    """Measured minus modelled force and torque for one flight, body and world frames, against
+    """Measured minus modelled force and torque per flight, body and world frames, against
     the current model (the vehicle plus the fitted effects of the model file)."""
-    fid = context.partition_key
     current = current_model(data_root, model, context.log)
     vehicle = current.vehicle
-    decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    try:
-        table = current.residual_table(decoded)
-    except dynamics.MissingColumnsError as exc:
-        raise dg.Failure(description=f"{fid}: {exc}") from None
-    path = store.write_parquet(
-        table,
-        store.table_path(data_root.root_path, "residuals", fid),
-        {"flight": fid, "model": current.to_dict(), "units": residuals.column_units(table)},
-    )
-    stats = residuals.summary(table)
-    png = plots.model_vs_measured(table, f"{fid}: model vs measured (body frame)")
-    return dg.MaterializeResult(
-        metadata={
-            **{k: dg.MetadataValue.float(v) for k, v in stats.items()},
+
+    def work(fid):
+        decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
+        try:
+            table = current.residual_table(decoded)
+        except dynamics.MissingColumnsError as exc:
+            raise dg.Failure(description=f"{fid}: {exc}") from None
+        path = store.write_parquet(
+            table,
+            store.table_path(data_root.root_path, "residuals", fid),
+            {"flight": fid, "model": current.to_dict(), "units": residuals.column_units(table)},
+        )
+        png = plots.model_vs_measured(table, f"{fid}: model vs measured (body frame)")
+        return {
+            **{k: dg.MetadataValue.float(v) for k, v in residuals.summary(table).items()},
             "rows": table.height,
-            "model": current.label,
-            "vehicle": vehicle.name,
-            "thrust_map": vehicle.thrust_map_kind,
             "model_vs_measured": dg.MetadataValue.md(plots.markdown_image(png, "model vs measured")),
             "parquet": dg.MetadataValue.path(str(path)),
         }
-    )
+
+    done = for_each_flight(context, work)
+    return dg.MaterializeResult(metadata={"model": current.label, "vehicle": vehicle.name,
+                                          "thrust_map": vehicle.thrust_map_kind, "flights_in_run": len(done)})
 
 
-@dg.asset(partitions_def=flights, group_name="physics", deps=[decoded_flight, physics_model], kinds={"parquet"},
-          automation_condition=REFRESH)
+@dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="physics", deps=[decoded_flight, physics_model],
+          kinds={"parquet"}, automation_condition=REFRESH)
 def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
-    """Open-loop error growth of the current model from the logged state, per horizon."""
-    fid = context.partition_key
+    """Open-loop error growth of the current model from the logged state, per horizon, per flight."""
     current = current_model(data_root, model, context.log)
     vehicle = current.vehicle
-    decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
-    try:
-        state = dynamics.flight_state(decoded, vehicle)
-    except dynamics.MissingColumnsError as exc:
-        raise dg.Failure(description=f"{fid}: {exc}") from None
-    growth = propagation.error_growth(state, vehicle, extra_wrench=current.rollout_wrench(state) if current.terms else None)
-    path = store.write_parquet(
-        growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
-    )
-    ends = propagation.horizon_summary(growth)
-    meta = {}
-    for row in ends.iter_rows(named=True):
-        h = f"{row['horizon_s']:.3g}s"
-        meta[f"pos_err_m@{h}"] = dg.MetadataValue.float(row["pos_err_m"])
-        meta[f"att_err_deg@{h}"] = dg.MetadataValue.float(row["att_err_deg"])
-    png = plots.error_growth(growth, f"{fid}: open-loop error growth")
-    return dg.MaterializeResult(
-        metadata={
+
+    def work(fid):
+        decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
+        try:
+            state = dynamics.flight_state(decoded, vehicle)
+        except dynamics.MissingColumnsError as exc:
+            raise dg.Failure(description=f"{fid}: {exc}") from None
+        extra = current.rollout_wrench(state) if current.terms else None
+        growth = propagation.error_growth(state, vehicle, extra_wrench=extra)
+        path = store.write_parquet(
+            growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
+        )
+        ends = propagation.horizon_summary(growth)
+        meta = {}
+        for row in ends.iter_rows(named=True):
+            h = f"{row['horizon_s']:.3g}s"
+            meta[f"pos_err_m@{h}"] = dg.MetadataValue.float(row["pos_err_m"])
+            meta[f"att_err_deg@{h}"] = dg.MetadataValue.float(row["att_err_deg"])
+        png = plots.error_growth(growth, f"{fid}: open-loop error growth")
+        return {
             **meta,
             "horizons": dg.MetadataValue.md(plots.markdown_table(ends)),
             "error_growth": dg.MetadataValue.md(plots.markdown_image(png, "error growth")),
             "parquet": dg.MetadataValue.path(str(path)),
         }
-    )
 
+    done = for_each_flight(context, work)
+    return dg.MaterializeResult(metadata={"model": current.label, "flights_in_run": len(done)})

@@ -1,0 +1,94 @@
+"""Per-flight stages in few runs: a range of flight partitions in one run (single-run backfill),
+one bad flight isolated, and the multiprocess executor. Real Dagster instances, real files."""
+
+from __future__ import annotations
+
+import dagster as dg
+import pytest
+
+from pipeline import main
+from pipeline.assets.decode import decoded_flight
+from pipeline.definitions import PER_FLIGHT, process_flight_job
+from pipeline.partitions import flights
+from pipeline.resources import DataRoot, ModelConfig
+from quadcore import simulation, store
+
+QUIET = main.QUIET
+
+
+@pytest.fixture(scope="module")
+def sim_logs(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("simlogs")
+    configs = [simulation.SimConfig(kind="random", duration_s=3.0, seed=s) for s in (31, 32, 33)]
+    simulation.simulate_set(folder, configs)
+    return folder
+
+
+def _raw(tmp_path, sim_logs, bad: bool):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001", "sim002"):
+        (raw / name).symlink_to(sim_logs / name)
+    if bad:
+        (raw / "sim001b").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))  # between sim001 and sim002
+    return raw
+
+
+def _materializations(instance, asset: str) -> dict[str, dict]:
+    records = instance.fetch_materializations(dg.AssetKey(asset), limit=100).records
+    return {r.partition_key: {k: v.value for k, v in r.asset_materialization.metadata.items()} for r in records}
+
+
+def test_every_flight_in_one_run_with_its_own_metadata(sim_logs, tmp_path):
+    raw = _raw(tmp_path, sim_logs, bad=False)
+    resources = {"data_root": DataRoot(root=str(tmp_path / "root"), raw=str(raw)), "model": ModelConfig()}
+    ids = ["sim000", "sim001", "sim002"]
+    with dg.instance_for_test() as instance:
+        failures = main.run_flights(instance, resources, ids, PER_FLIGHT, "flights", log=lambda *_: None)
+        assert failures == {}
+        assert len(instance.get_runs()) == 1
+        for asset in ("decoded_flight", "residual_table", "rollout_errors", "flight_mcap"):
+            assert set(_materializations(instance, asset)) == set(ids), asset
+        decoded = _materializations(instance, "decoded_flight")
+        rows = {fid: m["rows_fixedFrequency"] for fid, m in decoded.items()}
+        assert rows == {fid: store.read_decoded(tmp_path / "root", "fixedFrequency", fid).height for fid in ids}
+        assert len({m["source_sha256"] for m in decoded.values()}) == 3  # each partition has its own flight's
+        assert all(m["model_vs_measured"].startswith("![") for m in _materializations(instance, "residual_table").values())
+        assert all((tmp_path / "root" / "mcap" / f"{fid}.mcap").is_file() for fid in ids)
+
+
+def test_a_bad_flight_fails_alone_and_the_others_succeed(sim_logs, tmp_path):
+    raw = _raw(tmp_path, sim_logs, bad=True)
+    resources = {"data_root": DataRoot(root=str(tmp_path / "root"), raw=str(raw)), "model": ModelConfig()}
+    ids = ["sim000", "sim001", "sim001b", "sim002"]
+    with dg.instance_for_test() as instance:
+        failures = main.run_flights(instance, resources, ids, [decoded_flight], "decode", log=lambda *_: None)
+        assert list(failures) == ["sim001b"] and "quarantined" in failures["sim001b"]
+        assert set(_materializations(instance, "decoded_flight")) == {"sim000", "sim001", "sim002"}
+        # the batch that failed, the bad flight alone, then the two ranges around it
+        assert len(instance.get_runs()) == 4
+        assert [r["flight"] for r in store.quarantined(tmp_path / "root")] == ["sim001b"]
+
+
+def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, monkeypatch):
+    """process_flight over two flights in one run, its steps in separate processes, as a cluster
+    executor would run them (they load the definitions and the data root from the environment)."""
+    raw = _raw(tmp_path, sim_logs, bad=False)
+    root = tmp_path / "root"
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(root))
+    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
+    monkeypatch.setenv("QUADCORE_AUTOMATION", "off")
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions(flights.name, ["sim000", "sim001", "sim002"])
+        result = dg.execute_job(
+            dg.reconstructable(process_flight_job), instance=instance,
+            run_config={"execution": {"config": {"multiprocess": {"max_concurrent": 2}}}, **QUIET},
+            tags=main.range_tags(["sim000", "sim001"]),
+        )
+        assert result.success
+        steps = {e.step_key: e.pid for e in result.all_events if e.event_type_value == "STEP_START"}
+        assert set(steps) == {"decoded_flight", "residual_table", "rollout_errors", "flight_mcap"}
+        assert len(set(steps.values())) == 4  # each step in a process of its own
+        for asset in ("decoded_flight", "residual_table", "rollout_errors", "flight_mcap"):
+            assert set(_materializations(instance, asset)) == {"sim000", "sim001"}, asset
+        assert sorted(p.name for p in (root / "mcap").glob("*.mcap")) == ["sim000.mcap", "sim001.mcap"]
