@@ -16,11 +16,19 @@ import time
 from pathlib import Path
 
 import dagster as dg
-from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
+from dagster._core.storage.tags import (
+    ASSET_PARTITION_RANGE_END_TAG,
+    ASSET_PARTITION_RANGE_START_TAG,
+)
 
 from pipeline.definitions import FLEET, LEARNING, PER_FLIGHT
 from pipeline.partitions import failed_flights, flights
-from pipeline.resources import DataRoot, ModelConfig, data_root_from_env, model_config_from_env
+from pipeline.resources import (
+    DataRoot,
+    ModelConfig,
+    data_root_from_env,
+    model_config_from_env,
+)
 from quadcore import flight, history, store
 
 DAGSTER_YAML = """\

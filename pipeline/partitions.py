@@ -35,7 +35,7 @@ def for_each_flight(context: dg.AssetExecutionContext, work: Callable[[str], Map
     for fid in context.partition_keys:
         try:
             done[fid] = work(fid)
-        except Exception as exc:  # one bad flight never stops the others; it is reported below
+        except Exception as exc:  # noqa: BLE001 (one bad flight never stops the others; reported below)
             reason = exc.description if isinstance(exc, dg.Failure) else f"{type(exc).__name__}: {exc}"
             failed[fid] = reason or type(exc).__name__
             context.log.error(f"{fid}: {failed[fid]}")

@@ -81,7 +81,7 @@ def _start_ns(path) -> int:
 
 
 def test_anchor_is_the_file_time_at_the_end_of_the_flight(exported):
-    table, path, log = exported
+    _, path, log = exported
     fl = flightmod.decode_flight(log)
     start_ns = _start_ns(path)
     assert start_ns == fl.provenance["start_ns"]

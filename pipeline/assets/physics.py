@@ -3,8 +3,8 @@
 import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
-from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.assets.model import REFRESH, current_model, physics_model
+from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
