@@ -10,9 +10,11 @@ residual table's columns, every term with its unit (:func:`library`):
 * each variable alone (body velocity, body rate, position, collective and per-rotor thrust,
   motor speeds, battery voltage, a constant);
 * products of pairs and squares of the core variables (``v_b``, ``omega_b``, ``T_N``,
-  ``p_w_z_m``, ``vbat_V``), and signed squares ``x|x|`` of velocity and rate;
+  ``p_w_z_m``; ``vbat_V`` only with ``T_N``: the voltage barely changes, so ``x vbat`` would
+  duplicate ``x``), and signed squares ``x|x|`` of velocity and rate;
 * physically motivated combinations: per-rotor thrust differences, time derivatives of motor
-  speed and rotor thrust (a delay ``Δ`` turns ``f(t-Δ)`` into ``f - Δ df/dt``), the net rotor
+  speed, rotor thrust and rotor torque (a delay or lag ``Δ`` turns ``f(t-Δ)`` into
+  ``f - Δ df/dt``), the net rotor
   speed ``Σ s_i Ω_i`` and its gyroscopic products with the body rate (rotor inertia), the
   ground-effect term ``(R/4h)² T`` (Cheeseman & Bennett), ``T |v_h|²`` (translational lift).
 
@@ -113,14 +115,13 @@ def unit_text(exps) -> str:
 @dataclass(frozen=True)
 class Term:
     """One candidate: its expression (factors joined by ``*``; ``|x|`` is an absolute value),
-    the residual-table columns it is built from, its unit, where it may be used (``force``,
-    ``torque`` or ``both``) and the mechanism's name in the literature where there is one."""
+    the residual-table columns it is built from, its unit, and where it may be used
+    (``force``, ``torque`` or ``both``)."""
 
     expression: str
     variables: tuple[str, ...]
     unit: tuple[int, ...]
     channel: str = "both"
-    literature: str = ""
 
 
 @dataclass(frozen=True)
@@ -168,6 +169,10 @@ def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
     for i in range(n_rot):
         put(f"d(f_rotor_{i + 1}_N)/dt", f_dot[:, i], "N/s", (f"f_rotor_{i + 1}_N",))
     put("d(T_N)/dt", f_dot.sum(axis=1), "N/s", ("T_N",))
+    _, tau_dot = dynamics.wrench_from_thrusts(vehicle, f_dot)  # the modelled rotor torque's rate: timing
+    rotors = tuple(f"f_rotor_{i + 1}_N" for i in range(n_rot))
+    for j, a in enumerate(XYZ):
+        out[f"d(tau_rotor_{a}_Nm)/dt"] = Variable(tau_dot[:, j], _mul(UNIT["N m"], (0, 0, -1, 0, 0)), rotors, "torque")
     h = np.maximum(state.p_w_m[:, 2], MIN_HEIGHT_M)
     put("(R/4h)^2*T_N", (vehicle.rotor_radius_m / (4 * h)) ** 2 * T, "N", ("p_w_z_m", "T_N"))
     put("T_N*|v_h|^2", T * (state.v_b_mps[:, 0] ** 2 + state.v_b_mps[:, 1] ** 2), "N", ("T_N", "v_b_x_mps", "v_b_y_mps"))
@@ -186,9 +191,17 @@ def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
     return out
 
 
-def _literature(expr: str) -> str:
-    """The mechanism's name in the multirotor literature, where a term has an obvious one."""
-    rules = [
+def _literature(expr: str, channel: str = "force") -> str:
+    """The mechanism's name in the multirotor literature, where a term has an obvious one
+    (``channel``: where the term acts, force or torque)."""
+    torque_rules = [
+        (r"^(T_N\*)?v_b_[xy]_mps$", ("a moment growing with the horizontal velocity: the blade-flapping hub moment "
+                                     "(Mahony, Kumar & Corke 2012), or rotor drag acting above the centre of mass "
+                                     "(r × F); the two have the same form")),
+        (r"^(1|T_N|T_N\*T_N)$", ("a trim torque growing with thrust: centre-of-mass offset (r × thrust) in roll and "
+                                "pitch; in yaw, rotors whose torque-to-thrust ratios differ, or tilted motors")),
+    ]
+    rules = (torque_rules if channel == "torque" else []) + [
         (r"^T_N\*v_b_[xy]_mps$", ("rotor drag / blade flapping (Mahony, Kumar & Corke 2012; Faessler et al. 2018): "
                                  "in force a drag -kTv, in torque the flapping hub moment")),
         (r"^v_b_[xyz]_mps$", "linear airframe drag (or rotor drag at constant thrust)"),
@@ -198,7 +211,7 @@ def _literature(expr: str) -> str:
         (r"^(T_N\*)?v_b_z_mps$|^T_N\*v_b_z_mps$", "axial inflow: thrust changes with climb speed (momentum theory)"),
         (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$", "rotor inertia: reaction torque of accelerating rotors"),
         (r"^omega_b_[xyz]_radps\*Omega_net_radps$", "gyroscopic torque of the spinning rotors"),
-        (r"^d\((f_rotor_\d_N|T_N)\)/dt$", ("timing: a delay or lag between the logged command and the thrust "
+        (r"^d\((f_rotor_\d_N|T_N|tau_rotor_[xyz]_Nm)\)/dt$", ("timing: a delay or lag between the logged command and the thrust "
                                           "(f(t-Δ) ≈ f - Δ df/dt)")),
         (r"^f_rotor_\d_N$|^\(f_rotor_\d_N-f_rotor_\d_N\)$", "per-rotor thrust-map error (rotor imbalance)"),
         (r"^omega_b_([xyz])_radps$", "rotor / aerodynamic damping of the body rate"),
@@ -217,21 +230,22 @@ def _literature(expr: str) -> str:
 
 def library(vars_: dict[str, Variable]) -> list[Term]:
     """The candidate terms over the given variables (see the module docstring)."""
-    terms = [Term(name, v.sources, v.unit, v.channel, _literature(name)) for name, v in vars_.items()]
+    terms = [Term(name, v.sources, v.unit, v.channel) for name, v in vars_.items()]
     core = [c for c in CORE if c in vars_]
     for i, a in enumerate(core):
         for b in core[i:]:
+            if "vbat_V" in (a, b) and "T_N" not in (a, b):
+                continue  # a nearly constant voltage times x duplicates x; T vbat is the map's voltage error
             expr = f"{a}*{b}"
-            terms.append(Term(expr, tuple(dict.fromkeys((a, b))), _mul(vars_[a].unit, vars_[b].unit), "both",
-                              _literature(expr)))
+            terms.append(Term(expr, tuple(dict.fromkeys((a, b))), _mul(vars_[a].unit, vars_[b].unit)))
     for a in SIGNED_SQUARES:
         expr = f"{a}*|{a}|"
-        terms.append(Term(expr, (a,), _mul(vars_[a].unit, vars_[a].unit), "both", _literature(expr)))
+        terms.append(Term(expr, (a,), _mul(vars_[a].unit, vars_[a].unit)))
     if "Omega_net_radps" in vars_:
         for a in ("x", "y"):
             expr = f"omega_b_{a}_radps*Omega_net_radps"
             terms.append(Term(expr, (f"omega_b_{a}_radps", *vars_["Omega_net_radps"].sources),
-                              _mul(UNIT["rad/s"], UNIT["rad/s"]), "torque", _literature(expr)))
+                              _mul(UNIT["rad/s"], UNIT["rad/s"]), "torque"))
     return terms
 
 
@@ -546,7 +560,8 @@ def discover(
             kept.append(DiscoveredTerm(
                 target, t.expression, t.variables, float(beta[i]), float(std[i]), unit_text(coef_unit),
                 unit_text(t.unit), shares[i], counts.get(c, 0) / k_f, counts.get(c, 0), k_f,
-                _matches(G_train, cols, c, axis, fx_effects, spec.effects), t.literature,
+                _matches(G_train, cols, c, axis, fx_effects, spec.effects),
+                _literature(t.expression, "force" if axis < 3 else "torque"),
                 _collinear(G_train, c, [d for d in candidates if d != c], col_term)))
         axes.append(AxisResult(target, float(sum(shares)), False,
                                _modelled_side_note(G_train, cols, chosen, beta, axis, target)))

@@ -88,7 +88,10 @@ def frequency_table(freq: dict) -> pl.DataFrame:
         {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}", "residual_rms": r["residual_rms"][i],
          "share": r["residual_share"][i], "coherence": r["coherence"][i], "gain": r["gain"][i],
          "phase_deg": r["phase_deg"][i]}
-        for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])])
+        for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])]
+        + [{"channel": r["channel"], "band_hz": "mean per flight", "residual_rms": r["residual_mean_rms"],
+            "share": r["mean_share"], "coherence": float("nan"), "gain": float("nan"), "phase_deg": float("nan")}
+           for r in freq["channels"]])
 
 
 def discovery_table(disc: dict) -> pl.DataFrame:

@@ -7,8 +7,11 @@ Welch spectra (Hann windows of ``SEGMENT`` samples, half overlap) of the measure
 through the same filters) and the residual ``r = m - p`` are averaged over flights
 (weighted by their samples). Per band:
 
-* ``residual_rms``: ``sqrt(∫ S_rr df)`` over the band, the share of the residual's power
-  that lies there;
+* ``residual_rms``: ``sqrt(∫ S_rr df)`` over the band, and ``residual_share`` the share of
+  the residual's mean square that lies there. Each segment's mean is removed before the
+  spectra, so a constant offset per flight (a trim, a bias) is reported apart:
+  ``residual_mean_rms`` (RMS over flights of each flight's mean residual) and ``mean_share``;
+  band shares and mean share add up to about 1;
 * ``coherence``: ``|S_pm|² / (S_pp S_mm)``, averaged over the band's bins: 1 where the
   measurement is a linear, time-invariant function of the model, 0 where they are unrelated;
 * ``gain`` and ``phase_deg``: the transfer from modelled to measured,
@@ -39,7 +42,7 @@ CHANNELS = tuple([f"force_{a}" for a in XYZ] + [f"torque_{a}" for a in XYZ])
 def _spectra(meas: np.ndarray, model: np.ndarray, fs: float):
     """Frequencies and (n_freq, 6) auto/cross spectra of model p, measurement m and residual."""
     n = min(SEGMENT, len(meas))
-    kw = {"fs": fs, "nperseg": n, "axis": 0}
+    kw = {"fs": fs, "nperseg": n, "axis": 0, "detrend": "constant"}  # each segment's mean is reported apart
     f, s_pp = signal.welch(model, **kw)
     _, s_mm = signal.welch(meas, **kw)
     _, s_rr = signal.welch(meas - model, **kw)
@@ -56,6 +59,7 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
     grid = np.fft.rfftfreq(SEGMENT, 1.0 / fs)
     acc = {k: np.zeros((len(grid), 6), dtype=complex if k == "pm" else float) for k in ("pp", "mm", "rr", "pm")}
     weight = 0.0
+    mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
     for fd in flights:
         if fd.state.n < 2 * SEGMENT:
             continue  # too short to resolve the slow bands
@@ -64,17 +68,19 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
         _, *specs = _spectra(meas, meas - resid[fd.flight], fs)
         for key, s in zip(("pp", "mm", "rr", "pm"), specs):
             acc[key] += fd.state.n * s
+        mean_sq += fd.state.n * resid[fd.flight][fd.mask].mean(axis=0) ** 2
         weight += fd.state.n
     if weight == 0:
         return {"bands_hz": [list(b) for b in BANDS_HZ], "channels": [], "reading": ["flights too short for spectra"]}
     s = {k: v / weight for k, v in acc.items()}
+    mean_sq /= weight
     df = grid[1] - grid[0]
     coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
     rows = []
     for c, name in enumerate(CHANNELS):
         row = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
                "modelled_rms": [], "coherence": [], "gain": [], "phase_deg": []}
-        total = float(s["rr"][1:, c].sum())
+        total = float(s["rr"][1:, c].sum() * df + mean_sq[c])
         shares = []
         for lo, hi in BANDS_HZ:
             b = (grid >= lo) & (grid < hi) & (grid > 0)
@@ -85,11 +91,18 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
             row["coherence"].append(float(coh[b, c].mean()) if b.any() else float("nan"))
             row["gain"].append(float(np.abs(h)))
             row["phase_deg"].append(float(np.degrees(np.angle(h))))
-            shares.append(float(s["rr"][b, c].sum() / total) if total > 0 else 0.0)
+            shares.append(float(s["rr"][b, c].sum() * df / total) if total > 0 else 0.0)
         row["residual_share"] = shares
+        row["residual_mean_rms"] = float(np.sqrt(mean_sq[c]))
+        row["mean_share"] = float(mean_sq[c] / total) if total > 0 else 0.0
         rows.append(row)
     return {"bands_hz": [list(b) for b in BANDS_HZ], "sample_rate_hz": fs, "segment_samples": SEGMENT,
             "channels": rows, "reading": [reading(r) for r in rows]}
+
+
+def _mismatched(row: dict, i: int) -> bool:
+    """The transfer from model to measurement in band ``i`` is not ~1 (gain within 15 %, phase within 15°)."""
+    return abs(row["gain"][i] - 1) > 0.15 or abs(row["phase_deg"][i]) > 15
 
 
 def _band(i: int) -> str:
@@ -101,10 +114,24 @@ def reading(row: dict) -> str:
     """One sentence per channel: where its residual lies and what that band says."""
     shares = np.asarray(row["residual_share"])
     top = int(np.argmax(shares))
-    coherent = [i for i, c in enumerate(row["coherence"]) if c >= COHERENT and shares[i] >= 0.1]
+    coherent = [i for i, c in enumerate(row["coherence"]) if c >= COHERENT and shares[i] >= 0.1 and _mismatched(row, i)]
+    if row["mean_share"] >= shares[top]:
+        text = (f"{row['channel']}: {row['mean_share']:.0%} of the residual power is a constant offset per flight "
+                f"(RMS of the flights' means {row['residual_mean_rms']:.3g} {row['unit']}): a trim or bias that "
+                f"changes between flights (a centre of mass, a thrust map, a sensor bias); the largest band is "
+                f"{_band(top)} ({shares[top]:.0%})")
+        others = [i for i in coherent]
+        if others:
+            text += "; coherent but mismatched at " + ", ".join(
+                f"{_band(i)} ({shares[i]:.0%}: gain {row['gain'][i]:.2f}, {row['phase_deg'][i]:+.0f}°)" for i in others)
+        return text + "."
     text = f"{row['channel']}: {shares[top]:.0%} of the residual power is at {_band(top)}"
     c = row["coherence"][top]
-    if c >= COHERENT:
+    if c >= COHERENT and not _mismatched(row, top):
+        text += (f", where model and measurement are coherent ({c:.2f}) and agree (gain {row['gain'][top]:.2f}, "
+                 f"{row['phase_deg'][top]:+.0f}°): what is left there is the incoherent part (noise, or what the "
+                 "inputs do not carry)")
+    elif c >= COHERENT:
         text += (f", where model and measurement are coherent ({c:.2f}) but the measurement is "
                  f"{row['gain'][top]:.2f} × the model at {row['phase_deg'][top]:+.0f}°: the model's own signal, "
                  + ("late or early (timing: a lag or delay)" if abs(row["phase_deg"][top]) > 20 else "mis-scaled"))
