@@ -1,10 +1,10 @@
-# The two commands of the README: `make run` and `make test`.
+# The two commands of the README: `make run` and `make test` (`make test-fast` in the edit loop, `make lint`).
 PYTHON ?= python3
 DATA ?= data
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 
-.PHONY: install run test ui bench
+.PHONY: install run test test-fast lint ui bench
 
 install:
 	$(PYTHON) -m pip install --quiet --disable-pip-version-check torch==2.13.0
@@ -15,6 +15,14 @@ run: install
 
 test:
 	$(PYTHON) -m pytest -q
+
+# The edit-loop tier: everything not marked slow (see pyproject's pytest markers).
+test-fast:
+	$(PYTHON) -m pytest -q -m "not slow"
+
+lint:
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m mypy
 
 ui:
 	mkdir -p $(DAGSTER_HOME)

@@ -74,7 +74,7 @@ def baseline_decode(buf: bytes) -> dict:
 
     end = len(buf) - 4
     crc_ok = (zlib.crc32(buf[:end]) & 0xFFFFFFFF) == struct.unpack_from("<I", buf, end)[0]
-    rows = {eid: [] for eid in events}
+    rows: dict[int, list] = {eid: [] for eid in events}
     sizes = {eid: struct.calcsize(fmt) for eid, (_, _, fmt) in events.items()}
     while pos < end:
         (eid,) = struct.unpack_from("<H", buf, pos)

@@ -20,7 +20,8 @@ def main() -> None:
     veh = vehicle.load()
     for effects in ([], EFFECTS):
         t0 = time.perf_counter()
-        decoded = {f.flight_id: f.tables["fixedFrequency"] for f in map(flight.decode_flight, flight.discover_logs(folder))}
+        decoded = {f.flight_id: f.tables["fixedFrequency"]
+                   for f in map(flight.decode_flight, flight.discover_logs(folder))}
         holdout = ["jana02"] if "jana02" in decoded else []
         result = discovery.discover(decoded, model.spec_from(veh, effects), holdout)
         dt = time.perf_counter() - t0

@@ -15,12 +15,13 @@ import os
 import sys
 import time
 from dataclasses import replace
+from functools import partial
+from typing import Any
 
 import numpy as np
 from _common import best_of, logs_folder
 
-from quadcore import evaluation, flight, learning, model, vehicle
-from quadcore import features as feat
+from quadcore import evaluation, features as feat, flight, learning, model, vehicle
 
 HOLDOUT = "jana02"
 CANDIDATES = {
@@ -43,13 +44,15 @@ def main() -> None:
     kinds = feat.read_flight_kinds(feat.find_flights_csv(folder))
     train = sorted(f for f in res if f != HOLDOUT)
     tables = feat.feature_tables(res, [feat.FEATURE_SETS[s] for s in SETS])
-    print(f"flights: {len(res)} (train {len(train)}, held out {HOLDOUT}), rows: {sum(t.height for t in res.values()):,}; "
+    n_rows = sum(t.height for t in res.values())
+    print(f"flights: {len(res)} (train {len(train)}, held out {HOLDOUT}), rows: {n_rows:,}; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     cfg = learning.TrainConfig()
-    print(f"fitting rows: every {cfg.stride}th sample; XGBoost threads {cfg.threads}, torch threads {cfg.torch_threads}\n")
+    print(f"fitting rows: every {cfg.stride}th sample; XGBoost threads {cfg.threads}, "
+          f"torch threads {cfg.torch_threads}\n")
 
     print("selection by validation loss (standardised MSE on the validation flights):")
-    best = {}
+    best: dict[str, tuple] = {}
     for kind, specs in CANDIDATES.items():
         for spec in specs:
             for s in SETS:
@@ -63,14 +66,15 @@ def main() -> None:
     t = res[HOLDOUT]
     ok = feat.usable(t)
     y = feat.targets(t)[ok]
-    rows, verdicts = [], []
+    rows: list[dict[str, Any]] = []
+    verdicts: list[str] = []
     for kind, (m, spec, fs) in best.items():
         tabs = tables[fs.name]
-        t_train, m = best_of(lambda: learning.train(spec, fs, tabs, train, cfg, nominal.to_dict(), kinds))
+        t_train, m = best_of(partial(learning.train, spec, fs, tabs, train, cfg, nominal.to_dict(), kinds))
         extra = ""
         if kind == "xgboost":
-            t_train2, _ = best_of(lambda: learning.train(spec, fs, tabs, train, replace(cfg, threads=2),
-                                                         nominal.to_dict(), kinds))
+            t_train2, _ = best_of(partial(learning.train, spec, fs, tabs, train, replace(cfg, threads=2),
+                                          nominal.to_dict(), kinds))
             extra = f" on {cfg.threads} thread(s) (on 2 threads: {t_train2:.2f} s)"
         X = feat.matrix(tabs[HOLDOUT], fs)[ok]
         p, t_pred = learning.time_predict(m, X)
@@ -78,17 +82,20 @@ def main() -> None:
         lat_lib = learning.latency_us(m.predict_matrix, X[:1], 500)
         met = evaluation.metrics(y, p)
         a = evaluation.mae(met)
-        s = evaluation.STUDY[kind]
-        rows.append({"model": s["label"], **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", s["force_mae_N"])},
-                     "train [s]": s["train_s"], "predict held-out [s]": s["predict_s"], "µs/sample": None,
+        study = evaluation.STUDY[kind]
+        rows.append({"model": study["label"], **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", study["force_mae_N"])},
+                     "train [s]": study["train_s"], "predict held-out [s]": study["predict_s"], "µs/sample": None,
                      "µs/sample (library)": None})
-        rows.append({"model": f"ours: {kind} {spec.slug} ({fs.name})", **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", a[:3])},
-                     "train [s]": t_train, "predict held-out [s]": t_pred, "µs/sample": lat, "µs/sample (library)": lat_lib})
+        rows.append({"model": f"ours: {kind} {spec.slug} ({fs.name})",
+                     **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", a[:3])},
+                     "train [s]": t_train, "predict held-out [s]": t_pred,
+                     "µs/sample": lat, "µs/sample (library)": lat_lib})
         verdicts.append(f"{kind} trained in {t_train:.2f} s{extra}: target < {TARGETS[kind]:g} s "
                         f"{'MET' if t_train < TARGETS[kind] else 'NOT MET'}")
         if kind == "xgboost":
             verdicts.append(f"xgboost per-sample prediction {lat:.1f} us (compiled NumPy forest; XGBoost's own "
-                            f"inplace_predict on one row: {lat_lib:.0f} us): target < 100 us {'MET' if lat < 100 else 'NOT MET'}")
+                            f"inplace_predict on one row: {lat_lib:.0f} us): "
+                            f"target < 100 us {'MET' if lat < 100 else 'NOT MET'}")
         else:
             verdicts.append(f"mlp per-sample prediction {lat:.1f} us (torch, (1, k) tensor, no_grad)")
         verdicts.append(f"  {kind} torque MAE [mN m]: " + " / ".join(f"{v * 1e3:.3f}" for v in a[3:])

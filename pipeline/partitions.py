@@ -17,7 +17,8 @@ import dagster as dg
 # backfill_policy on an asset is "beta" in Dagster 1.13; it is what we want, so without the banner.
 warnings.filterwarnings("ignore", message="Parameter `backfill_policy`", category=dg.BetaWarning)
 
-flights = dg.DynamicPartitionsDefinition(name="flights")
+FLIGHTS_PARTITION = "flights"
+flights = dg.DynamicPartitionsDefinition(name=FLIGHTS_PARTITION)
 
 # Every flight of a run in one step (the UI's backfills and the main job launch one run per range).
 ONE_RUN = dg.BackfillPolicy.single_run()

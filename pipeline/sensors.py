@@ -6,7 +6,7 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipeline.partitions import flights
+from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore import flight, logformat, store
 
@@ -45,7 +45,7 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
     changed = {fid: fp for fid, fp in current.items() if seen.get(fid) != fp}
     if not changed:
         return dg.SkipReason(f"no new logs in {data_root.raw_path}")
-    known = set(context.instance.get_dynamic_partitions(flights.name))
+    known = set(context.instance.get_dynamic_partitions(FLIGHTS_PARTITION))
     runs, add, refused = [], [], {}
     for fid, fp in sorted(changed.items()):
         problem = header_problem(paths[fid])

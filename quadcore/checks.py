@@ -81,8 +81,8 @@ def has_flight_phase(df: pl.DataFrame, min_move_m: float = 0.05, min_height_m: f
     pwm_cols = [c for c in df.columns if c.startswith("pwm_")]
     if df.height == 0 or len(pos) < 3 or not pwm_cols:
         return False, "no position or PWM columns to judge", {}
-    move = max(float(df[c].max() - df[c].min()) for c in pos)
-    z_max = float(df["p_w_z_m"].max())
+    move = max(float(df.select(pl.col(c).max() - pl.col(c).min()).item()) for c in pos)
+    z_max = float(df.select(pl.col("p_w_z_m").max()).item())
     pwm_max = float(df.select(pwm_cols).max().max_horizontal()[0])
     ok = pwm_max >= min_pwm and (move >= min_move_m or z_max >= min_height_m)
     desc = (f"largest position range {move:.2f} m, highest z {z_max:.2f} m, highest PWM {pwm_max:.2f}"

@@ -25,8 +25,20 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore import flight as flightmod
-from quadcore import diagnosis, dynamics, effects, export, logformat, model, report, residuals, store, thrustfit, vehicle
+from quadcore import (
+    diagnosis,
+    dynamics,
+    effects,
+    export,
+    flight as flightmod,
+    logformat,
+    model,
+    report,
+    residuals,
+    store,
+    thrustfit,
+    vehicle,
+)
 
 MAIN_EVENT = "fixedFrequency"
 
@@ -85,8 +97,10 @@ def cmd_decode(args: argparse.Namespace) -> int:
     out = _output_folder(args.out)
     flights, quarantined = load_flights(args.paths, out)
     events = sorted({e for f in flights for e in f.tables})
-    rows = [[f.flight_id, *[str(f.provenance["rows"].get(e, 0)) for e in events], str(len(f.warnings))] for f in flights]
-    totals = ["TOTAL", *[str(sum(f.provenance["rows"].get(e, 0) for f in flights)) for e in events], str(sum(len(f.warnings) for f in flights))]
+    rows = [[f.flight_id, *[str(f.provenance["rows"].get(e, 0)) for e in events], str(len(f.warnings))]
+            for f in flights]
+    totals = ["TOTAL", *[str(sum(f.provenance["rows"].get(e, 0) for f in flights)) for e in events],
+              str(sum(len(f.warnings) for f in flights))]
     print()
     _print_table(rows + [totals], ["flight", *events, "warnings"])
     print(f"\n{len(flights)} flights decoded to {out.resolve() / 'decoded'}")
@@ -107,8 +121,9 @@ def _vehicle(args: argparse.Namespace):
         raise UserError(str(exc)) from None
 
 
-def _main_tables(flights: list[flightmod.Flight]) -> dict[str, "pl.DataFrame"]:
-    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables and f.tables[MAIN_EVENT].height}
+def _main_tables(flights: list[flightmod.Flight]) -> dict[str, pl.DataFrame]:
+    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights
+              if MAIN_EVENT in f.tables and f.tables[MAIN_EVENT].height}
     if not tables:
         raise UserError(f"no readable flight logs (none has {MAIN_EVENT!r} records)")
     return tables
@@ -138,11 +153,11 @@ def cmd_residuals(args: argparse.Namespace) -> int:
     return 0
 
 
-def _residual_row(fid: str, table: "pl.DataFrame") -> list[str]:
+def _residual_row(fid: str, table: pl.DataFrame) -> list[str]:
     s = residuals.summary(table)
     ok = table.filter(~pl.col("near_gap"))
     corr = [np.corrcoef(ok[f"f_res_b_{a}_N"], ok[f"v_b_{a}_mps"])[0, 1] for a in "xy"]
-    weight = float(ok["f_model_b_z_N"].mean() or 1.0)
+    weight = float(ok.select(pl.col("f_model_b_z_N").mean()).item() or 1.0)
     return [fid, str(table.height), *(f"{s[f'force_rmse_{a}_N']:.4f}" for a in "xyz"), f"{s['force_mean_z_N']:+.4f}",
             f"{s['force_mean_z_N'] / weight:+.1%}", *(f"{s[f'torque_rmse_{a}_Nm'] * 1e3:.3f}" for a in "xyz"),
             *(f"{c:+.2f}" for c in corr)]
@@ -336,8 +351,9 @@ def cmd_discover(args: argparse.Namespace) -> int:
     for t in result.terms:
         if t.matches_effects or t.collinear_with:
             print(f"  {t.target} {t.expression}: "
-                  + "; ".join(filter(None, [f"matches {', '.join(t.matches_effects)}" if t.matches_effects else "",
-                                            f"collinear with {', '.join(t.collinear_with[:4])}" if t.collinear_with else ""])))
+                  + "; ".join(filter(None, [
+                      f"matches {', '.join(t.matches_effects)}" if t.matches_effects else "",
+                      f"collinear with {', '.join(t.collinear_with[:4])}" if t.collinear_with else ""])))
     print(f"\nwrote {out}")
     if args.write_effect:
         try:
@@ -350,8 +366,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
-    from quadcore import evaluation, fitting, learning
-    from quadcore import features as feat
+    from quadcore import evaluation, features as feat, fitting, learning
 
     data, names = _data_and_effects(args)
     veh = _vehicle(args)
@@ -363,11 +378,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         sets = feat.parse(args.feature_sets)
         if not kinds_of_model:
             raise learning.LearningError("--models names no model kind")
-        specs = {k: learning.parse_spec(f"{k}:{getattr(args, k)}" if getattr(args, k, None) else k) for k in kinds_of_model}
+        specs = {k: learning.parse_spec(f"{k}:{getattr(args, k)}" if getattr(args, k, None) else k)
+                 for k in kinds_of_model}
     except (effects.UnknownEffectError, model.ModelFileError, feat.FeatureError, learning.LearningError) as exc:
         raise UserError(str(exc)) from None
     csv_path = Path(args.flights_csv) if args.flights_csv else feat.find_flights_csv(data)
-    if args.flights_csv and not csv_path.is_file():
+    if args.flights_csv and not (csv_path and csv_path.is_file()):
         raise UserError(f"flights CSV not found: {csv_path}")
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
 
@@ -401,7 +417,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                              compare=not args.no_compare, specs=specs)
     except learning.LearningError as exc:
         raise UserError(str(exc)) from None
-    log(f"training {len(plan.experiments)} models on {len(train)} flights, holdout {holdout} -> {out.resolve() / 'learned'}")
+    log(f"training {len(plan.experiments)} models on {len(train)} flights, holdout {holdout} "
+        f"-> {out.resolve() / 'learned'}")
     physics_info = {**physics.to_dict(), "trained_on": train}
     config = learning.TrainConfig(stride=args.stride, seed=args.seed, threads=args.threads)
     try:
@@ -423,7 +440,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="quadcore", description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
+    parser = argparse.ArgumentParser(prog="quadcore",
+                                     description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
     sub = parser.add_subparsers(dest="verb", required=True)
     p = sub.add_parser("decode", help="decode uSD logs into SI Parquet")
     p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
@@ -432,7 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     def vehicle_args(p):
         p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
-        p.add_argument("--thrust-map", default=None, choices=vehicle.THRUST_MAP_KINDS, help="override the file's thrust map")
+        p.add_argument("--thrust-map", default=None, choices=vehicle.THRUST_MAP_KINDS,
+                       help="override the file's thrust map")
 
     p = sub.add_parser("residuals", help="residual force and torque statistics per flight")
     p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
@@ -507,13 +526,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="feature sets (default: all built-in; define one as name=col1+col2+...)")
     p.add_argument("--effects", default="", metavar="e1,e2,...",
                    help="effects in the physics model, fitted on the training flights (default: none)")
-    p.add_argument("--out", default="data", metavar="DIR", help="data root for learned/, reports/, history/ (default: data)")
+    p.add_argument("--out", default="data", metavar="DIR",
+                   help="data root for learned/, reports/, history/ (default: data)")
     p.add_argument("--flights-csv", default=None, metavar="FILE",
                    help="flight kinds (flight,kind; default: flights.csv beside or above DATA)")
     p.add_argument("--no-compare", action="store_true", help="skip the training-size and complexity comparisons")
     p.add_argument("--stride", type=int, default=5, metavar="N", help="fit on every N-th sample (default 5)")
     p.add_argument("--seed", type=int, default=0, metavar="N")
-    p.add_argument("--threads", type=int, default=1, metavar="N", help="XGBoost threads (default 1, measured faster here)")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="XGBoost threads (default 1, measured faster here)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_train)

@@ -74,13 +74,16 @@
 
 from __future__ import annotations
 
+import functools
+import operator
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import polars as pl
 
-from quadcore import effects as effectlib
-from quadcore import fitting, rotations, signals, spectrum
+from quadcore import effects as effectlib, fitting, rotations, signals, spectrum
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
@@ -195,7 +198,7 @@ def flight_table(long: pl.DataFrame) -> pl.DataFrame:
 
 def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> pl.DataFrame:
     """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS."""
-    force_sq = sum(pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ)
+    force_sq = functools.reduce(operator.add, [pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ])
     seg = (
         long.with_columns((pl.col("t_s") // window_s).alias("segment"), force_sq.alias("f2"))
         .group_by("flight", "segment")
@@ -212,6 +215,11 @@ def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> 
         .drop("segment")
     )
     return seg
+
+
+def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
+    """Element-wise sum of per-flight arrays (the same additions, in the same order, as ``sum``)."""
+    return functools.reduce(np.add, parts)
 
 
 def _ss(resid: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -264,7 +272,8 @@ def diagnose(
         mode = "holdout"
     else:
         train_all = ids
-        splits = [([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)] if len(ids) > 1 else [(ids, ids)]
+        splits = ([([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)]
+                  if len(ids) > 1 else [(ids, ids)])
         mode = "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
 
     eval_resid: dict[str, np.ndarray] = {}
@@ -303,7 +312,7 @@ def diagnose(
         fold_params = {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
 
     eval_ids = sorted(eval_resid)
-    before = sum(_ss(eval_resid[f], fds[f].mask) for f in eval_ids)
+    before = _total(_ss(eval_resid[f], fds[f].mask) for f in eval_ids)
     n_eval = sum(int(fds[f].mask.sum()) for f in eval_ids)
     baseline = {
         "force_rmse_N": [float(np.sqrt(before[j] / n_eval)) for j in range(3)],
@@ -312,17 +321,18 @@ def diagnose(
 
     # The sensor-noise floor: a channel whose residual is within NOISE_LEVEL of it holds no
     # evidence FOR an effect (only against one that would add error there).
-    noise_ss = sum(fds[f].noise ** 2 * int(fds[f].mask.sum()) for f in eval_ids)
+    noise_ss = _total(fds[f].noise ** 2 * int(fds[f].mask.sum()) for f in eval_ids)
     at_noise = {ch: bool(before[sl].sum() <= NOISE_LEVEL**2 * noise_ss[sl].sum()) for ch, sl in TARGET_CHANNELS.items()}
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     w = fitting.channel_weights([eval_resid[f][fds[f].mask] for f in eval_ids])
     for c in cands:
-        after = sum(_ss(eval_resid[f] - cand_pred[c.name][f], fds[f].mask) for f in eval_ids)
+        after = _total(_ss(eval_resid[f] - cand_pred[c.name][f], fds[f].mask) for f in eval_ids)
         raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
         ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
         target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
-        fit_c = fold_fits[c.name] if reuse else fitting.fit_effects([c], tr, [resid_train[f] for f in train_all], vehicle)
+        fit_c = (fold_fits[c.name] if reuse
+                 else fitting.fit_effects([c], tr, [resid_train[f] for f in train_all], vehicle))
         params = fit_c.params[c.name]
         spread = _jackknife_std(fold_params[c.name])
         # the larger of the sample-based error and the spread between groups of flights: flights
@@ -331,10 +341,12 @@ def diagnose(
         bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
         outside = [k for k, v in params.items() if not bounds[k][0] <= v <= bounds[k][1]]
         at_bound = [k for k, v in params.items()
-                    if k not in outside and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
+                    if k not in outside
+                    and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
                     and v != c.defaults()[k]]
         sigma = _significance(c, params, std)
-        notes = ([f"fitted {', '.join(outside)} outside the physical bounds: not a physical explanation"] if outside else [])
+        notes = ([f"fitted {', '.join(outside)} outside the physical bounds: not a physical explanation"]
+                 if outside else [])
         notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
         if sigma < MIN_SIGMA:
             notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
@@ -620,6 +632,7 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None) -> str:
                              + ")" for r in independent[:3]) + ".")
     if overlapping:
         text += (f" Explaining the same residual as {top['effect']} (alternatives, nothing left for them once it is "
-                 "in the model): " + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
+                 "in the model): "
+                 + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
                  + ".")
     return text

@@ -67,8 +67,7 @@ import numpy as np
 import polars as pl
 from sklearn.linear_model import orthogonal_mp_gram
 
-from quadcore import dynamics, fitting, signals, store
-from quadcore import effects as effectlib
+from quadcore import dynamics, effects as effectlib, fitting, signals, store
 from quadcore.dynamics import XYZ, FlightState
 from quadcore.effects.base import Effect, Parameter
 from quadcore.model import ModelSpec
@@ -175,7 +174,8 @@ def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
         out[f"d(tau_rotor_{a}_Nm)/dt"] = Variable(tau_dot[:, j], _mul(UNIT["N m"], (0, 0, -1, 0, 0)), rotors, "torque")
     h = np.maximum(state.p_w_m[:, 2], MIN_HEIGHT_M)
     put("(R/4h)^2*T_N", (vehicle.rotor_radius_m / (4 * h)) ** 2 * T, "N", ("p_w_z_m", "T_N"))
-    put("T_N*|v_h|^2", T * (state.v_b_mps[:, 0] ** 2 + state.v_b_mps[:, 1] ** 2), "N", ("T_N", "v_b_x_mps", "v_b_y_mps"))
+    put("T_N*|v_h|^2", T * (state.v_b_mps[:, 0] ** 2 + state.v_b_mps[:, 1] ** 2), "N",
+        ("T_N", "v_b_x_mps", "v_b_y_mps"))
     out["T_N*|v_h|^2"] = Variable(out["T_N*|v_h|^2"].values, _mul(UNIT["N"], _mul(UNIT["m/s"], UNIT["m/s"])),
                                    out["T_N*|v_h|^2"].sources)
     if state.motor_radps is not None:
@@ -209,7 +209,8 @@ def _literature(expr: str, channel: str = "force") -> str:
         (r"^\(R/4h\)\^2\*T_N$", "ground effect (Cheeseman & Bennett 1955)"),
         (r"^T_N\*\|v_h\|\^2$", "translational lift (momentum theory)"),
         (r"^(T_N\*)?v_b_z_mps$|^T_N\*v_b_z_mps$", "axial inflow: thrust changes with climb speed (momentum theory)"),
-        (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$", "rotor inertia: reaction torque of accelerating rotors"),
+        (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$",
+         "rotor inertia: reaction torque of accelerating rotors"),
         (r"^omega_b_[xyz]_radps\*Omega_net_radps$", "gyroscopic torque of the spinning rotors"),
         (r"^d\((f_rotor_\d_N|T_N|tau_rotor_[xyz]_Nm)\)/dt$", ("timing: a delay or lag between the logged command and the thrust "
                                           "(f(t-Δ) ≈ f - Δ df/dt)")),
@@ -414,7 +415,8 @@ def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_e
     for e in fx_effects:
         try:
             basis = [fitting.smoothed_wrench(f, t, s.t_s)[rows] for f, t in _effect_basis(e, s, vehicle)]
-        except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):  # a user's effect failing here: not matched
+        # a user's effect failing here: not matched
+        except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):
             basis = [np.zeros((len(rows), 6)) for _ in e.parameters]
         blocks += [np.stack([b[:, axis] for b in basis], axis=1) for axis in range(6)]
     Z = np.concatenate(blocks, axis=1)
@@ -540,8 +542,9 @@ def discover(
         y = cols.target0 + axis
         rms = np.sqrt(G_train[y, y] / _rows(G_train))
         if rms < NOISE_LEVEL * noise[axis]:
-            axes.append(AxisResult(target, 0.0, True, ((f"residual RMS {rms:.3g} within {NOISE_LEVEL:g}× the "
-                                                        f"sensor-noise floor {noise[axis]:.3g}: nothing to discover"),)))
+            why = (f"residual RMS {rms:.3g} within {NOISE_LEVEL:g}× the "
+                   f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
+            axes.append(AxisResult(target, 0.0, True, (why,)))
             continue
         candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
                       if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
@@ -706,7 +709,7 @@ class DiscoveredEffect(Effect):
         self.doc = doc
         self._terms = [(TARGETS.index(t), e) for t, e, *_ in terms]
         channels = {"force" if t.startswith("f_") else "torque" for t, *_ in terms}
-        self.target = channels.pop() if len(channels) == 1 else "both"
+        self.target = "both" if len(channels) > 1 else "force" if channels == {"force"} else "torque"
         self.parameters = tuple(Parameter(p, u, 0.0, -b, b, f"{t} per unit of {e}") for t, e, p, u, b in terms)
 
     def basis(self, state, vehicle):
@@ -732,7 +735,8 @@ def _slug(text: str) -> str:
 
 
 def parameter_name(target: str, expression: str, unit: str) -> str:
-    """``tau_res_b_x_Nm``, ``T_N*v_b_y_mps``, ``s`` -> ``tau_x__T_N_times_v_b_y_mps__s`` (``s^2/m^2`` -> ``s2_per_m2``)."""
+    """``tau_res_b_x_Nm``, ``T_N*v_b_y_mps``, ``s`` -> ``tau_x__T_N_times_v_b_y_mps__s``
+    (``s^2/m^2`` -> ``s2_per_m2``)."""
     axis = target.replace("_res_b_", "_").removesuffix("_Nm").removesuffix("_N")
     body = (expression.replace("*|", "_times_abs_").replace("*", "_times_").replace("(R/4h)^2", "ground_R_over_4h_sq")
             .replace("|v_h|^2", "vh_sq").replace("d(", "d_").replace(")/dt", "_dt").replace("-", "_minus_"))

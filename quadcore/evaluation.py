@@ -48,6 +48,7 @@ import base64
 import html
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -56,13 +57,21 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore import features as feat  # noqa: E402
-from quadcore import diagnosis, dynamics, history, learning, plots, residuals, store  # noqa: E402
+from quadcore import (  # noqa: E402
+    diagnosis,
+    dynamics,
+    features as feat,  # noqa: E402
+    history,
+    learning,
+    plots,
+    residuals,
+    store,
+)
 from quadcore.dynamics import XYZ  # noqa: E402
 from quadcore.features import TARGETS  # noqa: E402
 from quadcore.learning import PRED_COLUMNS  # noqa: E402
 
-STUDY = {
+STUDY: dict[str, dict[str, Any]] = {
     "xgboost": {"label": "study: best tree (XGBoost)", "force_mae_N": (0.021, 0.037, 0.011), "train_s": 41.9,
                 "predict_s": 0.03},
     "mlp": {"label": "study: best MLP (PyTorch)", "force_mae_N": (0.022, 0.039, 0.077), "train_s": 66.9,
@@ -285,7 +294,8 @@ def _run_row(r: dict) -> dict:
 def _fmt_row(label: str, features: str, train: str, m: dict, extra: dict | None = None) -> dict:
     a = mae(m)
     row = {"model": label, "features": features, "trained on": train,
-           **{f"{ax} MAE [{'N' if i < 3 else 'mN m'}]": (v if i < 3 else v * 1e3) for i, (ax, v) in enumerate(zip(AXES, a))},
+           **{f"{ax} MAE [{'N' if i < 3 else 'mN m'}]": (v if i < 3 else v * 1e3)
+              for i, (ax, v) in enumerate(zip(AXES, a))},
            **{f"{ax} R²": v for ax, v in zip(AXES, r2(m))}}
     row.update(extra or {"train [s]": None, "predict [s]": None, "µs/sample": None, "val loss": None})
     return row
@@ -320,8 +330,10 @@ def headline_table(best: dict[str, dict], base: dict) -> list[dict]:
     rows = []
     for k in ("xgboost", "mlp"):
         s = STUDY[k]
-        rows.append({"model": s["label"], "features": "(study)", **{f"F{a} MAE [N]": v for a, v in zip(XYZ, s["force_mae_N"])},
-                     **{f"τ{a} MAE [mN m]": None for a in XYZ}, "train [s]": s["train_s"], "predict held-out [s]": s["predict_s"],
+        rows.append({"model": s["label"], "features": "(study)",
+                     **{f"F{a} MAE [N]": v for a, v in zip(XYZ, s["force_mae_N"])},
+                     **{f"τ{a} MAE [mN m]": None for a in XYZ},
+                     "train [s]": s["train_s"], "predict held-out [s]": s["predict_s"],
                      "µs/sample": None, "µs/sample (library call)": None})
         if k in best:
             r = best[k]
@@ -334,7 +346,8 @@ def headline_table(best: dict[str, dict], base: dict) -> list[dict]:
     for b in ("physics-only", "training mean"):
         if b in base:
             a = mae(base[b])
-            rows.append({"model": f"ours: {b} baseline", "features": "-", **{f"F{ax} MAE [N]": v for ax, v in zip(XYZ, a[:3])},
+            rows.append({"model": f"ours: {b} baseline", "features": "-",
+                         **{f"F{ax} MAE [N]": v for ax, v in zip(XYZ, a[:3])},
                          **{f"τ{ax} MAE [mN m]": v * 1e3 for ax, v in zip(XYZ, a[3:])}, "train [s]": None,
                          "predict held-out [s]": None, "µs/sample": None, "µs/sample (library call)": None})
     return rows
@@ -470,7 +483,8 @@ def timeseries_plot(report: dict, out_dir: Path, max_points: int = 4000) -> byte
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("t [s]")
     axes[-1, 1].set_xlabel("t [s]")
-    fig.suptitle(f"{report['holdout']} (held out): residual after {report['setup']['physics_model']} vs learned prediction")
+    fig.suptitle(f"{report['holdout']} (held out): residual after {report['setup']['physics_model']} "
+                 "vs learned prediction")
     return plots._png(fig)
 
 
@@ -507,8 +521,9 @@ def regime_table(report: dict, out_dir: Path, residual_tables: dict[str, pl.Data
     on the held-out flight."""
     holdout = report["holdout"]
     table = residual_tables[holdout]
-    base = baseline_predictions(residual_tables, report_run(report, next(iter(report["best"].values())))["train_flights"]
-                                if report["best"] else [f for f in residual_tables if f != holdout], [holdout], vehicle)
+    train = (report_run(report, next(iter(report["best"].values())))["train_flights"] if report["best"]
+             else [f for f in residual_tables if f != holdout])
+    base = baseline_predictions(residual_tables, train, [holdout], vehicle)
     models = {"physics-only": base["physics-only"], "training mean": base["training mean"]}
     models.update({f"{k} ({report_run(report, n)['feature_set']})": p for (k, n), p in
                    zip(report["best"].items(), _best_preds(report, out_dir).values())})
@@ -597,7 +612,8 @@ def importance_plot(imp: dict[str, dict]) -> bytes:
         names = sorted(vals, key=vals.get)
         ax.barh(np.arange(len(names)), [vals[n] for n in names])
         ax.set_yticks(np.arange(len(names)), names, fontsize=7)
-        what_label = "permutation (held-out Δ MSE, std. units)" if what == "permutation" else "XGBoost total gain (share)"
+        what_label = ("permutation (held-out Δ MSE, std. units)" if what == "permutation"
+                      else "XGBoost total gain (share)")
         ax.set_title(f"{k} ({fs}): {what_label}", fontsize=8)
         ax.grid(alpha=0.3, axis="x")
     return plots._png(fig)
@@ -615,7 +631,8 @@ def comparison_plot(report: dict) -> bytes:
     fig, axes = plt.subplots(1, 2, figsize=(13, 0.28 * len(rows) + 1.8), layout="constrained")
     for ax, sl, scale, unit in ((axes[0], slice(0, 3), 1.0, "N"), (axes[1], slice(3, 6), 1e3, "mN m")):
         vals = [np.mean(mae(r["metrics"])[sl]) * scale for r in rows]
-        ax.barh(np.arange(len(rows)), vals, color=["tab:blue" if r["kind"] == "xgboost" else "tab:orange" for r in rows])
+        colours = ["tab:blue" if r["kind"] == "xgboost" else "tab:orange" for r in rows]
+        ax.barh(np.arange(len(rows)), vals, color=colours)
         if base:
             ax.axvline(np.mean(mae(base)[sl]) * scale, color="k", ls="--", lw=1, label="physics-only")
             ax.legend(fontsize=7)
@@ -743,7 +760,8 @@ def to_html(secs, title: str = "Learned residual models") -> str:
                            + "</tr>" for row in content.iter_rows())
             parts.append(f"<table><tr>{head}</tr>{body}</table>")
         else:
-            parts.append(f"<img alt='{html.escape(t)}' src='data:image/png;base64,{base64.b64encode(content).decode()}'>")
+            b64 = base64.b64encode(content).decode()
+            parts.append(f"<img alt='{html.escape(t)}' src='data:image/png;base64,{b64}'>")
     parts.append("</body></html>")
     return "\n".join(parts)
 

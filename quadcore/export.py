@@ -26,6 +26,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -93,7 +94,7 @@ def _file_protos(descriptor) -> list[descriptor_pb2.FileDescriptorProto]:
     return out
 
 
-def _build_classes() -> tuple[dict[str, type], dict[str, bytes]]:
+def _build_classes() -> tuple[dict[str, Any], dict[str, bytes]]:
     """Message classes and schema records (serialized ``FileDescriptorSet``) by full name."""
     pool = descriptor_pool.DescriptorPool()
     for proto in [*_file_protos(Vector3.DESCRIPTOR), *_file_protos(Timestamp.DESCRIPTOR), _quadcore_file()]:
@@ -101,7 +102,7 @@ def _build_classes() -> tuple[dict[str, type], dict[str, bytes]]:
             pool.Add(proto)
         except TypeError:  # already added (Timestamp is a dependency of several files)
             pass
-    classes = {"foxglove.FrameTransform": FrameTransform, "foxglove.PoseInFrame": PoseInFrame}
+    classes: dict[str, Any] = {"foxglove.FrameTransform": FrameTransform, "foxglove.PoseInFrame": PoseInFrame}
     for name in QUADCORE_MESSAGES:
         classes[f"quadcore.{name}"] = message_factory.GetMessageClass(pool.FindMessageTypeByName(f"quadcore.{name}"))
     schemas = {name: descriptor_pb2.FileDescriptorSet(file=_file_protos(cls.DESCRIPTOR)).SerializeToString()
@@ -183,7 +184,7 @@ def topic_values(table: pl.DataFrame, stamp: dict) -> dict[str, dict]:
     motors = {"pwm": _cols(table, pwm), "thrust_N": _cols(table, [f"f_rotor_{i}_N" for i in rotors])}
     if all(c in table.columns for c in speed):
         motors["speed_radps"] = _cols(table, speed)
-    out = {
+    out: dict[str, dict] = {
         "/tf": {"timestamp": stamp, "parent_frame_id": "world", "child_frame_id": "body", "translation": p,
                 "rotation": q},
         "/pose": {"timestamp": stamp, "frame_id": "world", "pose": {"position": p, "orientation": q}},
@@ -198,7 +199,8 @@ def topic_values(table: pl.DataFrame, stamp: dict) -> dict[str, dict]:
     return out
 
 
-def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int, metadata: dict[str, str] | None = None) -> dict[str, int]:
+def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int,
+               metadata: dict[str, str] | None = None) -> dict[str, int]:
     """Write a residual table as MCAP (protobuf messages, zstd chunks, written by the Foxglove
     SDK's MCAP writer); returns messages per topic. Log time of a sample = ``start_ns`` + its ``t_s``."""
     import foxglove

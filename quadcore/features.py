@@ -87,7 +87,7 @@ class FeatureSet:
                 "causal": self.causal, "note": self.note}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FeatureSet":
+    def from_dict(cls, d: dict) -> FeatureSet:
         return cls(d["name"], tuple(d["columns"]), d.get("description", ""), bool(d.get("causal", True)),
                    d.get("note", ""))
 
@@ -222,7 +222,7 @@ class Scaler:
     rows: int = 0
 
     @classmethod
-    def fit(cls, X: np.ndarray, names: list[str], fitted_on: list[str] | None = None) -> "Scaler":
+    def fit(cls, X: np.ndarray, names: list[str], fitted_on: list[str] | None = None) -> Scaler:
         X = np.asarray(X, dtype=np.float64)
         if X.shape[0] == 0:
             raise FeatureError("cannot fit a scaler on zero rows")
@@ -243,7 +243,7 @@ class Scaler:
                 "fitted_on": self.fitted_on, "rows": self.rows}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Scaler":
+    def from_dict(cls, d: dict) -> Scaler:
         return cls(list(d["names"]), np.asarray(d["mean"], float), np.asarray(d["std"], float),
                    list(d.get("fitted_on", [])), int(d.get("rows", 0)))
 
@@ -340,7 +340,8 @@ def find_flights_csv(*folders: str | Path | None) -> Path | None:
     return None
 
 
-def feature_tables(residual_tables: dict[str, pl.DataFrame], sets: list[FeatureSet]) -> dict[str, dict[str, pl.DataFrame]]:
+def feature_tables(residual_tables: dict[str, pl.DataFrame],
+                   sets: list[FeatureSet]) -> dict[str, dict[str, pl.DataFrame]]:
     """{set name: {flight: feature table}} for every set and flight (in memory)."""
     return {fs.name: {fid: feature_table(t, fs) for fid, t in residual_tables.items()} for fs in sets}
 

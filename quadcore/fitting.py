@@ -366,6 +366,8 @@ def fit_model(spec, decoded: dict, train: list[str]):
 
     fds = [flight_data(f, decoded[f], spec.vehicle) for f in train]
     effect_list = [get(n) for n in spec.effects]
-    fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed) if effect_list else None
+    if not effect_list:
+        return PhysicsModel(spec.vehicle, [])
+    fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed)
     terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
     return PhysicsModel(spec.vehicle, terms)

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
+from datetime import UTC
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -23,7 +25,7 @@ class Flight:
     flight_id: str
     tables: dict[str, pl.DataFrame]
     columns: dict[str, dict[str, dict[str, str]]]
-    provenance: dict[str, object] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
 
     @property
     def warnings(self) -> list[str]:
@@ -93,7 +95,8 @@ def settle_start_time(fl: Flight, recorded: dict | None, override_ns: int | None
     if override_ns is not None:
         fl.provenance.update(start_ns=int(override_ns), start_source="given by the user")
     elif recorded and recorded.get("source_sha256") == fl.provenance.get("source_sha256") and "start_ns" in recorded:
-        fl.provenance.update(start_ns=int(recorded["start_ns"]), start_source=recorded.get("start_source", START_FROM_MTIME))
+        fl.provenance.update(start_ns=int(recorded["start_ns"]),
+                             start_source=recorded.get("start_source", START_FROM_MTIME))
 
 
 def read_flight_starts(path: str | Path | None) -> dict[str, int]:
@@ -118,14 +121,14 @@ def read_flight_starts(path: str | Path | None) -> dict[str, int]:
 
 def parse_start(text: str) -> int:
     """An ISO 8601 time (``2024-05-01T12:00:00Z``; no zone means UTC) as ns since the Unix epoch."""
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     try:
         when = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
     except ValueError:
         raise ValueError(f"not an ISO 8601 time: {text!r} (e.g. 2024-05-01T12:00:00Z)") from None
     if when.tzinfo is None:
-        when = when.replace(tzinfo=timezone.utc)
+        when = when.replace(tzinfo=UTC)
     return int(when.timestamp()) * 1_000_000_000 + when.microsecond * 1000
 
 

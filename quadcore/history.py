@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import re
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import polars as pl
@@ -41,7 +41,7 @@ def record(
     eval_flights: list[str] | None = None,
 ) -> Path:
     """Append one evaluation (a new file); returns its path."""
-    now = datetime.now(timezone.utc)
+    now = datetime.now(UTC)
     row = {
         "evaluated_at": [now],
         "source": [source],

@@ -58,15 +58,14 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import polars as pl
 
-from quadcore import features as feat
-from quadcore import store
+from quadcore import features as feat, store
 from quadcore.features import TARGETS, FeatureSet, Scaler
 
 FORMAT = "quadcore-learned/1"
@@ -127,7 +126,7 @@ class ModelSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ModelSpec":
+    def from_dict(cls, d: dict) -> ModelSpec:
         d = dict(d)
         d["hidden"] = tuple(d.get("hidden", ()))
         return cls(**d)

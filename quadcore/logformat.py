@@ -51,7 +51,7 @@ from quadcore import names as namesmod
 
 MAGIC = 0xBC
 CRC_SIZE = 4
-TIMESTAMP_DTYPE = {1: np.dtype("<u4"), 2: np.dtype("<u8")}
+TIMESTAMP_DTYPE: dict[int, np.dtype] = {1: np.dtype("<u4"), 2: np.dtype("<u8")}
 TIMESTAMP_TO_US = {1: 1000, 2: 1}
 # Limits of the header: generous for real firmware (2 event types, 25 variables, names under 40
 # characters), and they make a crafted header fail fast instead of costing time and folders.
@@ -406,10 +406,12 @@ def decode_bytes(buf: bytes) -> DecodedLog:
         else:
             records = np.empty(0, dtype)
         # the variables only: a view of the same records that skips id and timestamp
+        fields = dtype.fields
+        assert fields is not None  # a record dtype always has fields
         tables[et.name] = records.view(np.dtype({
             "names": list(et.variables),
-            "formats": [dtype.fields[v][0] for v in et.variables],
-            "offsets": [dtype.fields[v][1] for v in et.variables],
+            "formats": [fields[v][0] for v in et.variables],
+            "offsets": [fields[v][1] for v in et.variables],
             "itemsize": size,
         }))
         timestamps[et.name] = records["timestamp"].astype(np.int64) * TIMESTAMP_TO_US[version]

@@ -91,7 +91,7 @@ class PhysicsModel:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, vehicle: Vehicle) -> "PhysicsModel":
+    def from_dict(cls, d: dict, vehicle: Vehicle) -> PhysicsModel:
         terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False))
                  for e in d.get("effects", [])]
         return cls(vehicle, terms)

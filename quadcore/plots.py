@@ -13,8 +13,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.ticker import NullLocator  # noqa: E402
 import polars as pl  # noqa: E402
+from matplotlib.ticker import NullLocator  # noqa: E402
 
 from quadcore.dynamics import XYZ  # noqa: E402
 

@@ -123,7 +123,7 @@ def discovery_plot(disc: dict) -> bytes:
 def discovery_sections(disc: dict) -> list[tuple[str, str, object]]:
     """The discovery's part of the diagnosis report."""
     notes = [f"{a['target']}: {n}" for a in disc["axes"] for n in a["notes"]]
-    out = [("Terms the library lacks (quadcore discover)", "text",
+    out: list[tuple[str, str, object]] = [("Terms the library lacks (quadcore discover)", "text",
             f"On top of {'+'.join(['nominal', *disc['effects_in_model']])}, {disc['evaluation']['mode']}: "
             + ("; ".join(t["formula"] for t in disc["terms"]) if disc["terms"] else "no term kept") + "."
             + (" Notes: " + " ".join(notes) if notes else ""))]
@@ -157,7 +157,7 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     """(title, kind, content) with kind in text / table / image."""
     b = d["baseline"]
     ev = d["evaluation"]
-    out: list[tuple[str, str, object]] = [
+    out: list[tuple[str, str, object] | None] = [
         ("Verdict", "text", d["verdict"]),
         ("Model", "text", f"{d['model']['label']} on vehicle {d['model']['vehicle']} "
                           f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
@@ -166,7 +166,8 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
             "quantity": ["force RMSE [N]", "torque RMSE [N m]"]
             + (["force noise floor [N]", "torque noise floor [N m]"] if "noise_floor" in d else []),
             **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i]]
-               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i]] if "noise_floor" in d else [])
+               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i]]
+                  if "noise_floor" in d else [])
                for i, a in enumerate("xyz")},
         })),
     ]
@@ -178,7 +179,8 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     cands = pl.DataFrame([{
         "effect": r["effect"], "target": r["target"], "explained": r["explained_variance"],
         "force": r["explained_variance_force"], "torque": r["explained_variance_torque"],
-        "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}" for k, v in r["parameters"].items()),
+        "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}"
+                                for k, v in r["parameters"].items()),
         "significance_sigma": r.get("significance_sigma", float("nan")),
         "useful": r.get("useful", True),
         "alike": ", ".join(r["indistinguishable_from"]),
@@ -187,7 +189,8 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     } for r in d["candidates"]]) if d["candidates"] else pl.DataFrame()
     out += [
         ("Candidate effects, best first", "table", cands),
-        ("Fraction of held-out residual each candidate removes", "image", candidates_plot(d)) if d["candidates"] else None,
+        (("Fraction of held-out residual each candidate removes", "image", candidates_plot(d))
+         if d["candidates"] else None),
         ("Where it fails: residual by regime", "image", regimes_plot(d)),
         ("Residual by regime", "table", pl.DataFrame(d["regimes"])),
         ("Residual by flight", "table", pl.DataFrame(d["flights"])),
@@ -234,10 +237,12 @@ def to_html(secs) -> str:
         elif kind == "table":
             t = _table(content)
             head = "".join(f"<th>{html.escape(c)}</th>" for c in t.columns)
-            body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>" for row in t.iter_rows())
+            body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
+                           for row in t.iter_rows())
             parts.append(f"<table><tr>{head}</tr>{body}</table>")
         else:
-            parts.append(f"<img alt='{html.escape(title)}' src='data:image/png;base64,{base64.b64encode(content).decode()}'>")
+            b64 = base64.b64encode(content).decode()
+            parts.append(f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
     parts.append("</body></html>")
     return "\n".join(parts)
 

@@ -34,7 +34,8 @@ TAU_MEAS_B, TAU_MODEL_B, TAU_RES_B, TAU_RES_W = (
 )
 RESIDUAL_COLUMNS = {"force_b": F_RES_B, "force_w": F_RES_W, "torque_b": TAU_RES_B, "torque_w": TAU_RES_W}
 
-UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2", "m": "m", "V": "V"}
+UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2",
+         "m": "m", "V": "V"}
 
 
 def residual_arrays(
@@ -93,7 +94,7 @@ def residual_table(
     keep = ["t_s", "timestamp_us", *cols("p_w", "m"), *cols("v_w", "mps"), "q_x", "q_y", "q_z", "q_w",
             *cols("omega_b", "radps"), *cols("sf_b", "mps2"), "vbat_V"]
     keep += [c for c in df.columns if c.startswith(("pwm_", "motor_"))]
-    out = {c: df[c] for c in keep if c in df.columns}
+    out: dict[str, pl.Series | np.ndarray] = {c: df[c] for c in keep if c in df.columns}
 
     def put(prefix: str, unit: str, arr: np.ndarray) -> None:
         for name, column in zip(cols(prefix, unit), arr.T):

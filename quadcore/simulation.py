@@ -62,9 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quadcore import effects as effects_mod
-from quadcore import logformat, trajectories
-from quadcore import vehicle as vehicle_mod
+from quadcore import effects as effects_mod, logformat, trajectories, vehicle as vehicle_mod
 from quadcore.controller import Controller, Gains
 from quadcore.dynamics import FlightState
 from quadcore.units import DEG_TO_RAD, G0_MPS2, PWM_FULL_SCALE, RPM_TO_RADPS
@@ -129,7 +127,7 @@ class SensorNoise:
     mocap_att_rad: float = 2.0e-4
 
     @classmethod
-    def none(cls) -> "SensorNoise":
+    def none(cls) -> SensorNoise:
         return cls((0.0,) * 3, (0.0,) * 3, 0.0, 0.0, (0.0,) * 3, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -196,7 +194,7 @@ class SimConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SimConfig":
+    def from_dict(cls, d: dict) -> SimConfig:
         d = dict(d)
         nested = {"battery": Battery, "noise": SensorNoise, "gains": Gains}
         for key, typ in nested.items():
@@ -739,7 +737,8 @@ def parse_effect_spec(spec: str) -> tuple[str, dict[str, float]]:
         try:
             params[key.strip()] = float(value)
         except ValueError:
-            raise SimulationError(f"effect {name!r}: parameter {key.strip()!r} must be a number, got {value!r}") from None
+            raise SimulationError(
+                f"effect {name!r}: parameter {key.strip()!r} must be a number, got {value!r}") from None
     known = effects_mod.registry()
     if name not in known:
         raise SimulationError(f"unknown effect {name!r}; known: {', '.join(known)}")

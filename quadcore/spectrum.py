@@ -27,6 +27,8 @@ offset below ~0.5 Hz, input or sensor noise at high frequency.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import signal
 
@@ -78,7 +80,7 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
     coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
     rows = []
     for c, name in enumerate(CHANNELS):
-        row = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
+        row: dict[str, Any] = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
                "modelled_rms": [], "coherence": [], "gain": [], "phase_deg": []}
         total = float(s["rr"][1:, c].sum() * df + mean_sq[c])
         shares = []

@@ -29,6 +29,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 BUILTIN_PLANS = ("figure8", "circle0", "yaw0")
 MIN_JERK_PEAK_SPEED = 1.875  # peak speed of a minimum-jerk segment, in units of d / T
@@ -132,7 +133,7 @@ def min_jerk(t_s: np.ndarray, t0: float, T: float, p0: np.ndarray, p1: np.ndarra
 class _Builder:
     """Concatenates rest-to-rest segments into a reference sampled on ``t_s``."""
 
-    def __init__(self, t_s: np.ndarray, p_start: np.ndarray, yaw: float = 0.0):
+    def __init__(self, t_s: np.ndarray, p_start: npt.ArrayLike, yaw: float = 0.0):
         self.t = np.asarray(t_s, float)
         n = len(self.t)
         self.p = np.tile(np.asarray(p_start, float), (n, 1))
@@ -221,7 +222,7 @@ def random_reference(
     while b.now < end:
         for _ in range(20):  # draw a waypoint far enough away to be a real move
             target = rng.uniform(lo, hi)
-            if np.linalg.norm(target - b.here) >= min(min_hop_m, 0.5 * np.linalg.norm(hi - lo)):
+            if float(np.linalg.norm(target - b.here)) >= min(min_hop_m, 0.5 * float(np.linalg.norm(hi - lo))):
                 break
         speed = rng.uniform(speed_min_mps, speed_max_mps)
         b.move(target, segment_time(float(np.linalg.norm(target - b.here)), speed, accel_max_mps2))
@@ -246,7 +247,8 @@ def low_pass_reference(
     while b.now < end:
         h = float(pass_height_m) if pass_height_m is not None else float(rng.uniform(0.03, 0.08))
         y = float(rng.uniform(lo[1], hi[1])) * 0.5 + 0.5 * y0
-        b.move([x_from, y, h], segment_time(float(np.hypot(height_m - h, y - b.here[1])), 0.6, accel_max_mps2, min_s=1.2))
+        dist_m = float(np.hypot(height_m - h, y - b.here[1]))
+        b.move([x_from, y, h], segment_time(dist_m, 0.6, accel_max_mps2, min_s=1.2))
         b.hold(0.3)
         speed = rng.uniform(speed_min_mps, speed_max_mps)
         b.move([x_to, y, h], segment_time(abs(x_to - x_from), speed, accel_max_mps2))

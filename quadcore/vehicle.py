@@ -44,13 +44,13 @@ class PwmVbatThrustMap:
     cpb: float
     vbat_ref_V: float
 
-    def thrust_N(self, pwm: np.ndarray, vbat_V: np.ndarray) -> np.ndarray:
+    def thrust_N(self, pwm: np.ndarray, vbat_V: np.ndarray | float) -> np.ndarray:
         """``pwm`` in 0..1 (any shape, rotors last), ``vbat_V`` broadcastable to it."""
         p, b = pwm, vbat_V / self.vbat_ref_V
         grams = self.c0 + self.cp * p + self.cb * b + self.cpp * p**2 + self.cpb * p * b
         return np.maximum(grams, 0.0) * (G0_MPS2 / 1000.0)
 
-    def pwm_for_thrust(self, thrust_N: np.ndarray, vbat_V: np.ndarray) -> np.ndarray:
+    def pwm_for_thrust(self, thrust_N: np.ndarray, vbat_V: np.ndarray | float) -> np.ndarray:
         """Inverse map: the PWM (0..1) giving ``thrust_N`` at ``vbat_V`` (larger root, clipped)."""
         b = vbat_V / self.vbat_ref_V
         grams = np.asarray(thrust_N) * (1000.0 / G0_MPS2)
@@ -114,7 +114,7 @@ class Vehicle:
             return self.motor_speed.thrust_N(motor_radps)
         return self.pwm_vbat.thrust_N(pwm, np.asarray(vbat_V)[..., None])
 
-    def with_thrust_map(self, kind: str) -> "Vehicle":
+    def with_thrust_map(self, kind: str) -> Vehicle:
         if kind not in THRUST_MAP_KINDS:
             raise VehicleFileError(f"unknown thrust map {kind!r}; choose one of {', '.join(THRUST_MAP_KINDS)}")
         return replace(self, thrust_map_kind=kind)

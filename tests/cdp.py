@@ -36,7 +36,8 @@ class Browser:
     def __init__(self, profile: Path, width: int = 1500, height: int = 950):
         self.port = free_port()
         self.proc = subprocess.Popen(
-            [chromium_path(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--remote-debugging-port={self.port}",
+            [chromium_path() or "chromium", *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
+             f"--remote-debugging-port={self.port}",
              f"--window-size={width},{height}", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
         )

@@ -155,7 +155,8 @@ def test_thrust_scale_and_added_mass_are_alike_in_force_and_the_torque_decides(h
     assert "added_mass" in top["indistinguishable_from"] and "thrust_scale" in second["indistinguishable_from"]
     assert top["separated_by"]["added_mass"] == "torque"
     assert second["explained_variance_force"] > 0.95  # added mass explains the force just as well ...
-    assert top["explained_variance_torque"] > 0.8 and abs(second["explained_variance_torque"]) < 0.01  # ... not the torque
+    assert top["explained_variance_torque"] > 0.8
+    assert abs(second["explained_variance_torque"]) < 0.01  # ... not the torque
     assert "indistinguishable from added_mass" in nominal["verdict"] and "torque" in nominal["verdict"]
     # the payload that would explain the force: c = m_p / (m + m_p) = 1 - scale
     c = second["parameters"]["m_p_kg"] / (VEHICLE.mass_kg + second["parameters"]["m_p_kg"])
@@ -373,7 +374,8 @@ def test_plugin_is_a_candidate_and_is_fitted(linear_drag, sim_sets, tmp_path):
     # via a model file: listed under plugins, named under effects, fitted like a built-in
     effects.unregister("linear_drag")
     model_file = tmp_path / "model.toml"
-    model_file.write_text(f'vehicle = "crazyflie21"\neffects = ["linear_drag"]\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
+    model_file.write_text(
+        f'vehicle = "crazyflie21"\neffects = ["linear_drag"]\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
     spec = model.load_model_file(model_file)
     assert spec.effects == ["linear_drag"]
     fitted = fitting.fit_model(spec, tables, sorted(tables))

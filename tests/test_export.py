@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from quadcore import cli, export, residuals, simulation, vehicle
-from quadcore import flight as flightmod
+from quadcore import cli, export, flight as flightmod, residuals, simulation, vehicle
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +16,8 @@ def exported(tmp_path_factory):
     folder = tmp_path_factory.mktemp("raw")
     simulation.simulate_set(folder, [simulation.SimConfig(kind="figure8", duration_s=5.0, seed=5)],
                             {"rotor_drag": {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}})
-    table = residuals.residual_table(flightmod.decode_flight(folder / "sim000").tables["fixedFrequency"], vehicle.load())
+    decoded = flightmod.decode_flight(folder / "sim000").tables["fixedFrequency"]
+    table = residuals.residual_table(decoded, vehicle.load())
     out = tmp_path_factory.mktemp("mcap")
     assert cli.main(["export", str(folder / "sim000"), "--out", str(out)]) == 0
     return table, out / "sim000.mcap", folder / "sim000"
@@ -45,7 +45,8 @@ def test_values_match_the_parquet(exported):
     seen: dict[str, list] = {}
     topics = ["/tf", "/pose", "/model/force", "/battery", "/motors", "/imu"]
     with open(path, "rb") as fh:  # decoded from the schemas in the file alone (no quadcore code)
-        for _schema, channel, message, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=topics):
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _schema, channel, message, decoded in reader.iter_decoded_messages(topics=topics):
             seen.setdefault(channel.topic, []).append((message.log_time, decoded))
     for k in rows:
         r = table.row(k, named=True)
@@ -72,7 +73,7 @@ def test_values_match_the_parquet(exported):
     t0, _ = seen["/pose"][0]
     tk, _ = seen["/pose"][-1]
     assert (tk - t0) / 1e9 == pytest.approx(table["t_s"][-1] - table["t_s"][0], abs=1e-6)
-    assert datetime.fromtimestamp(t0 / 1e9, timezone.utc).year >= 2020
+    assert datetime.fromtimestamp(t0 / 1e9, UTC).year >= 2020
 
 
 def _start_ns(path) -> int:
@@ -94,11 +95,12 @@ def test_the_user_gives_the_start_time(exported, tmp_path):
     _, _, log = exported
     out = tmp_path / "given"
     assert cli.main(["export", str(log), "--out", str(out), "--start", "2024-05-01T12:00:00Z"]) == 0
-    assert _start_ns(out / "sim000.mcap") == int(datetime(2024, 5, 1, 12, tzinfo=timezone.utc).timestamp()) * 10**9
+    assert _start_ns(out / "sim000.mcap") == int(datetime(2024, 5, 1, 12, tzinfo=UTC).timestamp()) * 10**9
     flights_csv = tmp_path / "flights.csv"
     flights_csv.write_text("flight,kind,start_utc\nsim000,random,2023-01-02T03:04:05.5\n")
     assert cli.main(["export", str(log), "--out", str(out), "--flights", str(flights_csv)]) == 0
-    assert _start_ns(out / "sim000.mcap") == int(datetime(2023, 1, 2, 3, 4, 5, tzinfo=timezone.utc).timestamp()) * 10**9 + 500_000_000
+    start_s = int(datetime(2023, 1, 2, 3, 4, 5, tzinfo=UTC).timestamp())
+    assert _start_ns(out / "sim000.mcap") == start_s * 10**9 + 500_000_000
     assert cli.main(["export", str(log), "--out", str(out), "--start", "yesterday"]) == 2
 
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pytest
+from conftest import FAST, SLOW
 
 from quadcore import cli, logformat, names, store
-from tests.conftest import FAST, SLOW
 
 
 def _files_under(folder: Path) -> set[Path]:
@@ -167,8 +167,10 @@ def test_many_declared_event_types_cost_nothing_extra(make_synthetic_log):
     log = make_synthetic_log(n_fast=20_000, n_slow=8000)
     version, _, start = logformat.parse_header(log.data)
     ids = list(range(100, 100 + logformat.MAX_EVENT_TYPES - 2))
-    extra = b"".join(struct.pack("<H", i) + f"x{i}".encode() + b"\x00" + struct.pack("<H", 1) + b"v(B)\x00" for i in ids)
-    crafted = struct.pack("<BHH", 0xBC, version, logformat.MAX_EVENT_TYPES) + log.data[5:start] + extra + log.data[start:-4]
+    extra = b"".join(struct.pack("<H", i) + f"x{i}".encode() + b"\x00" + struct.pack("<H", 1) + b"v(B)\x00"
+                     for i in ids)
+    header = struct.pack("<BHH", 0xBC, version, logformat.MAX_EVENT_TYPES)
+    crafted = header + log.data[5:start] + extra + log.data[start:-4]
     t0 = time.perf_counter()
     decoded = logformat.decode_bytes(crafted)
     assert time.perf_counter() - t0 < 2.0

@@ -18,8 +18,19 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore import cli, evaluation, fitting, flight, history, learning, model, simulation, store, vehicle
-from quadcore import features as feat
+from quadcore import (
+    cli,
+    evaluation,
+    features as feat,
+    fitting,
+    flight,
+    history,
+    learning,
+    model,
+    simulation,
+    store,
+    vehicle,
+)
 from quadcore.simulation import SimConfig
 
 VEHICLE = vehicle.load()
@@ -189,8 +200,10 @@ def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_
                                                      "model.ubj" if spec.kind == "xgboost" else "model.pt"}
         manifest = json.loads((folder / "manifest.json").read_text())
         assert manifest["physics_model"]["vehicle"] == "crazyflie21" and manifest["physics_model"]["effects"] == []
-        assert manifest["feature_set"]["name"] == "physics" and manifest["train_flights"] == ["sim000", "sim001", "sim002"]
-        assert json.loads((folder / "features.json").read_text())["columns"] == list(feat.FEATURE_SETS["physics"].columns)
+        assert manifest["feature_set"]["name"] == "physics"
+        assert manifest["train_flights"] == ["sim000", "sim001", "sim002"]
+        columns = json.loads((folder / "features.json").read_text())["columns"]
+        assert columns == list(feat.FEATURE_SETS["physics"].columns)
         loaded = learning.load(folder, threads=1)
         np.testing.assert_allclose(loaded.predict_matrix(X), m.predict_matrix(X), rtol=1e-6, atol=1e-12)
         # the predict API: a flight table in, residual force (N) and torque (N m) out
@@ -204,7 +217,8 @@ def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_
         pt = loaded.predict_table(residual_tables[HOLDOUT])
         assert pt.columns == ["t_s", *learning.PRED_COLUMNS]
         # the per-sample path gives the same answer
-        np.testing.assert_allclose(loaded.predict_one(X[7]), full[feat.usable(tables[HOLDOUT])][7], rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(loaded.predict_one(X[7]), full[feat.usable(tables[HOLDOUT])][7],
+                                   rtol=1e-4, atol=1e-7)
     with pytest.raises(learning.LearningError, match="no learned model"):
         learning.load(tmp_path / "nothing")
 

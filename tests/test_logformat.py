@@ -21,7 +21,7 @@ REAL_LOG_NAMES = [
 def _assert_tables_equal(got: np.ndarray, expected: np.ndarray) -> None:
     """Same variables, same dtypes, same bits (so NaN, -0.0 and float16 subnormals count)."""
     assert got.dtype.names == expected.dtype.names
-    for var in expected.dtype.names:
+    for var in expected.dtype.names or ():
         assert got[var].dtype == expected[var].dtype, var
         assert got[var].tobytes() == expected[var].tobytes(), var
 

@@ -180,7 +180,8 @@ def real_residuals(real_logs):
 def test_real_hover_residual_is_small(real_residuals):
     for name, table in real_residuals.items():
         hover = table.filter(~pl.col("near_gap") & (pl.col("T_N") > 0.5 * VEH.weight_N)
-                             & ((pl.col("v_w_x_mps") ** 2 + pl.col("v_w_y_mps") ** 2 + pl.col("v_w_z_mps") ** 2) < 0.01))
+                             & ((pl.col("v_w_x_mps") ** 2 + pl.col("v_w_y_mps") ** 2
+                                 + pl.col("v_w_z_mps") ** 2) < 0.01))
         assert hover.height > 100, name
         # horizontal: near zero; vertical: the thrust map is within 10 % of the weight at hover
         assert abs(hover["f_res_b_x_N"].mean()) < 0.01 and abs(hover["f_res_b_y_N"].mean()) < 0.01, name

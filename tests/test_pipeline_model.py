@@ -97,7 +97,8 @@ def test_a_user_vehicle_file_reaches_the_assets(raw, tmp_path):
 
     text = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
     vfile = tmp_path / "heavy.toml"
-    vfile.write_text(text.replace('name = "crazyflie21"', 'name = "heavy"').replace("mass_kg = 0.0347", "mass_kg = 0.05"))
+    vfile.write_text(text.replace('name = "crazyflie21"', 'name = "heavy"')
+                     .replace("mass_kg = 0.0347", "mass_kg = 0.05"))
     root = tmp_path / "root"
     with dg.instance_for_test() as instance:
         instance.add_dynamic_partitions("flights", ["sim000"])

@@ -109,7 +109,9 @@ def test_log_has_the_real_header_and_rates(hover):
 
 def test_header_equals_a_real_logs_header(real_logs):
     _, types, _ = logformat.parse_header((real_logs / "jana00").read_bytes())
-    assert sorted(types.values(), key=lambda e: e.event_id) == sorted(simulation.LOG_EVENT_TYPES, key=lambda e: e.event_id)
+    def by_id(e):
+        return e.event_id
+    assert sorted(types.values(), key=by_id) == sorted(simulation.LOG_EVENT_TYPES, key=by_id)
 
 
 def test_statistics_look_like_the_real_logs(hover):
@@ -222,7 +224,8 @@ def test_each_effect_shows_up_as_its_wrench(tmp_path, name):
 
 
 def test_added_mass_is_true_mass_in_the_dynamics(tmp_path):
-    sim = simulation.simulate(SimConfig(kind="hover", duration_s=4.0, seed=1), VEHICLE, {"added_mass": {"m_p_kg": 0.01}})
+    sim = simulation.simulate(SimConfig(kind="hover", duration_s=4.0, seed=1), VEHICLE,
+                              {"added_mass": {"m_p_kg": 0.01}})
     assert sim.true_mass_kg == pytest.approx(VEHICLE.mass_kg + 0.01)
     steady = sim.t_s > 2.5
     thrust = sim.f_actual_N[steady].sum(axis=1).mean()
@@ -326,7 +329,8 @@ def test_default_flights_are_varied_and_fast():
     assert {"figure8", "circle0", "yaw0", "random", "low_pass"} <= set(kinds)
     assert sum(simulation.flight_duration(c) for c in configs) < 80
     low = next(c for c in configs if c.kind == "low_pass")
-    ref = simulation.build_reference(low, np.arange(0, simulation.flight_duration(low), 0.002), np.random.default_rng(0))
+    t_s = np.arange(0, simulation.flight_duration(low), 0.002)
+    ref = simulation.build_reference(low, t_s, np.random.default_rng(0))
     assert 0.03 <= ref.p_w_m[:, 2].min() <= 0.08
     fast = max((c for c in configs if c.kind == "random"), key=lambda c: c.speed_max_mps)
     ref = simulation.build_reference(fast, np.arange(0, 10, 0.002), np.random.default_rng(fast.seed))
@@ -337,7 +341,8 @@ def test_plan_reference_is_relative_in_position_absolute_in_yaw_and_time_scaled(
     plan = trajectories.load_plan("circle0")
     assert plan.duration_s == pytest.approx(2.0)
     t = np.arange(0, 15, 0.002)
-    ref = trajectories.plan_reference(t, plan, height_m=0.4, timescale=3.0, start_height_m=0.1, takeoff_s=2.0, hover_s=1.0)
+    ref = trajectories.plan_reference(t, plan, height_m=0.4, timescale=3.0, start_height_m=0.1,
+                                      takeoff_s=2.0, hover_s=1.0)
     start = np.searchsorted(t, 3.0)
     np.testing.assert_allclose(ref.p_w_m[start], [0, 0, 0.4], atol=1e-6)  # plan starts at the hover point
     speed = np.linalg.norm(ref.v_w_mps, axis=1).max()

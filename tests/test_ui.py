@@ -67,7 +67,8 @@ def test_materialise_through_graphql_and_read_metadata(webserver):
         """mutation($repo: RepositorySelector!, $key: String!) {
              addDynamicPartition(repositorySelector: $repo, partitionsDefName: "flights", partitionKey: $key) {
                __typename } }""", {"repo": repo, "key": "sim001"})
-    assert added["addDynamicPartition"]["__typename"] in ("AddDynamicPartitionSuccess", "DuplicateDynamicPartitionError")
+    assert added["addDynamicPartition"]["__typename"] in ("AddDynamicPartitionSuccess",
+                                                         "DuplicateDynamicPartitionError")
     run_id = client.submit_job_execution("process_flight", repository_location_name=LOCATION,
                                          repository_name="__repository__", tags={"dagster/partition": "sim001"})
     deadline = time.time() + 240

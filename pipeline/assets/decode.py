@@ -1,6 +1,6 @@
 """Stage 1: raw uSD log -> SI Parquet, one partition per flight."""
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import dagster as dg
 
@@ -55,7 +55,7 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
 
 
 def _utc(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
 
 
 def _check_results(outcomes: dict[str, dict]) -> list[dg.AssetCheckResult]:

@@ -22,7 +22,8 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
         table = store.read_table(root, "residuals", fid)
         provenance = store.recorded_provenance(root, MAIN_EVENT, fid) or {}
         if "start_ns" not in provenance:
-            raise dg.Failure(description=f"{fid}: no start time in its decoded provenance: re-materialise decoded_flight")
+            raise dg.Failure(
+                description=f"{fid}: no start time in its decoded provenance: re-materialise decoded_flight")
         path = root / "mcap" / f"{check_component(fid, 'flight id')}.mcap"
         counts = export.write_mcap(table, path, int(provenance["start_ns"]),
                                    {"flight": fid, "start_source": provenance.get("start_source", "")})

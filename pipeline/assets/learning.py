@@ -9,8 +9,7 @@ import polars as pl
 from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import evaluation, learning, plots, store
-from quadcore import features as feat
+from quadcore import evaluation, features as feat, learning, plots, store
 
 ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
 
@@ -48,12 +47,14 @@ def _physics(root) -> dict:
     models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
     distinct = {json.dumps(m, sort_keys=True) for m in models.values()}
     if len(distinct) > 1:
-        latest = json.loads(max(distinct, key=lambda d: sum(json.dumps(m, sort_keys=True) == d for m in models.values())))
+        def users(d: str) -> int:
+            return sum(json.dumps(m, sort_keys=True) == d for m in models.values())
+        latest = json.loads(max(distinct, key=users))
         stale = sorted(f for f, m in models.items() if m != latest)
         raise dg.Failure(description=(
             f"the residual tables were computed against different physics models (not refreshed after a "
             f"refit?): re-materialise residual_table for {', '.join(stale)}"))
-    physics = next(iter(models.values()), {})
+    physics: dict = next(iter(models.values()), {})
     fitted = root / "models" / "physics_model.json"
     if fitted.is_file():
         saved = store.read_json(fitted)
@@ -78,7 +79,8 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
         raise dg.Failure(description=str(exc)) from None
     return dg.MaterializeResult(metadata={
         "feature_sets": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
-            [{"set": fs.name, "columns": ", ".join(fs.columns), "causal": str(fs.causal), "note": fs.note} for fs in sets]))),
+            [{"set": fs.name, "columns": ", ".join(fs.columns), "causal": str(fs.causal), "note": fs.note}
+             for fs in sets]))),
         "flights": len(res),
         "targets": dg.MetadataValue.json(feat.TARGETS),
         "folder": dg.MetadataValue.path(str(root / "features")),

@@ -8,8 +8,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import diagnosis, fitting, history, plots, report, store
-from quadcore import model as modelmod
+from quadcore import diagnosis, fitting, history, model as modelmod, plots, report, store
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
@@ -52,7 +51,8 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     return dg.MaterializeResult(metadata={
         "model": fitted.label,
         "effects": dg.MetadataValue.json(fitted.effect_names),
-        "parameters": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
+        "parameters": dg.MetadataValue.md(
+            plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
         "trained_on": len(train),
         "held_out": ", ".join(held),
         "model_file": spec.source or "(none: nominal)",

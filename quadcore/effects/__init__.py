@@ -104,14 +104,17 @@ def load_plugin(path: str | Path) -> Effect:
     if not path.is_file():
         raise FileNotFoundError(f"effect module not found: {path}")
     spec = importlib.util.spec_from_file_location(f"quadcore_plugin_{path.stem}", path)
+    if spec is None or spec.loader is None:
+        raise PluginError(f"effect module {path} cannot be imported (not a Python file?)")
     module = importlib.util.module_from_spec(spec)
     try:
-        spec.loader.exec_module(module)  # type: ignore[union-attr]
+        spec.loader.exec_module(module)
     except Exception as exc:  # a user's module: report, do not crash
         raise PluginError(f"cannot import effect module {path}: {type(exc).__name__}: {exc}") from exc
     effect = getattr(module, "EFFECT", None)
     if isinstance(effect, Effect) and effect.name in builtin_names():
-        raise PluginError(f"effect module {path} names its effect {effect.name!r}, a built-in effect; choose another name")
+        raise PluginError(f"effect module {path} names its effect {effect.name!r}, a built-in effect; "
+                          "choose another name")
     try:
         return _register(module)
     except TypeError as exc:

@@ -126,12 +126,13 @@ class Effect(ABC):
     simulator evaluates the effect on the velocity relative to the air.
     """
 
-    name: ClassVar[str] = ""
-    target: ClassVar[Target] = "force"
+    # Not ClassVar: an effect built at run time (quadcore.discovery) sets these per instance.
+    name: str = ""
+    target: Target = "force"
     linear: ClassVar[bool] = False
-    parameters: ClassVar[tuple[Parameter, ...]] = ()
+    parameters: tuple[Parameter, ...] = ()
     acts_on_airspeed: ClassVar[bool] = False
-    doc: ClassVar[str] = ""
+    doc: str = ""
 
     def defaults(self) -> dict[str, float]:
         return {p.name: p.default for p in self.parameters}
@@ -146,7 +147,7 @@ class Effect(ABC):
         right for effects without memory."""
         return None
 
-    def check(self, params: dict[str, float]) -> None:
+    def check(self, params: dict[str, float]) -> None:  # noqa: B027 (optional hook: no check by default)
         """Raise ``ValueError`` for parameter values that make no sense at all (wider than
         the fitting bounds: a simulation may go beyond those)."""
 
