@@ -212,8 +212,8 @@ def _literature(expr: str, channel: str = "force") -> str:
         (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$",
          "rotor inertia: reaction torque of accelerating rotors"),
         (r"^omega_b_[xyz]_radps\*Omega_net_radps$", "gyroscopic torque of the spinning rotors"),
-        (r"^d\((f_rotor_\d_N|T_N|tau_rotor_[xyz]_Nm)\)/dt$", ("timing: a delay or lag between the logged command and the thrust "
-                                          "(f(t-Δ) ≈ f - Δ df/dt)")),
+        (r"^d\((f_rotor_\d_N|T_N|tau_rotor_[xyz]_Nm)\)/dt$",
+         "timing: a delay or lag between the logged command and the thrust (f(t-Δ) ≈ f - Δ df/dt)"),
         (r"^f_rotor_\d_N$|^\(f_rotor_\d_N-f_rotor_\d_N\)$", "per-rotor thrust-map error (rotor imbalance)"),
         (r"^omega_b_([xyz])_radps$", "rotor / aerodynamic damping of the body rate"),
         (r"^omega_b_[xyz]_radps\*omega_b_[xyz]_radps$", "inertia-tensor error (Euler's ω × Jω term)"),
