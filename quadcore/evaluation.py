@@ -218,6 +218,7 @@ def evaluate(out_dir: str | Path, residual_tables: dict[str, pl.DataFrame], vehi
         t["lofo"] = report["lofo"]["table"]
         t["lofo_flights"] = report["lofo"]["flights"]
     report["verdict"] = verdict(best, base_h, report.get("lofo"))
+    report["physics_captures"] = captured_share(best, base_h)
     report["history_rows"] = _history_rows(physics, holdout, best, base_h, report.get("lofo"))
     return report
 
@@ -414,12 +415,44 @@ def verdict(best: dict[str, dict], base: dict, lofo: dict | None) -> str:
             s += (f"; not better than the training mean on {', '.join(not_tm)}" if not_tm
                   else "; better than the training mean on every axis")
         parts.append(s + ".")
+    parts += [captured_sentence(k, c) for k, c in captured_share(best, base).items()]
     if lofo:
         for row in lofo["table"]:
             if row["folds beating physics-only (force MAE)"] is not None and row["model"] not in BASELINES:
                 parts.append(f"Leave-one-flight-out: {row['model']} beats physics-only on the force in "
                              f"{row['folds beating physics-only (force MAE)']} of {row['folds']} flights.")
     return " ".join(parts)
+
+
+def captured_share(best: dict[str, dict], base: dict) -> dict[str, dict[str, float]]:
+    """How much of each best learned model's gain over the nominal model the interpretable
+    physics model already captures, on the held-out flight, force and torque (mean MAE over
+    axes): ``(MAE_nominal - MAE_physics) / (MAE_nominal - MAE_learned)``; learned models sit
+    on top of the physics model, so their gain includes the physics'. Empty without a physics
+    model that has effects (the nominal model then is the physics)."""
+    if "zero" not in base or "physics-only" not in base:
+        return {}
+    nominal, physics = np.array(mae(base["zero"])), np.array(mae(base["physics-only"]))
+    if np.allclose(nominal, physics):
+        return {}
+    out = {}
+    for k, r in best.items():
+        learned = np.array(mae(r["metrics"]))
+        out[k] = {}
+        for ch, sl in (("force", slice(0, 3)), ("torque", slice(3, 6))):
+            gain = nominal[sl].mean() - learned[sl].mean()
+            out[k][ch] = float((nominal[sl].mean() - physics[sl].mean()) / gain) if gain > 0 else float("nan")
+    return out
+
+
+def captured_sentence(kind: str, share: dict[str, float]) -> str:
+    def one(ch: str) -> str:
+        x = share[ch]
+        return f"{x:.0%} in {ch}" + (" (more than all of it: the learned model loses some of the physics' gain there)"
+                                     if x > 1 else "")
+
+    return (f"Of the best {kind}'s gain over the nominal model (MAE), the interpretable physics model alone "
+            f"captures {one('force')} and {one('torque')}.")
 
 
 def _history_rows(physics, holdout, best, base, lofo) -> list[dict]:

@@ -449,3 +449,18 @@ def test_real_logs_holdout_jana02(real_logs, tmp_path):
     assert models[0].startswith("study") and any(m.startswith("ours: best xgboost") for m in models)
     # the nominal model's residual on jana02 (what the learned models improve on): force MAE of mN
     assert 0.002 < base["physics-only"]["force_mae_x_N"] < 0.05
+
+
+def test_share_of_the_learned_gain_the_physics_captures():
+    """(MAE nominal - MAE physics) / (MAE nominal - MAE learned), per channel: 2/3 here."""
+    y = np.random.default_rng(0).normal(size=(200, 6))
+
+    def m(err):
+        return evaluation.metrics(y, y + err)
+
+    base = {"zero": m(1.0), "physics-only": m(0.5), "training mean": m(2.0)}
+    best = {"xgboost": {"metrics": m(np.array([0.25, 0.25, 0.25, 0.75, 0.75, 0.75])), "feature_set": {"name": "f"}}}
+    share = evaluation.captured_share(best, base)["xgboost"]
+    assert share["force"] == pytest.approx(2 / 3) and share["torque"] == pytest.approx(2.0)
+    assert "captures 67% in force" in evaluation.verdict(best, base, None)
+    assert evaluation.captured_share(best, {**base, "zero": m(0.5)}) == {}  # no effects: nothing to compare
