@@ -58,7 +58,9 @@ cannot separate from it).
 
 from __future__ import annotations
 
+import functools
 import re
+import textwrap
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -761,26 +763,29 @@ def write_effect(result: Discovery, path: str | Path) -> Path:
     for t in result.terms:
         bound = max(100 * abs(t.coefficient), 100 * t.std, 1e-12)
         rows.append((t.target, t.expression, parameter_name(t.target, t.expression, t.unit), t.unit, bound))
-    formulas = "\n".join(f"    {t.formula}" for t in result.terms)
-    literature = "\n".join(f"    {t.expression}: {t.literature}" for t in result.terms if t.literature)
-    terms_src = ",\n".join(f"    ({t!r}, {e!r}, {p!r}, {u!r}, {b!r})" for t, e, p, u, b in rows)
-    text = f'''"""{name}: terms found by ``quadcore discover`` (a linear effect; fit it by naming it in
-``effects`` after listing this file under ``plugins`` in the model file).
+    wrap = functools.partial(textwrap.fill, width=100, initial_indent="    ", subsequent_indent="        ")
+    formulas = "\n".join(wrap(t.formula) for t in result.terms)
+    literature = "\n".join(wrap(f"{t.expression}: {t.literature}") for t in result.terms if t.literature)
+    terms_src = "\n".join("    (\n" + "".join(f"        {v!r},\n" for v in row) + "    )," for row in rows)
+    evaluation = textwrap.fill(f"Discovered on top of the model {'+'.join(['nominal', *result.effects_in_model])} "
+                               f"({result.evaluation['mode']}; evaluated on "
+                               f"{', '.join(result.evaluation['eval_flights'])}):", width=100)
+    text = f'''"""{name}: terms found by ``quadcore discover``, as a linear effect. List this file under
+``plugins`` in the model file and ``{name}`` under ``effects``: the fit refits the coefficients.
 
-Discovered on top of the model {list(result.effects_in_model) or "nominal"} ({result.evaluation["mode"]},
-held out: {", ".join(result.evaluation["eval_flights"])}):
+{evaluation.strip()}
 
 {formulas}
 {("" if not literature else chr(10) + "Literature:" + chr(10) + literature + chr(10))}
-Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect);
-the fit in the model refits them. The terms are evaluated by quadcore.discovery.evaluate.
+Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
+The terms are evaluated by quadcore.discovery.evaluate.
 """
 
 from quadcore.discovery import DiscoveredEffect
 
 # (target axis, term, parameter, unit of the parameter, bound on |parameter|)
 TERMS = [
-{terms_src},
+{terms_src}
 ]
 
 EFFECT = DiscoveredEffect({name!r}, TERMS, __doc__)

@@ -435,7 +435,7 @@ def captured_share(best: dict[str, dict], base: dict) -> dict[str, dict[str, flo
     nominal, physics = np.array(mae(base["zero"])), np.array(mae(base["physics-only"]))
     if np.allclose(nominal, physics):
         return {}
-    out = {}
+    out: dict[str, dict[str, float]] = {}
     for k, r in best.items():
         learned = np.array(mae(r["metrics"]))
         out[k] = {}
