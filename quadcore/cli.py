@@ -4,6 +4,7 @@
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
     quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
+    quadcore export-c MODEL_DIR_OR_FILE --out DIR [--learned xgboost|mlp|none]
     quadcore train DATA [--holdout F] [--loo] [--models xgboost,mlp] [--feature-sets ...] [--effects ...] [--out DIR]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--write-effect DIR/NAME.py]
@@ -255,6 +256,23 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export_c(args: argparse.Namespace) -> int:
+    """The current model as C99 for a flight controller (see quadcore.export_c)."""
+    from quadcore import export_c, learning
+
+    try:
+        exported = export_c.export(args.model, args.out, args.learned)
+    except (export_c.ExportError, learning.LearningError) as exc:
+        raise UserError(str(exc)) from None
+    g = exported.generated
+    print(f"model: {g.label}")
+    print(f"inputs: {', '.join(f.name for f in g.fields) or 'none'}" + (f"; features: {', '.join(g.feature_columns)}"
+                                                                          if g.feature_columns else ""))
+    print(exported.footprint.comment().replace("\n", " ") if exported.footprint else "footprint: not measured (no C compiler)")
+    print(f"wrote {exported.header} and {exported.source}")
+    return 0
+
+
 def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
     """The DATA folder (which must exist) and the ``--effects`` names."""
     data = Path(args.data)
@@ -487,6 +505,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: flights.csv beside or above the logs)")
     vehicle_args(p)
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("export-c", help="the model as C99 for a flight controller (header + source), checked")
+    p.add_argument("model", metavar="MODEL_DIR_OR_FILE",
+                   help="a learned model folder, a physics_model.json, or a data root (its best learned model)")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for quadcore_model.h and quadcore_model.c")
+    p.add_argument("--learned", default="xgboost", choices=["xgboost", "mlp", "none"],
+                   help="from a data root: the best model of this kind (default xgboost), or none (physics only)")
+    p.set_defaults(func=cmd_export_c)
 
     p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")
     p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")

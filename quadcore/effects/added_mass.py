@@ -10,6 +10,7 @@ linearly in ``c = m_p / (m + m_p)``, then ``m_p = c m / (1 - c)``.
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects.base import (
     Effect,
     Parameter,
@@ -57,6 +58,10 @@ class AddedMass(Effect):
 
     def simulator(self, params, context):
         return PayloadHook(params["m_p_kg"])
+
+    def c_code(self, vehicle, params):
+        return CCode("const float c = m_p_kg / (QC_MASS_KG + m_p_kg);\n"
+                     "f_b_N[2] -= c * T_N;")
 
 
 EFFECT = AddedMass()

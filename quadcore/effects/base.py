@@ -32,6 +32,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
 
@@ -171,6 +172,12 @@ class Effect(ABC):
 
     def to_linear(self, params: dict[str, float], vehicle: Vehicle) -> list[float]:
         return [params[p.name] - p.default for p in self.parameters]
+
+    def c_code(self, vehicle: Vehicle, params: dict[str, float]) -> CCode | None:
+        """The wrench as C99 statements for ``quadcore export-c`` (see :mod:`quadcore.ccode`).
+        ``None``, the default, means no C form: exporting a model with this effect fails with
+        an error naming it."""
+        return None
 
     def __repr__(self) -> str:
         return f"<effect {self.name}: {', '.join(p.name for p in self.parameters)}>"

@@ -8,6 +8,7 @@ Linear in (x_c, y_c).
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, collective_thrust_N
 
 
@@ -28,5 +29,8 @@ class ComOffset(Effect):
         tau[:, 1] = params["x_c_m"] * T
         return np.zeros((state.n, 3)), tau
 
+    def c_code(self, vehicle, params):
+        return CCode("tau_b_Nm[0] -= y_c_m * T_N;\n"
+                     "tau_b_Nm[1] += x_c_m * T_N;")
 
 EFFECT = ComOffset()

@@ -9,6 +9,7 @@ larger for multirotors whose rotors and frame interact. Linear in k_ge.
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, body_z, collective_thrust_N
 
 
@@ -30,5 +31,10 @@ class GroundEffect(Effect):
         dT = params["k_ge"] * collective_thrust_N(state) * proximity(state, vehicle)
         return body_z(dT), np.zeros((state.n, 3))
 
+    def c_code(self, vehicle, params):
+        return CCode("const float h = p_w_m[2] > QC_ROTOR_RADIUS_M ? p_w_m[2] : QC_ROTOR_RADIUS_M;"
+                     "  /* height floored at R */\n"
+                     "const float r = QC_ROTOR_RADIUS_M / (4.0f * h);\n"
+                     "f_b_N[2] += k_ge * T_N * r * r;")
 
 EFFECT = GroundEffect()

@@ -13,6 +13,7 @@ import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
 from quadcore import dynamics
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, SimHook, body_z
 
 
@@ -63,6 +64,23 @@ class MotorLag(Effect):
 
     def simulator(self, params, context):
         return LagHook(params["tau_s"], context.h_s) if params["tau_s"] > 0 else SimHook()  # no lag: nothing to fly
+
+    def c_code(self, vehicle, params):
+        if params["tau_s"] <= 0:  # as in first_order_lag: no lag, no wrench
+            return CCode("/* tau_s <= 0: no lag */")
+        # y[k+1] = a y[k] + (1 - a) x[k], a = exp(-dt / tau), steady state at the first call;
+        # the wrench of this call uses y[k], then y advances
+        return CCode(
+            "int i;\n"
+            "qc_real missing[QC_N_ROTORS];\n"
+            "const qc_real a = qc_exp(-dt_s / tau_s);\n"
+            "for (i = 0; i < QC_N_ROTORS; ++i) {\n"
+            "    if (first_call) lagged_f_rotor_N[i] = f_rotor_N[i];\n"
+            "    missing[i] = lagged_f_rotor_N[i] - f_rotor_N[i];\n"
+            "    lagged_f_rotor_N[i] = a * lagged_f_rotor_N[i] + (1.0f - a) * f_rotor_N[i];\n"
+            "}\n"
+            "qc_add_rotor_wrench(missing, 1.0f, f_b_N, tau_b_Nm);",
+            memory=(("lagged_f_rotor_N", vehicle.n_rotors),))
 
 
 EFFECT = MotorLag()

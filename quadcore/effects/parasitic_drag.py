@@ -8,6 +8,7 @@ simulated wind the simulator applies it to the airspeed.
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter
 
 
@@ -28,5 +29,11 @@ class ParasiticDrag(Effect):
         c = np.array([params["c_xy_kg_per_m"], params["c_xy_kg_per_m"], params["c_z_kg_per_m"]])
         return -speed[:, None] * v * c, np.zeros((state.n, 3))
 
+    def c_code(self, vehicle, params):
+        return CCode("const qc_real speed = qc_sqrt(v_b_mps[0] * v_b_mps[0] + v_b_mps[1] * v_b_mps[1]"
+                     " + v_b_mps[2] * v_b_mps[2]);\n"
+                     "f_b_N[0] -= c_xy_kg_per_m * speed * v_b_mps[0];\n"
+                     "f_b_N[1] -= c_xy_kg_per_m * speed * v_b_mps[1];\n"
+                     "f_b_N[2] -= c_z_kg_per_m * speed * v_b_mps[2];")
 
 EFFECT = ParasiticDrag()

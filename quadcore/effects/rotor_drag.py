@@ -8,6 +8,7 @@ Linear in (k_x, k_y). At constant thrust it looks exactly like a linear drag.
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, collective_thrust_N
 
 
@@ -28,5 +29,8 @@ class RotorDrag(Effect):
         f[:, 1] = -params["k_y_s_per_m"] * T * state.v_b_mps[:, 1]
         return f, np.zeros((state.n, 3))
 
+    def c_code(self, vehicle, params):
+        return CCode("f_b_N[0] -= k_x_s_per_m * T_N * v_b_mps[0];\n"
+                     "f_b_N[1] -= k_y_s_per_m * T_N * v_b_mps[1];")
 
 EFFECT = RotorDrag()

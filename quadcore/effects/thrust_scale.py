@@ -8,6 +8,7 @@ Linear in (s - 1). In force it is indistinguishable from an unmodelled payload
 """
 
 from quadcore import dynamics
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
 
 
@@ -29,6 +30,9 @@ class ThrustScale(Effect):
 
     def simulator(self, params, context):
         return ScaleRotorThrusts([params["scale"]] * context.vehicle.n_rotors)
+
+    def c_code(self, vehicle, params):
+        return CCode("qc_add_rotor_wrench(f_rotor_N, scale - 1.0f, f_b_N, tau_b_Nm);")
 
 
 EFFECT = ThrustScale()

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from quadcore import rotations
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, SimHook, collective_thrust_N
 
 
@@ -89,6 +90,15 @@ class Wind(Effect):
 
     def simulator(self, params, context):
         return WindHook(self, params, context)
+
+    def c_code(self, vehicle, params):
+        # v_air,b = R^T (v_w - w), x and y components only
+        return CCode("const qc_real dv[3] = {v_w_mps[0] - w_x_mps, v_w_mps[1] - w_y_mps, v_w_mps[2]};\n"
+                     "int j;\n"
+                     "for (j = 0; j < 2; ++j) {\n"
+                     "    const qc_real v_air = R_wb[0][j] * dv[0] + R_wb[1][j] * dv[1] + R_wb[2][j] * dv[2];\n"
+                     "    f_b_N[j] -= k_s_per_m * T_N * v_air;\n"
+                     "}")
 
 
 EFFECT = Wind()
