@@ -14,6 +14,7 @@ part, tell the two apart -- and the diagnosis will say so when they cannot.
 
 import numpy as np
 
+from quadcore.ccode import CCode
 from quadcore.effects import Effect, Parameter
 
 
@@ -31,6 +32,12 @@ class LinearDrag(Effect):
         d = np.array([params["d_xy_kg_per_s"], params["d_xy_kg_per_s"], params["d_z_kg_per_s"]])
         force = -state.v_b_mps * d  # (n, 3) N, body frame
         return force, np.zeros((state.n, 3))  # no torque
+
+    def c_code(self, vehicle, params):
+        # optional: the same force in C for `quadcore export-c` (parameters are declared by the exporter)
+        return CCode("f_b_N[0] -= d_xy_kg_per_s * v_b_mps[0];\n"
+                     "f_b_N[1] -= d_xy_kg_per_s * v_b_mps[1];\n"
+                     "f_b_N[2] -= d_z_kg_per_s * v_b_mps[2];")
 
 
 EFFECT = LinearDrag()

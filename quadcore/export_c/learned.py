@@ -6,10 +6,10 @@ features in, residual force (N) and torque (N m) out, body frame.
 **Trees.** The Python model standardises the inputs, ``z = float32((x - mean) / std)``
 computed in double, and sends ``z < threshold`` left. That comparison is moved onto the raw
 input: for every split the exporter finds the smallest float32 ``x*`` with
-``float32((x* - mean) / std) >= threshold`` (a few ``nextafter`` steps from the affine
-guess), so ``x < x*`` takes exactly the branch Python takes, for every float32 ``x``, and the
-C code does no scaling at all. A NaN input goes the tree's default way, as in XGBoost. Leaves
-are summed per output in float, then ``y * std + mean``.
+``float32((x* - mean) / std) >= threshold`` (by bisection over the float32 values), so
+``x < x*`` takes exactly the branch Python takes, for every float32 ``x``, and the C code
+does no scaling at all. A NaN input goes the tree's default way, as in XGBoost. Leaves are
+summed per output in float, then ``y * std + mean``.
 
 **MLP.** ``z = (x - mean) / std`` with the reciprocal stored, the layers (ReLU between them)
 in float, then ``y * std + mean``.
@@ -47,24 +47,31 @@ def float_table(name: str, values, per_line: int = 6) -> str:
     return f"static const float {name}[{values.size}] = {{\n    {row(values.ravel())}\n}};"
 
 
+def _ordered_key(x32: np.ndarray) -> np.ndarray:
+    """float32 -> int64 keys in the same order (-0 and +0 share one)."""
+    bits = x32.astype(np.float32).view(np.int32).astype(np.int64)
+    return np.where(bits >= 0, bits, -(bits & 0x7FFFFFFF))
+
+
+def _from_key(key: np.ndarray) -> np.ndarray:
+    bits = np.where(key >= 0, key, (-key) | 0x80000000).astype(np.uint32)
+    return bits.view(np.float32)
+
+
 def raw_thresholds(threshold: np.ndarray, feature: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     """Per split: the smallest float32 ``x*`` with ``float32((x* - mean) / std) >= threshold``,
-    so that ``z < threshold`` iff ``x < x*`` (the scaling is monotonic: std > 0)."""
+    so that ``z < threshold`` iff ``x < x*`` (the scaling is monotonic: std > 0). Found by
+    bisection over the ordered float32 values, between -inf and +inf."""
     t = np.asarray(threshold, np.float32)
     mu, sd = mean[feature], std[feature]
-
-    def z(x32):
-        return ((x32.astype(np.float64) - mu) / sd).astype(np.float32)
-
+    lo = np.full(t.shape, _ordered_key(np.array([-np.inf], np.float32))[0])  # z(-inf) < t
+    hi = np.full(t.shape, _ordered_key(np.array([np.inf], np.float32))[0])  # z(+inf) >= t
     with np.errstate(over="ignore", invalid="ignore"):
-        x = (t.astype(np.float64) * sd + mu).astype(np.float32)
-        for _ in range(200):
-            lower = np.nextafter(x, np.float32(-np.inf))
-            up, down = z(x) < t, z(lower) >= t
-            if not (up | down).any():
-                return x
-            x = np.where(up, np.nextafter(x, np.float32(np.inf)), np.where(down, lower, x))
-    raise ExportError("could not place a tree threshold on the raw input scale")
+        while (hi - lo > 1).any():
+            mid = (lo + hi) // 2
+            at_or_above = ((_from_key(mid).astype(np.float64) - mu) / sd).astype(np.float32) >= t
+            hi, lo = np.where(at_or_above, mid, hi), np.where(at_or_above, lo, mid)
+    return _from_key(hi)
 
 
 def _node_order(left: np.ndarray, right: np.ndarray, root: int) -> list[int]:

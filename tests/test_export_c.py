@@ -1,0 +1,225 @@
+"""`quadcore export-c`: the generated C compiles with ``-std=c99 -Wall -Wextra -Werror -pedantic``
+and, run on every row of a held-out simulated flight, gives what the Python model gives (max
+absolute error < 1e-5 N and < 1e-8 N m) for every effect's C form, a fitted physics model, the best
+XGBoost and the best MLP; effects without a C form and features with no on-board form are refused
+by name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import shutil
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from quadcore import cli, dynamics, effects, evaluation, export_c, fitting, flight, learning, model, simulation, vehicle
+from quadcore import features as feat
+from quadcore.export_c.learned import raw_thresholds
+from quadcore.model import EffectTerm, PhysicsModel
+from quadcore.simulation import SimConfig
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                                reason="no C compiler (install gcc: .ci/run does)")
+
+VEHICLE = vehicle.load()
+HOLDOUT = "sim002"
+FORCE_TOL_N, TORQUE_TOL_NM = 1e-5, 1e-8
+XGB = learning.ModelSpec("xgboost", max_depth=4, n_estimators=40, early_stopping_rounds=8)
+MLP = learning.ModelSpec("mlp", hidden=(16, 16), max_epochs=15, patience=5, lr=3e-3)
+
+
+@pytest.fixture(scope="module")
+def decoded(tmp_path_factory) -> dict[str, pl.DataFrame]:
+    """Three 5 s random flights with a hidden rotor drag and CoM offset, decoded."""
+    out = tmp_path_factory.mktemp("sim_logs")
+    configs = [SimConfig(kind="random", duration_s=5.0, seed=20 + i, speed_min_mps=0.5, speed_max_mps=1.5)
+               for i in range(3)]
+    hidden = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}, "com_offset": {"x_c_m": 0.002, "y_c_m": -0.001}}
+    simulation.simulate_set(out, configs, hidden, VEHICLE)
+    return {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in sorted(out.glob("sim00?"))}
+
+
+def _every_effect(names) -> PhysicsModel:
+    """Each effect at 30 % of the way from 'no effect' to a bound: a clearly non-zero wrench."""
+    terms = []
+    for name in names:
+        eff = effects.get(name)
+        params = {p.name: p.default + 0.3 * ((p.upper if p.upper != p.default else p.lower) - p.default)
+                  for p in eff.parameters}
+        terms.append(EffectTerm(name, params))
+    return PhysicsModel(VEHICLE, terms)
+
+
+def _run_c(exported: export_c.Exported, table: pl.DataFrame, workdir: Path) -> dict[str, np.ndarray]:
+    host = export_c.HostModel(exported.header.parent, exported.generated, workdir)
+    return host.run(export_c.input_rows(table, exported.fields))
+
+
+def _assert_close(f_c, tau_c, f_py, tau_py, what: str) -> None:
+    f_err, tau_err = np.abs(f_c - f_py).max(), np.abs(tau_c - tau_py).max()
+    assert f_err < FORCE_TOL_N, f"{what}: force differs by {f_err:.3g} N"
+    assert tau_err < TORQUE_TOL_NM, f"{what}: torque differs by {tau_err:.3g} N m"
+
+
+@pytest.mark.parametrize("name", list(effects.registry()))
+def test_every_effect_has_a_c_form_that_matches_python(name, decoded, tmp_path):
+    pm = _every_effect([name])
+    exported = export_c.export_models(pm, None, tmp_path / "out", f"effect {name}")
+    out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+    f_py, tau_py = pm.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+    assert np.abs(f_py).max() + np.abs(tau_py).max() > 1e-4  # the effect does something on this flight
+    _assert_close(out["f_effects_b_N"], out["tau_effects_b_Nm"], f_py, tau_py, name)
+    np.testing.assert_array_equal(out["f_learned_b_N"], 0.0)
+    np.testing.assert_array_equal(out["f_b_N"], out["f_effects_b_N"])
+
+
+def test_all_effects_together_and_the_struct_carries_what_they_read(decoded, tmp_path):
+    pm = _every_effect(effects.registry())
+    exported = export_c.export_models(pm, None, tmp_path / "out", "all effects")
+    out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+    f_py, tau_py = pm.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+    _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "all effects")
+    # motor_lag reads dt_s; nothing reads the gyro or the motor speeds (PWM thrust map)
+    assert {f.name for f in exported.fields} == {"p_w_m", "v_w_mps", "q_xyzw", "pwm", "vbat_V", "dt_s"}
+    only_drag = export_c.export_models(_every_effect(["com_offset"]), None, tmp_path / "com", "com")
+    assert [f.name for f in only_drag.fields] == ["pwm", "vbat_V"]
+
+
+def test_fitted_physics_model_through_the_cli(decoded, tmp_path):
+    spec = model.spec_from(VEHICLE, ["rotor_drag", "com_offset", "motor_lag"])
+    train = [f for f in decoded if f != HOLDOUT]
+    fitted = fitting.fit_model(spec, decoded, train)
+    path = model.save(fitted, tmp_path / "models" / "physics_model.json", train)
+    out_dir = tmp_path / "c"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert cli.main(["export-c", str(path), "--out", str(out_dir)]) == 0
+    assert "nominal+rotor_drag+com_offset+motor_lag" in stdout.getvalue()
+    source = (out_dir / "quadcore_model.c").read_text()
+    k_x = fitted.terms[0].params["k_x_s_per_m"]
+    assert f"const qc_real k_x_s_per_m = ((qc_real){k_x!r});" in source  # the fitted value, as a constant
+    assert "Footprint" in source and "flash" in (out_dir / "quadcore_model.h").read_text()
+    loaded = model.load_fitted(path, VEHICLE)
+    exported = export_c.export(path, tmp_path / "again", "none")
+    out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+    f_py, tau_py = loaded.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+    _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "fitted model")
+
+
+@pytest.fixture(scope="module")
+def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
+    """A data root with a fitted physics model (CoM offset; the hidden rotor drag is left for the
+    learned models) and XGBoost and MLP runs on three feature sets, the holdout flight left out."""
+    root = tmp_path_factory.mktemp("root")
+    train = [f for f in decoded if f != HOLDOUT]
+    physics = fitting.fit_model(model.spec_from(VEHICLE, ["com_offset"]), decoded, train)
+    model.save(physics, root / "models" / "physics_model.json", train)
+    res = {f: physics.residual_table(df) for f, df in decoded.items()}
+    sets = feat.parse("physics,vel_rate,full_state")
+    plan = learning.plan(sorted(res), sets, ["xgboost", "mlp"], HOLDOUT, compare=False,
+                         specs={"xgboost": XGB, "mlp": MLP})
+    learning.run_plan(plan, feat.feature_tables(res, sets), root / "learned", {**physics.to_dict(), "trained_on": train},
+                      learning.TrainConfig(stride=2), log=lambda m: None, latency_repeats=5)
+    return root, physics
+
+
+@pytest.mark.parametrize("kind", ["xgboost", "mlp"])
+def test_best_learned_model_on_top_of_the_physics_matches_python(kind, data_root, decoded, tmp_path):
+    root, physics = data_root
+    exported = export_c.export(root, tmp_path / "out", kind)
+    index, records = learning.read_runs(root / "learned")
+    best = evaluation.best_runs([{**r, "causal": r["feature_set"]["causal"]} for r in records])[kind]
+    learned = learning.load(best["path"])
+    assert exported.generated.feature_columns == tuple(learned.features)
+    assert exported.generated.label == f"{physics.label} + {kind}({learned.feature_set.name})"
+
+    table = decoded[HOLDOUT]
+    out = _run_c(exported, table, tmp_path / "build")
+    f_learned, tau_learned = learned.predict(physics.residual_table(table))
+    _assert_close(out["f_learned_b_N"], out["tau_learned_b_Nm"], f_learned, tau_learned, f"best {kind}")
+    f_phys, tau_phys = physics.extra_wrench(dynamics.flight_state(table, VEHICLE))
+    _assert_close(out["f_b_N"], out["tau_b_Nm"], f_phys + f_learned, tau_phys + tau_learned, f"physics + {kind}")
+    assert np.abs(f_learned).max() > 0.01  # the learned part carries the rotor drag
+
+
+def test_every_feature_set_the_exporter_can_compute(data_root, decoded, tmp_path):
+    """Each causal feature set's learned model (not only the best) through the C feature code."""
+    root, physics = data_root
+    _, records = learning.read_runs(root / "learned")
+    table = physics.residual_table(decoded[HOLDOUT])
+    for r in (r for r in records if r["kind"] == "xgboost"):
+        learned = learning.load(r["path"])
+        exported = export_c.export_models(physics, learned, tmp_path / r["name"], r["name"])
+        out = _run_c(exported, decoded[HOLDOUT], tmp_path / f"build-{r['name']}")
+        f_py, tau_py = learned.predict(table)
+        _assert_close(out["f_learned_b_N"], out["tau_learned_b_Nm"], f_py, tau_py, r["feature_set"]["name"])
+
+
+def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
+    plugin = tmp_path / "no_c_form.py"
+    plugin.write_text(
+        "import numpy as np\n"
+        "from quadcore.effects import Effect, Parameter\n"
+        "class Tether(Effect):\n"
+        "    name = 'tether_no_c'\n"
+        "    parameters = (Parameter('F_z_N', 'N', 0.0, -1.0, 1.0, 'pull'),)\n"
+        "    def wrench(self, state, vehicle, params):\n"
+        "        f = np.zeros((state.n, 3)); f[:, 2] = params['F_z_N']\n"
+        "        return f, np.zeros((state.n, 3))\n"
+        "EFFECT = Tether()\n")
+    effects.load_plugin(plugin)
+    try:
+        pm = PhysicsModel(VEHICLE, [EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}),
+                                    EffectTerm("tether_no_c", {"F_z_N": 0.1})])
+        with pytest.raises(export_c.NoCFormError, match="'tether_no_c' has no C form") as info:
+            export_c.export_models(pm, None, tmp_path / "out", "test")
+        assert info.value.effect == "tether_no_c"
+        assert not (tmp_path / "out").exists()  # nothing half-written
+        path = model.save(pm, tmp_path / "physics_model.json", [])
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            assert cli.main(["export-c", str(path), "--out", str(tmp_path / "cli")]) == 2
+        assert "tether_no_c" in err.getvalue() and "Traceback" not in err.getvalue()
+    finally:
+        effects.unregister("tether_no_c")
+
+
+def test_leaky_feature_set_has_no_on_board_form(data_root, decoded, tmp_path):
+    root, physics = data_root
+    res = {f: physics.residual_table(df) for f, df in decoded.items()}
+    fs = feat.FEATURE_SETS["acc_rate_rot"]
+    tables = feat.feature_tables(res, [fs])[fs.name]
+    learned = learning.train(XGB, fs, tables, [f for f in res if f != HOLDOUT], learning.TrainConfig(stride=4))
+    with pytest.raises(export_c.ExportError, match="'a_meas_w_x_mps2' has no on-board form"):
+        export_c.export_models(physics, learned, tmp_path / "out", "leaky")
+
+
+def test_bad_sources_are_user_errors(tmp_path):
+    (tmp_path / "empty").mkdir()
+    for args in (["export-c", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
+                 ["export-c", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            assert cli.main(args) == 2
+        assert err.getvalue().startswith("quadcore export-c: error:")
+
+
+def test_raw_thresholds_take_the_branches_of_the_standardised_model():
+    """For random scalings and splits, ``float32((x - mean) / std) < t`` iff ``x < x*`` on
+    the float32 values around every split."""
+    rng = np.random.default_rng(0)
+    n = 2000
+    mean, std = rng.normal(0, 50, 5), rng.uniform(1e-4, 30, 5)
+    feature = rng.integers(0, 5, n)
+    t = rng.normal(0, 2, n).astype(np.float32)
+    x_star = raw_thresholds(t, feature, mean, std)
+    for step in range(-3, 4):
+        x = x_star.copy()
+        for _ in range(abs(step)):
+            x = np.nextafter(x, np.float32(np.inf if step > 0 else -np.inf))
+        z = ((x.astype(np.float64) - mean[feature]) / std[feature]).astype(np.float32)
+        np.testing.assert_array_equal(z < t, x < x_star)
