@@ -268,7 +268,8 @@ def cmd_export_c(args: argparse.Namespace) -> int:
     print(f"model: {g.label}")
     print(f"inputs: {', '.join(f.name for f in g.fields) or 'none'}" + (f"; features: {', '.join(g.feature_columns)}"
                                                                           if g.feature_columns else ""))
-    print(exported.footprint.comment().replace("\n", " ") if exported.footprint else "footprint: not measured (no C compiler)")
+    fp = exported.footprint
+    print(fp.comment().replace("\n", " ") if fp else "footprint: not measured (no C compiler)")
     print(f"wrote {exported.header} and {exported.source}")
     return 0
 

@@ -16,8 +16,20 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore import cli, dynamics, effects, evaluation, export_c, fitting, flight, learning, model, simulation, vehicle
-from quadcore import features as feat
+from quadcore import (
+    cli,
+    dynamics,
+    effects,
+    evaluation,
+    export_c,
+    features as feat,
+    fitting,
+    flight,
+    learning,
+    model,
+    simulation,
+    vehicle,
+)
 from quadcore.export_c.learned import raw_thresholds
 from quadcore.model import EffectTerm, PhysicsModel
 from quadcore.simulation import SimConfig
@@ -122,7 +134,8 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
     sets = feat.parse("physics,vel_rate,full_state")
     plan = learning.plan(sorted(res), sets, ["xgboost", "mlp"], HOLDOUT, compare=False,
                          specs={"xgboost": XGB, "mlp": MLP})
-    learning.run_plan(plan, feat.feature_tables(res, sets), root / "learned", {**physics.to_dict(), "trained_on": train},
+    physics_info = {**physics.to_dict(), "trained_on": train}
+    learning.run_plan(plan, feat.feature_tables(res, sets), root / "learned", physics_info,
                       learning.TrainConfig(stride=2), log=lambda m: None, latency_repeats=5)
     return root, physics
 

@@ -76,11 +76,13 @@ def _best_run(learned_dir: Path, kind: str) -> Path:
             if r["split"]["name"] == f"holdout-{index['holdout']}"]
     best = evaluation.best_runs(hold)
     if kind not in best:
-        raise ExportError(f"no {kind} run on causal features in {learned_dir}: train one (quadcore train --models {kind})")
+        raise ExportError(f"no {kind} run on causal features in {learned_dir}: "
+                          f"train one (quadcore train --models {kind})")
     return Path(best[kind]["path"])
 
 
-def load_source(path: str | Path, learned_kind: str = "xgboost") -> tuple[PhysicsModel, learning.LearnedModel | None, str]:
+def load_source(path: str | Path, learned_kind: str = "xgboost"
+                ) -> tuple[PhysicsModel, learning.LearnedModel | None, str]:
     """(physics model, learned model or None, a description of where they came from)."""
     if learned_kind not in LEARNED_KINDS:
         raise ExportError(f"unknown learned kind {learned_kind!r}; choose one of {', '.join(LEARNED_KINDS)}")

@@ -49,7 +49,8 @@ def _run(cmd: list[str], cwd: Path) -> None:
 def check_strict(folder: Path, defines: tuple[str, ...] = ()) -> None:
     """Compile the exported source with ``-std=c99 -Wall -Wextra -Werror -pedantic``."""
     with tempfile.TemporaryDirectory() as tmp:
-        _run([host_compiler(), *STRICT, *defines, "-c", str(Path(folder) / SOURCE), "-o", str(Path(tmp) / "m.o")], folder)
+        obj = str(Path(tmp) / "m.o")
+        _run([host_compiler(), *STRICT, *defines, "-c", str(Path(folder) / SOURCE), "-o", obj], folder)
 
 
 @dataclass(frozen=True)
@@ -67,7 +68,8 @@ class Footprint:
         return self.static_ram_bytes + self.stack_bytes + self.struct_bytes
 
     def comment(self) -> str:
-        return (f"Footprint ({self.target}): flash {self.flash_bytes} B ({self.flash_bytes / STM32F405_FLASH_BYTES:.2%} "
+        flash_share = self.flash_bytes / STM32F405_FLASH_BYTES
+        return (f"Footprint ({self.target}): flash {self.flash_bytes} B ({flash_share:.2%} "
                 f"of the STM32F405's 1 MB), RAM {self.ram_bytes} B ({self.ram_bytes / STM32F405_RAM_BYTES:.2%} of "
                 f"192 KB):\nstatic {self.static_ram_bytes} B, stack at most {self.stack_bytes} B, the caller's "
                 f"input/memory/output structs {self.struct_bytes} B.")
@@ -145,7 +147,8 @@ def _harness(gen: Generated) -> str:
         else:
             copy.append(f"in.{f.name} = row[{offset}];")
         offset += f.size
-    outs = "\n            ".join(f"for (k = 0; k < 3; ++k) o[{3 * i} + k] = w.{name}[k];" for i, name in enumerate(OUTPUTS))
+    outs = "\n            ".join(f"for (k = 0; k < 3; ++k) o[{3 * i} + k] = w.{name}[k];"
+                                  for i, name in enumerate(OUTPUTS))
     features = """
 void qc_harness_features(long n, const float *x, float *out)
 {

@@ -22,6 +22,7 @@ import numpy as np
 from quadcore.export_c.inputs import ExportError
 from quadcore.learning import CompiledForest, LearnedModel
 
+
 def c_float(value: float) -> str:
     """A float literal that round-trips float32 (``INFINITY`` for +-inf)."""
     v = np.float32(value)
@@ -111,7 +112,9 @@ def trees_c(model: LearnedModel) -> tuple[str, dict]:
         raise ExportError(f"feature {model.features[worst]!r} has {len(cuts[worst])} distinct split values; the C node "
                           "format holds 256 (XGBoost's hist method with max_bin <= 256 stays within it)")
     base = forest.base.astype(np.float64).copy()
-    nodes, tree_start, trees_of = [], [], [0] * len(base)
+    nodes: list[str] = []
+    tree_start: list[int] = []
+    trees_of = [0] * len(base)
     for t in np.argsort(forest.group, kind="stable"):
         root, g = int(forest.roots[t]), int(forest.group[t])
         if is_leaf[root]:  # a constant: part of the base score
@@ -150,7 +153,8 @@ static const qc_node QC_NODES[{max(len(nodes), 1)}] = {{
     {nodes_text}
 }};
 static const {start_type} QC_TREE_START[{max(len(tree_start), 1)}] = {{{", ".join(map(str, tree_start)) or "0"}}};
-static const unsigned short QC_FIRST_TREE[7] = {{{", ".join(str(int(v)) for v in first)}}};  /* output k: trees [first[k], first[k+1]) */
+/* output k: trees [first[k], first[k+1]) */
+static const unsigned short QC_FIRST_TREE[7] = {{{", ".join(str(int(v)) for v in first)}}};
 {float_table("QC_CUTS", all_cuts)}
 static const unsigned short QC_CUT_START[QC_N_FEATURES + 1] = {{{", ".join(str(int(v)) for v in cut_start)}}};
 {float_table("QC_BASE", base)}  /* XGBoost base score per output */
@@ -219,7 +223,8 @@ def mlp_c(model: LearnedModel) -> tuple[str, dict]:
         relu = k < len(layers) - 1
         src, dst = ("a", "b") if k % 2 == 0 else ("b", "a")
         act = f"{dst}[o] = acc > 0.0f ? acc : 0.0f;" if relu else f"{dst}[o] = acc;"
-        steps.append(f"""    for (o = 0; o < {layer.out_features}; ++o) {{  /* layer {k}: {layer.in_features} -> {layer.out_features}{', ReLU' if relu else ''} */
+        what = f"layer {k}: {layer.in_features} -> {layer.out_features}{', ReLU' if relu else ''}"
+        steps.append(f"""    for (o = 0; o < {layer.out_features}; ++o) {{  /* {what} */
         float acc = QC_B{k}[o];
         for (i = 0; i < {layer.in_features}; ++i) acc += QC_W{k}[o][i] * {src}[i];
         {act}
@@ -227,8 +232,8 @@ def mlp_c(model: LearnedModel) -> tuple[str, dict]:
     out = "b" if len(layers) % 2 == 1 else "a"
     xs, ys = model.x_scaler, model.y_scaler
     newline = "\n"
-    code = f"""/* MLP {' -> '.join(map(str, widths))} (ReLU between layers), float weights; inputs and outputs standardised
-   with the training flights' statistics. */
+    code = f"""/* MLP {' -> '.join(map(str, widths))} (ReLU between layers), float weights; inputs and outputs
+   standardised with the training flights' statistics. */
 {newline.join(tables)}
 {float_table("QC_X_MEAN", xs.mean)}
 {float_table("QC_X_INV_STD", 1.0 / xs.std)}
