@@ -67,12 +67,13 @@ def simulate_demo_flights(raw: Path, log=print) -> list[Path]:
 
 
 def _failure_reason(result) -> str:
+    """The failures' own messages, once each (without Dagster's exception class prefix)."""
     reasons = [
-        e.step_failure_data.error.message.strip().splitlines()[0]
+        e.step_failure_data.error.message.strip().splitlines()[0].split("Failure: ", 1)[-1]
         for e in result.all_events
         if e.is_step_failure and e.step_failure_data and e.step_failure_data.error
     ]
-    return "; ".join(reasons) or "failed"
+    return "; ".join(dict.fromkeys(reasons)) or "failed"
 
 
 def materialize(assets, resources, instance, partition_key=None, tags=None):

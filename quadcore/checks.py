@@ -1,11 +1,17 @@
 """Plausibility checks on a decoded flight, as plain data (the pipeline turns them into
 asset checks). Each returns ``(passed, description, metrics)``; none raises.
+
+:func:`physics_problem` is the gate before any physics: a flight it refuses (too few rows,
+time not increasing, non-finite or absurd values, quaternions far from unit length) is
+skipped by every fleet stage with its reason, and the per-flight stages fail for it alone.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import polars as pl
+
+from quadcore import dynamics
 
 # Physically plausible ranges for a small quadrotor (SI). Values outside are flagged, not dropped.
 VALUE_RANGES = {
@@ -28,6 +34,58 @@ VALUE_RANGES = {
     "pwm_4": (0.0, 1.0),
 }
 GAP_WARN_S = 0.05
+MIN_ROWS = 250  # 0.5 s at 500 Hz: less cannot fill the smoothing window and a 0.1 s rollout
+QUATERNION_NORM_TOL = 0.05  # the estimator keeps |q| = 1 to float32 precision; 5 % is a broken log
+VBAT_MIN_V = 2.5  # a 1S LiPo is flat at 3.0 V; below 2.5 V the logged voltage is wrong, not low
+MAX_ABS_VALUE = 1e4  # no SI value of a small quadrotor comes near this (PWM <= 1, rates <= 35 rad/s)
+
+
+def physics_problem(df: pl.DataFrame, columns: list[str]) -> str | None:
+    """Why the physics cannot use this flight (``columns``: the ones it reads), or None."""
+    if df.height < MIN_ROWS:
+        return f"{df.height} samples; the physics needs at least {MIN_ROWS}"
+    t = df["t_s"].to_numpy()
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if len(back):
+        return f"time does not increase at {len(back)} samples (first at t = {t[back[0]]:.3f} s)"
+    value_columns = [c for c in columns if c != "t_s"]
+    values = df.select(value_columns).to_numpy().astype(np.float64)
+    bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_VALUE)
+    if bad.any():
+        worst = ", ".join(f"{c} ({n} rows)" for c, n in zip(value_columns, bad.sum(axis=0)) if n)
+        return f"non-finite or absurd (|x| > {MAX_ABS_VALUE:g}) values in {worst}"
+    if {"q_x", "q_y", "q_z", "q_w"} <= set(df.columns):
+        norm = np.linalg.norm(df.select("q_x", "q_y", "q_z", "q_w").to_numpy().astype(np.float64), axis=1)
+        off = int(np.count_nonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOL))
+        if off:
+            return f"{off} attitude quaternions are not unit length (|q| from {norm.min():.3g} to {norm.max():.3g})"
+    if "vbat_V" in columns:
+        low = int((df["vbat_V"] < VBAT_MIN_V).sum())
+        if low:
+            return f"battery voltage below {VBAT_MIN_V} V in {low} rows: the thrust map cannot use it"
+    flew, desc, _ = has_flight_phase(df)
+    return None if flew else desc
+
+
+def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    """The physics gate as a check, on the columns the nominal quadrotor model reads."""
+    missing = [c for c in dynamics.NOMINAL_COLUMNS if c not in df.columns]
+    problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, dynamics.NOMINAL_COLUMNS)
+    return problem is None, problem or "usable for the physics", {}
+
+
+def split_usable(tables: dict[str, pl.DataFrame], vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
+    """(the flights the physics can use with ``vehicle``, skipped: flight -> reason)."""
+    need = dynamics.required_columns(vehicle)
+    usable, skipped = {}, {}
+    for fid, df in tables.items():
+        missing = [c for c in need if c not in df.columns]
+        problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, need)
+        if problem:
+            skipped[fid] = problem
+        else:
+            usable[fid] = df
+    return usable, skipped
 
 
 def monotonic_time(df: pl.DataFrame) -> tuple[bool, str, dict]:
@@ -97,4 +155,5 @@ ALL_CHECKS = {
     "no_nans": no_nans,
     "stuck_sensors": stuck_sensors,
     "has_flight_phase": has_flight_phase,
+    "usable_for_physics": usable_for_physics,
 }

@@ -27,6 +27,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import (
+    checks,
     diagnosis,
     dynamics,
     effects,
@@ -122,19 +123,25 @@ def _vehicle(args: argparse.Namespace):
         raise UserError(str(exc)) from None
 
 
-def _main_tables(flights: list[flightmod.Flight]) -> dict[str, pl.DataFrame]:
-    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights
-              if MAIN_EVENT in f.tables and f.tables[MAIN_EVENT].height}
-    if not tables:
-        raise UserError(f"no readable flight logs (none has {MAIN_EVENT!r} records)")
-    return tables
+def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
+    """The flights the physics can use with ``veh`` and the skipped ones (flight -> reason,
+    each said on stderr): one bad flight never stops the others."""
+    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
+    skipped = {f.flight_id: f"no {MAIN_EVENT!r} records" for f in flights if MAIN_EVENT not in f.tables}
+    usable, unusable = checks.split_usable(tables, veh)
+    skipped.update(unusable)
+    for fid, why in skipped.items():
+        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
+    if not usable:
+        raise UserError(f"no flight the physics can use among {len(flights)} decoded")
+    return usable, skipped
 
 
 def cmd_residuals(args: argparse.Namespace) -> int:
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
     rows, all_tables = [], []
-    for fid, df in _main_tables(flights).items():
+    for fid, df in _main_tables(flights, veh)[0].items():
         try:
             table = residuals.residual_table(df, veh)
         except vehicle.VehicleFileError as exc:
@@ -167,7 +174,7 @@ def _residual_row(fid: str, table: pl.DataFrame) -> list[str]:
 def cmd_fit_thrust(args: argparse.Namespace) -> int:
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
-    tables = _main_tables(flights)
+    tables, _ = _main_tables(flights, veh)
     missing = [fid for fid, df in tables.items() if "motor_1_radps" not in df.columns]
     if missing:
         raise UserError(f"no motor speed logged in {', '.join(missing)}: cannot fit f = k_F omega^2")
@@ -246,7 +253,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             given = {f.flight_id: flightmod.parse_start(args.start) for f in flights}
     except (ValueError, OSError) as exc:
         raise UserError(str(exc)) from None
-    for fid, df in _main_tables(flights).items():
+    for fid, df in _main_tables(flights, veh)[0].items():
         table = residuals.residual_table(df, veh)
         fl = next(f for f in flights if f.flight_id == fid)
         flightmod.settle_start_time(fl, None, given.get(fid))
@@ -282,9 +289,10 @@ def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
     return data, [n.strip() for n in (args.effects or "").split(",") if n.strip()]
 
 
-def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict, list[str]]:
-    """The model (``--model`` file or ``--effects``), the flights of DATA and the ``--holdout``
-    names, checked: what ``diagnose`` and ``discover`` start from."""
+def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict, list[str], dict[str, str]]:
+    """The model (``--model`` file or ``--effects``), the flights of DATA, the ``--holdout``
+    names, checked, and the flights skipped (flight -> reason): what ``diagnose`` and
+    ``discover`` start from."""
     data, names = _data_and_effects(args)
     try:
         if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
@@ -300,21 +308,22 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
     flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
     for fid, why in quarantined.items():
         print(f"warning: {fid} skipped: {why}", file=sys.stderr)
-    tables = _main_tables(flights)
+    tables, skipped = _main_tables(flights, spec.vehicle)
+    skipped = {**{fid: f"quarantined: {why}" for fid, why in quarantined.items()}, **skipped}
     holdout = [h.strip() for h in (args.holdout or "").split(",") if h.strip()]
     unknown = [h for h in holdout if h not in tables]
     if unknown:
         raise UserError(f"holdout flight(s) not found in {data}: {', '.join(unknown)}; flights: {', '.join(tables)}")
     if holdout and len(holdout) == len(tables):
         raise UserError("every flight is held out: nothing left to fit on")
-    return spec, tables, holdout
+    return spec, tables, holdout, skipped
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    spec, tables, holdout = _model_and_flights(args)
+    spec, tables, holdout, skipped = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
     log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
-    result = diagnosis.diagnose(tables, spec, holdout or None, log=log)
+    result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log), "skipped_flights": skipped}
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2, default=float))
@@ -344,7 +353,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
     """Terms the effect library lacks: sparse regression of the residual on candidate terms."""
     from quadcore import discovery
 
-    spec, tables, holdout = _model_and_flights(args)
+    spec, tables, holdout, _ = _model_and_flights(args)
     if len(tables) - len(holdout) < 2:
         raise UserError("discovery needs at least two training flights (its folds are grouped by flight)")
     if args.write_effect:
@@ -409,7 +418,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
     for fid, why in quarantined.items():
         print(f"warning: {fid} skipped: {why}", file=sys.stderr)
-    tables = _main_tables(flights)
+    tables, _ = _main_tables(flights, veh)
     try:
         holdout, note = learning.resolve_holdout(args.holdout or learning.DEFAULT_HOLDOUT, list(tables),
                                                  explicit=args.holdout is not None)
@@ -572,7 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, dynamics.MissingColumnsError, vehicle.VehicleFileError, model.ModelFileError) as exc:
+    except (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError) as exc:
         print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a folder that cannot be written, a file where a folder should be, ...

@@ -59,15 +59,23 @@ class FlightState:
         return len(self.t_s)
 
 
-class MissingColumnsError(ValueError):
+class UnusableFlightError(ValueError):
+    """A flight the physics cannot use (see :func:`quadcore.checks.physics_problem`): the
+    fleet stages skip it with this reason and go on."""
+
+
+class MissingColumnsError(UnusableFlightError):
     """A flight table lacks what the dynamics need (a variable not logged, or a vehicle file
     with more rotors than the log has motors)."""
 
 
+NOMINAL_COLUMNS = ["t_s", *cols("p_w", "m"), *cols("v_w", "mps"), "q_x", "q_y", "q_z", "q_w",
+                   *cols("omega_b", "radps"), *cols("sf_b", "mps2"), "vbat_V", "pwm_1", "pwm_2", "pwm_3", "pwm_4"]
+
+
 def required_columns(vehicle: Vehicle) -> list[str]:
     """The SI columns :func:`flight_state` needs for this vehicle and thrust map."""
-    need = ["t_s", *cols("p_w", "m"), *cols("v_w", "mps"), "q_x", "q_y", "q_z", "q_w",
-            *cols("omega_b", "radps"), *cols("sf_b", "mps2"), "vbat_V"]
+    need = [c for c in NOMINAL_COLUMNS if not c.startswith("pwm_")]
     need += [f"pwm_{i}" for i in range(1, vehicle.n_rotors + 1)]
     if vehicle.thrust_map_kind == "motor_speed":
         need += [f"motor_{i}_radps" for i in range(1, vehicle.n_rotors + 1)]
@@ -77,7 +85,10 @@ def required_columns(vehicle: Vehicle) -> list[str]:
 def flight_state(df: pl.DataFrame, vehicle: Vehicle) -> FlightState:
     """Arrays for the dynamics from a decoded ``fixedFrequency`` SI table.
 
-    Raises :class:`MissingColumnsError` naming the logged variables that are missing."""
+    Raises :class:`MissingColumnsError` naming the logged variables that are missing, and
+    :class:`UnusableFlightError` for a flight :func:`quadcore.checks.physics_problem` refuses."""
+    from quadcore.checks import physics_problem
+
     missing = [c for c in required_columns(vehicle) if c not in df.columns]
     if missing:
         from quadcore.units import SI_COLUMNS
@@ -87,6 +98,9 @@ def flight_state(df: pl.DataFrame, vehicle: Vehicle) -> FlightState:
         raise MissingColumnsError(
             f"the flight lacks {names}, needed by vehicle {vehicle.name!r} ({vehicle.n_rotors} rotors, "
             f"thrust map {vehicle.thrust_map_kind})")
+    problem = physics_problem(df, required_columns(vehicle))
+    if problem:
+        raise UnusableFlightError(problem)
 
     def block(names):
         return df.select(names).to_numpy().astype(np.float64)

@@ -10,7 +10,8 @@ windows; the only loop is over the steps of the horizon)::
     ω   <- ω + dω/dt dt,      dω/dt = J^-1 (tau_model_b - ω × J ω)
     q   <- q ⊗ exp(ω dt / 2)                          (exponential map)
 
-``dt`` is the logged sample spacing, so gaps in the log are integrated over, not skipped.
+``dt`` is the logged sample spacing. A window that contains a step longer than
+``MAX_STEP_S`` (a gap in the log) is not integrated: gaps split the rollouts.
 A horizon of one step is the one-step prediction.
 """
 
@@ -26,6 +27,7 @@ from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
 
 HORIZONS_S = (0.1, 0.5, 1.0)
+MAX_STEP_S = 0.05  # the checks' gap threshold: 25 samples at 500 Hz
 
 # sample indices -> (extra force, extra torque) of the model's effects, body frame, evaluated on
 # the logged state at those samples (the rollout's own state is not fed back to the effects)
@@ -85,9 +87,11 @@ def error_growth(
     """RMS error over windows at each step of each horizon (plus the one-step prediction).
 
     Columns: ``horizon_s, t_ahead_s, pos_err_m, vel_err_mps, att_err_deg, rate_err_radps,
-    windows``. Windows start every ``stride_s``; a horizon longer than the flight is skipped.
+    windows``. Windows start every ``stride_s``, skipping those that span a gap; a horizon
+    longer than the flight is skipped.
     """
     dt = float(np.median(np.diff(state.t_s))) if state.n > 1 else 0.0
+    gaps_before = np.concatenate([[0], np.cumsum(np.diff(state.t_s) > MAX_STEP_S)])  # per sample
     frames = []
     for horizon in (0.0, *horizons_s):
         n_steps = max(1, int(round(horizon / dt))) if dt > 0 else 0
@@ -95,6 +99,7 @@ def error_growth(
             continue
         stride = max(1, int(round(stride_s / dt)))
         starts = np.arange(0, state.n - n_steps - 1, stride)
+        starts = starts[gaps_before[starts + n_steps] == gaps_before[starts]]
         if len(starts) == 0:
             continue
         e = rollout(state, vehicle, starts, n_steps, extra_wrench)

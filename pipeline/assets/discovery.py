@@ -3,10 +3,16 @@
 
 import dagster as dg
 
-from pipeline.assets.model import ALL_FLIGHTS, RETRAIN, discovery_path, physics_model
+from pipeline.assets.model import (
+    ALL_FLIGHTS,
+    RETRAIN,
+    discovery_path,
+    physics_model,
+    skipped_metadata,
+    usable_decoded,
+)
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import discovery, plots, report, store
-from quadcore.cli import MAIN_EVENT
 
 
 @dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=RETRAIN)
@@ -15,7 +21,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     flight: the formulas the model lacks, each with its coefficient, uncertainty, held-out
     share and stability. Writes reports/discovery.json."""
     spec = model.spec()
-    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
     holdout = [f for f in model.holdout_flights if f in decoded]
     if len(decoded) - len(holdout) < 2:
         raise dg.Failure(description="discovery needs at least two training flights (folds are grouped by flight)")
@@ -34,5 +40,6 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
         "baseline": dg.MetadataValue.json(b),
         "path": dg.MetadataValue.path(str(path)),
         "flights": len(decoded),
+        **skipped_metadata(skipped),
     })
 

@@ -8,7 +8,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import diagnosis, fitting, history, model as modelmod, plots, report, store
+from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, store
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
@@ -26,6 +26,22 @@ RETRAIN = (
 REFRESH = dg.AutomationCondition.eager().with_label("recompute when the model is refitted")
 
 
+def usable_decoded(data_root: DataRoot, vehicle, log) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
+    """Every decoded flight the physics can use, and the skipped ones (flight -> reason, each
+    logged as a warning): one bad flight never stops the fleet stages."""
+    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    usable, skipped = checks.split_usable(decoded, vehicle)
+    for fid, why in skipped.items():
+        log.warning(f"{fid} skipped: {why}")
+    return usable, skipped
+
+
+def skipped_metadata(skipped: dict[str, str]) -> dict:
+    rows = "\n".join(f"| {fid} | {why} |" for fid, why in skipped.items())
+    return {"skipped_flights": dg.MetadataValue.md(f"| flight | reason |\n|---|---|\n{rows}" if skipped else "none"),
+            "skipped_count": len(skipped)}
+
+
 def fitted_model_path(data_root: DataRoot):
     return data_root.root_path / "models" / "physics_model.json"
 
@@ -36,9 +52,9 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
     learned models are scored on."""
     spec = model.spec()
-    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
     if len(decoded) < 2:
-        raise dg.Failure(description=f"need at least two decoded flights in {data_root.root_path / 'decoded'}")
+        raise dg.Failure(description=f"need at least two usable decoded flights in {data_root.root_path / 'decoded'}")
     held, note = model.held_out(list(decoded))
     if note:
         context.log.info(note)
@@ -57,6 +73,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
         "held_out": ", ".join(held),
         "model_file": spec.source or "(none: nominal)",
         "path": dg.MetadataValue.path(str(path)),
+        **skipped_metadata(skipped),
     })
 
 
@@ -93,10 +110,11 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
     held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
     spec = model.spec()
-    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
+    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
     if len(decoded) < 2:
-        raise dg.Failure(description="the diagnosis needs at least two decoded flights (one to fit, one to score)")
+        raise dg.Failure(description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
     result = diagnosis.diagnose(decoded, spec, model.holdout_flights or None, log=context.log.info)
+    result["skipped_flights"] = skipped
     out = data_root.root_path / "reports"
     store.write_json(result, out / "diagnosis.json")
     b = result["baseline"]
@@ -119,6 +137,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
         **_frequency_metadata(result.get("frequency")),
         "report": dg.MetadataValue.path(str(page)),
+        **skipped_metadata(skipped),
     })
 
 

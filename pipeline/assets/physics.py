@@ -9,6 +9,14 @@ from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
 
+def decoded_main_table(data_root: DataRoot, fid: str):
+    """The flight's decoded ``fixedFrequency`` table, or a Failure saying it has none."""
+    path = store.decoded_path(data_root.root_path, MAIN_EVENT, fid)
+    if not path.is_file():
+        raise dg.Failure(description=f"{fid}: the log has no {MAIN_EVENT!r} records", allow_retries=False)
+    return store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
+
+
 @dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="physics", deps=[decoded_flight, physics_model],
           kinds={"parquet"}, automation_condition=REFRESH)
 def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
@@ -18,10 +26,10 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
     vehicle = current.vehicle
 
     def work(fid):
-        decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
+        decoded = decoded_main_table(data_root, fid)
         try:
             table = current.residual_table(decoded)
-        except dynamics.MissingColumnsError as exc:
+        except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         path = store.write_parquet(
             table,
@@ -49,10 +57,10 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
     vehicle = current.vehicle
 
     def work(fid):
-        decoded = store.read_decoded(data_root.root_path, MAIN_EVENT, fid)
+        decoded = decoded_main_table(data_root, fid)
         try:
             state = dynamics.flight_state(decoded, vehicle)
-        except dynamics.MissingColumnsError as exc:
+        except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         extra = current.rollout_wrench(state) if current.terms else None
         growth = propagation.error_growth(state, vehicle, extra_wrench=extra)
