@@ -133,7 +133,8 @@ def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> tuple
     for fid, why in skipped.items():
         print(f"warning: {fid} skipped: {why}", file=sys.stderr)
     if not usable:
-        raise UserError(f"no flight the physics can use among {len(flights)} decoded")
+        raise UserError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
+                        f"{MAIN_EVENT!r} records)")
     return usable, skipped
 
 
