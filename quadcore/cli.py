@@ -123,7 +123,8 @@ def _vehicle(args: argparse.Namespace):
         raise UserError(str(exc)) from None
 
 
-def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
+def _main_tables(flights: list[flightmod.Flight],
+                 veh: vehicle.Vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
     """The flights the physics can use with ``veh`` and the skipped ones (flight -> reason,
     each said on stderr): one bad flight never stops the others."""
     tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}

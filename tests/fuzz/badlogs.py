@@ -32,7 +32,7 @@ def _mid(n: int, width: int) -> slice:
 
 def _set(var: str, value: float, rows=lambda n: _mid(n, 50)):
     def apply(rec):
-        ts, v = rec[MAIN]
+        _, v = rec[MAIN]
         v[var][rows(len(v))] = value
         return rec
     return apply
@@ -68,7 +68,7 @@ def _gap(seconds_native):
 
 def _quaternion(scale: float):
     def apply(rec):
-        ts, v = rec[MAIN]
+        _, v = rec[MAIN]
         m = _mid(len(v), 50)
         for c in ("stateEstimate.qx", "stateEstimate.qy", "stateEstimate.qz", "stateEstimate.qw"):
             v[c][m] = v[c][m] * scale
@@ -77,7 +77,7 @@ def _quaternion(scale: float):
 
 
 def _nan_at_ends(rec):
-    ts, v = rec[MAIN]
+    _, v = rec[MAIN]
     v["gyro.x"][:5] = np.nan
     v["gyro.x"][-5:] = np.nan
     return rec
@@ -122,7 +122,7 @@ KINDS = {
 
 
 def _idle(rec):
-    ts, v = rec[MAIN]
+    _, v = rec[MAIN]
     for c in v.dtype.names:
         if c.startswith("pwm."):
             v[c] = 0
@@ -138,7 +138,7 @@ def bad_logs(good: bytes) -> dict[str, bytes]:
     for kind, apply in kinds.items():
         rec = apply(_records(log))
         types = []
-        for name, (ts, v) in rec.items():
+        for name, (_, v) in rec.items():
             old = log.event_types.get(name, log.event_types[MAIN])  # a renamed event keeps its layout
             chars = tuple(old.type_chars[old.variables.index(n)] for n in v.dtype.names)
             types.append(logformat.EventType(old.event_id, name, tuple(v.dtype.names), chars))
