@@ -10,6 +10,8 @@ It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 ``<data root>/.dagster``), so ``dagster dev`` shows these runs afterwards.
 """
 
+import hashlib
+import json
 import os
 import sys
 import time
@@ -21,6 +23,8 @@ from dagster._core.storage.tags import (
     ASSET_PARTITION_RANGE_START_TAG,
 )
 
+from pipeline.assets.decode import MAIN_EVENT
+from pipeline.assets.model import current_model
 from pipeline.definitions import FLEET, LEARNING, PER_FLIGHT
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
@@ -28,6 +32,7 @@ from pipeline.resources import (
     ModelConfig,
     data_root_from_env,
     model_config_from_env,
+    retrain_cron,
 )
 from quadcore import flight, history, store
 
@@ -42,6 +47,9 @@ telemetry:
 
 # The effect hidden in the demo flights, and its true parameters (SI).
 DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
+
+# QUADCORE_RECOMPUTE=1: every stage for every flight, even where its outputs are up to date.
+RECOMPUTE = os.environ.get("QUADCORE_RECOMPUTE", "").lower() in ("1", "true", "yes", "on")
 
 # Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
@@ -163,6 +171,80 @@ def _print_history(root: Path, log) -> None:
         log(f"  {row['source']:<9} {row['model_label']:<40} {scored:<28} force {f}   torque {t}")
 
 
+def _materialized(instance, asset: str) -> set[str]:
+    return instance.get_materialized_partitions(dg.AssetKey(asset))
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def to_decode(instance, data_root: DataRoot, ids: list[str]) -> list[str]:
+    """Flights whose decoded tables are missing, or older than their log (another SHA-256)."""
+    done = _materialized(instance, "decoded_flight")
+    out = []
+    for fid in ids:
+        recorded = store.recorded_provenance(data_root.root_path, MAIN_EVENT, fid) if fid in done else None
+        try:
+            same = recorded is not None and recorded.get("source_sha256") == _sha256(data_root.raw_log(fid))
+        except (OSError, ValueError):
+            same = False  # unreadable or unsafe: decode it, and let decoding say why it fails
+        if not same:
+            out.append(fid)
+    return out
+
+
+def to_recompute(instance, data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_now: list[str]) -> list[str]:
+    """Flights whose residual table, rollouts or MCAP are missing, or were computed from an
+    older decode or against another model than the current one (a refit that moved a parameter)."""
+    current = json.dumps(current_model(data_root, model).to_dict(), sort_keys=True, default=str)
+    done = set.intersection(*(_materialized(instance, a.key.to_user_string()) for a in PER_FLIGHT[1:]))
+    out = []
+    for fid in ids:
+        path = store.table_path(data_root.root_path, "residuals", fid)
+        if fid in decoded_now or fid not in done or not path.is_file():
+            out.append(fid)
+            continue
+        used = json.dumps(store.read_metadata(path).get("model"), sort_keys=True, default=str)
+        if used != current:
+            out.append(fid)
+    return out
+
+
+def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bool:
+    """Whether to refit and re-diagnose: flights were (re)decoded, or the fitted model or the
+    diagnosis is missing or was made for another model (effects, vehicle, thrust map)."""
+    fitted, diag = root / "models" / "physics_model.json", root / "reports" / "diagnosis.json"
+    if decoded_now or not fitted.is_file() or not diag.is_file():
+        return True
+    spec, saved = model.spec(), store.read_json(fitted)
+    return ([e["name"] for e in saved.get("effects", [])], saved.get("vehicle"), saved.get("thrust_map")) != (
+        spec.effects, spec.vehicle.name, spec.vehicle.thrust_map_kind)
+
+
+def learning_is_stale(root: Path) -> str | None:
+    """Why the learned models must be retrained now (none yet, or trained on top of another
+    physics model: other effects, vehicle or thrust map), or None. New flights alone wait for
+    the nightly retraining (``QUADCORE_RETRAIN_CRON``)."""
+    index_path = root / "learned" / "index.json"
+    if not index_path.is_file() or not (root / "reports" / "learning.json").is_file():
+        return "no learned models yet"
+    tables = sorted((root / "residuals").glob("flight=*/data.parquet"))
+    if not tables:
+        return None
+    current = store.read_metadata(tables[-1]).get("model", {})
+    trained = store.read_json(index_path).get("physics_model", {})
+
+    def kind(m):
+        return ([e["name"] for e in m.get("effects", [])], m.get("vehicle"), m.get("thrust_map"))
+
+    return None if kind(current) == kind(trained) else f"the physics model changed ({trained.get('label')} -> {current.get('label')})"
+
+
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
     raw = data_root.raw_path
     logs = flight.discover_logs(raw) if raw.is_dir() else []
@@ -174,16 +256,24 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     resources = {"data_root": data_root, "model": model}
     root = data_root.root_path
 
-    log(f"1/4 decode ({len(ids)} flights)")
-    failures = run_flights(instance, resources, ids, PER_FLIGHT[:1], "decode", log)
-    good = [f for f in ids if f not in failures]
+    new = [f for f in ids if not instance.has_dynamic_partition(flights.name, f)]
+    if new:
+        instance.add_dynamic_partitions(flights.name, new)
+    decode = ids if RECOMPUTE else to_decode(instance, data_root, ids)
+    log(f"1/4 decode ({len(decode)} of {len(ids)} flights; the others are up to date)")
+    failures = run_flights(instance, resources, decode, PER_FLIGHT[:1], "decode", log) if decode else {}
+    good = [f for f in ids if f not in failures and f in _materialized(instance, "decoded_flight")]
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
-    log("2/4 fit the model, diagnose, record the error history")
-    diag = run_fleet(instance, resources, log)
-    if diag is None:
-        return 1
+    if RECOMPUTE or fleet_is_stale(root, model, decode):
+        log("2/4 fit the model, diagnose, record the error history")
+        diag = run_fleet(instance, resources, log)
+        if diag is None:
+            return 1
+    else:
+        diag = store.read_json(root / "reports" / "diagnosis.json")
+        log(f"2/4 fitted model and diagnosis: up to date (no flight changed)\n  {diag['verdict']}")
     suggested = _suggestion(diag)
     if demo and suggested:
         # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
@@ -194,15 +284,23 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         resources["model"] = model
         if run_fleet(instance, resources, log) is None:
             return 1
-    log("3/4 residuals, rollouts and MCAP against the fitted model")
-    failures.update(run_flights(instance, resources, good, PER_FLIGHT[1:], "flights", log))
-    log("4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines")
-    t0 = time.perf_counter()
-    result = materialize(LEARNING, resources, instance)
-    if not result.success:
-        log(f"  FAILED: {_failure_reason(result)}")
-        return 1
-    log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
+    stale = good if RECOMPUTE else to_recompute(instance, data_root, model, good, decode)
+    log(f"3/4 residuals, rollouts and MCAP against the fitted model ({len(stale)} of {len(good)} flights; "
+        "the others are up to date)")
+    if stale:
+        failures.update(run_flights(instance, resources, stale, PER_FLIGHT[1:], "flights", log))
+    why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
+    if why:
+        log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines ({why})")
+        t0 = time.perf_counter()
+        result = materialize(LEARNING, resources, instance)
+        if not result.success:
+            log(f"  FAILED: {_failure_reason(result)}")
+            return 1
+        log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
+    else:
+        log(f"4/4 learned models: trained on this physics model; new flights are learned by the nightly "
+            f"retraining ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON) or by materialising learning_features")
 
     log("\nOutputs:")
     log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")

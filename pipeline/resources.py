@@ -23,6 +23,12 @@ def automation_status():
     return dg.DefaultSensorStatus.STOPPED if off else dg.DefaultSensorStatus.RUNNING
 
 
+def retrain_cron() -> str:
+    """When the learned models retrain on new flights: ``QUADCORE_RETRAIN_CRON`` (cron, UTC),
+    nightly at 02:00 by default."""
+    return os.environ.get("QUADCORE_RETRAIN_CRON", "0 2 * * *")
+
+
 def default_raw_dir() -> str:
     return os.environ.get("QUADCORE_RAW_DIR", "")
 

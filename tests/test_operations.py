@@ -4,6 +4,7 @@ and the README's queries. Real Dagster instances, real files."""
 from __future__ import annotations
 
 import hashlib
+from datetime import datetime, timedelta, timezone
 
 import dagster as dg
 import duckdb
@@ -66,7 +67,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         # the automation retrains once flights are there ...
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
-        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1  # and relearns
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0  # learning waits for the night
         run(FLEET, resources, instance)
         # the refit makes every flight's residual table stale: they are recomputed ...
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
@@ -88,8 +89,16 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert materialization_count(instance, "residual_table", "sim000") == 2  # first run + the refresh
         assert materialization_count(instance, "residual_table", "sim002") == 1
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
-        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: retrain
+        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: refit at once
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
+        # the nightly tick (QUADCORE_RETRAIN_CRON, 02:00 UTC by default) retrains once, then waits again
+        night = datetime.now(timezone.utc).replace(hour=2, minute=30) + timedelta(days=1)
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor,
+                                                 evaluation_time=night)
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor,
+                                                 evaluation_time=night + timedelta(minutes=1))
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
 
 
 def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_logs, tmp_path):

@@ -93,3 +93,27 @@ def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, mon
         for asset in ("decoded_flight", "residual_table", "rollout_errors", "flight_mcap"):
             assert set(_materializations(instance, asset)) == {"sim000", "sim001"}, asset
         assert sorted(p.name for p in (root / "mcap").glob("*.mcap")) == ["sim000.mcap", "sim001.mcap"]
+
+
+def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path):
+    """Unchanged flights are not decoded or recomputed again; a new one costs its own work, the
+    refit and the diagnosis; learning waits for its nightly tick while the physics model is the same."""
+    raw = _raw(tmp_path, sim_logs, bad=False)
+    (raw / "sim002").unlink()
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    lines: list[str] = []
+    with dg.instance_for_test() as instance:
+        ids = ["sim000", "sim001"]
+        instance.add_dynamic_partitions(flights.name, ids)
+        assert main.to_decode(instance, data_root, ids) == ids
+        main.run_flights(instance, {"data_root": data_root, "model": ModelConfig()}, ids, PER_FLIGHT, "f", lines.append)
+        assert main.to_decode(instance, data_root, ids) == []
+        assert main.to_recompute(instance, data_root, ModelConfig(), ids, []) == []
+        assert main.to_recompute(instance, data_root, ModelConfig(), ids, ["sim001"]) == ["sim001"]
+        # another model than the tables were computed against: every table is stale
+        assert main.to_recompute(instance, data_root, ModelConfig(thrust_map="motor_speed"), ids, []) == ids
+        (raw / "sim001").unlink()
+        (raw / "sim001").write_bytes((sim_logs / "sim002").read_bytes())  # the log changed
+        assert main.to_decode(instance, data_root, ids) == ["sim001"]
+    assert main.fleet_is_stale(tmp_path / "root", ModelConfig(), []) is True  # not fitted yet
+    assert main.learning_is_stale(tmp_path / "root") == "no learned models yet"

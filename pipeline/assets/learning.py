@@ -8,10 +8,20 @@ import polars as pl
 
 from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
-from pipeline.resources import DataRoot, ModelConfig
+from pipeline.resources import DataRoot, ModelConfig, retrain_cron
 from quadcore import evaluation, features as feat, learning, plots, store
 
 ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
+
+# Learning costs tens of seconds on the whole fleet: it waits for the nightly tick (configurable),
+# and then runs only if a residual table changed since it last ran; the models and the report
+# follow the features eagerly. The fleet fit and the diagnosis stay eager (they are cheap).
+NIGHTLY = (
+    dg.AutomationCondition.cron_tick_passed(retrain_cron(), "UTC").since_last_handled()
+    & dg.AutomationCondition.any_deps_updated().since_last_handled()
+    & ~dg.AutomationCondition.any_deps_in_progress()
+    & ~dg.AutomationCondition.in_progress()
+).with_label(f"retrain at {retrain_cron()} UTC when flights changed")
 
 
 class FeatureConfig(dg.Config):
@@ -63,7 +73,7 @@ def _physics(root) -> dict:
     return physics
 
 
-@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=RETRAIN)
+@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=NIGHTLY)
 def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.MaterializeResult:
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
     ``<root>/features/<set>/flight=<id>/data.parquet``."""
