@@ -198,7 +198,9 @@ def to_decode(instance, data_root: DataRoot, ids: list[str]) -> list[str]:
     return out
 
 
-def to_recompute(instance, data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_now: list[str]) -> list[str]:
+def to_recompute(
+    instance, data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_now: list[str]
+) -> list[str]:
     """Flights whose residual table, rollouts or MCAP are missing, or were computed from an
     older decode or against another model than the current one (a refit that moved a parameter)."""
     current = json.dumps(current_model(data_root, model).to_dict(), sort_keys=True, default=str)
@@ -242,7 +244,9 @@ def learning_is_stale(root: Path) -> str | None:
     def kind(m):
         return ([e["name"] for e in m.get("effects", [])], m.get("vehicle"), m.get("thrust_map"))
 
-    return None if kind(current) == kind(trained) else f"the physics model changed ({trained.get('label')} -> {current.get('label')})"
+    if kind(current) == kind(trained):
+        return None
+    return f"the physics model changed ({trained.get('label')} -> {current.get('label')})"
 
 
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:

@@ -4,7 +4,7 @@ and the README's queries. Real Dagster instances, real files."""
 from __future__ import annotations
 
 import hashlib
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import dagster as dg
 import duckdb
@@ -92,7 +92,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: refit at once
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
         # the nightly tick (QUADCORE_RETRAIN_CRON, 02:00 UTC by default) retrains once, then waits again
-        night = datetime.now(timezone.utc).replace(hour=2, minute=30) + timedelta(days=1)
+        night = datetime.now(UTC).replace(hour=2, minute=30) + timedelta(days=1)
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor,
                                                  evaluation_time=night)
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1

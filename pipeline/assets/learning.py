@@ -16,8 +16,9 @@ ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMa
 # Learning costs tens of seconds on the whole fleet: it waits for the nightly tick (configurable),
 # and then runs only if a residual table changed since it last ran; the models and the report
 # follow the features eagerly. The fleet fit and the diagnosis stay eager (they are cheap).
+_TICK: dg.AutomationCondition = dg.AutomationCondition.cron_tick_passed(retrain_cron(), "UTC")
 NIGHTLY = (
-    dg.AutomationCondition.cron_tick_passed(retrain_cron(), "UTC").since_last_handled()
+    _TICK.since_last_handled()
     & dg.AutomationCondition.any_deps_updated().since_last_handled()
     & ~dg.AutomationCondition.any_deps_in_progress()
     & ~dg.AutomationCondition.in_progress()
