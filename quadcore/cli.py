@@ -404,7 +404,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.stride < 1 or args.threads < 1:
         raise UserError("--stride and --threads must be at least 1")
     try:
-        spec = model.spec_from(veh, names)
+        spec = model.load_model_file(args.model, vehicle_override=args.vehicle) if args.model else \
+            model.spec_from(veh, names)
+        if args.model and names:
+            spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
+        veh = spec.vehicle
         sets = feat.parse(args.feature_sets)
         if not kinds_of_model:
             raise learning.LearningError("--models names no model kind")
@@ -564,6 +568,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="feature sets (default: all built-in; define one as name=col1+col2+...)")
     p.add_argument("--effects", default="", metavar="e1,e2,...",
                    help="effects in the physics model, fitted on the training flights (default: none)")
+    p.add_argument("--model", default=None, metavar="MODEL.toml",
+                   help="a model file (vehicle, effects, plugins) for the physics model under the learned ones")
     p.add_argument("--out", default="data", metavar="DIR",
                    help="data root for learned/, reports/, history/ (default: data)")
     p.add_argument("--flights-csv", default=None, metavar="FILE",

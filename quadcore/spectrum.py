@@ -129,6 +129,8 @@ def reading(row: dict) -> str:
         return text + "."
     text = f"{row['channel']}: {shares[top]:.0%} of the residual power is at {_band(top)}"
     c = row["coherence"][top]
+    if max(row["modelled_rms"]) <= 1e-9 * max(max(row["measured_rms"]), 1e-300):
+        return text + ": the model predicts nothing on this axis, so the residual is the measurement itself."
     if c >= COHERENT and not _mismatched(row, top):
         text += (f", where model and measurement are coherent ({c:.2f}) and agree (gain {row['gain'][top]:.2f}, "
                  f"{row['phase_deg'][top]:+.0f}°): what is left there is the incoherent part (noise, or what the "
