@@ -1,35 +1,49 @@
 # The two commands of the README: `make run` and `make test` (`make test-fast` in the edit loop, `make lint`).
+# Each sets up the project's own virtual environment (.venv) on first use and reuses it afterwards
+# (the stamp file records that the install for the current pyproject.toml finished).
 PYTHON ?= python3
+VENV ?= .venv
+VENV_PYTHON := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
 DATA ?= data
+PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 
 .PHONY: install run test test-fast lint ui bench
 
-install:
-	$(PYTHON) -m pip install --quiet --disable-pip-version-check torch==2.13.0
-	$(PYTHON) -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+install: $(STAMP)
 
-run: install
-	$(PYTHON) -m pipeline
+$(VENV_PYTHON):
+	$(PYTHON) -m venv $(VENV)
 
-test:
-	$(PYTHON) -m pytest -q
+# torch first and pinned, so that nothing pulls a CUDA build (pip's configuration on these
+# machines points at the on-disk CPU wheel).
+$(STAMP): pyproject.toml | $(VENV_PYTHON)
+	$(VENV_PYTHON) -m pip install --quiet --disable-pip-version-check torch==2.13.0
+	$(VENV_PYTHON) -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	touch $@
+
+run: $(STAMP)
+	$(VENV_PYTHON) -m pipeline
+
+test: $(STAMP)
+	$(VENV_PYTHON) -m pytest -q $(PYTEST_ARGS)
 
 # The edit-loop tier: everything not marked slow (see pyproject's pytest markers).
-test-fast:
-	$(PYTHON) -m pytest -q -m "not slow"
+test-fast: $(STAMP)
+	$(VENV_PYTHON) -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
-lint:
-	$(PYTHON) -m ruff check .
-	$(PYTHON) -m mypy
+lint: $(STAMP)
+	$(VENV_PYTHON) -m ruff check .
+	$(VENV_PYTHON) -m mypy
 
-ui:
+ui: $(STAMP)
 	mkdir -p $(DAGSTER_HOME)
-	dagster dev -w workspace.yaml -h 127.0.0.1 -p 3000
+	$(VENV)/bin/dagster dev -w workspace.yaml -h 127.0.0.1 -p $(PORT)
 
-bench:
-	$(PYTHON) benchmarks/bench_decode.py
-	$(PYTHON) benchmarks/bench_physics.py
-	$(PYTHON) benchmarks/bench_learning.py
-	$(PYTHON) benchmarks/bench_discover.py
+bench: $(STAMP)
+	$(VENV_PYTHON) benchmarks/bench_decode.py
+	$(VENV_PYTHON) benchmarks/bench_physics.py
+	$(VENV_PYTHON) benchmarks/bench_learning.py
+	$(VENV_PYTHON) benchmarks/bench_discover.py

@@ -20,27 +20,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import polars as pl
+# Only the standard library at module level: `quadcore --help` must start in well under a
+# second, so each command imports the numerical modules it needs.
+if TYPE_CHECKING:
+    import polars as pl
 
-from quadcore import (
-    checks,
-    diagnosis,
-    dynamics,
-    effects,
-    export,
-    flight as flightmod,
-    logformat,
-    model,
-    report,
-    residuals,
-    store,
-    thrustfit,
-    vehicle,
-)
+    from quadcore import flight as flightmod, model, vehicle
 
 MAIN_EVENT = "fixedFrequency"
 
@@ -60,6 +48,8 @@ def load_flights(
 ) -> tuple[list[flightmod.Flight], dict[str, str]]:
     """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
     there. Returns (flights, quarantined: id -> reason)."""
+    from quadcore import flight as flightmod, logformat, store
+
     try:
         logs = flightmod.discover_logs(*paths)
     except FileNotFoundError as exc:
@@ -116,6 +106,8 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 
 def _vehicle(args: argparse.Namespace):
+    from quadcore import vehicle
+
     try:
         v = vehicle.load(args.vehicle)
         return v.with_thrust_map(args.thrust_map) if args.thrust_map else v
@@ -127,6 +119,8 @@ def _main_tables(flights: list[flightmod.Flight],
                  veh: vehicle.Vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
     """The flights the physics can use with ``veh`` and the skipped ones (flight -> reason,
     each said on stderr): one bad flight never stops the others."""
+    from quadcore import checks
+
     tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
     skipped = {f.flight_id: f"no {MAIN_EVENT!r} records" for f in flights if MAIN_EVENT not in f.tables}
     usable, unusable = checks.split_usable(tables, veh)
@@ -140,6 +134,10 @@ def _main_tables(flights: list[flightmod.Flight],
 
 
 def cmd_residuals(args: argparse.Namespace) -> int:
+    import polars as pl
+
+    from quadcore import residuals, store, vehicle
+
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
     rows, all_tables = [], []
@@ -164,6 +162,11 @@ def cmd_residuals(args: argparse.Namespace) -> int:
 
 
 def _residual_row(fid: str, table: pl.DataFrame) -> list[str]:
+    import numpy as np
+    import polars as pl
+
+    from quadcore import residuals
+
     s = residuals.summary(table)
     ok = table.filter(~pl.col("near_gap"))
     corr = [np.corrcoef(ok[f"f_res_b_{a}_N"], ok[f"v_b_{a}_mps"])[0, 1] for a in "xy"]
@@ -174,6 +177,12 @@ def _residual_row(fid: str, table: pl.DataFrame) -> list[str]:
 
 
 def cmd_fit_thrust(args: argparse.Namespace) -> int:
+    from importlib import resources
+
+    import numpy as np
+
+    from quadcore import thrustfit, vehicle
+
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
     tables, _ = _main_tables(flights, veh)
@@ -244,6 +253,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from quadcore import export, flight as flightmod, residuals
+
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None)
     out = Path(args.out)
@@ -295,6 +306,8 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
     """The model (``--model`` file or ``--effects``), the flights of DATA, the ``--holdout``
     names, checked, and the flights skipped (flight -> reason): what ``diagnose`` and
     ``discover`` start from."""
+    from quadcore import effects, model, vehicle
+
     data, names = _data_and_effects(args)
     try:
         if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
@@ -322,6 +335,8 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
+    from quadcore import diagnosis, report
+
     spec, tables, holdout, skipped = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
     log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
@@ -353,7 +368,7 @@ def _rmse_line(label: str, d: dict) -> str:
 
 def cmd_discover(args: argparse.Namespace) -> int:
     """Terms the effect library lacks: sparse regression of the residual on candidate terms."""
-    from quadcore import discovery
+    from quadcore import discovery, store
 
     spec, tables, holdout, _ = _model_and_flights(args)
     if len(tables) - len(holdout) < 2:
@@ -396,7 +411,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
-    from quadcore import evaluation, features as feat, fitting, learning
+    from quadcore import effects, evaluation, features as feat, fitting, learning, model, vehicle
 
     data, names = _data_and_effects(args)
     veh = _vehicle(args)
@@ -484,8 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     def vehicle_args(p):
         p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
-        p.add_argument("--thrust-map", default=None, choices=vehicle.THRUST_MAP_KINDS,
-                       help="override the file's thrust map")
+        p.add_argument("--thrust-map", default=None, metavar="KIND",
+                       help="override the vehicle file's thrust map (pwm_vbat or motor_speed)")
 
     p = sub.add_parser("residuals", help="residual force and torque statistics per flight")
     p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")
@@ -585,15 +600,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _user_errors() -> tuple[type[Exception], ...]:
+    """The exceptions that mean "the user asked for something wrong" (imported only once a
+    command has run, so that ``--help`` stays fast)."""
+    from quadcore import dynamics, model, vehicle
+
+    return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError) as exc:
-        print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
-        return 2
     except OSError as exc:  # a folder that cannot be written, a file where a folder should be, ...
         print(f"quadcore {args.verb}: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        if not isinstance(exc, _user_errors()):
+            raise
+        print(f"quadcore {args.verb}: error: {exc}", file=sys.stderr)
         return 2
 
 
