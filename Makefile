@@ -47,3 +47,4 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_physics.py
 	$(VENV_PYTHON) benchmarks/bench_learning.py
 	$(VENV_PYTHON) benchmarks/bench_discover.py
+	$(VENV_PYTHON) benchmarks/bench_export_c.py

@@ -4,7 +4,7 @@ import dagster as dg
 
 from pipeline.assets.decode import decoded_flight
 from pipeline.assets.discovery import term_discovery
-from pipeline.assets.export import flight_mcap
+from pipeline.assets.export import exported_model, flight_mcap
 from pipeline.assets.learning import learned_models, learning_features, learning_report
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
@@ -21,6 +21,8 @@ PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
 FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 # Learned residual models on top of the physics model (fan-in over all residual tables).
 LEARNING = [learning_features, learned_models, learning_report]
+# The current model as C for the flight controller.
+EXPORT = [exported_model]
 
 # One flight through every per-flight stage: what the sensor launches, and a button in the UI.
 process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
@@ -31,7 +33,7 @@ automation = dg.AutomationConditionSensorDefinition(
 )
 
 defs = dg.Definitions(
-    assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING],
+    assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING, *EXPORT],
     jobs=[process_flight],
     sensors=[raw_log_sensor, automation],
     resources={"data_root": data_root_from_env(), "model": model_config_from_env()},

@@ -25,7 +25,7 @@ from dagster._core.storage.tags import (
 
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
-from pipeline.definitions import FLEET, LEARNING, PER_FLIGHT
+from pipeline.definitions import EXPORT, FLEET, LEARNING, PER_FLIGHT
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
     DataRoot,
@@ -295,9 +295,9 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         failures.update(run_flights(instance, resources, stale, PER_FLIGHT[1:], "flights", log))
     why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
     if why:
-        log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines ({why})")
+        log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model as C ({why})")
         t0 = time.perf_counter()
-        result = materialize(LEARNING, resources, instance)
+        result = materialize([*LEARNING, *EXPORT], resources, instance)
         if not result.success:
             log(f"  FAILED: {_failure_reason(result)}")
             return 1
@@ -315,6 +315,7 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
     log(f"  learned models     {root / 'learned'}/<run>/ (model, scaler, features, manifest)")
     log(f"  learning report    {root / 'reports' / 'learning.html'} (and .md, .json)")
     log(f"  flights as MCAP    {root / 'mcap'}/<flight>.mcap (open in Foxglove)")
+    log(f"  model as C         {root / 'export_c'}/quadcore_model.{{h,c}} (for the flight controller)")
     log(f"  error history      {root / 'history'}/*.parquet")
     _print_history(root, log)
     if suggested and not demo:

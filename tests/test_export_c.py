@@ -236,3 +236,26 @@ def test_raw_thresholds_take_the_branches_of_the_standardised_model():
             x = np.nextafter(x, np.float32(np.inf if step > 0 else -np.inf))
         z = ((x.astype(np.float64) - mean[feature]) / std[feature]).astype(np.float32)
         np.testing.assert_array_equal(z < t, x < x_star)
+
+
+def test_dagster_asset_writes_the_c_files_under_the_data_root(data_root, tmp_path):
+    import dagster as dg
+
+    from pipeline.assets.export import exported_model
+    from pipeline.resources import DataRoot
+
+    root, physics = data_root
+    with dg.instance_for_test() as instance:
+        result = dg.materialize([exported_model], instance=instance, resources={"data_root": DataRoot(root=str(root))},
+                                run_config={"ops": {"exported_model": {"config": {"learned": "mlp"}}}})
+        empty = dg.materialize([exported_model], instance=instance, raise_on_error=False,
+                               resources={"data_root": DataRoot(root=str(tmp_path))})
+    (mat,) = result.asset_materializations_for_node("exported_model")
+    meta = {k: v.value for k, v in mat.metadata.items()}
+    assert meta["header"] == str(root / "export_c" / "quadcore_model.h") and Path(meta["source"]).is_file()
+    assert meta["model"].startswith(f"{physics.label} + mlp(")
+    assert 0 < meta["flash_bytes"] < 0.1 * 1024 * 1024 and "Footprint" in meta["footprint"]
+    assert "stateEstimate.qx" in meta["inputs"]["q_xyzw"]
+    assert not empty.success
+    failure = next(e for e in empty.all_events if e.is_step_failure).event_specific_data.user_failure_data
+    assert "no learned models" in failure.description and not (tmp_path / "export_c").exists()

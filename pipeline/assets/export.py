@@ -1,13 +1,15 @@
-"""Stage: a flight as MCAP for Foxglove (pose, IMU, motors, battery, model vs measured)."""
+"""Stage: a flight as MCAP for Foxglove (pose, IMU, motors, battery, model vs measured), and the
+current model as C for the flight controller."""
 
 import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT
-from pipeline.assets.model import REFRESH
+from pipeline.assets.learning import learned_models
+from pipeline.assets.model import REFRESH, RETRAIN, physics_model
 from pipeline.assets.physics import residual_table
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
-from quadcore import export, store
+from quadcore import export, export_c, learning, store
 from quadcore.names import check_component
 
 
@@ -32,3 +34,31 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
 
     done = for_each_flight(context, work)
     return dg.MaterializeResult(metadata={"flights_in_run": len(done)})
+
+
+class ExportCConfig(dg.Config):
+    """``learned``: the learned part, the best run of this kind (``xgboost`` or ``mlp``), or ``none``."""
+
+    learned: str = "xgboost"
+
+
+@dg.asset(group_name="export", deps=[physics_model, learned_models], kinds={"c"}, automation_condition=RETRAIN)
+def exported_model(config: ExportCConfig, data_root: DataRoot) -> dg.MaterializeResult:
+    """`<root>/export_c/quadcore_model.{h,c}`: the physics model's effects plus the best learned
+    residual as self-contained C99 for the flight controller (see the README, "On the vehicle"),
+    checked with the strict C99 flags; the flash and RAM footprint in the metadata."""
+    root = data_root.root_path
+    try:
+        exported = export_c.export(root, root / "export_c", config.learned)
+    except (export_c.ExportError, learning.LearningError) as exc:
+        raise dg.Failure(description=str(exc)) from None
+    metadata: dict[str, dg.RawMetadataValue] = {
+        "model": exported.generated.label,
+        "header": dg.MetadataValue.path(str(exported.header)),
+        "source": dg.MetadataValue.path(str(exported.source)),
+        "inputs": dg.MetadataValue.json({f.name: f.logged_as() for f in exported.fields}),
+        "footprint": dg.MetadataValue.md(exported.footprint.comment()) if exported.footprint else "not measured",
+    }
+    if exported.footprint:
+        metadata.update(flash_bytes=exported.footprint.flash_bytes, ram_bytes=exported.footprint.ram_bytes)
+    return dg.MaterializeResult(metadata=metadata)
