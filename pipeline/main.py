@@ -295,7 +295,8 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         failures.update(run_flights(instance, resources, stale, PER_FLIGHT[1:], "flights", log))
     why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
     if why:
-        log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model as C ({why})")
+        log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model "
+            f"as C ({why})")
         t0 = time.perf_counter()
         result = materialize([*LEARNING, *EXPORT], resources, instance)
         if not result.success:
