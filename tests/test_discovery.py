@@ -178,3 +178,17 @@ def test_discover_on_the_real_flights_keeps_the_guard(real_logs, tmp_path):
     assert all(a <= b * 1.02 for a, b in zip(d["after"]["torque_rmse_Nm"], d["baseline"]["torque_rmse_Nm"]))
     for target, v in (("tau_res_b_x_Nm", "v_b_y_mps"), ("tau_res_b_y_Nm", "v_b_x_mps")):
         assert any(t["target"] == target and v in t["variables"] for t in d["terms"]), d["terms"]
+
+
+def test_the_example_model_of_the_real_flights_meets_the_torque_goals(real_logs, tmp_path):
+    """The committed model (three library effects + the discovered terms, unedited) on the held-out
+    jana02: torque RMSE within 0.15 / 0.22 mN m (x / y), as the README says."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "real-flights" / "model.toml"
+    try:
+        code, _, err = _run(["diagnose", str(real_logs), "--model", str(example), "--holdout", "jana02",
+                             "--json", str(tmp_path / "d.json"), "--quiet"])
+    finally:
+        effects.unregister("discovered_terms")
+    assert code == 0, err
+    torque = json.loads((tmp_path / "d.json").read_text())["baseline"]["torque_rmse_Nm"]
+    assert torque[0] <= 0.15e-3 and torque[1] <= 0.22e-3, torque
