@@ -576,7 +576,9 @@ def discover(
         tuple(kept), tuple(axes), base, after,
         {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
         {"mode": "holdout" if holdout else "cross-validation", "train_flights": train, "eval_flights": eval_ids,
-         "folds": len(folds), "stride": stride},
+         "folds": len(folds), "stride": stride,
+         # with a holdout the model's effects never see it; without one they are fitted on all flights
+         "model_effects_fitted_on": train},
         tuple(spec.effects), {"force": len(cols.force), "torque": len(cols.torque)})
 
 
