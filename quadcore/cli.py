@@ -350,10 +350,14 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     print("baseline residual RMSE  force [N]: " + " ".join(f"{v:.4f}" for v in b["force_rmse_N"])
           + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b["torque_rmse_Nm"]))
     print()
-    _print_table([[r["effect"], r["target"], f"{r['explained_variance']:.1%}",
-                   ", ".join(f"{k}={v:.4g}" for k, v in r["parameters"].items()),
-                   ", ".join(r["indistinguishable_from"]) or "-"] for r in result["candidates"]],
-                 ["candidate", "target", "explained", "parameters", "indistinguishable from"])
+    _print_table([[r["effect"], r["status"], r["target"], f"{r['explained']:.1%}", f"{r['above_noise']:.1%}",
+                   f"{r['held_out_p']:.2g}", r["why"]] for r in diagnosis.candidate_summary(result)],
+                 ["candidate", "status", "target", "explained", "above noise", "held-out p", "why it is ranked here"])
+    print("\nsmallest effect these flights would detect "
+          f"({result['sensitivity_basis']['detection_probability']:.0%} of the time):")
+    _print_table([[r["effect"], r["of"], "not in range" if r["undetected_below"] is None
+                   else f"{r['undetected_below']:.2g} {r['unit']}"] for r in diagnosis.sensitivity_rows(result)],
+                 ["effect", "parameter", "undetected below"])
     print(f"\n{result['verdict']}\n\nwrote {out}")
     if args.report:
         md, page = report.write(result, Path(args.report))

@@ -15,24 +15,36 @@
    adds error in a channel is penalised there. The reported parameters are those fitted on
    all training flights, with standard errors.
 
-3. **What counts as evidence.**
+3. **What counts as evidence** (:mod:`quadcore.evidence`). A candidate is *found*
+   (``found``, alias ``useful``) when all of these hold -- whatever its size next to the noise:
 
-   * *Sensor noise.* The white-noise floor of each residual channel is measured on the
-     flights themselves (:func:`quadcore.fitting.sensor_noise_floor`). A channel whose
-     held-out residual is within ``NOISE_LEVEL`` (RMS) of its floor holds no evidence FOR
-     any effect: its explained variance is clipped to ``<= 0`` (it still counts AGAINST a
-     candidate that would add error there). This is not cosmetic: the controller closes
-     its loop on the same noisy gyro that the torque residual is computed from, so the
-     commanded rotor torques correlate with the gyro noise in the "measured" torque (errors
-     in variables). A thrust scale or a motor lag then "explains" a third of pure noise,
-     even on held-out flights. With the clip, a hover flight does not invent a motor lag.
-   * *Significance.* A fit whose parameters are all within ``MIN_SIGMA`` standard errors of
-     "no effect" is flagged insignificant (noise fitted to noise).
+   * *Held-out significance.* Its held-out prediction is confirmed by the held-out residual
+     of its target channel: a regression of the residual on the prediction with a
+     cluster-robust t-test over 1 s blocks, one-sided, at ``ALPHA`` for the whole library
+     (Bonferroni over the candidates).
+   * *Significant parameters.* A fit whose parameters are all within ``MIN_SIGMA`` standard
+     errors of "no effect" is noise fitted to noise.
    * *Physical values.* A fit outside the parameters' physical bounds (negative drag, a
-     negative payload, less thrust near the ground) is not an explanation.
-   A candidate is ``useful`` when it is physical, significant and removes at least
-   ``MIN_EXPLAINED`` of its target residual. Candidates are ranked in tiers (physical and
-   significant; physical; unphysical), by score within a tier.
+     negative payload, less thrust near the ground) is never an explanation, whatever it
+     removes.
+   * *Above the sensor noise.* The white-noise floor of each residual channel is measured on
+     the flights themselves (:func:`quadcore.fitting.sensor_noise_floor`). A channel whose
+     held-out residual is within ``evidence.NOISE_MARGIN`` (RMS) of its floor holds no
+     evidence FOR any effect: its explained variance is clipped to ``<= 0`` (it still counts
+     AGAINST a candidate that would add error there). The controller closes its loop on the
+     same noisy gyro that the torque residual is computed from, so the commanded rotor
+     torques correlate with the gyro noise in the "measured" torque (errors in variables): a
+     thrust scale or a motor lag "explains", significantly, a third of pure noise even on
+     held-out flights. With the clip, a hover flight does not invent a motor lag.
+
+   Beside the raw share of the residual it removes, each candidate states the share of the
+   part *above the noise floor* (``explained_above_noise``) and its size in noise floors
+   (``signal_to_noise``), graded ``large`` (>= ``LARGE_SNR``), ``clear`` (>= 1) or ``small
+   but certain`` (weaker than the sensor noise, yet confirmed). Candidates are ranked in
+   tiers (found; physical; unphysical), by score within a tier, and each gets a ``status``
+   and a ``reason``: why it is ranked where it is. ``sensitivity`` states, for every
+   candidate and parameter, the smallest value these flights would have detected
+   (:func:`quadcore.evidence.detection_limit`); every verdict carries it.
 
 4. **Honesty: explanations the data cannot tell apart.** Two candidates are *alike in a
    channel* when each can reproduce the other's held-out prediction there (at least
@@ -40,8 +52,9 @@
    onto the other's basis, independent of how large either fit came out (so a thrust scale
    that the torque pulled to zero still shows that its force signature is a payload's).
    ``indistinguishable_from`` lists the candidates alike to this one in the channel it
-   explains (its ``target``). If their scores are within ``TIE_MARGIN`` nothing else
-   separates them: they are ``tied_with`` each other, the one with fewer parameters ranks
+   explains (its ``target``). If their scores are within ``TIE_MARGIN``, or the held-out
+   flights do not prefer either significantly (:func:`quadcore.evidence.compare`, in the
+   channels above the noise), nothing else separates them: they are ``tied_with`` each other, the one with fewer parameters ranks
    first (parsimony; then the higher score), and the verdict says the data cannot choose.
    Otherwise the other channel separates them (``separated_by``) and the verdict says how.
    The physics behind the two pairs that matter:
@@ -68,8 +81,9 @@
    prediction is subtracted (least squares on the evaluated flights: a screening number).
    The verdict lists those above ``MIN_EXPLAINED`` as "also missing" (e.g. a CoM offset
    found beside rotor drag) and the others as alternatives to the best one, not additions.
-   When the best candidate explains nothing, or the residual is at the noise level, the
-   verdict is that no effect of the library explains what is left.
+   When nothing is found, the verdict says that no effect of the library explains what is
+   left, and says "at the noise level" only when the residual is also within the margin of
+   the floor in both channels.
 """
 
 from __future__ import annotations
@@ -83,17 +97,17 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore import effects as effectlib, fitting, rotations, signals, spectrum
+from quadcore import effects as effectlib, evidence, fitting, rotations, signals, spectrum
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
 
-MIN_EXPLAINED = 0.05  # below this fraction of its target residual, a candidate explains nothing
+MIN_EXPLAINED = 0.05  # screening: below this share of the residual a candidate adds nothing beyond the best one
 MIN_SIGMA = 3.0  # a fit within this many standard errors of 'no effect' is not significant
 SAME_SIGNATURE = 0.1  # share of one prediction another candidate cannot reproduce, below which they are alike
 TIE_MARGIN = 0.02  # score difference within which two alike candidates are a tie (parsimony decides)
 GRAM_STRIDE = 4  # sample thinning for the signature comparisons (see _SpanOverlap)
-NOISE_LEVEL = 2.0  # a channel whose residual RMS is within this factor of the sensor-noise floor holds no evidence
+LARGE_SNR = 3.0  # a found effect whose removed residual exceeds this many noise floors (RMS) is "large"
 
 SPEED_BINS = [0.0, 0.25, 0.5, 1.0, 1.5]
 HEIGHT_BINS = [-np.inf, 0.1, 0.3, 0.6, 1.0]
@@ -319,10 +333,11 @@ def diagnose(
         "torque_rmse_Nm": [float(np.sqrt(before[3 + j] / n_eval)) for j in range(3)],
     }
 
-    # The sensor-noise floor: a channel whose residual is within NOISE_LEVEL of it holds no
-    # evidence FOR an effect (only against one that would add error there).
+    # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
+    # holds no evidence FOR an effect (only against one that would add error there).
     noise_ss = _total(fds[f].noise ** 2 * int(fds[f].mask.sum()) for f in eval_ids)
-    at_noise = {ch: bool(before[sl].sum() <= NOISE_LEVEL**2 * noise_ss[sl].sum()) for ch, sl in TARGET_CHANNELS.items()}
+    at_noise = evidence.at_noise_level(before, noise_ss)
+    eval_fds = [fds[f] for f in eval_ids]
 
     rows: list[dict[str, Any]] = []
     w = fitting.channel_weights([eval_resid[f][fds[f].mask] for f in eval_ids])
@@ -373,12 +388,20 @@ def diagnose(
             "significance_sigma": sigma,
             "significant": sigma >= MIN_SIGMA,
             "notes": notes,
+            **_held_out_evidence(evidence.held_out_test(eval_fds, eval_resid, cand_pred[c.name],
+                                                        evidence.channel_mask([target])),
+                                 before, after, noise_ss, target),
         })
     for r in rows:
-        r["useful"] = r["physical"] and r["significant"] and r["explained_variance"] >= MIN_EXPLAINED
+        _decide(r, at_noise, len(rows))
 
     # Which candidates leave the same signature on the evaluated flights?
-    span = _SpanOverlap(cands, cand_pred, [fds[f] for f in eval_ids], eval_resid, w, vehicle)
+    span = _SpanOverlap(cands, cand_pred, eval_fds, eval_resid, w, vehicle)
+    evidence_w = w * evidence.channel_mask([ch for ch, quiet in at_noise.items() if not quiet])
+
+    def separated(a: str, b: str) -> bool:
+        """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the noise)."""
+        return evidence.compare(eval_fds, eval_resid, cand_pred[a], cand_pred[b], evidence_w).p_value < evidence.ALPHA
     by_name = {r["effect"]: r for r in rows}
     effect_of = {c.name: c for c in cands}
 
@@ -402,7 +425,8 @@ def diagnose(
             if can_mimic(r["effect"], o["effect"], ch) and can_mimic(o["effect"], r["effect"], ch):
                 alike.append(o["effect"])
         r["indistinguishable_from"] = alike
-        r["tied_with"] = [o for o in alike if abs(by_name[o]["score"] - r["score"]) < TIE_MARGIN]
+        r["tied_with"] = [o for o in alike
+                          if abs(by_name[o]["score"] - r["score"]) < TIE_MARGIN or not separated(r["effect"], o)]
         # what separates alike candidates: the other channel when either acts there (for an
         # effect acting in both, through its joint fit), otherwise how well each fits this one
         r["separated_by"] = {o: _other(ch) if "both" in (r["acts_on"], by_name[o]["acts_on"]) else ch
@@ -416,6 +440,13 @@ def diagnose(
     for r in rows:  # what each could still explain once the best one is in the model
         r["explained_after_top"] = (r["explained_variance"] if r is rows[0] or at_noise[r["target"]]
                                     else span.left_after(r["effect"], rows[0]["effect"], r["target"]))
+    rank_reasons(rows, at_noise)
+    # how small an effect could hide in what is left once the best one found is in the model
+    left = ({f: eval_resid[f] - cand_pred[rows[0]["effect"]][f] for f in eval_ids} if rows and rows[0]["found"]
+            else eval_resid)
+    sensitivity = detection_limits(cands, eval_fds, left, noise_ss, vehicle, len(cands))
+    for r in rows:
+        r["sensitivity"] = sensitivity[r["effect"]]
 
     long = long_table([fds[f] for f in eval_ids], eval_resid, vehicle)
     return {
@@ -429,13 +460,156 @@ def diagnose(
             "torque_rmse_Nm": [float(np.sqrt(noise_ss[3 + j] / n_eval)) for j in range(3)],
         },
         "at_noise_level": at_noise,
+        "residual_to_noise": {ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
+                              else None for ch, sl in TARGET_CHANNELS.items()},
         "candidates": rows,
-        "verdict": verdict(rows, at_noise),
+        "sensitivity": sensitivity,
+        "sensitivity_basis": sensitivity_basis(cands),
+        "verdict": verdict(rows, at_noise, sensitivity),
         "regimes": regime_table(long).to_dicts(),
         "flights": flight_table(long).to_dicts(),
         "worst_segments": worst_segments(long).to_dicts(),
         "frequency": spectrum.frequency_view([fds[f] for f in eval_ids], eval_resid, vehicle),
     }
+
+
+# ---------------------------------------------------------------------------------------
+# Evidence: the held-out test, the noise floor, the grade, and why each is ranked where it is
+# ---------------------------------------------------------------------------------------
+
+def _held_out_evidence(test: evidence.HeldOutTest, before: np.ndarray, after: np.ndarray,
+                       noise_ss: np.ndarray, target: str) -> dict:
+    """The held-out test of a candidate in its target channel, the share of the residual
+    *above the noise floor* it removes, and the size of what it removes in noise floors (RMS)."""
+    sl = TARGET_CHANNELS[target]
+    removed, excess, floor = before[sl].sum() - after[sl].sum(), before[sl].sum() - noise_ss[sl].sum(), noise_ss[sl].sum()
+    return {
+        "held_out_slope": test.beta,
+        "held_out_t": test.t,
+        "held_out_p_value": test.p_value,
+        "held_out_blocks": test.blocks,
+        "explained_above_noise": float(np.clip(removed / excess, 0.0, 1.0)) if excess > 0 else 0.0,
+        "signal_to_noise": float(np.sqrt(max(removed, 0.0) / floor)) if floor > 0 else 0.0,
+    }
+
+
+def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
+    """``found`` (alias ``useful``): physical, its parameters significant, confirmed on the
+    held-out flights (:func:`quadcore.evidence.held_out_test`), removing some of a target
+    residual that stands above the noise floor. ``grade`` says how large it is."""
+    r["held_out_alpha"] = evidence.alpha_each(n_candidates)
+    confirmed = r["held_out_p_value"] < r["held_out_alpha"] and r["held_out_slope"] > 0
+    r["found"] = bool(r["physical"] and r["significant"] and confirmed and r["explained_variance"] > 0
+                      and not at_noise[r["target"]])
+    r["useful"] = r["found"]
+    if not r["physical"]:
+        r["grade"] = "unphysical"
+    elif not r["found"]:
+        r["grade"] = "indistinguishable from noise"
+    elif r["signal_to_noise"] >= LARGE_SNR:
+        r["grade"] = "large"
+    elif r["signal_to_noise"] >= 1.0:
+        r["grade"] = "clear"
+    else:
+        r["grade"] = "small but certain"
+
+
+def _why_not(r: dict, at_noise: dict[str, bool]) -> tuple[str, str]:
+    """(status, reason) of a candidate that is not found."""
+    ch = r["target"]
+    if not r["physical"]:
+        return "unphysical", "unphysical fit: " + "; ".join(n for n in r["notes"] if "outside" in n)
+    if at_noise[ch]:
+        return "noise_level", (f"no evidence: the held-out {ch} residual is within {evidence.NOISE_MARGIN:.0%} "
+                               "of the sensor-noise floor")
+    if r["explained_variance"] <= 0:
+        return "no_gain", f"removes nothing from the held-out {ch} residual"
+    if r["significance_sigma"] >= MIN_SIGMA:
+        return "not_significant", (f"indistinguishable from noise on held-out flights "
+                                   f"(p = {r['held_out_p_value']:.2g}, needs p < {r['held_out_alpha']:.2g})")
+    return "not_significant", f"its fit is within noise of 'no effect' ({r['significance_sigma']:.1f} σ)"
+
+
+def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
+    """Give every candidate (best first) a ``status`` and a ``reason``: why it is ranked where
+    it is (found and how large; tied with; an alternative to the best one; unphysical; not
+    significant; at the noise level)."""
+    top = rows[0] if rows and rows[0]["found"] else None
+    for i, r in enumerate(rows):
+        if not r["found"]:
+            r["status"], r["reason"] = _why_not(r, at_noise)
+            above = [o["effect"] for o in rows[:i] if o["effect"] in r.get("indistinguishable_from", [])]
+            if above and r["physical"]:
+                r["reason"] += f"; indistinguishable from {', '.join(above)}"
+            continue
+        size = (f"{r['grade']}: removes {_pct(r['explained_variance'])} of the held-out {r['target']} residual "
+                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), p = {r['held_out_p_value']:.2g}")
+        if r is top:
+            r["status"], r["reason"] = "found", size
+        elif top is not None and top["effect"] in r.get("tied_with", []):
+            r["status"] = "tied"
+            r["reason"] = f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as many parameters; {size}"
+        elif r.get("explained_after_top", 0.0) >= MIN_EXPLAINED:
+            r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
+        else:
+            r["status"] = "alternative"
+            r["reason"] = f"an alternative to {top['effect']} (explains the same residual, less well); {size}"
+
+
+def detection_limits(cands, flights: list[FlightData], resid: dict[str, np.ndarray], noise_ss: np.ndarray,
+                     vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
+    """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
+    would detect (:func:`quadcore.evidence.detection_limit`); None when no value within the
+    parameter's range would be. A parameter stated at a reference point of the others (a
+    wind, at a rotor drag) must also lift the score by ``2 TIE_MARGIN`` above the simpler
+    effect it then resembles (a wind above rotor drag), or the two are a tie."""
+    out: dict[str, dict[str, float | None]] = {}
+    for c in cands:
+        out[c.name] = {}
+        reference = c.sensitivity_reference
+        base_ss = 0.0
+        if reference:
+            ref = {**c.defaults(), **reference}
+            base_ss = sum(float((fitting.prediction(c, ref, fd, vehicle)[fd.mask] ** 2).sum()) for fd in flights)
+        for p in c.parameters:
+            unit = {fd.flight: evidence.unit_wrench(c, p, fd, vehicle) for fd in flights}
+            conditional = bool(reference) and p.name not in reference
+            v = evidence.detection_limit(flights, resid, unit, noise_ss, MIN_SIGMA, n_candidates,
+                                         min_share=2 * TIE_MARGIN if conditional else 0.0,
+                                         base_ss=base_ss if conditional else 0.0)
+            out[c.name][p.name] = float(v) if v <= max(p.upper - p.default, p.default - p.lower) else None
+    return out
+
+
+def sensitivity_basis(cands) -> dict:
+    """What the sensitivity values mean (for the JSON and the reports)."""
+    return {
+        "meaning": "smallest |parameter - its 'no effect' value| these flights would detect, each parameter alone",
+        "detection_probability": evidence.POWER,
+        "false_alarm_probability": evidence.ALPHA,
+        "noise_margin": evidence.NOISE_MARGIN,
+        "conditions": {c.name: dict(c.sensitivity_reference) for c in cands if c.sensitivity_reference},
+    }
+
+
+def _below(p, v: float | None) -> str:
+    """``k_x_s_per_m < 0.003 s/m`` or ``|scale - 1| < 0.006``: a deviation below ``v``."""
+    if v is None:
+        return f"{p.name} not detectable in its range"
+    name = p.name if p.default == 0 else f"|{p.name} - {p.default:g}|"
+    return f"{name} < {v:.2g} {p.unit if p.unit != '1' else ''}".rstrip()
+
+
+def sensitivity_text(sensitivity: dict, effects: list[str] | None = None) -> str:
+    """``rotor_drag k_x_s_per_m < 0.003 s/m, ...`` for the named effects (all by default)."""
+    parts = []
+    for name in effects or list(sensitivity):
+        if name not in effectlib.registry():
+            continue
+        params = {p.name: p for p in effectlib.get(name).parameters}
+        vals = ", ".join(_below(params[k], v) for k, v in sensitivity.get(name, {}).items() if k in params)
+        parts.append(f"{name} ({vals})")
+    return "; ".join(parts)
 
 
 def _significance(effect, params: dict, std: dict) -> float:
@@ -537,8 +711,9 @@ class _SpanOverlap:
 
 
 def _tier(r: dict) -> int:
-    """0: a physical, significant fit; 1: physical but within noise of 'no effect'; 2: unphysical."""
-    return 0 if r["physical"] and r["significant"] else (1 if r["physical"] else 2)
+    """0: found (physical, significant, confirmed on held-out flights); 1: physical but not
+    found; 2: unphysical (never an explanation, whatever it removes)."""
+    return 0 if r["found"] else (1 if r["physical"] else 2)
 
 
 def _rank(rows: list[dict]) -> list[dict]:
@@ -570,28 +745,35 @@ def _pct(x: float) -> str:
     return f"{max(x, 0.0):.0%}"
 
 
-def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None) -> str:
-    """One paragraph a person reads first."""
-    useful = [r for r in rows if r.get("useful", r["physical"] and r["explained_variance"] >= MIN_EXPLAINED)]
-    if at_noise and all(at_noise.values()):
-        return ("No effect of the library explains the residual on held-out flights: it is at the sensor-noise "
-                "level in force and in torque; there is nothing left to explain.")
-    if not useful:
+def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
+    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
+    and how small an effect these flights could have missed."""
+    found = [r for r in rows if r.get("found", r.get("useful", False))]
+    unseen = [r["effect"] for r in rows if r not in found[:1]]
+    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
+              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + ".") if sensitivity else ""
+    if not found:
+        if at_noise and all(at_noise.values()):
+            return ("No effect of the library explains the residual on held-out flights: none improves it "
+                    f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
+                    "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
         best = rows[0] if rows else None
-        tail = ""
-        if best:
-            why = "" if best.get("significant", True) else ", within noise of no effect"
-            tail = f" (best: {best['effect']}, {best['explained_variance']:.0%}{why})"
+        tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
         return ("No effect of the library explains the residual on held-out flights" + tail +
-                ": what is left is noise, or a physical effect outside the library.")
-    top = useful[0]
+                ": what is left is a physical effect outside the library, or one below what these flights can "
+                "detect." + missed)
+    top = found[0]
+    grade = top.get("grade", "clear")
+    size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
+        grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
     by_name = {r["effect"]: r for r in rows}
     params = ", ".join(
         f"{k} = {v:.4g} ± {top['parameter_std'].get(k, float('nan')):.2g}" for k, v in top["parameters"].items()
     )
     ch, other = top["target"], _other(top["target"])
-    text = (f"Most likely missing: {top['effect']}: it removes {top['explained_variance']:.0%} of the held-out "
-            f"{ch} residual")
+    text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
+            f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
+            "the sensor-noise floor)")
     if top["acts_on"] == "both" and _ev_on(top, other) >= MIN_EXPLAINED:
         text += f" and {_ev_on(top, other):.0%} of the {other} residual"
     text += f" ({params})."
@@ -621,7 +803,7 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None) -> str:
             text += (f"{o} cannot explain the {ch} residual without an error in {by} that is not there "
                      f"(fitted to both, it removes only {_pct(_ev_on(r, ch))} of the {ch} residual).")
     alike = set(top.get("indistinguishable_from", [])) | set(tied)
-    others = [r for r in useful[1:] if r["effect"] not in alike]
+    others = [r for r in found[1:] if r["effect"] not in alike]
     independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
     overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
     if independent:
@@ -635,4 +817,40 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None) -> str:
                  "in the model): "
                  + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
                  + ".")
-    return text
+    return text + missed
+
+
+def candidate_summary(d: dict) -> list[dict]:
+    """One row per candidate, best first, for people: its status and why it is ranked there
+    (the console, the reports and the UI show the same)."""
+    return [{
+        "rank": i,
+        "effect": r["effect"],
+        "status": r.get("status", "found" if r.get("useful") else "-"),
+        "target": r["target"],
+        "explained": round(r["explained_variance"], 3),
+        "above_noise": round(r.get("explained_above_noise", float("nan")), 3),
+        "held_out_p": float(f"{r.get('held_out_p_value', float('nan')):.2g}"),
+        "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}"
+                                for k, v in r["parameters"].items()),
+        "why": r.get("reason", "; ".join(r["notes"])),
+    } for i, r in enumerate(d["candidates"], 1)]
+
+
+def sensitivity_rows(d: dict) -> list[dict]:
+    """One row per effect and parameter: the smallest deviation these flights would detect."""
+    basis = d.get("sensitivity_basis", {})
+    rows = []
+    for name, params in d.get("sensitivity", {}).items():
+        known = {p.name: p for p in effectlib.get(name).parameters} if name in effectlib.registry() else {}
+        cond = basis.get("conditions", {}).get(name, {})
+        for k, v in params.items():
+            p = known.get(k)
+            rows.append({
+                "effect": name, "parameter": k,
+                "undetected_below": None if v is None else float(f"{v:.2g}"),
+                "unit": p.unit if p and p.unit != "1" else "",
+                "of": (f"|{k} - {p.default:g}|" if p and p.default != 0 else k)
+                + (", at " + ", ".join(f"{c}={x:g}" for c, x in cond.items()) if cond and k not in cond else ""),
+            })
+    return rows

@@ -16,23 +16,36 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore import plots  # noqa: E402
+from quadcore import diagnosis, plots  # noqa: E402
 from quadcore.history import RMSE_COLUMNS  # noqa: E402
 
 
 def candidates_plot(d: dict) -> bytes:
-    rows = d["candidates"]
-    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1.2), layout="constrained")
-    names = [r["effect"] for r in rows][::-1]
-    ax.barh(np.arange(len(rows)) - 0.2, [r["explained_variance_force"] for r in rows][::-1], 0.4, label="force")
-    ax.barh(np.arange(len(rows)) + 0.2, [r["explained_variance_torque"] for r in rows][::-1], 0.4, label="torque")
-    ax.set_yticks(np.arange(len(rows)), names)
+    """Share of the held-out residual each candidate removes, force and torque. Found
+    candidates in full colour; the others faded and labelled with why (an unphysical fit is
+    hatched: whatever it removes, it is no explanation)."""
+    rows = d["candidates"][::-1]
+    fig, ax = plt.subplots(figsize=(8, 0.4 * len(rows) + 1.3), layout="constrained")
+    y = np.arange(len(rows))
+    for offset, key, colour, label in ((-0.2, "explained_variance_force", "C0", "force"),
+                                       (0.2, "explained_variance_torque", "C1", "torque")):
+        for yi, r in zip(y, rows):
+            found = r.get("found", r.get("useful", True))
+            ax.barh(yi + offset, r[key], 0.4, color=colour, alpha=1.0 if found else 0.35,
+                    hatch="//" if not r["physical"] else None, edgecolor="k" if not r["physical"] else None,
+                    label=label if yi == y[-1] else None)
+    ax.set_yticks(y, [f"{r['effect']} ({_short_status(r)})" for r in rows], fontsize=8)
     ax.axvline(0, color="k", lw=0.5)
-    ax.set_xlabel("fraction of held-out residual removed")
+    ax.set_xlabel("fraction of held-out residual removed (faded: not found; hatched: unphysical fit)")
     ax.set_xlim(-0.1, 1.0)
     ax.legend(loc="lower right")
     ax.grid(alpha=0.3, axis="x")
     return plots._png(fig)
+
+
+def _short_status(r: dict) -> str:
+    status = r.get("status", "found" if r.get("useful") else "not found")
+    return r.get("grade", status) if status in ("found", "tied") else status.replace("_", " ")
 
 
 def regimes_plot(d: dict) -> bytes:
@@ -176,19 +189,16 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
             {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan"))}
             for e in d["model"]["effects"] for k, v in e["params"].items()
         ])))
-    cands = pl.DataFrame([{
-        "effect": r["effect"], "target": r["target"], "explained": r["explained_variance"],
-        "force": r["explained_variance_force"], "torque": r["explained_variance_torque"],
-        "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}"
-                                for k, v in r["parameters"].items()),
-        "significance_sigma": r.get("significance_sigma", float("nan")),
-        "useful": r.get("useful", True),
-        "alike": ", ".join(r["indistinguishable_from"]),
-        "tied_with": ", ".join(r.get("tied_with", [])),
-        "notes": "; ".join(r["notes"]),
-    } for r in d["candidates"]]) if d["candidates"] else pl.DataFrame()
+    cands = pl.DataFrame(diagnosis.candidate_summary(d)) if d["candidates"] else pl.DataFrame()
+    sens = diagnosis.sensitivity_rows(d)
+    basis = d.get("sensitivity_basis", {})
     out += [
-        ("Candidate effects, best first", "table", cands),
+        ("Candidate effects, best first, and why each is ranked there", "table", cands),
+        ("Sensitivity: the smallest effect these flights would detect", "text",
+         (f"Each parameter alone, detected {basis.get('detection_probability', 0.9):.0%} of the time at "
+          f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
+          "values an effect would go unnoticed on these flights.")) if sens else None,
+        ("Sensitivity", "table", pl.DataFrame(sens)) if sens else None,
         (("Fraction of held-out residual each candidate removes", "image", candidates_plot(d))
          if d["candidates"] else None),
         ("Where it fails: residual by regime", "image", regimes_plot(d)),

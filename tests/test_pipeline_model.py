@@ -61,6 +61,10 @@ def test_the_loop_in_dagster(raw, tmp_path):
         res = materialize(FLEET, nominal, instance)
         diag = metadata(res, "model_diagnosis")
         assert "rotor_drag" in diag["verdict"]
+        # the UI says why each candidate ranks where it does, and how small an effect would be missed
+        assert "| rank | effect | status |" in diag["candidates"] and "| found |" in diag["candidates"]
+        assert "| com_offset | x_c_m |" in diag["sensitivity"]
+        assert set(diag["sensitivity_json"]["com_offset"]) == {"x_c_m", "y_c_m"}
         before = diag["force_rmse_x_N"]
         report = json.loads((root / "reports" / "diagnosis.json").read_text())
         assert report["candidates"][0]["effect"] == "rotor_drag"

@@ -1,7 +1,6 @@
 """Stage 3: the physics model (vehicle + fitted effects), its diagnosis, and the history of
 its errors. Fan-in over all decoded flights."""
 
-import json
 
 import dagster as dg
 import polars as pl
@@ -128,10 +127,10 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "model": result["model"]["label"],
         **{f"force_rmse_{a}_N": dg.MetadataValue.float(v) for a, v in zip("xyz", b["force_rmse_N"])},
         **{f"torque_rmse_{a}_Nm": dg.MetadataValue.float(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
-        "candidates": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame([
-            {"effect": r["effect"], "target": r["target"], "explained": r["explained_variance"],
-             "parameters": json.dumps({k: round(v, 6) for k, v in r["parameters"].items()}),
-             "alike": ", ".join(r["indistinguishable_from"])} for r in top]))),
+        "candidates": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+            diagnosis.candidate_summary({"candidates": top})))),
+        "sensitivity": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
+        "sensitivity_json": dg.MetadataValue.json(result["sensitivity"]),
         "candidates_plot": dg.MetadataValue.md(plots.markdown_image(report.candidates_plot(result), "candidates")),
         "regimes_plot": dg.MetadataValue.md(plots.markdown_image(report.regimes_plot(result), "regimes")),
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),

@@ -134,6 +134,9 @@ class Effect(ABC):
     parameters: tuple[Parameter, ...] = ()
     acts_on_airspeed: ClassVar[bool] = False
     doc: str = ""
+    # values of some parameters at which the others' sensitivity is stated, for parameters
+    # that show only through another (a wind only through a drag); see quadcore.evidence
+    sensitivity_reference: ClassVar[dict[str, float]] = {}
 
     def defaults(self) -> dict[str, float]:
         return {p.name: p.default for p in self.parameters}
