@@ -71,13 +71,13 @@ class MotorLag(Effect):
         # y[k+1] = a y[k] + (1 - a) x[k], a = exp(-dt / tau), steady state at the first call;
         # the wrench of this call uses y[k], then y advances
         return CCode(
-            "int i;\n"
+            "int r;\n"
             "qc_real missing[QC_N_ROTORS];\n"
             "const qc_real a = qc_exp(-dt_s / tau_s);\n"
-            "for (i = 0; i < QC_N_ROTORS; ++i) {\n"
-            "    if (first_call) lagged_f_rotor_N[i] = f_rotor_N[i];\n"
-            "    missing[i] = lagged_f_rotor_N[i] - f_rotor_N[i];\n"
-            "    lagged_f_rotor_N[i] = a * lagged_f_rotor_N[i] + (1.0f - a) * f_rotor_N[i];\n"
+            "for (r = 0; r < QC_N_ROTORS; ++r) {\n"
+            "    if (first_call) lagged_f_rotor_N[r] = f_rotor_N[r];\n"
+            "    missing[r] = lagged_f_rotor_N[r] - f_rotor_N[r];\n"
+            "    lagged_f_rotor_N[r] = a * lagged_f_rotor_N[r] + (1.0f - a) * f_rotor_N[r];\n"
             "}\n"
             "qc_add_rotor_wrench(missing, 1.0f, f_b_N, tau_b_Nm);",
             memory=(("lagged_f_rotor_N", vehicle.n_rotors),))

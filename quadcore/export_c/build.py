@@ -22,7 +22,8 @@ import numpy as np
 from quadcore.export_c.generate import HEADER, OUTPUTS, SOURCE, Generated
 from quadcore.export_c.inputs import ExportError
 
-STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+# The issue's flags, plus what a float-only firmware build cares about (no silent double, no shadowing)
+STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion", "-Wshadow"]
 CORTEX_M4 = ["-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard"]
 STM32F405_FLASH_BYTES = 1024 * 1024
 STM32F405_RAM_BYTES = 192 * 1024
@@ -47,7 +48,7 @@ def _run(cmd: list[str], cwd: Path) -> None:
 
 
 def check_strict(folder: Path, defines: tuple[str, ...] = ()) -> None:
-    """Compile the exported source with ``-std=c99 -Wall -Wextra -Werror -pedantic``."""
+    """Compile the exported source with :data:`STRICT` (``-std=c99 -Wall -Wextra -Werror`` and more)."""
     with tempfile.TemporaryDirectory() as tmp:
         obj = str(Path(tmp) / "m.o")
         _run([host_compiler(), *STRICT, *defines, "-c", str(Path(folder) / SOURCE), "-o", obj], folder)
@@ -193,7 +194,8 @@ class HostModel:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / "harness.c").write_text(_harness(gen))
         lib = workdir / f"libquadcore_model{'_'.join(d.strip('-D') for d in defines)}.so"
-        _run([host_compiler(), *STRICT, "-O2", "-fPIC", "-shared", *defines, f"-I{folder}", str(Path(folder) / SOURCE),
+        strict = [f for f in STRICT if f != "-Wdouble-promotion" or "-DQUADCORE_DOUBLE_INPUTS" not in defines]
+        _run([host_compiler(), *strict, "-O2", "-fPIC", "-shared", *defines, f"-I{folder}", str(Path(folder) / SOURCE),
               "harness.c", "-o", lib.name, "-lm"], workdir)
         self.lib = ctypes.CDLL(str(lib))
         f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")
