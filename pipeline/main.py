@@ -146,8 +146,13 @@ def run_fleet(instance, resources: dict, log) -> dict | None:
     if not result.success:
         log(f"  FAILED: {_failure_reason(result)}")
         return None
-    diag = store.read_json(resources["data_root"].root_path / "reports" / "diagnosis.json")
-    log(f"  {diag['verdict']}\n  (one run, {time.perf_counter() - t0:.1f} s)")
+    reports = resources["data_root"].root_path / "reports"
+    diag = store.read_json(reports / "diagnosis.json")
+    log(f"  {diag['verdict']}")
+    if (reports / "discovery.json").is_file():  # term_discovery: what no library effect has
+        terms = store.read_json(reports / "discovery.json")["terms"]
+        log("  Discovered terms: " + ("; ".join(t["formula"] for t in terms[:3]) if terms else "none kept"))
+    log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
     return diag
 
 
