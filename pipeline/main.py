@@ -34,7 +34,7 @@ from pipeline.resources import (
     model_config_from_env,
     retrain_cron,
 )
-from quadcore import flight, history, store
+from quadcore import flight, history, safewrite, store
 
 DAGSTER_YAML = """\
 # Written by `python -m pipeline`. SQLite storage: keep concurrent runs low.
@@ -255,6 +255,16 @@ def learning_is_stale(root: Path) -> str | None:
 
 
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
+    """Every stage on every flight, holding the data root's lock (a second job on the same data
+    root waits for this one), after sweeping what killed runs left behind."""
+    with safewrite.data_root_lock(data_root.root_path, on_wait=log):
+        swept = safewrite.sweep_stale(data_root.root_path)
+        if swept:
+            log(f"removed {len(swept)} temp file(s) or staging folder(s) left by killed runs")
+        return _run_stages(data_root, model, instance, log)
+
+
+def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     raw = data_root.raw_path
     logs = flight.discover_logs(raw) if raw.is_dir() else []
     demo = not logs

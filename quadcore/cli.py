@@ -18,6 +18,7 @@ non-zero; they never end in a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -612,10 +613,29 @@ def _user_errors() -> tuple[type[Exception], ...]:
     return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError)
 
 
+# Verbs that write a data root (``--out``): they hold its lock, so that two jobs on one root wait
+# for each other instead of interleaving, and sweep what killed runs left there.
+DATA_ROOT_VERBS = ("decode", "train")
+
+
+@contextlib.contextmanager
+def _data_root_held(args: argparse.Namespace):
+    if args.verb not in DATA_ROOT_VERBS:
+        yield
+        return
+    from quadcore import safewrite
+
+    out = _output_folder(args.out)
+    with safewrite.data_root_lock(out, on_wait=lambda m: print(m, file=sys.stderr)):
+        safewrite.sweep_stale(out)
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with _data_root_held(args):
+            return args.func(args)
     except OSError as exc:  # a folder that cannot be written, a file where a folder should be, ...
         print(f"quadcore {args.verb}: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return 2

@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore import features as feat, store
+from quadcore import features as feat, safewrite, store
 from quadcore.features import TARGETS, FeatureSet, Scaler
 
 FORMAT = "quadcore-learned/1"
@@ -559,20 +559,29 @@ class LearnedModel:
         return {n: float(v / total) for n, v in zip(self.features, vals)}
 
     # -- artefacts -------------------------------------------------------------------
-    def save(self, folder: str | Path) -> Path:
+    def save(self, folder: str | Path, predictions: pl.DataFrame | None = None) -> Path:
+        """Write the artefacts (and ``predictions.parquet``) into a staging folder, the manifest
+        last, and put it in place whole: a kill leaves the previous model or the new one, never
+        a torn one."""
         folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        if self.kind == "xgboost":
-            self.impl.save_model(str(folder / "model.ubj"))
-        else:
-            import torch
+        staging = safewrite.staging_folder(folder)
+        try:
+            if predictions is not None:
+                store.write_parquet(predictions, staging / "predictions.parquet", {"run": folder.name})
+            if self.kind == "xgboost":
+                self.impl.save_model(str(staging / "model.ubj"))
+            else:
+                import torch
 
-            torch.save(self.impl.state_dict(), folder / "model.pt")
-        store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, folder / "scaler.json")
-        store.write_json(self.feature_set.to_dict(), folder / "features.json")
-        store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
-                          "feature_set": self.feature_set.to_dict(), "targets": TARGETS}, folder / "manifest.json")
-        return folder
+                torch.save(self.impl.state_dict(), staging / "model.pt")
+            store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, staging / "scaler.json")
+            store.write_json(self.feature_set.to_dict(), staging / "features.json")
+            store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
+                              "feature_set": self.feature_set.to_dict(), "targets": TARGETS}, staging / "manifest.json")
+            return safewrite.replace_folder(staging, folder)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
 
 
 def vehicle_of(physics: dict):
@@ -586,13 +595,23 @@ def vehicle_of(physics: dict):
 
 
 def load(folder: str | Path, threads: int = 1, torch_threads: int = 1) -> LearnedModel:
-    """A model saved by :meth:`LearnedModel.save`."""
+    """A model saved by :meth:`LearnedModel.save`; :class:`LearningError` for anything else
+    (a missing or malformed manifest, scaler, feature list or weights)."""
     folder = Path(folder)
     mpath = folder / "manifest.json"
     if not mpath.is_file():
         raise LearningError(f"no learned model in {folder} (no manifest.json)")
+    try:
+        return _load(folder, mpath, threads, torch_threads)
+    except LearningError:
+        raise
+    except Exception as exc:  # noqa: BLE001 (json, xgboost, torch and pickle each have their own errors)
+        raise LearningError(f"{folder}: malformed learned model ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> LearnedModel:
     manifest = json.loads(mpath.read_text())
-    if manifest.get("format") != FORMAT:
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise LearningError(f"{mpath}: not a {FORMAT} manifest")
     spec = ModelSpec.from_dict(manifest["spec"])
     fs = FeatureSet.from_dict(json.loads((folder / "features.json").read_text()))
@@ -770,9 +789,11 @@ def feature_sets_primary(names: list[str]) -> str:
 
 
 def _clear_runs(out: Path) -> None:
-    """Remove earlier runs (folders holding one of our manifests) so the index is the truth."""
+    """Remove earlier runs (folders holding one of our manifests) so the index is the truth;
+    the index goes first, so that a run killed after this lists nothing that is gone."""
     if not out.is_dir():
         return
+    (out / "index.json").unlink(missing_ok=True)
     for d in out.iterdir():
         m = d / "manifest.json"
         if d.is_dir() and m.is_file():
@@ -819,8 +840,7 @@ def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir
             "latency_us": lat, "latency_library_us": lat_lib,
             "latency_path": "compiled NumPy forest" if e.spec.kind == "xgboost" else "torch (1, k) tensor, no_grad",
         })
-        folder = model.save(out / e.name)
-        store.write_parquet(pl.concat(frames), folder / "predictions.parquet", {"run": e.name})
+        folder = model.save(out / e.name, pl.concat(frames))
         rec = {**model.manifest, "kind": e.spec.kind, "spec": e.spec.to_dict(), "spec_label": e.spec.label,
                "feature_set": e.feature_set.to_dict(), "path": str(folder)}
         records.append(rec)
@@ -840,11 +860,14 @@ def read_runs(out_dir: str | Path) -> tuple[dict, list[dict]]:
     ipath = out / "index.json"
     if not ipath.is_file():
         raise LearningError(f"no learned models in {out} (no index.json): train them first")
-    index = json.loads(ipath.read_text())
-    records = []
-    for name in index["runs"]:
-        m = json.loads((out / name / "manifest.json").read_text())
-        records.append({**m, "path": str(out / name), "spec_label": ModelSpec.from_dict(m["spec"]).label})
+    try:
+        index = json.loads(ipath.read_text())
+        records = []
+        for name in index["runs"]:
+            m = json.loads((out / name / "manifest.json").read_text())
+            records.append({**m, "path": str(out / name), "spec_label": ModelSpec.from_dict(m["spec"]).label})
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LearningError(f"{out}: malformed learned-model index or manifest ({type(exc).__name__}: {exc})") from None
     return index, records
 
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import polars as pl
 
 from quadcore.names import check_component
+from quadcore.safewrite import temp_prefix
 
 METADATA_KEY = b"quadcore"
 
@@ -46,7 +47,7 @@ def quarantine_path(root: Path, flight: str) -> Path:
 def _atomic(path: Path, write) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temp_prefix(path.name), suffix=".tmp")
     os.close(fd)
     try:
         write(tmp)

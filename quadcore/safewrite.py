@@ -1,0 +1,111 @@
+"""Writes that survive a kill and runs that do not collide.
+
+- Temp files and staging folders carry the writer's pid in their name
+  (``.<name>.<pid>.<random>.tmp``, ``.<name>.<pid>.<random>.staging``): two writers never share
+  one, and a leftover whose writer is gone is recognisably stale.
+- A folder of files that only make sense together (a learned model: weights, scaler, features,
+  manifest) is written into a staging folder and put in place by :func:`replace_folder`.
+- :func:`sweep_stale` removes what killed writers left behind; the main job calls it on start.
+- :func:`data_root_lock` serialises whole jobs on one data root: a second job waits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import re
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+LOCK_FILE = ".quadcore.lock"
+STALE_AFTER_S = 3600.0  # a leftover without a readable pid is stale after this long
+_LEFTOVER = re.compile(r"^\..*\.(?P<pid>\d+)\.[^.]+\.(tmp|staging|old)$")
+_OLD_FOLDER = re.compile(r"^\..*\.(old|staging)(-[^/]*)?$|^\.features-")
+
+
+def temp_prefix(name: str) -> str:
+    """Prefix of a temp file or staging folder for ``name`` (``tempfile`` adds the random part)."""
+    return f".{name}.{os.getpid()}."
+
+
+def staging_folder(final: Path) -> Path:
+    """A new, empty staging folder beside ``final``."""
+    final.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".staging", dir=final.parent))
+
+
+def replace_folder(staging: Path, final: Path) -> Path:
+    """Put the complete folder ``staging`` in the place of ``final`` (two renames: ``final``
+    aside, ``staging`` in). A reader sees the old folder whole, or the new one whole, or,
+    for the instant between the renames, none; never a mix."""
+    old = None
+    if final.exists():
+        old = final.with_name(f"{temp_prefix(final.name)}{time.monotonic_ns()}.old")
+        final.rename(old)
+    staging.rename(final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _is_stale(path: Path, now: float) -> bool:
+    match = _LEFTOVER.match(path.name)
+    if match and int(match["pid"]) != os.getpid():
+        return not _pid_alive(int(match["pid"]))
+    if match or _OLD_FOLDER.match(path.name) or path.name.endswith((".tmp", ".old")):
+        try:
+            return now - path.lstat().st_mtime > STALE_AFTER_S
+        except OSError:
+            return False
+    return False
+
+
+def sweep_stale(root: Path) -> list[Path]:
+    """Remove temp files and staging folders under ``root`` left by writers that were killed
+    (their pid is gone, or, without a pid, older than ``STALE_AFTER_S``). Returns them."""
+    root, now, removed = Path(root), time.time(), []
+    if not root.is_dir():
+        return removed
+    for path in sorted(root.rglob(".*"), key=lambda p: len(p.parts)):
+        if path.name == LOCK_FILE or ".dagster" in path.relative_to(root).parts or not path.exists():
+            continue
+        if _is_stale(path, now):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
+
+
+@contextlib.contextmanager
+def data_root_lock(root: Path, on_wait=None) -> Iterator[None]:
+    """Hold the data root's lock (``<root>/.quadcore.lock``) for the block. Another holder makes
+    this wait (``on_wait(message)`` is called once first); the lock dies with its process."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    with open(root / LOCK_FILE, "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait(f"another job holds {root / LOCK_FILE}: waiting for it to finish")
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)

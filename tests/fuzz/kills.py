@@ -1,0 +1,126 @@
+"""Kill tests: a writer killed (SIGKILL) at a random moment never leaves a torn file or an
+unloadable learned model, and what it leaves behind is swept.
+
+A child process rewrites the same outputs in a loop: a learned XGBoost model, a learned MLP
+(both :meth:`LearnedModel.save`) and a Parquet table (:func:`store.write_parquet`). The parent
+kills it at a random moment, then checks that every output present loads, and after all the
+kills, that :func:`safewrite.sweep_stale` leaves no temp file or staging folder.
+
+    python -m tests.fuzz.kills [N_KILLS]      (the fuzz harness runs it: make fuzz)
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from quadcore import learning, safewrite, store
+
+CHILD_TEMPLATE = "template"  # folder of models the child copies from (trained once by the parent)
+OUTPUTS = ("xgboost", "mlp")
+
+
+@dataclass
+class KillReport:
+    kills: int
+    torn_files: int
+    unloadable_models: int
+    leftovers_before_sweep: int
+    leftovers_after_sweep: int
+
+
+def train_templates(folder: Path) -> None:
+    """One tiny XGBoost and one tiny MLP model, trained on random data, saved under ``folder``."""
+    from quadcore import features as feat
+
+    fs = feat.FEATURE_SETS["vel_rate"]
+    rng = np.random.default_rng(0)
+    tables = {}
+    for f in ("a", "b", "c"):
+        n = 400
+        cols = {c: rng.normal(size=n).astype(np.float32) for c in fs.columns}
+        cols.update({c: rng.normal(size=n) for c in feat.TARGETS})
+        tables[f] = pl.DataFrame({"t_s": np.arange(n) * 0.002, "near_gap": np.zeros(n, bool), **cols})
+    config = learning.TrainConfig(stride=1, threads=1)
+    specs = {"xgboost": learning.ModelSpec("xgboost", max_depth=2, n_estimators=20, early_stopping_rounds=5),
+             "mlp": learning.ModelSpec("mlp", hidden=(8,), max_epochs=3, patience=2, batch_size=128)}
+    for kind, spec in specs.items():
+        learning.train(spec, fs, tables, ["a", "b"], config).save(folder / kind)
+
+
+def child(root: Path) -> None:
+    """Rewrite the outputs forever (until killed)."""
+    models = {k: learning.load(root / CHILD_TEMPLATE / k) for k in OUTPUTS}
+    table = pl.DataFrame({"x": np.arange(200_000, dtype=np.float64)})
+    print("ready", flush=True)
+    while True:
+        for kind, m in models.items():
+            m.save(root / "out" / kind)
+        store.write_parquet(table, root / "out" / "table.parquet", {"n": table.height})
+
+
+def _check(root: Path) -> tuple[int, int]:
+    """(torn files, unloadable models) among the outputs present."""
+    torn = unloadable = 0
+    table = root / "out" / "table.parquet"
+    if table.exists():
+        try:
+            torn += pl.read_parquet(table).height != 200_000
+        except Exception:  # noqa: BLE001 (any failure to read is a torn file)
+            torn += 1
+    for kind in OUTPUTS:
+        if (root / "out" / kind).exists():
+            try:
+                learning.load(root / "out" / kind)
+            except learning.LearningError:
+                unloadable += 1
+    return torn, unloadable
+
+
+def _leftovers(root: Path) -> int:
+    return sum(1 for p in (root / "out").rglob(".*") if p.name.endswith((".tmp", ".staging", ".old")))
+
+
+def run(root: Path, n_kills: int, seed: int = 0, log=print) -> KillReport:
+    rng = random.Random(seed)
+    root.mkdir(parents=True, exist_ok=True)
+    if not (root / CHILD_TEMPLATE).exists():
+        train_templates(root / CHILD_TEMPLATE)
+    torn = unloadable = 0
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    for i in range(n_kills):
+        proc = subprocess.Popen([sys.executable, "-m", "tests.fuzz.kills", "--child", str(root)], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        time.sleep(rng.uniform(0.0, 0.4))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        t, u = _check(root)
+        torn, unloadable = torn + t, unloadable + u
+        if (i + 1) % 10 == 0:
+            log(f"  {i + 1} kills: torn files {torn}, unloadable models {unloadable}")
+    before = _leftovers(root)
+    safewrite.sweep_stale(root)
+    return KillReport(n_kills, torn, unloadable, before, _leftovers(root))
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--child"]:
+        child(Path(sys.argv[2]))
+    else:
+        import tempfile
+
+        n = int(sys.argv[1]) if len(sys.argv) > 1 else 100
+        with tempfile.TemporaryDirectory(prefix="quadcore-kills-") as tmp:
+            report = run(Path(tmp), n)
+        print(report)
+        sys.exit(0 if report.torn_files == report.unloadable_models == report.leftovers_after_sweep == 0 else 1)
