@@ -626,9 +626,15 @@ def _data_root_held(args: argparse.Namespace):
     from quadcore import safewrite
 
     out = _output_folder(args.out)
-    with safewrite.data_root_lock(out, on_wait=lambda m: print(m, file=sys.stderr)):
-        safewrite.sweep_stale(out)
-        yield
+    created = not out.exists()
+    try:
+        with safewrite.data_root_lock(out, on_wait=lambda m: print(m, file=sys.stderr)):
+            safewrite.sweep_stale(out)
+            yield
+    finally:
+        if created and [p.name for p in out.iterdir()] == [safewrite.LOCK_FILE]:  # a command that wrote nothing
+            (out / safewrite.LOCK_FILE).unlink()
+            out.rmdir()
 
 
 def main(argv: list[str] | None = None) -> int:
