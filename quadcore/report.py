@@ -68,9 +68,9 @@ def regimes_plot(d: dict) -> bytes:
 
 
 def frequency_plot(freq: dict) -> bytes:
-    """Residual RMS by frequency band (top) and coherence / gain of modelled vs measured
-    (bottom), force left and torque right."""
-    labels = [f"{lo:g}-{hi:g}" for lo, hi in freq["bands_hz"]]
+    """Residual RMS of each flight's constant offset and by frequency band (top), coherence and
+    gain of modelled vs measured by band (bottom); force left, torque right."""
+    labels = ["mean"] + [f"{lo:g}-{hi:g}" for lo, hi in freq["bands_hz"]]
     x = np.arange(len(labels))
     rows = {r["channel"]: r for r in freq["channels"]}
     fig, axes = plt.subplots(2, 2, figsize=(12, 6), layout="constrained", sharex=True)
@@ -79,17 +79,18 @@ def frequency_plot(freq: dict) -> bytes:
             r = rows.get(f"{kind}_{a}")
             if r is None:
                 continue
-            axes[0, col].bar(x + (j - 1) * 0.27, np.asarray(r["residual_rms"]) * scale, 0.27, label=f"{kind} {a}")
-            line = axes[1, col].plot(x, r["coherence"], "o-", label=f"coherence {a}")[0]
-            axes[1, col].plot(x, r["gain"], "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
-        axes[0, col].set_ylabel(f"residual RMS in band [{unit}]")
+            rms = np.asarray([r.get("residual_mean_rms", np.nan), *r["residual_rms"]]) * scale
+            axes[0, col].bar(x + (j - 1) * 0.27, rms, 0.27, label=f"{kind} {a}")
+            line = axes[1, col].plot(x[1:], r["coherence"], "o-", label=f"coherence {a}")[0]
+            axes[1, col].plot(x[1:], r["gain"], "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
+        axes[0, col].set_ylabel(f"residual RMS [{unit}]")
         axes[0, col].legend(fontsize=7)
         axes[1, col].set_ylabel("model vs measured")
         axes[1, col].set_ylim(0, 1.6)
         axes[1, col].axhline(1.0, color="k", lw=0.5)
         axes[1, col].legend(fontsize=6, ncol=3)
         axes[1, col].set_xticks(x, labels)
-        axes[1, col].set_xlabel("frequency band [Hz]")
+        axes[1, col].set_xlabel("each flight's mean, then frequency band [Hz]")
         for ax in axes[:, col]:
             ax.grid(alpha=0.3)
     return plots._png(fig)
