@@ -38,9 +38,9 @@ lint: $(STAMP)
 	$(VENV_PYTHON) -m ruff check .
 	$(VENV_PYTHON) -m mypy
 
+# Dagster's UI and daemon (`dg dev`) until Ctrl-C / SIGTERM; PORT=3001 make ui for another port.
 ui: $(STAMP)
-	mkdir -p $(DAGSTER_HOME)
-	$(VENV)/bin/dagster dev -w workspace.yaml -h 127.0.0.1 -p $(PORT)
+	$(VENV_PYTHON) -m pipeline.ui --port $(PORT)
 
 bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_decode.py

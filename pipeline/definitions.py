@@ -1,4 +1,4 @@
-"""The Dagster definitions: load with ``dagster dev -w workspace.yaml``."""
+"""The Dagster definitions: load with ``dg dev -w workspace.yaml`` (``make ui``)."""
 
 import dagster as dg
 
@@ -13,7 +13,7 @@ from pipeline.resources import (
     data_root_from_env,
     model_config_from_env,
 )
-from pipeline.sensors import QUARANTINE, raw_log_sensor
+from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
 
 # Computed per flight partition (the sensor's runs and the main job run these).
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
@@ -24,8 +24,6 @@ LEARNING = [learning_features, learned_models, learning_report]
 # The current model as C for the flight controller.
 EXPORT = [exported_model]
 
-# One flight through every per-flight stage: what the sensor launches, and a button in the UI.
-process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
 
 # Evaluates the automation conditions (retraining when flights arrive).
 automation = dg.AutomationConditionSensorDefinition(

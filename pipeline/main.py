@@ -7,10 +7,9 @@ hidden effect (``DEMO_EFFECT``), so that a new user sees the whole loop: decode 
 residuals -> fitted model -> diagnosis naming the hidden effect -> error history.
 
 It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
-``<data root>/.dagster``), so ``dagster dev`` shows these runs afterwards.
+``<data root>/.dagster``), so ``make ui`` shows these runs afterwards.
 """
 
-import hashlib
 import json
 import os
 import sys
@@ -26,6 +25,7 @@ from dagster._core.storage.tags import (
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.definitions import EXPORT, FLEET, LEARNING, PER_FLIGHT
+from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
     DataRoot,
@@ -36,15 +36,6 @@ from pipeline.resources import (
 )
 from quadcore import flight, history, safewrite, store
 
-DAGSTER_YAML = """\
-# Written by `python -m pipeline`. SQLite storage: keep concurrent runs low.
-concurrency:
-  runs:
-    max_concurrent_runs: 2
-telemetry:
-  enabled: false
-"""
-
 # The effect hidden in the demo flights, and its true parameters (SI).
 DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
 
@@ -53,16 +44,6 @@ RECOMPUTE = os.environ.get("QUADCORE_RECOMPUTE", "").lower() in ("1", "true", "y
 
 # Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
-
-
-def ensure_dagster_home(root: Path) -> Path:
-    """Use ``$DAGSTER_HOME`` or ``<root>/.dagster``; create it with a dagster.yaml."""
-    home = Path(os.environ.get("DAGSTER_HOME") or root / ".dagster").resolve()
-    home.mkdir(parents=True, exist_ok=True)
-    if not (home / "dagster.yaml").exists():
-        (home / "dagster.yaml").write_text(DAGSTER_YAML)
-    os.environ["DAGSTER_HOME"] = str(home)
-    return home
 
 
 def simulate_demo_flights(raw: Path, log=print) -> list[Path]:
@@ -180,27 +161,18 @@ def _materialized(instance, asset: str) -> set[str]:
     return instance.get_materialized_partitions(dg.AssetKey(asset))
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def to_decode(instance, data_root: DataRoot, ids: list[str]) -> list[str]:
     """Flights whose decoded tables are missing, or older than their log (another SHA-256)."""
     done = _materialized(instance, "decoded_flight")
-    out = []
-    for fid in ids:
-        recorded = store.recorded_provenance(data_root.root_path, MAIN_EVENT, fid) if fid in done else None
-        try:
-            same = recorded is not None and recorded.get("source_sha256") == _sha256(data_root.raw_log(fid))
-        except (OSError, ValueError):
-            same = False  # unreadable or unsafe: decode it, and let decoding say why it fails
-        if not same:
-            out.append(fid)
-    return out
+    return [fid for fid in ids if fid not in done or not _decoded_from_current_log(data_root, fid)]
+
+
+def _decoded_from_current_log(data_root: DataRoot, fid: str) -> bool:
+    try:
+        log_path = data_root.raw_log(fid)
+    except (OSError, ValueError):
+        return False  # unreadable or unsafe: decode it, and let decoding say why it fails
+    return store.decoded_from(data_root.root_path, MAIN_EVENT, fid, log_path)
 
 
 def to_recompute(
@@ -340,7 +312,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         log(f"\n{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
         for fid, why in failures.items():
             log(f"  {fid}: {why}")
-    log("\nSee it in the UI:  make ui   (dagster dev on http://127.0.0.1:3000)")
+    log("\nSee it in the UI:  make ui   (Dagster UI on http://127.0.0.1:3000)")
     return 0
 
 

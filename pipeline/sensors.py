@@ -6,6 +6,7 @@ from pathlib import Path
 
 import dagster as dg
 
+from pipeline.assets.decode import MAIN_EVENT
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore import flight, logformat, store
@@ -46,6 +47,7 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
     if not changed:
         return dg.SkipReason(f"no new logs in {data_root.raw_path}")
     known = set(context.instance.get_dynamic_partitions(FLIGHTS_PARTITION))
+    decoded = context.instance.get_materialized_partitions(dg.AssetKey("decoded_flight"))
     runs, add, refused = [], [], {}
     for fid, fp in sorted(changed.items()):
         problem = header_problem(paths[fid])
@@ -56,6 +58,8 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
             continue
         if fid not in known:
             add.append(fid)
+        elif fid in decoded and store.decoded_from(data_root.root_path, MAIN_EVENT, fid, paths[fid]):
+            continue  # processed already (by `make run`, or before a restart): same bytes, nothing to redo
         runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid))
     events = [quarantine_report(data_root)] if refused else []
     return dg.SensorResult(
@@ -89,7 +93,12 @@ def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
 PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export") - dg.AssetSelection.assets("quarantine")
 
 
-@dg.sensor(target=PER_FLIGHT, minimum_interval_seconds=30, default_status=automation_status())
+# One flight through every per-flight stage: what the sensor launches (its runs are filed under
+# this job in the UI), and a button in the UI.
+process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
+
+
+@dg.sensor(job=process_flight, minimum_interval_seconds=30, default_status=automation_status())
 def raw_log_sensor(context: dg.SensorEvaluationContext, data_root: DataRoot):
     """New or changed files in the raw folder -> flight partitions and runs; bad files -> quarantine."""
     return new_flight_requests(context, data_root)

@@ -17,6 +17,7 @@ under the key ``quadcore``, a JSON document with column units and provenance.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -92,6 +93,25 @@ def recorded_provenance(root: Path, event: str, flight: str) -> dict | None:
     """The provenance written with a flight's decoded ``event`` table, or None if not decoded yet."""
     path = decoded_path(root, event, flight)
     return read_metadata(path) if path.is_file() else None
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def decoded_from(root: Path, event: str, flight: str, log_path: Path) -> bool:
+    """Whether the flight's decoded ``event`` table was decoded from exactly these bytes (the
+    SHA-256 in its provenance); False when it is missing or the log cannot be read."""
+    recorded = recorded_provenance(root, event, flight)
+    try:
+        return recorded is not None and recorded.get("source_sha256") == file_sha256(log_path)
+    except (OSError, ValueError):
+        return False
 
 
 def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:

@@ -101,6 +101,29 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
 
 
+def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path):
+    """`make run` then `make ui`: the sensor's first tick (no cursor yet) sees every log, but
+    runs only the flights whose decoded table is missing or from other bytes; its runs are
+    filed under the process_flight job."""
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001"):
+        (raw / name).symlink_to(sim_logs / name)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim000", "sim001"])
+        run([decoded_flight], {"data_root": data_root}, instance, "sim000")  # what `make run` did
+        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        first = sensor_tick(instance, data_root)
+        assert sorted(r.partition_key for r in first.run_requests) == ["sim001", "sim002"]
+        assert raw_log_sensor.job_name == "process_flight"
+        # the same flight id with other bytes is processed again
+        (raw / "sim000").unlink()
+        (raw / "sim000").symlink_to(sim_logs / "sim002")
+        again = sensor_tick(instance, data_root, first.cursor)
+        assert [r.partition_key for r in again.run_requests] == ["sim000"]
+
+
 def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()

@@ -1,10 +1,11 @@
-"""The UI for real: `dagster dev` on a loopback port, a materialisation launched through its
+"""The UI for real: `make ui` (`dg dev`) on a loopback port, a materialisation launched through its
 GraphQL API, metadata read back; and the asset graph in headless Chromium."""
 
 from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -34,8 +35,8 @@ def webserver(tmp_path_factory):
     env = {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(base / "root"),
            "QUADCORE_RAW_DIR": str(raw), "QUADCORE_AUTOMATION": "off"}  # only the run the test launches
     log = open(base / "dagster_dev.log", "w")
-    # its own process group: `dagster dev` here ignores SIGTERM to the parent alone
-    proc = subprocess.Popen(["dagster", "dev", "-w", "workspace.yaml", "-h", "127.0.0.1", "-p", str(port)],
+    # `make ui`'s launcher; its own session too, so that a failed test can still end everything
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
                             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + 180
@@ -45,16 +46,51 @@ def webserver(tmp_path_factory):
             break
         except Exception:
             if proc.poll() is not None or time.time() > deadline:
-                os.killpg(proc.pid, signal.SIGKILL)
-                pytest.fail(f"dagster dev did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
+                _kill_everything_of(home)
+                pytest.fail(f"make ui did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
             time.sleep(1)
     yield url, port, base
-    os.killpg(proc.pid, signal.SIGTERM)
+    # SIGTERM to the launcher alone (as a service manager would send it) stops every service
+    proc.send_signal(signal.SIGTERM)
     try:
-        proc.wait(timeout=20)
+        code = proc.wait(timeout=60)
     except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
+        code = None
+    left = _kill_everything_of(home)
     log.close()
+    assert code == 0 and not left, f"exit {code}; still running after SIGTERM: {left}"
+    from pipeline.ui import port_problem
+
+    assert port_problem("127.0.0.1", port) is None
+
+
+def _kill_everything_of(home: Path) -> list[str]:
+    """Kill the processes started for this Dagster home (found by their environment); their command lines."""
+    left = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            if f"DAGSTER_HOME={home}".encode() not in environ.read_bytes().split(b"\0"):
+                continue
+            pid = int(environ.parent.name)
+            left.append((environ.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+            os.kill(pid, signal.SIGKILL)
+        except (OSError, ValueError):
+            continue
+    return left
+
+
+def test_a_taken_port_is_one_clear_line(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        env = {**os.environ, "DAGSTER_HOME": str(tmp_path / "home"), "QUADCORE_DATA_ROOT": str(tmp_path / "root")}
+        done = subprocess.run([sys.executable, "-m", "pipeline.ui", "--port", str(port)], cwd=REPO, env=env,
+                              capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.strip() == (f"make ui: error: port {port} on 127.0.0.1 is already in use; "
+                                   f"choose another with PORT={port + 1} make ui")
+    assert not (tmp_path / "home").exists()  # nothing started, nothing written
 
 
 def test_materialise_through_graphql_and_read_metadata(webserver):
