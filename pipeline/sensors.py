@@ -6,7 +6,9 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipeline.assets.decode import MAIN_EVENT
+from pipeline.assets.decode import MAIN_EVENT, decoded_flight
+from pipeline.assets.export import flight_mcap
+from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore import flight, logformat, store
@@ -90,7 +92,7 @@ def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
     )
 
 
-PER_FLIGHT = dg.AssetSelection.groups("decode", "physics", "export") - dg.AssetSelection.assets("quarantine")
+PER_FLIGHT = dg.AssetSelection.assets(decoded_flight, residual_table, rollout_errors, flight_mcap)
 
 
 # One flight through every per-flight stage: what the sensor launches (its runs are filed under

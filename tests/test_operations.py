@@ -117,6 +117,9 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
         first = sensor_tick(instance, data_root)
         assert sorted(r.partition_key for r in first.run_requests) == ["sim001", "sim002"]
         assert raw_log_sensor.job_name == "process_flight"
+        job = defs.resolve_job_def("process_flight")
+        assert {k.to_user_string() for k in job.asset_layer.executable_asset_keys} == {
+            "decoded_flight", "residual_table", "rollout_errors", "flight_mcap"}  # per-flight assets only
         # the same flight id with other bytes is processed again
         (raw / "sim000").unlink()
         (raw / "sim000").symlink_to(sim_logs / "sim002")
