@@ -645,6 +645,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # a folder that cannot be written, a file where a folder should be, ...
         print(f"quadcore {args.verb}: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return 2
+    except SystemExit as exc:  # commands return their code: this came from user code (a plugin)
+        print(f"quadcore {args.verb}: error: code run by the command (an effect plugin?) called "
+              f"exit({exc.code!r}); the command did not finish", file=sys.stderr)
+        return 2
     except Exception as exc:
         if not isinstance(exc, _user_errors()):
             raise

@@ -115,28 +115,20 @@ def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = No
     return ModelSpec(vehicle, list(effect_names), dict(fixed or {}))
 
 
-def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
-    """Read a model file (see module docstring)."""
-    path = Path(path)
-    d = vehiclemod.read_toml(path, ModelFileError, "model file")
-    base = path.parent
+MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters")
 
-    def resolve(p: str) -> str:
-        return str((base / p).resolve()) if not Path(p).is_absolute() else p
 
-    for plugin in d.get("plugins", []):
-        try:
-            effects.load_plugin(resolve(plugin))
-        except (FileNotFoundError, TypeError) as exc:
-            raise ModelFileError(f"{path}: plugin {plugin!r}: {exc}") from None
-    veh_name = vehicle_override or d.get("vehicle", vehiclemod.DEFAULT_VEHICLE)
-    if veh_name != vehiclemod.DEFAULT_VEHICLE and not vehicle_override:
-        veh_name = resolve(veh_name)
-    veh = vehiclemod.load(veh_name)
-    if d.get("thrust_map"):
-        veh = veh.with_thrust_map(d["thrust_map"])
-    names = list(d.get("effects", []))
+def _string_list(d: dict, key: str, path: Path) -> list[str]:
+    value = d.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ModelFileError(f"{path}: {key} = {value!r:.60}: expected a list of strings")
+    return value
+
+
+def _fixed_parameters(d: dict, names: list[str], path: Path) -> dict[str, dict[str, float]]:
     fixed = d.get("parameters", {})
+    if not isinstance(fixed, dict) or not all(isinstance(v, dict) for v in fixed.values()):
+        raise ModelFileError(f"{path}: parameters = {fixed!r:.60}: expected [parameters.<effect>] tables")
     for name, params in fixed.items():
         if name not in names:
             raise ModelFileError(f"{path}: [parameters.{name}] given but {name!r} is not in effects")
@@ -144,8 +136,45 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
         unknown = set(params) - known
         if unknown:
             raise ModelFileError(f"{path}: unknown parameters for {name}: {sorted(unknown)}; known: {sorted(known)}")
+        for key, value in params.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ModelFileError(f"{path}: [parameters.{name}] {key} = {value!r:.60}: expected a finite number")
+    return fixed
+
+
+def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
+    """Read a model file (see module docstring). Every key is checked; an error names the file,
+    the key and what was expected. Plugins are Python modules that run when loaded: a model
+    file must be trusted like code."""
+    path = Path(path)
+    d = vehiclemod.read_toml(path, ModelFileError, "model file")
+    unknown = sorted(set(d) - set(MODEL_FILE_KEYS))
+    if unknown:
+        raise ModelFileError(f"{path}: unknown key {unknown[0]!r}: expected one of {', '.join(MODEL_FILE_KEYS)}")
+    base = path.parent
+
+    def resolve(p: str) -> str:
+        return str((base / p).resolve()) if not Path(p).is_absolute() else p
+
+    for plugin in _string_list(d, "plugins", path):
+        try:
+            effects.load_plugin(resolve(plugin))
+        except (FileNotFoundError, TypeError) as exc:
+            raise ModelFileError(f"{path}: plugin {plugin!r}: {exc}") from None
+    veh_name = vehicle_override or d.get("vehicle", vehiclemod.DEFAULT_VEHICLE)
+    if not isinstance(veh_name, str) or not veh_name:
+        raise ModelFileError(f"{path}: vehicle = {veh_name!r:.60}: expected a built-in vehicle name or a path")
+    if veh_name != vehiclemod.DEFAULT_VEHICLE and not vehicle_override:
+        veh_name = resolve(veh_name)
+    veh = vehiclemod.load(veh_name)
+    if "thrust_map" in d:
+        if d["thrust_map"] not in vehiclemod.THRUST_MAP_KINDS:
+            raise ModelFileError(f"{path}: thrust_map = {d['thrust_map']!r:.60}: expected one of "
+                                 f"{', '.join(vehiclemod.THRUST_MAP_KINDS)}")
+        veh = veh.with_thrust_map(d["thrust_map"])
+    names = _string_list(d, "effects", path)
     try:
-        spec = spec_from(veh, names, fixed)
+        spec = spec_from(veh, names, _fixed_parameters(d, names, path))
     except effects.UnknownEffectError as exc:
         raise ModelFileError(f"{path}: {exc}") from None
     spec.source = str(path)

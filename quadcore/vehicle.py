@@ -120,53 +120,119 @@ class Vehicle:
         return replace(self, thrust_map_kind=kind)
 
 
-def _require(d: dict, key: str, where: str):
-    if key not in d:
-        raise VehicleFileError(f"{where}: missing key {key!r}")
-    return d[key]
+KNOWN_KEYS = {
+    "": {"name", "mass_kg", "inertia_kgm2", "torque_to_thrust_m", "rotor_radius_m", "rotors", "thrust_map"},
+    "rotors": {"arm_m", "angle_deg", "yaw_sign"},
+    "thrust_map": {"kind", "pwm_vbat", "motor_speed"},
+    "thrust_map.pwm_vbat": {"c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V"},
+    "thrust_map.motor_speed": {"k_F_N_per_radps2"},
+}
+
+
+def _table(d, key: str, where: str) -> dict:
+    value = d.get(key) if isinstance(d, dict) else None
+    if not isinstance(value, dict):
+        raise VehicleFileError(f"{where}: [{key}]: expected a table, got {_shown(value)}")
+    return value
+
+
+def _shown(value) -> str:
+    return "nothing (missing)" if value is None else f"{value!r:.60}"
+
+
+def _check_keys(d: dict, section: str, where: str) -> None:
+    unknown = sorted(set(d) - KNOWN_KEYS[section])
+    if unknown:
+        label = f"[{section}] " if section else ""
+        raise VehicleFileError(f"{where}: {label}unknown key {unknown[0]!r}: expected one of "
+                               f"{', '.join(sorted(KNOWN_KEYS[section]))}")
+
+
+def _number(d: dict, key: str, where: str, lo: float | None = None, strict: bool = True, default=None) -> float:
+    """``d[key]`` as a finite float (not a bool), ``> lo`` (``>= lo`` when not ``strict``)."""
+    value = d.get(key, default)
+    bound = "" if lo is None else f" {'>' if strict else '>='} {lo:g}"
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if strict else value >= lo
+    if not ok:
+        raise VehicleFileError(f"{where}: {key} = {_shown(value)}: expected a finite number{bound}")
+    return float(value)
 
 
 def from_dict(d: dict, source: str = "") -> Vehicle:
+    """A vehicle from a parsed file. Every value is checked (type, finiteness, range, rotor
+    layout); an error names the file, the key and what was expected."""
     where = source or "vehicle"
-    try:
-        return _from_dict(d, source, where)
-    except (TypeError, ValueError) as exc:
-        if isinstance(exc, VehicleFileError):
-            raise
-        raise VehicleFileError(f"{where}: a value is not a number or has the wrong shape: {exc}") from None
-
-
-def _from_dict(d: dict, source: str, where: str) -> Vehicle:
-    inertia = np.asarray(_require(d, "inertia_kgm2", where), dtype=float)
-    if inertia.shape != (3, 3) or not np.allclose(inertia, inertia.T):
-        raise VehicleFileError(f"{where}: inertia_kgm2 must be a symmetric 3x3 matrix")
-    if np.any(np.linalg.eigvalsh(inertia) <= 0):
-        raise VehicleFileError(f"{where}: inertia_kgm2 must be positive definite")
-    rotors = _require(d, "rotors", where)
-    angles = np.radians([float(_require(r, "angle_deg", where)) for r in rotors])
-    arms = np.array([float(_require(r, "arm_m", where)) for r in rotors])
-    tm = _require(d, "thrust_map", where)
-    pv = _require(tm, "pwm_vbat", f"{where} [thrust_map]")
-    ms = tm.get("motor_speed", {})
-    mass = float(_require(d, "mass_kg", where))
-    if mass <= 0:
-        raise VehicleFileError(f"{where}: mass_kg must be positive")
+    _check_keys(d, "", where)
+    inertia = _inertia(d, where)
+    rotors = d.get("rotors")
+    if not isinstance(rotors, list) or not all(isinstance(r, dict) for r in rotors):
+        raise VehicleFileError(f"{where}: rotors = {_shown(rotors)}: expected [[rotors]] tables")
+    for i, r in enumerate(rotors, 1):
+        _check_keys(r, "rotors", f"{where}: rotor {i}")
+    arms = np.array([_number(r, "arm_m", f"{where}: rotor {i}", 0.0) for i, r in enumerate(rotors, 1)])
+    angles = np.radians([_number(r, "angle_deg", f"{where}: rotor {i}") for i, r in enumerate(rotors, 1)])
+    yaw = np.array([_number(r, "yaw_sign", f"{where}: rotor {i}") for i, r in enumerate(rotors, 1)])
+    if not np.all(np.isin(yaw, (-1.0, 1.0))):
+        raise VehicleFileError(f"{where}: yaw_sign = {yaw.tolist()}: expected -1 or +1 for every rotor")
+    tm = _table(d, "thrust_map", where)
+    _check_keys(tm, "thrust_map", where)
     kind = tm.get("kind", "pwm_vbat")
     if kind not in THRUST_MAP_KINDS:
-        raise VehicleFileError(f"{where}: thrust_map.kind {kind!r} is not one of {THRUST_MAP_KINDS}")
-    return Vehicle(
-        name=str(d.get("name", Path(source).stem if source else "vehicle")),
-        mass_kg=mass,
+        raise VehicleFileError(f"{where}: [thrust_map] kind = {_shown(kind)}: expected one of {THRUST_MAP_KINDS}")
+    pv = _table(tm, "pwm_vbat", f"{where}: [thrust_map]")
+    _check_keys(pv, "thrust_map.pwm_vbat", where)
+    pv_where = f"{where}: [thrust_map.pwm_vbat]"
+    coeffs = {k: _number(pv, k, pv_where) for k in ("c0", "cp", "cb", "cpp", "cpb")}
+    ms = tm.get("motor_speed", {})
+    if not isinstance(ms, dict):
+        raise VehicleFileError(f"{where}: [thrust_map.motor_speed]: expected a table, got {_shown(ms)}")
+    _check_keys(ms, "thrust_map.motor_speed", where)
+    name = d.get("name", Path(source).stem if source else "vehicle")
+    if not isinstance(name, str):
+        raise VehicleFileError(f"{where}: name = {_shown(name)}: expected a string")
+    vehicle = Vehicle(
+        name=name,
+        mass_kg=_number(d, "mass_kg", where, 0.0),
         inertia_kgm2=inertia,
         rotor_xy_m=np.column_stack([arms * np.cos(angles), arms * np.sin(angles)]),
-        yaw_sign=np.array([float(_require(r, "yaw_sign", where)) for r in rotors]),
-        torque_to_thrust_m=float(_require(d, "torque_to_thrust_m", where)),
-        rotor_radius_m=float(_require(d, "rotor_radius_m", where)),
+        yaw_sign=yaw,
+        torque_to_thrust_m=_number(d, "torque_to_thrust_m", where, 0.0),
+        rotor_radius_m=_number(d, "rotor_radius_m", where, 0.0),
         thrust_map_kind=kind,
-        pwm_vbat=PwmVbatThrustMap(**{k: float(pv[k]) for k in ("c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V")}),
-        motor_speed=MotorSpeedThrustMap(float(ms.get("k_F_N_per_radps2", 0.0))),
+        pwm_vbat=PwmVbatThrustMap(**coeffs, vbat_ref_V=_number(pv, "vbat_ref_V", pv_where, 0.0)),
+        motor_speed=MotorSpeedThrustMap(_number(ms, "k_F_N_per_radps2", f"{where}: [thrust_map.motor_speed]",
+                                                0.0, strict=False, default=0.0)),
         source=source,
     )
+    _check_layout(vehicle, where)
+    return vehicle
+
+
+def _inertia(d: dict, where: str) -> np.ndarray:
+    raw = d.get("inertia_kgm2")
+    try:
+        inertia = np.asarray(raw, dtype=float)
+    except (TypeError, ValueError):
+        inertia = np.zeros(0)
+    numbers = isinstance(raw, list) and all(isinstance(r, list) and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in raw)
+    if not numbers or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)) \
+            or not np.allclose(inertia, inertia.T) or np.any(np.linalg.eigvalsh(inertia) <= 0):
+        raise VehicleFileError(f"{where}: inertia_kgm2 = {_shown(raw)}: expected a symmetric, positive "
+                               "definite 3x3 matrix of finite numbers (kg m^2)")
+    return inertia
+
+
+def _check_layout(vehicle: Vehicle, where: str) -> None:
+    """The rotors must be able to produce thrust and all three torques: the allocation matrix
+    ``A`` (4 x rotors) has rank 4. Three rotors, or all on one line, cannot."""
+    if vehicle.n_rotors < 4 or np.linalg.matrix_rank(vehicle.allocation, tol=1e-12) < 4:
+        raise VehicleFileError(
+            f"{where}: rotors: {vehicle.n_rotors} rotors whose layout cannot produce thrust and roll, pitch "
+            "and yaw torque independently: expected at least 4 rotors around the centre of mass with both "
+            "yaw_sign values")
 
 
 def load(path_or_name: str | Path | None = None) -> Vehicle:

@@ -210,7 +210,7 @@ def test_bad_vehicle_values_and_missing_columns_are_typed_errors(tmp_path, sim_f
     text = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
     bad = tmp_path / "bad.toml"
     bad.write_text(text.replace("mass_kg = 0.0347", 'mass_kg = "heavy"'))
-    with pytest.raises(vehicle.VehicleFileError, match="not a number"):
+    with pytest.raises(vehicle.VehicleFileError, match="mass_kg = .heavy.: expected a finite number"):
         vehicle.load(bad)
     hexa = tmp_path / "hexa.toml"
     extra = "\n".join(f"[[rotors]]\narm_m = 0.046\nangle_deg = {a}\nyaw_sign = 1\n" for a in (90.0, -90.0))

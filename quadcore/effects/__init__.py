@@ -109,7 +109,7 @@ def load_plugin(path: str | Path) -> Effect:
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:  # a user's module: report, do not crash
+    except (Exception, SystemExit) as exc:  # a user's module: report, do not crash (nor exit)
         raise PluginError(f"cannot import effect module {path}: {type(exc).__name__}: {exc}") from exc
     effect = getattr(module, "EFFECT", None)
     if isinstance(effect, Effect) and effect.name in builtin_names():
