@@ -43,6 +43,9 @@ ui: $(STAMP)
 	$(VENV_PYTHON) -m pipeline.ui --port $(PORT)
 
 bench: $(STAMP)
+	$(VENV_PYTHON) benchmarks/bench_export.py
+	$(VENV_PYTHON) benchmarks/bench_pipeline.py
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_scale.py
 	$(VENV_PYTHON) benchmarks/bench_decode.py
 	$(VENV_PYTHON) benchmarks/bench_physics.py
 	$(VENV_PYTHON) benchmarks/bench_learning.py

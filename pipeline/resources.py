@@ -41,7 +41,11 @@ class DataRoot(dg.ConfigurableResource):
 
     @property
     def root_path(self) -> Path:
-        return Path(self.root).resolve()
+        """The root folder, or a ``UPath`` for an object-store URL (``s3://bucket/prefix``)."""
+        from quadcore.store import as_root, is_remote
+
+        root = as_root(self.root)
+        return root if is_remote(root) else root.resolve()
 
     @property
     def raw_path(self) -> Path:

@@ -23,8 +23,6 @@ metadata record ``quadcore``.
 
 from __future__ import annotations
 
-import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +33,8 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.timestamp_pb2 import Timestamp
+
+from quadcore import store
 
 XYZ = "xyz"
 _F = descriptor_pb2.FieldDescriptorProto
@@ -206,17 +206,15 @@ def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int,
     import foxglove
     from foxglove.mcap import MCAPWriteOptions
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
     t_ns = start_ns + np.round(table["t_s"].to_numpy() * 1e9).astype(np.int64)
     stamp = {"seconds": t_ns // 1_000_000_000, "nanos": t_ns % 1_000_000_000}
     times = t_ns.tolist()
-    context = foxglove.Context()  # this file's channels only
-    options = MCAPWriteOptions(profile="", compression_threads=0)
     counts = {}
-    try:
-        with foxglove.open_mcap(tmp, context=context, writer_options=options) as writer:
+
+    def write(tmp: str) -> None:
+        context = foxglove.Context()  # this file's channels only
+        options = MCAPWriteOptions(profile="", compression_threads=0)
+        with foxglove.open_mcap(tmp, allow_overwrite=True, context=context, writer_options=options) as writer:
             for topic, values in topic_values(table, stamp).items():
                 name = TOPICS[topic]
                 schema = foxglove.Schema(name=name, encoding="protobuf", data=SCHEMAS[name])
@@ -228,7 +226,6 @@ def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int,
                     log(data[i * width:(i + 1) * width], log_time=t)
                 counts[topic] = len(times)
             writer.write_metadata("quadcore", {"start_ns": str(start_ns), **(metadata or {})})
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+
+    store.atomic_write(path, write)
     return counts

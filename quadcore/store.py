@@ -13,6 +13,12 @@ an all-digit flight id stays a string). Every name that becomes a path component
 flight, stage) is checked by :func:`quadcore.names.check_component`: nothing built from a log's
 content or a file's name can leave the data root. Each file's Parquet key-value metadata holds,
 under the key ``quadcore``, a JSON document with column units and provenance.
+
+The root may be an object-store URL (``s3://bucket/prefix``): :func:`as_root` makes it a
+``UPath`` (fsspec), and every function here reads and writes through it. Credentials and the
+endpoint come from the usual environment (``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``,
+``AWS_ENDPOINT_URL`` for an S3-compatible server). There, a write is one PUT of the finished
+file (an object appears whole or not at all), in place of the local temp file + rename.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import polars as pl
 
@@ -31,22 +38,48 @@ from quadcore.safewrite import temp_prefix
 METADATA_KEY = b"quadcore"
 
 
+def as_root(root: Any) -> Any:
+    """A data root as a path: a local ``Path``, or a ``UPath`` for a URL such as ``s3://bucket/prefix``."""
+    if is_remote(root):
+        return root
+    text = str(root)
+    if "://" in text:
+        from upath import UPath
+
+        return UPath(text)
+    return Path(text)
+
+
+def is_remote(path: Any) -> bool:
+    """Whether ``path`` lives in an object store (a ``UPath`` with a protocol), not on this disk."""
+    return bool(getattr(path, "protocol", "")) and not isinstance(path, Path)
+
+
 def decoded_path(root: Path, event: str, flight: str) -> Path:
     event, flight = check_component(event, "event name"), check_component(flight, "flight id")
-    return Path(root) / "decoded" / event / f"flight={flight}" / "data.parquet"
+    return as_root(root) / "decoded" / event / f"flight={flight}" / "data.parquet"
 
 
 def table_path(root: Path, stage: str, flight: str) -> Path:
     stage, flight = check_component(stage, "stage"), check_component(flight, "flight id")
-    return Path(root) / stage / f"flight={flight}" / "data.parquet"
+    return as_root(root) / stage / f"flight={flight}" / "data.parquet"
 
 
 def quarantine_path(root: Path, flight: str) -> Path:
-    return Path(root) / "quarantine" / f"{check_component(flight, 'flight id')}.json"
+    return as_root(root) / "quarantine" / f"{check_component(flight, 'flight id')}.json"
 
 
-def _atomic(path: Path, write) -> Path:
-    path = Path(path)
+def atomic_write(path: Any, write) -> Path:
+    """Run ``write(tmp)`` on a temp file beside ``path`` and rename it into place; in an object
+    store, on a local temp file then uploaded in one PUT."""
+    path = as_root(path)
+    if is_remote(path):
+        with tempfile.TemporaryDirectory(prefix="quadcore-upload-") as local:
+            tmp = os.path.join(local, path.name)
+            write(tmp)
+            remote: Any = path
+            remote.fs.put_file(tmp, remote.path)
+        return path
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temp_prefix(path.name), suffix=".tmp")
     os.close(fd)
@@ -62,22 +95,33 @@ def _atomic(path: Path, write) -> Path:
 def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
     """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata."""
     meta = {METADATA_KEY.decode(): json.dumps(metadata, default=str)}
-    return _atomic(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
+    return atomic_write(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
 
 
 def read_metadata(path: Path) -> dict:
     """The ``quadcore`` document from a file's key-value metadata (also readable with DuckDB's
     ``parquet_kv_metadata`` or pyarrow's ``ParquetFile(path).metadata.metadata``)."""
+    if is_remote(path):
+        with path.open("rb") as fh:
+            return json.loads(pl.read_parquet_metadata(fh).get(METADATA_KEY.decode(), "{}"))
     return json.loads(pl.read_parquet_metadata(path).get(METADATA_KEY.decode(), "{}"))
+
+
+def read_parquet(path: Path) -> pl.DataFrame:
+    """One Parquet file, local or in an object store."""
+    if is_remote(path):
+        with path.open("rb") as fh:
+            return pl.read_parquet(fh)
+    return pl.read_parquet(path)
 
 
 def write_text(text: str, path: Path) -> Path:
     """Write ``text`` to ``path`` atomically (temp file + rename)."""
-    return _atomic(path, lambda tmp: Path(tmp).write_text(text))
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def write_json(obj: dict, path: Path) -> Path:
-    return _atomic(path, lambda tmp: Path(tmp).write_text(json.dumps(obj, indent=2, default=str)))
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(obj, indent=2, default=str)))
 
 
 def write_decoded(root: Path, flight) -> dict[str, Path]:
@@ -115,16 +159,16 @@ def decoded_from(root: Path, event: str, flight: str, log_path: Path) -> bool:
 
 
 def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:
-    return pl.read_parquet(decoded_path(root, event, flight))
+    return read_parquet(decoded_path(root, event, flight))
 
 
 def read_table(root: Path, stage: str, flight: str) -> pl.DataFrame:
-    return pl.read_parquet(table_path(root, stage, flight))
+    return read_parquet(table_path(root, stage, flight))
 
 
 def decoded_flights(root: Path, event: str) -> list[str]:
     """Flight ids that have a decoded table of ``event`` under ``root``, sorted."""
-    folder = Path(root) / "decoded" / event
+    folder = as_root(root) / "decoded" / event
     return sorted(p.parent.name.split("=", 1)[1] for p in folder.glob("flight=*/data.parquet"))
 
 
@@ -141,7 +185,7 @@ def write_quarantine(root: Path, flight: str, source: str, reason: str, error_ty
 
 def quarantined(root: Path) -> list[dict]:
     """Every quarantine record under ``root``, by flight id."""
-    return [json.loads(p.read_text()) for p in sorted((Path(root) / "quarantine").glob("*.json"))]
+    return [json.loads(p.read_text()) for p in sorted((as_root(root) / "quarantine").glob("*.json"))]
 
 
 def clear_quarantine(root: Path, flight: str) -> None:
@@ -149,4 +193,4 @@ def clear_quarantine(root: Path, flight: str) -> None:
 
 
 def read_json(path: Path) -> dict:
-    return json.loads(Path(path).read_text())
+    return json.loads(as_root(path).read_text())

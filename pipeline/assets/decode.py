@@ -86,7 +86,8 @@ def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg
     """
     outcomes = {}
     try:
-        given_starts = flight.read_flight_starts(find_flights_csv(data_root.raw_path, data_root.root_path))
+        local = [p for p in (data_root.raw_path, data_root.root_path) if not store.is_remote(p)]
+        given_starts = flight.read_flight_starts(find_flights_csv(*local))
     except ValueError as exc:
         raise dg.Failure(description=str(exc)) from None
 
