@@ -32,7 +32,7 @@ Vehicle constants: ``QC_N_ROTORS``, ``QC_MASS_KG``, ``QC_ROTOR_RADIUS_M``, and
 ``qc_add_rotor_wrench(const qc_real f[QC_N_ROTORS], qc_real scale, f_b_N, tau_b_Nm)``,
 which adds ``scale * A f`` (A: the allocation matrix). ``qc_real`` is the type of the derived
 quantities (``float``; ``double`` when compiled with ``-DQUADCORE_DOUBLE_INPUTS``), with
-``qc_sqrt`` and ``qc_exp`` the matching ``math.h`` functions.
+``qc_sqrt``, ``qc_exp`` and ``qc_fabs`` the matching ``math.h`` functions.
 
 An effect with memory (a filter, a delay) lists ``qc_real`` arrays in ``memory`` as ``(name,
 length)``; its statements see each as a ``qc_real *`` of that

@@ -733,6 +733,51 @@ class DiscoveredEffect(Effect):
             tau += params[p.name] * bt
         return f, tau
 
+    def c_code(self, vehicle, params):
+        """The terms in C for ``quadcore export-c`` when every one has an on-board form; ``None``
+        when one needs a time derivative or a sensor the residual is measured with."""
+        from quadcore.ccode import CCode
+
+        lines = []
+        for p, (axis, expr) in zip(self.parameters, self._terms):
+            value = c_term(expr, vehicle)
+            if value is None:
+                return None
+            out = f"f_b_N[{axis}]" if axis < 3 else f"tau_b_Nm[{axis - 3}]"
+            lines.append(f"{out} += {p.name} * ({value});")
+        return CCode("\n".join(lines))
+
+
+def c_term(expression: str, vehicle: Vehicle) -> str | None:
+    """A term of :func:`variables` as a C expression (names of :mod:`quadcore.ccode`), or None."""
+    from quadcore.export_c.inputs import ExportError, feature_expression
+
+    h = f"(p_w_m[2] > {MIN_HEIGHT_M!r}f ? p_w_m[2] : {MIN_HEIGHT_M!r}f)"
+    special = {
+        "1": "1.0f",
+        "(R/4h)^2*T_N": f"QC_ROTOR_RADIUS_M * QC_ROTOR_RADIUS_M / (16 * {h} * {h}) * T_N",
+        "T_N*|v_h|^2": "T_N * (v_b_mps[0] * v_b_mps[0] + v_b_mps[1] * v_b_mps[1])",
+        "Omega_net_radps": " + ".join(f"({float(s)!r}f * motor_radps[{i}])" for i, s in enumerate(vehicle.yaw_sign)),
+    }
+
+    def variable(name: str) -> str | None:
+        pair = re.fullmatch(r"\(f_rotor_(\d+)_N-f_rotor_(\d+)_N\)", name)
+        if name in special:
+            return special[name]
+        if pair:
+            return f"(f_rotor_N[{int(pair[1]) - 1}] - f_rotor_N[{int(pair[2]) - 1}])"
+        try:
+            return feature_expression(name, vehicle)
+        except ExportError:  # a time derivative, or the residual's own sensors
+            return None
+
+    if expression in special:
+        return special[expression]
+    factors = [(f.startswith("|"), variable(f.strip("|"))) for f in expression.split("*")]
+    if any(c is None for _, c in factors):
+        return None
+    return " * ".join(f"qc_fabs({c})" if absolute else f"({c})" for absolute, c in factors)
+
 
 def _slug(text: str) -> str:
     return re.sub(r"_+", "_", re.sub(r"[^0-9A-Za-z]+", "_", text)).strip("_")

@@ -259,3 +259,33 @@ def test_dagster_asset_writes_the_c_files_under_the_data_root(data_root, tmp_pat
     assert not empty.success
     failure = next(e for e in empty.all_events if e.is_step_failure).event_specific_data.user_failure_data
     assert "no learned models" in failure.description and not (tmp_path / "export_c").exists()
+
+
+def test_discovered_terms_export_when_they_have_an_on_board_form(decoded, tmp_path):
+    terms = [("f_res_b_x_N", "T_N*v_b_x_mps", "fx_T_vbx", "s/m", 1.0),
+             ("f_res_b_z_N", "(R/4h)^2*T_N", "fz_ground", "1", 100.0),
+             ("f_res_b_y_N", "T_N*|v_h|^2", "fy_lift", "s2/m2", 1.0),
+             ("tau_res_b_x_Nm", "Omega_net_radps*omega_b_y_radps", "tx_gyro", "kg m2", 1e-6),
+             ("tau_res_b_y_Nm", "(f_rotor_1_N-f_rotor_3_N)", "ty_pair", "m", 0.1),
+             ("tau_res_b_z_Nm", "v_b_x_mps*|omega_b_z_radps|", "tz_abs", "kg m", 1e-3),
+             ("f_res_b_z_N", "1", "fz_const", "N", 1.0)]
+    params = {"fx_T_vbx": -0.02, "fz_ground": 3.0, "fy_lift": 0.01, "tx_gyro": 2e-7, "ty_pair": 0.004,
+              "tz_abs": 1e-4, "fz_const": 0.003}
+    timing = [("tau_res_b_x_Nm", "d(tau_rotor_x_Nm)/dt", "tx_rate", "s", 1.0)]
+    for name, rows in (("found_terms", terms), ("found_timing", timing)):  # modules as discover writes them
+        (tmp_path / f"{name}.py").write_text("from quadcore.discovery import DiscoveredEffect\n"
+                                             f"EFFECT = DiscoveredEffect({name!r}, {rows!r})\n")
+        effects.load_plugin(tmp_path / f"{name}.py")
+    try:
+        pm = PhysicsModel(VEHICLE, [EffectTerm("found_terms", params)])
+        exported = export_c.export_models(pm, None, tmp_path / "out", "discovered")
+        out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+        f_py, tau_py = pm.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+        assert np.abs(tau_py[:, 0]).max() > 0 and np.abs(f_py[:, 1]).max() > 0
+        _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "discovered terms")
+        with pytest.raises(export_c.NoCFormError, match="'found_timing'"):
+            export_c.export_models(PhysicsModel(VEHICLE, [EffectTerm("found_timing", {"tx_rate": 1e-3})]), None,
+                                   tmp_path / "timing", "discovered")
+    finally:
+        effects.unregister("found_terms")
+        effects.unregister("found_timing")

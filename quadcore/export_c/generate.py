@@ -22,8 +22,8 @@ class NoCFormError(ExportError):
     """An effect in the model whose module gives no C form (``c_code`` returns ``None``)."""
 
     def __init__(self, effect: str):
-        super().__init__(f"effect {effect!r} has no C form: give its module a c_code(vehicle, params) method "
-                         "returning quadcore.ccode.CCode (see docs/adding-an-effect.md)")
+        super().__init__(f"effect {effect!r} has no C form: its c_code(vehicle, params) gives none (a method "
+                         "returning quadcore.ccode.CCode; see docs/adding-an-effect.md, section 6)")
         self.effect = effect
 
 
@@ -153,10 +153,12 @@ PRECISION = """/* Derived quantities (rotation, body velocity, rotor thrusts) ar
 typedef double qc_real;
 #define qc_sqrt sqrt
 #define qc_exp exp
+#define qc_fabs fabs
 #else
 typedef float qc_real;
 #define qc_sqrt sqrtf
 #define qc_exp expf
+#define qc_fabs fabsf
 #endif
 """
 
