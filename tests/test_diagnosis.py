@@ -62,6 +62,13 @@ CASES = {
     # a steady 1.1 m/s draught
     "wind": ({"k_s_per_m": 0.1, "w_x_mps": 1.0, "w_y_mps": -0.5}, STANDARD,
              ["k_s_per_m", "w_x_mps", "w_y_mps"], [("force", (0, 1))]),
+    # a propeller 4 % strong, one 3 % weak, ...: the yaw torque gives it away
+    "rotor_imbalance": ({"d_1": 0.04, "d_2": -0.03, "d_3": 0.02}, STANDARD, ["d_1", "d_2", "d_3"],
+                        [("torque", (0, 1, 2))]),
+    # 20 ms between the logged PWM and the thrust
+    "thrust_delay": ({"t_d_s": 0.02}, STANDARD, ["t_d_s"], [("force", (2,)), ("torque", (0, 1, 2))]),
+    # a battery mounted differently: the diagonal of J off by 10-30 %
+    "inertia_scale": ({"s_x": 1.3, "s_y": 0.85, "s_z": 1.3}, STANDARD, ["s_x", "s_y", "s_z"], [("torque", (0, 1, 2))]),
 }
 TWO = {"rotor_drag": {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}, "com_offset": {"x_c_m": 0.003, "y_c_m": -0.002}}
 
@@ -230,6 +237,35 @@ def test_a_weak_effect_below_the_old_noise_threshold_is_found_not_called_noise(s
     assert "nothing left" not in result["verdict"]
     # the found drag is not a yardstick for itself: what could still hide is below the truth
     assert result["sensitivity"]["rotor_drag"]["k_x_s_per_m"] < truth["k_x_s_per_m"]
+
+
+def test_a_delay_and_a_lag_are_told_apart_by_the_data(hidden):
+    """A pure delay and a first-order lag shift the phase of slow thrust changes alike; only
+    the lag also damps the fast ones. On flights with fast thrust changes the data prefer
+    the right one by more than a tie, and say that the other is the alternative."""
+    delay, _ = hidden("thrust_delay")
+    top, lag = delay["candidates"][0], next(r for r in delay["candidates"] if r["effect"] == "motor_lag")
+    assert top["effect"] == "thrust_delay" and "motor_lag" not in top["tied_with"]
+    assert lag["score"] < top["score"] - diagnosis.TIE_MARGIN
+    assert "motor_lag" in delay["verdict"]
+    lagged, _ = hidden("motor_lag")
+    top, late = lagged["candidates"][0], next(r for r in lagged["candidates"] if r["effect"] == "thrust_delay")
+    assert top["effect"] == "motor_lag" and "thrust_delay" not in top["tied_with"]
+    assert late["score"] < top["score"] - diagnosis.TIE_MARGIN
+    assert "thrust_delay" in lagged["verdict"]
+
+
+def test_hidden_rotor_inertia_is_found_beside_a_motor_lag(sim_sets):
+    """Rotor inertia flown with the motor lag it needs (see test_simulation), the lag in the
+    model: the diagnosis names the rotors' spin-up torque and recovers J_r."""
+    truth = {"J_r_kgm2": 3e-8}
+    _, tables = sim_sets("rotor_inertia", STANDARD, {"motor_lag": {"tau_s": 0.02}, "rotor_inertia": truth})
+    result = _diagnose(tables, ["motor_lag"])
+    top = result["candidates"][0]
+    assert top["effect"] == "rotor_inertia" and top["useful"], result["verdict"]
+    assert top["explained_variance_torque"] > 0.8
+    _assert_recovered(top, truth, ["J_r_kgm2"], "rotor_inertia")
+    assert result["model"]["effects"][0]["params"]["tau_s"] == pytest.approx(0.02, rel=0.15)
 
 
 # ---------------------------------------------------------------------------------------

@@ -57,8 +57,8 @@ def _fly(tmp_path, config: SimConfig, effs: dict | None = None, name: str = "sim
 
 
 def _compare(df, sim):
-    """Residuals of the decoded flight and the sum of the true effects' wrenches on it (smoothed
-    as the residuals are). Returns (f_res, tau_res, f_eff, tau_eff), rows away from gaps/edges."""
+    """Residuals of the decoded flight and the sum of the true effects' wrenches on it (filtered
+    as the residuals are: force smoothed, torque through the gyro derivative's filter). Returns (f_res, tau_res, f_eff, tau_eff), rows away from gaps/edges."""
     table = residuals.residual_table(df, VEHICLE)
     state = dynamics.flight_state(df, VEHICLE)
     f_eff, tau_eff = np.zeros((state.n, 3)), np.zeros((state.n, 3))
@@ -69,7 +69,7 @@ def _compare(df, sim):
     ok = ~table["near_gap"].to_numpy()
     ok[:50] = ok[-50:] = False  # filter edges
     return (table.select(F_COLS).to_numpy()[ok], table.select(TAU_COLS).to_numpy()[ok],
-            signals.smooth(f_eff)[ok], signals.smooth(tau_eff)[ok])
+            signals.smooth(f_eff)[ok], signals.matched_to_derivative(tau_eff, state.t_s)[ok])
 
 
 def _assert_matches(res: np.ndarray, eff: np.ndarray, label: str, min_corr: float = 0.9, max_rel: float = 0.2):
@@ -204,6 +204,9 @@ EFFECT_CASES = {
     "thrust_scale": (_random(5), {"scale": 0.9}, [("force", (2,))]),
     "added_mass": (_random(6), {"m_p_kg": 0.005}, [("force", (2,))]),
     "wind": (_random(7), {"k_s_per_m": 0.5, "w_x_mps": 1.0, "w_y_mps": -0.5}, [("force", (0, 1))]),
+    "rotor_imbalance": (_random(13), {"d_1": 0.05, "d_2": -0.03, "d_3": 0.02}, [("torque", (0, 1, 2))]),
+    "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.03}, [("force", (2,)), ("torque", (0, 1, 2))]),
+    "inertia_scale": (_random(16, speed_min_mps=0.8), {"s_x": 1.3, "s_y": 0.8, "s_z": 1.8}, [("torque", (0, 1, 2))]),
 }
 
 
@@ -221,6 +224,21 @@ def test_each_effect_shows_up_as_its_wrench(tmp_path, name):
         assert np.all(np.sqrt(np.mean(tau_res**2, axis=0)) < 1e-4)
     if all(target == "torque" for target, _ in checks):
         assert np.all(np.sqrt(np.mean(f_res**2, axis=0)) < 1.5e-3)
+
+
+def test_rotor_inertia_shows_up_as_its_wrench(tmp_path):
+    """Spinning rotors up and down turns the body about z. Flown with a motor lag: with rotor
+    speeds that step at every control sample, a rotor inertia of 3e-8 kg m^2 (a 45 mm
+    propeller and its motor bell) makes the yaw loop ring. The lag's yaw torque has the
+    opposite sign (it would cancel at J_r = 1e-8 with this lag), so the sum is checked."""
+    effs = {"motor_lag": {"tau_s": 0.02}, "rotor_inertia": {"J_r_kgm2": 3e-8}}
+    sim, fl, _ = _fly(tmp_path, _random(15, speed_min_mps=0.8), effs)
+    f_res, tau_res, f_eff, tau_eff = _compare(fl.tables["fixedFrequency"], sim)
+    for a in range(3):
+        _assert_matches(tau_res[:, a], tau_eff[:, a], f"rotor inertia + lag torque {'xyz'[a]}")
+    state = dynamics.flight_state(fl.tables["fixedFrequency"], VEHICLE)
+    _, tau_spin = effects.get("rotor_inertia").wrench(state, VEHICLE, effs["rotor_inertia"])
+    assert np.sqrt(np.mean(tau_spin[:, 2] ** 2)) > 5 * np.sqrt(np.mean(tau_spin[:, 0] ** 2))  # mostly yaw
 
 
 def test_added_mass_is_true_mass_in_the_dynamics(tmp_path):
