@@ -58,7 +58,8 @@ def _fly(tmp_path, config: SimConfig, effs: dict | None = None, name: str = "sim
 
 def _compare(df, sim):
     """Residuals of the decoded flight and the sum of the true effects' wrenches on it (filtered
-    as the residuals are: force smoothed, torque through the gyro derivative's filter). Returns (f_res, tau_res, f_eff, tau_eff), rows away from gaps/edges."""
+    as the residuals are: force smoothed, torque through the gyro derivative's filter).
+    Returns (f_res, tau_res, f_eff, tau_eff), rows away from gaps/edges."""
     table = residuals.residual_table(df, VEHICLE)
     state = dynamics.flight_state(df, VEHICLE)
     f_eff, tau_eff = np.zeros((state.n, 3)), np.zeros((state.n, 3))

@@ -8,7 +8,8 @@ battery or deck placed differently, an inertia computed from CAD). The measured 
 ``dω/dt`` is the forward difference of the logged rate, so that through the residuals'
 derivative filter it is exactly the measured ``dω/dt``. In torque it resembles a thrust
 scale of ``1/s`` (the rotors' torque is ``J dω/dt + ω × Jω``); only the force, which the
-inertia does not touch, tells them apart. Linear in (s_x - 1, s_y - 1, s_z - 1).
+inertia does not touch, tells them apart. Linear in (s_x - 1, s_y - 1, s_z - 1). No C form:
+the forward difference needs the next sample (on board, use a causal rate derivative).
 """
 
 import numpy as np

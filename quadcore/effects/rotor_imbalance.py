@@ -12,6 +12,7 @@ from one when the rotors' thrusts part. Linear in (d_1, d_2, d_3). Four rotors o
 import numpy as np
 
 from quadcore import dynamics
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
 
 
@@ -26,7 +27,8 @@ class RotorImbalance(Effect):
     target = "both"
     linear = True
     parameters = tuple(
-        Parameter(f"d_{i}", "1", 0.0, -0.3, 0.3, f"rotor {i}: true thrust / mapped thrust - 1 (d_4 closes the sum to 0)")
+        Parameter(f"d_{i}", "1", 0.0, -0.3, 0.3,
+                  f"rotor {i}: true thrust / mapped thrust - 1 (d_4 closes the sum to 0)")
         for i in (1, 2, 3))
     doc = __doc__
 
@@ -42,6 +44,16 @@ class RotorImbalance(Effect):
 
     def simulator(self, params, context):
         return ScaleRotorThrusts(list(1.0 + rotor_factors(params)))
+
+    def c_code(self, vehicle, params):
+        if vehicle.n_rotors != 4:
+            return None
+        return CCode(
+            "int i;\n"
+            "const qc_real d[QC_N_ROTORS] = {d_1, d_2, d_3, -(d_1 + d_2 + d_3)};\n"
+            "qc_real extra[QC_N_ROTORS];\n"
+            "for (i = 0; i < QC_N_ROTORS; ++i) extra[i] = d[i] * f_rotor_N[i];\n"
+            "qc_add_rotor_wrench(extra, 1.0f, f_b_N, tau_b_Nm);")
 
 
 EFFECT = RotorImbalance()

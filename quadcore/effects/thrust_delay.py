@@ -6,21 +6,30 @@ log's timestamps), beside ``motor_lag``'s first-order lag::
 
 At low frequency a delay and a lag of the same time constant shift the phase alike
 (``-ω t_d`` against ``-atan(ω τ)``); only the lag also lowers the amplitude, so the data
-tell them apart by the faster changes of thrust, or cannot. Nonlinear in t_d; the delayed
-thrust is interpolated linearly between logged samples (the first sample held before it).
+tell them apart by the faster changes of thrust, or cannot. Nonlinear in t_d; evaluated at
+the median sample period (as ``motor_lag``): the thrust ``t_d / dt`` samples earlier, linear
+between samples, the first sample held before it.
 """
+
+import math
 
 import numpy as np
 
 from quadcore import dynamics
+from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, SimHook, body_z
+
+MIN_PERIOD_S = 0.001  # the C form keeps a history long enough for calls at up to 1 kHz
 
 
 def delayed(x: np.ndarray, t_s: np.ndarray, delay_s: float) -> np.ndarray:
-    """Columns of ``x`` (n, k) at ``t - delay_s``, linear between samples, held at the ends."""
-    if delay_s <= 0:
+    """Columns of ``x`` (n, k) ``delay_s / dt`` samples earlier (``dt`` the median period),
+    linear between samples, the first sample held before the start."""
+    if delay_s <= 0 or len(x) < 2:
         return x.copy()
-    return np.column_stack([np.interp(t_s - delay_s, t_s, x[:, i]) for i in range(x.shape[1])])
+    steps = delay_s / float(np.median(np.diff(t_s)))
+    k = np.arange(len(x), dtype=float)
+    return np.column_stack([np.interp(k - steps, k, x[:, i]) for i in range(x.shape[1])])
 
 
 class DelayHook(SimHook):
@@ -61,6 +70,35 @@ class ThrustDelay(Effect):
 
     def simulator(self, params, context):
         return DelayHook(params["t_d_s"], context.h_s) if params["t_d_s"] > 0 else SimHook()
+
+    def c_code(self, vehicle, params):
+        if params["t_d_s"] <= 0:
+            return CCode("/* t_d_s <= 0: no delay */")
+        size = math.ceil(params["t_d_s"] / MIN_PERIOD_S) + 2
+        # a ring of the last `size` thrusts; the delayed one t_d / dt_s calls back, linear between
+        return CCode(
+            "int i, r;\n"
+            f"const int size = {size};\n"
+            "qc_real steps = t_d_s / dt_s, frac, missing[QC_N_ROTORS];\n"
+            "int whole, head, newer, older;\n"
+            "if (first_call) {\n"
+            "    for (r = 0; r < size; ++r)\n"
+            "        for (i = 0; i < QC_N_ROTORS; ++i) thrust_history_N[r * QC_N_ROTORS + i] = f_rotor_N[i];\n"
+            "    thrust_history_head[0] = 0.0f;\n"
+            "}\n"
+            "head = ((int)thrust_history_head[0] + 1) % size;\n"
+            "thrust_history_head[0] = (qc_real)head;\n"
+            "for (i = 0; i < QC_N_ROTORS; ++i) thrust_history_N[head * QC_N_ROTORS + i] = f_rotor_N[i];\n"
+            "if (steps > (qc_real)(size - 2)) steps = (qc_real)(size - 2); /* calls faster than 1 kHz */\n"
+            "whole = (int)steps;\n"
+            "frac = steps - (qc_real)whole;\n"
+            "newer = (head - whole + size) % size;\n"
+            "older = (newer - 1 + size) % size;\n"
+            "for (i = 0; i < QC_N_ROTORS; ++i)\n"
+            "    missing[i] = thrust_history_N[newer * QC_N_ROTORS + i] * (1.0f - frac)\n"
+            "        + thrust_history_N[older * QC_N_ROTORS + i] * frac - f_rotor_N[i];\n"
+            "qc_add_rotor_wrench(missing, 1.0f, f_b_N, tau_b_Nm);",
+            memory=(("thrust_history_N", size * vehicle.n_rotors), ("thrust_history_head", 1)))
 
 
 EFFECT = ThrustDelay()
