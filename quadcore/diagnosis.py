@@ -276,7 +276,8 @@ def diagnose(
     fds = {fid: fitting.flight_data(fid, decoded[fid], vehicle) for fid in ids}
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
-    names = candidates if candidates is not None else [n for n in effectlib.registry() if n not in spec.effects]
+    names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
+                                                       if n not in spec.effects and e.offered]
     cands = [effectlib.get(n) for n in names]
 
     holdout = [h for h in (holdout or [])]

@@ -92,8 +92,8 @@ def sim_sets(tmp_path_factory):
     return get
 
 
-def _diagnose(tables: dict, effect_names=(), holdout=None) -> dict:
-    return diagnosis.diagnose(tables, model.spec_from(VEHICLE, list(effect_names)), holdout)
+def _diagnose(tables: dict, effect_names=(), holdout=None, candidates=None) -> dict:
+    return diagnosis.diagnose(tables, model.spec_from(VEHICLE, list(effect_names)), holdout, candidates)
 
 
 def _rmse(result: dict, channel: str) -> np.ndarray:
@@ -119,7 +119,9 @@ def hidden(sim_sets):
         if name not in cache:
             params, configs, _, _ = CASES[name]
             _, tables = sim_sets(name, configs, {name: params})
-            cache[name] = (_diagnose(tables), _diagnose(tables, [name]))
+            every = list(effects.registry()) if not effects.get(name).offered else None  # ranked among all
+            cache[name] = (_diagnose(tables, candidates=every),
+                           _diagnose(tables, [name], candidates=[n for n in every if n != name] if every else None))
         return cache[name]
 
     return get
@@ -520,7 +522,7 @@ def test_real_logs_diagnosis_is_well_formed_and_physical(real_logs, tmp_path):
     json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"non-finite number {c} in the JSON"))
     _check_contract(d)
     assert d["evaluation"]["eval_flights"] == ["jana02"] and len(d["evaluation"]["train_flights"]) == 18
-    assert len(d["candidates"]) == len(effects.builtin_names())
+    assert len(d["candidates"]) == len([n for n in effects.builtin_names() if effects.get(n).offered])
     f, t = np.array(d["baseline"]["force_rmse_N"]), np.array(d["baseline"]["torque_rmse_Nm"])
     assert np.all((f > 1e-3) & (f < 0.1)) and np.all((t > 1e-6) & (t < 1e-2))  # mN and uN m to mN m scale
     top = d["candidates"][0]

