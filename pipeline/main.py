@@ -257,7 +257,8 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
-    if RECOMPUTE or fleet_is_stale(root, model, decode):
+    refit = RECOMPUTE or fleet_is_stale(root, model, decode)
+    if refit:
         log("2/4 fit the model, diagnose, record the error history")
         diag = run_fleet(instance, resources, log)
         if diag is None:
@@ -293,6 +294,10 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     else:
         log(f"4/4 learned models: trained on this physics model; new flights are learned by the nightly "
             f"retraining ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON) or by materialising learning_features")
+        if refit:  # the C model carries the refitted parameters
+            result = materialize(EXPORT, resources, instance)
+            log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
+                + ("" if result.success else f": {_failure_reason(result)}"))
 
     log("\nOutputs:")
     log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")
