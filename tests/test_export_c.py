@@ -300,3 +300,19 @@ def test_discovered_terms_export_when_they_have_an_on_board_form(decoded, tmp_pa
     finally:
         effects.unregister("found_terms")
         effects.unregister("found_timing")
+
+
+def test_the_documented_plugin_exports_and_comments_stay_comments(decoded, tmp_path):
+    """examples/effects/linear_drag.py (docs/adding-an-effect.md) has a C form; text from users
+    that would close a C comment stays inside it."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "effects" / "linear_drag.py"
+    effects.load_plugin(example)
+    try:
+        pm = PhysicsModel(VEHICLE, [EffectTerm("linear_drag", {"d_xy_kg_per_s": 0.04, "d_z_kg_per_s": 0.06})])
+        exported = export_c.export_models(pm, None, tmp_path / "out", "a path with */ in it")
+        out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+        f_py, tau_py = pm.extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+        _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "linear_drag")
+        assert "const qc_real d_xy_kg_per_s = ((qc_real)0.04);" in exported.source.read_text()
+    finally:
+        effects.unregister("linear_drag")

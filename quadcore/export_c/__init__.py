@@ -86,19 +86,19 @@ def load_source(path: str | Path, learned_kind: str = "xgboost"
     """(physics model, learned model or None, a description of where they came from)."""
     if learned_kind not in LEARNED_KINDS:
         raise ExportError(f"unknown learned kind {learned_kind!r}; choose one of {', '.join(LEARNED_KINDS)}")
-    path = Path(path)
-    if path.is_file():
-        return _physics_from_json(path), None, f"physics model {path}"
-    if not path.is_dir():
-        raise ExportError(f"no model at {path}: give a learned model folder, a physics_model.json or a data root")
-    if (path / "manifest.json").is_file():
-        folder = path
+    where: Path = store.as_root(path)  # a local path, or a UPath in an object store
+    if where.is_file():
+        return _physics_from_json(where), None, f"physics model {where}"
+    if not where.is_dir():
+        raise ExportError(f"no model at {where}: give a learned model folder, a physics_model.json or a data root")
+    if (where / "manifest.json").is_file():
+        folder = where
     else:
-        learned_dir = path / "learned" if (path / "learned" / "index.json").is_file() else path
+        learned_dir = where / "learned" if (where / "learned" / "index.json").is_file() else where
         if learned_kind == "none" or not (learned_dir / "index.json").is_file():
-            physics_file = path / "models" / "physics_model.json"
+            physics_file = where / "models" / "physics_model.json"
             if not physics_file.is_file():
-                raise ExportError(f"{path}: no learned models (learned/index.json) and no models/physics_model.json")
+                raise ExportError(f"{where}: no learned models (learned/index.json) and no models/physics_model.json")
             return _physics_from_json(physics_file), None, f"physics model {physics_file}"
         folder = _best_run(learned_dir, learned_kind)
     try:
@@ -118,11 +118,11 @@ def export_models(physics: PhysicsModel, learned: learning.LearnedModel | None, 
     footprint = measure_footprint(first)
     gen = generate(physics, learned, provenance, footprint.comment() if footprint else
                    "Footprint: not measured (no C compiler where this was exported).")
-    out = Path(out_dir)
+    if footprint is not None:  # a compiler is here: refuse code that does not pass the strict flags
+        check_strict(gen)
+    out = store.as_root(out_dir)
     header = store.write_text(gen.header, out / HEADER)
     source = store.write_text(gen.source, out / SOURCE)
-    if footprint is not None:
-        check_strict(out)
     return Exported(header, source, gen, footprint)
 
 

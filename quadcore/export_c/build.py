@@ -48,11 +48,14 @@ def _run(cmd: list[str], cwd: Path) -> None:
         raise CompileError(f"{' '.join(cmd)} failed:\n{done.stderr.strip()}")
 
 
-def check_strict(folder: Path, defines: tuple[str, ...] = ()) -> None:
-    """Compile the exported source with :data:`STRICT` (``-std=c99 -Wall -Wextra -Werror`` and more)."""
+def check_strict(gen: Generated, defines: tuple[str, ...] = ()) -> None:
+    """Compile the generated source with :data:`STRICT` (``-std=c99 -Wall -Wextra -Werror`` and
+    more), in a scratch folder (the files may be written to an object store)."""
     with tempfile.TemporaryDirectory() as tmp:
-        obj = str(Path(tmp) / "m.o")
-        _run([host_compiler(), *STRICT, *defines, "-c", str(Path(folder) / SOURCE), "-o", obj], folder)
+        folder = Path(tmp)
+        (folder / HEADER).write_text(gen.header)
+        (folder / SOURCE).write_text(gen.source)
+        _run([host_compiler(), *STRICT, *defines, "-c", SOURCE, "-o", "m.o"], folder)
 
 
 @dataclass(frozen=True)
