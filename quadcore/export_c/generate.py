@@ -236,29 +236,29 @@ def _body(fields, derived, first_call: bool, blocks: list[str], x_exprs: list[st
         }};
         float y[6];
         qc_learned(x, y);
-        for (i = 0; i < 3; ++i) {{
-            out->f_learned_b_N[i] = y[i];
-            out->tau_learned_b_Nm[i] = y[3 + i];
+        for (qc_i = 0; qc_i < 3; ++qc_i) {{
+            out->f_learned_b_N[qc_i] = y[qc_i];
+            out->tau_learned_b_Nm[qc_i] = y[3 + qc_i];
         }}
     }}"""
     else:
-        learned = "    for (i = 0; i < 3; ++i) out->f_learned_b_N[i] = out->tau_learned_b_Nm[i] = 0.0f;"
+        learned = "    for (qc_i = 0; qc_i < 3; ++qc_i) out->f_learned_b_N[qc_i] = out->tau_learned_b_Nm[qc_i] = 0.0f;"
     effects = "\n".join(_indent(b) for b in blocks) or "    /* no effects in the model */"
     return f"""void quadcore_residual(const quadcore_input_t *in, quadcore_memory_t *mem, quadcore_wrench_t *out)
 {{
-    int i;
+    int qc_i;  /* the generated loops' index: effects' blocks may use i, j, k */
     qc_real f_b_N[3] = {{0, 0, 0}}, tau_b_Nm[3] = {{0, 0, 0}};
 {_indent(_locals(fields, derived, first_call))}
     (void)in;
 {effects}
-    for (i = 0; i < 3; ++i) {{
-        out->f_effects_b_N[i] = (float)f_b_N[i];
-        out->tau_effects_b_Nm[i] = (float)tau_b_Nm[i];
+    for (qc_i = 0; qc_i < 3; ++qc_i) {{
+        out->f_effects_b_N[qc_i] = (float)f_b_N[qc_i];
+        out->tau_effects_b_Nm[qc_i] = (float)tau_b_Nm[qc_i];
     }}
 {learned}
-    for (i = 0; i < 3; ++i) {{
-        out->f_b_N[i] = out->f_effects_b_N[i] + out->f_learned_b_N[i];
-        out->tau_b_Nm[i] = out->tau_effects_b_Nm[i] + out->tau_learned_b_Nm[i];
+    for (qc_i = 0; qc_i < 3; ++qc_i) {{
+        out->f_b_N[qc_i] = out->f_effects_b_N[qc_i] + out->f_learned_b_N[qc_i];
+        out->tau_b_Nm[qc_i] = out->tau_effects_b_Nm[qc_i] + out->tau_learned_b_Nm[qc_i];
     }}
     mem->started = 1;
 }}

@@ -78,14 +78,14 @@ def derived(vehicle: Vehicle) -> list[Derived]:
     if vehicle.thrust_map_kind == "motor_speed":
         thrust = Derived("f_rotor_N", ("motor_radps",), (
             "qc_real f_rotor_N[QC_N_ROTORS];  /* f = k_F omega^2 */\n"
-            "for (i = 0; i < QC_N_ROTORS; ++i) f_rotor_N[i] = QC_K_F * ((qc_real)motor_radps[i] * motor_radps[i]);"))
+            "for (qc_i = 0; qc_i < QC_N_ROTORS; ++qc_i) f_rotor_N[qc_i] = QC_K_F * ((qc_real)motor_radps[qc_i] * motor_radps[qc_i]);"))
     else:
         thrust = Derived("f_rotor_N", ("pwm", "vbat_V"), (
             "qc_real f_rotor_N[QC_N_ROTORS];  /* grams = c0 + cp p + cb b + cpp p^2 + cpb p b, b = vbat / vbat_ref */\n"
-            "for (i = 0; i < QC_N_ROTORS; ++i) {\n"
-            "    const qc_real p = pwm[i], b = vbat_V / QC_VBAT_REF_V;\n"
+            "for (qc_i = 0; qc_i < QC_N_ROTORS; ++qc_i) {\n"
+            "    const qc_real p = pwm[qc_i], b = vbat_V / QC_VBAT_REF_V;\n"
             "    const qc_real grams = QC_C0 + QC_CP * p + QC_CB * b + QC_CPP * p * p + QC_CPB * p * b;\n"
-            "    f_rotor_N[i] = (grams > 0 ? grams : 0) * QC_N_PER_GRAM;\n"
+            "    f_rotor_N[qc_i] = (grams > 0 ? grams : 0) * QC_N_PER_GRAM;\n"
             "}"))
     return [
         Derived("R_wb", ("q_xyzw",), (
@@ -106,15 +106,15 @@ def derived(vehicle: Vehicle) -> list[Derived]:
             "}")),
         Derived("v_b_mps", ("R_wb", "v_w_mps"), (
             "qc_real v_b_mps[3];  /* R^T v_w */\n"
-            "for (i = 0; i < 3; ++i) v_b_mps[i] = R_wb[0][i] * v_w_mps[0] + R_wb[1][i] * v_w_mps[1]"
-            " + R_wb[2][i] * v_w_mps[2];")),
+            "for (qc_i = 0; qc_i < 3; ++qc_i) v_b_mps[qc_i] = R_wb[0][qc_i] * v_w_mps[0] + R_wb[1][qc_i] * v_w_mps[1]"
+            " + R_wb[2][qc_i] * v_w_mps[2];")),
         Derived("qc_xyzw", ("q_xyzw",), (
             "float qc_xyzw[4];  /* the quaternion with q_w >= 0 (q and -q are one attitude) */\n"
-            "for (i = 0; i < 4; ++i) qc_xyzw[i] = q_xyzw[3] < 0 ? -q_xyzw[i] : q_xyzw[i];")),
+            "for (qc_i = 0; qc_i < 4; ++qc_i) qc_xyzw[qc_i] = q_xyzw[3] < 0 ? -q_xyzw[qc_i] : q_xyzw[qc_i];")),
         thrust,
         Derived("T_N", ("f_rotor_N",), (
             "qc_real T_N = 0;  /* collective thrust */\n"
-            "for (i = 0; i < QC_N_ROTORS; ++i) T_N += f_rotor_N[i];")),
+            "for (qc_i = 0; qc_i < QC_N_ROTORS; ++qc_i) T_N += f_rotor_N[qc_i];")),
         Derived("tau_rotors_b_Nm", ("f_rotor_N",), (
             "qc_real tau_rotors_b_Nm[3] = {0, 0, 0};\n"
             "{\n"
