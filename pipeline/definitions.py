@@ -17,8 +17,11 @@ from pipeline.resources import (
 )
 from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
 
-# Computed per flight partition (the sensor's runs and the main job run these).
-PER_FLIGHT = [decoded_flight, residual_table, rollout_errors, flight_mcap]
+# Computed per flight partition (the sensor's runs and the main job run these): decoding, which
+# needs no model, then the tables computed against the fitted physics model.
+DECODE = [decoded_flight]
+AGAINST_MODEL = [residual_table, rollout_errors, flight_mcap]
+PER_FLIGHT = [*DECODE, *AGAINST_MODEL]
 # Computed over all flights.
 FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 # Learned residual models on top of the physics model (fan-in over all residual tables).

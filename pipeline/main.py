@@ -24,7 +24,7 @@ from dagster._core.storage.tags import (
 
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
-from pipeline.definitions import EXPORT, FLEET, LEARNING, PER_FLIGHT
+from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING
 from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
@@ -181,7 +181,7 @@ def to_recompute(
     """Flights whose residual table, rollouts or MCAP are missing, or were computed from an
     older decode or against another model than the current one (a refit that moved a parameter)."""
     current = json.dumps(current_model(data_root, model).to_dict(), sort_keys=True, default=str)
-    done = set.intersection(*(_materialized(instance, a.key.to_user_string()) for a in PER_FLIGHT[1:]))
+    done = set.intersection(*(_materialized(instance, a.key.to_user_string()) for a in AGAINST_MODEL))
     out = []
     for fid in ids:
         path = store.table_path(data_root.root_path, "residuals", fid)
@@ -252,7 +252,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         instance.add_dynamic_partitions(flights.name, new)
     decode = ids if RECOMPUTE else to_decode(instance, data_root, ids)
     log(f"1/4 decode ({len(decode)} of {len(ids)} flights; the others are up to date)")
-    failures = run_flights(instance, resources, decode, PER_FLIGHT[:1], "decode", log) if decode else {}
+    failures = run_flights(instance, resources, decode, DECODE, "decode", log) if decode else {}
     good = [f for f in ids if f not in failures and f in _materialized(instance, "decoded_flight")]
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
@@ -280,7 +280,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     log(f"3/4 residuals, rollouts and MCAP against the fitted model ({len(stale)} of {len(good)} flights; "
         "the others are up to date)")
     if stale:
-        failures.update(run_flights(instance, resources, stale, PER_FLIGHT[1:], "flights", log))
+        failures.update(run_flights(instance, resources, stale, AGAINST_MODEL, "flights", log))
     why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
     if why:
         log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model "

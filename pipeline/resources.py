@@ -78,32 +78,35 @@ class ModelConfig(dg.ConfigurableResource):
     holdout: str = ""
 
     def spec(self):
-        from quadcore import model, vehicle
+        from quadcore import model, vehicle, workflows
 
         if self.model_file:
             spec = model.load_model_file(self.model_file, vehicle_override=self.vehicle or None)
         else:
             spec = model.spec_from(vehicle.load(self.vehicle or None), [])
-        if self.effects:
-            names = [n.strip() for n in self.effects.split(",") if n.strip()]
-            spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
+        names = workflows.parse_names(self.effects)
+        if names:
+            spec = spec.with_effects(names)
         if self.thrust_map:
             spec.vehicle = spec.vehicle.with_thrust_map(self.thrust_map)
         return spec
 
     @property
     def holdout_flights(self) -> list[str]:
-        """The flights named in ``holdout`` (empty: the diagnosis cross-validates over flights)."""
-        return [h.strip() for h in self.holdout.split(",") if h.strip()]
+        """The flights named in ``holdout`` (empty: the project's default, see :meth:`held_out`)."""
+        from quadcore import workflows
+
+        return workflows.parse_names(self.holdout)
 
     def held_out(self, flights: list[str]) -> tuple[list[str], str]:
         """(flights never fitted on, note): the named holdout, or else the project's default
         held-out flight (jana02, or the last flight where there is no jana02). The physics
-        model and the learned models both leave these out, so neither is scored on a flight
-        it has seen."""
-        from quadcore import learning
+        model, its diagnosis and the learned models all leave these out, so none is scored on
+        (or chosen with) a flight it has seen. A named flight that is not among ``flights``
+        (misspelt, or quarantined) raises :class:`quadcore.workflows.HoldoutError`."""
+        from quadcore import learning, workflows
 
-        named = [f for f in self.holdout_flights if f in flights]
+        named = workflows.named_holdout(self.holdout_flights, flights, "the decoded flights")
         if named:
             return named, ""
         flight, note = learning.resolve_holdout(learning.DEFAULT_HOLDOUT, flights)

@@ -307,7 +307,7 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
     """The model (``--model`` file or ``--effects``), the flights of DATA, the ``--holdout``
     names, checked, and the flights skipped (flight -> reason): what ``diagnose`` and
     ``discover`` start from."""
-    from quadcore import effects, model, vehicle
+    from quadcore import effects, model, vehicle, workflows
 
     data, names = _data_and_effects(args)
     try:
@@ -316,7 +316,7 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
             if args.thrust_map:
                 spec.vehicle = spec.vehicle.with_thrust_map(args.thrust_map)
             if names:
-                spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
+                spec = spec.with_effects(names)
         else:
             spec = model.spec_from(_vehicle(args), names)
     except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError) as exc:
@@ -326,12 +326,10 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
         print(f"warning: {fid} skipped: {why}", file=sys.stderr)
     tables, skipped = _main_tables(flights, spec.vehicle)
     skipped = {**{fid: f"quarantined: {why}" for fid, why in quarantined.items()}, **skipped}
-    holdout = [h.strip() for h in (args.holdout or "").split(",") if h.strip()]
-    unknown = [h for h in holdout if h not in tables]
-    if unknown:
-        raise UserError(f"holdout flight(s) not found in {data}: {', '.join(unknown)}; flights: {', '.join(tables)}")
-    if holdout and len(holdout) == len(tables):
-        raise UserError("every flight is held out: nothing left to fit on")
+    try:
+        holdout = workflows.named_holdout(workflows.parse_names(args.holdout), tables, str(data))
+    except workflows.HoldoutError as exc:
+        raise UserError(str(exc)) from None
     return spec, tables, holdout, skipped
 
 

@@ -639,7 +639,7 @@ class _SpanOverlap:
     """Signatures compared on the evaluated flights, accumulated flight by flight as Gram
     matrices of ``[residual | held-out predictions | bases]`` per channel (no big arrays).
 
-    * :meth:`r2`: how well one candidate's held-out prediction can be reproduced by another
+    * :meth:`mimic`: how well one candidate's held-out prediction can be reproduced by another
       candidate with *any* parameter values: the share of the prediction's energy in the span
       of the other's basis (linear effects) or along its prediction (nonlinear ones).
       Independent of how large either fit is, so a fit that the other channel pulled to zero
@@ -697,9 +697,6 @@ class _SpanOverlap:
             return 0.0, np.zeros(len(self.cols[b]))
         gain, beta = self._fit(G, y, b)
         return float(np.clip(gain / yy, 0.0, 1.0)), beta
-
-    def r2(self, a: str, b: str, channel: str | None) -> float:
-        return self.mimic(a, b, channel)[0]
 
     def left_after(self, b: str, top: str, channel: str) -> float:
         """Share of the baseline ``channel`` residual that ``b`` removes from what ``top``

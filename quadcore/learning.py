@@ -83,8 +83,9 @@ class LearningError(ValueError):
 # ---------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class ModelSpec:
-    """Hyper-parameters of one model. XGBoost uses ``max_depth``, ``n_estimators`` (the most
+class LearnerSpec:
+    """Hyper-parameters of one learned model (not to be confused with :class:`quadcore.model.ModelSpec`,
+    the physics model a model file asks for). XGBoost uses ``max_depth``, ``n_estimators`` (the most
     trees per output; early stopping keeps fewer), ``learning_rate``, ``subsample``,
     ``min_child_weight``, ``early_stopping_rounds``; the MLP ``hidden`` (widths of the hidden
     layers, () = linear), ``lr``, ``batch_size``, ``max_epochs``, ``patience``, ``weight_decay``."""
@@ -126,17 +127,17 @@ class ModelSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> ModelSpec:
+    def from_dict(cls, d: dict) -> LearnerSpec:
         d = dict(d)
         d["hidden"] = tuple(d.get("hidden", ()))
         return cls(**d)
 
 
-def default_spec(kind: str) -> ModelSpec:
-    return ModelSpec(kind)
+def default_spec(kind: str) -> LearnerSpec:
+    return LearnerSpec(kind)
 
 
-def parse_spec(text: str) -> ModelSpec:
+def parse_spec(text: str) -> LearnerSpec:
     """``xgboost``, ``xgboost:depth=4,trees=300,eta=0.1``, ``mlp:hidden=64x64,epochs=100``."""
     kind, _, rest = text.strip().partition(":")
     kind = kind.strip()
@@ -148,7 +149,7 @@ def parse_spec(text: str) -> ModelSpec:
     for item in filter(None, (s.strip() for s in rest.split(","))):
         key, eq, value = item.partition("=")
         key = aliases.get(key.strip(), key.strip())
-        if not eq or key not in ModelSpec.__dataclass_fields__ or key == "kind":
+        if not eq or key not in LearnerSpec.__dataclass_fields__ or key == "kind":
             raise LearningError(f"bad model option {item!r} in {text!r}")
         try:
             if key == "hidden":
@@ -159,10 +160,10 @@ def parse_spec(text: str) -> ModelSpec:
                 kw[key] = float(value)
         except ValueError:
             raise LearningError(f"bad value in model option {item!r}") from None
-    return ModelSpec(kind, **kw)
+    return LearnerSpec(kind, **kw)
 
 
-def complexity_specs(kind: str) -> list[ModelSpec]:
+def complexity_specs(kind: str) -> list[LearnerSpec]:
     """The complexity sweep of the comparison tables: tree depth 2/4/6/8; MLP 0/1/2 hidden layers."""
     if kind == "xgboost":
         return [replace(default_spec(kind), max_depth=d) for d in (2, 4, 6, 8)]
@@ -309,7 +310,7 @@ def training_data(tables: dict[str, pl.DataFrame], fs: FeatureSet, train: list[s
 # The two learners
 # ---------------------------------------------------------------------------------------
 
-def _train_xgboost(spec: ModelSpec, d: TrainingData, seed: int, threads: int):
+def _train_xgboost(spec: LearnerSpec, d: TrainingData, seed: int, threads: int):
     import xgboost as xgb
 
     params = {
@@ -338,7 +339,7 @@ def _mlp_module(n_in: int, hidden: tuple[int, ...], n_out: int):
     return nn.Sequential(*layers)
 
 
-def _train_mlp(spec: ModelSpec, d: TrainingData, seed: int, threads: int):
+def _train_mlp(spec: LearnerSpec, d: TrainingData, seed: int, threads: int):
     import torch
 
     torch.set_num_threads(threads)
@@ -370,6 +371,9 @@ def _train_mlp(spec: ModelSpec, d: TrainingData, seed: int, threads: int):
             bad += 1
             if bad >= spec.patience:
                 break
+    if best_state is None:  # no epoch ran, or every validation loss was NaN (diverged)
+        raise LearningError(f"MLP {spec.label}: no epoch gave a finite validation loss "
+                            f"({epochs} epoch(s) run): raise max_epochs or lower lr")
     net.load_state_dict(best_state)
     net.eval()
     return net, {"epochs": epochs, "best_epoch": best_epoch, "val_loss": best}
@@ -468,7 +472,7 @@ class LearnedModel:
     """A trained residual model: predicts the body-frame residual force (N) and torque (N m)
     left after the physics model named in ``manifest["physics_model"]``."""
 
-    def __init__(self, spec: ModelSpec, feature_set: FeatureSet, x_scaler: Scaler, y_scaler: Scaler,
+    def __init__(self, spec: LearnerSpec, feature_set: FeatureSet, x_scaler: Scaler, y_scaler: Scaler,
                  impl, manifest: dict | None = None):
         self.spec = spec
         self.feature_set = feature_set
@@ -477,7 +481,6 @@ class LearnedModel:
         self.impl = impl  # xgboost.Booster or torch.nn.Module
         self.manifest = manifest or {}
         self._forest: CompiledForest | None = None
-        self._weights: list | None = None
 
     @property
     def kind(self) -> str:
@@ -613,7 +616,7 @@ def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> Learne
     manifest = json.loads(mpath.read_text())
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise LearningError(f"{mpath}: not a {FORMAT} manifest")
-    spec = ModelSpec.from_dict(manifest["spec"])
+    spec = LearnerSpec.from_dict(manifest["spec"])
     fs = FeatureSet.from_dict(json.loads((folder / "features.json").read_text()))
     sc = json.loads((folder / "scaler.json").read_text())
     xs, ys = Scaler.from_dict(sc["x"]), Scaler.from_dict(sc["y"])
@@ -632,7 +635,7 @@ def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> Learne
     return LearnedModel(spec, fs, xs, ys, impl, manifest)
 
 
-def train(spec: ModelSpec, fs: FeatureSet, tables: dict[str, pl.DataFrame], train_flights: list[str],
+def train(spec: LearnerSpec, fs: FeatureSet, tables: dict[str, pl.DataFrame], train_flights: list[str],
           config: TrainConfig | None = None, physics: dict | None = None,
           kinds: dict[str, str] | None = None) -> LearnedModel:
     """Train one model on ``train_flights`` (feature or residual tables by flight id).
@@ -700,7 +703,7 @@ def time_predict(model: LearnedModel, X: np.ndarray, repeats: int = 5) -> tuple[
 
 @dataclass
 class Experiment:
-    spec: ModelSpec
+    spec: LearnerSpec
     feature_set: FeatureSet
     split: Split
     train_group: str  # "all", "random", "preplanned", ...
@@ -725,7 +728,7 @@ class Plan:
 
 def plan(flights: list[str], feature_sets: list[FeatureSet], kinds_of_model: list[str], holdout: str,
          flight_kinds: dict[str, str] | None = None, loo: bool = False, compare: bool = True,
-         specs: dict[str, ModelSpec] | None = None) -> Plan:
+         specs: dict[str, LearnerSpec] | None = None) -> Plan:
     """The experiments behind the report:
 
     * ``feature_sets``: every feature set x every model kind (default spec), holdout split;
@@ -865,7 +868,7 @@ def read_runs(out_dir: str | Path) -> tuple[dict, list[dict]]:
         records = []
         for name in index["runs"]:
             m = json.loads((out / name / "manifest.json").read_text())
-            records.append({**m, "path": str(out / name), "spec_label": ModelSpec.from_dict(m["spec"]).label})
+            records.append({**m, "path": str(out / name), "spec_label": LearnerSpec.from_dict(m["spec"]).label})
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise LearningError(f"{out}: malformed learned-model index or manifest ({type(exc).__name__}: {exc})") from None
     return index, records

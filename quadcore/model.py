@@ -106,6 +106,13 @@ class ModelSpec:
     fixed: dict[str, dict[str, float]] = field(default_factory=dict)
     source: str = ""
 
+    def with_effects(self, names: list[str]) -> ModelSpec:
+        """The same vehicle and source with ``names`` as the effect list (what ``--effects`` and
+        ``QUADCORE_EFFECTS`` do to a model file); fixed values are kept for the effects still named."""
+        spec = spec_from(self.vehicle, names, {k: v for k, v in self.fixed.items() if k in names})
+        spec.source = self.source
+        return spec
+
 
 def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = None) -> ModelSpec:
     for name in effect_names:

@@ -77,6 +77,13 @@ def rollout(
     return err
 
 
+# The columns of :func:`error_growth`, also where the flight is too short for any window.
+GROWTH_SCHEMA = pl.Schema({
+    "horizon_s": pl.Float64, "step": pl.Int64, "t_ahead_s": pl.Float64, "pos_err_m": pl.Float64,
+    "vel_err_mps": pl.Float64, "att_err_deg": pl.Float64, "rate_err_radps": pl.Float64, "windows": pl.Int64,
+})
+
+
 def error_growth(
     state: FlightState,
     vehicle: Vehicle,
@@ -88,7 +95,8 @@ def error_growth(
 
     Columns: ``horizon_s, t_ahead_s, pos_err_m, vel_err_mps, att_err_deg, rate_err_radps,
     windows``. Windows start every ``stride_s``, skipping those that span a gap; a horizon
-    longer than the flight is skipped.
+    longer than the flight is skipped (a flight too short for any window gives no rows, with
+    these columns).
     """
     dt = float(np.median(np.diff(state.t_s))) if state.n > 1 else 0.0
     gaps_before = np.concatenate([[0], np.cumsum(np.diff(state.t_s) > MAX_STEP_S)])  # per sample
@@ -117,7 +125,7 @@ def error_growth(
                 }
             )
         )
-    return pl.concat(frames) if frames else pl.DataFrame()
+    return pl.concat(frames).cast(GROWTH_SCHEMA) if frames else pl.DataFrame(schema=GROWTH_SCHEMA)
 
 
 def horizon_summary(growth: pl.DataFrame) -> pl.DataFrame:

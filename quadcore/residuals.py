@@ -28,11 +28,8 @@ from quadcore import dynamics, rotations, signals
 from quadcore.dynamics import FlightState, cols
 from quadcore.vehicle import Vehicle
 
-F_MEAS_B, F_MODEL_B, F_RES_B, F_RES_W = (cols(p, "N") for p in ("f_meas_b", "f_model_b", "f_res_b", "f_res_w"))
-TAU_MEAS_B, TAU_MODEL_B, TAU_RES_B, TAU_RES_W = (
-    cols(p, "Nm") for p in ("tau_meas_b", "tau_model_b", "tau_res_b", "tau_res_w")
-)
-RESIDUAL_COLUMNS = {"force_b": F_RES_B, "force_w": F_RES_W, "torque_b": TAU_RES_B, "torque_w": TAU_RES_W}
+F_RES_B, F_RES_W = cols("f_res_b", "N"), cols("f_res_w", "N")
+TAU_RES_B = cols("tau_res_b", "Nm")
 
 UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2",
          "m": "m", "V": "V"}

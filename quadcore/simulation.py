@@ -126,10 +126,6 @@ class SensorNoise:
     mocap_pos_m: float = 2.5e-4
     mocap_att_rad: float = 2.0e-4
 
-    @classmethod
-    def none(cls) -> SensorNoise:
-        return cls((0.0,) * 3, (0.0,) * 3, 0.0, 0.0, (0.0,) * 3, 0.0, 0.0, 0.0, 0.0)
-
 
 @dataclass(frozen=True)
 class Battery:

@@ -60,7 +60,6 @@ SI_COLUMNS: dict[str, tuple[str, float, str, str]] = {
 
 TIME_COLUMN = "t_s"
 RAW_TIME_COLUMN = "timestamp_us"
-FLIGHT_COLUMN = "flight"
 
 
 def si_name(variable: str) -> str:

@@ -27,6 +27,26 @@ def real_logs() -> Path:
 
 
 # ---------------------------------------------------------------------------------------
+# Simulated flights, made once per session and shared (read-only: link or copy them)
+# ---------------------------------------------------------------------------------------
+
+# The effect hidden in the shared fleet, and its true parameters (SI).
+FLEET_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}}
+
+
+@pytest.fixture(scope="session")
+def drag_fleet(tmp_path_factory) -> Path:
+    """Three 5 s random go-to flights (``sim000``..``sim002``) with ``FLEET_EFFECT`` hidden, as uSD
+    logs with their ``.truth.json``: the pipeline and operations tests share them."""
+    from quadcore import simulation
+
+    folder = tmp_path_factory.mktemp("drag_fleet")
+    configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (21, 22, 23)]
+    simulation.simulate_set(folder, configs, FLEET_EFFECT)
+    return folder
+
+
+# ---------------------------------------------------------------------------------------
 # Synthetic logs
 # ---------------------------------------------------------------------------------------
 

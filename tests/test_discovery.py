@@ -162,6 +162,7 @@ def test_discover_user_errors(hidden_flights, tmp_path):
     assert code == 2
 
 
+@pytest.mark.slow  # the real fleet
 def test_discover_on_the_real_flights_keeps_the_guard(real_logs, tmp_path):
     code, _, err = _run(["discover", str(real_logs), "--json", str(tmp_path / "d.json"), "--holdout", "jana02",
                          "--effects", "thrust_scale,com_offset,rotor_drag,motor_lag", "--quiet"])

@@ -38,8 +38,8 @@ HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}
 SIM_KINDS = {"sim000": "random", "sim001": "random", "sim002": "preplanned", "sim003": "preplanned"}
 HOLDOUT = "sim003"
 # Small, quick models; threads=1 keeps the tests fast on a busy 2-core machine.
-XGB = learning.ModelSpec("xgboost", max_depth=3, n_estimators=60, early_stopping_rounds=10)
-MLP = learning.ModelSpec("mlp", hidden=(32,), max_epochs=40, patience=8, batch_size=256, lr=3e-3)
+XGB = learning.LearnerSpec("xgboost", max_depth=3, n_estimators=60, early_stopping_rounds=10)
+MLP = learning.LearnerSpec("mlp", hidden=(32,), max_epochs=40, patience=8, batch_size=256, lr=3e-3)
 CONFIG = learning.TrainConfig(stride=2, threads=1)
 
 
@@ -170,6 +170,14 @@ def test_validation_flights_are_seeded_and_balanced_over_kinds():
 # Models: reproducible, and they learn the hidden drag
 # ---------------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("options", ["epochs=0", "lr=1e30"], ids=["no epoch", "diverged"])
+def test_mlp_without_a_finite_validation_loss_is_a_learning_error(options, physics_tables):
+    """No epoch run, or a loss that is NaN from the first epoch: no weights worth keeping."""
+    spec = learning.parse_spec(f"mlp:hidden=8,patience=1,epochs=2,{options}")
+    with pytest.raises(learning.LearningError, match="no epoch gave a finite validation loss"):
+        _train(spec, physics_tables["physics"])
+
+
 @pytest.mark.parametrize("spec", [XGB, MLP], ids=["xgboost", "mlp"])
 def test_models_are_reproducible_and_learn_the_hidden_drag(spec, physics_tables):
     tables = physics_tables["physics"]
@@ -251,6 +259,7 @@ def report_run(tmp_path_factory, residual_tables):
     return root, p, records, report, pngs, paths
 
 
+@pytest.mark.slow  # the whole learning plan and report
 def test_plan_covers_the_comparisons(report_run):
     _, p, records, *_ = report_run
     groups = {g for r in records for g in r["groups"]}
@@ -269,6 +278,7 @@ def test_plan_covers_the_comparisons(report_run):
     assert all(r["test_flights"][0] not in r["train_flights"] for r in records)
 
 
+@pytest.mark.slow  # the whole learning plan and report
 def test_report_tables_baselines_and_files(report_run, residual_tables):
     root, _, records, report, pngs, paths = report_run
     for ext in ("md", "html", "json"):
@@ -303,6 +313,7 @@ def test_report_tables_baselines_and_files(report_run, residual_tables):
     assert headline[0]["Fx MAE [N]"] == 0.021 and headline[0]["train [s]"] == 41.9
 
 
+@pytest.mark.slow  # the whole learning plan and report
 def test_history_rows_are_written(report_run):
     root, *_ , report, _, _ = report_run
     hist = history.read(root)
@@ -340,6 +351,7 @@ def _cli(*argv) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
+@pytest.mark.slow  # the whole train command
 def test_cli_train(tmp_path, sim_dir):
     code, out, err = _cli("train", str(sim_dir), "--holdout", HOLDOUT, "--feature-sets", "physics", "--no-compare",
                           "--xgboost", "depth=3,trees=40", "--mlp", "hidden=16,epochs=10", "--out", str(tmp_path),
@@ -374,6 +386,7 @@ def test_cli_train_missing_data(tmp_path):
     assert code == 2 and "no such folder" in err
 
 
+@pytest.mark.slow  # the learning assets materialised
 def test_dagster_assets(tmp_path, residual_tables):
     import dagster as dg
 
@@ -422,6 +435,7 @@ def test_dagster_assets(tmp_path, residual_tables):
 # The real logs
 # ---------------------------------------------------------------------------------------
 
+@pytest.mark.slow  # the real fleet
 def test_real_logs_holdout_jana02(real_logs, tmp_path):
     flights, _ = cli.load_flights([str(real_logs)], None, log=lambda m: None)
     nominal = model.PhysicsModel(VEHICLE, [])

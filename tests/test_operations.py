@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from pipeline.assets.decode import decoded_flight
-from pipeline.definitions import FLEET, PER_FLIGHT, defs
+from pipeline.definitions import AGAINST_MODEL, FLEET, PER_FLIGHT, defs
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.sensors import raw_log_sensor
 from quadcore import logformat, simulation, store
@@ -21,11 +21,8 @@ QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
 
 
 @pytest.fixture(scope="module")
-def sim_logs(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("simlogs")
-    configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (21, 22, 23)]
-    simulation.simulate_set(folder, configs, {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}})
-    return folder
+def sim_logs(drag_fleet):
+    return drag_fleet
 
 
 def sensor_tick(instance, data_root, cursor=None):
@@ -50,6 +47,7 @@ def materialization_count(instance, asset: str, key: str) -> int:
     return len(records.records)
 
 
+@pytest.mark.slow  # the sensor and every stage, twice
 def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
@@ -73,7 +71,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_requested_partitions(dg.AssetKey("residual_table")) == {"sim000", "sim001"}
         for key in ("sim000", "sim001"):
-            run(PER_FLIGHT[1:], resources, instance, key)
+            run(AGAINST_MODEL, resources, instance, key)
         # ... the learned models follow the fresh residuals, and then nothing runs while nothing changes
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 0

@@ -109,6 +109,14 @@ def sim_flight(tmp_path_factory):
     return flight.decode_flight(log_path).tables["fixedFrequency"]
 
 
+@pytest.mark.parametrize("n", [1, 2])
+def test_too_short_flight_gives_no_rollout_rows_but_the_columns(sim_flight, n):
+    state = dynamics.flight_state(sim_flight.head(n), VEH)
+    growth = propagation.error_growth(state, VEH, horizons_s=(0.1,))
+    assert growth.height == 0 and growth.schema == propagation.GROWTH_SCHEMA
+    assert propagation.horizon_summary(growth).height == 0
+
+
 def test_rollout_error_grows_with_horizon_and_one_step_is_small(sim_flight):
     state = dynamics.flight_state(sim_flight, VEH)
     growth = propagation.error_growth(state, VEH, horizons_s=(0.1, 0.5))

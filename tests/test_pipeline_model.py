@@ -14,19 +14,17 @@ from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import history, simulation, store
+from quadcore import history, store
 
-HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}}
+pytestmark = pytest.mark.slow  # the whole loop materialised in Dagster
+
 PER_FLIGHT = [decoded_flight, residual_table, rollout_errors]
 FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 
 
 @pytest.fixture(scope="module")
-def raw(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("raw")
-    configs = [simulation.SimConfig(kind="random", duration_s=6.0, seed=s) for s in (1, 2, 3)]
-    simulation.simulate_set(folder, configs, HIDDEN)
-    return folder
+def raw(drag_fleet):
+    return drag_fleet
 
 
 def materialize(assets, resources, instance, key=None):

@@ -13,6 +13,8 @@ from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import simulation, store
 
+pytestmark = pytest.mark.slow  # whole per-flight runs, one with the multiprocess executor
+
 QUIET = main.QUIET
 
 

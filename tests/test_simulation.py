@@ -212,7 +212,9 @@ EFFECT_CASES = {
 }
 
 
-@pytest.mark.parametrize("name", list(EFFECT_CASES))
+# The fast tier keeps rotor drag; the other effects run in the whole suite.
+@pytest.mark.parametrize("name", [n if n == "rotor_drag" else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in EFFECT_CASES])
 def test_each_effect_shows_up_as_its_wrench(tmp_path, name):
     config, params, checks = EFFECT_CASES[name]
     sim, fl, _ = _fly(tmp_path, config, {name: params})

@@ -19,6 +19,8 @@ from quadcore import simulation
 sys.path.insert(0, str(Path(__file__).parent))
 from cdp import Browser, chromium_path, free_port  # noqa: E402
 
+pytestmark = pytest.mark.slow  # dagster dev in a subprocess and a browser
+
 REPO = Path(__file__).resolve().parents[1]
 LOCATION = "pipeline.definitions:defs"
 

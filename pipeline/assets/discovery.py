@@ -7,6 +7,7 @@ from pipeline.assets.model import (
     ALL_FLIGHTS,
     RETRAIN,
     discovery_path,
+    held_out_or_fail,
     physics_model,
     skipped_metadata,
     usable_decoded,
@@ -22,7 +23,8 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     share and stability. Writes reports/discovery.json."""
     spec = model.spec()
     decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
-    holdout = [f for f in model.holdout_flights if f in decoded]
+    held_out_or_fail(model, decoded)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
+    holdout = model.holdout_flights
     if len(decoded) - len(holdout) < 2:
         raise dg.Failure(description="discovery needs at least two training flights (folds are grouped by flight)")
     result = discovery.discover(decoded, spec, holdout or None, log=context.log.info)

@@ -7,7 +7,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, store
+from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, store, workflows
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
@@ -41,6 +41,23 @@ def skipped_metadata(skipped: dict[str, str]) -> dict:
             "skipped_count": len(skipped)}
 
 
+def held_out_or_fail(model: ModelConfig, decoded: dict) -> tuple[list[str], str]:
+    """:meth:`ModelConfig.held_out` of the decoded flights; a bad ``QUADCORE_HOLDOUT`` fails the run
+    with its reason."""
+    try:
+        return model.held_out(list(decoded))
+    except workflows.HoldoutError as exc:
+        raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
+
+
+def scored_flights(model: ModelConfig, decoded: dict) -> tuple[dict, list[str] | None]:
+    """(the decoded flights a diagnosis or discovery sees, its holdout or None): see
+    :func:`quadcore.workflows.scored_flights`."""
+    held, _ = held_out_or_fail(model, decoded)
+    seen, holdout = workflows.scored_flights(decoded, model.holdout_flights, held)
+    return {f: decoded[f] for f in seen}, holdout or None
+
+
 def fitted_model_path(data_root: DataRoot):
     return data_root.root_path / "models" / "physics_model.json"
 
@@ -54,7 +71,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
     if len(decoded) < 2:
         raise dg.Failure(description=f"need at least two usable decoded flights in {data_root.root_path / 'decoded'}")
-    held, note = model.held_out(list(decoded))
+    held, note = held_out_or_fail(model, decoded)
     if note:
         context.log.info(note)
     train = [f for f in decoded if f not in held]
@@ -111,8 +128,10 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     spec = model.spec()
     decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
     if len(decoded) < 2:
-        raise dg.Failure(description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
-    result = diagnosis.diagnose(decoded, spec, model.holdout_flights or None, log=context.log.info)
+        raise dg.Failure(
+            description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
+    seen, holdout = scored_flights(model, decoded)
+    result = diagnosis.diagnose(seen, spec, holdout, log=context.log.info)
     result["skipped_flights"] = skipped
     out = data_root.root_path / "reports"
     store.write_json(result, out / "diagnosis.json")

@@ -67,6 +67,9 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
         path = store.write_parquet(
             growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
         )
+        if growth.height == 0:
+            context.log.warning(f"{fid}: {state.n} samples, too short for an open-loop rollout")
+            return {"rollout": f"none: {state.n} samples, too short", "parquet": dg.MetadataValue.path(str(path))}
         ends = propagation.horizon_summary(growth)
         meta = {}
         for row in ends.iter_rows(named=True):
