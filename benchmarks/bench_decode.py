@@ -136,7 +136,7 @@ def main(argv: list[str]) -> int:
     t_raw, _ = best_of(quadcore_raw)
     t_dec, flights = best_of(quadcore_decode)
     t_all, _ = best_of(quadcore_decode_write)
-    rows = sum(f.provenance["rows"].get(MAIN_EVENT, 0) for f in flights)
+    rows = sum(f.provenance.rows.get(MAIN_EVENT, 0) for f in flights)
     failed = [f.flight_id for f in flights if f.warnings]
 
     def baseline():

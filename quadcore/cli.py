@@ -74,7 +74,7 @@ def load_flights(
             store.clear_quarantine(out, fid)
         flights.append(fl)
         warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""
-        log(f"[{i}/{len(logs)}] {fid}: {fl.provenance['rows']}{warn}")
+        log(f"[{i}/{len(logs)}] {fid}: {fl.provenance.rows}{warn}")
     return flights, quarantined
 
 
@@ -90,9 +90,9 @@ def cmd_decode(args: argparse.Namespace) -> int:
     out = _output_folder(args.out)
     flights, quarantined = load_flights(args.paths, out)
     events = sorted({e for f in flights for e in f.tables})
-    rows = [[f.flight_id, *[str(f.provenance["rows"].get(e, 0)) for e in events], str(len(f.warnings))]
+    rows = [[f.flight_id, *[str(f.provenance.rows.get(e, 0)) for e in events], str(len(f.warnings))]
             for f in flights]
-    totals = ["TOTAL", *[str(sum(f.provenance["rows"].get(e, 0) for f in flights)) for e in events],
+    totals = ["TOTAL", *[str(sum(f.provenance.rows.get(e, 0) for f in flights)) for e in events],
               str(sum(len(f.warnings) for f in flights))]
     print()
     _print_table(rows + [totals], ["flight", *events, "warnings"])
@@ -271,7 +271,9 @@ def cmd_export(args: argparse.Namespace) -> int:
         table = residuals.residual_table(df, veh)
         fl = next(f for f in flights if f.flight_id == fid)
         flightmod.settle_start_time(fl, None, given.get(fid))
-        start_ns = fl.provenance["start_ns"]
+        start_ns = fl.provenance.start_ns
+        if start_ns is None:  # decode_flight always estimates one; a flight built otherwise may not
+            raise UserError(f"{fid}: no start time: give one with --start")
         counts = export.write_mcap(table, out / f"{fid}.mcap", start_ns, {"flight": fid, "vehicle": veh.name})
         print(f"{out / f'{fid}.mcap'}: {sum(counts.values())} messages on {len(counts)} topics")
     return 0

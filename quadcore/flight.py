@@ -7,7 +7,7 @@ any event type in the file, so all tables of a flight share one clock.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC
 from pathlib import Path
 from typing import Any
@@ -18,6 +18,44 @@ import polars as pl
 from quadcore import logformat, names, units
 
 
+@dataclass(frozen=True)
+class Provenance:
+    """Where a decoded flight came from and what decoding found. Written as JSON beside each of
+    its decoded tables (:meth:`to_dict`); ``start_ns`` is the flight's absolute start (ns since
+    the Unix epoch), None where it is not known."""
+
+    source_file: str = ""
+    source_sha256: str = ""
+    format_version: int = 0
+    crc_ok: bool | None = None
+    bytes_total: int = 0
+    bytes_dropped: int = 0
+    decode_warnings: tuple[str, ...] = ()
+    rows: dict[str, int] = field(default_factory=dict)  # event -> records
+    start_ns: int | None = None
+    start_source: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (the keys the decoded Parquet files have always carried)."""
+        d: dict[str, Any] = {
+            "source_file": self.source_file, "source_sha256": self.source_sha256,
+            "format_version": self.format_version, "crc_ok": self.crc_ok, "bytes_total": self.bytes_total,
+            "bytes_dropped": self.bytes_dropped, "decode_warnings": list(self.decode_warnings), "rows": dict(self.rows),
+        }
+        if self.start_ns is not None:
+            d.update(start_ns=self.start_ns, start_source=self.start_source)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Provenance:
+        """From the JSON form (e.g. :func:`quadcore.store.recorded_provenance`); unknown keys ignored."""
+        start = d.get("start_ns")
+        return cls(str(d.get("source_file", "")), str(d.get("source_sha256", "")), int(d.get("format_version", 0)),
+                   d.get("crc_ok"), int(d.get("bytes_total", 0)), int(d.get("bytes_dropped", 0)),
+                   tuple(d.get("decode_warnings", ())), dict(d.get("rows", {})),
+                   None if start is None else int(start), str(d.get("start_source", "")))
+
+
 @dataclass
 class Flight:
     """One flight. ``tables[event]`` is SI; ``columns[event]`` documents each column."""
@@ -25,11 +63,11 @@ class Flight:
     flight_id: str
     tables: dict[str, pl.DataFrame]
     columns: dict[str, dict[str, dict[str, str]]]
-    provenance: dict[str, Any] = field(default_factory=dict)
+    provenance: Provenance = field(default_factory=Provenance)
 
     @property
     def warnings(self) -> list[str]:
-        return list(self.provenance.get("decode_warnings", []))
+        return list(self.provenance.decode_warnings)
 
 
 def flight_id_of(path: str | Path) -> str:
@@ -48,7 +86,10 @@ def find_log(folder: str | Path, flight_id: str) -> Path:
     raise FileNotFoundError(f"no log with flight id {flight_id!r:.120} in {folder}")
 
 
-def from_decoded(flight_id: str, log: logformat.DecodedLog, provenance: dict) -> Flight:
+def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "", source_sha256: str = "",
+                 source_mtime_ns: int | None = None) -> Flight:
+    """The flight of a decoded log; its start time is estimated from ``source_mtime_ns`` (the
+    log's modification time, taken as the end of the flight) where given."""
     starts = [ts[0] for ts in log.timestamps_us.values() if len(ts)]
     ends = [ts[-1] for ts in log.timestamps_us.values() if len(ts)]
     t0_us = int(min(starts)) if starts else 0
@@ -56,17 +97,13 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, provenance: dict) ->
     tables, columns = {}, {}
     for event, values in log.tables.items():
         tables[event], columns[event] = units.to_si(values, log.timestamps_us[event], t0_us)
-    provenance = {
-        **provenance,
-        "format_version": log.version,
-        "crc_ok": log.crc_ok,
-        "bytes_total": log.bytes_total,
-        "bytes_dropped": log.bytes_dropped,
-        "decode_warnings": list(log.warnings),
-        "rows": log.rows(),
-    }
-    if "source_mtime_ns" in provenance:
-        provenance.update(start_ns=provenance.pop("source_mtime_ns") - duration_ns, start_source=START_FROM_MTIME)
+    estimated = source_mtime_ns is not None
+    provenance = Provenance(
+        source_file, source_sha256, log.version, log.crc_ok, log.bytes_total, log.bytes_dropped,
+        tuple(log.warnings), log.rows(),
+        start_ns=source_mtime_ns - duration_ns if source_mtime_ns is not None else None,
+        start_source=START_FROM_MTIME if estimated else "",
+    )
     return Flight(flight_id, tables, columns, provenance)
 
 
@@ -75,28 +112,24 @@ def decode_flight(path: str | Path) -> Flight:
     path = Path(path)
     buf = path.read_bytes()
     log = logformat.decode_bytes(buf)
-    provenance = {
-        "source_file": str(path.resolve()),
-        "source_sha256": hashlib.sha256(buf).hexdigest(),
-        "source_mtime_ns": path.stat().st_mtime_ns,
-    }
-    return from_decoded(flight_id_of(path), log, provenance)
+    return from_decoded(flight_id_of(path), log, str(path.resolve()), hashlib.sha256(buf).hexdigest(),
+                        path.stat().st_mtime_ns)
 
 
 START_FROM_MTIME = "log file modification time at first decode, taken as the end of the flight"
 
 
-def settle_start_time(fl: Flight, recorded: dict | None, override_ns: int | None = None) -> None:
-    """Fix the flight's absolute start time (``provenance["start_ns"]``, ns since the Unix epoch;
+def settle_start_time(fl: Flight, recorded: Provenance | None, override_ns: int | None = None) -> None:
+    """Fix the flight's absolute start time (``provenance.start_ns``, ns since the Unix epoch;
     the logs count from power-on). In order: the user's ``override_ns`` (a flights file, a CLI
     option); else the time ``recorded`` at the first decode of the same log (same SHA-256), so
     that a copy of the log, with a new modification time, never moves it; else this decode's
     estimate from the file's modification time."""
     if override_ns is not None:
-        fl.provenance.update(start_ns=int(override_ns), start_source="given by the user")
-    elif recorded and recorded.get("source_sha256") == fl.provenance.get("source_sha256") and "start_ns" in recorded:
-        fl.provenance.update(start_ns=int(recorded["start_ns"]),
-                             start_source=recorded.get("start_source", START_FROM_MTIME))
+        fl.provenance = replace(fl.provenance, start_ns=int(override_ns), start_source="given by the user")
+    elif (recorded and recorded.source_sha256 == fl.provenance.source_sha256 and recorded.start_ns is not None):
+        fl.provenance = replace(fl.provenance, start_ns=recorded.start_ns,
+                                start_source=recorded.start_source or START_FROM_MTIME)
 
 
 def read_flight_starts(path: str | Path | None) -> dict[str, int]:

@@ -128,15 +128,19 @@ def write_decoded(root: Path, flight) -> dict[str, Path]:
     """Write every event table of a :class:`quadcore.flight.Flight`; returns event -> path."""
     paths = {}
     for event, df in flight.tables.items():
-        meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event], **flight.provenance}
+        meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event],
+                **flight.provenance.to_dict()}
         paths[event] = write_parquet(df, decoded_path(root, event, flight.flight_id), meta)
     return paths
 
 
-def recorded_provenance(root: Path, event: str, flight: str) -> dict | None:
-    """The provenance written with a flight's decoded ``event`` table, or None if not decoded yet."""
+def recorded_provenance(root: Path, event: str, flight: str):
+    """The :class:`quadcore.flight.Provenance` written with a flight's decoded ``event`` table, or
+    None if not decoded yet."""
+    from quadcore.flight import Provenance
+
     path = decoded_path(root, event, flight)
-    return read_metadata(path) if path.is_file() else None
+    return Provenance.from_dict(read_metadata(path)) if path.is_file() else None
 
 
 def file_sha256(path: Path) -> str:

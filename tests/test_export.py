@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from datetime import UTC, datetime
 
 import pytest
@@ -85,7 +86,7 @@ def test_anchor_is_the_file_time_at_the_end_of_the_flight(exported):
     _, path, log = exported
     fl = flightmod.decode_flight(log)
     start_ns = _start_ns(path)
-    assert start_ns == fl.provenance["start_ns"]
+    assert start_ns == fl.provenance.start_ns
     # the file was closed when logging stopped: its time is the end of the last sample of any event
     last_s = max(float(df["t_s"][-1]) for df in fl.tables.values() if df.height)
     assert abs(start_ns + int(last_s * 1e9) - log.stat().st_mtime_ns) < 1e3
@@ -110,12 +111,12 @@ def test_a_copy_of_the_log_keeps_the_recorded_start_time(exported, tmp_path):
     copy = tmp_path / "sim000"
     copy.write_bytes(log.read_bytes())  # a copy: a new modification time
     again = flightmod.decode_flight(copy)
-    assert again.provenance["start_ns"] != first.provenance["start_ns"]
+    assert again.provenance.start_ns != first.provenance.start_ns
     flightmod.settle_start_time(again, first.provenance)
-    assert again.provenance["start_ns"] == first.provenance["start_ns"]
+    assert again.provenance.start_ns == first.provenance.start_ns
     changed = flightmod.decode_flight(copy)
-    flightmod.settle_start_time(changed, {**first.provenance, "source_sha256": "another log"})
-    assert changed.provenance["start_ns"] != first.provenance["start_ns"]
+    flightmod.settle_start_time(changed, replace(first.provenance, source_sha256="another log"))
+    assert changed.provenance.start_ns != first.provenance.start_ns
 
 
 def test_export_of_a_missing_log_is_a_user_error(tmp_path, capsys):

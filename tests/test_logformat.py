@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import struct
 
@@ -350,9 +351,14 @@ def test_decode_flight_gives_si_tables_with_provenance(real_logs):
 
     # provenance
     prov = fl.provenance
-    assert prov["source_sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
-    assert prov["format_version"] == 2
-    assert prov["crc_ok"] is True and prov["decode_warnings"] == [] and prov["bytes_dropped"] == 0
-    assert prov["rows"] == {"fixedFrequency": 3900, "estPose": 426}
-    assert prov["source_file"] == str(path.resolve())
+    assert prov.source_sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert prov.format_version == 2
+    assert prov.crc_ok is True and prov.decode_warnings == () and prov.bytes_dropped == 0
+    assert prov.rows == {"fixedFrequency": 3900, "estPose": 426}
+    assert prov.source_file == str(path.resolve())
+    assert prov.start_ns is not None and prov.start_source == flight.START_FROM_MTIME
+    # the JSON form: the keys the decoded Parquet files carry, and back
+    assert list(prov.to_dict()) == ["source_file", "source_sha256", "format_version", "crc_ok", "bytes_total",
+                                    "bytes_dropped", "decode_warnings", "rows", "start_ns", "start_source"]
+    assert flight.Provenance.from_dict(json.loads(json.dumps(prov.to_dict()))) == prov
     assert fl.warnings == []

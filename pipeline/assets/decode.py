@@ -38,24 +38,24 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
     outcomes = {name: check(main) if main is not None else (False, f"no {MAIN_EVENT} table", {})
                 for name, check in checks.ALL_CHECKS.items()}
     metadata = {
-        **{f"rows_{e}": n for e, n in fl.provenance["rows"].items()},
+        **{f"rows_{e}": n for e, n in fl.provenance.rows.items()},
         **stats,
         "decode_warnings": dg.MetadataValue.md("\n".join(f"- {w}" for w in fl.warnings) or "none"),
         "warning_count": len(fl.warnings),
-        "crc_ok": str(fl.provenance["crc_ok"]),
-        "bytes_dropped": fl.provenance["bytes_dropped"],
-        "format_version": fl.provenance["format_version"],
-        "source_sha256": fl.provenance["source_sha256"],
-        "start_utc": _utc(fl.provenance["start_ns"]),
-        "start_source": fl.provenance["start_source"],
+        "crc_ok": str(fl.provenance.crc_ok),
+        "bytes_dropped": fl.provenance.bytes_dropped,
+        "format_version": fl.provenance.format_version,
+        "source_sha256": fl.provenance.source_sha256,
+        "start_utc": _utc(fl.provenance.start_ns),
+        "start_source": fl.provenance.start_source,
         "checks_failed": ", ".join(n for n, (ok, _, _) in outcomes.items() if not ok) or "none",
         "parquet": dg.MetadataValue.path(str(paths.get(MAIN_EVENT, next(iter(paths.values()), "")))),
     }
     return metadata, outcomes
 
 
-def _utc(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
+def _utc(ns: int | None) -> str:
+    return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds") if ns is not None else "unknown"
 
 
 def _check_results(outcomes: dict[str, dict]) -> list[dg.AssetCheckResult]:

@@ -22,13 +22,13 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
 
     def work(fid):
         table = store.read_table(root, "residuals", fid)
-        provenance = store.recorded_provenance(root, MAIN_EVENT, fid) or {}
-        if "start_ns" not in provenance:
+        provenance = store.recorded_provenance(root, MAIN_EVENT, fid)
+        if provenance is None or provenance.start_ns is None:
             raise dg.Failure(
                 description=f"{fid}: no start time in its decoded provenance: re-materialise decoded_flight")
         path = root / "mcap" / f"{check_component(fid, 'flight id')}.mcap"
-        counts = export.write_mcap(table, path, int(provenance["start_ns"]),
-                                   {"flight": fid, "start_source": provenance.get("start_source", "")})
+        counts = export.write_mcap(table, path, provenance.start_ns,
+                                   {"flight": fid, "start_source": provenance.start_source})
         return {"messages": sum(counts.values()), "topics": dg.MetadataValue.json(counts),
                 "path": dg.MetadataValue.path(str(path))}
 
