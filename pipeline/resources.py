@@ -78,18 +78,11 @@ class ModelConfig(dg.ConfigurableResource):
     holdout: str = ""
 
     def spec(self):
-        from quadcore import model, vehicle, workflows
+        """The model these settings ask for: :func:`quadcore.workflows.resolve_model`, as the CLI does."""
+        from quadcore import workflows
 
-        if self.model_file:
-            spec = model.load_model_file(self.model_file, vehicle_override=self.vehicle or None)
-        else:
-            spec = model.spec_from(vehicle.load(self.vehicle or None), [])
-        names = workflows.parse_names(self.effects)
-        if names:
-            spec = spec.with_effects(names)
-        if self.thrust_map:
-            spec.vehicle = spec.vehicle.with_thrust_map(self.thrust_map)
-        return spec
+        return workflows.resolve_model(self.model_file, self.vehicle, self.thrust_map,
+                                       workflows.parse_names(self.effects))
 
     @property
     def holdout_flights(self) -> list[str]:

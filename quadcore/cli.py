@@ -313,14 +313,7 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
 
     data, names = _data_and_effects(args)
     try:
-        if args.model:  # a model file: its vehicle, effects, fixed parameters and plugins
-            spec = model.load_model_file(args.model, vehicle_override=args.vehicle)
-            if args.thrust_map:
-                spec.vehicle = spec.vehicle.with_thrust_map(args.thrust_map)
-            if names:
-                spec = spec.with_effects(names)
-        else:
-            spec = model.spec_from(_vehicle(args), names)
+        spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
     except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError) as exc:
         raise UserError(str(exc)) from None
     flights, quarantined = load_flights([str(data)], None, log=lambda m: None)

@@ -47,3 +47,25 @@ def scored_flights(flights: Iterable[str], named: list[str], held_out: list[str]
     if named:
         return flights, list(named)
     return [f for f in flights if f not in held_out], []
+
+
+def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrust_map: str | None = None,
+                  effects: list[str] | None = None):
+    """The physics model a run asks for (a :class:`quadcore.model.ModelSpec`): a model file (its
+    vehicle, effects, fixed parameters and plugins), else just the vehicle (``vehicle_name``:
+    built-in name or file, default the Crazyflie 2.1); non-empty ``effects`` replace the effect
+    list (keeping the file as the source); ``thrust_map`` overrides the vehicle's.
+
+    Raises :class:`quadcore.model.ModelFileError`, :class:`quadcore.vehicle.VehicleFileError` or
+    :class:`quadcore.effects.UnknownEffectError` with the reason."""
+    from quadcore import model, vehicle
+
+    if model_file:
+        spec = model.load_model_file(model_file, vehicle_override=vehicle_name or None)
+    else:
+        spec = model.spec_from(vehicle.load(vehicle_name or None), [])
+    if effects:
+        spec = spec.with_effects(effects)
+    if thrust_map:
+        spec.vehicle = spec.vehicle.with_thrust_map(thrust_map)
+    return spec

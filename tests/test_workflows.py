@@ -65,3 +65,14 @@ def test_effects_override_keeps_the_model_files_source(tmp_path):
     assert spec.source == str(path) and spec.effects == ["rotor_drag", "motor_lag"]
     assert spec.fixed == {"rotor_drag": {"k_x_s_per_m": 0.1}}
     assert model.load_model_file(path).with_effects(["motor_lag"]).fixed == {}
+
+
+def test_the_cli_and_the_assets_resolve_the_same_model(tmp_path):
+    path = tmp_path / "model.toml"
+    path.write_text('vehicle = "crazyflie21"\neffects = ["rotor_drag"]\n')
+    asset = ModelConfig(model_file=str(path), effects="motor_lag", thrust_map="pwm_vbat").spec()
+    cli_like = workflows.resolve_model(str(path), None, "pwm_vbat", ["motor_lag"])
+    assert (asset.effects, asset.source, asset.vehicle.thrust_map_kind) == (
+        cli_like.effects, cli_like.source, cli_like.vehicle.thrust_map_kind) == (["motor_lag"], str(path), "pwm_vbat")
+    nominal = workflows.resolve_model(None)
+    assert nominal.effects == [] and nominal.source == "" and nominal.vehicle.name == "crazyflie21"
