@@ -54,8 +54,9 @@
    ``indistinguishable_from`` lists the candidates alike to this one in the channel it
    explains (its ``target``). If their scores are within ``TIE_MARGIN``, or the held-out
    flights do not prefer either significantly (:func:`quadcore.evidence.compare`, in the
-   channels above the noise), nothing else separates them: they are ``tied_with`` each other, the one with fewer parameters ranks
-   first (parsimony; then the higher score), and the verdict says the data cannot choose.
+   channels above the noise), nothing else separates them: they are ``tied_with`` each other, the one
+   with fewer parameters ranks first (parsimony; then the higher score), and the verdict says the
+   data cannot choose.
    Otherwise the other channel separates them (``separated_by``) and the verdict says how.
    The physics behind the two pairs that matter:
 
@@ -483,7 +484,8 @@ def _held_out_evidence(test: evidence.HeldOutTest, before: np.ndarray, after: np
     """The held-out test of a candidate in its target channel, the share of the residual
     *above the noise floor* it removes, and the size of what it removes in noise floors (RMS)."""
     sl = TARGET_CHANNELS[target]
-    removed, excess, floor = before[sl].sum() - after[sl].sum(), before[sl].sum() - noise_ss[sl].sum(), noise_ss[sl].sum()
+    floor = noise_ss[sl].sum()
+    removed, excess = before[sl].sum() - after[sl].sum(), before[sl].sum() - floor
     return {
         "held_out_slope": test.beta,
         "held_out_t": test.t,
@@ -544,12 +546,15 @@ def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
                 r["reason"] += f"; indistinguishable from {', '.join(above)}"
             continue
         size = (f"{r['grade']}: removes {_pct(r['explained_variance'])} of the held-out {r['target']} residual "
-                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), p = {r['held_out_p_value']:.2g}")
+                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), "
+                f"p = {r['held_out_p_value']:.2g}")
+        assert top is not None  # rows are ranked: a found candidate never follows one not found
         if r is top:
             r["status"], r["reason"] = "found", size
         elif top is not None and top["effect"] in r.get("tied_with", []):
             r["status"] = "tied"
-            r["reason"] = f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as many parameters; {size}"
+            r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
+                           f"many parameters; {size}")
         elif r.get("explained_after_top", 0.0) >= MIN_EXPLAINED:
             r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
         else:
@@ -749,7 +754,8 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
     found = [r for r in rows if r.get("found", r.get("useful", False))]
     unseen = [r["effect"] for r in rows if r not in found[:1]]
     missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
-              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + ".") if sensitivity else ""
+              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
+              if sensitivity else "")
     if not found:
         if at_noise and all(at_noise.values()):
             return ("No effect of the library explains the residual on held-out flights: none improves it "

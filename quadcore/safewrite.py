@@ -77,7 +77,8 @@ def _is_stale(path: Path, now: float) -> bool:
 def sweep_stale(root: Path) -> list[Path]:
     """Remove temp files and staging folders under ``root`` left by writers that were killed
     (their pid is gone, or, without a pid, older than ``STALE_AFTER_S``). Returns them."""
-    root, now, removed = Path(root), time.time(), []
+    root, now = Path(root), time.time()
+    removed: list[Path] = []
     if not root.is_dir():
         return removed
     for path in sorted(root.rglob(".*"), key=lambda p: len(p.parts)):

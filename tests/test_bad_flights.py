@@ -10,11 +10,11 @@ import json
 
 import dagster as dg
 import pytest
+from fuzz.badlogs import KINDS, bad_logs
 
 from pipeline.main import run_all
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import checks, cli, simulation, store
-from tests.fuzz.badlogs import KINDS, bad_logs
 
 GOOD = ["sim000", "sim001", "sim002"]
 # Physically odd but usable: processed, with a failed decode check that says why.

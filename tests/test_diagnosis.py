@@ -389,8 +389,9 @@ def test_cli_diagnose_writes_the_json_contract(cli_folder, tmp_path):
     _check_contract(d)
     assert d["effects_in_model"] == [] and d["evaluation"]["mode"] == "cross-validation"
     # the key structure, pinned: a refactor that renames or drops a key fails here
-    shape = snapshot.json_shape(d, data_maps=("parameters", "parameter_std", "parameter_spread_between_flights",
-                                              "separated_by"))
+    by_name = ("parameters", "parameter_std", "parameter_spread_between_flights", "separated_by", "sensitivity",
+               "conditions")  # maps keyed by effect or parameter names (data, not the contract)
+    shape = snapshot.json_shape(d, data_maps=by_name)
     snapshot.assert_matches(shape, "diagnose_json_keys.txt", "the JSON of `quadcore diagnose`",
                             "tests/test_diagnosis.py -k json_contract")
     assert d["candidates"][0]["effect"] == "rotor_drag"

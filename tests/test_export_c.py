@@ -40,8 +40,8 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc
 VEHICLE = vehicle.load()
 HOLDOUT = "sim002"
 FORCE_TOL_N, TORQUE_TOL_NM = 1e-5, 1e-8
-XGB = learning.ModelSpec("xgboost", max_depth=4, n_estimators=40, early_stopping_rounds=8)
-MLP = learning.ModelSpec("mlp", hidden=(16, 16), max_epochs=15, patience=5, lr=3e-3)
+XGB = learning.LearnerSpec("xgboost", max_depth=4, n_estimators=40, early_stopping_rounds=8)
+MLP = learning.LearnerSpec("mlp", hidden=(16, 16), max_epochs=15, patience=5, lr=3e-3)
 
 
 @pytest.fixture(scope="module")

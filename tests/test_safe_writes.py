@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 
 import pytest
+from fuzz import kills
 
 from quadcore import learning, safewrite, store
-from tests.fuzz import kills
 
 
 def _dead_pid() -> int:

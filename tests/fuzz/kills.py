@@ -47,12 +47,12 @@ def train_templates(folder: Path) -> None:
     tables = {}
     for f in ("a", "b", "c"):
         n = 400
-        cols = {c: rng.normal(size=n).astype(np.float32) for c in fs.columns}
+        cols: dict[str, np.ndarray] = {c: rng.normal(size=n).astype(np.float32) for c in fs.columns}
         cols.update({c: rng.normal(size=n) for c in feat.TARGETS})
         tables[f] = pl.DataFrame({"t_s": np.arange(n) * 0.002, "near_gap": np.zeros(n, bool), **cols})
     config = learning.TrainConfig(stride=1, threads=1)
-    specs = {"xgboost": learning.ModelSpec("xgboost", max_depth=2, n_estimators=20, early_stopping_rounds=5),
-             "mlp": learning.ModelSpec("mlp", hidden=(8,), max_epochs=3, patience=2, batch_size=128)}
+    specs = {"xgboost": learning.LearnerSpec("xgboost", max_depth=2, n_estimators=20, early_stopping_rounds=5),
+             "mlp": learning.LearnerSpec("mlp", hidden=(8,), max_epochs=3, patience=2, batch_size=128)}
     for kind, spec in specs.items():
         learning.train(spec, fs, tables, ["a", "b"], config).save(folder / kind)
 
