@@ -32,6 +32,7 @@ from typing import Any
 
 import polars as pl
 
+from quadcore.flight import Provenance
 from quadcore.names import check_component
 from quadcore.safewrite import temp_prefix
 
@@ -134,11 +135,9 @@ def write_decoded(root: Path, flight) -> dict[str, Path]:
     return paths
 
 
-def recorded_provenance(root: Path, event: str, flight: str):
+def recorded_provenance(root: Path, event: str, flight: str) -> Provenance | None:
     """The :class:`quadcore.flight.Provenance` written with a flight's decoded ``event`` table, or
     None if not decoded yet."""
-    from quadcore.flight import Provenance
-
     path = decoded_path(root, event, flight)
     return Provenance.from_dict(read_metadata(path)) if path.is_file() else None
 
@@ -157,7 +156,7 @@ def decoded_from(root: Path, event: str, flight: str, log_path: Path) -> bool:
     SHA-256 in its provenance); False when it is missing or the log cannot be read."""
     recorded = recorded_provenance(root, event, flight)
     try:
-        return recorded is not None and recorded.get("source_sha256") == file_sha256(log_path)
+        return recorded is not None and recorded.source_sha256 == file_sha256(log_path)
     except (OSError, ValueError):
         return False
 
