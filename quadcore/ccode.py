@@ -5,9 +5,9 @@ An effect that can run on a flight controller returns :class:`CCode` from
 ``f_b_N[3]`` (N) and ``tau_b_Nm[3]`` (N m), in single precision, with no heap and nothing
 but ``math.h``. The exporter wraps them in a block of their own and, before them, declares
 every parameter of the effect as a commented constant under its own name
-(``const float k_x_s_per_m = 0.31f;``), so the statements use the parameter names as they are. Local names are free (the generated
-code's own loop index is ``qc_i``); the check compiles with ``-Wshadow`` and ``-Wdouble-promotion``
-too, so use ``float`` literals (``1.0f``).
+(``const float k_x_s_per_m = 0.31f;``), so the statements use the parameter names as they are.
+Local names are free (the generated code's own loop index is ``qc_i``); the check compiles with
+``-Wshadow`` and ``-Wdouble-promotion`` too, so use ``float`` literals (``1.0f``).
 
 Names the statements may read (the exporter declares exactly the ones they mention, and the
 input struct carries exactly what those need):

@@ -78,7 +78,8 @@ def derived(vehicle: Vehicle) -> list[Derived]:
     if vehicle.thrust_map_kind == "motor_speed":
         thrust = Derived("f_rotor_N", ("motor_radps",), (
             "qc_real f_rotor_N[QC_N_ROTORS];  /* f = k_F omega^2 */\n"
-            "for (qc_i = 0; qc_i < QC_N_ROTORS; ++qc_i) f_rotor_N[qc_i] = QC_K_F * ((qc_real)motor_radps[qc_i] * motor_radps[qc_i]);"))
+            "for (qc_i = 0; qc_i < QC_N_ROTORS; ++qc_i) "
+            "f_rotor_N[qc_i] = QC_K_F * ((qc_real)motor_radps[qc_i] * motor_radps[qc_i]);"))
     else:
         thrust = Derived("f_rotor_N", ("pwm", "vbat_V"), (
             "qc_real f_rotor_N[QC_N_ROTORS];  /* grams = c0 + cp p + cb b + cpp p^2 + cpb p b, b = vbat / vbat_ref */\n"
