@@ -197,7 +197,7 @@ def to_recompute(
 def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bool:
     """Whether to refit and re-diagnose: flights were (re)decoded, or the fitted model or the
     diagnosis is missing or was made for another model (effects, vehicle, thrust map)."""
-    fitted, diag = root / "models" / "physics_model.json", root / "reports" / "diagnosis.json"
+    fitted, diag = store.physics_model_path(root), root / "reports" / "diagnosis.json"
     if decoded_now or not fitted.is_file() or not diag.is_file():
         return True
     spec, saved = model.spec(), store.read_json(fitted)
@@ -303,7 +303,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")
     log(f"  residual tables    {root / 'residuals'}/flight=<id>/data.parquet")
     log(f"  rollout errors     {root / 'rollouts'}/flight=<id>/data.parquet")
-    log(f"  fitted model       {root / 'models' / 'physics_model.json'}")
+    log(f"  fitted model       {store.physics_model_path(root)}")
     log(f"  diagnosis report   {root / 'reports' / 'diagnosis.html'} (and .md, .json)")
     log(f"  learned models     {root / 'learned'}/<run>/ (model, scaler, features, manifest)")
     log(f"  learning report    {root / 'reports' / 'learning.html'} (and .md, .json)")

@@ -66,6 +66,11 @@ def table_path(root: Path, stage: str, flight: str) -> Path:
     return as_root(root) / stage / f"flight={flight}" / "data.parquet"
 
 
+def physics_model_path(root: Path) -> Path:
+    """The fitted physics model (``physics_model`` asset, read by the per-flight stages and learning)."""
+    return as_root(root) / "models" / "physics_model.json"
+
+
 def quarantine_path(root: Path, flight: str) -> Path:
     return as_root(root) / "quarantine" / f"{check_component(flight, 'flight id')}.json"
 

@@ -66,7 +66,7 @@ def _physics(root) -> dict:
             f"the residual tables were computed against different physics models (not refreshed after a "
             f"refit?): re-materialise residual_table for {', '.join(stale)}"))
     physics: dict = next(iter(models.values()), {})
-    fitted = root / "models" / "physics_model.json"
+    fitted = store.physics_model_path(root)
     if fitted.is_file():
         saved = store.read_json(fitted)
         if [e["name"] for e in saved.get("effects", [])] == [e["name"] for e in physics.get("effects", [])]:

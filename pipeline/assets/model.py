@@ -59,7 +59,7 @@ def scored_flights(model: ModelConfig, decoded: dict) -> tuple[dict, list[str] |
 
 
 def fitted_model_path(data_root: DataRoot):
-    return data_root.root_path / "models" / "physics_model.json"
+    return store.physics_model_path(data_root.root_path)
 
 
 @dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"}, automation_condition=RETRAIN)

@@ -96,7 +96,7 @@ def load_source(path: str | Path, learned_kind: str = "xgboost"
     else:
         learned_dir = where / "learned" if (where / "learned" / "index.json").is_file() else where
         if learned_kind == "none" or not (learned_dir / "index.json").is_file():
-            physics_file = where / "models" / "physics_model.json"
+            physics_file = store.physics_model_path(where)
             if not physics_file.is_file():
                 raise ExportError(f"{where}: no learned models (learned/index.json) and no models/physics_model.json")
             return _physics_from_json(physics_file), None, f"physics model {physics_file}"
