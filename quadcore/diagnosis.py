@@ -551,7 +551,7 @@ def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
         assert top is not None  # rows are ranked: a found candidate never follows one not found
         if r is top:
             r["status"], r["reason"] = "found", size
-        elif top is not None and top["effect"] in r.get("tied_with", []):
+        elif top["effect"] in r.get("tied_with", []):
             r["status"] = "tied"
             r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
                            f"many parameters; {size}")
@@ -583,6 +583,8 @@ def detection_limits(cands, flights: list[FlightData], resid: dict[str, np.ndarr
             v = evidence.detection_limit(flights, resid, unit, noise_ss, MIN_SIGMA, n_candidates,
                                          min_share=2 * TIE_MARGIN if conditional else 0.0,
                                          base_ss=base_ss if conditional else 0.0)
+            if not c.linear:  # the unit wrench is a secant: nothing is known below its step
+                v = max(v, evidence.SECANT * (p.upper - p.lower))
             out[c.name][p.name] = float(v) if v <= max(p.upper - p.default, p.default - p.lower) else None
     return out
 

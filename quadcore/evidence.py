@@ -36,7 +36,10 @@ residual with its projection on ``u`` removed (an effect already there is no noi
 
 and the sensitivity in a channel is the largest of the three (all must pass), over channels
 the smallest. ``ms`` is the residual's mean square, ``W`` the samples per independent one,
-``F`` and ``R`` the channel's floor and residual sums of squares.
+``F`` and ``R`` the channel's floor and residual sums of squares. For a nonlinear effect the
+secant is all that is known: its sensitivity is never stated below the secant's step (for
+``motor_lag``, 2 ms: its discrete lag adds a whole sample of delay for any τ > 0, so a lag
+much shorter than a sample cannot be fitted).
 """
 
 from __future__ import annotations
