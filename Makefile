@@ -51,3 +51,4 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_learning.py
 	$(VENV_PYTHON) benchmarks/bench_discover.py
 	$(VENV_PYTHON) benchmarks/bench_export_c.py
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_power.py
