@@ -23,7 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from _common import best_of, logs_folder
+from _common import logs_folder
 
 from quadcore import dynamics, export_c, features as feat, fitting, flight, learning, model, vehicle
 from quadcore.export_c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
@@ -44,19 +44,6 @@ CLOCK_HZ = 168e6
 SPLIT_CYCLES = (10, 16)
 BISECT_CYCLES = (8, 14)
 MAC_CYCLES = (3, 6)
-
-
-def python_per_sample_us(physics, learned, table, X) -> dict[str, float]:
-    """Python's per-sample paths: the learned model's predict_one (the physics has none: it is
-    vectorised over flights), and physics + learned vectorised over the flight (best of 3), per row."""
-    one = learning.latency_us(learned.predict_one, X[0], 2000)
-
-    def whole_flight():
-        physics.extra_wrench(dynamics.flight_state(table, physics.vehicle))
-        learned.predict_matrix(X)
-
-    seconds, _ = best_of(whole_flight)
-    return {"predict_one": one, "vectorised": seconds / len(X) * 1e6}
 
 
 def arm_function_bytes(source_dir: Path, name: str) -> int | None:
@@ -169,7 +156,7 @@ def report(physics, models, best: set[str], table, residual_table, work: Path) -
             X = feat.matrix(residual_table, learned.feature_set)
             y = learned.predict_matrix(X)
             f_py, tau_py = f_py + y[:, :3], tau_py + y[:, 3:]
-            py = f"{python_per_sample_us(physics, learned, table, X)['predict_one']:.1f}"
+            py = f"{learning.latency_us(learned.predict_one, X[0], 2000):.1f}"  # the learned part alone
             low, high, how = cycle_estimate(learned, X, arm_function_bytes(out, "quadcore_residual"))
             cycles, m4_us = f"{low:,.0f}-{high:,.0f}", f"{low / CLOCK_HZ * 1e6:.0f}-{high / CLOCK_HZ * 1e6:.0f}"
             star = "*" if learned.spec.slug in best else ""
