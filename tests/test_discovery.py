@@ -193,3 +193,16 @@ def test_the_example_model_of_the_real_flights_meets_the_torque_goals(real_logs,
     assert code == 0, err
     torque = json.loads((tmp_path / "d.json").read_text())["baseline"]["torque_rmse_Nm"]
     assert torque[0] <= 0.15e-3 and torque[1] <= 0.22e-3, torque
+
+
+def test_no_hidden_term_nothing_discovered_and_no_effect_written(tmp_path):
+    """Flights flown with the nominal model only: every axis is at the noise floor or keeps no
+    term, and --write-effect refuses to write an empty effect (exit 2, one line)."""
+    configs = [SimConfig(kind="random", duration_s=6.0, seed=s, speed_min_mps=0.8, speed_max_mps=1.5)
+               for s in (7, 8, 9)]
+    simulation.simulate_set(tmp_path / "nominal", configs, {}, vehicle.load())
+    code, _, err = _run(["discover", str(tmp_path / "nominal"), "--json", str(tmp_path / "d.json"),
+                         "--write-effect", str(tmp_path / "fx" / "nothing.py"), "--quiet"])
+    d = json.loads((tmp_path / "d.json").read_text())
+    assert d["terms"] == [], d["terms"]
+    assert code == 2 and "no term was kept" in err and not (tmp_path / "fx" / "nothing.py").exists()
