@@ -1,12 +1,17 @@
 """Lab scale: the main job on N simulated flights, time per flight and peak memory, and the
 refresh after one more flight.
 
-    nice -n 10 python benchmarks/bench_scale.py [N ...]      (default: 10 50 100)
+    nice -n 10 python benchmarks/bench_scale.py [N ...]                 (default: 10 50 100)
+    nice -n 10 python benchmarks/bench_scale.py --per-flight [N ...]    (default: 10 100 300)
 
-For each N: N simulated flights (random go-to flights, 10 s each, simulated once and cached
-under $TMPDIR/quadcore_bench_scale), then ``python -m pipeline`` on an empty data root (a fresh
-process: wall time, peak resident memory, seconds per stage), then one more flight and the job
-again: the refit + diagnosis + history refresh. Prints a table (N, wall, per-flight seconds of the
+N flights: a pool of 20 simulated flights (random go-to flights, 10 s each, simulated once and
+cached under $TMPDIR/quadcore_bench_scale), linked under N flight ids (flight ``sim0042`` is pool
+flight 42 mod 20: same bytes, its own partition and outputs). For each N, ``python -m pipeline``
+on an empty data root (a fresh process: wall time, peak resident memory, seconds per stage), then
+one more flight and the job again: the refit + diagnosis + history refresh. ``--per-flight`` runs
+only the per-flight stages (decode, then residuals, rollouts and MCAP, each over all flights in
+one run, as the main job does) in a fresh process: the time per flight and the memory of the part
+that grows with the fleet one flight at a time. Prints a table (N, wall, per-flight seconds of the
 per-flight stages, fleet seconds, learning seconds, peak MB, refresh seconds) and, with two N or
 more, a plot of time per flight and memory against N (scale.png beside the cache).
 
@@ -32,27 +37,85 @@ from quadcore import simulation  # noqa: E402
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
 
 
-def simulated(n: int) -> Path:
-    """A folder with links to the first ``n`` cached simulated flights (simulating what is missing)."""
+POOL = 20
+
+
+def pool_log(i: int) -> Path:
+    """Pool flight ``i mod POOL`` (simulating the pool once)."""
     pool = CACHE / "pool"
     pool.mkdir(parents=True, exist_ok=True)
     have = len([p for p in pool.iterdir() if not p.suffix])
-    if have < n + 1:
-        configs = [simulation.SimConfig(kind="random", duration_s=10.0, seed=1000 + i) for i in range(have, n + 1)]
+    if have < POOL:
+        configs = [simulation.SimConfig(kind="random", duration_s=10.0, seed=1000 + k) for k in range(have, POOL)]
         tmp = Path(tempfile.mkdtemp(dir=CACHE))
-        for (log, truth), i in zip(simulation.simulate_set(tmp, configs), range(have, n + 1)):
-            log.rename(pool / f"sim{i:04d}")
-            truth.rename(pool / f"sim{i:04d}{simulation.TRUTH_SUFFIX}")
+        for (log, truth), k in zip(simulation.simulate_set(tmp, configs), range(have, POOL)):
+            log.rename(pool / f"sim{k:04d}")
+            truth.rename(pool / f"sim{k:04d}{simulation.TRUTH_SUFFIX}")
         shutil.rmtree(tmp)
+    return pool / f"sim{i % POOL:04d}"
+
+
+def simulated(n: int) -> Path:
+    """A raw folder with ``n`` flights (links into the pool)."""
     raw = CACHE / f"raw{n}"
     shutil.rmtree(raw, ignore_errors=True)
     raw.mkdir()
     for i in range(n):
-        (raw / f"sim{i:04d}").symlink_to(pool / f"sim{i:04d}")
+        (raw / f"sim{i:04d}").symlink_to(pool_log(i))
     return raw
 
 
+def per_flight_child(n: int) -> None:
+    """In a fresh process: the per-flight stages on n flights, one run per stage; prints seconds."""
+    import time
+
+    import dagster as dg
+
+    from pipeline import main as job
+    from pipeline.definitions import PER_FLIGHT
+    from pipeline.resources import DataRoot, ModelConfig
+
+    raw, root = simulated(n), CACHE / f"root{n}"
+    shutil.rmtree(root, ignore_errors=True)
+    resources = {"data_root": DataRoot(root=str(root), raw=str(raw)), "model": ModelConfig()}
+    ids = [f"sim{i:04d}" for i in range(n)]
+    with dg.instance_for_test() as instance:
+        t0 = time.perf_counter()
+        failed = job.run_flights(instance, resources, ids, PER_FLIGHT[:1], "decode", log=lambda *_: None)
+        t1 = time.perf_counter()
+        failed.update(job.run_flights(instance, resources, ids, PER_FLIGHT[1:], "flights", log=lambda *_: None))
+        t2 = time.perf_counter()
+    print(f"{t1 - t0:.3f} {t2 - t1:.3f} {len(failed)}")
+
+
+def per_flight_main(sizes: list[int]) -> None:
+    import os
+    import subprocess
+
+    rows = []
+    for n in sizes:
+        simulated(n)  # outside the timed process
+        proc = subprocess.Popen([sys.executable, __file__, "--child", str(n)], stdout=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(REPO)})
+        out = proc.stdout.read() if proc.stdout else ""
+        _, _, usage = os.wait4(proc.pid, 0)
+        decode_s, tables_s, failed = out.split()[-3:]
+        rows.append((n, float(decode_s), float(tables_s), usage.ru_maxrss / 1024, int(failed)))
+        print(f"N={n}: decode {float(decode_s):.1f} s, residuals+rollouts+MCAP {float(tables_s):.1f} s, "
+              f"{(float(decode_s) + float(tables_s)) / n:.3f} s/flight, peak {usage.ru_maxrss / 1024:.0f} MB, "
+              f"{failed} failed", flush=True)
+    per = [(d + t) / n for n, d, t, _, _ in rows]
+    report(f"per-flight stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", per[-1] / per[0], 1.5, "x")
+    report(f"per-flight stages: peak memory at {rows[-1][0]} flights", rows[-1][3], 4096.0, "MB")
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--child"]:
+        per_flight_child(int(sys.argv[2]))
+        return
+    if sys.argv[1:2] == ["--per-flight"]:
+        per_flight_main([int(a) for a in sys.argv[2:]] or [10, 100, 300])
+        return
     sizes = [int(a) for a in sys.argv[1:]] or [10, 50, 100]
     rows = []
     for n in sizes:
@@ -61,7 +124,7 @@ def main() -> None:
         shutil.rmtree(root, ignore_errors=True)
         run = run_main_job(root, raw)
         per_flight = (run.stage_s.get("1", 0.0) + run.stage_s.get("3", 0.0)) / n
-        (raw / f"sim{n:04d}").symlink_to(CACHE / "pool" / f"sim{n:04d}")
+        (raw / f"sim{n:04d}").symlink_to(pool_log(n))
         more = run_main_job(root, raw)
         refresh = sum(more.stage_s.get(k, 0.0) for k in ("1", "2", "3"))
         rows.append((n, run.wall_s, per_flight, run.stage_s.get("2", 0.0), run.stage_s.get("4", 0.0),

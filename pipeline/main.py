@@ -253,7 +253,8 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     decode = ids if RECOMPUTE else to_decode(instance, data_root, ids)
     log(f"1/4 decode ({len(decode)} of {len(ids)} flights; the others are up to date)")
     failures = run_flights(instance, resources, decode, DECODE, "decode", log) if decode else {}
-    good = [f for f in ids if f not in failures and f in _materialized(instance, "decoded_flight")]
+    decoded = _materialized(instance, "decoded_flight")
+    good = [f for f in ids if f not in failures and f in decoded]
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
