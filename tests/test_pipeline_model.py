@@ -109,3 +109,33 @@ def test_a_user_vehicle_file_reaches_the_assets(raw, tmp_path):
         meta = metadata(res, "residual_table")
     assert meta["vehicle"] == "heavy"
     assert meta["force_mean_z_N"] > 0.1  # 50 g measured against a 34.7 g thrust model
+
+
+def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
+    """The loop with a term the user did not know: discovery on the nominal model writes an
+    effect module; named in a model file (plugins + effects, unedited) the fleet assets fit it,
+    the held-out error falls and the history records both evaluations."""
+    from quadcore import discovery, effects, model, vehicle
+
+    root = tmp_path / "root"
+    data_root = DataRoot(root=str(root), raw=str(raw))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim000", "sim001", "sim002"])
+        for key in ("sim000", "sim001", "sim002"):
+            materialize([decoded_flight], {"data_root": data_root, "model": ModelConfig()}, instance, key)
+        res = materialize(FLEET, {"data_root": data_root, "model": ModelConfig()}, instance)
+        before = metadata(res, "model_diagnosis")["force_rmse_x_N"]
+        decoded = store.read_all_decoded(root, "fixedFrequency")
+        found = discovery.discover(decoded, model.spec_from(vehicle.load(), []))
+        module = discovery.write_effect(found, tmp_path / "fx" / "found_drag.py")
+        model_file = tmp_path / "fx" / "model.toml"
+        model_file.write_text('effects = ["found_drag"]\nplugins = ["found_drag.py"]\n')
+        try:
+            res = materialize(FLEET, {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))},
+                              instance)
+        finally:
+            effects.unregister("found_drag")
+        assert module.is_file()
+        after = metadata(res, "model_diagnosis")["force_rmse_x_N"]
+        assert after < 0.5 * before
+        assert history.read(root)["model_label"].to_list() == ["nominal", "nominal+found_drag"]
