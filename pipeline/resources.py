@@ -68,7 +68,8 @@ class ModelConfig(dg.ConfigurableResource):
 
     Environment: ``QUADCORE_MODEL`` (default ``model.toml`` if present), ``QUADCORE_VEHICLE``,
     ``QUADCORE_THRUST_MAP``, ``QUADCORE_EFFECTS`` (comma-separated: replaces the file's effect
-    list), ``QUADCORE_HOLDOUT`` (comma-separated flight ids).
+    list), ``QUADCORE_HOLDOUT`` (comma-separated flight ids), ``QUADCORE_SESSIONS`` (a sessions
+    file: groups of flights whose parameters may differ; default: groups found from the data).
     """
 
     model_file: str = ""
@@ -76,6 +77,12 @@ class ModelConfig(dg.ConfigurableResource):
     thrust_map: str = ""
     effects: str = ""
     holdout: str = ""
+    sessions_file: str = ""
+
+    def sessions(self, flights: list[str]) -> dict[str, list[str]] | None:
+        from quadcore import sessions
+
+        return sessions.read_sessions_file(self.sessions_file, flights) if self.sessions_file else None
 
     def spec(self):
         """The model these settings ask for: :func:`quadcore.workflows.resolve_model`, as the CLI does."""
@@ -114,4 +121,5 @@ def model_config_from_env() -> ModelConfig:
         thrust_map=os.environ.get("QUADCORE_THRUST_MAP", ""),
         effects=os.environ.get("QUADCORE_EFFECTS", ""),
         holdout=os.environ.get("QUADCORE_HOLDOUT", ""),
+        sessions_file=os.environ.get("QUADCORE_SESSIONS", ""),
     )

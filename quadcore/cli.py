@@ -329,12 +329,19 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore import diagnosis, report
+    from quadcore import diagnosis, report, sessions
 
     spec, tables, holdout, skipped = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
     log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
-    result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log), "skipped_flights": skipped}
+    groups = None
+    if args.sessions:
+        try:
+            groups = sessions.read_sessions_file(args.sessions, sorted(tables))
+        except sessions.SessionsFileError as exc:
+            raise UserError(str(exc)) from None
+    result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log, sessions=groups),
+              "skipped_flights": skipped}
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2, default=float))
@@ -352,6 +359,12 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     _print_table([[r["effect"], r["of"], "not in range" if r["undetected_below"] is None
                    else f"{r['undetected_below']:.2g} {r['unit']}"] for r in diagnosis.sensitivity_rows(result)],
                  ["effect", "parameter", "undetected below"])
+    for d in result["disagreements"]:
+        print(f"\n{d['effect']}.{d['parameter']} differs between groups of flights ({d['source']}):")
+        for g in d["groups"]:
+            print(f"  {g['value']:.4g} ± {g['std']:.2g}: {', '.join(g['flights'])}")
+        for note in d["notes"]:
+            print(f"  note: {note}")
     print(f"\n{result['verdict']}\n\nwrote {out}")
     if args.report:
         md, page = report.write(result, Path(args.report))
@@ -552,6 +565,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
                    "cross-validation over flights)")
     p.add_argument("--report", default=None, metavar="DIR", help="also write diagnosis.md and diagnosis.html")
+    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="groups of flights ([sessions] NAME = "
+                   "[\"flight\", \"pattern*\"]) whose parameters may differ (default: groups found from the data)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_diagnose)

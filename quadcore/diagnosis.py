@@ -98,7 +98,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore import effects as effectlib, evidence, fitting, rotations, signals, spectrum
+from quadcore import effects as effectlib, evidence, fitting, rotations, sessions as sessionlib, signals, spectrum
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
@@ -270,8 +270,11 @@ def diagnose(
     candidates: list[str] | None = None,
     n_folds: int = 5,
     log=lambda msg: None,
+    sessions: dict[str, list[str]] | None = None,
 ) -> dict:
-    """Fit the model, score it on held-out flights, rank the missing effects. JSON-ready dict."""
+    """Fit the model, score it on held-out flights, rank the missing effects, and find the
+    parameters that differ between groups of flights (``sessions``: name -> flights, from a
+    sessions file; None: groups found from the data). JSON-ready dict."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
     fds = {fid: fitting.flight_data(fid, decoded[fid], vehicle) for fid in ids}
@@ -450,7 +453,14 @@ def diagnose(
     for r in rows:
         r["sensitivity"] = sensitivity[r["effect"]]
 
+    # Parameters that differ between sessions: the model's effects, and the best candidate beside them
+    best = [effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
+    disagree = sessionlib.disagreements(model_effects + best, fds, targets, vehicle, spec.fixed, sessions, log)
+
     long = long_table([fds[f] for f in eval_ids], eval_resid, vehicle)
+    text = verdict(rows, at_noise, sensitivity)
+    if disagree:
+        text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
     return {
         "effects_in_model": spec.effects,
         "model": model.to_dict(),
@@ -467,7 +477,8 @@ def diagnose(
         "candidates": rows,
         "sensitivity": sensitivity,
         "sensitivity_basis": sensitivity_basis(cands),
-        "verdict": verdict(rows, at_noise, sensitivity),
+        "verdict": text,
+        "disagreements": [d.to_dict() for d in disagree],
         "regimes": regime_table(long).to_dicts(),
         "flights": flight_table(long).to_dicts(),
         "worst_segments": worst_segments(long).to_dicts(),

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore import diagnosis, plots  # noqa: E402
+from quadcore import diagnosis, plots, sessions  # noqa: E402
 from quadcore.history import RMSE_COLUMNS  # noqa: E402
 
 
@@ -200,6 +200,11 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
           f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
           "values an effect would go unnoticed on these flights.")) if sens else None,
         ("Sensitivity", "table", pl.DataFrame(sens)) if sens else None,
+        ("Parameters that differ between groups of flights", "table",
+         pl.DataFrame(sessions.table_rows(d["disagreements"]))) if d.get("disagreements") else None,
+        ("Parameters that differ between groups of flights: notes", "text",
+         " ".join(n for dis in d["disagreements"] for n in dis["notes"]))
+        if any(dis["notes"] for dis in d.get("disagreements", [])) else None,
         (("Fraction of held-out residual each candidate removes", "image", candidates_plot(d))
          if d["candidates"] else None),
         ("Where it fails: residual by regime", "image", regimes_plot(d)),

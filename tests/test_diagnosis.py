@@ -362,6 +362,9 @@ def _check_contract(d: dict) -> None:
         assert isinstance(r["indistinguishable_from"], list)
     assert isinstance(d["regimes"], list) and d["regimes"] and {"regime", "bin", "samples"} <= set(d["regimes"][0])
     assert isinstance(d["verdict"], str) and d["verdict"]
+    for dis in d["disagreements"]:  # [{effect, parameter, groups: [{flights, value, std}]}]
+        assert {"effect", "parameter", "groups"} <= set(dis) and len(dis["groups"]) >= 2
+        assert all({"flights", "value", "std"} <= set(g) and g["flights"] for g in dis["groups"])
     _check_evidence(d)
 
 
@@ -581,3 +584,64 @@ def test_frequency_view_shows_a_hidden_lag_as_timing(hidden):
     fixed = next(r for r in with_it["frequency"]["channels"] if r["channel"] == "torque_x")
     assert abs(fixed["phase_deg"][k]) < 15 and abs(fixed["gain"][k] - 1) < 0.15, fixed
     assert any("late or early" in line for line in freq["reading"]), freq["reading"]
+
+
+# ---------------------------------------------------------------------------------------
+# Parameters that differ between sessions
+# ---------------------------------------------------------------------------------------
+
+SESSION_SCALES = {"early": 0.95, "late": 0.88}
+
+
+@pytest.fixture(scope="session")
+def two_sessions(sim_sets):
+    """Three fast flights at each of two thrust scales (another battery, other propellers)."""
+    configs = [_fast(30 + i) for i in range(6)]
+    effs = [{"thrust_scale": {"scale": SESSION_SCALES["early" if i < 3 else "late"]}} for i in range(6)]
+    folder, tables = sim_sets("two_sessions", configs, effs)
+    return folder, tables
+
+
+def _scale_groups(result: dict) -> list[dict]:
+    found = [d for d in result["disagreements"] if (d["effect"], d["parameter"]) == ("thrust_scale", "scale")]
+    assert len(found) == 1, result["disagreements"]
+    return found[0]["groups"]
+
+
+def test_two_sessions_are_found_from_the_data(two_sessions):
+    _, tables = two_sessions
+    result = _diagnose(tables)
+    assert result["candidates"][0]["effect"] in ("thrust_scale", "added_mass")
+    groups = _scale_groups(result)
+    assert [g["flights"] for g in groups] == [["sim003", "sim004", "sim005"], ["sim000", "sim001", "sim002"]]
+    for g, truth in zip(groups, (SESSION_SCALES["late"], SESSION_SCALES["early"])):
+        assert g["value"] == pytest.approx(truth, rel=0.02) and 0 < g["std"] < 0.02
+    assert "differ between groups of flights" in result["verdict"]
+    # the same with the model's own thrust scale: one fleet value hides two
+    with_it = _diagnose(tables, ["thrust_scale"])
+    assert [g["flights"] for g in _scale_groups(with_it)] == [g["flights"] for g in groups]
+
+
+def test_one_session_no_disagreement(hidden):
+    nominal, with_it = hidden("thrust_scale")
+    assert nominal["disagreements"] == [] and with_it["disagreements"] == []
+
+
+def test_cli_sessions_file_names_the_groups(two_sessions, tmp_path):
+    folder, _ = two_sessions
+    sessions_file = tmp_path / "sessions.toml"
+    sessions_file.write_text('[sessions]\nmonday = ["sim000", "sim001", "sim002"]\ntuesday = ["sim00[345]"]\n')
+    out = tmp_path / "d.json"
+    code, stdout, stderr = _run(["diagnose", str(folder), "--json", str(out), "--effects", "thrust_scale",
+                                 "--sessions", str(sessions_file), "--quiet"])
+    assert code == 0, stderr
+    groups = _scale_groups(json.loads(out.read_text()))
+    assert [(g["session"], g["flights"]) for g in groups] == [("tuesday", ["sim003", "sim004", "sim005"]),
+                                                             ("monday", ["sim000", "sim001", "sim002"])]
+    for g, truth in zip(groups, (SESSION_SCALES["late"], SESSION_SCALES["early"])):
+        assert g["value"] == pytest.approx(truth, rel=0.02)
+    assert "thrust_scale.scale differs between groups of flights (sessions file)" in stdout
+    # a flight in two sessions is a user error, not a traceback
+    sessions_file.write_text('[sessions]\na = ["sim000"]\nb = ["sim00*"]\n')
+    code, _, stderr = _run(["diagnose", str(folder), "--json", str(out), "--sessions", str(sessions_file), "--quiet"])
+    assert code == 2 and "'sim000' is in sessions 'a' and 'b'" in stderr and "Traceback" not in stderr

@@ -7,7 +7,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, store, workflows
+from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, sessions, store, workflows
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
@@ -131,7 +131,11 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         raise dg.Failure(
             description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
     seen, holdout = scored_flights(model, decoded)
-    result = diagnosis.diagnose(seen, spec, holdout, log=context.log.info)
+    try:
+        groups = model.sessions(sorted(seen))
+    except sessions.SessionsFileError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    result = diagnosis.diagnose(seen, spec, holdout, log=context.log.info, sessions=groups)
     result["skipped_flights"] = skipped
     out = data_root.root_path / "reports"
     store.write_json(result, out / "diagnosis.json")
@@ -150,6 +154,9 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
             diagnosis.candidate_summary({"candidates": top})))),
         "sensitivity": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
         "sensitivity_json": dg.MetadataValue.json(result["sensitivity"]),
+        "disagreements": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+            sessions.table_rows(result["disagreements"]))) if result["disagreements"] else "none: one value fits all"),
+        "disagreements_json": dg.MetadataValue.json(result["disagreements"]),
         "candidates_plot": dg.MetadataValue.md(plots.markdown_image(report.candidates_plot(result), "candidates")),
         "regimes_plot": dg.MetadataValue.md(plots.markdown_image(report.regimes_plot(result), "regimes")),
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
