@@ -210,6 +210,8 @@ def _literature(expr: str, channel: str = "force") -> str:
         (r"^v_b_([xyz])_mps\*\|v_b_\1_mps\|$", "parasitic (quadratic) airframe drag"),
         (r"^\(R/4h\)\^2\*T_N$", "ground effect (Cheeseman & Bennett 1955)"),
         (r"^T_N\*\|v_h\|\^2$", "translational lift (momentum theory)"),
+        (r"^v_b_([xy])_mps\*v_b_\1_mps$", "a force growing with the horizontal speed squared: translational lift "
+                                          "along z (momentum theory), quadratic drag in the horizontal"),
         (r"^(T_N\*)?v_b_z_mps$|^T_N\*v_b_z_mps$", "axial inflow: thrust changes with climb speed (momentum theory)"),
         (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$",
          "rotor inertia: reaction torque of accelerating rotors"),
@@ -308,7 +310,8 @@ class DiscoveredTerm:
 
     @property
     def formula(self) -> str:
-        return (f"{self.target} ≈ {self.coefficient:+.3g} {self.unit} · {self.expression} "
+        unit = f" {self.unit}" if self.unit != "1" else ""
+        return (f"{self.target} ≈ {self.coefficient:+.3g}{unit} · {self.expression} "
                 f"(± {self.std:.2g}; explains {self.explained_variance:.0%} held out, kept in "
                 f"{self.folds_selected}/{self.folds} folds)")
 
