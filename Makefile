@@ -10,7 +10,7 @@ PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 
-.PHONY: install run test test-fast lint ui bench
+.PHONY: install run test test-fast lint ui bench fuzz
 
 install: $(STAMP)
 
@@ -52,3 +52,8 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_discover.py
 	$(VENV_PYTHON) benchmarks/bench_export_c.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_power.py
+
+# The fuzz harness (tests/fuzz): 2,000 mutants of the real logs (simulated ones where absent) and
+# 100 writers killed at random moments. Prints the counts the README's Reliability section quotes.
+fuzz: $(STAMP)
+	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.harness --mutants 2000 --kills 100
