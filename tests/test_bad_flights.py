@@ -72,6 +72,7 @@ def test_cli_decode_and_residuals_go_on_past_bad_flights(raw, tmp_path):
     assert not any((tmp_path / "out" / "residuals" / f"flight={fid}").exists() for fid in REFUSED)
 
 
+@pytest.mark.slow
 def test_main_job_gives_every_good_flight_its_outputs(raw, tmp_path):
     root = tmp_path / "root"
     lines: list[str] = []

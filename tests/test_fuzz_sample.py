@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tests.fuzz import harness
+from fuzz import harness
 
 
 def test_a_sample_of_mutants_meets_the_bar(tmp_path):

@@ -106,6 +106,7 @@ def test_malformed_artefacts_raise_learning_error(templates, tmp_path, kind, cas
         learning.load(folder)
 
 
+@pytest.mark.slow
 def test_killed_writers_leave_no_torn_file_or_unloadable_model(templates):
     """Two random kills here (the fuzz harness runs 100: make fuzz)."""
     report = kills.run(templates, n_kills=2, seed=1, log=lambda m: None)

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from quadcore import flight, logformat, store
-from tests.fuzz.mutants import ESCAPE_MARK, Layout, Mutant, layout, mutants
+
+from .mutants import ESCAPE_MARK, Layout, Mutant, layout, mutants
 
 MAX_SECONDS = 2.0
 BODY_KINDS = ("flip", "overwrite", "insert", "delete", "unknown_id")
@@ -95,12 +96,12 @@ def check(m: Mutant, clean: Clean, root: Path, flight_id: str) -> Outcome:
         return Outcome(m.kind, time.perf_counter() - t0, untyped_error=_short(exc))
     seconds = time.perf_counter() - t0
     try:
-        store.write_decoded(root, flight.from_decoded(flight_id, log, {"mutant": m.kind}))
+        store.write_decoded(root, flight.from_decoded(flight_id, log, f"mutant:{m.kind}"))
     except Exception as exc:  # noqa: BLE001
         return Outcome(m.kind, seconds, untyped_error=f"writing: {_short(exc)}")
     cut = len(m.data) if m.kind == "truncate" else m.corrupt_from
     kept = _prefix_kept(log, clean, cut) if cut is not None else None
-    recovered = _recovered(log, clean, m.corrupt_from) if m.kind in BODY_KINDS else None
+    recovered = _recovered(log, clean, m.corrupt_from) if m.kind in BODY_KINDS and m.corrupt_from is not None else None
     return Outcome(m.kind, seconds, prefix_kept=kept, recovered=recovered)
 
 
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  untyped: {e}")
     ok = summary.ok()
     if args.kills:
-        from tests.fuzz import kills
+        from . import kills
 
         print(f"\nkilling writers {args.kills} times at random moments")
         with tempfile.TemporaryDirectory(prefix="quadcore-kills-") as tmp:
