@@ -463,7 +463,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     log(f"physics model: {spec.effects or 'nominal'}{fitted_on}")
     physics = fitting.fit_model(spec, tables, train) if spec.effects else model.PhysicsModel(veh, [])
     try:
-        res = {fid: physics.residual_table(df) for fid, df in tables.items()}
+        res = {fid: physics.for_flight(fid).residual_table(df) for fid, df in tables.items()}
         by_set = feat.feature_tables(res, sets)
     except (vehicle.VehicleFileError, feat.FeatureError) as exc:
         raise UserError(str(exc)) from None

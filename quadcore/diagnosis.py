@@ -302,8 +302,12 @@ def diagnose(
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
         tr = [fds[f] for f in train]
-        fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train], vehicle, spec.fixed)
-        resid = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in {*train, *test}}
+        if spec.per_session:  # the model's per-session effects fitted per session of the training flights
+            pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
+            resid = {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
+        else:
+            fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train], vehicle, spec.fixed)
+            resid = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in {*train, *test}}
         for c in cands:
             fit_c = fold_fits[c.name] = fitting.fit_effects([c], tr, [resid[f] for f in train], vehicle)
             fold_params[c.name].append(fit_c.params[c.name])
@@ -316,11 +320,15 @@ def diagnose(
 
     # Parameters reported: fitted on all training flights.
     tr = [fds[f] for f in train_all]
-    if not reuse:
-        fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train_all], vehicle, spec.fixed)
-    model = PhysicsModel(vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name], e.name in spec.fixed)
-                                   for e in model_effects])
-    resid_train = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in train_all}
+    if spec.per_session:
+        model = pm if reuse else sessionlib.fit_per_session(spec, fds, targets, train_all, sessions, log)
+        resid_train = {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
+    else:
+        if not reuse:
+            fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train_all], vehicle, spec.fixed)
+        model = PhysicsModel(vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
+                                                  e.name in spec.fixed) for e in model_effects])
+        resid_train = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in train_all}
     if reuse and len(train_all) >= 3:
         # one split only: refit each candidate leaving out groups of training flights, for the spread
         for group in fitting.folds(train_all, n_folds):

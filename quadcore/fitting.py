@@ -359,8 +359,9 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     return [ids[i::k] for i in range(k)]
 
 
-def fit_model(spec, decoded: dict, train: list[str]):
-    """Fit the effects a :class:`quadcore.model.ModelSpec` names on the ``train`` flights."""
+def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[str]] | None = None, log=None):
+    """Fit the effects a :class:`quadcore.model.ModelSpec` names on the ``train`` flights (its
+    ``per_session`` effects per session: :func:`quadcore.sessions.fit_per_session`)."""
     from quadcore.effects import get
     from quadcore.model import EffectTerm, PhysicsModel
 
@@ -368,6 +369,12 @@ def fit_model(spec, decoded: dict, train: list[str]):
     effect_list = [get(n) for n in spec.effects]
     if not effect_list:
         return PhysicsModel(spec.vehicle, [])
+    if spec.per_session:
+        from quadcore import sessions as sessionlib
+
+        by_id = {fd.flight: fd for fd in fds}
+        return sessionlib.fit_per_session(spec, by_id, dict(zip(train, targets_of(fds))), train, sessions,
+                                          log or (lambda msg: None))
     fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed)
     terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
     return PhysicsModel(spec.vehicle, terms)

@@ -10,11 +10,21 @@ A model file (TOML) names them; a user "adds an effect" by adding its name::
     [parameters.rotor_drag]          # optional: fixed values instead of fitting
     k_x_s_per_m = 0.01
 
-Relative paths are relative to the model file.
+    [per_session]                    # optional: fitted per session of flights, not fleet-wide
+    thrust_scale = ["scale"]         # (every free parameter of the effect)
+
+    [sessions]                       # optional: which flights form a session (shell patterns);
+    early = ["jana0*", "jana1*"]     # without it, sessions are the groups the data show
+    late = ["jana2*", "jana3*"]
+
+Relative paths are relative to the model file. A flight of no session gets the fleet value of
+a per-session parameter, with a warning.
 """
 
 from __future__ import annotations
 
+import fnmatch
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,13 +48,19 @@ class EffectTerm:
     params: dict[str, float]
     std: dict[str, float] = field(default_factory=dict)
     fixed: bool = False
+    # fitted per session: session -> parameters (and their std); ``params`` is then the fleet value
+    per_session: dict[str, dict[str, float]] = field(default_factory=dict)
+    per_session_std: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def effect(self) -> effects.Effect:
         return effects.get(self.name)
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "params": self.params, "std": self.std, "fixed": self.fixed}
+        out = {"name": self.name, "params": self.params, "std": self.std, "fixed": self.fixed}
+        if self.per_session:
+            out |= {"per_session": self.per_session, "per_session_std": self.per_session_std}
+        return out
 
 
 @dataclass
@@ -53,6 +69,22 @@ class PhysicsModel:
 
     vehicle: Vehicle
     terms: list[EffectTerm] = field(default_factory=list)
+    sessions: dict[str, list[str]] = field(default_factory=dict)  # session -> flights
+
+    def for_flight(self, flight: str) -> PhysicsModel:
+        """The model with the per-session parameters of ``flight``'s session; a flight of no
+        known session keeps the fleet values, with a warning."""
+        split = [t for t in self.terms if t.per_session]
+        if not split:
+            return self
+        session = next((s for s, members in self.sessions.items() if flight in members), None)
+        if session is None or any(session not in t.per_session for t in split):
+            warnings.warn(f"flight {flight!r} is in no fitted session: {', '.join(t.name for t in split)} "
+                          "at the fleet value", stacklevel=2)
+            return self
+        terms = [EffectTerm(t.name, t.per_session[session], t.per_session_std.get(session, {}), t.fixed)
+                 if t.per_session else t for t in self.terms]
+        return PhysicsModel(self.vehicle, terms, self.sessions)
 
     @property
     def effect_names(self) -> list[str]:
@@ -88,13 +120,15 @@ class PhysicsModel:
             "vehicle_source": self.vehicle.source,
             "thrust_map": self.vehicle.thrust_map_kind,
             "effects": [t.to_dict() for t in self.terms],
+            **({"sessions": self.sessions} if self.sessions else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict, vehicle: Vehicle) -> PhysicsModel:
-        terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False))
+        terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False),
+                            dict(e.get("per_session", {})), dict(e.get("per_session_std", {})))
                  for e in d.get("effects", [])]
-        return cls(vehicle, terms)
+        return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()})
 
 
 @dataclass
@@ -105,12 +139,21 @@ class ModelSpec:
     effects: list[str]
     fixed: dict[str, dict[str, float]] = field(default_factory=dict)
     source: str = ""
+    per_session: list[str] = field(default_factory=list)  # effects fitted per session
+    session_patterns: dict[str, list[str]] = field(default_factory=dict)  # session -> flight patterns
+
+    def sessions_of(self, flights: list[str]) -> dict[str, list[str]]:
+        """The model file's sessions resolved against ``flights`` (empty without a [sessions] table)."""
+        return {name: sorted(f for f in flights if any(fnmatch.fnmatchcase(f, p) for p in patterns))
+                for name, patterns in self.session_patterns.items()}
 
     def with_effects(self, names: list[str]) -> ModelSpec:
         """The same vehicle and source with ``names`` as the effect list (what ``--effects`` and
         ``QUADCORE_EFFECTS`` do to a model file); fixed values are kept for the effects still named."""
         spec = spec_from(self.vehicle, names, {k: v for k, v in self.fixed.items() if k in names})
         spec.source = self.source
+        spec.per_session = [n for n in self.per_session if n in names]
+        spec.session_patterns = self.session_patterns
         return spec
 
 
@@ -122,7 +165,7 @@ def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = No
     return ModelSpec(vehicle, list(effect_names), dict(fixed or {}))
 
 
-MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters")
+MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters", "per_session", "sessions")
 
 
 def _string_list(d: dict, key: str, path: Path) -> list[str]:
@@ -147,6 +190,29 @@ def _fixed_parameters(d: dict, names: list[str], path: Path) -> dict[str, dict[s
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
                 raise ModelFileError(f"{path}: [parameters.{name}] {key} = {value!r:.60}: expected a finite number")
     return fixed
+
+
+def _per_session(d: dict, names: list[str], fixed: dict, path: Path) -> list[str]:
+    """Effects whose parameters ``[per_session]`` asks to fit per session (all of their parameters)."""
+    table = d.get("per_session", {})
+    if not isinstance(table, dict):
+        raise ModelFileError(f"{path}: per_session = {table!r:.60}: expected a [per_session] table")
+    for name, params in table.items():
+        if name not in names or name in fixed:
+            raise ModelFileError(f"{path}: [per_session] {name}: {name!r} must be in effects and not fixed")
+        known = [p.name for p in effects.get(name).parameters]
+        if not isinstance(params, list) or sorted(params) != sorted(known):
+            raise ModelFileError(f"{path}: [per_session] {name} = {params!r:.60}: a session gets all of "
+                                 f"{name}'s parameters: {known}")
+    return list(table)
+
+
+def _session_patterns(d: dict, path: Path) -> dict[str, list[str]]:
+    table = d.get("sessions", {})
+    if not isinstance(table, dict) or not all(isinstance(v, list) and all(isinstance(x, str) for x in v)
+                                              for v in table.values()):
+        raise ModelFileError(f"{path}: sessions = {table!r:.60}: expected NAME = [\"flight\", \"pattern*\"]")
+    return table
 
 
 def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
@@ -185,6 +251,8 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
     except effects.UnknownEffectError as exc:
         raise ModelFileError(f"{path}: {exc}") from None
     spec.source = str(path)
+    spec.per_session = _per_session(d, names, spec.fixed, path)
+    spec.session_patterns = _session_patterns(d, path)
     return spec
 
 

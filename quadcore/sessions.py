@@ -229,3 +229,86 @@ def table_rows(disagreements: list[dict]) -> list[dict]:
              "value": round(g["value"], 6), "std": float(f"{g['std']:.3g}"), "flights": ", ".join(g["flights"]),
              "found from": d["source"]}
             for d in disagreements for i, g in enumerate(d["groups"])]
+
+
+# ---------------------------------------------------------------------------------------
+# Fitting parameters per session ([per_session] in a model file)
+# ---------------------------------------------------------------------------------------
+
+ROUNDS = 3  # alternations between the per-session and the shared parameters
+
+
+def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: list[str], vehicle: Vehicle,
+                   fixed: dict | None = None) -> dict[str, list[str]]:
+    """Sessions as the data show them: the groups of the per-flight values of the first
+    parameter of ``effects`` (named ``group1``, ``group2``, ... by increasing value)."""
+    fits = per_flight_fits(effects, {f: fds[f] for f in flights}, targets, vehicle, fixed)
+    e, name = effects[0], effects[0].parameters[0].name
+    values = {f: fit.params[e.name][name] for f, fit in fits.items()}
+    stds = {f: fit.std[e.name][name] for f, fit in fits.items()}
+    groups = sorted(split_by_value(values, stds), key=lambda g: float(np.mean([values[f] for f in g])))
+    return {f"group{i + 1}": g for i, g in enumerate(groups)}
+
+
+def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
+                    sessions: dict[str, list[str]] | None = None, log=lambda msg: None):
+    """Fit ``spec`` (a :class:`quadcore.model.ModelSpec` with ``per_session`` effects) on the
+    ``train`` flights: the per-session effects on each session's flights, the others on all,
+    alternating ``ROUNDS`` times. Sessions: ``sessions``, else the model file's, else the
+    groups the data show. Returns a :class:`quadcore.model.PhysicsModel` whose per-session
+    terms carry the fleet value (for flights of no session) and one value per session."""
+    from quadcore import effects as effectlib
+    from quadcore.model import EffectTerm, PhysicsModel
+
+    vehicle = spec.vehicle
+    every = [effectlib.get(n) for n in spec.effects]
+    split = [e for e in every if e.name in spec.per_session]
+    shared = [e for e in every if e.name not in spec.per_session]
+    fleet = fitting.fit_effects(every, [fds[f] for f in train], [targets[f] for f in train], vehicle, spec.fixed)
+    if sessions is None:
+        sessions = spec.sessions_of(sorted(fds)) or found_sessions(split, fds, targets, train, vehicle, spec.fixed)
+    members = {s: [f for f in fl if f in train] for s, fl in sessions.items()}
+    members = {s: fl for s, fl in members.items() if fl}
+    log(f"fitting {', '.join(e.name for e in split)} per session: "
+        + "; ".join(f"{s}: {len(fl)} flights" for s, fl in members.items()))
+    shared_params = {e.name: fleet.params[e.name] for e in shared}
+    shared_std = {e.name: fleet.std[e.name] for e in shared}
+    by_session: dict[str, fitting.Fit] = {}
+    session_of = {f: s for s, fl in members.items() for f in fl}
+    for _ in range(ROUNDS):
+        for s, fl in members.items():
+            by_session[s] = fitting.fit_effects(every, [fds[f] for f in fl], [targets[f] for f in fl], vehicle,
+                                                {**spec.fixed, **shared_params})
+        if not shared or all(e.name in spec.fixed for e in shared):
+            break
+        ys = []
+        for f in train:
+            source = by_session[session_of[f]] if f in session_of else fleet
+            ys.append(targets[f] - source.predict(split, fds[f], vehicle))
+        fit_s = fitting.fit_effects(shared, [fds[f] for f in train], ys, vehicle, spec.fixed)
+        shared_params, shared_std = fit_s.params, fit_s.std
+    terms = []
+    for e in every:
+        if e in split:
+            terms.append(EffectTerm(e.name, fleet.params[e.name], fleet.std[e.name], False,
+                                    {s: fit.params[e.name] for s, fit in by_session.items()},
+                                    {s: fit.std[e.name] for s, fit in by_session.items()}))
+        else:
+            terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed))
+    return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()})
+
+
+def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.ndarray:
+    """(n, 6) the smoothed wrench of a fitted model on one flight, with its session's values
+    (the fleet value, said in ``log``, for a flight of no fitted session)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = pm.for_flight(fd.flight)
+    for w in caught:
+        log(str(w.message))
+    out = np.zeros((fd.state.n, 6))
+    for t in model.terms:
+        out += fitting.prediction(t.effect, t.params, fd, pm.vehicle)
+    return out

@@ -645,3 +645,44 @@ def test_cli_sessions_file_names_the_groups(two_sessions, tmp_path):
     sessions_file.write_text('[sessions]\na = ["sim000"]\nb = ["sim00*"]\n')
     code, _, stderr = _run(["diagnose", str(folder), "--json", str(out), "--sessions", str(sessions_file), "--quiet"])
     assert code == 2 and "'sim000' is in sessions 'a' and 'b'" in stderr and "Traceback" not in stderr
+
+
+def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
+    """``[per_session] thrust_scale = ["scale"]``: one scale per session, found from the data
+    when the file names no sessions; a flight of a named session is scored with its session's
+    value, a flight of none with the fleet value."""
+    _, tables = two_sessions
+    path = tmp_path / "model.toml"
+    path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
+    spec = model.load_model_file(path)
+    fitted = fitting.fit_model(spec, tables, sorted(tables))
+    term = fitted.terms[0]
+    assert sorted(fitted.sessions.values()) == [["sim000", "sim001", "sim002"], ["sim003", "sim004", "sim005"]]
+    for session, flights in fitted.sessions.items():
+        truth = SESSION_SCALES["early" if "sim000" in flights else "late"]
+        assert term.per_session[session]["scale"] == pytest.approx(truth, rel=0.02)
+    assert fitted.for_flight("sim004").terms[0].params["scale"] == pytest.approx(SESSION_SCALES["late"], rel=0.02)
+    with pytest.warns(UserWarning, match="in no fitted session"):
+        assert fitted.for_flight("elsewhere").terms[0].params == term.params  # the fleet value
+    restored = model.PhysicsModel.from_dict(fitted.to_dict(), VEHICLE)
+    assert restored.terms[0].per_session == term.per_session and restored.sessions == fitted.sessions
+
+    # held out, with named sessions: sim005 is scored with its session's scale, better than one fleet scale
+    path.write_text(path.read_text() + '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]"]\n')
+    per_session = diagnosis.diagnose(tables, model.load_model_file(path), ["sim005"])
+    fleet = _diagnose(tables, ["thrust_scale"], holdout=["sim005"])
+    assert per_session["model"]["effects"][0]["per_session"]["tuesday"]["scale"] == pytest.approx(
+        SESSION_SCALES["late"], rel=0.02)
+    assert _rmse(per_session, "force")[2] < 0.5 * _rmse(fleet, "force")[2]
+
+
+@pytest.mark.parametrize("text, message", [
+    ('effects = ["rotor_drag"]\n[per_session]\nrotor_drag = ["k_x_s_per_m"]\n', "all of rotor_drag's parameters"),
+    ('effects = []\n[per_session]\nthrust_scale = ["scale"]\n', "must be in effects"),
+    ('effects = ["thrust_scale"]\n[sessions]\na = "jana0*"\n', "expected NAME"),
+])
+def test_per_session_model_file_errors(tmp_path, text, message):
+    path = tmp_path / "model.toml"
+    path.write_text(text)
+    with pytest.raises(model.ModelFileError, match=message):
+        model.load_model_file(path)

@@ -76,10 +76,16 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
         context.log.info(note)
     train = [f for f in decoded if f not in held]
     context.log.info(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
-    fitted = fitting.fit_model(spec, decoded, train)
+    try:
+        groups = model.sessions(sorted(decoded))
+    except sessions.SessionsFileError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    fitted = fitting.fit_model(spec, decoded, train, groups, context.log.info)
     path = modelmod.save(fitted, fitted_model_path(data_root), train)
-    params = [{"effect": t.name, "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
+    params = [{"effect": t.name, "session": "fleet", "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
               for t in fitted.terms for k, v in t.params.items()]
+    params += [{"effect": t.name, "session": s, "parameter": k, "value": v, "std": t.per_session_std[s].get(k, 0.0)}
+               for t in fitted.terms for s, values in t.per_session.items() for k, v in values.items()]
     return dg.MaterializeResult(metadata={
         "model": fitted.label,
         "effects": dg.MetadataValue.json(fitted.effect_names),

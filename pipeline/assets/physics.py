@@ -28,7 +28,7 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
     def work(fid):
         decoded = decoded_main_table(data_root, fid)
         try:
-            table = current.residual_table(decoded)
+            table = current.for_flight(fid).residual_table(decoded)  # its session's values, if any
         except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         path = store.write_parquet(
