@@ -244,6 +244,24 @@ def _empty_walk(reason: str) -> _Walk:
     return _Walk(np.empty(0, np.int64), np.empty(0, np.uint16), reason, 0, none, none)
 
 
+FEW_IDS = 4  # up to this many declared ids, two byte compares per id beat a table lookup
+
+
+def _candidates(region: np.ndarray, size_lut: np.ndarray) -> np.ndarray:
+    """Offsets whose u16 is a declared event id, sorted. Linear in the region's size: a
+    compare per id for a few ids, else one lookup of the u16 at every offset."""
+    ids = np.flatnonzero(size_lut).tolist()  # Python ints: a uint8 compare stays uint8
+    if len(ids) <= FEW_IDS:
+        lo, hi = region[:-1], region[1:]
+        hits = [np.flatnonzero((lo == (e & 0xFF)) & (hi == (e >> 8))) for e in ids]
+        return np.sort(np.concatenate(hits)) if len(hits) > 1 else hits[0]
+    n = len(region)
+    words = np.empty(n - 1, np.uint16)  # the u16 at every offset: even offsets, then odd ones
+    words[0::2] = region[: n - n % 2].view("<u2")
+    words[1::2] = region[1 : 1 + 2 * ((n - 1) // 2)].view("<u2")
+    return np.flatnonzero((size_lut > 0)[words])
+
+
 def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
     """Follow the record chain over ``region``, resynchronising after bytes that break it.
 
@@ -256,11 +274,10 @@ def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
     n = len(region)
     if n < 2:
         return _empty_walk("end" if n == 0 else "garbage")
-    word = region[:-1].astype(np.uint16) | (region[1:].astype(np.uint16) << 8)
-    cand = np.flatnonzero(size_lut[word] > 0)
+    cand = _candidates(region, size_lut)
     if len(cand) == 0:
         return _empty_walk("garbage")
-    cand_ids = word[cand]
+    cand_ids = region[cand].astype(np.uint16) | (region[cand + 1].astype(np.uint16) << 8)
     m = len(cand)
     END, BREAK = m, m + 1
     nxt_offset = cand + size_lut[cand_ids]
