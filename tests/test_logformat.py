@@ -293,6 +293,11 @@ def test_garbage_in_the_middle_is_skipped_and_decoding_resynchronises(tmp_path, 
     assert skip.byte_start == at
     assert skip.byte_end == records[resume][0] + (len(garbage) if how == "insert" else 0)
     assert log.bytes_dropped == skip.byte_end - skip.byte_start
+    # the time range skipped: from the last record kept before to the first one after
+    ts_at = {off: ts for event in clean.tables for off, ts in zip(
+        [o for o, e, _ in records if e == clean.event_types[event].event_id], clean.timestamps_us[event])}
+    assert skip.t_before_us == ts_at[records[k - 1][0]]
+    assert skip.t_after_us == ts_at[records[resume][0]]
     assert any("resynchronised after 1 corrupt stretch" in w for w in log.warnings), log.warnings
     for event in clean.tables:
         eid = clean.event_types[event].event_id
