@@ -45,7 +45,9 @@ def candidates_plot(d: dict) -> bytes:
 
 def _short_status(r: dict) -> str:
     status = r.get("status", "found" if r.get("useful") else "not found")
-    return r.get("grade", status) if status in ("found", "tied") else status.replace("_", " ")
+    if status == "tied":
+        return f"tied, {r.get('grade', '')}"
+    return r.get("grade", status) if status == "found" else status.replace("_", " ")
 
 
 def regimes_plot(d: dict) -> bytes:
