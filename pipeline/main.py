@@ -25,6 +25,7 @@ from dagster._core.storage.tags import (
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING
+from pipeline.freshness import fit_differs_from_model_file
 from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
@@ -200,9 +201,7 @@ def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bo
     fitted, diag = store.physics_model_path(root), root / "reports" / "diagnosis.json"
     if decoded_now or not fitted.is_file() or not diag.is_file():
         return True
-    spec, saved = model.spec(), store.read_json(fitted)
-    return ([e["name"] for e in saved.get("effects", [])], saved.get("vehicle"), saved.get("thrust_map")) != (
-        spec.effects, spec.vehicle.name, spec.vehicle.thrust_map_kind)
+    return fit_differs_from_model_file(fitted, model.spec())
 
 
 def learning_is_stale(root: Path) -> str | None:

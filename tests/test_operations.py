@@ -125,6 +125,98 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
         assert [r.partition_key for r in again.run_requests] == ["sim000"]
 
 
+def settle(instance, resources, cursor, when=None, ticks=12):
+    """Act as the daemon: evaluate the automation, run what it requests (fleet assets in one run,
+    per-flight assets one run per flight), until it requests nothing. Returns the cursor."""
+    from pipeline.definitions import EXPORT, LEARNING
+
+    assets = {a.key: a for a in [*PER_FLIGHT, *FLEET, *LEARNING, *EXPORT]}
+    keys = list(assets)
+    for _ in range(ticks):
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=cursor, evaluation_time=when)
+        cursor = auto.cursor
+        if auto.total_requested == 0:
+            return cursor
+        requested = {k: auto.get_requested_partitions(k) for k in keys if auto.get_num_requested(k)}
+        fleet = [assets[k] for k, parts in requested.items() if parts == {None}]
+        if fleet:
+            run(fleet, resources, instance)
+        for part in sorted({p for parts in requested.values() for p in parts if p is not None}):
+            run([assets[k] for k, parts in requested.items() if part in parts], resources, instance, part)
+    raise AssertionError(f"the automation still requests runs after {ticks} ticks")
+
+
+def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_path, monkeypatch):
+    """A flight dropped in while the model is refitted, its run reading the old model but ending
+    after the refit: the automation refreshes it (eager() alone counts that run as the refresh),
+    every per-flight result ends against the current model, and learning waits for that."""
+    from pipeline.freshness import current_model_version, versions_used
+    from pipeline.resources import data_root_from_env, model_config_from_env
+
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001"):
+        (raw / name).symlink_to(sim_logs / name)
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))
+    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["rotor_drag"]\n')  # a refit on more flights moves its parameters
+    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
+    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
+    data_root = data_root_from_env()
+    resources = {"data_root": data_root, "model": model_config_from_env()}
+    fitted = data_root.root_path / "models" / "physics_model.json"
+    with dg.instance_for_test() as instance:
+        cursor = settle(instance, resources, None)  # the daemon's first tick: nothing yet
+        tick = sensor_tick(instance, data_root)
+        for r in tick.run_requests:
+            run(PER_FLIGHT, resources, instance, r.partition_key)
+        cursor = settle(instance, resources, cursor)
+        assert fitted.is_file()
+        before = current_model_version()
+
+        # a third flight arrives; its per-flight run starts against the model of two flights ...
+        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        tick = sensor_tick(instance, data_root, tick.cursor)
+        assert [r.partition_key for r in tick.run_requests] == ["sim002"]
+        run([decoded_flight], resources, instance, "sim002")
+        old_model = fitted.read_bytes()
+        run(FLEET, resources, instance)  # ... meanwhile the model is refitted on three flights
+        new_model = fitted.read_bytes()
+        fitted.write_bytes(old_model)  # what the flight's run read when it started
+        run(PER_FLIGHT[1:], resources, instance, "sim002")  # ... and its run ends after the refit
+        fitted.write_bytes(new_model)
+        assert current_model_version() != before
+        flights_now = {"sim000", "sim001", "sim002"}
+        stale = versions_used(instance, dg.AssetKey("residual_table"), flights_now)
+        assert stale["sim002"] == before  # computed against the old model, materialised last
+
+        cursor = settle(instance, resources, cursor)
+        current = current_model_version()
+        for asset in ("residual_table", "rollout_errors", "flight_mcap"):
+            used = versions_used(instance, dg.AssetKey(asset), flights_now)
+            assert used == dict.fromkeys(flights_now, current), asset
+        models = {store.read_metadata(store.table_path(data_root.root_path, "residuals", f))["model"]["label"]
+                  for f in flights_now}
+        assert models == {"nominal+rotor_drag"}
+        # an effect added to the model file mid-way: refit, and every flight follows, with no manual step
+        model_file.write_text('effects = ["rotor_drag", "thrust_scale"]\n')
+        cursor = settle(instance, resources, cursor)
+        assert current_model_version() != current
+        for asset in ("residual_table", "rollout_errors", "flight_mcap"):
+            assert set(versions_used(instance, dg.AssetKey(asset), flights_now).values()) == {current_model_version()}
+        models = {store.read_metadata(store.table_path(data_root.root_path, "residuals", f))["model"]["label"]
+                  for f in flights_now}
+        assert models == {"nominal+rotor_drag+thrust_scale"}
+        # the nightly learning runs now that every flight is fresh, and succeeds on one model
+        night = datetime.now(UTC).replace(hour=2, minute=30) + timedelta(days=1)
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=cursor, evaluation_time=night)
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1
+        from pipeline.assets.learning import learning_features
+
+        run([learning_features], resources, instance)
+
+
 def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()

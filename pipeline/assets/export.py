@@ -5,8 +5,9 @@ import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.learning import learned_models
-from pipeline.assets.model import REFRESH, RETRAIN, physics_model
+from pipeline.assets.model import RETRAIN, physics_model
 from pipeline.assets.physics import residual_table
+from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
 from quadcore import export, export_c, learning, store
@@ -29,7 +30,9 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
         path = root / "mcap" / f"{check_component(fid, 'flight id')}.mcap"
         counts = export.write_mcap(table, path, provenance.start_ns,
                                    {"flight": fid, "start_source": provenance.start_source})
-        return {"messages": sum(counts.values()), "topics": dg.MetadataValue.json(counts),
+        used = store.read_metadata(store.table_path(root, "residuals", fid)).get("model", {})
+        return {MODEL_VERSION: model_version(used), "messages": sum(counts.values()),
+                "topics": dg.MetadataValue.json(counts),
                 "path": dg.MetadataValue.path(str(path))}
 
     done = for_each_flight(context, work)

@@ -8,6 +8,7 @@ import polars as pl
 
 from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
+from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.resources import DataRoot, ModelConfig, retrain_cron
 from quadcore import evaluation, features as feat, learning, plots, store
 
@@ -22,7 +23,8 @@ NIGHTLY = (
     & dg.AutomationCondition.any_deps_updated().since_last_handled()
     & ~dg.AutomationCondition.any_deps_in_progress()
     & ~dg.AutomationCondition.in_progress()
-).with_label(f"retrain at {retrain_cron()} UTC when flights changed")
+    & ALL_FLIGHTS_FRESH
+).with_label(f"retrain at {retrain_cron()} UTC when flights changed, once every flight is fresh")
 
 
 class FeatureConfig(dg.Config):

@@ -6,6 +6,7 @@ import dagster as dg
 import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
+from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, sessions, store, workflows
 
@@ -18,11 +19,6 @@ RETRAIN = (
     .without(~dg.AutomationCondition.any_deps_missing())
     .with_label("retrain when flights arrive")
 )
-
-
-# Per-flight tables computed against the model: recomputed for every flight once the model is
-# refitted, so that no table is left against an older model.
-REFRESH = dg.AutomationCondition.eager().with_label("recompute when the model is refitted")
 
 
 def usable_decoded(data_root: DataRoot, vehicle, log) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
@@ -62,7 +58,13 @@ def fitted_model_path(data_root: DataRoot):
     return store.physics_model_path(data_root.root_path)
 
 
-@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"}, automation_condition=RETRAIN)
+# The fit also follows the model file: an effect added to model.toml refits without a manual step.
+REFIT = (RETRAIN | (ModelFileChanged() & ~dg.AutomationCondition.in_progress()
+                    & ~dg.AutomationCondition.execution_failed())).with_label(
+    "refit when flights arrive or the model file changes")
+
+
+@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"}, automation_condition=REFIT)
 def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """The model file's effects, fitted on the training flights: every decoded flight but the
     held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
@@ -88,6 +90,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
                for t in fitted.terms for s, values in t.per_session.items() for k, v in values.items()]
     return dg.MaterializeResult(metadata={
         "model": fitted.label,
+        MODEL_VERSION: model_version(current_model(data_root, model).to_dict()),
         "effects": dg.MetadataValue.json(fitted.effect_names),
         "parameters": dg.MetadataValue.md(
             plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),

@@ -3,7 +3,8 @@
 import dagster as dg
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
-from pipeline.assets.model import REFRESH, current_model, physics_model
+from pipeline.assets.model import current_model, physics_model
+from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
@@ -45,8 +46,9 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
         }
 
     done = for_each_flight(context, work)
-    return dg.MaterializeResult(metadata={"model": current.label, "vehicle": vehicle.name,
-                                          "thrust_map": vehicle.thrust_map_kind, "flights_in_run": len(done)})
+    return dg.MaterializeResult(metadata={"model": current.label, MODEL_VERSION: model_version(current.to_dict()),
+                                          "vehicle": vehicle.name, "thrust_map": vehicle.thrust_map_kind,
+                                          "flights_in_run": len(done)})
 
 
 @dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="physics", deps=[decoded_flight, physics_model],
@@ -85,4 +87,5 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
         }
 
     done = for_each_flight(context, work)
-    return dg.MaterializeResult(metadata={"model": current.label, "flights_in_run": len(done)})
+    return dg.MaterializeResult(metadata={"model": current.label, MODEL_VERSION: model_version(current.to_dict()),
+                                          "flights_in_run": len(done)})

@@ -1,0 +1,141 @@
+"""Which per-flight results were computed against an older physics model, as an automation condition.
+
+Dagster's ``eager()`` reacts to an upstream *event*: when the model is refitted while a flight's
+run is in progress, that run's later materialisation counts as the refresh although it used the
+old model, and the flight stays stale. This condition looks at *state* instead: each per-flight
+materialisation records the version of the model it used (metadata ``model_version``), and a
+partition is stale while that differs from the model a run would use now. So every flight ends
+against the current model whatever the timing, and the automation's evaluation in the UI lists
+the stale flights with both versions.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import dagster as dg
+
+from pipeline.resources import data_root_from_env, model_config_from_env
+
+MODEL_VERSION = "model_version"
+
+
+def model_version(model_dict: dict) -> str:
+    """A short content hash of a physics model (vehicle, thrust map, effects and their fitted
+    parameters): equal exactly when the model is the same."""
+    text = json.dumps(model_dict, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def current_model_version() -> str:
+    """The version of the model a per-flight run would compute against now (the fitted model if
+    it matches the model file, else the nominal vehicle: see ``current_model``)."""
+    from pipeline.assets.model import current_model
+
+    return model_version(current_model(data_root_from_env(), model_config_from_env()).to_dict())
+
+
+def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: set[str]) -> dict[str, str | None]:
+    """Partition -> ``model_version`` of its latest materialisation (None: materialised before
+    versions were recorded); partitions never materialised are left out."""
+    used: dict[str, str | None] = {}
+    cursor = None
+    while len(used) < len(partitions):
+        page = instance.fetch_materializations(
+            dg.AssetRecordsFilter(asset_key=key, asset_partitions=sorted(partitions - set(used))),
+            limit=200, cursor=cursor)
+        for record in page.records:  # newest first: the first one seen per partition is its latest
+            mat = record.asset_materialization
+            if mat is not None and mat.partition is not None and mat.partition not in used:
+                entry = mat.metadata.get(MODEL_VERSION)
+                used[mat.partition] = str(entry.value) if entry is not None else None
+        if not page.has_more:
+            break
+        cursor = page.cursor
+    return used
+
+
+class ComputedAgainstOlderModel(dg.AutomationCondition):
+    """True for the flight partitions whose latest materialisation used another physics model
+    than the current one."""
+
+    @property
+    def name(self) -> str:
+        return "computed_against_older_model"
+
+    @property
+    def description(self) -> str:
+        return "computed against an older physics model"
+
+    def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
+        candidates = context.candidate_subset.expensively_compute_partition_keys()
+        if not candidates or context.partitions_def is None:
+            return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
+        try:
+            current = current_model_version()
+        except (ValueError, KeyError, OSError) as exc:  # a bad model or vehicle file: the runs say why
+            context.log.warning(f"cannot tell the current physics model: {exc}")
+            return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
+        used = versions_used(context.asset_graph_view.instance, context.key, set(candidates))
+        stale = sorted(p for p, v in used.items() if v != current)
+        subset = context.asset_graph_view.get_subset_from_partition_keys(context.key, context.partitions_def,
+                                                                         set(stale))
+        why = {p: f"computed against model {used[p] or 'of unknown version'}, current is {current}" for p in stale}
+        return dg.AutomationResult(context=context, true_subset=subset,
+                                   metadata={"current_model_version": current, "stale_flights": len(stale),
+                                             "why": dg.MetadataValue.json(why)})
+
+
+def fit_differs_from_model_file(fitted_path, spec) -> bool:
+    """Whether the saved fit was made for another model than the model file names now (effects,
+    vehicle, thrust map): an effect added to model.toml, for instance. False when nothing is fitted."""
+    from quadcore import store
+
+    if not fitted_path.is_file():
+        return False
+    saved = store.read_json(fitted_path)
+    return ([e["name"] for e in saved.get("effects", [])], saved.get("vehicle"), saved.get("thrust_map")) != (
+        spec.effects, spec.vehicle.name, spec.vehicle.thrust_map_kind)
+
+
+class ModelFileChanged(dg.AutomationCondition):
+    """True when the model file names another model than the one fitted (see
+    :func:`fit_differs_from_model_file`), so that editing model.toml refits without a manual step."""
+
+    @property
+    def name(self) -> str:
+        return "model_file_changed"
+
+    @property
+    def description(self) -> str:
+        return "the model file names another model than the one fitted"
+
+    def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
+        from pipeline.assets.model import fitted_model_path
+
+        try:
+            changed = fit_differs_from_model_file(fitted_model_path(data_root_from_env()),
+                                                  model_config_from_env().spec())
+        except (ValueError, KeyError, OSError) as exc:  # a bad model file: physics_model's run says why
+            context.log.warning(f"cannot read the model file: {exc}")
+            changed = False
+        subset = context.candidate_subset if changed else context.get_empty_subset()
+        return dg.AutomationResult(context=context, true_subset=subset)
+
+
+# Recompute a flight's table when it is missing or its inputs changed (eager), and also whenever
+# it was computed against an older model than the current one (state, so a run that overlapped a
+# refit is caught too); never while a run for it is going on, and not again after a failure.
+REFRESH = (
+    dg.AutomationCondition.eager()
+    | (ComputedAgainstOlderModel()
+       & ~dg.AutomationCondition.in_progress()
+       & ~dg.AutomationCondition.any_deps_in_progress()
+       & ~dg.AutomationCondition.execution_failed())
+).with_label("recompute when missing, when inputs change, or when computed against an older model")
+
+# Fan-in stages wait while any flight is stale or being refreshed, instead of failing on a mix.
+ALL_FLIGHTS_FRESH = ~dg.AutomationCondition.any_deps_match(
+    ComputedAgainstOlderModel() | dg.AutomationCondition.in_progress()
+).with_label("every flight computed against the current model")
