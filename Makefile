@@ -7,6 +7,9 @@ VENV_PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DATA ?= data
 PORT ?= 3000
+# `make ui` serves the plots here; materialisations link to them so the asset pages show them.
+PLOTS_PORT ?= $(shell echo $$(($(PORT) + 1)))
+export QUADCORE_PLOTS_URL ?= http://127.0.0.1:$(PLOTS_PORT)
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 
@@ -40,7 +43,7 @@ lint: $(STAMP)
 
 # Dagster's UI and daemon (`dg dev`) until Ctrl-C / SIGTERM; PORT=3001 make ui for another port.
 ui: $(STAMP)
-	$(VENV_PYTHON) -m pipeline.ui --port $(PORT)
+	$(VENV_PYTHON) -m pipeline.ui --port $(PORT) --plots-port $(PLOTS_PORT)
 
 bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_export.py

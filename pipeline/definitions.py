@@ -30,9 +30,11 @@ LEARNING = [learning_features, learned_models, learning_report]
 EXPORT = [exported_model]
 
 
-# Evaluates the automation conditions (retraining when flights arrive).
+# Evaluates the automation conditions (retraining when flights arrive, refreshing stale flights).
+# On the code server: pipeline.freshness's conditions are Python the daemon cannot run itself.
 automation = dg.AutomationConditionSensorDefinition(
-    "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=automation_status()
+    "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=automation_status(),
+    use_user_code_server=True,
 )
 
 def executor_from_env():

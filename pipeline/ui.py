@@ -5,6 +5,8 @@
 - ``$DAGSTER_HOME`` (default ``<data root>/.dagster``) gets a ``dagster.yaml`` with a run queue
   limited to two runs at once (the machine has two cores), if it has none yet.
 - A port already in use is one line on stderr and exit code 2, before anything starts.
+- The plots of the assets (``<data root>/plots``) are served on ``--plots-port`` (default: the
+  next port), so that the asset pages show them without a click (see ``pipeline.plot_links``).
 - ``dg dev`` runs in its own process group; SIGINT or SIGTERM to this process stops it and
   everything it started (webserver, daemon, code server), also when started without a
   terminal (where ``dg dev`` alone ignores both).
@@ -14,12 +16,15 @@ from __future__ import annotations
 
 import argparse
 import errno
+import functools
+import http.server
 import os
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -37,6 +42,19 @@ def port_problem(host: str, port: int) -> str | None:
                 return f"port {port} on {host} is already in use; choose another with PORT={port + 1} make ui"
             return f"cannot serve on {host}:{port}: {exc.strerror}"
     return None
+
+
+def serve_plots(folder: Path, host: str, port: int) -> http.server.ThreadingHTTPServer:
+    """Serve the PNGs of ``folder`` read-only on ``host:port`` in a background thread."""
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # the UI asks for every plot it shows: not worth a line each
+            pass
+
+    folder.mkdir(parents=True, exist_ok=True)
+    server = http.server.ThreadingHTTPServer((host, port), functools.partial(Quiet, directory=str(folder)))
+    threading.Thread(target=server.serve_forever, name="plots", daemon=True).start()
+    return server
 
 
 def dev_command(host: str, port: int) -> list[str]:
@@ -94,22 +112,32 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.ui", description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, default=int(os.environ.get("PORT", "3000")))
     parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--plots-port", type=int, default=None, help="where the plots are served (default: port + 1)")
     args = parser.parse_args(argv)
-    problem = port_problem(args.host, args.port)
-    if problem:
-        print(f"make ui: error: {problem}", file=sys.stderr)
-        return 2
+    plots_port = args.plots_port or args.port + 1
+    for port in (args.port, plots_port):
+        problem = port_problem(args.host, port)
+        if problem:
+            print(f"make ui: error: {problem}", file=sys.stderr)
+            return 2
     from pipeline.instance import ensure_dagster_home
+    from pipeline.plot_links import PLOTS_FOLDER, PLOTS_URL_ENV
     from pipeline.resources import data_root_from_env
 
-    home = ensure_dagster_home(data_root_from_env().root_path)
+    root = data_root_from_env().root_path
+    home = ensure_dagster_home(root)
+    plots = serve_plots(root / PLOTS_FOLDER, args.host, plots_port)
     try:
         cmd = dev_command(args.host, args.port)
     except FileNotFoundError as exc:
         print(f"make ui: error: {exc}", file=sys.stderr)
         return 2
     print(f"Dagster UI on http://{args.host}:{args.port} (instance {home}); Ctrl-C stops it", flush=True)
-    return serve(cmd, {**os.environ, "DAGSTER_HOME": str(home)})
+    try:
+        return serve(cmd, {**os.environ, "DAGSTER_HOME": str(home),
+                           PLOTS_URL_ENV: f"http://{args.host}:{plots_port}"})
+    finally:
+        plots.shutdown()
 
 
 if __name__ == "__main__":

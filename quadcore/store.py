@@ -56,6 +56,16 @@ def is_remote(path: Any) -> bool:
     return bool(getattr(path, "protocol", "")) and not isinstance(path, Path)
 
 
+def _file_mode() -> int:
+    """The mode ``open()`` gives a new file here: 0666 less the process's umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+FILE_MODE = _file_mode()
+
+
 def decoded_path(root: Path, event: str, flight: str) -> Path:
     event, flight = check_component(event, "event name"), check_component(flight, "flight id")
     return as_root(root) / "decoded" / event / f"flight={flight}" / "data.parquet"
@@ -89,6 +99,7 @@ def atomic_write(path: Any, write) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temp_prefix(path.name), suffix=".tmp")
     os.close(fd)
+    os.chmod(tmp, FILE_MODE)  # mkstemp makes it 0600: every output gets the same mode as a plain file
     try:
         write(tmp)
         os.replace(tmp, path)
@@ -124,6 +135,11 @@ def read_parquet(path: Path) -> pl.DataFrame:
 def write_text(text: str, path: Path) -> Path:
     """Write ``text`` to ``path`` atomically (temp file + rename)."""
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def write_bytes(data: bytes, path: Path) -> Path:
+    """Write ``data`` to ``path`` atomically (temp file + rename)."""
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
 
 
 def write_json(obj: dict, path: Path) -> Path:

@@ -319,3 +319,13 @@ def test_readme_queries_run(sim_logs, tmp_path):
     # drag: the residual grows with speed
     one = by_polars.filter(pl.col("flight") == "sim000")
     assert one["rmse_x_N"][-1] > one["rmse_x_N"][0]
+
+
+def test_every_output_has_the_mode_of_a_plain_file(tmp_path):
+    """Atomic writes go through a temp file (mkstemp makes it 0600): the outputs must not keep
+    that mode while the reports written directly get the usual one."""
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    written = [store.write_json({"a": 1}, tmp_path / "a.json"), store.write_text("t", tmp_path / "b.md"),
+               store.write_parquet(pl.DataFrame({"x_m": [1.0]}), tmp_path / "c.parquet", {})]
+    assert {p.stat().st_mode & 0o777 for p in written} == {plain.stat().st_mode & 0o777}

@@ -33,12 +33,12 @@ def webserver(tmp_path_factory):
     home = base / "dagster_home"
     home.mkdir()
     (home / "dagster.yaml").write_text("telemetry:\n  enabled: false\n")
-    port = free_port()
+    port, plots_port = free_port(), free_port()
     env = {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(base / "root"),
            "QUADCORE_RAW_DIR": str(raw), "QUADCORE_AUTOMATION": "off"}  # only the run the test launches
     log = open(base / "dagster_dev.log", "w")
     # `make ui`'s launcher; its own session too, so that a failed test can still end everything
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port), "--plots-port", str(plots_port)],
                             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + 180
@@ -123,7 +123,11 @@ def test_materialise_through_graphql_and_read_metadata(webserver):
     assert mats and mats[0]["partition"] == "sim001"
     entries = {e["label"]: e for e in mats[0]["metadataEntries"]}
     assert 0 < entries["force_rmse_x_N"]["floatValue"] < 0.01  # a hover without effects: noise level
-    assert entries["model_vs_measured"]["mdStr"].startswith("![model vs measured](data:image/png;base64,")
+    # a short link (under the 1,000 characters the asset page renders inline) to the served PNG
+    link = entries["model_vs_measured"]["mdStr"]
+    assert len(link) < 1000 and link.startswith("![model vs measured](http://127.0.0.1:"), link
+    with urllib.request.urlopen(link[link.index("(") + 1:-1], timeout=10) as response:
+        assert response.read(8) == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")

@@ -12,6 +12,7 @@ from pipeline.assets.model import (
     skipped_metadata,
     usable_decoded,
 )
+from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import discovery, plots, report, store
 
@@ -34,8 +35,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
         "summary": dg.MetadataValue.md(result.summary.replace("\n", "\n\n")),
         "terms": dg.MetadataValue.md(plots.markdown_table(report.discovery_table(result.to_dict()))
                                      if result.terms else "no term kept"),
-        "discovery_plot": dg.MetadataValue.md(
-            plots.markdown_image(report.discovery_plot(result.to_dict()), "discovery")),
+        "discovery_plot": plot_md(data_root, report.discovery_plot(result.to_dict()), "discovery"),
         "notes": dg.MetadataValue.md("\n\n".join(f"{x.target}: {n}" for x in result.axes for n in x.notes) or "none"),
         **{f"after_force_rmse_{ax}_N": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["force_rmse_N"])},
         **{f"after_torque_rmse_{ax}_Nm": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},

@@ -9,6 +9,7 @@ import polars as pl
 from pipeline.assets.model import RETRAIN
 from pipeline.assets.physics import residual_table
 from pipeline.freshness import ALL_FLIGHTS_FRESH
+from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig, retrain_cron
 from quadcore import evaluation, features as feat, learning, plots, store
 
@@ -159,7 +160,7 @@ def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
                                                      learning.vehicle_of(physics), root / "reports", root)
     except learning.LearningError as exc:
         raise dg.Failure(description=str(exc)) from None
-    md = {k: dg.MetadataValue.md(plots.markdown_image(v, k)) for k, v in pngs.items()}
+    md = {k: plot_md(data_root, v, k) for k, v in pngs.items()}
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(report["verdict"]),
         "headline": dg.MetadataValue.md(evaluation.markdown_table(evaluation.frame(report["tables"]["headline"]))),

@@ -7,6 +7,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
+from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, sessions, store, workflows
 
@@ -166,21 +167,21 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "disagreements": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
             sessions.table_rows(result["disagreements"]))) if result["disagreements"] else "none: one value fits all"),
         "disagreements_json": dg.MetadataValue.json(result["disagreements"]),
-        "candidates_plot": dg.MetadataValue.md(plots.markdown_image(report.candidates_plot(result), "candidates")),
-        "regimes_plot": dg.MetadataValue.md(plots.markdown_image(report.regimes_plot(result), "regimes")),
+        "candidates_plot": plot_md(data_root, report.candidates_plot(result), "candidates"),
+        "regimes_plot": plot_md(data_root, report.regimes_plot(result), "regimes"),
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
-        **_frequency_metadata(result.get("frequency")),
+        **_frequency_metadata(data_root, result.get("frequency")),
         "report": dg.MetadataValue.path(str(page)),
         **skipped_metadata(skipped),
     })
 
 
-def _frequency_metadata(freq: dict | None) -> dict:
+def _frequency_metadata(data_root: DataRoot, freq: dict | None) -> dict:
     """Where the model fails in frequency: the reading, and the band plot."""
     if not freq or not freq.get("channels"):
         return {}
     return {"frequency": dg.MetadataValue.md("\n\n".join(freq["reading"])),
-            "frequency_plot": dg.MetadataValue.md(plots.markdown_image(report.frequency_plot(freq), "frequency"))}
+            "frequency_plot": plot_md(data_root, report.frequency_plot(freq), "frequency")}
 
 
 @dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"}, automation_condition=RETRAIN)
@@ -194,6 +195,6 @@ def error_history(data_root: DataRoot) -> dg.MaterializeResult:
         "evaluations": hist.height,
         "latest_model": last["model_label"],
         **{c: dg.MetadataValue.float(last[c]) for c in history.RMSE_COLUMNS},
-        "history_plot": dg.MetadataValue.md(plots.markdown_image(report.history_plot(hist), "history")),
+        "history_plot": plot_md(data_root, report.history_plot(hist), "history"),
         "folder": dg.MetadataValue.path(str(history.history_dir(data_root.root_path))),
     })

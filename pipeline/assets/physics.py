@@ -6,6 +6,7 @@ from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.assets.model import current_model, physics_model
 from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
+from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
@@ -41,7 +42,7 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
         return {
             **{k: dg.MetadataValue.float(v) for k, v in residuals.summary(table).items()},
             "rows": table.height,
-            "model_vs_measured": dg.MetadataValue.md(plots.markdown_image(png, "model vs measured")),
+            "model_vs_measured": plot_md(data_root, png, "model vs measured"),
             "parquet": dg.MetadataValue.path(str(path)),
         }
 
@@ -82,7 +83,7 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
         return {
             **meta,
             "horizons": dg.MetadataValue.md(plots.markdown_table(ends)),
-            "error_growth": dg.MetadataValue.md(plots.markdown_image(png, "error growth")),
+            "error_growth": plot_md(data_root, png, "error growth"),
             "parquet": dg.MetadataValue.path(str(path)),
         }
 
