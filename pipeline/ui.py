@@ -35,6 +35,8 @@ STOP_TIMEOUT_S = 20.0
 def port_problem(host: str, port: int) -> str | None:
     """Why ``host:port`` cannot be served (in use, not allowed), or None if it can."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        # as the servers do: connections of a previous server closing (TIME_WAIT) do not count
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError as exc:
