@@ -69,7 +69,7 @@ import numpy as np
 import polars as pl
 from sklearn.linear_model import orthogonal_mp_gram
 
-from quadcore import dynamics, effects as effectlib, fitting, signals, store
+from quadcore import dynamics, effects as effectlib, fitting, sessions as sessionlib, signals, store
 from quadcore.dynamics import XYZ, FlightState
 from quadcore.effects.base import Effect, Parameter
 from quadcore.model import ModelSpec
@@ -518,7 +518,10 @@ def discover(
     fds = {f: fitting.flight_data(f, decoded[f], vehicle) for f in ids}
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
-    if model_effects:
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        pm = sessionlib.fit_per_session(spec, fds, targets, train, None, log)
+        resid = {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in ids}
+    elif model_effects:
         log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
         fit = fitting.fit_effects(model_effects, [fds[f] for f in train], [targets[f] for f in train], vehicle,
                                   spec.fixed)

@@ -206,3 +206,24 @@ def test_no_hidden_term_nothing_discovered_and_no_effect_written(tmp_path):
     d = json.loads((tmp_path / "d.json").read_text())
     assert d["terms"] == [], d["terms"]
     assert code == 2 and "no term was kept" in err and not (tmp_path / "fx" / "nothing.py").exists()
+
+
+def test_discover_on_a_model_with_per_session_effects(hidden_flights, tmp_path):
+    """A model file fitting thrust_scale per session: discovery starts from each flight's
+    residual under its session's values and still finds the hidden terms."""
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n'
+                          '[sessions]\na = ["sim000", "sim001"]\nb = ["sim002", "sim003"]\n')
+    code, _, err = _run(["discover", str(hidden_flights), "--model", str(model_file), "--holdout", HOLDOUT,
+                         "--json", str(tmp_path / "d.json"), "--quiet"])
+    assert code == 0, err
+    d = json.loads((tmp_path / "d.json").read_text())
+    assert d["effects_in_model"] == ["thrust_scale"]
+    assert {t["target"] for t in d["terms"]} >= {"tau_res_b_x_Nm", "tau_res_b_y_Nm"}
+    # its starting point is the diagnosis's: the same per-session fit, the same held-out residual
+    code, _, err = _run(["diagnose", str(hidden_flights), "--model", str(model_file), "--holdout", HOLDOUT,
+                         "--json", str(tmp_path / "g.json"), "--quiet"])
+    assert code == 0, err
+    g = json.loads((tmp_path / "g.json").read_text())["baseline"]
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        np.testing.assert_allclose(d["baseline"][key], g[key], rtol=1e-6)
