@@ -50,6 +50,7 @@ def test_there_are_17_kinds():
     assert len(KINDS) == 17 and set(REASON_WORDS) | set(USABLE_WITH_WARNING) == set(KINDS)
 
 
+@pytest.mark.slow  # diagnose on 20 flights
 def test_cli_diagnose_skips_each_bad_flight_with_its_reason(raw, tmp_path):
     code, _, err = _cli("diagnose", str(raw), "--json", str(tmp_path / "d.json"), "--quiet")
     assert code == 0, err

@@ -158,6 +158,7 @@ def test_hidden_effect_is_found_recovered_and_removes_the_residual(hidden, name)
     assert with_it["verdict"].startswith("No effect of the library explains"), with_it["verdict"]
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_thrust_scale_and_added_mass_are_alike_in_force_and_the_torque_decides(hidden):
     """Less thrust than mapped and more mass than assumed give the SAME force residual,
     ``-c T`` along body z: in force alone they cannot be told apart, and the diagnosis says so.
@@ -204,6 +205,7 @@ def test_in_hover_thrust_scale_and_added_mass_are_an_honest_tie(sim_sets):
     assert not next(r for r in result["candidates"] if r["effect"] == "motor_lag")["useful"]
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_rotor_drag_and_a_still_air_wind_are_a_tie_decided_by_parsimony(hidden):
     """With no wind, the wind effect IS rotor drag (w = 0): the diagnosis must say it cannot
     tell them apart, and put the model with fewer parameters first."""
@@ -223,6 +225,7 @@ def test_rotor_drag_and_a_still_air_wind_are_a_tie_decided_by_parsimony(hidden):
     assert rd["explained_variance"] < 0.5
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_a_weak_effect_below_the_old_noise_threshold_is_found_not_called_noise(sim_sets):
     """Rotor drag at k = 0.008 s/m (a fifth of a real Crazyflie's) on three flights: its force
     is about the size of the accelerometer noise. It must be reported as found -- small but
@@ -243,6 +246,7 @@ def test_a_weak_effect_below_the_old_noise_threshold_is_found_not_called_noise(s
     assert result["sensitivity"]["rotor_drag"]["k_x_s_per_m"] < truth["k_x_s_per_m"]
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_a_delay_and_a_lag_are_told_apart_by_the_data(hidden):
     """A pure delay and a first-order lag shift the phase of slow thrust changes alike; only
     the lag also damps the fast ones. On flights with fast thrust changes the data prefer
@@ -259,6 +263,7 @@ def test_a_delay_and_a_lag_are_told_apart_by_the_data(hidden):
     assert "thrust_delay" in lagged["verdict"]
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_hidden_rotor_inertia_is_found_beside_a_motor_lag(sim_sets):
     """Rotor inertia flown with the motor lag it needs (see test_simulation), the lag in the
     model: the diagnosis names the rotors' spin-up torque and recovers J_r."""
@@ -282,6 +287,7 @@ def two_hidden(sim_sets):
     return tables
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_two_hidden_effects_are_the_top_two_and_each_is_found_with_the_other_in_the_model(two_hidden):
     nominal = _diagnose(two_hidden)
     assert {r["effect"] for r in nominal["candidates"][:2]} == set(TWO)

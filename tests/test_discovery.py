@@ -181,6 +181,7 @@ def test_discover_on_the_real_flights_keeps_the_guard(real_logs, tmp_path):
         assert any(t["target"] == target and v in t["variables"] for t in d["terms"]), d["terms"]
 
 
+@pytest.mark.slow  # the real fleet
 def test_the_example_model_of_the_real_flights_meets_the_torque_goals(real_logs, tmp_path):
     """The committed model (three library effects + the discovered terms, unedited) on the held-out
     jana02: torque RMSE within 0.15 / 0.22 mN m (x / y), as the README says."""

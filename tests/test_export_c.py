@@ -152,6 +152,7 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
 
 
 @pytest.mark.parametrize("kind", ["xgboost", "mlp"])
+@pytest.mark.slow  # trains the learned models
 def test_best_learned_model_on_top_of_the_physics_matches_python(kind, data_root, decoded, tmp_path):
     root, physics = data_root
     exported = export_c.export(root, tmp_path / "out", kind)
@@ -170,6 +171,7 @@ def test_best_learned_model_on_top_of_the_physics_matches_python(kind, data_root
     assert np.abs(f_learned).max() > 0.01  # the learned part carries the rotor drag
 
 
+@pytest.mark.slow  # the data_root fixture trains the learned models
 def test_every_feature_set_the_exporter_can_compute(data_root, decoded, tmp_path):
     """Each causal feature set's learned model (not only the best) through the C feature code."""
     root, physics = data_root
@@ -212,6 +214,7 @@ def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
         effects.unregister("tether_no_c")
 
 
+@pytest.mark.slow  # the data_root fixture trains the learned models
 def test_leaky_feature_set_has_no_on_board_form(data_root, decoded, tmp_path):
     root, physics = data_root
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
@@ -249,6 +252,7 @@ def test_raw_thresholds_take_the_branches_of_the_standardised_model():
         np.testing.assert_array_equal(z < t, x < x_star)
 
 
+@pytest.mark.slow  # the data_root fixture trains the learned models
 def test_dagster_asset_writes_the_c_files_under_the_data_root(data_root, tmp_path):
     import dagster as dg
 

@@ -267,6 +267,7 @@ def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
     assert all(c.severity == dg.AssetCheckSeverity.WARN for c in checks.values())
 
 
+@pytest.mark.slow  # Dagster runs, twice
 def test_writes_are_atomic_and_reruns_idempotent(sim_logs, tmp_path, monkeypatch):
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(sim_logs))
     with dg.instance_for_test() as instance:
@@ -290,6 +291,7 @@ def test_writes_are_atomic_and_reruns_idempotent(sim_logs, tmp_path, monkeypatch
     assert not list(path.parent.glob(".*.tmp"))  # and no half-written file is left behind
 
 
+@pytest.mark.slow  # every per-flight stage in Dagster
 def test_readme_queries_run(sim_logs, tmp_path):
     root = tmp_path / "root"
     data_root = DataRoot(root=str(root), raw=str(sim_logs))

@@ -50,6 +50,7 @@ def _failure_descriptions(result) -> list[str]:
     ]
 
 
+@pytest.mark.slow  # Dagster runs on the real fleet
 def test_decoded_flight_on_real_logs(instance, real_logs, tmp_path):
     data_root = DataRoot(root=str(tmp_path), raw=str(real_logs))
 
@@ -84,6 +85,7 @@ def test_decoded_flight_on_real_logs(instance, real_logs, tmp_path):
     assert not (tmp_path / "quarantine").exists()
 
 
+@pytest.mark.slow  # Dagster runs on the real fleet
 def test_corrupt_raw_file_is_quarantined_and_fails_the_run(instance, real_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
