@@ -55,6 +55,7 @@ def test_per_flight_stages_round_trip_through_s3(s3_url, tmp_path):
     assert store.read_metadata(store.decoded_path(root, "fixedFrequency", "sim001"))["flight"] == "sim001"
     provenance = store.recorded_provenance(root, "fixedFrequency", "sim001")
     assert provenance is not None and provenance.start_ns is not None
+    assert provenance.source_sha256 == store.file_sha256(raw / "sim001")
     residual = store.read_table(root, "residuals", "sim000")
     assert residual.height == store.read_decoded(root, "fixedFrequency", "sim000").height
     assert store.read_metadata(store.table_path(root, "residuals", "sim000"))["model"]["label"] == "nominal"
