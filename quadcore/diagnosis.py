@@ -277,7 +277,7 @@ def diagnose(
     sessions file; None: groups found from the data). JSON-ready dict."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
-    fds = {fid: fitting.flight_data(fid, decoded[fid], vehicle) for fid in ids}
+    fds = {fid: fitting.flight_data(fid, decoded[fid], spec.vehicle_for(fid)) for fid in ids}  # a session's map
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
     names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
@@ -327,7 +327,8 @@ def diagnose(
         if not reuse:
             fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train_all], vehicle, spec.fixed)
         model = PhysicsModel(vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
-                                                  e.name in spec.fixed) for e in model_effects])
+                                                  e.name in spec.fixed) for e in model_effects],
+                             spec.sessions_of(ids) if spec.session_maps else {}, spec.session_maps)
         resid_train = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in train_all}
     if reuse and len(train_all) >= 3:
         # one split only: refit each candidate leaving out groups of training flights, for the spread

@@ -365,10 +365,11 @@ def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[st
     from quadcore.effects import get
     from quadcore.model import EffectTerm, PhysicsModel
 
-    fds = [flight_data(f, decoded[f], spec.vehicle) for f in train]
+    fds = [flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
     effect_list = [get(n) for n in spec.effects]
+    maps = (spec.sessions_of(sorted(decoded)), spec.session_maps) if spec.session_maps else ({}, {})
     if not effect_list:
-        return PhysicsModel(spec.vehicle, [])
+        return PhysicsModel(spec.vehicle, [], *maps)
     if spec.per_session:
         from quadcore import sessions as sessionlib
 
@@ -377,4 +378,4 @@ def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[st
                                           log or (lambda msg: None))
     fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed)
     terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
-    return PhysicsModel(spec.vehicle, terms)
+    return PhysicsModel(spec.vehicle, terms, *maps)

@@ -17,6 +17,9 @@ A model file (TOML) names them; a user "adds an effect" by adding its name::
     early = ["jana0*", "jana1*"]     # without it, sessions are the groups the data show
     late = ["jana2*", "jana3*"]
 
+    [session_thrust_map]             # optional: another thrust map for a named session (e.g.
+    late = "motor_speed"             # where the logged battery voltage is stuck)
+
 Relative paths are relative to the model file. A flight of no session gets the fleet value of
 a per-session parameter, with a warning.
 """
@@ -70,21 +73,22 @@ class PhysicsModel:
     vehicle: Vehicle
     terms: list[EffectTerm] = field(default_factory=list)
     sessions: dict[str, list[str]] = field(default_factory=dict)  # session -> flights
+    session_maps: dict[str, str] = field(default_factory=dict)  # session -> thrust map kind
 
     def for_flight(self, flight: str) -> PhysicsModel:
-        """The model with the per-session parameters of ``flight``'s session; a flight of no
-        known session keeps the fleet values, with a warning."""
-        split = [t for t in self.terms if t.per_session]
-        if not split:
-            return self
+        """The model with the thrust map and the per-session parameters of ``flight``'s session;
+        a flight of no known session keeps the fleet values, with a warning."""
         session = next((s for s, members in self.sessions.items() if flight in members), None)
-        if session is None or any(session not in t.per_session for t in split):
+        kind = self.session_maps.get(session or "")
+        vehicle = self.vehicle.with_thrust_map(kind) if kind else self.vehicle
+        split = [t for t in self.terms if t.per_session]
+        if split and (session is None or any(session not in t.per_session for t in split)):
             warnings.warn(f"flight {flight!r} is in no fitted session: {', '.join(t.name for t in split)} "
                           "at the fleet value", stacklevel=2)
-            return self
+            return PhysicsModel(vehicle, self.terms, self.sessions, self.session_maps)
         terms = [EffectTerm(t.name, t.per_session[session], t.per_session_std.get(session, {}), t.fixed)
-                 if t.per_session else t for t in self.terms]
-        return PhysicsModel(self.vehicle, terms, self.sessions)
+                 if t.per_session and session else t for t in self.terms]
+        return PhysicsModel(vehicle, terms, self.sessions, self.session_maps)
 
     @property
     def effect_names(self) -> list[str]:
@@ -121,6 +125,7 @@ class PhysicsModel:
             "thrust_map": self.vehicle.thrust_map_kind,
             "effects": [t.to_dict() for t in self.terms],
             **({"sessions": self.sessions} if self.sessions else {}),
+            **({"session_thrust_map": self.session_maps} if self.session_maps else {}),
         }
 
     @classmethod
@@ -128,7 +133,8 @@ class PhysicsModel:
         terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False),
                             dict(e.get("per_session", {})), dict(e.get("per_session_std", {})))
                  for e in d.get("effects", [])]
-        return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()})
+        return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()},
+                   dict(d.get("session_thrust_map", {})))
 
 
 @dataclass
@@ -141,6 +147,16 @@ class ModelSpec:
     source: str = ""
     per_session: list[str] = field(default_factory=list)  # effects fitted per session
     session_patterns: dict[str, list[str]] = field(default_factory=dict)  # session -> flight patterns
+    session_maps: dict[str, str] = field(default_factory=dict)  # session -> thrust map kind
+
+    def session_of(self, flight: str) -> str | None:
+        return next((name for name, patterns in self.session_patterns.items()
+                     if any(fnmatch.fnmatchcase(flight, p) for p in patterns)), None)
+
+    def vehicle_for(self, flight: str) -> Vehicle:
+        """The vehicle with the thrust map of ``flight``'s session (the spec's own otherwise)."""
+        kind = self.session_maps.get(self.session_of(flight) or "")
+        return self.vehicle.with_thrust_map(kind) if kind else self.vehicle
 
     def sessions_of(self, flights: list[str]) -> dict[str, list[str]]:
         """The model file's sessions resolved against ``flights`` (empty without a [sessions] table)."""
@@ -153,7 +169,7 @@ class ModelSpec:
         spec = spec_from(self.vehicle, names, {k: v for k, v in self.fixed.items() if k in names})
         spec.source = self.source
         spec.per_session = [n for n in self.per_session if n in names]
-        spec.session_patterns = self.session_patterns
+        spec.session_patterns, spec.session_maps = self.session_patterns, self.session_maps
         return spec
 
 
@@ -165,7 +181,8 @@ def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = No
     return ModelSpec(vehicle, list(effect_names), dict(fixed or {}))
 
 
-MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters", "per_session", "sessions")
+MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters", "per_session", "sessions",
+                   "session_thrust_map")
 
 
 def _string_list(d: dict, key: str, path: Path) -> list[str]:
@@ -205,6 +222,19 @@ def _per_session(d: dict, names: list[str], fixed: dict, path: Path) -> list[str
             raise ModelFileError(f"{path}: [per_session] {name} = {params!r:.60}: a session gets all of "
                                  f"{name}'s parameters: {known}")
     return list(table)
+
+
+def _session_maps(d: dict, sessions: dict, path: Path) -> dict[str, str]:
+    table = d.get("session_thrust_map", {})
+    if not isinstance(table, dict):
+        raise ModelFileError(f"{path}: session_thrust_map = {table!r:.60}: expected a [session_thrust_map] table")
+    for name, kind in table.items():
+        if name not in sessions:
+            raise ModelFileError(f"{path}: [session_thrust_map] {name}: no session {name!r} in [sessions]")
+        if kind not in vehiclemod.THRUST_MAP_KINDS:
+            raise ModelFileError(f"{path}: [session_thrust_map] {name} = {kind!r:.60}: expected one of "
+                                 f"{', '.join(vehiclemod.THRUST_MAP_KINDS)}")
+    return table
 
 
 def _session_patterns(d: dict, path: Path) -> dict[str, list[str]]:
@@ -253,6 +283,7 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
     spec.source = str(path)
     spec.per_session = _per_session(d, names, spec.fixed, path)
     spec.session_patterns = _session_patterns(d, path)
+    spec.session_maps = _session_maps(d, spec.session_patterns, path)
     return spec
 
 

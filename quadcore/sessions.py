@@ -175,9 +175,10 @@ def _map_note(groups: list[ParameterGroup], fds: dict, vehicle: Vehicle) -> list
             notes.append(
                 f"{len(hit)} of the {len(g.flights)} flights valued {g.value:.4g} ({_flight_range(tuple(hit))}) log a "
                 f"battery voltage stuck at {volts:.2f} V: the PWM/voltage thrust map sees the wrong voltage there, so "
-                "the thrust map, not a physical effect, is likely what differs. Diagnose that session's flights on "
-                "their own with the motor-speed map (--thrust-map motor_speed, or thrust_map = \"motor_speed\" in "
-                "its model file) instead of fitting a physical effect to the map's error.")
+                "the thrust map, not a physical effect, is likely what differs. Switch that session to the "
+                "motor-speed map in the model file ([sessions] NAME = [...]; [session_thrust_map] NAME = "
+                "\"motor_speed\"; with [per_session] thrust_scale = [\"scale\"] if its k_F differs too) instead "
+                "of fitting a physical effect to the map's error.")
     return notes
 
 
@@ -295,7 +296,7 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                                     {s: fit.std[e.name] for s, fit in by_session.items()}))
         else:
             terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed))
-    return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()})
+    return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()}, dict(spec.session_maps))
 
 
 def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.ndarray:

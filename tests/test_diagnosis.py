@@ -692,3 +692,26 @@ def test_per_session_model_file_errors(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(model.ModelFileError, match=message):
         model.load_model_file(path)
+
+
+def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
+    """One session on the motor-speed map: the logged rotor speeds carry the true thrust, so
+    that session needs no thrust scale, while the PWM/voltage session keeps its 0.95."""
+    _, tables = two_sessions
+    path = tmp_path / "model.toml"
+    path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n'
+                    '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]"]\n'
+                    '[session_thrust_map]\ntuesday = "motor_speed"\n')
+    spec = model.load_model_file(path)
+    assert spec.vehicle_for("sim004").thrust_map_kind == "motor_speed"
+    assert spec.vehicle_for("sim001").thrust_map_kind == spec.vehicle.thrust_map_kind == "pwm_vbat"
+    fitted = fitting.fit_model(spec, tables, sorted(tables))
+    scales = {s: v["scale"] for s, v in fitted.terms[0].per_session.items()}
+    assert scales["monday"] == pytest.approx(SESSION_SCALES["early"], rel=0.02)
+    assert scales["tuesday"] == pytest.approx(1.0, abs=0.02)
+    assert fitted.for_flight("sim005").vehicle.thrust_map_kind == "motor_speed"
+    restored = model.PhysicsModel.from_dict(fitted.to_dict(), VEHICLE)
+    assert restored.for_flight("sim005").vehicle.thrust_map_kind == "motor_speed"
+    path.write_text(path.read_text().replace('tuesday = "motor_speed"', 'friday = "motor_speed"'))
+    with pytest.raises(model.ModelFileError, match="no session 'friday'"):
+        model.load_model_file(path)
