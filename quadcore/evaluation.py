@@ -480,10 +480,12 @@ def _history_rows(physics, holdout, best, base, lofo) -> list[dict]:
 def record_history(root: str | Path, report: dict) -> list[Path]:
     """Append the report's headline results to the history (source ``learned``): the
     physics-only baseline and the best model of each kind on the held-out flight, and the
-    pooled leave-one-flight-out results when they were run."""
+    pooled leave-one-flight-out results when they were run. Rows that repeat an unchanged model
+    on the same flights are not added; returns the files written."""
     eff = report["setup"]["effects"]
-    return [history.record(Path(root), "learned", h["model_label"], h["force"], h["torque"], eff, h["parameters"],
-                           h["eval_mode"], h["eval_flights"]) for h in report["history_rows"]]
+    written = [history.record(Path(root), "learned", h["model_label"], h["force"], h["torque"], eff,
+                              h["parameters"], h["eval_mode"], h["eval_flights"]) for h in report["history_rows"]]
+    return [p for p in written if p is not None]
 
 
 # ---------------------------------------------------------------------------------------

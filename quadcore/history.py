@@ -8,6 +8,11 @@ rewritten::
     force_rmse_{x,y,z}_N, torque_rmse_{x,y,z}_Nm
 
 Read them all with ``polars.scan_parquet("<root>/history/*.parquet")`` or :func:`read`.
+
+Rows compare only within one *evaluation set* (the same mode on the same flights: cross-validated
+on 3 flights and held out on jana02 are different questions). A row is added only when the model
+(label, parameters) or the evaluation set changed since that set's last row with the same source:
+re-running an unchanged model adds nothing, so a series reads as the steps of the improvement.
 """
 
 from __future__ import annotations
@@ -39,8 +44,9 @@ def record(
     parameters: dict | None = None,
     eval_mode: str = "",
     eval_flights: list[str] | None = None,
-) -> Path:
-    """Append one evaluation (a new file); returns its path."""
+) -> Path | None:
+    """Append one evaluation (a new file); returns its path, or None when the same model was
+    already the latest evaluation of this source on this evaluation set (nothing changed)."""
     now = datetime.now(UTC)
     row = {
         "evaluated_at": [now],
@@ -52,9 +58,46 @@ def record(
         "eval_flights": [",".join(eval_flights or [])],
         **{c: [float(v)] for c, v in zip(RMSE_COLUMNS, [*force_rmse_N, *torque_rmse_Nm])},
     }
+    if _unchanged(read(root), row):
+        return None
     slug = re.sub(r"[^0-9A-Za-z]+", "-", model_label).strip("-")[:60]
     path = history_dir(root) / f"{now.strftime('%Y%m%dT%H%M%S%fZ')}-{source}-{slug}.parquet"
     return store.write_parquet(pl.DataFrame(row), path, {"kind": "evaluation"})
+
+
+def _unchanged(hist: pl.DataFrame, row: dict) -> bool:
+    """Whether ``row`` repeats the latest row of its source on its evaluation set."""
+    if hist.height == 0:
+        return False
+    same_set = hist.filter((pl.col("source") == row["source"][0]) & (pl.col("eval_mode") == row["eval_mode"][0])
+                           & (pl.col("eval_flights") == row["eval_flights"][0]))
+    same_model = same_set.filter(pl.col("model_label") == row["model_label"][0])
+    if same_model.height == 0:
+        return False
+    last_of_set, last_of_model = same_set.row(-1, named=True), same_model.row(-1, named=True)
+    return last_of_set == last_of_model and last_of_model["parameters"] == row["parameters"][0]
+
+
+def evaluation_set(eval_mode: str, eval_flights: str) -> str:
+    """A readable name of an evaluation set, e.g. ``holdout on jana02`` or
+    ``cross-validation on 6 flights``."""
+    flights = [f for f in eval_flights.split(",") if f]
+    if not flights:
+        return eval_mode or "unknown"
+    on = ", ".join(flights) if len(flights) <= 2 else f"{len(flights)} flights"
+    return f"{eval_mode} on {on}"
+
+
+def series(hist: pl.DataFrame) -> dict[str, pl.DataFrame]:
+    """The history split by evaluation set (name -> its rows, oldest first), most recently
+    evaluated set first: each one a like-with-like series."""
+    if hist.height == 0:
+        return {}
+    named = hist.with_columns(pl.struct("eval_mode", "eval_flights").map_elements(
+        lambda s: evaluation_set(s["eval_mode"], s["eval_flights"]), return_dtype=pl.String).alias("evaluation_set"))
+    latest = named.group_by("evaluation_set").agg(pl.col("evaluated_at").max()).sort("evaluated_at", descending=True)
+    return {name: named.filter(pl.col("evaluation_set") == name).sort("evaluated_at")
+            for name in latest["evaluation_set"]}
 
 
 def read(root: Path) -> pl.DataFrame:

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore import diagnosis, plots, sessions  # noqa: E402
+from quadcore import diagnosis, history, plots, sessions  # noqa: E402
 from quadcore.history import RMSE_COLUMNS  # noqa: E402
 
 
@@ -149,20 +149,39 @@ def discovery_sections(disc: dict) -> list[tuple[str, str, object]]:
     return out
 
 
+# How many evaluation sets the history plot shows (the most recently evaluated ones).
+HISTORY_PLOT_SETS = 3
+
+
 def history_plot(hist: pl.DataFrame) -> bytes:
-    """Error per axis for each evaluation, in order: the falling-error plot."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), layout="constrained")
-    x = np.arange(hist.height)
-    labels = [f"{i}: {lab}" for i, lab in enumerate(hist["model_label"].to_list())]
-    for ax, kind, unit in ((axes[0], "force", "N"), (axes[1], "torque", "Nm")):
-        for a in "xyz":
-            ax.plot(x, hist[f"{kind}_rmse_{a}_{unit}"], "o-", label=f"{kind} {a}")
-        ax.set_xticks(x, labels, rotation=35, ha="right", fontsize=7)
-        ax.set_ylabel(f"held-out {kind} residual RMSE [{unit.replace('Nm', 'N m')}]")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-        ax.set_ylim(bottom=0)
+    """The falling-error plot: one row of panels per evaluation set (like with like), force [N]
+    and torque [mN m] per axis as steps from one model to the next."""
+    sets = list(history.series(hist).items())[:HISTORY_PLOT_SETS]
+    fig, axes = plt.subplots(len(sets), 2, figsize=(12, 3.4 * len(sets)), layout="constrained", squeeze=False)
+    for (name, rows), (ax_f, ax_t) in zip(sets, axes):
+        x = np.arange(rows.height)
+        labels = [f"{i}: {lab}" for i, lab in enumerate(rows["model_label"].to_list())]
+        for ax, kind, unit, scale in ((ax_f, "force", "N", 1.0), (ax_t, "torque", "mN m", 1e3)):
+            for a in "xyz":
+                col = f"{kind}_rmse_{a}_{'N' if kind == 'force' else 'Nm'}"
+                ax.step(x, rows[col].to_numpy() * scale, where="post", marker="o", label=f"{kind} {a}")
+            ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=7)
+            ax.set_title(f"{name}: held-out {kind} residual RMSE", fontsize=9)
+            ax.set_ylabel(f"RMSE [{unit}]")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+            ax.set_ylim(bottom=0)
     return plots._png(fig)
+
+
+def history_table(hist: pl.DataFrame) -> pl.DataFrame:
+    """The history as a table: evaluation set, source, model, RMSE (force in N, torque in mN m)."""
+    named = pl.concat([rows for rows in history.series(hist).values()]).sort("evaluated_at")
+    return named.select(
+        pl.col("evaluated_at").dt.strftime("%Y-%m-%d %H:%M:%S"), "evaluation_set", "source", "model_label",
+        *[pl.col(c).round_sig_figs(3) for c in RMSE_COLUMNS if c.endswith("_N")],
+        *[(pl.col(c) * 1e3).round_sig_figs(3).alias(c.replace("_Nm", "_mNm")) for c in RMSE_COLUMNS
+          if c.endswith("_Nm")])
 
 
 def _table(df: pl.DataFrame) -> pl.DataFrame:
@@ -179,10 +198,10 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
                           f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
                           f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)."),
         ("Baseline residual (held-out) and sensor-noise floor", "table", pl.DataFrame({
-            "quantity": ["force RMSE [N]", "torque RMSE [N m]"]
-            + (["force noise floor [N]", "torque noise floor [N m]"] if "noise_floor" in d else []),
-            **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i]]
-               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i]]
+            "quantity": ["force RMSE [N]", "torque RMSE [mN m]"]
+            + (["force noise floor [N]", "torque noise floor [mN m]"] if "noise_floor" in d else []),
+            **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i] * 1e3]
+               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i] * 1e3]
                   if "noise_floor" in d else [])
                for i, a in enumerate("xyz")},
         })),
@@ -225,7 +244,7 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
         out += discovery_sections(disc)
     if hist is not None and hist.height:
         out.append(("History: the error, evaluation after evaluation", "image", history_plot(hist)))
-        out.append(("History", "table", hist.select("evaluated_at", "source", "model_label", *RMSE_COLUMNS)))
+        out.append(("History (torque in mN m)", "table", history_table(hist)))
     return [s for s in out if s is not None]
 
 

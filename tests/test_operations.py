@@ -256,15 +256,23 @@ def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
     (raw / "odd").write_bytes(data)
+    (raw / "sim001").symlink_to(sim_logs / "sim001")
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
     with dg.instance_for_test() as instance:
-        instance.add_dynamic_partitions("flights", ["odd"])
+        instance.add_dynamic_partitions("flights", ["odd", "sim001"])
         res = run([decoded_flight], {"data_root": data_root}, instance, "odd")  # warnings, not a crash
         checks = {e.check_name: e for e in res.get_asset_check_evaluations()}
+        # a good flight decoded later passes, without hiding the odd one's warnings
+        later = run([decoded_flight], {"data_root": data_root}, instance, "sim001")
+        gaps = {e.check_name: e for e in later.get_asset_check_evaluations()}["sample_gaps"]
     assert not checks["stuck_sensors"].passed and "vbat_V" in checks["stuck_sensors"].description
+    assert checks["stuck_sensors"].description.startswith("odd: ")  # the check result names its flight
     assert not checks["sample_gaps"].passed
     assert not checks["has_flight_phase"].passed
     assert all(c.severity == dg.AssetCheckSeverity.WARN for c in checks.values())
+    assert gaps.passed and gaps.description.startswith("sim001: ")
+    table = gaps.metadata["flights"].value.splitlines()
+    assert table[2].startswith("| odd | WARN |") and table[3].startswith("| sim001 | pass |")
 
 
 @pytest.mark.slow  # Dagster runs, twice

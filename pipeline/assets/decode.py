@@ -8,6 +8,7 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
 from quadcore import checks, flight, logformat, store
 from quadcore.features import find_flights_csv
+from quadcore.names import check_component
 
 MAIN_EVENT = "fixedFrequency"
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
@@ -58,20 +59,44 @@ def _utc(ns: int | None) -> str:
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds") if ns is not None else "unknown"
 
 
-def _check_results(outcomes: dict[str, dict]) -> list[dg.AssetCheckResult]:
-    """One result per check for the run's flights: a flight's own result when the run has one
-    flight; else passed when every flight passes, the failing flights and reasons named."""
+def check_outcomes_path(data_root: DataRoot, fid: str):
+    """Where a flight's latest check outcomes are kept (a check result in Dagster is per asset,
+    not per flight: this keeps every flight's, for the per-flight table)."""
+    return data_root.root_path / "checks" / f"{check_component(fid, 'flight id')}.json"
+
+
+def _keep_outcomes(data_root: DataRoot, fid: str, outcomes: dict) -> None:
+    store.write_json({name: {"passed": ok, "reason": desc} for name, (ok, desc, _) in outcomes.items()},
+                     check_outcomes_path(data_root, fid))
+
+
+def _flights_table(data_root: DataRoot, name: str) -> str:
+    """Every flight's latest outcome of check ``name`` as a Markdown table (failing flights first)."""
+    rows = []
+    for path in sorted((data_root.root_path / "checks").glob("*.json")):
+        outcome = store.read_json(path).get(name)
+        if outcome is not None:
+            rows.append((outcome["passed"], path.stem, outcome["reason"]))
+    lines = [f"| {fid} | {'pass' if ok else 'WARN'} | {reason} |" for ok, fid, reason in sorted(rows)]
+    return "| flight | outcome | reason |\n|---|---|---|\n" + "\n".join(lines)
+
+
+def _check_results(outcomes: dict[str, dict], data_root: DataRoot) -> list[dg.AssetCheckResult]:
+    """One result per check for the run's flights, naming them: passed when every flight of the
+    run passes, the failing flights and reasons named; with every flight's latest outcome as a
+    table (metadata ``flights``), so that no flight's result hides another's."""
     results = []
     for name in checks.ALL_CHECKS:
         per_flight = {fid: o[name] for fid, o in outcomes.items()}
-        if len(per_flight) == 1:
-            passed, desc, metrics = next(iter(per_flight.values()))
-        else:
-            failing = {fid: d for fid, (ok, d, _) in per_flight.items() if not ok}
-            passed, metrics = not failing, {"flights": len(per_flight), "flights_failing": len(failing)}
-            desc = "; ".join(f"{fid}: {d}" for fid, d in failing.items()) or f"all {len(per_flight)} flights pass"
-        results.append(dg.AssetCheckResult(check_name=name, passed=passed, severity=dg.AssetCheckSeverity.WARN,
-                                           description=desc, metadata=metrics))
+        failing = {fid: d for fid, (ok, d, _) in per_flight.items() if not ok}
+        desc = "; ".join(f"{fid}: {d}" for fid, d in failing.items()) or (
+            f"{', '.join(per_flight)}: {next(iter(per_flight.values()))[1]}" if len(per_flight) == 1
+            else f"all {len(per_flight)} flights pass ({', '.join(per_flight)})")
+        metrics = next(iter(per_flight.values()))[2] if len(per_flight) == 1 else {}
+        results.append(dg.AssetCheckResult(
+            check_name=name, passed=not failing, severity=dg.AssetCheckSeverity.WARN, description=desc,
+            metadata={**metrics, "flights_in_run": ", ".join(per_flight), "flights_failing": len(failing),
+                      "flights": dg.MetadataValue.md(_flights_table(data_root, name))}))
     return results
 
 
@@ -93,7 +118,8 @@ def decoded_flight(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg
 
     def work(fid):
         metadata, outcomes[fid] = _decode_one(fid, data_root, given_starts, context.log)
+        _keep_outcomes(data_root, fid, outcomes[fid])
         return metadata
 
     for_each_flight(context, work)
-    return dg.MaterializeResult(check_results=_check_results(outcomes))
+    return dg.MaterializeResult(check_results=_check_results(outcomes, data_root))
