@@ -367,7 +367,8 @@ def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[st
 
     fds = [flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
     effect_list = [get(n) for n in spec.effects]
-    maps = (spec.sessions_of(sorted(decoded)), spec.session_maps) if spec.session_maps else ({}, {})
+    maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
+            else ({}, {}, {}))
     if not effect_list:
         return PhysicsModel(spec.vehicle, [], *maps)
     if spec.per_session:

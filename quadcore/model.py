@@ -74,21 +74,29 @@ class PhysicsModel:
     terms: list[EffectTerm] = field(default_factory=list)
     sessions: dict[str, list[str]] = field(default_factory=dict)  # session -> flights
     session_maps: dict[str, str] = field(default_factory=dict)  # session -> thrust map kind
+    session_patterns: dict[str, list[str]] = field(default_factory=dict)  # session -> flight patterns
+
+    def session_of(self, flight: str) -> str | None:
+        """``flight``'s session: one it was fitted in, or one whose patterns name it (a new flight)."""
+        return next((s for s, members in self.sessions.items() if flight in members), None) or next(
+            (s for s, patterns in self.session_patterns.items()
+             if s in self.sessions and any(fnmatch.fnmatchcase(flight, p) for p in patterns)), None)
 
     def for_flight(self, flight: str) -> PhysicsModel:
-        """The model with the thrust map and the per-session parameters of ``flight``'s session;
-        a flight of no known session keeps the fleet values, with a warning."""
-        session = next((s for s, members in self.sessions.items() if flight in members), None)
+        """The model with the thrust map and the per-session parameters of ``flight``'s session
+        (a new flight joins the session whose patterns name it); a flight of no known session
+        keeps the fleet values, with a warning."""
+        session = self.session_of(flight)
         kind = self.session_maps.get(session or "")
         vehicle = self.vehicle.with_thrust_map(kind) if kind else self.vehicle
         split = [t for t in self.terms if t.per_session]
         if split and (session is None or any(session not in t.per_session for t in split)):
             warnings.warn(f"flight {flight!r} is in no fitted session: {', '.join(t.name for t in split)} "
                           "at the fleet value", stacklevel=2)
-            return PhysicsModel(vehicle, self.terms, self.sessions, self.session_maps)
+            return PhysicsModel(vehicle, self.terms, self.sessions, self.session_maps, self.session_patterns)
         terms = [EffectTerm(t.name, t.per_session[session], t.per_session_std.get(session, {}), t.fixed)
                  if t.per_session and session else t for t in self.terms]
-        return PhysicsModel(vehicle, terms, self.sessions, self.session_maps)
+        return PhysicsModel(vehicle, terms, self.sessions, self.session_maps, self.session_patterns)
 
     @property
     def effect_names(self) -> list[str]:
@@ -126,6 +134,7 @@ class PhysicsModel:
             "effects": [t.to_dict() for t in self.terms],
             **({"sessions": self.sessions} if self.sessions else {}),
             **({"session_thrust_map": self.session_maps} if self.session_maps else {}),
+            **({"session_patterns": self.session_patterns} if self.session_patterns else {}),
         }
 
     @classmethod
@@ -134,7 +143,8 @@ class PhysicsModel:
                             dict(e.get("per_session", {})), dict(e.get("per_session_std", {})))
                  for e in d.get("effects", [])]
         return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()},
-                   dict(d.get("session_thrust_map", {})))
+                   dict(d.get("session_thrust_map", {})),
+                   {k: list(v) for k, v in d.get("session_patterns", {}).items()})
 
 
 @dataclass

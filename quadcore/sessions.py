@@ -296,7 +296,8 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                                     {s: fit.std[e.name] for s, fit in by_session.items()}))
         else:
             terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed))
-    return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()}, dict(spec.session_maps))
+    return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()}, dict(spec.session_maps),
+                        dict(spec.session_patterns))
 
 
 def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.ndarray:

@@ -700,7 +700,7 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     _, tables = two_sessions
     path = tmp_path / "model.toml"
     path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n'
-                    '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]"]\n'
+                    '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]", "sim01*"]\n'
                     '[session_thrust_map]\ntuesday = "motor_speed"\n')
     spec = model.load_model_file(path)
     assert spec.vehicle_for("sim004").thrust_map_kind == "motor_speed"
@@ -710,6 +710,10 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     assert scales["monday"] == pytest.approx(SESSION_SCALES["early"], rel=0.02)
     assert scales["tuesday"] == pytest.approx(1.0, abs=0.02)
     assert fitted.for_flight("sim005").vehicle.thrust_map_kind == "motor_speed"
+    # a new flight that the session's patterns name joins it: its map and its scale
+    new = model.PhysicsModel.from_dict(fitted.to_dict(), VEHICLE).for_flight("sim017")
+    assert new.vehicle.thrust_map_kind == "motor_speed"
+    assert new.terms[0].params == fitted.terms[0].per_session["tuesday"]
     restored = model.PhysicsModel.from_dict(fitted.to_dict(), VEHICLE)
     assert restored.for_flight("sim005").vehicle.thrust_map_kind == "motor_speed"
     path.write_text(path.read_text().replace('tuesday = "motor_speed"', 'friday = "motor_speed"'))
