@@ -32,6 +32,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from quadcore import dynamics
 from quadcore.ccode import CCode
 from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
@@ -194,6 +195,12 @@ def body_z(values: np.ndarray) -> np.ndarray:
     out = np.zeros((len(values), 3))
     out[:, 2] = values
     return out
+
+
+def rotor_wrench(vehicle: Vehicle, f_rotor_N: np.ndarray) -> Wrench:
+    """The body wrench of extra rotor thrusts (n, rotors): ``(0, 0, T)`` and ``A[1:4] f``."""
+    T, tau = dynamics.wrench_from_thrusts(vehicle, f_rotor_N)
+    return body_z(T), tau
 
 
 def collective_thrust_N(state: FlightState) -> np.ndarray:

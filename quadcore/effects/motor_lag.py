@@ -12,9 +12,8 @@ import math
 import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
-from quadcore import dynamics
 from quadcore.ccode import CCode
-from quadcore.effects.base import Effect, Parameter, SimHook, body_z
+from quadcore.effects.base import Effect, Parameter, SimHook, rotor_wrench
 
 
 def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
@@ -54,9 +53,7 @@ class MotorLag(Effect):
     doc = __doc__
 
     def wrench(self, state, vehicle, params):
-        lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
-        dT, dtau = dynamics.wrench_from_thrusts(vehicle, lagged - state.f_rotor_N)
-        return body_z(dT), dtau
+        return rotor_wrench(vehicle, first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"]) - state.f_rotor_N)
 
     def check(self, params):
         if params["tau_s"] < 0:

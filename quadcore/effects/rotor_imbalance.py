@@ -11,9 +11,8 @@ from one when the rotors' thrusts part. Linear in (d_1, d_2, d_3). Four rotors o
 
 import numpy as np
 
-from quadcore import dynamics
 from quadcore.ccode import CCode
-from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
+from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, rotor_wrench
 
 
 def rotor_factors(params: dict[str, float]) -> np.ndarray:
@@ -35,8 +34,7 @@ class RotorImbalance(Effect):
     def wrench(self, state, vehicle, params):
         if vehicle.n_rotors != 4:
             raise ValueError(f"rotor_imbalance needs 4 rotors; vehicle {vehicle.name!r} has {vehicle.n_rotors}")
-        T, tau = dynamics.wrench_from_thrusts(vehicle, state.f_rotor_N * rotor_factors(params))
-        return body_z(T), tau
+        return rotor_wrench(vehicle, state.f_rotor_N * rotor_factors(params))
 
     def check(self, params):
         if np.any(rotor_factors(params) <= -1.0):

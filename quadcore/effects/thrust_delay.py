@@ -15,9 +15,8 @@ import math
 
 import numpy as np
 
-from quadcore import dynamics
 from quadcore.ccode import CCode
-from quadcore.effects.base import Effect, Parameter, SimHook, body_z
+from quadcore.effects.base import Effect, Parameter, SimHook, rotor_wrench
 
 MIN_PERIOD_S = 0.001  # the C form keeps a history long enough for calls at up to 1 kHz
 
@@ -60,9 +59,7 @@ class ThrustDelay(Effect):
     doc = __doc__
 
     def wrench(self, state, vehicle, params):
-        late = delayed(state.f_rotor_N, state.t_s, params["t_d_s"])
-        dT, dtau = dynamics.wrench_from_thrusts(vehicle, late - state.f_rotor_N)
-        return body_z(dT), dtau
+        return rotor_wrench(vehicle, delayed(state.f_rotor_N, state.t_s, params["t_d_s"]) - state.f_rotor_N)
 
     def check(self, params):
         if params["t_d_s"] < 0:
