@@ -191,22 +191,44 @@ def good_logs(folder: Path | None, count: int = 3) -> tuple[list[bytes], str]:
         return [p.read_bytes() for p, _ in written], f"{count} simulated logs ({folder} is absent)"
 
 
+def _pipeline_kills(n: int, seed: int) -> bool:
+    from quadcore import simulation
+
+    from . import kills
+
+    print(f"\nkilling `python -m pipeline` {n} times at random moments (4 simulated flights)")
+    with tempfile.TemporaryDirectory(prefix="quadcore-pipeline-kills-") as tmp:
+        raw = Path(tmp) / "raw"
+        simulation.simulate_set(raw, [simulation.SimConfig(kind="random", duration_s=5.0, seed=s)
+                                      for s in range(1, 5)], {})
+        report = kills.run_pipeline(Path(tmp) / "root", raw, n, seed)
+    print(f"pipeline kills: {report.kills}; torn files: {report.torn_files}; unloadable learned models: "
+          f"{report.unloadable_models}; the run after them exited {report.final_exit_code} and left "
+          f"{report.leftovers_after_final_run} temp files")
+    return report.torn_files == report.unloadable_models == report.final_exit_code == \
+        report.leftovers_after_final_run == 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mutants", type=int, default=2000)
     parser.add_argument("--kills", type=int, default=100)
+    parser.add_argument("--pipeline-kills", type=int, default=0,
+                        help="also kill `python -m pipeline` this many times on 4 simulated flights")
     parser.add_argument("--logs", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     logs, what = good_logs(args.logs)
     print(f"fuzzing {args.mutants} mutants of {what}")
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="quadcore-fuzz-") as tmp:
-        summary = run(logs, args.mutants, Path(tmp), args.seed)
-    print("\n".join(summary.lines()) + f"\n({time.perf_counter() - t0:.0f} s)")
-    for e in summary.untyped_errors[:10]:
-        print(f"  untyped: {e}")
-    ok = summary.ok()
+    ok = True
+    if args.mutants:
+        with tempfile.TemporaryDirectory(prefix="quadcore-fuzz-") as tmp:
+            summary = run(logs, args.mutants, Path(tmp), args.seed)
+        print("\n".join(summary.lines()) + f"\n({time.perf_counter() - t0:.0f} s)")
+        for e in summary.untyped_errors[:10]:
+            print(f"  untyped: {e}")
+        ok = summary.ok()
     if args.kills:
         from . import kills
 
@@ -217,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{report.unloadable_models}; leftovers swept: {report.leftovers_before_sweep}, "
               f"left after the sweep: {report.leftovers_after_sweep}")
         ok = ok and report.torn_files == report.unloadable_models == report.leftovers_after_sweep == 0
+    if args.pipeline_kills:
+        ok = _pipeline_kills(args.pipeline_kills, args.seed) and ok
     print("PASS" if ok else "FAIL")
     return 0 if ok else 1
 

@@ -11,6 +11,8 @@ kills, that :func:`safewrite.sweep_stale` leaves no temp file or staging folder.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import random
 import signal
@@ -111,6 +113,68 @@ def run(root: Path, n_kills: int, seed: int = 0, log=print) -> KillReport:
     before = _leftovers(root)
     safewrite.sweep_stale(root)
     return KillReport(n_kills, torn, unloadable, before, _leftovers(root))
+
+
+def check_data_root(root: Path) -> tuple[int, int]:
+    """(torn Parquet or JSON files, unloadable learned models) among a data root's outputs
+    (temp files, staging folders and the Dagster instance aside)."""
+    def visible(p: Path) -> bool:
+        return not any(part.startswith(".") for part in p.relative_to(root).parts)
+
+    torn = unloadable = 0
+    for p in filter(visible, root.rglob("*.parquet")):
+        try:
+            pl.read_parquet(p)
+        except Exception:  # noqa: BLE001 (any failure to read is a torn file)
+            torn += 1
+    for p in filter(visible, root.rglob("*.json")):
+        try:
+            json.loads(p.read_text())
+        except ValueError:
+            torn += 1
+    for m in filter(visible, root.glob("learned/*/manifest.json")):
+        try:
+            learning.load(m.parent)
+        except learning.LearningError:
+            unloadable += 1
+    return torn, unloadable
+
+
+@dataclass
+class PipelineKillReport:
+    kills: int
+    torn_files: int
+    unloadable_models: int
+    final_exit_code: int
+    leftovers_after_final_run: int
+
+
+def run_pipeline(root: Path, raw: Path, n_kills: int, seed: int = 0, log=print) -> PipelineKillReport:
+    """Kill ``python -m pipeline`` (its whole process group) at random moments, check the data
+    root after each kill, then let one run finish: it must exit 0 and sweep every leftover."""
+    rng = random.Random(seed)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), "QUADCORE_DATA_ROOT": str(root),
+           "QUADCORE_RAW_DIR": str(raw), "DAGSTER_HOME": str(root / ".dagster")}
+    torn = unloadable = 0
+
+    def start():
+        return subprocess.Popen([sys.executable, "-m", "pipeline"], env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+    for i in range(n_kills):
+        proc = start()
+        time.sleep(rng.uniform(2.0, 45.0))
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        t, u = check_data_root(root)
+        torn, unloadable = torn + t, unloadable + u
+        log(f"  pipeline kill {i + 1}: torn files {torn}, unloadable models {unloadable}")
+    final = start()
+    code = final.wait()
+    t, u = check_data_root(root)
+    leftovers = sum(1 for p in root.rglob(".*")
+                    if ".dagster" not in p.parts and p.name.endswith((".tmp", ".staging", ".old")))
+    return PipelineKillReport(n_kills, torn + t, unloadable + u, code, leftovers)
 
 
 if __name__ == "__main__":
