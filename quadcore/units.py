@@ -88,8 +88,12 @@ def to_si(
     }
     for var in values.dtype.names or ():
         name, scale, unit, desc = SI_COLUMNS.get(var, (si_name(var), 1.0, "raw", "unconverted"))
+        base, k = name, 2
+        while name in columns:  # two variables with one SI name ("a.b", "a_b"): keep both
+            name, k = f"{base}_{k}", k + 1
         # float32 keeps the logged precision (float32 or 16-bit values, scaled); time stays float64
         col = values[var].astype(np.float32)
-        columns[name] = col if scale == 1.0 else col * np.float32(scale)
+        with np.errstate(over="ignore", invalid="ignore"):  # a damaged value becomes inf: the checks say so
+            columns[name] = col if scale == 1.0 else col * np.float32(scale)
         units[name] = {"unit": unit, "description": desc, "source": var}
     return pl.DataFrame(columns), units

@@ -225,3 +225,13 @@ def test_sensor_header_check_reports_an_unreadable_file_instead_of_raising(tmp_p
 
     (tmp_path / "a_folder").mkdir()  # opening it fails with an OSError, as an unreadable file does
     assert header_problem(tmp_path / "a_folder").startswith("IsADirectoryError")
+
+
+def test_variables_with_one_si_name_are_both_kept():
+    from quadcore import units
+
+    values = np.zeros(3, dtype=[("a.b", "<f4"), ("a_b", "<f4")])
+    values["a.b"], values["a_b"] = 1.0, 2.0
+    table, columns = units.to_si(values, np.arange(3) * 1000, 0)
+    assert table["a_b_raw"].to_list() == [1.0] * 3 and table["a_b_raw_2"].to_list() == [2.0] * 3
+    assert columns["a_b_raw_2"]["source"] == "a_b"
