@@ -49,7 +49,7 @@ SAMPLES_PER_INDEPENDENT = signals.WINDOW
 def smoothed_wrench(f: np.ndarray, tau: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     """(n, 6) force through the smoother and torque through the gyro's filter, side by side:
     the way a wrench appears in the residuals."""
-    return np.concatenate([signals.smooth(f), signals.matched_to_derivative(tau, t_s)], axis=1)
+    return np.concatenate([signals.smooth(f, t_s=t_s), signals.matched_to_derivative(tau, t_s)], axis=1)
 
 
 @dataclass

@@ -51,10 +51,10 @@ def residual_arrays(
     if extra_tau_b_Nm is not None:
         tau_model_b += extra_tau_b_Nm
 
-    omega_s = signals.smooth(state.omega_b_radps)
+    omega_s = signals.smooth(state.omega_b_radps, t_s=state.t_s)
     omega_dot = signals.derivative(state.omega_b_radps, state.t_s)
-    f_meas_b = vehicle.mass_kg * signals.smooth(state.sf_b_mps2)
-    f_model_b = signals.smooth(f_model_b)
+    f_meas_b = vehicle.mass_kg * signals.smooth(state.sf_b_mps2, t_s=state.t_s)
+    f_model_b = signals.smooth(f_model_b, t_s=state.t_s)
     tau_meas_b = dynamics.torque_for_angular_acceleration(vehicle, omega_s, omega_dot)
     tau_model_b = signals.matched_to_derivative(tau_model_b, state.t_s)
     f_res_b = f_meas_b - f_model_b

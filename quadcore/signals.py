@@ -8,7 +8,8 @@ above the rigid-body dynamics of a small quadrotor, below motor vibration.
 
 Derivatives come from the same fit (``deriv=1``), scaled by the median sample period.
 Samples within half a window of a gap longer than ``GAP_S`` are less accurate: see
-:func:`near_gap`.
+:func:`near_gap`. A gap longer than ``SPLIT_GAP_S`` splits the signal: each side is filtered
+on its own, so no window reaches across it (where the times are given).
 """
 
 from __future__ import annotations
@@ -19,6 +20,22 @@ from scipy.signal import savgol_filter
 WINDOW = 31
 ORDER = 2
 GAP_S = 0.02
+SPLIT_GAP_S = 0.1  # 50 samples at 500 Hz: the flight before and after are separate signals
+
+
+def segments(t_s: np.ndarray, gap_s: float = SPLIT_GAP_S) -> list[slice]:
+    """The runs of samples between gaps longer than ``gap_s``."""
+    cuts = np.flatnonzero(np.diff(t_s) > gap_s) + 1 if len(t_s) > 1 else np.empty(0, int)
+    edges = [0, *cuts.tolist(), len(t_s)]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _split(filter_one, x: np.ndarray, t_s: np.ndarray | None) -> np.ndarray:
+    """``filter_one(x_part, t_part)`` on each segment of ``t_s``, joined (once when no gap)."""
+    parts = segments(t_s) if t_s is not None else [slice(None)]
+    if len(parts) == 1:
+        return filter_one(x, t_s)
+    return np.concatenate([filter_one(x[p], t_s[p]) for p in parts], axis=0)
 
 
 def _window(n: int, window: int) -> int:
@@ -26,19 +43,27 @@ def _window(n: int, window: int) -> int:
     return max(w, ORDER + 1 + (ORDER % 2 == 0))
 
 
-def smooth(x: np.ndarray, window: int = WINDOW) -> np.ndarray:
-    """Zero-phase Savitzky-Golay smoothing along axis 0 (x: (n,) or (n, k))."""
-    if len(x) <= ORDER + 2:
-        return np.asarray(x, dtype=float)
-    return savgol_filter(x, _window(len(x), window), ORDER, axis=0, mode="interp")
+def smooth(x: np.ndarray, window: int = WINDOW, t_s: np.ndarray | None = None) -> np.ndarray:
+    """Zero-phase Savitzky-Golay smoothing along axis 0 (x: (n,) or (n, k)); with ``t_s``,
+    separately on each side of every long gap."""
+    def one(xs, _t):
+        if len(xs) <= ORDER + 2:
+            return np.asarray(xs, dtype=float)
+        return savgol_filter(xs, _window(len(xs), window), ORDER, axis=0, mode="interp")
+    return _split(one, x, t_s)
 
 
 def derivative(x: np.ndarray, t_s: np.ndarray, window: int = WINDOW) -> np.ndarray:
-    """Zero-phase smoothed time derivative dx/dt along axis 0, per second."""
-    if len(x) <= ORDER + 2:
-        return np.gradient(np.asarray(x, dtype=float), t_s, axis=0)
-    dt = float(np.median(np.diff(t_s)))
-    return savgol_filter(x, _window(len(x), window), ORDER, deriv=1, delta=dt, axis=0, mode="interp")
+    """Zero-phase smoothed time derivative dx/dt along axis 0, per second, separately on each
+    side of every long gap."""
+    def one(xs, ts):
+        if len(xs) < 2:
+            return np.zeros_like(np.asarray(xs, dtype=float))
+        if len(xs) <= ORDER + 2:
+            return np.gradient(np.asarray(xs, dtype=float), ts, axis=0)
+        dt = float(np.median(np.diff(ts)))
+        return savgol_filter(xs, _window(len(xs), window), ORDER, deriv=1, delta=dt, axis=0, mode="interp")
+    return _split(one, x, t_s)
 
 
 def near_gap(t_s: np.ndarray, window: int = WINDOW, gap_s: float = GAP_S) -> np.ndarray:

@@ -93,3 +93,15 @@ def test_main_job_gives_every_good_flight_its_outputs(raw, tmp_path):
     for kind, check in USABLE_WITH_WARNING.items():  # what the decoded_flight asset check reports
         passed, description, _ = checks.ALL_CHECKS[check](store.read_decoded(root, "fixedFrequency", f"bad_{kind}"))
         assert not passed, (kind, description)
+
+
+def test_filters_do_not_reach_across_a_long_gap():
+    import numpy as np
+
+    from quadcore import signals
+
+    t = np.concatenate([np.arange(500) * 0.002, 10.0 + np.arange(500) * 0.002])
+    x = np.where(t < 5, 0.0, 5.0)  # constant on each side, a jump across the 10 s gap
+    assert np.abs(signals.derivative(x, t)).max() < 1e-9
+    assert np.abs(signals.smooth(x, t_s=t) - x).max() < 1e-9
+    assert np.abs(signals.matched_to_derivative(x, t) - x).max() < 1e-6
