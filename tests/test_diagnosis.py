@@ -574,6 +574,7 @@ def test_real_logs_diagnosis_is_well_formed_and_physical(real_logs, tmp_path):
     assert phys == sorted(phys, reverse=True)
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_frequency_view_shows_a_hidden_lag_as_timing(hidden):
     """A motor lag the model lacks: at 2-10 Hz the modelled and measured torque stay
     coherent, but the measurement lags (first order, 30 ms: -54° and gain 0.59 at 7.5 Hz)."""
@@ -614,6 +615,7 @@ def _scale_groups(result: dict) -> list[dict]:
     return found[0]["groups"]
 
 
+@pytest.mark.slow  # a simulated scenario of its own
 def test_two_sessions_are_found_from_the_data(two_sessions):
     _, tables = two_sessions
     result = _diagnose(tables)

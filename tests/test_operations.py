@@ -99,6 +99,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
 
 
+@pytest.mark.slow  # the main job, then the sensor
 def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path):
     """`make run` then `make ui`: the sensor's first tick (no cursor yet) sees every log, but
     runs only the flights whose decoded table is missing or from other bytes; its runs are
@@ -146,6 +147,7 @@ def settle(instance, resources, cursor, when=None, ticks=12):
     raise AssertionError(f"the automation still requests runs after {ticks} ticks")
 
 
+@pytest.mark.slow  # many Dagster runs and automation ticks
 def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_path, monkeypatch):
     """A flight dropped in while the model is refitted, its run reading the old model but ending
     after the refit: the automation refreshes it (eager() alone counts that run as the refresh),
@@ -244,6 +246,7 @@ def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_lo
         assert "truncated" in meta["decode_warnings"].value
 
 
+@pytest.mark.slow  # a Dagster run per check
 def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
     log = logformat.decode_file(sim_logs / "sim000")
     ff = log.tables["fixedFrequency"].copy()
