@@ -32,8 +32,8 @@ def segments(t_s: np.ndarray, gap_s: float = SPLIT_GAP_S) -> list[slice]:
 
 def _split(filter_one, x: np.ndarray, t_s: np.ndarray | None) -> np.ndarray:
     """``filter_one(x_part, t_part)`` on each segment of ``t_s``, joined (once when no gap)."""
-    parts = segments(t_s) if t_s is not None else [slice(None)]
-    if len(parts) == 1:
+    parts = segments(t_s) if t_s is not None else []
+    if t_s is None or len(parts) == 1:
         return filter_one(x, t_s)
     return np.concatenate([filter_one(x[p], t_s[p]) for p in parts], axis=0)
 
