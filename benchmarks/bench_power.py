@@ -210,10 +210,11 @@ def _median_sens(null: dict, n: int, name: str, param: str) -> str:
 
 def _plot(names, summary, by_flights, n_list, path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.2), layout="constrained")
-    for name in names:
+    for i, name in enumerate(names):
         rates = summary[name]["rates"]
-        a.plot(list(rates), list(rates.values()), "o-", label=name)
-        b.plot(n_list, [np.mean(by_flights[n][name][1.0]) for n in n_list], "o-", label=name)
+        style = "o-" if i < 10 else "s--"  # the colour cycle repeats after ten
+        a.plot(list(rates), list(rates.values()), style, label=name)
+        b.plot(n_list, [np.mean(by_flights[n][name][1.0]) for n in n_list], style, label=name)
     a.axhline(0.9, color="k", lw=0.6, ls="--")
     a.set_xscale("log", base=2)
     a.set_xlabel("hidden effect / reported sensitivity (3 flights)")
