@@ -30,3 +30,12 @@ def plot_md(data_root: DataRoot, png: bytes, alt: str) -> dg.MetadataValue:
     if not path.is_file():
         store.write_bytes(png, path)
     return dg.MetadataValue.md(f"![{alt}]({url}/{name})")
+
+
+# Significant digits of the numbers shown in the UI (more is noise: 0.004821921990655964).
+DIGITS = 4
+
+
+def number(value: float) -> dg.MetadataValue:
+    """A float for the UI, rounded to ``DIGITS`` significant digits (still plotted over time)."""
+    return dg.MetadataValue.float(float(f"{float(value):.{DIGITS}g}"))

@@ -34,6 +34,7 @@ def webserver(tmp_path_factory):
     home.mkdir()
     (home / "dagster.yaml").write_text("telemetry:\n  enabled: false\n")
     port, plots_port = free_port(), free_port()
+    _populate(base, home, raw.parent / "drag", f"http://127.0.0.1:{plots_port}")
     env = {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(base / "root"),
            "QUADCORE_RAW_DIR": str(raw), "QUADCORE_AUTOMATION": "off"}  # only the run the test launches
     log = open(base / "dagster_dev.log", "w")
@@ -64,6 +65,39 @@ def webserver(tmp_path_factory):
     from pipeline.ui import port_problem
 
     assert port_problem("127.0.0.1", port) is None
+
+
+def _populate(base: Path, home: Path, raw: Path, plots_url: str) -> None:
+    """What a lab has before opening the UI: three flights with rotor drag hidden, decoded and
+    checked, the model diagnosed nominal, then with rotor_drag added (the error falls)."""
+    import dagster as dg
+
+    from pipeline.assets.decode import decoded_flight
+    from pipeline.definitions import FLEET
+    from pipeline.resources import DataRoot, ModelConfig
+
+    configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (31, 32, 33)]
+    simulation.simulate_set(raw, configs, {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}})
+    data_root = DataRoot(root=str(base / "root"), raw=str(raw))
+    quiet = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
+    before = os.environ.get("QUADCORE_PLOTS_URL")
+    os.environ["QUADCORE_PLOTS_URL"] = plots_url  # as `make run` does: plots linked, served by `make ui`
+    try:
+        instance = dg.DagsterInstance.from_config(str(home))
+        keys = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
+        instance.add_dynamic_partitions("flights", keys)
+        for key in keys:
+            assert dg.materialize([decoded_flight], partition_key=key, instance=instance, run_config=quiet,
+                                  resources={"data_root": data_root}).success
+        for effects in ("", "rotor_drag"):
+            assert dg.materialize(FLEET, instance=instance, run_config=quiet,
+                                  resources={"data_root": data_root, "model": ModelConfig(effects=effects)}).success
+        instance.dispose()
+    finally:
+        if before is None:
+            os.environ.pop("QUADCORE_PLOTS_URL", None)
+        else:
+            os.environ["QUADCORE_PLOTS_URL"] = before
 
 
 def _kill_everything_of(home: Path) -> list[str]:
@@ -157,3 +191,81 @@ def test_asset_graph_in_headless_chromium(webserver):
     if out:  # keep it for people to look at (CI artefact)
         Path(out).mkdir(parents=True, exist_ok=True)
         Path(out, "asset_graph.png").write_bytes(shot.read_bytes())
+
+
+def _page(webserver, path: str, ready: str, name: str, then: str = "", then_ready: str = "") -> tuple[str, Path]:
+    """Open ``path`` in headless Chromium, wait until ``ready`` holds, run ``then`` (scroll, click)
+    and wait for ``then_ready``, screenshot it; returns (the page's text, the screenshot)."""
+    url, _, base = webserver
+    browser = Browser(base / f"chromium-{name}")
+    try:
+        browser.goto(f"{url}{path}")
+        browser.wait_for(ready, 120)
+        browser.js("(() => { const b = [...document.querySelectorAll('button')].find(x => x.innerText.trim() === "
+                   "'Skip'); if (b) b.click(); })()")
+        if then:
+            browser.js(then)
+            browser.wait_for(then_ready or "true", 60)
+        time.sleep(1.0)
+        text = browser.js("document.body.innerText")
+        shot = browser.screenshot(base / f"{name}.png")
+    finally:
+        browser.close()
+    out = os.environ.get("QUADCORE_SCREENSHOT_DIR")
+    if out:  # keep it for people to look at (CI artefact)
+        Path(out).mkdir(parents=True, exist_ok=True)
+        Path(out, f"{name}.png").write_bytes(shot.read_bytes())
+    return text, shot
+
+
+def _scroll_to_image(alt: str) -> str:
+    return f"[...document.images].find(i => i.alt === {alt!r}).scrollIntoView({{block: 'center'}})"
+
+
+def _image_shown(alt: str) -> str:
+    """JS: an <img alt=...> on the page, loaded (from the plots server) and laid out (not behind a click)."""
+    return (f"[...document.images].some(i => i.alt === {alt!r} && i.complete && i.naturalWidth > 200 "
+            f"&& i.getBoundingClientRect().width > 200)")
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_diagnosis_page_shows_its_plot(webserver):
+    text, shot = _page(webserver, "/assets/model_diagnosis", _image_shown("candidates"), "diagnosis",
+                       _scroll_to_image("candidates"))
+    assert "verdict" in text.lower() and "nominal+rotor_drag" in text
+    assert _colours(shot) > 200  # a real plot on the page, not a blank frame
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_error_history_is_a_falling_step_chart_per_evaluation_set(webserver):
+    from quadcore import history
+
+    _, _, base = webserver
+    sets = history.series(history.read(base / "root"))
+    (name, rows), = sets.items()  # nominal, then nominal+rotor_drag, on the same flights: one series
+    assert rows["model_label"].to_list() == ["nominal", "nominal+rotor_drag"]
+    assert rows["force_rmse_x_N"][1] < 0.5 * rows["force_rmse_x_N"][0]  # the step falls
+    text, shot = _page(webserver, "/assets/error_history", _image_shown("history"), "error_history",
+                       _scroll_to_image("history"))
+    assert "nominal+rotor_drag" in text
+    assert _colours(shot) > 200
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_check_table_names_the_flights(webserver):
+    """The check's latest result names its flight; its 'flights' table lists every flight's outcome."""
+    open_table = ("[...document.querySelectorAll('a, button')].find(x => x.textContent.trim() === '[Show Markdown]')"
+                  ".click()")
+    text, _ = _page(webserver, "/assets/decoded_flight?view=checks",
+                    "document.body && document.body.innerText.includes('[Show Markdown]')", "checks",
+                    open_table, "document.body.innerText.includes('sim002')")
+    for name in ("stuck_sensors", "sample_gaps"):
+        assert name in text
+    table = text[text.rindex("flight\toutcome\treason"):]
+    assert all(f"{fid}\tpass" in table for fid in ("sim000", "sim001", "sim002")), table
+
+
+def _colours(shot: Path) -> int:
+    from PIL import Image
+
+    return len(Image.open(shot).convert("RGB").getcolors(1 << 20) or [])

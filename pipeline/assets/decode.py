@@ -5,6 +5,7 @@ from datetime import UTC, datetime
 import dagster as dg
 
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
+from pipeline.plot_links import number
 from pipeline.resources import DataRoot
 from quadcore import checks, flight, logformat, store
 from quadcore.features import find_flights_csv
@@ -92,7 +93,8 @@ def _check_results(outcomes: dict[str, dict], data_root: DataRoot) -> list[dg.As
         desc = "; ".join(f"{fid}: {d}" for fid, d in failing.items()) or (
             f"{', '.join(per_flight)}: {next(iter(per_flight.values()))[1]}" if len(per_flight) == 1
             else f"all {len(per_flight)} flights pass ({', '.join(per_flight)})")
-        metrics = next(iter(per_flight.values()))[2] if len(per_flight) == 1 else {}
+        metrics = {k: number(v) if isinstance(v, float) else v
+                   for k, v in (next(iter(per_flight.values()))[2] if len(per_flight) == 1 else {}).items()}
         results.append(dg.AssetCheckResult(
             check_name=name, passed=not failing, severity=dg.AssetCheckSeverity.WARN, description=desc,
             metadata={**metrics, "flights_in_run": ", ".join(per_flight), "flights_failing": len(failing),

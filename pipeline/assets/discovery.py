@@ -12,7 +12,7 @@ from pipeline.assets.model import (
     skipped_metadata,
     usable_decoded,
 )
-from pipeline.plot_links import plot_md
+from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import discovery, plots, report, store
 
@@ -37,8 +37,8 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
                                      if result.terms else "no term kept"),
         "discovery_plot": plot_md(data_root, report.discovery_plot(result.to_dict()), "discovery"),
         "notes": dg.MetadataValue.md("\n\n".join(f"{x.target}: {n}" for x in result.axes for n in x.notes) or "none"),
-        **{f"after_force_rmse_{ax}_N": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["force_rmse_N"])},
-        **{f"after_torque_rmse_{ax}_Nm": dg.MetadataValue.float(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
+        **{f"after_force_rmse_{ax}_N": number(v) for ax, v in zip("xyz", a["force_rmse_N"])},
+        **{f"after_torque_rmse_{ax}_Nm": number(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
         "baseline": dg.MetadataValue.json(b),
         "path": dg.MetadataValue.path(str(path)),
         "flights": len(decoded),

@@ -7,7 +7,7 @@ import polars as pl
 
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
-from pipeline.plot_links import plot_md
+from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, sessions, store, workflows
 
@@ -158,8 +158,8 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(result["verdict"]),
         "model": result["model"]["label"],
-        **{f"force_rmse_{a}_N": dg.MetadataValue.float(v) for a, v in zip("xyz", b["force_rmse_N"])},
-        **{f"torque_rmse_{a}_Nm": dg.MetadataValue.float(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
+        **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b["force_rmse_N"])},
+        **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
         "candidates": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
             diagnosis.candidate_summary({"candidates": top})))),
         "sensitivity": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
@@ -194,7 +194,7 @@ def error_history(data_root: DataRoot) -> dg.MaterializeResult:
     return dg.MaterializeResult(metadata={
         "evaluations": hist.height,
         "latest_model": last["model_label"],
-        **{c: dg.MetadataValue.float(last[c]) for c in history.RMSE_COLUMNS},
+        **{c: number(last[c]) for c in history.RMSE_COLUMNS},
         "history_plot": plot_md(data_root, report.history_plot(hist), "history"),
         "folder": dg.MetadataValue.path(str(history.history_dir(data_root.root_path))),
     })

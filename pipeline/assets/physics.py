@@ -6,7 +6,7 @@ from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.assets.model import current_model, physics_model
 from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
-from pipeline.plot_links import plot_md
+from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import dynamics, plots, propagation, residuals, store
 
@@ -40,7 +40,7 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
         )
         png = plots.model_vs_measured(table, f"{fid}: model vs measured (body frame)")
         return {
-            **{k: dg.MetadataValue.float(v) for k, v in residuals.summary(table).items()},
+            **{k: number(v) for k, v in residuals.summary(table).items()},
             "rows": table.height,
             "model_vs_measured": plot_md(data_root, png, "model vs measured"),
             "parquet": dg.MetadataValue.path(str(path)),
@@ -77,8 +77,8 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
         meta = {}
         for row in ends.iter_rows(named=True):
             h = f"{row['horizon_s']:.3g}s"
-            meta[f"pos_err_m@{h}"] = dg.MetadataValue.float(row["pos_err_m"])
-            meta[f"att_err_deg@{h}"] = dg.MetadataValue.float(row["att_err_deg"])
+            meta[f"pos_err_m@{h}"] = number(row["pos_err_m"])
+            meta[f"att_err_deg@{h}"] = number(row["att_err_deg"])
         png = plots.error_growth(growth, f"{fid}: open-loop error growth")
         return {
             **meta,
