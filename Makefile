@@ -9,7 +9,7 @@ DATA ?= data
 PORT ?= 3000
 # `make ui` serves the plots here; materialisations link to them so the asset pages show them.
 PLOTS_PORT ?= $(shell echo $$(($(PORT) + 1)))
-export QUADCORE_PLOTS_URL ?= http://127.0.0.1:$(PLOTS_PORT)
+run ui: export QUADCORE_PLOTS_URL ?= http://127.0.0.1:$(PLOTS_PORT)
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 

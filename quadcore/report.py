@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import base64
 import html
+import re
+from datetime import UTC, datetime
 from pathlib import Path
 
 import matplotlib
@@ -16,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore import diagnosis, history, plots, sessions  # noqa: E402
+from quadcore import diagnosis, history, plots, sessions, store  # noqa: E402
 from quadcore.history import RMSE_COLUMNS  # noqa: E402
 
 
@@ -248,7 +250,9 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     return [s for s in out if s is not None]
 
 
-def to_markdown(secs) -> str:
+def to_markdown(secs, images: dict[str, str] | None = None) -> str:
+    """The report as Markdown; ``images``: section title -> the PNG's path relative to the .md
+    (the PNG beside it), else the PNG inline as base64."""
     lines = ["# Dynamics model diagnosis", ""]
     for title, kind, content in secs:
         lines += [f"## {title}", ""]
@@ -256,6 +260,8 @@ def to_markdown(secs) -> str:
             lines.append(str(content))
         elif kind == "table":
             lines.append(plots.markdown_table(_table(content)) if content.height else "(none)")
+        elif images and title in images:
+            lines.append(f"![{title}]({images[title]})")
         else:
             lines.append(plots.markdown_image(content, title))
         lines.append("")
@@ -285,12 +291,32 @@ def to_html(secs) -> str:
 
 
 def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None) -> tuple[Path, Path]:
-    """Write ``diagnosis.md`` and ``diagnosis.html`` into ``out_dir`` (with a discovery's
-    section when ``disc`` is given)."""
+    """Write the report (with a discovery's section when ``disc`` is given), kept for good in
+    ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
+    beside the .md), and as the latest in ``out_dir/diagnosis.{md,html}`` (its .md links the kept
+    PNGs). The .html is self-contained. Returns the latest (md, html)."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     secs = sections(d, hist, disc)
-    md, page = out_dir / "diagnosis.md", out_dir / "diagnosis.html"
-    md.write_text(to_markdown(secs))
-    page.write_text(to_html(secs))
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    kept = out_dir / "diagnosis" / f"{stamp}-{_slug(d['model']['label'])}"
+    pngs = {title: f"{i:02d}-{_slug(title)}.png" for i, (title, kind, _) in enumerate(secs) if kind == "image"}
+    for title, kind, content in secs:
+        if kind == "image" and isinstance(content, bytes):
+            store.write_bytes(content, kept / pngs[title])
+    store.write_json(d, kept / "diagnosis.json")
+    page_text = to_html(secs)
+    store.write_text(to_markdown(secs, pngs), kept / "diagnosis.md")
+    store.write_text(page_text, kept / "diagnosis.html")
+    latest = {title: f"diagnosis/{kept.name}/{name}" for title, name in pngs.items()}
+    md = store.write_text(to_markdown(secs, latest), out_dir / "diagnosis.md")
+    page = store.write_text(page_text, out_dir / "diagnosis.html")
     return md, page
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^0-9A-Za-z]+", "-", text).strip("-")[:60] or "report"
+
+
+def kept_reports(out_dir: Path) -> list[Path]:
+    """Every kept diagnosis report folder under ``out_dir``, oldest first."""
+    return sorted(p for p in (Path(out_dir) / "diagnosis").glob("*") if p.is_dir())

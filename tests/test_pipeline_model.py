@@ -15,6 +15,7 @@ from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import history, store
+from quadcore.report import kept_reports
 
 pytestmark = pytest.mark.slow  # the whole loop materialised in Dagster
 
@@ -87,6 +88,17 @@ def test_the_loop_in_dagster(raw, tmp_path):
         hist = history.read(root)
         assert hist["model_label"].to_list() == ["nominal", "nominal+rotor_drag"]
         assert metadata(res, "error_history")["evaluations"] == 2
+        # both diagnoses kept (by time and model), the latest beside them, PNGs as files beside the .md
+        kept = kept_reports(root / "reports")
+        assert [p.name.split("-", 1)[1] for p in kept] == ["nominal", "nominal-rotor-drag"]
+        assert json.loads((kept[1] / "diagnosis.json").read_text())["model"]["label"] == "nominal+rotor_drag"
+        latest = (root / "reports" / "diagnosis.md").read_text()
+        assert "base64" not in latest and latest == (kept[1] / "diagnosis.md").read_text().replace(
+            "](", f"](diagnosis/{kept[1].name}/")
+        for folder in kept:
+            pngs = sorted(folder.glob("*.png"))
+            assert pngs and all(p.read_bytes()[:4] == b"\x89PNG" for p in pngs)
+            assert all(f"]({p.name})" in (folder / "diagnosis.md").read_text() for p in pngs)
 
         # residual tables now use the fitted model
         res = materialize(PER_FLIGHT[1:], with_drag, instance, "sim000")

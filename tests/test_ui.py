@@ -193,6 +193,10 @@ def test_asset_graph_in_headless_chromium(webserver):
         Path(out, "asset_graph.png").write_bytes(shot.read_bytes())
 
 
+SKIP_DIALOG = ("(() => { const b = [...document.querySelectorAll('button')].find(x => x.innerText.trim() === 'Skip');"
+               " if (b) b.click(); })()")
+
+
 def _page(webserver, path: str, ready: str, name: str, then: str = "", then_ready: str = "") -> tuple[str, Path]:
     """Open ``path`` in headless Chromium, wait until ``ready`` holds, run ``then`` (scroll, click)
     and wait for ``then_ready``, screenshot it; returns (the page's text, the screenshot)."""
@@ -201,12 +205,14 @@ def _page(webserver, path: str, ready: str, name: str, then: str = "", then_read
     try:
         browser.goto(f"{url}{path}")
         browser.wait_for(ready, 120)
-        browser.js("(() => { const b = [...document.querySelectorAll('button')].find(x => x.innerText.trim() === "
-                   "'Skip'); if (b) b.click(); })()")
+        time.sleep(2.0)  # the first-visit newsletter dialog comes a moment after the page: dismiss it
+        browser.js(SKIP_DIALOG)
         if then:
             browser.js(then)
             browser.wait_for(then_ready or "true", 60)
         time.sleep(1.0)
+        browser.js(SKIP_DIALOG)
+        time.sleep(0.5)
         text = browser.js("document.body.innerText")
         shot = browser.screenshot(base / f"{name}.png")
     finally:
