@@ -24,15 +24,13 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from quadcore import dynamics, rotations, signals
+from quadcore import dynamics, rotations, signals, units
 from quadcore.dynamics import FlightState, cols
 from quadcore.vehicle import Vehicle
 
 F_RES_B, F_RES_W = cols("f_res_b", "N"), cols("f_res_w", "N")
 TAU_RES_B = cols("tau_res_b", "Nm")
 
-UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2",
-         "m": "m", "V": "V"}
 
 
 def residual_arrays(
@@ -114,11 +112,7 @@ def residual_table(
 
 def column_units(df: pl.DataFrame) -> dict[str, str]:
     """Unit of every column, read off its name suffix (``_N``, ``_Nm``, ``_mps``, ...)."""
-    units = {}
-    for c in df.columns:
-        suffix = c.rsplit("_", 1)[-1]
-        units[c] = UNITS.get(suffix, "s" if c == "t_s" else "1")
-    return units
+    return units.column_units(df.columns)
 
 
 def rmse(df: pl.DataFrame, columns: list[str], where: pl.Expr | None = None) -> list[float]:

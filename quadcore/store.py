@@ -32,6 +32,7 @@ from typing import Any
 
 import polars as pl
 
+from quadcore import units
 from quadcore.flight import Provenance
 from quadcore.names import check_component
 from quadcore.safewrite import temp_prefix
@@ -110,9 +111,21 @@ def atomic_write(path: Any, write) -> Path:
 
 
 def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
-    """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata."""
+    """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata, which
+    always holds ``units`` (column -> unit): the given ones, else those of a ``columns``
+    description, else read off the column names (:func:`quadcore.units.column_units`)."""
+    metadata = {"units": _units(df, metadata), **metadata}
     meta = {METADATA_KEY.decode(): json.dumps(metadata, default=str)}
     return atomic_write(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
+
+
+def _units(df: pl.DataFrame, metadata: dict) -> dict[str, str]:
+    if "units" in metadata:
+        return metadata["units"]
+    described = metadata.get("columns") or {}
+    by_name = units.column_units(df.columns)
+    return {c: described[c]["unit"] if isinstance(described.get(c), dict) and "unit" in described[c] else by_name[c]
+            for c in df.columns}
 
 
 def read_metadata(path: Path) -> dict:

@@ -342,3 +342,21 @@ def test_every_output_has_the_mode_of_a_plain_file(tmp_path):
     written = [store.write_json({"a": 1}, tmp_path / "a.json"), store.write_text("t", tmp_path / "b.md"),
                store.write_parquet(pl.DataFrame({"x_m": [1.0]}), tmp_path / "c.parquet", {})]
     assert {p.stat().st_mode & 0o777 for p in written} == {plain.stat().st_mode & 0o777}
+
+
+def test_every_parquet_output_states_the_unit_of_every_column(sim_logs, tmp_path):
+    from quadcore import features as feat
+
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(sim_logs))
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim000"])
+        run(PER_FLIGHT, {"data_root": data_root, "model": ModelConfig()}, instance, "sim000")
+    root = data_root.root_path
+    feat.replace_feature_tables(root, {"sim000": store.read_table(root, "residuals", "sim000")}, feat.parse([]))
+    files = sorted(root.glob("**/*.parquet"))
+    stages = {p.relative_to(root).parts[0] for p in files}
+    assert {"decoded", "residuals", "rollouts", "features"} <= stages
+    for path in files:
+        units = store.read_metadata(path)["units"]
+        assert set(units) == set(pl.read_parquet_schema(path)), path
+        assert units.get("timestamp_us", "us") == "us" and units.get("t_s", "s") == "s", path
