@@ -47,7 +47,8 @@ cross-validation grouped by flight, scored on the fold's flights. The number of 
 where one more term adds less than ``MIN_GAIN`` of the held-out variance. A term is kept
 when it is selected in most folds (stability selection) and, refitted with the other kept
 terms, still adds ``MIN_GAIN`` of the held-out variance. An axis whose residual is within
-``NOISE_LEVEL`` of the sensor-noise floor gets no terms.
+``evidence.NOISE_MARGIN`` (RMS) of the sensor-noise floor gets no terms, the same
+margin the diagnosis uses.
 
 **Reported** per term: the formula with its SI coefficient and grouped-jackknife standard
 error, the held-out variance it explains (in the order of selection, so the shares add up),
@@ -69,7 +70,7 @@ import numpy as np
 import polars as pl
 from sklearn.linear_model import orthogonal_mp_gram
 
-from quadcore import dynamics, effects as effectlib, fitting, sessions as sessionlib, signals, store
+from quadcore import dynamics, effects as effectlib, evidence, fitting, sessions as sessionlib, signals, store
 from quadcore.dynamics import XYZ, FlightState
 from quadcore.effects.base import Effect, Parameter
 from quadcore.model import ModelSpec
@@ -79,7 +80,6 @@ TARGETS = tuple([f"f_res_b_{a}_N" for a in XYZ] + [f"tau_res_b_{a}_Nm" for a in 
 MIN_GAIN = 0.02  # a term must add this share of the held-out variance of its axis
 MIN_STABILITY = 0.6  # selected in at least this share of the folds ("most folds")
 MAX_TERMS = 8  # per axis
-NOISE_LEVEL = 2.0  # an axis within this factor of its sensor-noise floor holds nothing to discover
 COLLINEAR = 0.95  # |cosine| between two terms above which the data cannot separate them
 MATCH = 0.9  # share of a term's energy in an effect's basis above which the term "is" that effect
 MIN_HEIGHT_M = 0.02  # the ground-effect term is evaluated at no less than this height
@@ -549,8 +549,8 @@ def discover(
     for axis, target in enumerate(TARGETS):
         y = cols.target0 + axis
         rms = np.sqrt(G_train[y, y] / _rows(G_train))
-        if rms < NOISE_LEVEL * noise[axis]:
-            why = (f"residual RMS {rms:.3g} within {NOISE_LEVEL:g}× the "
+        if rms <= (1 + evidence.NOISE_MARGIN) * noise[axis]:
+            why = (f"residual RMS {rms:.3g} within {evidence.NOISE_MARGIN:.0%} of the "
                    f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
             axes.append(AxisResult(target, 0.0, True, (why,)))
             continue
