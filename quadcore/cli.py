@@ -329,7 +329,7 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore import diagnosis, report, sessions
+    from quadcore import diagnosis, report, sessions, store
 
     spec, tables, holdout, skipped = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
@@ -342,9 +342,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from None
     result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log, sessions=groups),
               "skipped_flights": skipped}
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2, default=float))
+    out = store.write_text(json.dumps(result, indent=2, default=float), Path(args.json))
     b = result["baseline"]
     print(f"model: {result['model']['label']}  ({result['evaluation']['mode']}, "
           f"{len(result['evaluation']['eval_flights'])} flights evaluated)")
