@@ -420,25 +420,22 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
-    from quadcore import effects, evaluation, features as feat, fitting, learning, model, vehicle
+    from quadcore import effects, evaluation, features as feat, fitting, learning, model, vehicle, workflows
 
     data, names = _data_and_effects(args)
-    veh = _vehicle(args)
     kinds_of_model = [k.strip() for k in (args.models or "").split(",") if k.strip()]
     if args.stride < 1 or args.threads < 1:
         raise UserError("--stride and --threads must be at least 1")
     try:
-        spec = model.load_model_file(args.model, vehicle_override=args.vehicle) if args.model else \
-            model.spec_from(veh, names)
-        if args.model and names:
-            spec = model.spec_from(spec.vehicle, names, {k: v for k, v in spec.fixed.items() if k in names})
+        spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
         veh = spec.vehicle
         sets = feat.parse(args.feature_sets)
         if not kinds_of_model:
             raise learning.LearningError("--models names no model kind")
         specs = {k: learning.parse_spec(f"{k}:{getattr(args, k)}" if getattr(args, k, None) else k)
                  for k in kinds_of_model}
-    except (effects.UnknownEffectError, model.ModelFileError, feat.FeatureError, learning.LearningError) as exc:
+    except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError, feat.FeatureError,
+            learning.LearningError) as exc:
         raise UserError(str(exc)) from None
     csv_path = Path(args.flights_csv) if args.flights_csv else feat.find_flights_csv(data)
     if args.flights_csv and not (csv_path and csv_path.is_file()):

@@ -375,6 +375,8 @@ def test_cli_train(tmp_path, sim_dir):
     (["--effects", "warp_drive"], "warp_drive"),
     (["--xgboost", "depth=deep"], "bad value"),
     (["--stride", "0"], "at least 1"),
+    (["--thrust-map", "bogus"], "unknown thrust map 'bogus'"),
+    (["--model", "no_such_model.toml"], "no_such_model.toml"),
 ])
 def test_cli_train_user_errors(tmp_path, sim_dir, argv, message):
     code, out, err = _cli("train", str(sim_dir), "--out", str(tmp_path), *argv)
