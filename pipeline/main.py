@@ -12,6 +12,7 @@ It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 
 import json
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -54,6 +55,15 @@ def simulate_demo_flights(raw: Path, log=print) -> list[Path]:
     log(f"No logs in {raw}: simulating 6 demo flights with a hidden effect (see {raw}/*.truth.json) ...")
     written = simulation.simulate_set(raw, simulation.default_flights(seed=0), DEMO_EFFECT)
     return [log_path for log_path, _ in written]
+
+
+def write_demo_model_file(root: Path, template: str, effects: list[str]) -> Path:
+    """The demo's own model file ``<root>/model.toml``: the template's text (the repository's
+    model.toml) with its ``effects`` list set to ``effects``."""
+    text = Path(template).read_text() if template and Path(template).is_file() else "effects = []\n"
+    listed = "effects = [" + ", ".join(f'"{e}"' for e in effects) + "]"
+    text, n = re.subn(r"(?m)^effects\s*=\s*\[[^\]]*\]", listed, text)
+    return store.write_text(text if n else f"{listed}\n{text}", root / "model.toml")
 
 
 def _failure_reason(result) -> str:
@@ -270,9 +280,11 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     if demo and suggested:
         # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
         names = [*model.spec().effects, suggested]
-        log(f"2b  demo: adding {suggested!r} to the model (as a user would in model.toml) and diagnosing again")
-        model = ModelConfig(model_file=model.model_file, vehicle=model.vehicle, thrust_map=model.thrust_map,
-                            effects=",".join(names), holdout=model.holdout)
+        own = write_demo_model_file(root, model.model_file, names)
+        log(f"2b  demo: adding {suggested!r} to the model, as a user would in model.toml (the demo's own "
+            f"{own}, which later runs use), and diagnosing again")
+        model = ModelConfig(model_file=str(own), vehicle=model.vehicle, thrust_map=model.thrust_map,
+                            holdout=model.holdout, sessions_file=model.sessions_file)
         resources["model"] = model
         if run_fleet(instance, resources, log) is None:
             return 1

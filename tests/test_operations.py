@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 import dagster as dg
 import duckdb
@@ -360,3 +361,20 @@ def test_every_parquet_output_states_the_unit_of_every_column(sim_logs, tmp_path
         units = store.read_metadata(path)["units"]
         assert set(units) == set(pl.read_parquet_schema(path)), path
         assert units.get("timestamp_us", "us") == "us" and units.get("t_s", "s") == "s", path
+
+
+def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
+    """The demo's next turn is written to <root>/model.toml (the repository's file untouched),
+    and the model the pipeline loads from then on is that one: a second run continues the story."""
+    from pipeline.main import write_demo_model_file
+    from pipeline.resources import model_config_from_env
+    from quadcore import model
+
+    repo_file = Path(__file__).resolve().parents[1] / "model.toml"
+    own = write_demo_model_file(tmp_path, str(repo_file), ["rotor_drag"])
+    assert own == tmp_path / "model.toml" and model.load_model_file(own).effects == ["rotor_drag"]
+    assert "# Fix a parameter instead of fitting it" in own.read_text()  # the template's comments kept
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path))
+    monkeypatch.delenv("QUADCORE_MODEL", raising=False)
+    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
+    assert model_config_from_env().spec().effects == ["rotor_drag"]
