@@ -1,6 +1,7 @@
 """The Dagster definitions: load with ``dg dev -w workspace.yaml`` (``make ui``)."""
 
 import os
+import warnings
 
 import dagster as dg
 
@@ -29,6 +30,9 @@ LEARNING = [learning_features, learned_models, learning_report]
 # The current model as C for the flight controller.
 EXPORT = [exported_model]
 
+
+# Running them on the code server is "beta" in Dagster 1.13; it is what custom conditions need.
+warnings.filterwarnings("ignore", message="Parameter `use_user_code_server`", category=dg.BetaWarning)
 
 # Evaluates the automation conditions (retraining when flights arrive, refreshing stale flights).
 # On the code server: pipeline.freshness's conditions are Python the daemon cannot run itself.
