@@ -28,6 +28,7 @@ from quadcore import (
     learning,
     model,
     simulation,
+    store,
     vehicle,
 )
 from quadcore.export_c.learned import raw_thresholds
@@ -227,8 +228,15 @@ def test_leaky_feature_set_has_no_on_board_form(data_root, decoded, tmp_path):
 
 def test_bad_sources_are_user_errors(tmp_path):
     (tmp_path / "empty").mkdir()
+    (tmp_path / "garbage.json").write_text("{not json")
+    # a fitted model naming a plugin effect whose module this process has not loaded
+    plugin_model = PhysicsModel(VEHICLE, [EffectTerm("thrust_scale", {"scale": 1.02})]).to_dict()
+    plugin_model["effects"][0]["name"] = "my_plugin_effect"
+    store.write_json(plugin_model, tmp_path / "plugin_model.json")
     for args in (["export-c", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
-                 ["export-c", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]):
+                 ["export-c", str(tmp_path / "empty"), "--out", str(tmp_path / "o")],
+                 ["export-c", str(tmp_path / "garbage.json"), "--out", str(tmp_path / "o")],
+                 ["export-c", str(tmp_path / "plugin_model.json"), "--out", str(tmp_path / "o")]):
         err = io.StringIO()
         with contextlib.redirect_stderr(err):
             assert cli.main(args) == 2

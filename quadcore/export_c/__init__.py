@@ -62,8 +62,11 @@ class Exported:
 
 
 def _physics_from_json(path: Path) -> PhysicsModel:
-    d = store.read_json(path)
-    if "effects" not in d or "vehicle" not in d:
+    try:
+        d = store.read_json(path)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ExportError(f"{path}: not a fitted physics model (not JSON: {exc})") from None
+    if not isinstance(d, dict) or "effects" not in d or "vehicle" not in d:
         raise ExportError(f"{path}: not a fitted physics model (no 'vehicle' and 'effects')")
     return PhysicsModel.from_dict(d, learning.vehicle_of(d))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from quadcore.effects import get as get_effect
+from quadcore.effects import UnknownEffectError, get as get_effect
 from quadcore.export_c import inputs
 from quadcore.export_c.inputs import Derived, ExportError, Field
 from quadcore.export_c.learned import learned_c
@@ -88,7 +88,11 @@ def _indent(code: str, spaces: int = 4) -> str:
 
 
 def _effect_block(term, physics: PhysicsModel) -> tuple[str, tuple[tuple[str, int], ...]]:
-    effect = get_effect(term.name)
+    try:
+        effect = get_effect(term.name)
+    except UnknownEffectError as exc:  # a plugin effect: a fitted model's JSON does not say where its module is
+        raise ExportError(f"{exc}. A plugin effect is exported only where its module is loaded "
+                          "(quadcore.effects.load_plugin, or the pipeline with the model file naming it)") from None
     form = effect.c_code(physics.vehicle, term.params)
     if form is None:
         raise NoCFormError(term.name)
