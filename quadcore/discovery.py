@@ -515,7 +515,7 @@ def discover(
     train = [f for f in ids if f not in holdout]
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
-    fds = {f: fitting.flight_data(f, decoded[f], vehicle) for f in ids}
+    fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}  # a session's map
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
     if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values

@@ -228,3 +228,20 @@ def test_discover_on_a_model_with_per_session_effects(hidden_flights, tmp_path):
     g = json.loads((tmp_path / "g.json").read_text())["baseline"]
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         np.testing.assert_allclose(d["baseline"][key], g[key], rtol=1e-6)
+
+
+def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
+    """A session switched to the motor-speed map ([session_thrust_map]): discovery's flights
+    carry that map's rotor thrusts, as the diagnosis's do, so both start from the same residual."""
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["thrust_scale"]\n'
+                          '[sessions]\na = ["sim000", "sim001"]\nb = ["sim002", "sim003"]\n'
+                          '[session_thrust_map]\nb = "motor_speed"\n')
+    runs = {}
+    for verb in ("discover", "diagnose"):
+        code, _, err = _run([verb, str(hidden_flights), "--model", str(model_file), "--holdout", HOLDOUT,
+                             "--json", str(tmp_path / f"{verb}.json"), "--quiet"])
+        assert code == 0, err
+        runs[verb] = json.loads((tmp_path / f"{verb}.json").read_text())["baseline"]
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        np.testing.assert_allclose(runs["discover"][key], runs["diagnose"][key], rtol=1e-6)
