@@ -151,3 +151,28 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
         after = metadata(res, "model_diagnosis")["force_rmse_x_N"]
         assert after < 0.5 * before
         assert history.read(root)["model_label"].to_list() == ["nominal", "nominal+found_drag"]
+
+
+def test_rollouts_use_each_flights_session_values(raw, tmp_path):
+    """A model with a per-session thrust scale: a flight's open-loop rollout flies its
+    session's value, as its residual table does, not the fleet value."""
+    from pipeline.assets.model import fitted_model_path
+    from quadcore import vehicle
+    from quadcore.model import EffectTerm, PhysicsModel
+
+    root = tmp_path / "root"
+    data_root = DataRoot(root=str(root), raw=str(raw))
+    config = {"data_root": data_root, "model": ModelConfig(effects="thrust_scale")}
+    per_session = PhysicsModel(vehicle.load(), [EffectTerm("thrust_scale", {"scale": 1.0}, {}, False,
+                                                           {"mine": {"scale": 1.3}}, {"mine": {"scale": 0.01}})],
+                               {"mine": ["sim000"]})
+    same_fleet_wide = PhysicsModel(vehicle.load(), [EffectTerm("thrust_scale", {"scale": 1.3})])
+    errors = []
+    with dg.instance_for_test() as instance:
+        instance.add_dynamic_partitions("flights", ["sim000"])
+        materialize([decoded_flight], config, instance, "sim000")
+        for fitted in (per_session, same_fleet_wide):
+            store.write_json(fitted.to_dict(), fitted_model_path(data_root))
+            roll = metadata(materialize([rollout_errors], config, instance, "sim000"), "rollout_errors")
+            errors.append(roll["pos_err_m@1s"])
+    assert errors[0] == pytest.approx(errors[1], rel=1e-9)

@@ -57,16 +57,16 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
 def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Open-loop error growth of the current model from the logged state, per horizon, per flight."""
     current = current_model(data_root, model, context.log)
-    vehicle = current.vehicle
 
     def work(fid):
         decoded = decoded_main_table(data_root, fid)
+        flight_model = current.for_flight(fid)  # its session's thrust map and values, as residual_table
         try:
-            state = dynamics.flight_state(decoded, vehicle)
+            state = dynamics.flight_state(decoded, flight_model.vehicle)
         except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
-        extra = current.rollout_wrench(state) if current.terms else None
-        growth = propagation.error_growth(state, vehicle, extra_wrench=extra)
+        extra = flight_model.rollout_wrench(state) if flight_model.terms else None
+        growth = propagation.error_growth(state, flight_model.vehicle, extra_wrench=extra)
         path = store.write_parquet(
             growth, store.table_path(data_root.root_path, "rollouts", fid), {"flight": fid, "model": current.label}
         )
