@@ -312,5 +312,5 @@ def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.nda
         log(str(w.message))
     out = np.zeros((fd.state.n, 6))
     for t in model.terms:
-        out += fitting.prediction(t.effect, t.params, fd, pm.vehicle)
+        out += fitting.prediction(t.effect, t.params, fd, model.vehicle)  # its session's thrust map
     return out
