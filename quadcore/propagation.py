@@ -22,12 +22,12 @@ from collections.abc import Callable
 import numpy as np
 import polars as pl
 
-from quadcore import dynamics, rotations
+from quadcore import checks, dynamics, rotations
 from quadcore.dynamics import FlightState
 from quadcore.vehicle import Vehicle
 
 HORIZONS_S = (0.1, 0.5, 1.0)
-MAX_STEP_S = 0.05  # the checks' gap threshold: 25 samples at 500 Hz
+MAX_STEP_S = checks.GAP_WARN_S  # a step longer than the checks' gap threshold is a gap
 
 # sample indices -> (extra force, extra torque) of the model's effects, body frame, evaluated on
 # the logged state at those samples (the rollout's own state is not fed back to the effects)
