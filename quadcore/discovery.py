@@ -507,8 +507,11 @@ def discover(
     n_folds: int = 5,
     stride: int = 4,
     log=lambda msg: None,
+    sessions: dict[str, list[str]] | None = None,
 ) -> Discovery:
-    """Find the terms the model lacks (see the module docstring)."""
+    """Find the terms the model lacks (see the module docstring). ``sessions`` (name ->
+    flights, from a sessions file) group the flights of per-session effects, as in
+    :func:`quadcore.diagnosis.diagnose`; None: the model file's, else the groups the data show."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
@@ -519,7 +522,7 @@ def discover(
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
     if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
-        pm = sessionlib.fit_per_session(spec, fds, targets, train, None, log)
+        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
         resid = {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in ids}
     elif model_effects:
         log(f"fitting the model's effects {spec.effects} on {len(train)} flights")

@@ -245,3 +245,20 @@ def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
         runs[verb] = json.loads((tmp_path / f"{verb}.json").read_text())["baseline"]
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         np.testing.assert_allclose(runs["discover"][key], runs["diagnose"][key], rtol=1e-6)
+
+
+def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path):
+    """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
+    per-session effects on those groups, as the diagnosis does: the same starting residual."""
+    from quadcore import diagnosis, flight, model
+
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
+    spec = model.load_model_file(model_file)
+    decoded = {flight.flight_id_of(p): flight.decode_flight(p).tables["fixedFrequency"]
+               for p in flight.discover_logs(hidden_flights)}
+    groups = {"one": ["sim000", "sim003"], "two": ["sim001", "sim002"]}
+    found = discovery.discover(decoded, spec, [HOLDOUT], sessions=groups)
+    diagnosed = diagnosis.diagnose(decoded, spec, [HOLDOUT], sessions=groups)
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        np.testing.assert_allclose(found.baseline[key], diagnosed["baseline"][key], rtol=1e-6)

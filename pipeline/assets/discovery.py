@@ -14,7 +14,7 @@ from pipeline.assets.model import (
 )
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import discovery, plots, report, store
+from quadcore import discovery, plots, report, sessions, store
 
 
 @dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=RETRAIN)
@@ -28,7 +28,11 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     holdout = model.holdout_flights
     if len(decoded) - len(holdout) < 2:
         raise dg.Failure(description="discovery needs at least two training flights (folds are grouped by flight)")
-    result = discovery.discover(decoded, spec, holdout or None, log=context.log.info)
+    try:
+        groups = model.sessions(sorted(decoded))  # QUADCORE_SESSIONS, as physics_model and model_diagnosis
+    except sessions.SessionsFileError as exc:
+        raise dg.Failure(description=str(exc)) from None
+    result = discovery.discover(decoded, spec, holdout or None, log=context.log.info, sessions=groups)
     path = store.write_json(result.to_dict(), discovery_path(data_root))
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
