@@ -7,7 +7,8 @@
     quadcore export-c MODEL_DIR_OR_FILE --out DIR [--learned xgboost|mlp|none]
     quadcore train DATA [--holdout F] [--loo] [--models xgboost,mlp] [--feature-sets ...] [--effects ...] [--out DIR]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
-    quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--write-effect DIR/NAME.py]
+    quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--sessions F]
+                      [--write-effect DIR/NAME.py]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
 
@@ -328,18 +329,25 @@ def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict,
     return spec, tables, holdout, skipped
 
 
+def _sessions_file(args: argparse.Namespace, flights: list[str]) -> dict[str, list[str]] | None:
+    """``--sessions``: session -> flights (among ``flights``), or None without the option."""
+    from quadcore import sessions
+
+    if not args.sessions:
+        return None
+    try:
+        return sessions.read_sessions_file(args.sessions, flights)
+    except sessions.SessionsFileError as exc:
+        raise UserError(str(exc)) from None
+
+
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore import diagnosis, report, sessions, store
+    from quadcore import diagnosis, report, store
 
     spec, tables, holdout, skipped = _model_and_flights(args)
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
     log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
-    groups = None
-    if args.sessions:
-        try:
-            groups = sessions.read_sessions_file(args.sessions, sorted(tables))
-        except sessions.SessionsFileError as exc:
-            raise UserError(str(exc)) from None
+    groups = _sessions_file(args, sorted(tables))
     result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log, sessions=groups),
               "skipped_flights": skipped}
     out = store.write_text(json.dumps(result, indent=2, default=float), Path(args.json))
@@ -386,8 +394,9 @@ def cmd_discover(args: argparse.Namespace) -> int:
         target = Path(args.write_effect)
         if target.suffix != ".py" or not discovery.NAME_RE.match(target.stem):
             raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
+    groups = _sessions_file(args, sorted(tables))
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
-    result = discovery.discover(tables, spec, holdout or None, log=log)
+    result = discovery.discover(tables, spec, holdout or None, log=log, sessions=groups)
     out = Path(args.json)
     try:
         store.write_json(result.to_dict(), out)
@@ -575,6 +584,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "cross-validation over flights)")
     p.add_argument("--write-effect", default=None, metavar="DIR/NAME.py",
                    help="write the kept terms as a linear effect plugin module NAME")
+    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="groups of flights for the model's "
+                   "per-session effects, as in diagnose (default: the model file's, else found from the data)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_discover)

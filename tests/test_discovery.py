@@ -262,3 +262,21 @@ def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights
     diagnosed = diagnosis.diagnose(decoded, spec, [HOLDOUT], sessions=groups)
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         np.testing.assert_allclose(found.baseline[key], diagnosed["baseline"][key], rtol=1e-6)
+
+
+def test_cli_discover_and_diagnose_share_a_sessions_file(hidden_flights, tmp_path):
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
+    sessions_file = tmp_path / "sessions.toml"
+    sessions_file.write_text('[sessions]\none = ["sim000", "sim003"]\ntwo = ["sim001", "sim002"]\n')
+    runs = {}
+    for verb in ("discover", "diagnose"):
+        code, _, err = _run([verb, str(hidden_flights), "--model", str(model_file), "--holdout", HOLDOUT,
+                             "--sessions", str(sessions_file), "--json", str(tmp_path / f"{verb}.json"), "--quiet"])
+        assert code == 0, err
+        runs[verb] = json.loads((tmp_path / f"{verb}.json").read_text())["baseline"]
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        np.testing.assert_allclose(runs["discover"][key], runs["diagnose"][key], rtol=1e-6)
+    code, _, err = _run(["discover", str(hidden_flights), "--model", str(model_file), "--sessions",
+                         str(tmp_path / "missing.toml"), "--json", str(tmp_path / "x.json"), "--quiet"])
+    assert code == 2 and err.startswith("quadcore discover: error:") and "missing.toml" in err
