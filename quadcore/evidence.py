@@ -82,9 +82,13 @@ def channel_mask(channels) -> np.ndarray:
 
 
 def _blocks(fd: FlightData) -> np.ndarray:
-    """Block index of each usable sample of a flight (blocks of ``BLOCK_S`` seconds)."""
+    """Block index of each usable sample of a flight (blocks of ``BLOCK_S`` seconds), numbered
+    over the blocks that hold samples: a gap in the log makes no empty cluster (which would
+    count as a block with a zero score in the test's degrees of freedom and spread)."""
     t = fd.state.t_s[fd.mask]
-    return ((t - t[0]) // BLOCK_S).astype(int) if len(t) else np.zeros(0, dtype=int)
+    if not len(t):
+        return np.zeros(0, dtype=int)
+    return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
 
 
 def block_sums(flights: list[FlightData], a: dict[str, np.ndarray], b: dict[str, np.ndarray],

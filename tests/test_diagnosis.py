@@ -721,3 +721,21 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     path.write_text(path.read_text().replace('tuesday = "motor_speed"', 'friday = "motor_speed"'))
     with pytest.raises(model.ModelFileError, match="no session 'friday'"):
         model.load_model_file(path)
+
+
+def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):
+    """Blocks of the held-out test are the 1 s stretches that hold samples: a 3 s hole in the
+    log is no three clusters with a zero score (which would inflate the degrees of freedom)."""
+    import polars as pl
+
+    from quadcore import evidence
+
+    simulation.simulate_set(tmp_path, [SimConfig(kind="random", duration_s=8.0, seed=5)], {}, VEHICLE)
+    (table,) = _decode(tmp_path).values()
+    holed = table.filter((pl.col("t_s") < 2.0) | (pl.col("t_s") >= 5.0))
+    fd = fitting.flight_data("sim000", holed, VEHICLE)
+    resid = {"sim000": np.concatenate([fd.r_f, fd.r_tau], axis=1)}
+    sums = evidence.block_sums([fd], resid, resid, np.ones(6))
+    t = fd.state.t_s[fd.mask]
+    assert len(sums) == len(np.unique((t - t[0]) // evidence.BLOCK_S)) and np.all(sums > 0)
+    assert evidence.held_out_test([fd], resid, resid, np.ones(6)).blocks == len(sums)
