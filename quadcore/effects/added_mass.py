@@ -60,7 +60,7 @@ class AddedMass(Effect):
         return PayloadHook(params["m_p_kg"])
 
     def c_code(self, vehicle, params):
-        return CCode("const float c = m_p_kg / (QC_MASS_KG + m_p_kg);\n"
+        return CCode("const qc_real c = m_p_kg / (QC_MASS_KG + m_p_kg);\n"
                      "f_b_N[2] -= c * T_N;")
 
 

@@ -32,9 +32,9 @@ class GroundEffect(Effect):
         return body_z(dT), np.zeros((state.n, 3))
 
     def c_code(self, vehicle, params):
-        return CCode("const float h = p_w_m[2] > QC_ROTOR_RADIUS_M ? p_w_m[2] : QC_ROTOR_RADIUS_M;"
+        return CCode("const qc_real h = p_w_m[2] > QC_ROTOR_RADIUS_M ? p_w_m[2] : QC_ROTOR_RADIUS_M;"
                      "  /* height floored at R */\n"
-                     "const float r = QC_ROTOR_RADIUS_M / (4.0f * h);\n"
+                     "const qc_real r = QC_ROTOR_RADIUS_M / (4.0f * h);\n"
                      "f_b_N[2] += k_ge * T_N * r * r;")
 
 EFFECT = GroundEffect()
