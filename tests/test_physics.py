@@ -174,7 +174,7 @@ def test_fit_thrust_recovers_the_simulated_k_F(tmp_path):
     k_F, _ = thrustfit.fit_k_F({"sim000": table}, VEH)
     assert k_F == pytest.approx(VEH.motor_speed.k_F_N_per_radps2, rel=0.02)
     out = thrustfit.write_k_F((resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text(),
-                              1.5e-8, tmp_path / "v.toml")
+                              1.5e-8, tmp_path / "vehicles" / "v.toml")  # a new folder is made
     assert vehicle.load(out).motor_speed.k_F_N_per_radps2 == 1.5e-8
 
 
