@@ -807,8 +807,8 @@ def write_report(report: dict, pngs: dict[str, bytes], out_dir: str | Path) -> d
     out.mkdir(parents=True, exist_ok=True)
     secs = sections(report, pngs)
     paths = {"md": out / "learning.md", "html": out / "learning.html", "json": out / "learning.json"}
-    paths["md"].write_text(to_markdown(secs))
-    paths["html"].write_text(to_html(secs))
+    store.write_text(to_markdown(secs), paths["md"])  # atomic, as every output
+    store.write_text(to_html(secs), paths["html"])
     store.write_json(json.loads(json.dumps(report, default=_jsonable)), paths["json"])
     return paths
 
