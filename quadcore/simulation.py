@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quadcore import effects as effects_mod, logformat, trajectories, vehicle as vehicle_mod
+from quadcore import effects as effects_mod, logformat, store, trajectories, vehicle as vehicle_mod
 from quadcore.controller import Controller, Gains
 from quadcore.dynamics import FlightState
 from quadcore.units import DEG_TO_RAD, G0_MPS2, PWM_FULL_SCALE, RPM_TO_RADPS
@@ -662,12 +662,10 @@ def truth_path(log_path: str | Path) -> Path:
 def write_flight(sim: SimFlight, path: str | Path) -> tuple[Path, Path]:
     """Write the log and its ground-truth sidecar. Returns (log path, truth path)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(sim.data)
+    store.write_bytes(sim.data, path)  # atomic: a watched raw folder never sees half a log
     truth = sim.truth()
     truth["log_file"] = path.name
-    tp = truth_path(path)
-    tp.write_text(json.dumps(truth, indent=2, sort_keys=False) + "\n")
+    tp = store.write_text(json.dumps(truth, indent=2, sort_keys=False) + "\n", truth_path(path))
     return path, tp
 
 
