@@ -22,6 +22,7 @@ import argparse
 import contextlib
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -285,9 +286,13 @@ def cmd_export_c(args: argparse.Namespace) -> int:
     from quadcore import export_c, learning
 
     try:
-        exported = export_c.export(args.model, args.out, args.learned)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            exported = export_c.export(args.model, args.out, args.learned)
     except (export_c.ExportError, learning.LearningError) as exc:
         raise UserError(str(exc)) from None
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
     g = exported.generated
     print(f"model: {g.label}")
     print(f"inputs: {', '.join(f.name for f in g.fields) or 'none'}" + (f"; features: {', '.join(g.feature_columns)}"

@@ -328,3 +328,20 @@ def test_the_documented_plugin_exports_and_comments_stay_comments(decoded, tmp_p
         assert "const qc_real d_xy_kg_per_s = ((qc_real)0.04);" in exported.source.read_text()
     finally:
         effects.unregister("linear_drag")
+
+
+def test_a_per_session_model_exports_its_fleet_values_and_says_so(tmp_path):
+    """C carries one set of constants: a model with per-session parameters is exported at its
+    fleet values, with a warning and a note in the files."""
+    term = EffectTerm("thrust_scale", {"scale": 1.0}, {}, False, {"late": {"scale": 1.1}}, {"late": {"scale": 0.01}})
+    pm = PhysicsModel(VEHICLE, [term], {"late": ["jana20"]})
+    with pytest.warns(UserWarning, match="thrust_scale.*fleet values"):
+        exported = export_c.export_models(pm, None, tmp_path / "out", "a per-session fit")
+    text = exported.source.read_text()
+    assert "per-session parameters (thrust_scale) at their fleet values" in text
+    assert "const qc_real scale = ((qc_real)1.0);" in text
+    store.write_json(pm.to_dict(), tmp_path / "physics_model.json")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert cli.main(["export-c", str(tmp_path / "physics_model.json"), "--out", str(tmp_path / "cli")]) == 0
+    assert err.getvalue().startswith("warning: export-c: per-session parameters (thrust_scale) at their fleet values")

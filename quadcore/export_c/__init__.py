@@ -22,6 +22,7 @@ validation loss among causal feature sets, as in the learning report) with its p
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,6 +118,15 @@ def export_models(physics: PhysicsModel, learned: learning.LearnedModel | None, 
                   provenance: str = "") -> Exported:
     """Generate, check with the strict C99 flags when a compiler is present, measure the
     footprint, and write ``quadcore_model.{h,c}`` under ``out_dir`` (each atomically)."""
+    split = [t.name for t in physics.terms if t.per_session]
+    if split or physics.session_maps:  # C has one set of constants: say which
+        note = (f"per-session parameters ({', '.join(split)}) at their fleet values" if split else "") + (
+            "; " if split and physics.session_maps else "") + (
+            f"the fleet thrust map ({physics.vehicle.thrust_map_kind}), not the sessions' own"
+            if physics.session_maps else "")
+        warnings.warn(f"export-c: {note}: export a model fitted on one session for that session's values",
+                      stacklevel=2)
+        provenance = f"{provenance} ({note})"
     first = generate(physics, learned, provenance)
     footprint = measure_footprint(first)
     gen = generate(physics, learned, provenance, footprint.comment() if footprint else
