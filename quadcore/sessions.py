@@ -269,9 +269,13 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     if sessions is None:
         sessions = spec.sessions_of(sorted(fds)) or found_sessions(split, fds, targets, train, vehicle, spec.fixed)
     members = {s: [f for f in fl if f in train] for s, fl in sessions.items()}
+    empty = sorted(s for s, fl in members.items() if not fl)
     members = {s: fl for s, fl in members.items() if fl}
-    log(f"fitting {', '.join(e.name for e in split)} per session: "
-        + "; ".join(f"{s}: {len(fl)} flights" for s, fl in members.items()))
+    split_names = ", ".join(e.name for e in split)
+    if empty:  # a misspelt pattern, or a session held out whole: said, not silently fleet-wide
+        log(f"warning: session(s) {', '.join(empty)} have no training flight: {split_names} at the fleet value there")
+    log(f"fitting {split_names} per session: "
+        + ("; ".join(f"{s}: {len(fl)} flights" for s, fl in members.items()) or "no session has a training flight"))
     shared_params = {e.name: fleet.params[e.name] for e in shared}
     shared_std = {e.name: fleet.std[e.name] for e in shared}
     by_session: dict[str, fitting.Fit] = {}

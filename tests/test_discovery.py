@@ -280,3 +280,16 @@ def test_cli_discover_and_diagnose_share_a_sessions_file(hidden_flights, tmp_pat
     code, _, err = _run(["discover", str(hidden_flights), "--model", str(model_file), "--sessions",
                          str(tmp_path / "missing.toml"), "--json", str(tmp_path / "x.json"), "--quiet"])
     assert code == 2 and err.startswith("quadcore discover: error:") and "missing.toml" in err
+
+
+def test_a_session_that_names_no_flight_is_said(hidden_flights, tmp_path):
+    """A [sessions] pattern that matches no flight (a typo): the per-session effect is fitted
+    fleet-wide there, and the run says so instead of doing it silently."""
+    model_file = tmp_path / "model.toml"
+    model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n'
+                          '[sessions]\nmonday = ["sim00[01]"]\ntuesday = ["smi*"]\n')
+    code, _, err = _run(["discover", str(hidden_flights), "--model", str(model_file), "--holdout", HOLDOUT,
+                         "--json", str(tmp_path / "d.json")])
+    assert code == 0, err
+    assert "warning: session(s) tuesday have no training flight: thrust_scale at the fleet value there" in err
+    assert "monday: 2 flights" in err
