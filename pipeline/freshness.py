@@ -88,15 +88,12 @@ class ComputedAgainstOlderModel(dg.AutomationCondition):
 
 
 def fit_differs_from_model_file(fitted_path, spec) -> bool:
-    """Whether the saved fit was made for another model than the model file names now (effects,
-    vehicle, thrust map): an effect added to model.toml, for instance. False when nothing is fitted."""
-    from quadcore import store
+    """Whether the saved fit was made for another model spec than the model file gives now
+    (:func:`quadcore.model.fitted_for`: an effect added, a fixed value changed, sessions
+    edited...). False when nothing is fitted."""
+    from quadcore import model, store
 
-    if not fitted_path.is_file():
-        return False
-    saved = store.read_json(fitted_path)
-    return ([e["name"] for e in saved.get("effects", [])], saved.get("vehicle"), saved.get("thrust_map")) != (
-        spec.effects, spec.vehicle.name, spec.vehicle.thrust_map_kind)
+    return fitted_path.is_file() and not model.fitted_for(store.read_json(fitted_path), spec)
 
 
 class ModelFileChanged(dg.AutomationCondition):

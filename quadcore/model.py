@@ -26,7 +26,10 @@ a per-session parameter, with a warning.
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
+import hashlib
+import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -158,6 +161,18 @@ class ModelSpec:
     per_session: list[str] = field(default_factory=list)  # effects fitted per session
     session_patterns: dict[str, list[str]] = field(default_factory=dict)  # session -> flight patterns
     session_maps: dict[str, str] = field(default_factory=dict)  # session -> thrust map kind
+    plugins: list[str] = field(default_factory=list)  # resolved paths of the plugin modules
+
+    def digest(self) -> str:
+        """A hash of everything here that changes a fit: effects, fixed values, per-session
+        effects, session patterns and thrust maps, the vehicle's content (not where it was read
+        from) and the plugins' source. Equal specs give equal digests across processes."""
+        vehicle = {k: v for k, v in dataclasses.asdict(self.vehicle).items() if k != "source"}
+        content = {"effects": self.effects, "fixed": self.fixed, "per_session": self.per_session,
+                   "sessions": self.session_patterns, "session_thrust_map": self.session_maps,
+                   "vehicle": vehicle, "plugins": [_file_digest(p) for p in self.plugins]}
+        text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def session_of(self, flight: str) -> str | None:
         return next((name for name, patterns in self.session_patterns.items()
@@ -180,7 +195,15 @@ class ModelSpec:
         spec.source = self.source
         spec.per_session = [n for n in self.per_session if n in names]
         spec.session_patterns, spec.session_maps = self.session_patterns, self.session_maps
+        spec.plugins = self.plugins
         return spec
+
+
+def _file_digest(path: str) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:  # gone since it was loaded: differs from any saved digest, so the fit is redone
+        return f"unreadable:{path}"
 
 
 def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = None) -> ModelSpec:
@@ -269,7 +292,8 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
     def resolve(p: str) -> str:
         return str((base / p).resolve()) if not Path(p).is_absolute() else p
 
-    for plugin in _string_list(d, "plugins", path):
+    plugins = _string_list(d, "plugins", path)
+    for plugin in plugins:
         try:
             effects.load_plugin(resolve(plugin))
         except (FileNotFoundError, TypeError) as exc:
@@ -290,17 +314,28 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
         spec = spec_from(veh, names, _fixed_parameters(d, names, path))
     except effects.UnknownEffectError as exc:
         raise ModelFileError(f"{path}: {exc}") from None
-    spec.source = str(path)
+    spec.source, spec.plugins = str(path), [resolve(p) for p in plugins]
     spec.per_session = _per_session(d, names, spec.fixed, path)
     spec.session_patterns = _session_patterns(d, path)
     spec.session_maps = _session_maps(d, spec.session_patterns, path)
     return spec
 
 
-def save(model: PhysicsModel, path: Path, trained_on: list[str]) -> Path:
+SPEC_DIGEST = "spec_digest"
+
+
+def save(model: PhysicsModel, path: Path, trained_on: list[str], spec: ModelSpec) -> Path:
+    """Write a fitted model with the digest of the ``spec`` it was fitted for (see :func:`fitted_for`)."""
     from quadcore import store
 
-    return store.write_json({**model.to_dict(), "trained_on": trained_on}, path)
+    return store.write_json({**model.to_dict(), "trained_on": trained_on, SPEC_DIGEST: spec.digest()}, path)
+
+
+def fitted_for(saved: dict, spec: ModelSpec) -> bool:
+    """Whether a saved fit (the JSON of :func:`save`) was made for ``spec`` as it is now. The spec
+    is compared, not the fit's outcome: a per-session fit whose sessions had no training flight
+    saves no per-session values yet is current. A fit saved without a digest is stale."""
+    return saved.get(SPEC_DIGEST) == spec.digest()
 
 
 def load_fitted(path: Path, vehicle: Vehicle) -> PhysicsModel:

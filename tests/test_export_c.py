@@ -117,7 +117,7 @@ def test_fitted_physics_model_through_the_cli(decoded, tmp_path):
     spec = model.spec_from(VEHICLE, ["rotor_drag", "com_offset", "motor_lag"])
     train = [f for f in decoded if f != HOLDOUT]
     fitted = fitting.fit_model(spec, decoded, train)
-    path = model.save(fitted, tmp_path / "models" / "physics_model.json", train)
+    path = model.save(fitted, tmp_path / "models" / "physics_model.json", train, spec)
     out_dir = tmp_path / "c"
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
@@ -140,8 +140,9 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
     learned models) and XGBoost and MLP runs on three feature sets, the holdout flight left out."""
     root = tmp_path_factory.mktemp("root")
     train = [f for f in decoded if f != HOLDOUT]
-    physics = fitting.fit_model(model.spec_from(VEHICLE, ["com_offset"]), decoded, train)
-    model.save(physics, root / "models" / "physics_model.json", train)
+    spec = model.spec_from(VEHICLE, ["com_offset"])
+    physics = fitting.fit_model(spec, decoded, train)
+    model.save(physics, root / "models" / "physics_model.json", train, spec)
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
     sets = feat.parse("physics,vel_rate,full_state")
     plan = learning.plan(sorted(res), sets, ["xgboost", "mlp"], HOLDOUT, compare=False,
@@ -206,7 +207,7 @@ def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
             export_c.export_models(pm, None, tmp_path / "out", "test")
         assert info.value.effect == "tether_no_c"
         assert not (tmp_path / "out").exists()  # nothing half-written
-        path = model.save(pm, tmp_path / "physics_model.json", [])
+        path = model.save(pm, tmp_path / "physics_model.json", [], model.spec_from(VEHICLE, pm.effect_names))
         err = io.StringIO()
         with contextlib.redirect_stderr(err):
             assert cli.main(["export-c", str(path), "--out", str(tmp_path / "cli")]) == 2

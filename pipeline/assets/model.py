@@ -84,7 +84,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     except sessions.SessionsFileError as exc:
         raise dg.Failure(description=str(exc)) from None
     fitted = fitting.fit_model(spec, decoded, train, groups, context.log.info)
-    path = modelmod.save(fitted, fitted_model_path(data_root), train)
+    path = modelmod.save(fitted, fitted_model_path(data_root), train, spec)
     params = [{"effect": t.name, "session": "fleet", "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
               for t in fitted.terms for k, v in t.params.items()]
     params += [{"effect": t.name, "session": s, "parameter": k, "value": v, "std": t.per_session_std[s].get(k, 0.0)}
@@ -116,17 +116,18 @@ def _discovery_for(data_root: DataRoot, effects: list[str]) -> dict | None:
 
 
 def current_model(data_root: DataRoot, model: ModelConfig, log=None):
-    """The fitted model if it matches the model file's effects, else the nominal vehicle (said
-    in the log: the model file names effects that physics_model has not fitted yet)."""
+    """The fitted model if it was fitted for the model file as it is now
+    (:func:`quadcore.model.fitted_for`), else the nominal vehicle (said in the log: physics_model
+    has not fitted this model file yet)."""
     spec = model.spec()
     path = fitted_model_path(data_root)
     if path.is_file():
-        fitted = modelmod.load_fitted(path, spec.vehicle)
-        if fitted.effect_names == spec.effects:
-            return fitted
+        saved = store.read_json(path)
+        if modelmod.fitted_for(saved, spec):
+            return modelmod.PhysicsModel.from_dict(saved, spec.vehicle)
     if spec.effects and log is not None:
-        log.warning(f"physics_model has not fitted {spec.effects} yet: using the nominal model; "
-                    "materialise physics_model first")
+        log.warning(f"physics_model has not fitted {spec.effects} as the model file now asks: using the "
+                    "nominal model; materialise physics_model first")
     return modelmod.PhysicsModel(spec.vehicle, [])
 
 
