@@ -157,7 +157,7 @@ def test_rollouts_use_each_flights_session_values(raw, tmp_path):
     """A model with a per-session thrust scale: a flight's open-loop rollout flies its
     session's value, as its residual table does, not the fleet value."""
     from pipeline.assets.model import fitted_model_path
-    from quadcore import vehicle
+    from quadcore import model, vehicle
     from quadcore.model import EffectTerm, PhysicsModel
 
     root = tmp_path / "root"
@@ -172,7 +172,9 @@ def test_rollouts_use_each_flights_session_values(raw, tmp_path):
         instance.add_dynamic_partitions("flights", ["sim000"])
         materialize([decoded_flight], config, instance, "sim000")
         for fitted in (per_session, same_fleet_wide):
-            store.write_json(fitted.to_dict(), fitted_model_path(data_root))
+            model.save(fitted, fitted_model_path(data_root), ["sim000"], config["model"].spec())
             roll = metadata(materialize([rollout_errors], config, instance, "sim000"), "rollout_errors")
+            used = store.read_metadata(store.table_path(root, "rollouts", "sim000"))["model"]
+            assert used == "nominal+thrust_scale"  # the saved fit is current, not set aside as stale
             errors.append(roll["pos_err_m@1s"])
     assert errors[0] == pytest.approx(errors[1], rel=1e-9)
