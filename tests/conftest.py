@@ -36,12 +36,15 @@ FLEET_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}}
 
 @pytest.fixture(scope="session")
 def drag_fleet(tmp_path_factory) -> Path:
-    """Three 5 s random go-to flights (``sim000``..``sim002``) with ``FLEET_EFFECT`` hidden, as uSD
-    logs with their ``.truth.json``: the pipeline and operations tests share them."""
+    """Four random go-to flights (``sim000``..``sim002`` of 5 s, ``sim003`` of 3 s) with
+    ``FLEET_EFFECT`` hidden, as uSD logs with their ``.truth.json``: the pipeline and operations
+    tests share them. Four, so that with the last one held out (the flight the learned models are
+    scored on) discovery still has three training flights to cross-validate over."""
     from quadcore import simulation
 
     folder = tmp_path_factory.mktemp("drag_fleet")
-    configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (21, 22, 23)]
+    configs = [simulation.SimConfig(kind="random", duration_s=d, seed=s) for s, d in ((21, 5.0), (22, 5.0),
+                                                                                    (23, 5.0), (24, 3.0))]
     simulation.simulate_set(folder, configs, FLEET_EFFECT)
     return folder
 

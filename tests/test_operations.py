@@ -67,7 +67,10 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0  # learning waits for the night
-        run(FLEET, resources, instance)
+        fleet = run(FLEET, resources, instance)
+        # two flights, one held out: discovery cannot fold by flight and waits, without stopping the diagnosis
+        disc = fleet.asset_materializations_for_node("term_discovery")[0].metadata["summary"].value
+        assert disc.startswith("skipped: discovery needs at least two training flights")
         # the refit makes every flight's residual table stale: they are recomputed ...
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_requested_partitions(dg.AssetKey("residual_table")) == {"sim000", "sim001"}

@@ -43,8 +43,8 @@ def test_the_loop_in_dagster(raw, tmp_path):
     data_root = DataRoot(root=str(root), raw=str(raw))
     nominal = {"data_root": data_root, "model": ModelConfig()}
     with dg.instance_for_test() as instance:
-        instance.add_dynamic_partitions("flights", ["sim000", "sim001", "sim002"])
-        for key in ("sim000", "sim001", "sim002"):
+        instance.add_dynamic_partitions("flights", ["sim000", "sim001", "sim002", "sim003"])
+        for key in ("sim000", "sim001", "sim002", "sim003"):
             res = materialize(PER_FLIGHT, nominal, instance, key)
         meta = metadata(res, "residual_table")
         assert meta["model"] == "nominal"
@@ -72,6 +72,10 @@ def test_the_loop_in_dagster(raw, tmp_path):
         found = metadata(res, "term_discovery")
         assert "v_b_x_mps" in found["terms"] and "data:image/png;base64," in found["discovery_plot"]
         disc = json.loads((root / "reports" / "discovery.json").read_text())
+        # discovery sees what the diagnosis sees: the flight the learned models are scored on is left out
+        assert disc["evaluation"]["train_flights"] == report["evaluation"]["train_flights"] == ["sim000", "sim001",
+                                                                                                "sim002"]
+        assert found["flights"] == 3
         assert any(t["target"] == "f_res_b_x_N" and "v_b_x_mps" in t["variables"] for t in disc["terms"])
         md = (root / "reports" / "diagnosis.md").read_text()
         assert "Terms the library lacks" in md and "Where it fails, in frequency" in md

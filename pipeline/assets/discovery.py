@@ -7,8 +7,8 @@ from pipeline.assets.model import (
     ALL_FLIGHTS,
     RETRAIN,
     discovery_path,
-    held_out_or_fail,
     physics_model,
+    scored_flights,
     skipped_metadata,
     usable_decoded,
 )
@@ -21,18 +21,21 @@ from quadcore import discovery, plots, report, sessions, store
 def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Sparse regression of the model's residual on a library of candidate terms, grouped by
     flight: the formulas the model lacks, each with its coefficient, uncertainty, held-out
-    share and stability. Writes reports/discovery.json."""
+    share and stability, on the flights model_diagnosis sees (the flight the learned models are
+    scored on is left out unless ``QUADCORE_HOLDOUT`` names the holdout). Writes reports/discovery.json."""
     spec = model.spec()
     decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
-    held_out_or_fail(model, decoded)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
-    holdout = model.holdout_flights
-    if len(decoded) - len(holdout) < 2:
-        raise dg.Failure(description="discovery needs at least two training flights (folds are grouped by flight)")
+    seen, holdout = scored_flights(model, decoded)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
+    if len(seen) - len(holdout or []) < 2:  # a young fleet: the diagnosis still runs, discovery waits
+        why = (f"skipped: discovery needs at least two training flights besides the held-out ones "
+               f"(folds are grouped by flight); {len(decoded)} usable decoded")
+        context.log.warning(why)
+        return dg.MaterializeResult(metadata={"summary": why, "flights": len(seen), **skipped_metadata(skipped)})
     try:
-        groups = model.sessions(sorted(decoded))  # QUADCORE_SESSIONS, as physics_model and model_diagnosis
+        groups = model.sessions(sorted(seen))  # QUADCORE_SESSIONS, as physics_model and model_diagnosis
     except sessions.SessionsFileError as exc:
         raise dg.Failure(description=str(exc)) from None
-    result = discovery.discover(decoded, spec, holdout or None, log=context.log.info, sessions=groups)
+    result = discovery.discover(seen, spec, holdout, log=context.log.info, sessions=groups)
     path = store.write_json(result.to_dict(), discovery_path(data_root))
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
@@ -45,7 +48,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
         **{f"after_torque_rmse_{ax}_Nm": number(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
         "baseline": dg.MetadataValue.json(b),
         "path": dg.MetadataValue.path(str(path)),
-        "flights": len(decoded),
+        "flights": len(seen),
         **skipped_metadata(skipped),
     })
 
