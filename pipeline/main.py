@@ -296,7 +296,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
     if why:
         log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model "
-            f"as C ({why})")
+            f"as C (training because: {why})")
         t0 = time.perf_counter()
         result = materialize([*LEARNING, *EXPORT], resources, instance)
         if not result.success:
