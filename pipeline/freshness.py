@@ -21,7 +21,7 @@ from pipeline.resources import data_root_from_env, model_config_from_env
 MODEL_VERSION = "model_version"
 
 
-def model_version(model_dict: dict) -> str:
+def model_version(model_dict: dict | None) -> str:
     """A short content hash of a physics model (vehicle, thrust map, effects and their fitted
     parameters): equal exactly when the model is the same."""
     text = json.dumps(model_dict, sort_keys=True, default=str)

@@ -10,7 +10,6 @@ It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 ``<data root>/.dagster``), so ``make ui`` shows these runs afterwards.
 """
 
-import json
 import os
 import re
 import sys
@@ -26,7 +25,7 @@ from dagster._core.storage.tags import (
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING
-from pipeline.freshness import fit_differs_from_model_file
+from pipeline.freshness import fit_differs_from_model_file, model_version
 from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
@@ -191,7 +190,7 @@ def to_recompute(
 ) -> list[str]:
     """Flights whose residual table, rollouts or MCAP are missing, or were computed from an
     older decode or against another model than the current one (a refit that moved a parameter)."""
-    current = json.dumps(current_model(data_root, model).to_dict(), sort_keys=True, default=str)
+    current = model_version(current_model(data_root, model).to_dict())
     done = set.intersection(*(_materialized(instance, a.key.to_user_string()) for a in AGAINST_MODEL))
     out = []
     for fid in ids:
@@ -199,8 +198,7 @@ def to_recompute(
         if fid in decoded_now or fid not in done or not path.is_file():
             out.append(fid)
             continue
-        used = json.dumps(store.read_metadata(path).get("model"), sort_keys=True, default=str)
-        if used != current:
+        if model_version(store.read_metadata(path).get("model")) != current:
             out.append(fid)
     return out
 
