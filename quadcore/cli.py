@@ -651,7 +651,8 @@ def _data_root_held(args: argparse.Namespace):
             safewrite.sweep_stale(out)
             yield
     finally:
-        if created and [p.name for p in out.iterdir()] == [safewrite.LOCK_FILE]:  # a command that wrote nothing
+        # a command that wrote nothing leaves no folder; one that could not create it keeps its own error
+        if created and out.is_dir() and [p.name for p in out.iterdir()] == [safewrite.LOCK_FILE]:
             (out / safewrite.LOCK_FILE).unlink()
             out.rmdir()
 

@@ -211,13 +211,21 @@ def test_out_pointing_at_a_file_is_one_line_and_exit_2(tmp_path, make_synthetic_
     assert stderr.count("\n") == 1 and "is a file" in stderr
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores directory permissions")
-def test_read_only_out_folder_is_one_line_and_exit_2(tmp_path, make_synthetic_log):
+def test_read_only_out_folder_is_one_line_and_exit_2(tmp_path, make_synthetic_log, monkeypatch):
     log = make_synthetic_log()
     ro = tmp_path / "ro"
     ro.mkdir(mode=0o500)
+    real_mkdir = os.mkdir
+
+    def mkdir(path, *args, **kwargs):  # root (as in CI) ignores the mode, so deny the call itself
+        if Path(path).is_relative_to(ro):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
     code, _, stderr = _run_cli("decode", str(log.path), "--out", str(ro / "x"))
     assert code == 2 and stderr.count("\n") == 1
+    assert "Permission denied" in stderr and not (ro / "x").exists()
 
 
 def test_sensor_header_check_reports_an_unreadable_file_instead_of_raising(tmp_path):
