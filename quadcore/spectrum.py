@@ -5,7 +5,8 @@ For each body-frame channel (force x, y, z; torque x, y, z), on the evaluated fl
 Welch spectra (Hann windows of ``SEGMENT`` samples, half overlap) of the measured signal
 ``m`` (``m sf_b`` / ``J dω/dt + ω × Jω``), the modelled one ``p`` (thrust map + effects,
 through the same filters) and the residual ``r = m - p`` are averaged over flights
-(weighted by their samples). Per band:
+(weighted by their samples; each stretch between gaps in the log is a signal of its own,
+so no Welch segment spans a gap). Per band:
 
 * ``residual_rms``: ``sqrt(∫ S_rr df)`` over the band, and ``residual_share`` the share of
   the residual's mean square that lies there. Each segment's mean is removed before the
@@ -32,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
-from quadcore import residuals
+from quadcore import residuals, signals
 from quadcore.dynamics import XYZ
 
 BANDS_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
@@ -63,15 +64,20 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
     weight = 0.0
     mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
     for fd in flights:
-        if fd.state.n < 2 * SEGMENT:
+        # Welch segments must not straddle a gap in the log: each gap-free stretch is its own signal
+        stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * SEGMENT]
+        if not stretches:
             continue  # too short to resolve the slow bands
         arrays = residuals.residual_arrays(fd.state, vehicle)
         meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
-        _, *specs = _spectra(meas, meas - resid[fd.flight], fs)
-        for key, s in zip(("pp", "mm", "rr", "pm"), specs):
-            acc[key] += fd.state.n * s
-        mean_sq += fd.state.n * resid[fd.flight][fd.mask].mean(axis=0) ** 2
-        weight += fd.state.n
+        model = meas - resid[fd.flight]
+        for part in stretches:
+            _, *specs = _spectra(meas[part], model[part], fs)
+            for key, s in zip(("pp", "mm", "rr", "pm"), specs):
+                acc[key] += (part.stop - part.start) * s
+        n = sum(p.stop - p.start for p in stretches)
+        mean_sq += n * resid[fd.flight][fd.mask].mean(axis=0) ** 2
+        weight += n
     if weight == 0:
         return {"bands_hz": [list(b) for b in BANDS_HZ], "channels": [], "reading": ["flights too short for spectra"]}
     s = {k: v / weight for k, v in acc.items()}
