@@ -8,6 +8,8 @@ skipped by every fleet stage with its reason, and the per-flight stages fail for
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import polars as pl
 
@@ -76,15 +78,23 @@ def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
 
 def split_usable(tables: dict[str, pl.DataFrame], vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
     """(the flights the physics can use with ``vehicle``, skipped: flight -> reason)."""
+    usable, skipped = usable_flights(tables, vehicle)
+    return {f: tables[f] for f in usable}, skipped
+
+
+def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle) -> tuple[list[str], dict[str, str]]:
+    """(ids of the flights the physics can use with ``vehicle``, skipped: flight -> reason),
+    looking at one table at a time (``tables`` may read each as it is looked up)."""
     need = dynamics.required_columns(vehicle)
-    usable, skipped = {}, {}
-    for fid, df in tables.items():
+    usable, skipped = [], {}
+    for fid in tables:
+        df = tables[fid]
         missing = [c for c in need if c not in df.columns]
         problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, need)
         if problem:
             skipped[fid] = problem
         else:
-            usable[fid] = df
+            usable.append(fid)
     return usable, skipped
 
 

@@ -46,6 +46,7 @@ inside the training function from the training flights it is given).
 from __future__ import annotations
 
 import csv
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -256,24 +257,23 @@ def feature_path(root: Path, feature_set: str, flight: str) -> Path:
     return Path(root) / "features" / feature_set / f"flight={flight}" / "data.parquet"
 
 
-def write_feature_tables(root: Path, residual_tables: dict[str, pl.DataFrame], sets: list[FeatureSet],
+def write_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFrame], sets: list[FeatureSet],
                          provenance: dict | None = None) -> dict[str, list[Path]]:
     """``<root>/features/<set>/flight=<id>/data.parquet`` for every set and flight; a set whose
     columns a table lacks raises :class:`FeatureError`. Returns set name -> paths."""
     from quadcore import store
 
-    out: dict[str, list[Path]] = {}
-    for fs in sets:
-        paths = []
-        for fid, table in residual_tables.items():
+    out: dict[str, list[Path]] = {fs.name: [] for fs in sets}
+    for fid in residual_tables:  # flight by flight: each residual table is read once, whatever the sets
+        table = residual_tables[fid]
+        for fs in sets:
             ft = feature_table(table, fs)
             meta = {"flight": fid, "feature_set": fs.to_dict(), "targets": TARGETS, **(provenance or {})}
-            paths.append(store.write_parquet(ft, feature_path(root, fs.name, fid), meta))
-        out[fs.name] = paths
+            out[fs.name].append(store.write_parquet(ft, feature_path(root, fs.name, fid), meta))
     return out
 
 
-def replace_feature_tables(root: Path, residual_tables: dict[str, pl.DataFrame], sets: list[FeatureSet],
+def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFrame], sets: list[FeatureSet],
                            provenance: dict | None = None) -> dict[str, list[Path]]:
     """Write every feature table into a staging folder, then swap it for ``<root>/features`` in
     two renames: a failure half-way leaves the previous tables whole, and readers never see a
@@ -296,9 +296,9 @@ def replace_feature_tables(root: Path, residual_tables: dict[str, pl.DataFrame],
     return {fs.name: [feature_path(root, fs.name, f) for f in residual_tables] for fs in sets}
 
 
-def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, dict[str, pl.DataFrame]]]:
+def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping[str, pl.DataFrame]]]:
     """Every feature set under ``<root>/features`` (its definition from the files' metadata)
-    and its tables: (sets, {set name: {flight: table}})."""
+    and its tables, each read when it is looked up: (sets, {set name: {flight: table}})."""
     from quadcore import store
 
     sets, tables = [], {}
@@ -309,14 +309,16 @@ def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, dict[st
             continue
         meta = store.read_metadata(files[0])
         sets.append(FeatureSet.from_dict(meta["feature_set"]))
-        tables[folder.name] = {p.parent.name.split("=", 1)[1]: pl.read_parquet(p) for p in files}
+        tables[folder.name] = store.flight_tables(folder)
     return sets, tables
 
 
-def read_residual_tables(root: Path) -> dict[str, pl.DataFrame]:
-    """Every ``<root>/residuals/flight=<id>/data.parquet`` by flight id, sorted."""
-    folder = Path(root) / "residuals"
-    return {p.parent.name.split("=", 1)[1]: pl.read_parquet(p) for p in sorted(folder.glob("flight=*/data.parquet"))}
+def read_residual_tables(root: Path) -> Mapping[str, pl.DataFrame]:
+    """Every ``<root>/residuals/flight=<id>/data.parquet`` by flight id, sorted, each read when
+    it is looked up (:class:`quadcore.store.FlightTables`)."""
+    from quadcore import store
+
+    return store.flight_tables(Path(root) / "residuals")
 
 
 def read_flight_kinds(path: str | Path | None) -> dict[str, str]:

@@ -27,6 +27,8 @@ import hashlib
 import json
 import os
 import tempfile
+from collections import OrderedDict
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -209,10 +211,68 @@ def decoded_flights(root: Path, event: str) -> list[str]:
     return sorted(p.parent.name.split("=", 1)[1] for p in folder.glob("flight=*/data.parquet"))
 
 
-def read_all_decoded(root: Path, event: str, flights: list[str] | None = None) -> dict[str, pl.DataFrame]:
-    """Decoded tables of ``event`` by flight (all of them, or the ones named)."""
+# What a :class:`FlightTables` keeps of the tables it has read (estimated in-memory size): the
+# whole fleet for a lab's tens of flights (each read once, as when everything was held), a
+# bounded part of it at thousands (a flight read again costs milliseconds).
+TABLE_CACHE_BYTES = 256 << 20
+
+
+class FlightTables(Mapping[str, pl.DataFrame]):
+    """Per-flight Parquet tables by flight id, each read when it is looked up: a fleet stage
+    walks the flights one at a time and never needs every flight's rows in memory at once.
+
+    The most recently read tables are kept up to ``cache_bytes`` (their estimated size), so
+    that a stage that looks at a flight twice (fit, then score) reads it once on a small fleet.
+    Iteration order is the order of ``paths``. A plain ``dict`` of tables works wherever this
+    does; this only loads later."""
+
+    def __init__(self, paths: Mapping[str, Any], cache_bytes: int = TABLE_CACHE_BYTES):
+        self._paths = dict(paths)
+        self._cache: OrderedDict[str, pl.DataFrame] = OrderedDict()
+        self._cache_bytes = cache_bytes
+        self._held = 0  # estimated bytes in the cache
+
+    def __getitem__(self, flight: str) -> pl.DataFrame:
+        if flight in self._cache:
+            self._cache.move_to_end(flight)
+            return self._cache[flight]
+        df = read_parquet(self._paths[flight])
+        self._cache[flight] = df
+        self._held += df.estimated_size()
+        while len(self._cache) > 1 and self._held > self._cache_bytes:
+            self._held -= self._cache.popitem(last=False)[1].estimated_size()
+        return df
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._paths)
+
+    def __len__(self) -> int:
+        return len(self._paths)
+
+    def path(self, flight: str) -> Any:
+        return self._paths[flight]
+
+    def subset(self, flights: Iterable[str]) -> FlightTables:
+        """The named flights only, with the tables already read of them."""
+        out = FlightTables({f: self._paths[f] for f in flights}, self._cache_bytes)
+        for f, df in self._cache.items():
+            if f in out._paths:
+                out._cache[f] = df
+                out._held += df.estimated_size()
+        return out
+
+
+def flight_tables(folder: Any) -> FlightTables:
+    """Every ``<folder>/flight=<id>/data.parquet`` as :class:`FlightTables`, by flight id, sorted."""
+    files = sorted(as_root(folder).glob("flight=*/data.parquet"))
+    return FlightTables({check_component(p.parent.name.split("=", 1)[1], "flight id"): p for p in files})
+
+
+def read_all_decoded(root: Path, event: str, flights: list[str] | None = None) -> FlightTables:
+    """Decoded tables of ``event`` by flight (all of them, or the ones named), read as each is
+    looked up (:class:`FlightTables`)."""
     ids = decoded_flights(root, event) if flights is None else flights
-    return {f: read_decoded(root, event, f) for f in ids}
+    return FlightTables({f: decoded_path(root, event, f) for f in ids})
 
 
 def write_quarantine(root: Path, flight: str, source: str, reason: str, error_type: str) -> Path:

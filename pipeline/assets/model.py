@@ -22,14 +22,15 @@ RETRAIN = (
 )
 
 
-def usable_decoded(data_root: DataRoot, vehicle, log) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
-    """Every decoded flight the physics can use, and the skipped ones (flight -> reason, each
-    logged as a warning): one bad flight never stops the fleet stages."""
+def usable_decoded(data_root: DataRoot, vehicle, log) -> tuple[store.FlightTables, dict[str, str]]:
+    """Every decoded flight the physics can use (read one at a time as the stage walks them:
+    :class:`quadcore.store.FlightTables`), and the skipped ones (flight -> reason, each logged
+    as a warning): one bad flight never stops the fleet stages."""
     decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
-    usable, skipped = checks.split_usable(decoded, vehicle)
+    usable, skipped = checks.usable_flights(decoded, vehicle)
     for fid, why in skipped.items():
         log.warning(f"{fid} skipped: {why}")
-    return usable, skipped
+    return decoded.subset(usable), skipped
 
 
 def skipped_metadata(skipped: dict[str, str]) -> dict:
@@ -47,12 +48,12 @@ def held_out_or_fail(model: ModelConfig, decoded: dict) -> tuple[list[str], str]
         raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
 
 
-def scored_flights(model: ModelConfig, decoded: dict) -> tuple[dict, list[str] | None]:
+def scored_flights(model: ModelConfig, decoded: store.FlightTables) -> tuple[store.FlightTables, list[str] | None]:
     """(the decoded flights a diagnosis or discovery sees, its holdout or None): see
     :func:`quadcore.workflows.scored_flights`."""
     held, _ = held_out_or_fail(model, decoded)
     seen, holdout = workflows.scored_flights(decoded, model.holdout_flights, held)
-    return {f: decoded[f] for f in seen}, holdout or None
+    return decoded.subset(seen), holdout or None
 
 
 def fitted_model_path(data_root: DataRoot):
