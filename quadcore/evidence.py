@@ -93,7 +93,13 @@ def _blocks(fd: FlightData) -> np.ndarray:
 
 def block_sums(flights: list[FlightData], a: dict[str, np.ndarray], b: dict[str, np.ndarray],
                weights: np.ndarray) -> np.ndarray:
-    """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples."""
+    """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples. On flights'
+    :class:`quadcore.sufficient.FlightStats` with signal vectors, the same from their Gram
+    matrices (:func:`quadcore.sufficient.block_sums`)."""
+    if flights and not isinstance(flights[0], FlightData):
+        from quadcore import sufficient
+
+        return sufficient.block_sums(flights, a, b, weights)
     out = []
     for fd in flights:
         prod = (a[fd.flight][fd.mask] * b[fd.flight][fd.mask]) @ weights

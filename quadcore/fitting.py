@@ -66,13 +66,26 @@ class FlightData:
     _predictions: dict = field(default_factory=dict, repr=False)
     _designs: dict = field(default_factory=dict, repr=False)
 
+    @property
+    def n(self) -> int:
+        """Usable samples."""
+        return int(self.mask.sum())
+
+    @property
+    def vbat_std_V(self) -> float:
+        """Spread of the logged battery voltage in flight (a stuck log shows none)."""
+        return float(np.std(self.state.vbat_V[self.mask])) if self.mask.any() else 0.0
+
+    @property
+    def vbat_median_V(self) -> float:
+        return float(np.median(self.state.vbat_V)) if self.state.n else 0.0
+
     def basis(self, effect: Effect, vehicle: Vehicle) -> np.ndarray:
         """(n, 6, k) smoothed basis of a linear effect (cached per flight)."""
         if effect.name not in self._basis:
             cols = [smoothed_wrench(f, t, self.state.t_s) for f, t in effect.basis(self.state, vehicle)]
             self._basis[effect.name] = np.stack(cols, axis=2)
         return self._basis[effect.name]
-
 
     def design(self, lin: list[Effect], vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray]:
         """Masked stacked basis (m, 6, k) of linear effects and its Gram matrix per channel
@@ -157,7 +170,13 @@ class Fit:
     std: dict[str, dict[str, float]]
     weights: np.ndarray  # (6,) per channel: 1/σ_f² ×3, 1/σ_τ² ×3
 
-    def predict(self, effects: list[Effect], fd: FlightData, vehicle: Vehicle) -> np.ndarray:
+    def predict(self, effects: list[Effect], fd, vehicle: Vehicle) -> np.ndarray:
+        """(n, 6) the effects' summed prediction on a :class:`FlightData`; on a flight's
+        :class:`quadcore.sufficient.FlightStats`, the same as a signal vector."""
+        if not isinstance(fd, FlightData):
+            from quadcore import sufficient
+
+            return sufficient.prediction(effects, self.params, fd, vehicle)
         out = np.zeros((fd.state.n, 6))
         for e in effects:
             out += prediction(e, self.params[e.name], fd, vehicle)
@@ -167,7 +186,11 @@ class Fit:
 def channel_weights(targets: list[np.ndarray]) -> np.ndarray:
     """1/σ² for force and torque channels from (n, 6) targets (one array per flight)."""
     ss = sum(np.einsum("nc,nc->c", y, y) for y in targets)
-    n = sum(len(y) for y in targets)
+    return weights_from_sums(ss, sum(len(y) for y in targets))
+
+
+def weights_from_sums(ss: np.ndarray, n: int) -> np.ndarray:
+    """1/σ² for force and torque channels from the (6,) sums of squares of ``n`` samples."""
     ms_f = float(np.sum(ss[:3]) / (3 * n)) if n else 0.0
     ms_t = float(np.sum(ss[3:]) / (3 * n)) if n else 0.0
     return np.array([1 / (ms_f or 1.0)] * 3 + [1 / (ms_t or 1.0)] * 3)
@@ -222,8 +245,14 @@ def fit_effects(
 ) -> Fit:
     """Jointly fit ``effects`` to ``targets`` ((n, 6) residual per flight) on ``flights``.
 
-    Effects named in ``fixed`` keep the given parameters and are subtracted first.
+    Effects named in ``fixed`` keep the given parameters and are subtracted first. On
+    :class:`quadcore.sufficient.FlightStats` with signal-vector targets (linear effects only),
+    the same fit from the flights' statistics (:func:`quadcore.sufficient.fit_effects`).
     """
+    if flights and not isinstance(flights[0], FlightData):
+        from quadcore import sufficient
+
+        return sufficient.fit_effects(effects, flights, targets, vehicle, fixed)
     fixed = fixed or {}
     w = channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
     ys = [y.copy() for y in targets]
@@ -251,17 +280,25 @@ def fit_effects(
 
     if lin:
         theta, A, rss, n = _linear_solve(lin, flights, ys, w, vehicle)
-        s2 = rss / max(n - len(theta), 1)
-        try:
-            cov_all = np.linalg.inv(A) * s2 * SAMPLES_PER_INDEPENDENT
-        except np.linalg.LinAlgError:
-            cov_all = np.full((len(theta), len(theta)), np.inf)
-        i = 0
-        for e in lin:
-            k = len(e.parameters)
-            params[e.name], std[e.name] = _params_with_std(e, theta[i: i + k], cov_all[i: i + k, i: i + k], vehicle)
-            i += k
+        linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
     return Fit(params, std, w)
+
+
+def linear_parameters(lin: list[Effect], theta: np.ndarray, A: np.ndarray, rss: float, n: int, vehicle: Vehicle,
+                      params: dict, std: dict) -> None:
+    """Each linear effect's parameters and standard errors (into ``params``, ``std``) from the
+    stacked solution ``θ`` of the normal equations ``A θ = b`` with residual sum of squares
+    ``rss`` over ``n`` values: ``cov = A⁻¹ rss / (n - k) × SAMPLES_PER_INDEPENDENT``."""
+    s2 = rss / max(n - len(theta), 1)
+    try:
+        cov_all = np.linalg.inv(A) * s2 * SAMPLES_PER_INDEPENDENT
+    except np.linalg.LinAlgError:
+        cov_all = np.full((len(theta), len(theta)), np.inf)
+    i = 0
+    for e in lin:
+        k = len(e.parameters)
+        params[e.name], std[e.name] = _params_with_std(e, theta[i: i + k], cov_all[i: i + k, i: i + k], vehicle)
+        i += k
 
 
 def _unpack(nonlin: list[Effect], x: np.ndarray) -> dict[str, dict[str, float]]:

@@ -159,8 +159,9 @@ def split_by_value(values: dict[str, float], stds: dict[str, float]) -> list[lis
 
 
 def stuck_voltage_flights(fds: dict) -> list[str]:
-    """Flights whose logged battery voltage does not move in flight (a stuck log variable)."""
-    return sorted(f for f, fd in fds.items() if float(np.std(fd.state.vbat_V[fd.mask])) < STUCK_VBAT_V)
+    """Flights whose logged battery voltage does not move in flight (a stuck log variable);
+    ``fds``: :class:`quadcore.fitting.FlightData` or :class:`quadcore.sufficient.FlightStats`."""
+    return sorted(f for f, fd in fds.items() if fd.vbat_std_V < STUCK_VBAT_V)
 
 
 def _map_note(groups: list[ParameterGroup], fds: dict, vehicle: Vehicle) -> list[str]:
@@ -171,7 +172,7 @@ def _map_note(groups: list[ParameterGroup], fds: dict, vehicle: Vehicle) -> list
     for g in groups:
         hit = [f for f in g.flights if f in stuck]
         if hit and len(hit) >= len(g.flights) / 2:
-            volts = float(np.median(np.concatenate([fds[f].state.vbat_V for f in hit])))
+            volts = float(np.median([fds[f].vbat_median_V for f in hit]))  # each flight's own, stuck: one value
             notes.append(
                 f"{len(hit)} of the {len(g.flights)} flights valued {g.value:.4g} ({_flight_range(tuple(hit))}) log a "
                 f"battery voltage stuck at {volts:.2f} V: the PWM/voltage thrust map sees the wrong voltage there, so "
@@ -306,7 +307,8 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
 
 def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.ndarray:
     """(n, 6) the smoothed wrench of a fitted model on one flight, with its session's values
-    (the fleet value, said in ``log``, for a flight of no fitted session)."""
+    (the fleet value, said in ``log``, for a flight of no fitted session); on a flight's
+    :class:`quadcore.sufficient.FlightStats`, the same as a signal vector."""
     import warnings
 
     with warnings.catch_warnings(record=True) as caught:
@@ -314,6 +316,11 @@ def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.nda
         model = pm.for_flight(fd.flight)
     for w in caught:
         log(str(w.message))
+    if not isinstance(fd, fitting.FlightData):  # statistics: the prediction as a signal vector
+        from quadcore import sufficient
+
+        return sufficient.prediction([t.effect for t in model.terms], {t.name: t.params for t in model.terms}, fd,
+                                     model.vehicle)
     out = np.zeros((fd.state.n, 6))
     for t in model.terms:
         out += fitting.prediction(t.effect, t.params, fd, model.vehicle)  # its session's thrust map
