@@ -396,24 +396,33 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     return [ids[i::k] for i in range(k)]
 
 
-def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[str]] | None = None, log=None):
+def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[str]] | None = None, log=None,
+              stats=None):
     """Fit the effects a :class:`quadcore.model.ModelSpec` names on the ``train`` flights (its
-    ``per_session`` effects per session: :func:`quadcore.sessions.fit_per_session`)."""
+    ``per_session`` effects per session: :func:`quadcore.sessions.fit_per_session`).
+
+    A model of linear effects only is fitted from the flights' sufficient statistics
+    (:mod:`quadcore.sufficient`): ``stats(flight)`` gives a flight's stored ones (None: computed
+    from its decoded table); a model with a nonlinear effect reads every training flight's rows."""
+    from quadcore import sufficient
     from quadcore.effects import get
     from quadcore.model import EffectTerm, PhysicsModel
 
-    fds = [flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
     effect_list = [get(n) for n in spec.effects]
     maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
             else ({}, {}, {}))
     if not effect_list:
         return PhysicsModel(spec.vehicle, [], *maps)
+    if all(e.linear for e in effect_list):
+        by_id = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
+        targets = {f: s.layout.target() for f, s in by_id.items()}
+    else:
+        by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
+        targets = dict(zip(train, targets_of([by_id[f] for f in train])))
     if spec.per_session:
         from quadcore import sessions as sessionlib
 
-        by_id = {fd.flight: fd for fd in fds}
-        return sessionlib.fit_per_session(spec, by_id, dict(zip(train, targets_of(fds))), train, sessions,
-                                          log or (lambda msg: None))
-    fit = fit_effects(effect_list, fds, targets_of(fds), spec.vehicle, spec.fixed)
+        return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None))
+    fit = fit_effects(effect_list, [by_id[f] for f in train], [targets[f] for f in train], spec.vehicle, spec.fixed)
     terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
     return PhysicsModel(spec.vehicle, terms, *maps)

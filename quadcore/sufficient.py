@@ -44,7 +44,7 @@ import hashlib
 import inspect
 import io
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
@@ -237,7 +237,6 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     from quadcore import fitting
 
     fixed = fixed or {}
-    layout = stats[0].layout
     nonlinear = [e.name for e in effects if not e.linear]
     if nonlinear:
         raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics")
@@ -249,12 +248,13 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
         if e.name in fixed:
             params[e.name] = {**e.defaults(), **fixed[e.name]}
             std[e.name] = {p.name: 0.0 for p in e.parameters}
-            vs = [v - layout.coefficients(e, params[e.name], vehicle) for v in vs]
+            vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
     lin = [e for e in effects if e.name not in fixed]
     if lin:
-        cols = np.concatenate([layout.cols(e.name) for e in lin])
-        A, b, yy, n = np.zeros((len(cols), len(cols))), np.zeros(len(cols)), 0.0, 0
-        for s, v in zip(stats, vs):
+        k = sum(len(e.parameters) for e in lin)
+        A, b, yy, n = np.zeros((k, k)), np.zeros(k), 0.0, 0
+        for s, v in zip(stats, vs):  # each flight in its own layout
+            cols = np.concatenate([s.layout.cols(e.name) for e in lin])
             Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
             A += Gw[np.ix_(cols, cols)]
             b += Gw[cols] @ v
@@ -294,6 +294,28 @@ def signal_rows(fd, vehicle: Vehicle, layout: Layout, v: np.ndarray,
     for name in layout.extras:
         if v[layout.extra(name)]:
             out = out + (extras or {})[name] * v[layout.extra(name)]
+    return out
+
+
+def compute(spec, flight: str, decoded, layout: Layout) -> FlightStats:
+    """A flight's statistics from its decoded table, for a :class:`quadcore.model.ModelSpec`:
+    the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle."""
+    from quadcore import fitting
+
+    fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    return flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
+
+
+def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
+                stored: Callable[[str], FlightStats | None] | None = None) -> dict[str, FlightStats]:
+    """Statistics of ``flights`` holding ``layout``'s effects: the stored ones (``stored(flight)``,
+    None when missing or stale), else computed from the decoded table (its rows read once)."""
+    out = {}
+    for f in flights:
+        s = stored(f) if stored else None
+        if s is None or not set(layout.effects) <= set(s.layout.effects):
+            s = compute(spec, f, decoded[f], layout)
+        out[f] = s
     return out
 
 

@@ -118,3 +118,14 @@ def test_a_nonlinear_effect_is_refused(fleet):
     s = list(stats.values())
     with pytest.raises(sufficient.StatsError, match="nonlinear"):
         fitting.fit_effects([effects.get("motor_lag")], s, [x.layout.target() for x in s], VEHICLE)
+
+
+def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
+    fds, stats = fleet
+    ids = sorted(fds)
+    spec = model.spec_from(VEHICLE, ["rotor_drag", "thrust_scale"])
+    no_rows = {f: None for f in ids}  # any look at a flight's decoded table would fail
+    fitted = fitting.fit_model(spec, no_rows, ids, stats=stats.get)
+    es = [effects.get(n) for n in spec.effects]
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    _close({t.name: t.params for t in fitted.terms}, rows.params, rel=1e-7)
