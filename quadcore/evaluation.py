@@ -483,7 +483,7 @@ def record_history(root: str | Path, report: dict) -> list[Path]:
     pooled leave-one-flight-out results when they were run. Rows that repeat an unchanged model
     on the same flights are not added; returns the files written."""
     eff = report["setup"]["effects"]
-    written = [history.record(Path(root), "learned", h["model_label"], h["force"], h["torque"], eff,
+    written = [history.record(root, "learned", h["model_label"], h["force"], h["torque"], eff,
                               h["parameters"], h["eval_mode"], h["eval_flights"]) for h in report["history_rows"]]
     return [p for p in written if p is not None]
 
@@ -493,7 +493,8 @@ def record_history(root: str | Path, report: dict) -> list[Path]:
 # ---------------------------------------------------------------------------------------
 
 def _best_preds(report: dict, out_dir: Path) -> dict[str, pl.DataFrame]:
-    return {k: pl.read_parquet(Path(out_dir) / name / "predictions.parquet") for k, name in report["best"].items()}
+    return {k: store.read_parquet(store.as_root(out_dir) / name / "predictions.parquet")
+            for k, name in report["best"].items()}
 
 
 def timeseries_plot(report: dict, out_dir: Path, max_points: int = 4000) -> bytes:
@@ -630,7 +631,7 @@ def importance(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFr
     """Per best model: permutation importance on the held-out flight, and XGBoost's gain."""
     out = {}
     for k, name in report["best"].items():
-        mdl = learning.load(Path(out_dir) / name)
+        mdl = learning.load(store.as_root(out_dir) / name)
         t = feat.with_derived(residual_tables[report["holdout"]])
         out[k] = {"feature_set": mdl.feature_set.name, "permutation": permutation_importance(mdl, t),
                   "gain": mdl.importance()}
@@ -683,12 +684,12 @@ def make_plots(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFr
     """All plots as PNG bytes; also stores the regime table and importances in ``report``."""
     from quadcore import report as diagnosis_report
 
-    out = {"comparison": comparison_plot(report), "timeseries": timeseries_plot(report, Path(out_dir))}
+    out = {"comparison": comparison_plot(report), "timeseries": timeseries_plot(report, out_dir)}
     if report["best"]:
-        reg = regime_table(report, Path(out_dir), residual_tables, vehicle)
+        reg = regime_table(report, out_dir, residual_tables, vehicle)
         report["regimes"] = reg.to_dicts()
         out["regimes"] = regime_plot(reg)
-        imp = importance(report, Path(out_dir), residual_tables)
+        imp = importance(report, out_dir, residual_tables)
         report["importance"] = imp
         out["importance"] = importance_plot(imp)
     if hist is not None and hist.height:
@@ -803,8 +804,7 @@ def to_html(secs, title: str = "Learned residual models") -> str:
 
 def write_report(report: dict, pngs: dict[str, bytes], out_dir: str | Path) -> dict[str, Path]:
     """``learning.md``, ``learning.html`` and ``learning.json`` in ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = store.as_root(out_dir)  # a folder here or in an object store
     secs = sections(report, pngs)
     paths = {"md": out / "learning.md", "html": out / "learning.html", "json": out / "learning.json"}
     store.write_text(to_markdown(secs), paths["md"])  # atomic, as every output
@@ -851,7 +851,7 @@ def full_report(out_dir: str | Path, residual_tables: dict[str, pl.DataFrame], v
     hist = None
     if root_for_history is not None:
         report["history_files"] = [str(p) for p in record_history(root_for_history, report)]
-        hist = history.read(Path(root_for_history))
-    pngs = make_plots(report, Path(out_dir), residual_tables, vehicle, hist)
+        hist = history.read(root_for_history)
+    pngs = make_plots(report, out_dir, residual_tables, vehicle, hist)
     paths = write_report(report, pngs, report_dir)
     return report, pngs, paths

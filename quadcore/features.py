@@ -254,7 +254,9 @@ class Scaler:
 # ---------------------------------------------------------------------------------------
 
 def feature_path(root: Path, feature_set: str, flight: str) -> Path:
-    return Path(root) / "features" / feature_set / f"flight={flight}" / "data.parquet"
+    from quadcore import store
+
+    return store.table_path(store.as_root(root) / "features", feature_set, flight)
 
 
 def write_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFrame], sets: list[FeatureSet],
@@ -277,11 +279,21 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
                            provenance: dict | None = None) -> dict[str, list[Path]]:
     """Write every feature table into a staging folder, then swap it for ``<root>/features`` in
     two renames: a failure half-way leaves the previous tables whole, and readers never see a
-    half-written set."""
+    half-written set. In an object store (no renames) each table is replaced whole, in place,
+    and the tables of sets and flights no longer there are removed."""
     import shutil
     import tempfile
 
-    root = Path(root)
+    from quadcore import store
+
+    root = store.as_root(root)
+    if store.is_remote(root):  # no folder renames in an object store: each table is replaced whole, in place
+        written = write_feature_tables(root, residual_tables, sets, provenance)
+        for folder in (root / "features").iterdir() if (root / "features").is_dir() else []:
+            for table in folder.glob("flight=*") if folder.name in written else [folder]:
+                if folder.name not in written or table.name.split("=", 1)[1] not in residual_tables:
+                    store.remove_tree(table)  # a set no longer asked for, or a flight no longer there
+        return written
     root.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".features-", dir=root))
     try:
@@ -302,7 +314,7 @@ def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping
     from quadcore import store
 
     sets, tables = [], {}
-    base = Path(root) / "features"
+    base = store.as_root(root) / "features"
     for folder in sorted(p for p in base.glob("*") if p.is_dir()) if base.is_dir() else []:
         files = sorted(folder.glob("flight=*/data.parquet"))
         if not files:
@@ -318,14 +330,16 @@ def read_residual_tables(root: Path) -> Mapping[str, pl.DataFrame]:
     it is looked up (:class:`quadcore.store.FlightTables`)."""
     from quadcore import store
 
-    return store.flight_tables(Path(root) / "residuals")
+    return store.flight_tables(store.as_root(root) / "residuals")
 
 
 def read_flight_kinds(path: str | Path | None) -> dict[str, str]:
     """``flights.csv`` (columns ``flight``, ``kind``) -> {flight: kind}; {} when absent."""
-    if not path or not Path(path).is_file():
+    from quadcore import store
+
+    if not path or not store.as_root(path).is_file():
         return {}
-    with open(path, newline="") as fh:
+    with store.as_root(path).open("r", newline="") as fh:  # here or in an object store
         return {row["flight"].strip(): row["kind"].strip() for row in csv.DictReader(fh)
                 if row.get("flight") and row.get("kind")}
 
@@ -335,7 +349,9 @@ def find_flights_csv(*folders: str | Path | None) -> Path | None:
     for folder in folders:
         if not folder:
             continue
-        folder = Path(folder)
+        from quadcore import store
+
+        folder = store.as_root(folder)
         for cand in (folder / "flights.csv", folder.parent / "flights.csv"):
             if cand.is_file():
                 return cand

@@ -31,7 +31,7 @@ RMSE_COLUMNS = [f"force_rmse_{a}_N" for a in XYZ] + [f"torque_rmse_{a}_Nm" for a
 
 
 def history_dir(root: Path) -> Path:
-    return Path(root) / "history"
+    return store.as_root(root) / "history"
 
 
 def record(
@@ -102,7 +102,7 @@ def series(hist: pl.DataFrame) -> dict[str, pl.DataFrame]:
 
 def read(root: Path) -> pl.DataFrame:
     """All evaluations, oldest first (empty frame if none)."""
-    folder = history_dir(root)
-    if not folder.is_dir() or not any(folder.glob("*.parquet")):
+    files = sorted(history_dir(root).glob("*.parquet"))  # a folder here or in an object store
+    if not files:
         return pl.DataFrame()
-    return pl.read_parquet(folder / "*.parquet").sort("evaluated_at")
+    return pl.concat([store.read_parquet(p) for p in files]).sort("evaluated_at")

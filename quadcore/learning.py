@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -566,25 +567,33 @@ class LearnedModel:
         """Write the artefacts (and ``predictions.parquet``) into a staging folder, the manifest
         last, and put it in place whole: a kill leaves the previous model or the new one, never
         a torn one."""
-        folder = Path(folder)
+        folder = store.as_root(folder)
+        if store.is_remote(folder):  # written here, then uploaded with the manifest last
+            with tempfile.TemporaryDirectory(prefix="quadcore-model-") as local:
+                self._write(Path(local), folder.name, predictions)
+                return store.upload_folder(Path(local), folder, last="manifest.json")
         staging = safewrite.staging_folder(folder)
         try:
-            if predictions is not None:
-                store.write_parquet(predictions, staging / "predictions.parquet", {"run": folder.name})
-            if self.kind == "xgboost":
-                self.impl.save_model(str(staging / "model.ubj"))
-            else:
-                import torch
-
-                torch.save(self.impl.state_dict(), staging / "model.pt")
-            store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, staging / "scaler.json")
-            store.write_json(self.feature_set.to_dict(), staging / "features.json")
-            store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
-                              "feature_set": self.feature_set.to_dict(), "targets": TARGETS}, staging / "manifest.json")
+            self._write(staging, folder.name, predictions)
             return safewrite.replace_folder(staging, folder)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
+
+    def _write(self, folder: Path, run: str, predictions: pl.DataFrame | None) -> None:
+        """The artefacts into the local folder ``folder``, the manifest last."""
+        if predictions is not None:
+            store.write_parquet(predictions, folder / "predictions.parquet", {"run": run})
+        if self.kind == "xgboost":
+            self.impl.save_model(str(folder / "model.ubj"))
+        else:
+            import torch
+
+            torch.save(self.impl.state_dict(), folder / "model.pt")
+        store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, folder / "scaler.json")
+        store.write_json(self.feature_set.to_dict(), folder / "features.json")
+        store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
+                          "feature_set": self.feature_set.to_dict(), "targets": TARGETS}, folder / "manifest.json")
 
 
 def vehicle_of(physics: dict):
@@ -600,11 +609,15 @@ def vehicle_of(physics: dict):
 def load(folder: str | Path, threads: int = 1, torch_threads: int = 1) -> LearnedModel:
     """A model saved by :meth:`LearnedModel.save`; :class:`LearningError` for anything else
     (a missing or malformed manifest, scaler, feature list or weights)."""
-    folder = Path(folder)
+    folder = store.as_root(folder)
     mpath = folder / "manifest.json"
     if not mpath.is_file():
         raise LearningError(f"no learned model in {folder} (no manifest.json)")
     try:
+        if store.is_remote(folder):  # the weights load from local files: copied here first
+            with tempfile.TemporaryDirectory(prefix="quadcore-model-") as local:
+                here = store.download_folder(folder, Path(local))
+                return _load(here, here / "manifest.json", threads, torch_threads)
         return _load(folder, mpath, threads, torch_threads)
     except LearningError:
         raise
@@ -796,7 +809,8 @@ def _clear_runs(out: Path) -> None:
     the index goes first, so that a run killed after this lists nothing that is gone."""
     if not out.is_dir():
         return
-    (out / "index.json").unlink(missing_ok=True)
+    if (out / "index.json").is_file():
+        (out / "index.json").unlink()
     for d in out.iterdir():
         m = d / "manifest.json"
         if d.is_dir() and m.is_file():
@@ -805,7 +819,7 @@ def _clear_runs(out: Path) -> None:
             except (OSError, json.JSONDecodeError):
                 ours = False
             if ours:
-                shutil.rmtree(d)
+                store.remove_tree(d)
 
 
 def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir: str | Path,
@@ -815,7 +829,7 @@ def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir
     """Train every experiment, save its artefacts and its predictions on its test flights under
     ``out_dir/<experiment name>/``, and an index ``out_dir/index.json``. Returns the run records."""
     config = config or TrainConfig()
-    out = Path(out_dir)
+    out = store.as_root(out_dir)  # a folder here or in an object store
     _clear_runs(out)
     records = []
     for i, e in enumerate(p.experiments, 1):
@@ -859,7 +873,7 @@ def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir
 
 def read_runs(out_dir: str | Path) -> tuple[dict, list[dict]]:
     """(index, run records) written by :func:`run_plan`."""
-    out = Path(out_dir)
+    out = store.as_root(out_dir)
     ipath = out / "index.json"
     if not ipath.is_file():
         raise LearningError(f"no learned models in {out} (no index.json): train them first")
@@ -875,4 +889,4 @@ def read_runs(out_dir: str | Path) -> tuple[dict, list[dict]]:
 
 
 def read_predictions(record: dict) -> pl.DataFrame:
-    return pl.read_parquet(Path(record["path"]) / "predictions.parquet")
+    return store.read_parquet(store.as_root(record["path"]) / "predictions.parquet")

@@ -295,7 +295,7 @@ def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict |
     ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
     beside the .md), and as the latest in ``out_dir/diagnosis.{md,html}`` (its .md links the kept
     PNGs). The .html is self-contained. Returns the latest (md, html)."""
-    out_dir = Path(out_dir)
+    out_dir = store.as_root(out_dir)  # a folder here or in an object store
     secs = sections(d, hist, disc)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     kept = out_dir / "diagnosis" / f"{stamp}-{_slug(d['model']['label'])}"
@@ -319,4 +319,4 @@ def _slug(text: str) -> str:
 
 def kept_reports(out_dir: Path) -> list[Path]:
     """Every kept diagnosis report folder under ``out_dir``, oldest first."""
-    return sorted(p for p in (Path(out_dir) / "diagnosis").glob("*") if p.is_dir())
+    return sorted(p for p in (store.as_root(out_dir) / "diagnosis").glob("*") if p.is_dir())

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import os
 import re
 import shutil
@@ -52,6 +53,11 @@ def replace_folder(staging: Path, final: Path) -> Path:
     return final
 
 
+def _is_url(root) -> bool:
+    """Whether a data root is an object-store URL (``s3://...``, a ``UPath``), not a folder here."""
+    return "://" in str(root)
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -77,8 +83,10 @@ def _is_stale(path: Path, now: float) -> bool:
 def sweep_stale(root: Path) -> list[Path]:
     """Remove temp files and staging folders under ``root`` left by writers that were killed
     (their pid is gone, or, without a pid, older than ``STALE_AFTER_S``). Returns them."""
-    root, now = Path(root), time.time()
     removed: list[Path] = []
+    if _is_url(root):  # an object store: every write is one whole PUT, no temp object is ever left
+        return removed
+    root, now = Path(root), time.time()
     if not root.is_dir():
         return removed
     for path in sorted(root.rglob(".*"), key=lambda p: len(p.parts)):
@@ -96,15 +104,23 @@ def sweep_stale(root: Path) -> list[Path]:
 @contextlib.contextmanager
 def data_root_lock(root: Path, on_wait=None) -> Iterator[None]:
     """Hold the data root's lock (``<root>/.quadcore.lock``) for the block. Another holder makes
-    this wait (``on_wait(message)`` is called once first); the lock dies with its process."""
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    with open(root / LOCK_FILE, "a+") as fh:
+    this wait (``on_wait(message)`` is called once first); the lock dies with its process.
+
+    An object store has no such lock: for ``s3://...`` the lock is a local file named after the
+    URL (in the temp folder), which serialises the jobs of this machine on that root, not those
+    of other machines."""
+    if _is_url(root):
+        digest = hashlib.sha256(str(root).encode()).hexdigest()[:16]
+        lock = Path(tempfile.gettempdir()) / f"quadcore-{digest}{LOCK_FILE}"
+    else:
+        Path(root).mkdir(parents=True, exist_ok=True)
+        lock = Path(root) / LOCK_FILE
+    with open(lock, "a+") as fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             if on_wait is not None:
-                on_wait(f"another job holds {root / LOCK_FILE}: waiting for it to finish")
+                on_wait(f"another job holds {lock}: waiting for it to finish")
             fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield

@@ -147,6 +147,37 @@ def read_parquet(path: Path) -> pl.DataFrame:
     return pl.read_parquet(path)
 
 
+def upload_folder(local: Path, remote: Any, last: str) -> Any:
+    """Put every file of the local folder ``local`` under the object-store folder ``remote``,
+    the file named ``last`` (the one readers check, such as a manifest) after all others."""
+    files = sorted((p for p in Path(local).rglob("*") if p.is_file()), key=lambda p: (p.name == last, str(p)))
+    for p in files:
+        remote.fs.put_file(str(p), (remote / p.relative_to(local).as_posix()).path)
+    return remote
+
+
+def download_folder(remote: Any, local: Path) -> Path:
+    """Copy the object-store folder ``remote`` into the local folder ``local``."""
+    for p in remote.rglob("*"):
+        if p.is_file():
+            dest = Path(local) / p.relative_to(remote).as_posix()
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            p.fs.get_file(p.path, str(dest))
+    return Path(local)
+
+
+def remove_tree(path: Any) -> None:
+    """Remove a folder and everything in it, here or in an object store."""
+    path = as_root(path)
+    if is_remote(path):
+        if path.exists():
+            path.fs.rm(path.path, recursive=True)
+    else:
+        import shutil
+
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def write_text(text: str, path: Path) -> Path:
     """Write ``text`` to ``path`` atomically (temp file + rename)."""
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))

@@ -13,6 +13,7 @@ from pipeline.main import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import simulation, store
+from quadcore.names import UnsafeNameError
 
 moto_server = pytest.importorskip("moto.server", reason="moto[server] is a dev dependency")
 pytest.importorskip("s3fs", reason="s3fs is a dev dependency")
@@ -69,3 +70,44 @@ def test_per_flight_stages_round_trip_through_s3(s3_url, tmp_path):
         assert first[3].pose.position.z == pytest.approx(residual["p_w_z_m"][0], abs=1e-6)
     # nothing was written to the local disk in place of the bucket
     assert not any(p.name.startswith("s3") for p in tmp_path.iterdir())
+
+
+@pytest.mark.slow  # the whole main job (every stage, learning included) against an S3 server
+def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monkeypatch):
+    """``python -m pipeline``'s stages with ``QUADCORE_DATA_ROOT=s3://...``: every output (decoded
+    and residual Parquet, the fitted model, diagnosis and discovery JSON, reports, history,
+    learned models, MCAP, C) is in the bucket, and nothing under the working directory."""
+    from pipeline.main import run_all
+
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for p in sorted(drag_fleet.iterdir()):
+        if not p.name.endswith(".json"):
+            (raw / p.name).symlink_to(p)
+    monkeypatch.chdir(tmp_path)
+    data_root = DataRoot(root=f"{s3_url}-job", raw=str(raw))
+    root = data_root.root_path
+    lines: list[str] = []
+    with dg.instance_for_test() as instance:
+        assert run_all(data_root, ModelConfig(effects="rotor_drag"), instance, log=lines.append) == 0, "\n".join(lines)
+    ids = ["sim000", "sim001", "sim002", "sim003"]
+    assert store.decoded_flights(root, "fixedFrequency") == ids
+    fitted = store.read_json(store.physics_model_path(root))
+    assert [e["name"] for e in fitted["effects"]] == ["rotor_drag"]
+    assert store.read_metadata(store.table_path(root, "residuals", "sim003"))["model"]["label"] == fitted["label"]
+    diagnosis = store.read_json(root / "reports" / "diagnosis.json")
+    assert diagnosis["model"]["label"] == fitted["label"]
+    assert "<html" in (root / "reports" / "diagnosis.html").read_text().lower()
+    assert store.read_json(root / "reports" / "discovery.json")["effects_in_model"] == ["rotor_drag"]
+    from quadcore import history
+
+    assert history.read(root)["model_label"].to_list()[0] == fitted["label"]
+    index = store.read_json(root / "learned" / "index.json")
+    assert index["runs"] and store.read_json(root / "reports" / "learning.json")["holdout"] == "sim003"
+    assert "QUADCORE_MODEL_H" in (root / "export_c" / "quadcore_model.h").read_text()
+    with (root / "mcap" / "sim003.mcap").open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+        assert summary is not None and summary.statistics.message_count > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]  # nothing written locally in its place
+    with pytest.raises(UnsafeNameError):  # the data-root jail holds in the bucket too
+        store.table_path(root, "residuals", "../../other-bucket")

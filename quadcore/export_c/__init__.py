@@ -82,7 +82,7 @@ def _best_run(learned_dir: Path, kind: str) -> Path:
     if kind not in best:
         raise ExportError(f"no {kind} run on causal features in {learned_dir}: "
                           f"train one (quadcore train --models {kind})")
-    return Path(best[kind]["path"])
+    return store.as_root(best[kind]["path"])
 
 
 def load_source(path: str | Path, learned_kind: str = "xgboost"
