@@ -87,18 +87,10 @@ class ComputedAgainstOlderModel(dg.AutomationCondition):
                                              "why": dg.MetadataValue.json(why)})
 
 
-def fit_differs_from_model_file(fitted_path, spec) -> bool:
-    """Whether the saved fit was made for another model spec than the model file gives now
-    (:func:`quadcore.model.fitted_for`: an effect added, a fixed value changed, sessions
-    edited...). False when nothing is fitted."""
-    from quadcore import model, store
-
-    return fitted_path.is_file() and not model.fitted_for(store.read_json(fitted_path), spec)
-
-
 class ModelFileChanged(dg.AutomationCondition):
-    """True when the model file names another model than the one fitted (see
-    :func:`fit_differs_from_model_file`), so that editing model.toml refits without a manual step."""
+    """True when the model file names another model than the one fitted
+    (:func:`quadcore.workflows.identify.fit_is_stale`), so that editing model.toml (or the
+    sessions file) refits without a manual step."""
 
     @property
     def name(self) -> str:
@@ -109,11 +101,10 @@ class ModelFileChanged(dg.AutomationCondition):
         return "the model file names another model than the one fitted"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
-        from pipeline.assets.model import fitted_model_path
+        from quadcore.workflows import identify
 
         try:
-            changed = fit_differs_from_model_file(fitted_model_path(data_root_from_env()),
-                                                  model_config_from_env().spec())
+            changed = identify.fit_is_stale(data_root_from_env().root_path, model_config_from_env().spec())
         except (ValueError, KeyError, OSError) as exc:  # a bad model file: physics_model's run says why
             context.log.warning(f"cannot read the model file: {exc}")
             changed = False

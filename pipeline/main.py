@@ -11,7 +11,6 @@ It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 """
 
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from dagster._core.storage.tags import (
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING
-from pipeline.freshness import fit_differs_from_model_file, model_version
+from pipeline.freshness import model_version
 from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
@@ -36,33 +35,14 @@ from pipeline.resources import (
     retrain_cron,
 )
 from quadcore import flight, history, safewrite, store
-
-# The effect hidden in the demo flights, and its true parameters (SI).
-DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
+from quadcore.workflows import identify, learn
+from quadcore.workflows.demo import simulate_demo_flights, write_demo_model_file
 
 # QUADCORE_RECOMPUTE=1: every stage for every flight, even where its outputs are up to date.
 RECOMPUTE = os.environ.get("QUADCORE_RECOMPUTE", "").lower() in ("1", "true", "yes", "on")
 
 # Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
-
-
-def simulate_demo_flights(raw: Path, log=print) -> list[Path]:
-    """The embedded default: six simulated flights with ``DEMO_EFFECT`` hidden in them."""
-    from quadcore import simulation
-
-    log(f"No logs in {raw}: simulating 6 demo flights with a hidden effect (see {raw}/*.truth.json) ...")
-    written = simulation.simulate_set(raw, simulation.default_flights(seed=0), DEMO_EFFECT)
-    return [log_path for log_path, _ in written]
-
-
-def write_demo_model_file(root: Path, template: str, effects: list[str]) -> Path:
-    """The demo's own model file ``<root>/model.toml``: the template's text (the repository's
-    model.toml) with its ``effects`` list set to ``effects``."""
-    text = Path(template).read_text() if template and Path(template).is_file() else "effects = []\n"
-    listed = "effects = [" + ", ".join(f'"{e}"' for e in effects) + "]"
-    text, n = re.subn(r"(?m)^effects\s*=\s*\[[^\]]*\]", listed, text)
-    return store.write_text(text if n else f"{listed}\n{text}", root / "model.toml")
 
 
 def _failure_reason(result) -> str:
@@ -137,20 +117,14 @@ def run_fleet(instance, resources: dict, log) -> dict | None:
     if not result.success:
         log(f"  FAILED: {_failure_reason(result)}")
         return None
-    reports = resources["data_root"].root_path / "reports"
-    diag = store.read_json(reports / "diagnosis.json")
+    root = resources["data_root"].root_path
+    diag = store.read_json(store.diagnosis_path(root))
     log(f"  {diag['verdict']}")
-    if (reports / "discovery.json").is_file():  # term_discovery: what no library effect has
-        terms = store.read_json(reports / "discovery.json")["terms"]
+    if store.discovery_path(root).is_file():  # term_discovery: what no library effect has
+        terms = store.read_json(store.discovery_path(root))["terms"]
         log("  Discovered terms: " + ("; ".join(t["formula"] for t in terms[:3]) if terms else "none kept"))
     log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
     return diag
-
-
-def _suggestion(diag: dict) -> str | None:
-    """The top candidate if the diagnosis found one that explains something, significantly."""
-    useful = [r for r in diag["candidates"] if r["useful"]]
-    return useful[0]["effect"] if useful else None
 
 
 def _print_history(root: Path, log) -> None:
@@ -205,32 +179,10 @@ def to_recompute(
 
 def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bool:
     """Whether to refit and re-diagnose: flights were (re)decoded, or the fitted model or the
-    diagnosis is missing or was made for another model (effects, vehicle, thrust map)."""
-    fitted, diag = store.physics_model_path(root), root / "reports" / "diagnosis.json"
-    if decoded_now or not fitted.is_file() or not diag.is_file():
+    diagnosis is missing, or the fit was made for another model spec than the model file's now."""
+    if decoded_now or not store.physics_model_path(root).is_file() or not store.diagnosis_path(root).is_file():
         return True
-    return fit_differs_from_model_file(fitted, model.spec())
-
-
-def learning_is_stale(root: Path) -> str | None:
-    """Why the learned models must be retrained now (none yet, or trained on top of another
-    physics model: other effects, vehicle or thrust map), or None. New flights alone wait for
-    the nightly retraining (``QUADCORE_RETRAIN_CRON``)."""
-    index_path = root / "learned" / "index.json"
-    if not index_path.is_file() or not (root / "reports" / "learning.json").is_file():
-        return "no learned models yet"
-    tables = sorted((root / "residuals").glob("flight=*/data.parquet"))
-    if not tables:
-        return None
-    current = store.read_metadata(tables[-1]).get("model", {})
-    trained = store.read_json(index_path).get("physics_model", {})
-
-    def kind(m):
-        return ([e["name"] for e in m.get("effects", [])], m.get("vehicle"), m.get("thrust_map"))
-
-    if kind(current) == kind(trained):
-        return None
-    return f"the physics model changed ({trained.get('label')} -> {current.get('label')})"
+    return identify.fit_is_stale(root, model.spec())
 
 
 def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
@@ -272,9 +224,9 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         if diag is None:
             return 1
     else:
-        diag = store.read_json(root / "reports" / "diagnosis.json")
+        diag = store.read_json(store.diagnosis_path(root))
         log(f"2/4 fitted model and diagnosis: up to date (no flight changed)\n  {diag['verdict']}")
-    suggested = _suggestion(diag)
+    suggested = identify.suggestion(diag)
     if demo and suggested:
         # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
         names = [*model.spec().effects, suggested]
@@ -291,7 +243,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         "the others are up to date)")
     if stale:
         failures.update(run_flights(instance, resources, stale, AGAINST_MODEL, "flights", log))
-    why = "recompute requested" if RECOMPUTE else learning_is_stale(root)
+    why = "recompute requested" if RECOMPUTE else learn.learning_is_stale(root)
     if why:
         log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model "
             f"as C (training because: {why})")
@@ -314,11 +266,11 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     log(f"  residual tables    {root / 'residuals'}/flight=<id>/data.parquet")
     log(f"  rollout errors     {root / 'rollouts'}/flight=<id>/data.parquet")
     log(f"  fitted model       {store.physics_model_path(root)}")
-    log(f"  diagnosis report   {root / 'reports' / 'diagnosis.html'} (and .md, .json)")
-    log(f"  learned models     {root / 'learned'}/<run>/ (model, scaler, features, manifest)")
-    log(f"  learning report    {root / 'reports' / 'learning.html'} (and .md, .json)")
+    log(f"  diagnosis report   {store.diagnosis_path(root).with_suffix('.html')} (and .md, .json)")
+    log(f"  learned models     {store.learned_dir(root)}/<run>/ (model, scaler, features, manifest)")
+    log(f"  learning report    {store.learning_report_path(root).with_suffix('.html')} (and .md, .json)")
     log(f"  flights as MCAP    {root / 'mcap'}/<flight>.mcap (open in Foxglove)")
-    log(f"  model as C         {root / 'export_c'}/quadcore_model.{{h,c}} (for the flight controller)")
+    log(f"  model as C         {store.export_c_dir(root)}/quadcore_model.{{h,c}} (for the flight controller)")
     log(f"  error history      {root / 'history'}/*.parquet")
     _print_history(root, log)
     if suggested and not demo:

@@ -79,38 +79,21 @@ class ModelConfig(dg.ConfigurableResource):
     holdout: str = ""
     sessions_file: str = ""
 
-    def sessions(self, flights: list[str]) -> dict[str, list[str]] | None:
-        from quadcore import sessions
-
-        return sessions.read_sessions_file(self.sessions_file, flights) if self.sessions_file else None
-
     def spec(self):
-        """The model these settings ask for: :func:`quadcore.workflows.resolve_model`, as the CLI does."""
+        """The model these settings ask for, its sessions file included:
+        :func:`quadcore.workflows.resolve_model`, as the CLI does."""
         from quadcore import workflows
 
         return workflows.resolve_model(self.model_file, self.vehicle, self.thrust_map,
-                                       workflows.parse_names(self.effects))
+                                       workflows.parse_names(self.effects), self.sessions_file)
 
     @property
     def holdout_flights(self) -> list[str]:
-        """The flights named in ``holdout`` (empty: the project's default, see :meth:`held_out`)."""
+        """The flights named in ``holdout`` (empty: the project's default, see
+        :func:`quadcore.workflows.held_out`)."""
         from quadcore import workflows
 
         return workflows.parse_names(self.holdout)
-
-    def held_out(self, flights: list[str]) -> tuple[list[str], str]:
-        """(flights never fitted on, note): the named holdout, or else the project's default
-        held-out flight (jana02, or the last flight where there is no jana02). The physics
-        model, its diagnosis and the learned models all leave these out, so none is scored on
-        (or chosen with) a flight it has seen. A named flight that is not among ``flights``
-        (misspelt, or quarantined) raises :class:`quadcore.workflows.HoldoutError`."""
-        from quadcore import learning, workflows
-
-        named = workflows.named_holdout(self.holdout_flights, flights, "the decoded flights")
-        if named:
-            return named, ""
-        flight, note = learning.resolve_holdout(learning.DEFAULT_HOLDOUT, flights)
-        return [flight], note
 
 
 def model_config_from_env() -> ModelConfig:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 import warnings
 from pathlib import Path
@@ -31,10 +30,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore import flight as flightmod, model, vehicle
-
-MAIN_EVENT = "fixedFrequency"
-
+    from quadcore import flight as flightmod, vehicle
 
 class UserError(Exception):
     """A mistake in what the user asked for: printed as a message, exit code 2."""
@@ -49,35 +45,10 @@ def _print_table(rows: list[list[str]], header: list[str]) -> None:
 def load_flights(
     paths: list[str], out: Path | None = None, log=print
 ) -> tuple[list[flightmod.Flight], dict[str, str]]:
-    """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
-    there. Returns (flights, quarantined: id -> reason)."""
-    from quadcore import flight as flightmod, logformat, store
+    """Decode every log under ``paths`` (:func:`quadcore.workflows.fleet.decode_logs`)."""
+    from quadcore.workflows import fleet
 
-    try:
-        logs = flightmod.discover_logs(*paths)
-    except FileNotFoundError as exc:
-        raise UserError(str(exc)) from None
-    if not logs:
-        raise UserError(f"no log files found in {', '.join(map(str, paths))}")
-    flights, quarantined = [], {}
-    for i, path in enumerate(logs, 1):
-        fid = flightmod.flight_id_of(path)
-        try:
-            fl = flightmod.decode_flight(path)
-        except (logformat.LogFormatError, OSError) as exc:
-            reason = f"{type(exc).__name__}: {exc}"
-            if out is not None:
-                store.write_quarantine(out, fid, str(path), str(exc), type(exc).__name__)
-            quarantined[fid] = reason
-            log(f"[{i}/{len(logs)}] {fid}: QUARANTINED ({reason})")
-            continue
-        if out is not None:
-            store.write_decoded(out, fl)
-            store.clear_quarantine(out, fid)
-        flights.append(fl)
-        warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""
-        log(f"[{i}/{len(logs)}] {fid}: {fl.provenance.rows}{warn}")
-    return flights, quarantined
+    return fleet.decode_logs(paths, out, log)
 
 
 def _output_folder(path: str) -> Path:
@@ -118,22 +89,24 @@ def _vehicle(args: argparse.Namespace):
         raise UserError(str(exc)) from None
 
 
-def _main_tables(flights: list[flightmod.Flight],
-                 veh: vehicle.Vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
-    """The flights the physics can use with ``veh`` and the skipped ones (flight -> reason,
-    each said on stderr): one bad flight never stops the others."""
-    from quadcore import checks
+def _warn(message: str) -> None:
+    print(f"warning: {message}", file=sys.stderr)
 
-    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
-    skipped = {f.flight_id: f"no {MAIN_EVENT!r} records" for f in flights if MAIN_EVENT not in f.tables}
-    usable, unusable = checks.split_usable(tables, veh)
-    skipped.update(unusable)
-    for fid, why in skipped.items():
-        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
+
+def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> dict[str, pl.DataFrame]:
+    """The flights the physics can use with ``veh`` (the skipped ones said on stderr): one bad
+    flight never stops the others."""
+    from quadcore.workflows import fleet
+
+    tables = {f.flight_id: f.tables[fleet.MAIN_EVENT] for f in flights if fleet.MAIN_EVENT in f.tables}
+    for f in flights:
+        if fleet.MAIN_EVENT not in f.tables:
+            _warn(f"{f.flight_id} skipped: no {fleet.MAIN_EVENT!r} records")
+    usable = fleet.usable(tables, veh, warn=_warn).tables
     if not usable:
         raise UserError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
-                        f"{MAIN_EVENT!r} records)")
-    return usable, skipped
+                        f"{fleet.MAIN_EVENT!r} records)")
+    return usable
 
 
 def cmd_residuals(args: argparse.Namespace) -> int:
@@ -144,7 +117,7 @@ def cmd_residuals(args: argparse.Namespace) -> int:
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
     rows, all_tables = [], []
-    for fid, df in _main_tables(flights, veh)[0].items():
+    for fid, df in _main_tables(flights, veh).items():
         try:
             table = residuals.residual_table(df, veh)
         except vehicle.VehicleFileError as exc:
@@ -188,7 +161,7 @@ def cmd_fit_thrust(args: argparse.Namespace) -> int:
 
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
-    tables, _ = _main_tables(flights, veh)
+    tables = _main_tables(flights, veh)
     missing = [fid for fid, df in tables.items() if "motor_1_radps" not in df.columns]
     if missing:
         raise UserError(f"no motor speed logged in {', '.join(missing)}: cannot fit f = k_F omega^2")
@@ -269,7 +242,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             given = {f.flight_id: flightmod.parse_start(args.start) for f in flights}
     except (ValueError, OSError) as exc:
         raise UserError(str(exc)) from None
-    for fid, df in _main_tables(flights, veh)[0].items():
+    for fid, df in _main_tables(flights, veh).items():
         table = residuals.residual_table(df, veh)
         fl = next(f for f in flights if f.flight_id == fid)
         flightmod.settle_start_time(fl, None, given.get(fid))
@@ -311,51 +284,33 @@ def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
     return data, [n.strip() for n in (args.effects or "").split(",") if n.strip()]
 
 
-def _model_and_flights(args: argparse.Namespace) -> tuple[model.ModelSpec, dict, list[str], dict[str, str]]:
-    """The model (``--model`` file or ``--effects``), the flights of DATA, the ``--holdout``
-    names, checked, and the flights skipped (flight -> reason): what ``diagnose`` and
-    ``discover`` start from."""
-    from quadcore import effects, model, vehicle, workflows
+def _model_and_flights(args: argparse.Namespace):
+    """The model (``--model`` file or ``--effects``, ``--sessions``), the usable flights of DATA
+    and the ``--holdout`` (checked; None: cross-validation): what ``diagnose`` and ``discover``
+    start from."""
+    from quadcore import workflows
+    from quadcore.workflows import fleet, identify
 
     data, names = _data_and_effects(args)
-    try:
-        spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
-    except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError) as exc:
-        raise UserError(str(exc)) from None
-    flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
-    for fid, why in quarantined.items():
-        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
-    tables, skipped = _main_tables(flights, spec.vehicle)
-    skipped = {**{fid: f"quarantined: {why}" for fid, why in quarantined.items()}, **skipped}
-    try:
-        holdout = workflows.named_holdout(workflows.parse_names(args.holdout), tables, str(data))
-    except workflows.HoldoutError as exc:
-        raise UserError(str(exc)) from None
-    return spec, tables, holdout, skipped
+    spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names, args.sessions)
+    flights = fleet.fleet_from_logs([str(data)], spec.vehicle, _warn)
+    seen, holdout = identify.diagnosis_flights(flights, workflows.parse_names(args.holdout), False, str(data))
+    return spec, seen, holdout
 
 
-def _sessions_file(args: argparse.Namespace, flights: list[str]) -> dict[str, list[str]] | None:
-    """``--sessions``: session -> flights (among ``flights``), or None without the option."""
-    from quadcore import sessions
-
-    if not args.sessions:
-        return None
-    try:
-        return sessions.read_sessions_file(args.sessions, flights)
-    except sessions.SessionsFileError as exc:
-        raise UserError(str(exc)) from None
+def _progress(args: argparse.Namespace):
+    return (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore import diagnosis, report, store
+    from quadcore import diagnosis
+    from quadcore.workflows import identify
 
-    spec, tables, holdout, skipped = _model_and_flights(args)
-    log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
-    log(f"diagnosing {len(tables)} flights against {spec.effects or 'the nominal model'}")
-    groups = _sessions_file(args, sorted(tables))
-    result = {**diagnosis.diagnose(tables, spec, holdout or None, log=log, sessions=groups),
-              "skipped_flights": skipped}
-    out = store.write_text(json.dumps(result, indent=2, default=float), Path(args.json))
+    spec, flights, holdout = _model_and_flights(args)
+    log = _progress(args)
+    log(f"diagnosing {len(flights.tables)} flights against {spec.effects or 'the nominal model'}")
+    result = identify.diagnose(flights, spec, holdout, log)
+    out = identify.write_diagnosis_json(result, Path(args.json))
     b = result["baseline"]
     print(f"model: {result['model']['label']}  ({result['evaluation']['mode']}, "
           f"{len(result['evaluation']['eval_flights'])} flights evaluated)")
@@ -378,8 +333,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             print(f"  note: {note}")
     print(f"\n{result['verdict']}\n\nwrote {out}")
     if args.report:
-        md, page = report.write(result, Path(args.report))
-        print(f"wrote {md} and {page}")
+        md, page = identify.write_diagnosis_report(result, Path(args.report))
+        with_discovery = identify.discovery_for(args.report, spec.effects) is not None
+        print(f"wrote {md} and {page}" + ("" if with_discovery else
+              f" (no discovery section: run `quadcore discover ... --json {Path(args.report) / 'discovery.json'}` "
+              "with the same model first to include one)"))
     return 0
 
 
@@ -390,21 +348,18 @@ def _rmse_line(label: str, d: dict) -> str:
 
 def cmd_discover(args: argparse.Namespace) -> int:
     """Terms the effect library lacks: sparse regression of the residual on candidate terms."""
-    from quadcore import discovery, store
+    from quadcore import discovery
+    from quadcore.workflows import identify
 
-    spec, tables, holdout, _ = _model_and_flights(args)
-    if len(tables) - len(holdout) < 2:
-        raise UserError("discovery needs at least two training flights (its folds are grouped by flight)")
+    spec, flights, holdout = _model_and_flights(args)
     if args.write_effect:
         target = Path(args.write_effect)
         if target.suffix != ".py" or not discovery.NAME_RE.match(target.stem):
             raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
-    groups = _sessions_file(args, sorted(tables))
-    log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
-    result = discovery.discover(tables, spec, holdout or None, log=log, sessions=groups)
+    result = identify.discover(flights, spec, holdout, _progress(args))
     out = Path(args.json)
     try:
-        store.write_json(result.to_dict(), out)
+        identify.write_discovery(result, out)
     except OSError as exc:
         raise UserError(f"cannot write {out}: {exc}") from None
     ev = result.evaluation
@@ -434,65 +389,51 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
-    from quadcore import effects, evaluation, features as feat, fitting, learning, model, vehicle, workflows
+    from quadcore import evaluation, features as feat, learning, workflows
+    from quadcore.workflows import fleet, identify, learn
 
     data, names = _data_and_effects(args)
-    kinds_of_model = [k.strip() for k in (args.models or "").split(",") if k.strip()]
-    if args.stride < 1 or args.threads < 1:
-        raise UserError("--stride and --threads must be at least 1")
+    request = learn.LearningRequest(
+        models=tuple(workflows.parse_names(args.models)), options={k: getattr(args, k, "") for k in learning.KINDS},
+        loo=args.loo, compare=not args.no_compare, stride=args.stride, seed=args.seed, threads=args.threads)
     try:
         spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
-        veh = spec.vehicle
         sets = feat.parse(args.feature_sets)
-        if not kinds_of_model:
-            raise learning.LearningError("--models names no model kind")
-        specs = {k: learning.parse_spec(f"{k}:{getattr(args, k)}" if getattr(args, k, None) else k)
-                 for k in kinds_of_model}
-    except (effects.UnknownEffectError, model.ModelFileError, vehicle.VehicleFileError, feat.FeatureError,
-            learning.LearningError) as exc:
+        request.learner_specs()  # a bad option fails before any decoding
+    except (feat.FeatureError, learning.LearningError) as exc:
         raise UserError(str(exc)) from None
     csv_path = Path(args.flights_csv) if args.flights_csv else feat.find_flights_csv(data)
     if args.flights_csv and not (csv_path and csv_path.is_file()):
         raise UserError(f"flights CSV not found: {csv_path}")
     log = (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
 
-    flights, quarantined = load_flights([str(data)], None, log=lambda m: None)
-    for fid, why in quarantined.items():
-        print(f"warning: {fid} skipped: {why}", file=sys.stderr)
-    tables, _ = _main_tables(flights, veh)
+    flights = fleet.fleet_from_logs([str(data)], spec.vehicle, _warn)
     try:
-        holdout, note = learning.resolve_holdout(args.holdout or learning.DEFAULT_HOLDOUT, list(tables),
-                                                 explicit=args.holdout is not None)
+        holdout, note = learn.learning_holdout(args.holdout or learning.DEFAULT_HOLDOUT, flights.ids,
+                                               explicit=args.holdout is not None)
     except learning.LearningError as exc:
         raise UserError(str(exc)) from None
     if note:
         print(f"note: {note}", file=sys.stderr)
-    train = sorted(f for f in tables if f != holdout)
-    fitted_on = f", fitted on {len(train)} flights (not {holdout})" if spec.effects else ""
-    log(f"physics model: {spec.effects or 'nominal'}{fitted_on}")
-    physics = fitting.fit_model(spec, tables, train) if spec.effects else model.PhysicsModel(veh, [])
+    fitted = identify.fit(flights, spec, [holdout], log if spec.effects else (lambda m: None))
+    train = list(fitted.trained_on)
+    physics = fitted.model
     try:
-        res = {fid: physics.for_flight(fid).residual_table(df) for fid, df in tables.items()}
+        res = learn.residual_tables(flights.tables, physics)
         by_set = feat.feature_tables(res, sets)
-    except (vehicle.VehicleFileError, feat.FeatureError) as exc:
+    except feat.FeatureError as exc:
         raise UserError(str(exc)) from None
     kinds = feat.read_flight_kinds(csv_path)
     if not kinds:
         print("note: no flights.csv (flight,kind): the training-size comparison (random vs preplanned) is skipped",
               file=sys.stderr)
     out = Path(args.out)
+    physics_info = fitted.to_dict()  # the model, its training flights, spec digest and plugins
     try:
-        plan = learning.plan(sorted(res), sets, kinds_of_model, holdout, kinds, loo=args.loo,
-                             compare=not args.no_compare, specs=specs)
+        learn.train(by_set, sets, holdout, physics_info, request, kinds, out / "learned", log)
+        report, _, paths = learn.write_learning_report(out, res, train)
     except learning.LearningError as exc:
         raise UserError(str(exc)) from None
-    log(f"training {len(plan.experiments)} models on {len(train)} flights, holdout {holdout} "
-        f"-> {out.resolve() / 'learned'}")
-    physics_info = {**physics.to_dict(), "trained_on": train}
-    config = learning.TrainConfig(stride=args.stride, seed=args.seed, threads=args.threads)
-    try:
-        learning.run_plan(plan, by_set, out / "learned", physics_info, config, kinds, log=log)
-        report, _, paths = evaluation.full_report(out / "learned", res, veh, out / "reports", out, train)
     except OSError as exc:
         raise UserError(f"cannot write to {out}: {exc}") from None
     print(f"physics model: {physics.label}; held out: {holdout}; trained on {len(train)} flights\n")
@@ -627,9 +568,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_errors() -> tuple[type[Exception], ...]:
     """The exceptions that mean "the user asked for something wrong" (imported only once a
     command has run, so that ``--help`` stays fast)."""
-    from quadcore import dynamics, model, vehicle
+    from quadcore import dynamics, effects, model, vehicle, workflows
 
-    return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError)
+    return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError,
+            effects.UnknownEffectError, workflows.WorkflowError)
 
 
 # Verbs that write a data root (``--out``): they hold its lock, so that two jobs on one root wait

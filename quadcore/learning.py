@@ -523,25 +523,30 @@ class LearnedModel:
                 y = self.impl(torch.from_numpy(z[None, :]))[0].numpy()
         return y * self.y_scaler.std + self.y_scaler.mean
 
-    def _feature_source(self, table: pl.DataFrame) -> pl.DataFrame:
+    def _feature_source(self, table: pl.DataFrame, flight: str | None = None) -> pl.DataFrame:
         t = feat.with_derived(table)
         if not feat.missing_columns(self.feature_set, t):
             return t
         if "pwm_1" in table.columns and "T_N" not in table.columns:  # a decoded table: build the residual table
-            t = feat.with_derived(self.physics_model().residual_table(table))
+            physics = self.physics_model()
+            # the residuals it was trained on: each flight's session values and thrust map
+            physics = physics.for_flight(flight) if flight is not None else physics
+            t = feat.with_derived(physics.residual_table(table))
         feat.check(self.feature_set, t, "flight table")
         return t
 
-    def predict(self, table: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, table: pl.DataFrame, flight: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """A flight table (residual table of the same physics model, or a decoded
         ``fixedFrequency`` table) -> residual force (n, 3) in N and torque (n, 3) in N m,
-        body frame. Rows with a missing input get NaN from the MLP and the trees' default
-        branch from XGBoost."""
-        y = self.predict_matrix(feat.matrix(self._feature_source(table), self.feature_set))
+        body frame. For a decoded table of a physics model with per-session values, name the
+        ``flight``: its residual is built with its session's values, as in training (without,
+        the fleet values). Rows with a missing input get NaN from the MLP and the trees'
+        default branch from XGBoost."""
+        y = self.predict_matrix(feat.matrix(self._feature_source(table, flight), self.feature_set))
         return y[:, :3], y[:, 3:]
 
-    def predict_table(self, table: pl.DataFrame) -> pl.DataFrame:
-        f, tau = self.predict(table)
+    def predict_table(self, table: pl.DataFrame, flight: str | None = None) -> pl.DataFrame:
+        f, tau = self.predict(table, flight)
         out = {"t_s": table["t_s"]} if "t_s" in table.columns else {}
         out.update({c: v for c, v in zip(PRED_COLUMNS, np.concatenate([f, tau], axis=1).T)})
         return pl.DataFrame(out)
@@ -551,6 +556,7 @@ class LearnedModel:
         from quadcore import model as modelmod
 
         pm = self.manifest.get("physics_model") or {}
+        modelmod.load_plugins(pm)
         return modelmod.PhysicsModel.from_dict(pm, vehicle_of(pm))
 
     def importance(self) -> dict[str, float]:

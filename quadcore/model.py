@@ -162,15 +162,19 @@ class ModelSpec:
     session_patterns: dict[str, list[str]] = field(default_factory=dict)  # session -> flight patterns
     session_maps: dict[str, str] = field(default_factory=dict)  # session -> thrust map kind
     plugins: list[str] = field(default_factory=list)  # resolved paths of the plugin modules
+    sessions_file: str = ""  # a sessions file (--sessions, QUADCORE_SESSIONS): its groups change a fit
 
     def digest(self) -> str:
         """A hash of everything here that changes a fit: effects, fixed values, per-session
         effects, session patterns and thrust maps, the vehicle's content (not where it was read
-        from) and the plugins' source. Equal specs give equal digests across processes."""
+        from), the plugins' source and the sessions file's content. Equal specs give equal
+        digests across processes."""
         vehicle = {k: v for k, v in dataclasses.asdict(self.vehicle).items() if k != "source"}
         content = {"effects": self.effects, "fixed": self.fixed, "per_session": self.per_session,
                    "sessions": self.session_patterns, "session_thrust_map": self.session_maps,
                    "vehicle": vehicle, "plugins": [_file_digest(p) for p in self.plugins]}
+        if self.sessions_file:  # only then: a fit made without one keeps its digest
+            content["sessions_file"] = _file_digest(self.sessions_file)
         text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -195,7 +199,7 @@ class ModelSpec:
         spec.source = self.source
         spec.per_session = [n for n in self.per_session if n in names]
         spec.session_patterns, spec.session_maps = self.session_patterns, self.session_maps
-        spec.plugins = self.plugins
+        spec.plugins, spec.sessions_file = self.plugins, self.sessions_file
         return spec
 
 
@@ -322,13 +326,46 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
 
 
 SPEC_DIGEST = "spec_digest"
+PLUGINS = "plugins"
+
+
+@dataclass(frozen=True)
+class FittedModel:
+    """A physics model fitted for a spec, as ``physics_model`` and the CLI write it: the model,
+    the flights its effects were fitted on and those held out, the digest of the spec it was
+    fitted for (:func:`fitted_for`), and the plugin modules its effects come from (so that a
+    reader of the JSON, such as ``quadcore export-c``, can load them)."""
+
+    model: PhysicsModel
+    trained_on: tuple[str, ...]
+    held_out: tuple[str, ...]
+    spec_digest: str
+    plugins: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, model: PhysicsModel, spec: ModelSpec, trained_on: list[str], held_out: list[str] = ()) -> FittedModel:
+        return cls(model, tuple(trained_on), tuple(held_out), spec.digest(), tuple(spec.plugins))
+
+    def to_dict(self) -> dict:
+        """The JSON of the fitted model file (``held_out`` is not part of it: it is every other flight)."""
+        return {**self.model.to_dict(), "trained_on": list(self.trained_on), SPEC_DIGEST: self.spec_digest,
+                **({PLUGINS: list(self.plugins)} if self.plugins else {})}
+
+    def parameter_rows(self) -> list[dict]:
+        """One row per fitted parameter: the fleet value, then each session's."""
+        rows = [{"effect": t.name, "session": "fleet", "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
+                for t in self.model.terms for k, v in t.params.items()]
+        return rows + [{"effect": t.name, "session": s, "parameter": k, "value": v,
+                        "std": t.per_session_std[s].get(k, 0.0)}
+                       for t in self.model.terms for s, values in t.per_session.items() for k, v in values.items()]
 
 
 def save(model: PhysicsModel, path: Path, trained_on: list[str], spec: ModelSpec) -> Path:
-    """Write a fitted model with the digest of the ``spec`` it was fitted for (see :func:`fitted_for`)."""
+    """Write a fitted model with the digest of the ``spec`` it was fitted for (see :func:`fitted_for`)
+    and its plugin modules."""
     from quadcore import store
 
-    return store.write_json({**model.to_dict(), "trained_on": trained_on, SPEC_DIGEST: spec.digest()}, path)
+    return store.write_json(FittedModel.of(model, spec, trained_on).to_dict(), path)
 
 
 def fitted_for(saved: dict, spec: ModelSpec) -> bool:
@@ -338,8 +375,21 @@ def fitted_for(saved: dict, spec: ModelSpec) -> bool:
     return saved.get(SPEC_DIGEST) == spec.digest()
 
 
+def load_plugins(saved: dict) -> None:
+    """Register the plugin effects a saved model names (``plugins``), so that its terms can be
+    evaluated in a process that never read the model file. Raises :class:`ModelFileError` for
+    a plugin that is gone or fails to load."""
+    for plugin in saved.get(PLUGINS, []):
+        try:
+            effects.load_plugin(plugin)
+        except (FileNotFoundError, TypeError, effects.PluginError) as exc:
+            raise ModelFileError(f"the fitted model's plugin {plugin!r}: {exc}") from None
+
+
 def load_fitted(path: Path, vehicle: Vehicle) -> PhysicsModel:
-    """A fitted model saved by :func:`save`, on the given vehicle."""
+    """A fitted model saved by :func:`save`, on the given vehicle, with its plugins loaded."""
     import json
 
-    return PhysicsModel.from_dict(json.loads(Path(path).read_text()), vehicle)
+    saved = json.loads(Path(path).read_text())
+    load_plugins(saved)
+    return PhysicsModel.from_dict(saved, vehicle)

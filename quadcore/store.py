@@ -84,6 +84,35 @@ def physics_model_path(root: Path) -> Path:
     return as_root(root) / "models" / "physics_model.json"
 
 
+DIAGNOSIS_FILE, DISCOVERY_FILE, LEARNING_FILE = "diagnosis.json", "discovery.json", "learning.json"
+
+
+def reports_dir(root: Path) -> Path:
+    """The reports (``model_diagnosis``, ``term_discovery``, ``learning_report``)."""
+    return as_root(root) / "reports"
+
+
+def diagnosis_path(root: Path) -> Path:
+    return reports_dir(root) / DIAGNOSIS_FILE
+
+
+def discovery_path(root: Path) -> Path:
+    return reports_dir(root) / DISCOVERY_FILE
+
+
+def learning_report_path(root: Path) -> Path:
+    return reports_dir(root) / LEARNING_FILE
+
+
+def learned_dir(root: Path) -> Path:
+    """The learned models (``learned/<run>/``) and their ``index.json``."""
+    return as_root(root) / "learned"
+
+
+def export_c_dir(root: Path) -> Path:
+    return as_root(root) / "export_c"
+
+
 def quarantine_path(root: Path, flight: str) -> Path:
     return as_root(root) / "quarantine" / f"{check_component(flight, 'flight id')}.json"
 

@@ -231,6 +231,21 @@ def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_
         learning.load(tmp_path / "nothing")
 
 
+def test_a_decoded_flight_is_predicted_on_its_sessions_physics(tmp_path, physics_tables, decoded):
+    """Under a physics model whose session flies another thrust map, a decoded flight of that
+    session gets the residual features the models were trained on (its session's map, as
+    ``residual_table`` computes them), not the fleet's."""
+    per_session = model.PhysicsModel(VEHICLE, [], {"late": [HOLDOUT]}, {"late": "motor_speed"})
+    trained = _train(XGB, physics_tables["physics"])
+    trained.manifest["physics_model"] = per_session.to_dict()
+    loaded = learning.load(trained.save(tmp_path / "xgb"))
+    f, tau = loaded.predict(decoded[HOLDOUT], HOLDOUT)
+    f_ref, tau_ref = loaded.predict(per_session.for_flight(HOLDOUT).residual_table(decoded[HOLDOUT]))
+    np.testing.assert_array_equal(np.concatenate([f, tau], axis=1), np.concatenate([f_ref, tau_ref], axis=1))
+    f_fleet, _ = loaded.predict(decoded[HOLDOUT])  # without the flight: the fleet's map, other features
+    assert not np.allclose(f_fleet, f)
+
+
 def test_compiled_forest_matches_xgboost(physics_tables):
     m = _train(replace(XGB, max_depth=5), physics_tables["physics"])
     X, _ = _holdout(physics_tables["physics"])

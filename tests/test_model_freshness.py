@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.assets.model import current_model, fitted_model_path
-from pipeline.freshness import fit_differs_from_model_file
+from pipeline.assets.model import current_model
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import model, store
+from quadcore.workflows import identify
 
 BASE = 'vehicle = "heavy.toml"\neffects = ["rotor_drag", "thrust_scale"]\nplugins = ["plugin.py"]\n'
 PLUGIN = Path(__file__).parent / "plugins" / "hidden_terms.py"
@@ -53,10 +53,10 @@ def test_an_edit_of_the_model_file_makes_the_fit_stale(folder, edit):
     config = _write_model(folder, base)
     root = DataRoot(root=str(folder / "root"))
     _save_fit(root.root_path, config.spec())
-    assert not fit_differs_from_model_file(fitted_model_path(root), config.spec())
+    assert not identify.fit_is_stale(root.root_path, config.spec())
     assert current_model(root, config).effect_names == ["rotor_drag", "thrust_scale"]  # the fit is used
     _write_model(folder, EDITS[edit])
-    assert fit_differs_from_model_file(fitted_model_path(root), config.spec())
+    assert identify.fit_is_stale(root.root_path, config.spec())
     assert current_model(root, config).terms == []  # stale: the nominal model until it is refitted
 
 

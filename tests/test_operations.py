@@ -369,9 +369,9 @@ def test_every_parquet_output_states_the_unit_of_every_column(sim_logs, tmp_path
 def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
     """The demo's next turn is written to <root>/model.toml (the repository's file untouched),
     and the model the pipeline loads from then on is that one: a second run continues the story."""
-    from pipeline.main import write_demo_model_file
     from pipeline.resources import model_config_from_env
     from quadcore import model
+    from quadcore.workflows.demo import write_demo_model_file
 
     repo_file = Path(__file__).resolve().parents[1] / "model.toml"
     own = write_demo_model_file(tmp_path, str(repo_file), ["rotor_drag"])

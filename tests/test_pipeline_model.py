@@ -160,7 +160,6 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
 def test_rollouts_use_each_flights_session_values(raw, tmp_path):
     """A model with a per-session thrust scale: a flight's open-loop rollout flies its
     session's value, as its residual table does, not the fleet value."""
-    from pipeline.assets.model import fitted_model_path
     from quadcore import model, vehicle
     from quadcore.model import EffectTerm, PhysicsModel
 
@@ -176,7 +175,7 @@ def test_rollouts_use_each_flights_session_values(raw, tmp_path):
         instance.add_dynamic_partitions("flights", ["sim000"])
         materialize([decoded_flight], config, instance, "sim000")
         for fitted in (per_session, same_fleet_wide):
-            model.save(fitted, fitted_model_path(data_root), ["sim000"], config["model"].spec())
+            model.save(fitted, store.physics_model_path(root), ["sim000"], config["model"].spec())
             roll = metadata(materialize([rollout_errors], config, instance, "sim000"), "rollout_errors")
             used = store.read_metadata(store.table_path(root, "rollouts", "sim000"))["model"]
             assert used == "nominal+thrust_scale"  # the saved fit is current, not set aside as stale

@@ -12,6 +12,7 @@ from pipeline.definitions import PER_FLIGHT, process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import simulation, store
+from quadcore.workflows import learn
 
 pytestmark = pytest.mark.slow  # whole per-flight runs, one with the multiprocess executor
 
@@ -118,4 +119,4 @@ def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path):
         (raw / "sim001").write_bytes((sim_logs / "sim002").read_bytes())  # the log changed
         assert main.to_decode(instance, data_root, ids) == ["sim001"]
     assert main.fleet_is_stale(tmp_path / "root", ModelConfig(), []) is True  # not fitted yet
-    assert main.learning_is_stale(tmp_path / "root") == "no learned models yet"
+    assert learn.learning_is_stale(tmp_path / "root") == "no learned models yet"

@@ -1,21 +1,33 @@
 """The decisions the CLI and the assets share (quadcore.workflows): which flights are held out,
-checked the same way everywhere, and which model file a run used."""
+checked the same way everywhere, which model file a run used, when a fit or the learned models
+are stale, and the outputs both write."""
 
 from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import dagster as dg
 import polars as pl
 import pytest
 
-from pipeline.assets.model import held_out_or_fail, scored_flights
+from pipeline.assets.model import diagnosis_flights, failing_on_user_errors
 from pipeline.resources import ModelConfig
-from quadcore import model, workflows
+from quadcore import cli, effects, model, store, vehicle, workflows
+from quadcore.workflows import Fleet, identify, learn
 
 FLIGHTS = ["sim000", "sim001", "sim002"]
 
 
-def _decoded(names=FLIGHTS) -> dict[str, pl.DataFrame]:
-    return {f: pl.DataFrame({"t_s": [0.0]}) for f in names}
+def _decoded(names=FLIGHTS) -> Fleet:
+    return Fleet({f: pl.DataFrame({"t_s": [0.0]}) for f in names})
+
+
+def _held_out(config: ModelConfig, fleet: Fleet):
+    with failing_on_user_errors():
+        return workflows.held_out(config.holdout_flights, fleet.ids)
 
 
 def test_named_holdout_is_checked_not_filtered():
@@ -33,26 +45,28 @@ def test_an_unknown_or_quarantined_holdout_fails_the_model_assets_with_its_reaso
     one clear failure (no bare KeyError, no silent filtering)."""
     config = ModelConfig(holdout=holdout)
     with pytest.raises(workflows.HoldoutError):
-        config.held_out(FLIGHTS)
-    for resolve in (held_out_or_fail, scored_flights):
+        workflows.held_out(config.holdout_flights, FLIGHTS)
+    for resolve in (_held_out, diagnosis_flights):
         with pytest.raises(dg.Failure, match="QUADCORE_HOLDOUT: holdout flight.* not found"):
             resolve(config, _decoded())
 
 
 def test_without_a_holdout_the_diagnosis_never_sees_the_learned_models_test_flight():
     config = ModelConfig()
-    held, _ = config.held_out(FLIGHTS)
-    seen, holdout = scored_flights(config, _decoded())
+    held, _ = workflows.held_out([], FLIGHTS)
+    seen, holdout = diagnosis_flights(config, _decoded())
     assert held == ["sim002"] and holdout is None  # cross-validation ...
-    assert sorted(seen) == ["sim000", "sim001"]  # ... over the flights the model is fitted on
+    assert seen.ids == ["sim000", "sim001"]  # ... over the flights the model is fitted on
     with_jana = _decoded(["jana00", "jana02", "jana03"])
-    seen, _ = scored_flights(config, with_jana)
-    assert sorted(seen) == ["jana00", "jana03"]  # the project's default test flight
+    seen, _ = diagnosis_flights(config, with_jana)
+    assert seen.ids == ["jana00", "jana03"]  # the project's default test flight
+    seen, holdout = identify.diagnosis_flights(_decoded(), [], default_held=False)  # the CLI: every flight
+    assert seen.ids == FLIGHTS and holdout is None
 
 
 def test_a_named_holdout_is_scored_on_with_every_flight_seen():
-    seen, holdout = scored_flights(ModelConfig(holdout="sim000"), _decoded())
-    assert sorted(seen) == FLIGHTS and holdout == ["sim000"]
+    seen, holdout = diagnosis_flights(ModelConfig(holdout="sim000"), _decoded())
+    assert seen.ids == FLIGHTS and holdout == ["sim000"]
 
 
 def test_effects_override_keeps_the_model_files_source(tmp_path):
@@ -76,3 +90,91 @@ def test_the_cli_and_the_assets_resolve_the_same_model(tmp_path):
         cli_like.effects, cli_like.source, cli_like.vehicle.thrust_map_kind) == (["motor_lag"], str(path), "pwm_vbat")
     nominal = workflows.resolve_model(None)
     assert nominal.effects == [] and nominal.source == "" and nominal.vehicle.name == "crazyflie21"
+
+
+# ---------------------------------------------------------------------------------------
+# Staleness follows the whole spec: the sessions file, and the learned models' spec digest
+# ---------------------------------------------------------------------------------------
+
+def _save_fit(root, spec, scale: float = 1.0) -> None:
+    fitted = model.PhysicsModel(spec.vehicle, [model.EffectTerm("thrust_scale", {"scale": scale})])
+    model.save(fitted, store.physics_model_path(root), ["sim000"], spec)
+
+
+def test_editing_the_sessions_file_makes_the_fit_stale(tmp_path):
+    """``QUADCORE_SESSIONS`` / ``--sessions`` group the flights a per-session fit uses: a fit
+    made for other groups is stale (the automation and ``make run`` refit)."""
+    groups = tmp_path / "sessions.toml"
+    groups.write_text('[sessions]\nearly = ["sim000"]\n')
+    config = ModelConfig(effects="thrust_scale", sessions_file=str(groups))
+    _save_fit(tmp_path, config.spec())
+    assert not identify.fit_is_stale(tmp_path, config.spec())
+    groups.write_text('[sessions]\nearly = ["sim000", "sim001"]\n')
+    assert identify.fit_is_stale(tmp_path, config.spec())
+    assert identify.current_model(tmp_path, config.spec()).terms == []  # not used until refitted
+
+
+def _residuals_and_learned_models(root, physics: model.PhysicsModel) -> None:
+    """A data root whose residual tables were computed against ``physics`` and whose learned
+    models (index and report) were trained on them, as the learning assets record it."""
+    table = pl.DataFrame({"t_s": [0.0, 0.01]})
+    store.write_parquet(table, store.table_path(root, "residuals", "sim000"), {"model": physics.to_dict()})
+    store.write_json({"physics_model": learn.physics_of_residuals(root)}, store.learned_dir(root) / "index.json")
+    store.write_json({}, store.learning_report_path(root))
+
+
+def test_learned_models_are_stale_when_the_model_spec_changes_not_on_a_refit(tmp_path):
+    """The same effects fitted for another spec (here a fixed parameter value) retrain the
+    learned models at once; a refit of the same spec on new flights waits for the nightly run."""
+    spec = model.spec_from(vehicle.load(), ["thrust_scale"])
+    _save_fit(tmp_path, spec)
+    _residuals_and_learned_models(tmp_path, identify.current_model(tmp_path, spec))
+    assert learn.learning_is_stale(tmp_path) is None
+    _save_fit(tmp_path, spec, scale=1.02)  # a refit: other values, same spec
+    assert learn.learning_is_stale(tmp_path) is None
+    fixed = model.spec_from(vehicle.load(), ["thrust_scale"], {"thrust_scale": {"scale": 0.95}})
+    _save_fit(tmp_path, fixed, scale=0.95)  # the residual tables keep the same effects and labels
+    assert "the model spec changed" in learn.learning_is_stale(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------
+# One report path: the CLI's report has the discovery section the asset's has
+# ---------------------------------------------------------------------------------------
+
+def test_the_cli_diagnosis_report_shows_the_discovery_beside_it(drag_fleet, tmp_path, capsys):
+    reports = tmp_path / "reports"
+    options = [str(drag_fleet), "--holdout", "sim003", "--quiet"]
+    assert cli.main(["diagnose", *options, "--json", str(tmp_path / "d.json"), "--report", str(reports)]) == 0
+    assert "no discovery section" in capsys.readouterr().out
+    assert "Terms the library lacks" not in (reports / "diagnosis.md").read_text()
+    assert cli.main(["discover", *options, "--json", str(reports / "discovery.json")]) == 0
+    assert cli.main(["diagnose", *options, "--json", str(tmp_path / "d.json"), "--report", str(reports)]) == 0
+    text = (reports / "diagnosis.md").read_text()
+    assert "## Terms the library lacks (quadcore discover)" in text and "v_b_x_mps*T_N" in text
+    # a discovery on top of another model is about another residual: left out
+    assert cli.main(["diagnose", *options, "--effects", "rotor_drag", "--json", str(tmp_path / "d.json"),
+                     "--report", str(reports)]) == 0
+    assert "Terms the library lacks" not in (reports / "diagnosis.md").read_text()
+
+
+# ---------------------------------------------------------------------------------------
+# export-c reads a fitted model with plugin effects in a process that never saw the model file
+# ---------------------------------------------------------------------------------------
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+def test_export_c_loads_the_plugins_the_fit_recorded(tmp_path):
+    example = Path(__file__).resolve().parents[1] / "examples" / "effects" / "linear_drag.py"
+    shutil.copy(example, tmp_path / "linear_drag.py")
+    (tmp_path / "model.toml").write_text('effects = ["linear_drag"]\nplugins = ["linear_drag.py"]\n')
+    spec = workflows.resolve_model(str(tmp_path / "model.toml"))
+    fitted = model.PhysicsModel(spec.vehicle, [model.EffectTerm("linear_drag", {"d_xy_kg_per_s": 0.04,
+                                                                                 "d_z_kg_per_s": 0.06})])
+    try:
+        path = model.save(fitted, store.physics_model_path(tmp_path / "root"), ["sim000"], spec)
+    finally:
+        effects.unregister("linear_drag")
+    assert store.read_json(path)["plugins"] == [str(tmp_path / "linear_drag.py")]
+    run = subprocess.run([sys.executable, "-m", "quadcore.cli", "export-c", str(path), "--out", str(tmp_path / "c")],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "d_xy_kg_per_s = ((qc_real)0.04)" in (tmp_path / "c" / "quadcore_model.c").read_text()

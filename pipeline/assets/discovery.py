@@ -6,15 +6,16 @@ import dagster as dg
 from pipeline.assets.model import (
     ALL_FLIGHTS,
     RETRAIN,
-    discovery_path,
+    diagnosis_flights,
+    failing_on_user_errors,
+    load_fleet,
     physics_model,
-    scored_flights,
     skipped_metadata,
-    usable_decoded,
 )
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import discovery, plots, report, sessions, store
+from quadcore import plots, report, store
+from quadcore.workflows import identify
 
 
 @dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=RETRAIN)
@@ -24,19 +25,17 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     share and stability, on the flights model_diagnosis sees (the flight the learned models are
     scored on is left out unless ``QUADCORE_HOLDOUT`` names the holdout). Writes reports/discovery.json."""
     spec = model.spec()
-    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
-    seen, holdout = scored_flights(model, decoded)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
-    if len(seen) - len(holdout or []) < 2:  # a young fleet: the diagnosis still runs, discovery waits
+    flights = load_fleet(data_root, spec.vehicle, context.log)
+    seen, holdout = diagnosis_flights(model, flights)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
+    if not identify.can_discover(seen, holdout):  # a young fleet: the diagnosis still runs, discovery waits
         why = (f"skipped: discovery needs at least two training flights besides the held-out ones "
-               f"(folds are grouped by flight); {len(decoded)} usable decoded")
+               f"(folds are grouped by flight); {len(flights.tables)} usable decoded")
         context.log.warning(why)
-        return dg.MaterializeResult(metadata={"summary": why, "flights": len(seen), **skipped_metadata(skipped)})
-    try:
-        groups = model.sessions(sorted(seen))  # QUADCORE_SESSIONS, as physics_model and model_diagnosis
-    except sessions.SessionsFileError as exc:
-        raise dg.Failure(description=str(exc)) from None
-    result = discovery.discover(seen, spec, holdout, log=context.log.info, sessions=groups)
-    path = store.write_json(result.to_dict(), discovery_path(data_root))
+        return dg.MaterializeResult(metadata={"summary": why, "flights": len(seen.tables),
+                                              **skipped_metadata(flights.skipped)})
+    with failing_on_user_errors():
+        result = identify.discover(seen, spec, holdout, context.log.info)
+    path = identify.write_discovery(result, store.discovery_path(data_root.root_path))
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
         "summary": dg.MetadataValue.md(result.summary.replace("\n", "\n\n")),
@@ -48,7 +47,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
         **{f"after_torque_rmse_{ax}_Nm": number(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
         "baseline": dg.MetadataValue.json(b),
         "path": dg.MetadataValue.path(str(path)),
-        "flights": len(seen),
-        **skipped_metadata(skipped),
+        "flights": len(seen.tables),
+        **skipped_metadata(flights.skipped),
     })
 

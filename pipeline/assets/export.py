@@ -52,7 +52,7 @@ def exported_model(config: ExportCConfig, data_root: DataRoot) -> dg.Materialize
     checked with the strict C99 flags; the flash and RAM footprint in the metadata."""
     root = data_root.root_path
     try:
-        exported = export_c.export(root, root / "export_c", config.learned)
+        exported = export_c.export(root, store.export_c_dir(root), config.learned)
     except (export_c.ExportError, learning.LearningError) as exc:
         raise dg.Failure(description=str(exc)) from None
     metadata: dict[str, dg.RawMetadataValue] = {

@@ -1,17 +1,16 @@
 """Stage 4: what the physics cannot explain, learned. Fan-in over the residual tables of all
 flights: feature sets -> trained models (XGBoost, MLP) -> report with baselines and plots."""
 
-import json
-
 import dagster as dg
 import polars as pl
 
-from pipeline.assets.model import RETRAIN
+from pipeline.assets.model import RETRAIN, failing_on_user_errors
 from pipeline.assets.physics import residual_table
 from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig, retrain_cron
-from quadcore import evaluation, features as feat, learning, plots, store
+from quadcore import evaluation, features as feat, plots, store
+from quadcore.workflows import learn
 
 ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
 
@@ -53,49 +52,18 @@ class LearningConfig(dg.Config):
     threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learning)
 
 
-def _physics(root) -> dict:
-    """The physics model the residual tables were computed against (their metadata), with the
-    flights its effects were fitted on when the fitted model file matches. Fails when the
-    tables were computed against different models (some not refreshed after a refit)."""
-    files = sorted((root / "residuals").glob("flight=*/data.parquet"))
-    models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
-    distinct = {json.dumps(m, sort_keys=True) for m in models.values()}
-    if len(distinct) > 1:
-        def users(d: str) -> int:
-            return sum(json.dumps(m, sort_keys=True) == d for m in models.values())
-        latest = json.loads(max(distinct, key=users))
-        stale = sorted(f for f, m in models.items() if m != latest)
-        raise dg.Failure(description=(
-            f"the residual tables were computed against different physics models (not refreshed after a "
-            f"refit?): re-materialise residual_table for {', '.join(stale)}"))
-    physics: dict = next(iter(models.values()), {})
-    fitted = store.physics_model_path(root)
-    if fitted.is_file():
-        saved = store.read_json(fitted)
-        if [e["name"] for e in saved.get("effects", [])] == [e["name"] for e in physics.get("effects", [])]:
-            physics["trained_on"] = saved.get("trained_on")
-    return physics
-
-
 @dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=NIGHTLY)
 def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.MaterializeResult:
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
     ``<root>/features/<set>/flight=<id>/data.parquet``."""
     root = data_root.root_path
-    physics = _physics(root)  # every residual table against one physics model, or a clear failure
-    res = feat.read_residual_tables(root)
-    if not res:
-        raise dg.Failure(description=f"no residual tables in {root / 'residuals'}: materialise residual_table first")
-    try:
-        sets = feat.parse(config.feature_sets)
-        feat.replace_feature_tables(root, res, sets, {"model": physics.get("label", "")})
-    except feat.FeatureError as exc:
-        raise dg.Failure(description=str(exc)) from None
+    with failing_on_user_errors():
+        sets, n_flights = learn.build_features(root, config.feature_sets)
     return dg.MaterializeResult(metadata={
         "feature_sets": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
             [{"set": fs.name, "columns": ", ".join(fs.columns), "causal": str(fs.causal), "note": fs.note}
              for fs in sets]))),
-        "flights": len(res),
+        "flights": n_flights,
         "targets": dg.MetadataValue.json(feat.TARGETS),
         "folder": dg.MetadataValue.path(str(root / "features")),
     })
@@ -112,35 +80,26 @@ def learned_models(
     sets, tables = feat.read_feature_tables(root)
     if not sets:
         raise dg.Failure(description=f"no feature tables in {root / 'features'}: materialise learning_features first")
-    flights = sorted(next(iter(tables.values())))
     csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
-    kinds = feat.read_flight_kinds(csv_path)
-    physics = _physics(root)
-    try:
-        if config.holdout:
-            holdout, note = learning.resolve_holdout(config.holdout, flights)
-        else:
-            (holdout, *_), note = model.held_out(flights)
-        if holdout in (physics.get("trained_on") or []):
-            raise learning.LearningError(
-                f"the physics model's effects were fitted on {holdout}, the flight the learned models are scored "
-                f"on: re-materialise physics_model with the same holdout, then residual_table")
-        specs = {k: learning.parse_spec(f"{k}:{getattr(config, k, '')}") for k in config.models}
-        plan = learning.plan(flights, sets, config.models, holdout, kinds, config.loo, config.compare, specs)
-    except learning.LearningError as exc:
-        raise dg.Failure(description=str(exc)) from None
-    for n in ([note] if note else []) + plan.notes:
-        context.log.warning(n)
-    train_config = learning.TrainConfig(stride=config.stride, seed=config.seed, threads=config.threads)
-    records = learning.run_plan(plan, tables, root / "learned", physics, train_config, kinds, log=context.log.info)
+    request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp}, config.loo,
+                                    config.compare, config.stride, config.seed, config.threads)
+    with failing_on_user_errors():
+        physics = learn.physics_of_residuals(root)
+        holdout, note = learn.learning_holdout(config.holdout, sorted(next(iter(tables.values()))),
+                                               model.holdout_flights)
+        if note:
+            context.log.warning(note)
+        runs = learn.train(tables, sets, holdout, physics, request, feat.read_flight_kinds(csv_path),
+                           store.learned_dir(root), log=context.log.info)
+    notes = ([note] if note else []) + list(runs.notes)
     return dg.MaterializeResult(metadata={
         "holdout": holdout,
-        "models": len(records),
+        "models": len(runs.records),
         "runs": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame([
             {"run": r["name"], "train s": r["train_time_s"], "val loss": r["val_loss"], "rows": r["rows_fit"],
-             "µs/sample": r["latency_us"]} for r in records]))),
-        "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in ([note] if note else []) + plan.notes) or "none"),
-        "folder": dg.MetadataValue.path(str(root / "learned")),
+             "µs/sample": r["latency_us"]} for r in runs.records]))),
+        "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in notes) or "none"),
+        "folder": dg.MetadataValue.path(str(store.learned_dir(root))),
     })
 
 
@@ -149,17 +108,8 @@ def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
     """Held-out MAE / RMSE / R² per axis beside the baselines (physics-only, zero, training mean)
     and the study's figures; comparison tables and plots. Writes reports/learning.{md,html,json}
     and appends the headline results to the history (source ``learned``)."""
-    root = data_root.root_path
-    try:
-        index, _ = learning.read_runs(root / "learned")
-    except learning.LearningError as exc:
-        raise dg.Failure(description=str(exc)) from None
-    physics = index.get("physics_model", {})
-    try:
-        report, pngs, paths = evaluation.full_report(root / "learned", feat.read_residual_tables(root),
-                                                     learning.vehicle_of(physics), root / "reports", root)
-    except learning.LearningError as exc:
-        raise dg.Failure(description=str(exc)) from None
+    with failing_on_user_errors():
+        report, pngs, paths = learn.write_learning_report(data_root.root_path)
     md = {k: plot_md(data_root, v, k) for k, v in pngs.items()}
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(report["verdict"]),

@@ -2,14 +2,17 @@
 its errors. Fan-in over all decoded flights."""
 
 
+import contextlib
+
 import dagster as dg
 import polars as pl
 
-from pipeline.assets.decode import MAIN_EVENT, decoded_flight
+from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import checks, diagnosis, fitting, history, model as modelmod, plots, report, sessions, store, workflows
+from quadcore import diagnosis, history, learning, plots, report, sessions, workflows
+from quadcore.workflows import Fleet, fleet, identify
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
 
@@ -22,15 +25,21 @@ RETRAIN = (
 )
 
 
-def usable_decoded(data_root: DataRoot, vehicle, log) -> tuple[store.FlightTables, dict[str, str]]:
-    """Every decoded flight the physics can use (read one at a time as the stage walks them:
-    :class:`quadcore.store.FlightTables`), and the skipped ones (flight -> reason, each logged
-    as a warning): one bad flight never stops the fleet stages."""
-    decoded = store.read_all_decoded(data_root.root_path, MAIN_EVENT)
-    usable, skipped = checks.usable_flights(decoded, vehicle)
-    for fid, why in skipped.items():
-        log.warning(f"{fid} skipped: {why}")
-    return decoded.subset(usable), skipped
+@contextlib.contextmanager
+def failing_on_user_errors():
+    """A request the workflows refuse (a bad ``QUADCORE_HOLDOUT`` or sessions file, too few
+    flights, a learning option) fails the run with its reason, in one line."""
+    try:
+        yield
+    except workflows.HoldoutError as exc:
+        raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
+    except (workflows.WorkflowError, learning.LearningError) as exc:
+        raise dg.Failure(description=str(exc)) from None
+
+
+def load_fleet(data_root: DataRoot, vehicle, log) -> Fleet:
+    """Every decoded flight the physics can use (the others logged as warnings, with why)."""
+    return fleet.fleet_from_store(data_root.root_path, vehicle, log.warning)
 
 
 def skipped_metadata(skipped: dict[str, str]) -> dict:
@@ -39,25 +48,16 @@ def skipped_metadata(skipped: dict[str, str]) -> dict:
             "skipped_count": len(skipped)}
 
 
-def held_out_or_fail(model: ModelConfig, decoded: dict) -> tuple[list[str], str]:
-    """:meth:`ModelConfig.held_out` of the decoded flights; a bad ``QUADCORE_HOLDOUT`` fails the run
-    with its reason."""
-    try:
-        return model.held_out(list(decoded))
-    except workflows.HoldoutError as exc:
-        raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
+def diagnosis_flights(model: ModelConfig, flights: Fleet) -> tuple[Fleet, list[str] | None]:
+    """The flights the diagnosis and the discovery see (:func:`quadcore.workflows.identify.diagnosis_flights`)."""
+    with failing_on_user_errors():
+        return identify.diagnosis_flights(flights, model.holdout_flights, default_held=True)
 
 
-def scored_flights(model: ModelConfig, decoded: store.FlightTables) -> tuple[store.FlightTables, list[str] | None]:
-    """(the decoded flights a diagnosis or discovery sees, its holdout or None): see
-    :func:`quadcore.workflows.scored_flights`."""
-    held, _ = held_out_or_fail(model, decoded)
-    seen, holdout = workflows.scored_flights(decoded, model.holdout_flights, held)
-    return decoded.subset(seen), holdout or None
-
-
-def fitted_model_path(data_root: DataRoot):
-    return store.physics_model_path(data_root.root_path)
+def current_model(data_root: DataRoot, model: ModelConfig, log=None):
+    """:func:`quadcore.workflows.identify.current_model` for the model these settings name."""
+    warn = log.warning if log is not None else (lambda m: None)
+    return identify.current_model(data_root.root_path, model.spec(), warn)
 
 
 # The fit also follows the model file: an effect added to model.toml refits without a manual step.
@@ -72,64 +72,23 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
     learned models are scored on."""
     spec = model.spec()
-    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
-    if len(decoded) < 2:
-        raise dg.Failure(description=f"need at least two usable decoded flights in {data_root.root_path / 'decoded'}")
-    held, note = held_out_or_fail(model, decoded)
-    if note:
-        context.log.info(note)
-    train = [f for f in decoded if f not in held]
-    context.log.info(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
-    try:
-        groups = model.sessions(sorted(decoded))
-    except sessions.SessionsFileError as exc:
-        raise dg.Failure(description=str(exc)) from None
-    fitted = fitting.fit_model(spec, decoded, train, groups, context.log.info)
-    path = modelmod.save(fitted, fitted_model_path(data_root), train, spec)
-    params = [{"effect": t.name, "session": "fleet", "parameter": k, "value": v, "std": t.std.get(k, 0.0)}
-              for t in fitted.terms for k, v in t.params.items()]
-    params += [{"effect": t.name, "session": s, "parameter": k, "value": v, "std": t.per_session_std[s].get(k, 0.0)}
-               for t in fitted.terms for s, values in t.per_session.items() for k, v in values.items()]
+    flights = load_fleet(data_root, spec.vehicle, context.log)
+    with failing_on_user_errors():
+        fitted = identify.fit(flights, spec, model.holdout_flights, context.log.info)
+    path = identify.save_fit(data_root.root_path, fitted)
+    params = fitted.parameter_rows()
     return dg.MaterializeResult(metadata={
-        "model": fitted.label,
+        "model": fitted.model.label,
         MODEL_VERSION: model_version(current_model(data_root, model).to_dict()),
-        "effects": dg.MetadataValue.json(fitted.effect_names),
+        "effects": dg.MetadataValue.json(fitted.model.effect_names),
         "parameters": dg.MetadataValue.md(
             plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
-        "trained_on": len(train),
-        "held_out": ", ".join(held),
+        "trained_on": len(fitted.trained_on),
+        "held_out": ", ".join(fitted.held_out),
         "model_file": spec.source or "(none: nominal)",
         "path": dg.MetadataValue.path(str(path)),
-        **skipped_metadata(skipped),
+        **skipped_metadata(flights.skipped),
     })
-
-
-def discovery_path(data_root: DataRoot):
-    """Where the ``term_discovery`` asset writes its result."""
-    return data_root.root_path / "reports" / "discovery.json"
-
-
-def _discovery_for(data_root: DataRoot, effects: list[str]) -> dict | None:
-    """The last discovery, if it was made on top of these effects (else it is stale)."""
-    path = discovery_path(data_root)
-    disc = store.read_json(path) if path.is_file() else None
-    return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
-
-
-def current_model(data_root: DataRoot, model: ModelConfig, log=None):
-    """The fitted model if it was fitted for the model file as it is now
-    (:func:`quadcore.model.fitted_for`), else the nominal vehicle (said in the log: physics_model
-    has not fitted this model file yet)."""
-    spec = model.spec()
-    path = fitted_model_path(data_root)
-    if path.is_file():
-        saved = store.read_json(path)
-        if modelmod.fitted_for(saved, spec):
-            return modelmod.PhysicsModel.from_dict(saved, spec.vehicle)
-    if spec.effects and log is not None:
-        log.warning(f"physics_model has not fitted {spec.effects} as the model file now asks: using the "
-                    "nominal model; materialise physics_model first")
-    return modelmod.PhysicsModel(spec.vehicle, [])
 
 
 @dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model, dg.AssetKey("term_discovery")], kinds={"html"},
@@ -138,24 +97,15 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
     held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
     spec = model.spec()
-    decoded, skipped = usable_decoded(data_root, spec.vehicle, context.log)
-    if len(decoded) < 2:
+    flights = load_fleet(data_root, spec.vehicle, context.log)
+    if len(flights.tables) < 2:
         raise dg.Failure(
             description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
-    seen, holdout = scored_flights(model, decoded)
-    try:
-        groups = model.sessions(sorted(seen))
-    except sessions.SessionsFileError as exc:
-        raise dg.Failure(description=str(exc)) from None
-    result = diagnosis.diagnose(seen, spec, holdout, log=context.log.info, sessions=groups)
-    result["skipped_flights"] = skipped
-    out = data_root.root_path / "reports"
-    store.write_json(result, out / "diagnosis.json")
+    seen, holdout = diagnosis_flights(model, flights)
+    with failing_on_user_errors():
+        result = identify.diagnose(seen, spec, holdout, context.log.info)
+    md, page = identify.record_diagnosis(data_root.root_path, result, spec)
     b = result["baseline"]
-    history.record(data_root.root_path, "diagnosis", result["model"]["label"], b["force_rmse_N"], b["torque_rmse_Nm"],
-                   spec.effects, {e["name"]: e["params"] for e in result["model"]["effects"]},
-                   result["evaluation"]["mode"], result["evaluation"]["eval_flights"])
-    md, page = report.write(result, out, history.read(data_root.root_path), _discovery_for(data_root, spec.effects))
     top = result["candidates"][:5]
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(result["verdict"]),
@@ -174,7 +124,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
         **_frequency_metadata(data_root, result.get("frequency")),
         "report": dg.MetadataValue.path(str(page)),
-        **skipped_metadata(skipped),
+        **skipped_metadata(flights.skipped),
     })
 
 

@@ -33,7 +33,7 @@ from quadcore import learning, store
 from quadcore.export_c.build import CompileError, Footprint, HostModel, check_strict, measure_footprint
 from quadcore.export_c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
 from quadcore.export_c.inputs import ExportError, Field
-from quadcore.model import PhysicsModel
+from quadcore.model import ModelFileError, PhysicsModel, load_plugins
 
 __all__ = ["ExportError", "NoCFormError", "CompileError", "Exported", "Footprint", "HostModel", "export",
            "export_models", "load_source", "input_rows", "LEARNED_KINDS"]
@@ -69,6 +69,10 @@ def _physics_from_json(path: Path) -> PhysicsModel:
         raise ExportError(f"{path}: not a fitted physics model (not JSON: {exc})") from None
     if not isinstance(d, dict) or "effects" not in d or "vehicle" not in d:
         raise ExportError(f"{path}: not a fitted physics model (no 'vehicle' and 'effects')")
+    try:
+        load_plugins(d)  # the effects a plugin module defines, as the fit recorded them
+    except ModelFileError as exc:
+        raise ExportError(f"{path}: {exc}") from None
     return PhysicsModel.from_dict(d, learning.vehicle_of(d))
 
 
@@ -107,11 +111,12 @@ def load_source(path: str | Path, learned_kind: str = "xgboost"
         folder = _best_run(learned_dir, learned_kind)
     try:
         model = learning.load(folder)
-    except (learning.LearningError, OSError, json.JSONDecodeError) as exc:
+        physics = model.physics_model()
+    except (learning.LearningError, ModelFileError, OSError, json.JSONDecodeError) as exc:
         raise ExportError(f"cannot load the learned model in {folder}: {exc}") from None
     if learned_kind == "none":
-        return model.physics_model(), None, f"the physics model of learned model {folder}"
-    return model.physics_model(), model, f"learned model {folder.name} and its physics model"
+        return physics, None, f"the physics model of learned model {folder}"
+    return physics, model, f"learned model {folder.name} and its physics model"
 
 
 def export_models(physics: PhysicsModel, learned: learning.LearnedModel | None, out_dir: str | Path,

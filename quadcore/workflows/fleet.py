@@ -1,0 +1,215 @@
+"""The decisions every workflow takes first, the same way for the command line and the assets:
+which flights (decoded, usable by the physics), which model (file, effects override) and which
+flights are held out."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import polars as pl
+
+    from quadcore import flight as flightmod
+    from quadcore.model import ModelSpec
+    from quadcore.vehicle import Vehicle
+
+MAIN_EVENT = "fixedFrequency"  # the decoded table the physics reads
+
+
+class WorkflowError(ValueError):
+    """A request a workflow cannot carry out (a user error): the CLI prints it in one line and
+    exits 2, an asset fails with it."""
+
+
+class HoldoutError(WorkflowError):
+    """A named held-out flight that is not among the flights (mistyped, or quarantined because
+    its log could not be read), or a holdout that leaves nothing to fit on."""
+
+
+class NoFlightsError(WorkflowError):
+    """No log, or no flight the physics can use."""
+
+
+@dataclass(frozen=True)
+class Fleet:
+    """The flights a fleet-wide workflow works on: the main table of every usable flight, and
+    the others with the reason each was skipped (quarantined, no main table, unusable)."""
+
+    tables: Mapping[str, pl.DataFrame]  # a dict, or tables read as they are looked up (store.FlightTables)
+    skipped: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ids(self) -> list[str]:
+        return sorted(self.tables)
+
+    def only(self, flights: Iterable[str]) -> Fleet:
+        """The same fleet restricted to ``flights`` (the skipped ones kept, to report them)."""
+        return Fleet(_subset(self.tables, flights), self.skipped)
+
+
+def _subset(tables: Mapping[str, pl.DataFrame], flights: Iterable[str]) -> Mapping[str, pl.DataFrame]:
+    from quadcore import store
+
+    return tables.subset(flights) if isinstance(tables, store.FlightTables) else {f: tables[f] for f in flights}
+
+
+def parse_names(text: str | None) -> list[str]:
+    """``"a, b,,c"`` -> ``["a", "b", "c"]``: a comma-separated list as given on the command line
+    or in an environment variable."""
+    return [n.strip() for n in (text or "").split(",") if n.strip()]
+
+
+def decode_logs(paths: list[str], out: Path | None = None,
+                log: Callable[[str], None] = lambda m: None) -> tuple[list[flightmod.Flight], dict[str, str]]:
+    """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
+    there. Returns (flights, quarantined: id -> reason); one unreadable log never stops the others."""
+    from quadcore import flight as flightmod, logformat, store
+
+    try:
+        logs = flightmod.discover_logs(*paths)
+    except FileNotFoundError as exc:
+        raise NoFlightsError(str(exc)) from None
+    if not logs:
+        raise NoFlightsError(f"no log files found in {', '.join(map(str, paths))}")
+    flights, quarantined = [], {}
+    for i, path in enumerate(logs, 1):
+        fid = flightmod.flight_id_of(path)
+        try:
+            fl = flightmod.decode_flight(path)
+        except (logformat.LogFormatError, OSError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+            if out is not None:
+                store.write_quarantine(out, fid, str(path), str(exc), type(exc).__name__)
+            quarantined[fid] = reason
+            log(f"[{i}/{len(logs)}] {fid}: QUARANTINED ({reason})")
+            continue
+        if out is not None:
+            store.write_decoded(out, fl)
+            store.clear_quarantine(out, fid)
+        flights.append(fl)
+        warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""
+        log(f"[{i}/{len(logs)}] {fid}: {fl.provenance.rows}{warn}")
+    return flights, quarantined
+
+
+def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[str, str] | None = None,
+           warn: Callable[[str], None] = lambda m: None) -> Fleet:
+    """The flights the physics can use with ``vehicle``; each other one is skipped with its
+    reason, said through ``warn``."""
+    from quadcore import checks
+
+    good, unusable = checks.usable_flights(tables, vehicle)  # one table at a time
+    skipped = {**(skipped or {}), **unusable}
+    for fid, why in unusable.items():
+        warn(f"{fid} skipped: {why}")
+    return Fleet(_subset(tables, good), skipped)
+
+
+def fleet_from_logs(paths: list[str], vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
+    """Decode the logs under ``paths`` (nothing written) and keep the flights the physics can use.
+    Raises :class:`NoFlightsError` when none is left."""
+    flights, quarantined = decode_logs(paths)
+    for fid, why in quarantined.items():
+        warn(f"{fid} skipped: {why}")
+    tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
+    no_main = {f.flight_id: f"no {MAIN_EVENT!r} records" for f in flights if MAIN_EVENT not in f.tables}
+    for fid, why in no_main.items():
+        warn(f"{fid} skipped: {why}")
+    fleet = usable(tables, vehicle, {**{f: f"quarantined: {w}" for f, w in quarantined.items()}, **no_main}, warn)
+    if not fleet.tables:
+        raise NoFlightsError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
+                             f"{MAIN_EVENT!r} records)")
+    return fleet
+
+
+def fleet_from_store(root, vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
+    """Every decoded flight under the data root that the physics can use."""
+    from quadcore import store
+
+    return usable(store.read_all_decoded(root, MAIN_EVENT), vehicle, warn=warn)
+
+
+def named_holdout(requested: list[str], flights: Iterable[str], where: str = "the flights") -> list[str]:
+    """The requested held-out flights, checked against ``flights``.
+
+    Raises :class:`HoldoutError` if one is not among them (it is never silently dropped: the
+    scores would then be on other flights than the user asked for) or if every flight is held
+    out. An empty request is returned as is (the caller picks its default)."""
+    flights = list(flights)
+    unknown = [h for h in requested if h not in flights]
+    if unknown:
+        raise HoldoutError(f"holdout flight(s) not found in {where}: {', '.join(unknown)} "
+                           f"(a misspelt id, or a log that could not be read); flights: {', '.join(sorted(flights))}")
+    if requested and not set(flights) - set(requested):
+        raise HoldoutError("every flight is held out: nothing left to fit on")
+    return list(requested)
+
+
+def held_out(requested: list[str], flights: list[str], where: str = "the decoded flights") -> tuple[list[str], str]:
+    """(flights never fitted on, note): the named holdout (checked: :func:`named_holdout`), or
+    else the project's default held-out flight (jana02, or the last flight where there is no
+    jana02). The physics model, its diagnosis and the learned models all leave these out, so
+    none is scored on (or chosen with) a flight it has seen."""
+    from quadcore import learning
+
+    named = named_holdout(requested, flights, where)
+    if named:
+        return named, ""
+    flight, note = learning.resolve_holdout(learning.DEFAULT_HOLDOUT, flights)
+    return [flight], note
+
+
+def scored_flights(flights: Iterable[str], named: list[str], held_out: list[str]) -> tuple[list[str], list[str]]:
+    """(the flights a diagnosis or discovery sees, the flights it scores on; empty: it
+    cross-validates over the ones it sees).
+
+    With a named holdout, every flight, scored on the named ones. Without, cross-validation
+    over the flights the physics model is fitted on: ``held_out`` (the flight the learned
+    models are scored on) is left out, so that no effect or term is chosen with it."""
+    flights = list(flights)
+    if named:
+        return flights, list(named)
+    return [f for f in flights if f not in held_out], []
+
+
+def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrust_map: str | None = None,
+                  effects: list[str] | None = None, sessions_file: str | None = None) -> ModelSpec:
+    """The physics model a run asks for: a model file (its vehicle, effects, fixed parameters
+    and plugins), else just the vehicle (``vehicle_name``: built-in name or file, default the
+    Crazyflie 2.1); non-empty ``effects`` replace the effect list (keeping the file as the
+    source); ``thrust_map`` overrides the vehicle's; ``sessions_file`` (``--sessions``,
+    ``QUADCORE_SESSIONS``) joins the spec, so that its digest, and hence the fit's freshness,
+    follows the file's content.
+
+    Raises :class:`quadcore.model.ModelFileError`, :class:`quadcore.vehicle.VehicleFileError` or
+    :class:`quadcore.effects.UnknownEffectError` with the reason."""
+    from quadcore import model, vehicle
+
+    if model_file:
+        spec = model.load_model_file(model_file, vehicle_override=vehicle_name or None)
+    else:
+        spec = model.spec_from(vehicle.load(vehicle_name or None), [])
+    if effects:
+        spec = spec.with_effects(effects)
+    if thrust_map:
+        spec.vehicle = spec.vehicle.with_thrust_map(thrust_map)
+    if sessions_file:
+        spec.sessions_file = str(sessions_file)
+    return spec
+
+
+def sessions_of(spec: ModelSpec, flights: list[str]) -> dict[str, list[str]] | None:
+    """The sessions file's groups among ``flights`` (session -> flights), or None without one
+    (the workflows then use the model file's sessions, or the groups the data show).
+    Raises :class:`quadcore.sessions.SessionsFileError` (a :class:`WorkflowError`)."""
+    from quadcore import sessions
+
+    if not spec.sessions_file:
+        return None
+    try:
+        return sessions.read_sessions_file(spec.sessions_file, flights)
+    except sessions.SessionsFileError as exc:
+        raise WorkflowError(str(exc)) from None

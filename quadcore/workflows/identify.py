@@ -1,0 +1,172 @@
+"""Identification workflows: fit the model a spec names, diagnose what it misses, discover the
+terms the library lacks, and write each result where it belongs under the data root (or where
+the CLI was told to). The CLI and the assets call these; they only print or attach metadata."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, scored_flights, sessions_of
+
+if TYPE_CHECKING:
+    from quadcore.discovery import Discovery
+    from quadcore.model import FittedModel, ModelSpec, PhysicsModel
+
+Log = Callable[[str], None]
+
+
+def _quiet(msg: str) -> None:
+    pass
+
+
+def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet) -> FittedModel:
+    """The spec's effects fitted on every flight of the fleet but the held-out ones
+    (:func:`quadcore.workflows.fleet.held_out` of ``holdout``: the named ones, else the
+    project's default), per session where the spec asks (sessions from its sessions file, its
+    model file, or the data)."""
+    from quadcore import fitting, model
+
+    if len(fleet.tables) < 2:
+        raise WorkflowError("fitting needs at least two usable decoded flights (one is held out)")
+    held, note = held_out(holdout, fleet.ids)
+    if note:
+        log(note)
+    train = [f for f in fleet.tables if f not in held]
+    log(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
+    fitted = fitting.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log)
+    return model.FittedModel.of(fitted, spec, train, held)
+
+
+def save_fit(root, fitted: FittedModel) -> Path:
+    """Write the fitted model file (``store.physics_model_path``)."""
+    from quadcore import store
+
+    return store.write_json(fitted.to_dict(), store.physics_model_path(root))
+
+
+def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
+    """The fitted model under ``root`` if it was fitted for ``spec`` as it is now
+    (:func:`quadcore.model.fitted_for`), else the nominal vehicle (said through ``warn`` when
+    the spec has effects: the fit has not been made for it yet)."""
+    from quadcore import model, store
+
+    path = store.physics_model_path(root)
+    if path.is_file():
+        saved = store.read_json(path)
+        if model.fitted_for(saved, spec):
+            model.load_plugins(saved)
+            return model.PhysicsModel.from_dict(saved, spec.vehicle)
+    if spec.effects:
+        warn(f"physics_model has not fitted {spec.effects} as the model file now asks: using the "
+             "nominal model; materialise physics_model first")
+    return model.PhysicsModel(spec.vehicle, [])
+
+
+def fit_is_stale(root, spec: ModelSpec) -> bool:
+    """Whether the saved fit was made for another spec than ``spec`` (an effect added, a fixed
+    value changed, a sessions file edited...). False when nothing is fitted."""
+    from quadcore import model, store
+
+    path = store.physics_model_path(root)
+    return path.is_file() and not model.fitted_for(store.read_json(path), spec)
+
+
+# --- diagnosis -----------------------------------------------------------------------------
+
+def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
+                      where: str = "the decoded flights") -> tuple[Fleet, list[str] | None]:
+    """(the flights a diagnosis or discovery sees, its holdout or None for cross-validation).
+    ``named``: the requested holdout (checked). Without one and with ``default_held`` (the data
+    root's fleet, where the learned models hold a flight out) that flight is left out of the
+    cross-validation; the CLI cross-validates over every flight it is given."""
+    held, _ = held_out(named, fleet.ids, where) if named or default_held else ([], "")
+    seen, holdout = scored_flights(fleet.ids, named, held)
+    return fleet.only(seen), holdout or None
+
+
+def diagnose(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> dict:
+    """:func:`quadcore.diagnosis.diagnose` on the fleet, with the flights skipped on the way
+    (``skipped_flights``): the JSON document ``quadcore diagnose --json`` and
+    ``reports/diagnosis.json`` hold."""
+    from quadcore import diagnosis
+
+    result = diagnosis.diagnose(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids))
+    return {**result, "skipped_flights": fleet.skipped}
+
+
+def diagnosis_json(result: dict) -> str:
+    """The diagnosis as its JSON text (the contract ``tests/test_json_contracts.py`` pins)."""
+    return json.dumps(result, indent=2, default=float)
+
+
+def write_diagnosis_json(result: dict, path) -> Path:
+    from quadcore import store
+
+    return store.write_text(diagnosis_json(result), path)
+
+
+def discovery_for(reports_dir, effects: list[str]) -> dict | None:
+    """The discovery kept in ``reports_dir`` (``discovery.json``), if it was made on top of these
+    effects (otherwise it is about another model, and left out)."""
+    from quadcore import store
+
+    path = Path(reports_dir) / store.DISCOVERY_FILE
+    disc = store.read_json(path) if path.is_file() else None
+    return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
+
+
+def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, Path]:
+    """The diagnosis report (Markdown and HTML, with the plots) in ``reports_dir``, with the
+    discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
+    history. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
+    from quadcore import history, report
+
+    hist = history.read(root) if root is not None else None
+    return report.write(result, Path(reports_dir), hist, discovery_for(reports_dir, result["effects_in_model"]))
+
+
+def record_diagnosis(root, result: dict, spec: ModelSpec) -> tuple[Path, Path]:
+    """Write a data root's diagnosis: ``reports/diagnosis.json``, a row of the error history and
+    the report. Returns the report's (md, html)."""
+    from quadcore import history, store
+
+    write_diagnosis_json(result, store.diagnosis_path(root))
+    b, ev = result["baseline"], result["evaluation"]
+    history.record(root, "diagnosis", result["model"]["label"], b["force_rmse_N"], b["torque_rmse_Nm"],
+                   spec.effects, {e["name"]: e["params"] for e in result["model"]["effects"]},
+                   ev["mode"], ev["eval_flights"])
+    return write_diagnosis_report(result, store.reports_dir(root), root)
+
+
+def suggestion(result: dict) -> str | None:
+    """The diagnosis' top candidate if it is found (explains something, significantly)."""
+    useful = [r for r in result["candidates"] if r["useful"]]
+    return useful[0]["effect"] if useful else None
+
+
+# --- discovery -----------------------------------------------------------------------------
+
+MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
+
+
+def can_discover(fleet: Fleet, holdout: list[str] | None) -> bool:
+    return len(fleet.tables) - len(holdout or []) >= MIN_DISCOVERY_TRAINING
+
+
+def discover(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> Discovery:
+    """:func:`quadcore.discovery.discover` on the fleet (:class:`WorkflowError` with fewer than
+    two training flights)."""
+    from quadcore import discovery
+
+    if not can_discover(fleet, holdout):
+        raise WorkflowError("discovery needs at least two training flights (its folds are grouped by flight)")
+    return discovery.discover(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids))
+
+
+def write_discovery(result: Discovery, path) -> Path:
+    from quadcore import store
+
+    return store.write_json(result.to_dict(), path)

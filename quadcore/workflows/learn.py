@@ -1,0 +1,197 @@
+"""Learning workflows: the residual tables the learned models learn from, the feature sets, the
+training with its holdout checked against the physics fit, and the report. ``quadcore train``
+and the learning assets call these."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from quadcore.model import PLUGINS, SPEC_DIGEST
+from quadcore.workflows.fleet import WorkflowError, held_out
+
+if TYPE_CHECKING:
+    import polars as pl
+
+    from quadcore.features import FeatureSet
+    from quadcore.learning import LearnerSpec, Plan, TrainConfig
+    from quadcore.model import PhysicsModel
+
+Log = Callable[[str], None]
+
+
+def _quiet(msg: str) -> None:
+    pass
+
+
+@dataclass(frozen=True)
+class LearningRequest:
+    """What to train: model kinds, each kind's options (``depth=4,trees=300``, ``hidden=64x64``),
+    the comparisons, and the training settings."""
+
+    models: tuple[str, ...] = ("xgboost", "mlp")
+    options: dict[str, str] = field(default_factory=dict)  # kind -> options
+    loo: bool = False
+    compare: bool = True
+    stride: int = 5
+    seed: int = 0
+    threads: int = 1
+
+    def learner_specs(self) -> dict[str, LearnerSpec]:
+        """Kind -> learner spec (:class:`quadcore.learning.LearningError` for a bad option or kind)."""
+        from quadcore import learning
+
+        if not self.models:
+            raise learning.LearningError("no model kind named")
+        if self.stride < 1 or self.threads < 1:
+            raise learning.LearningError("stride and threads must be at least 1")
+        return {k: learning.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
+
+    def config(self) -> TrainConfig:
+        from quadcore import learning
+
+        return learning.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
+
+
+def residual_tables(tables: dict[str, pl.DataFrame], physics: PhysicsModel) -> dict[str, pl.DataFrame]:
+    """Each flight's residual table against ``physics``, with its session's values and thrust map."""
+    return {fid: physics.for_flight(fid).residual_table(df) for fid, df in tables.items()}
+
+
+def physics_of_residuals(root) -> dict:
+    """The physics model the data root's residual tables were computed against (their metadata),
+    with the flights its effects were fitted on and the digest of the spec it was fitted for when
+    the fitted model file is that model.
+    :class:`WorkflowError` when the tables were computed against different models (some not
+    refreshed after a refit)."""
+    from quadcore import store
+
+    files = sorted((store.as_root(root) / "residuals").glob("flight=*/data.parquet"))
+    models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
+    distinct = {json.dumps(m, sort_keys=True) for m in models.values()}
+    if len(distinct) > 1:
+        def users(d: str) -> int:
+            return sum(json.dumps(m, sort_keys=True) == d for m in models.values())
+        latest = json.loads(max(distinct, key=users))
+        stale = sorted(f for f, m in models.items() if m != latest)
+        raise WorkflowError(
+            f"the residual tables were computed against different physics models (not refreshed after a "
+            f"refit?): re-materialise residual_table for {', '.join(stale)}")
+    physics: dict = next(iter(models.values()), {})
+    fitted = store.physics_model_path(root)
+    if fitted.is_file():
+        saved = store.read_json(fitted)
+        if [e["name"] for e in saved.get("effects", [])] == [e["name"] for e in physics.get("effects", [])]:
+            physics["trained_on"] = saved.get("trained_on")
+            physics[SPEC_DIGEST] = saved.get(SPEC_DIGEST)
+            if saved.get(PLUGINS):  # a learned model's manifest must name them for export-c
+                physics[PLUGINS] = saved[PLUGINS]
+    return physics
+
+
+def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int]:
+    """Every feature set's table per flight from the data root's residual tables (swapped in
+    whole under ``features/``). Returns (the sets, the number of flights)."""
+    from quadcore import features as feat
+
+    physics = physics_of_residuals(root)  # every residual table against one physics model
+    res = feat.read_residual_tables(root)
+    if not res:
+        raise WorkflowError(f"no residual tables in {Path(root) / 'residuals'}: materialise residual_table first")
+    try:
+        sets = feat.parse(feature_sets)
+        feat.replace_feature_tables(root, res, sets, {"model": physics.get("label", "")})
+    except feat.FeatureError as exc:
+        raise WorkflowError(str(exc)) from None
+    return sets, len(res)
+
+
+def learning_holdout(requested: str | None, flights: list[str], named_model_holdout: list[str] = (),
+                     explicit: bool = False) -> tuple[str, str]:
+    """(the flight the learned models are scored on, note): ``requested`` (with ``explicit``, it
+    must exist), else the physics model's held-out flight (:func:`held_out` of its named
+    holdout: the same default everywhere)."""
+    from quadcore import learning
+
+    if requested:
+        return learning.resolve_holdout(requested, flights, explicit=explicit)
+    (holdout, *_), note = held_out(list(named_model_holdout), flights)
+    return holdout, note
+
+
+@dataclass(frozen=True)
+class TrainedRuns:
+    """What a training wrote under ``out_dir``: the run records, the holdout and the plan's notes."""
+
+    records: tuple[dict, ...]
+    holdout: str
+    notes: tuple[str, ...]
+    out_dir: Path
+
+
+def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
+          request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet) -> TrainedRuns:
+    """Plan the experiments (:func:`quadcore.learning.plan`) and run them into ``out_dir``.
+    Refuses a holdout the physics model's effects were fitted on: the learned models would be
+    scored on a flight the physics under them has seen."""
+    from quadcore import learning
+
+    if holdout in (physics.get("trained_on") or []):
+        raise learning.LearningError(
+            f"the physics model's effects were fitted on {holdout}, the flight the learned models are scored "
+            f"on: re-materialise physics_model with the same holdout, then residual_table")
+    flights = sorted(next(iter(tables_by_set.values())))
+    plan: Plan = learning.plan(flights, sets, list(request.models), holdout, flight_kinds, request.loo,
+                               request.compare, request.learner_specs())
+    for n in plan.notes:
+        log(f"note: {n}")
+    log(f"training {len(plan.experiments)} models, holdout {holdout} -> {out_dir}")
+    records = learning.run_plan(plan, tables_by_set, Path(out_dir), physics, request.config(), flight_kinds, log=log)
+    return TrainedRuns(tuple(records), holdout, tuple(plan.notes), Path(out_dir))
+
+
+def write_learning_report(root, residuals: dict[str, pl.DataFrame] | None = None,
+                          trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
+    """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
+    data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
+    Returns (report, plots, paths)."""
+    from quadcore import evaluation, features as feat, learning, store
+
+    index, _ = learning.read_runs(store.learned_dir(root))
+    physics = index.get("physics_model", {})
+    residuals = residuals if residuals is not None else feat.read_residual_tables(root)
+    return evaluation.full_report(store.learned_dir(root), residuals, learning.vehicle_of(physics),
+                                  store.reports_dir(root), root, trained_on)
+
+
+def learning_is_stale(root) -> str | None:
+    """Why the learned models must be retrained now, or None: there are none yet; they were
+    trained on top of another physics model than the residual tables' (other effects, vehicle
+    or thrust map); or for another model spec than the current fit's (``spec_digest``: a fixed
+    value, a per-session effect, a sessions file or a plugin's code changed). A refit on new
+    flights alone waits for the nightly retraining."""
+    from quadcore import store
+
+    index_path = store.learned_dir(root) / "index.json"
+    if not index_path.is_file() or not store.learning_report_path(root).is_file():
+        return "no learned models yet"
+    tables = sorted((store.as_root(root) / "residuals").glob("flight=*/data.parquet"))
+    if not tables:
+        return None
+    current = store.read_metadata(tables[-1]).get("model", {})
+    trained = store.read_json(index_path).get("physics_model", {})
+
+    def kind(m):
+        return ([e["name"] for e in m.get("effects", [])], m.get("vehicle"), m.get("thrust_map"))
+
+    if kind(current) != kind(trained):
+        return f"the physics model changed ({trained.get('label')} -> {current.get('label')})"
+    fitted = store.physics_model_path(root)
+    digest = store.read_json(fitted).get(SPEC_DIGEST) if fitted.is_file() else None
+    if digest is not None and trained.get(SPEC_DIGEST) != digest:
+        return (f"the model spec changed since they were trained (spec {trained.get(SPEC_DIGEST) or 'unknown'} "
+                f"-> {digest}: a fixed value, per-session effect, sessions file or plugin)")
+    return None
