@@ -113,7 +113,7 @@ def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     effects (otherwise it is about another model, and left out)."""
     from quadcore import store
 
-    path = Path(reports_dir) / store.DISCOVERY_FILE
+    path = store.as_root(reports_dir) / store.DISCOVERY_FILE  # a folder here or in an object store
     disc = store.read_json(path) if path.is_file() else None
     return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
 
@@ -125,7 +125,7 @@ def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, 
     from quadcore import history, report
 
     hist = history.read(root) if root is not None else None
-    return report.write(result, Path(reports_dir), hist, discovery_for(reports_dir, result["effects_in_model"]))
+    return report.write(result, reports_dir, hist, discovery_for(reports_dir, result["effects_in_model"]))
 
 
 def record_diagnosis(root, result: dict, spec: ModelSpec) -> tuple[Path, Path]:

@@ -95,12 +95,13 @@ def physics_of_residuals(root) -> dict:
 def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int]:
     """Every feature set's table per flight from the data root's residual tables (swapped in
     whole under ``features/``). Returns (the sets, the number of flights)."""
-    from quadcore import features as feat
+    from quadcore import features as feat, store
 
     physics = physics_of_residuals(root)  # every residual table against one physics model
     res = feat.read_residual_tables(root)
     if not res:
-        raise WorkflowError(f"no residual tables in {Path(root) / 'residuals'}: materialise residual_table first")
+        raise WorkflowError(f"no residual tables in {store.as_root(root) / 'residuals'}: materialise residual_table "
+                            "first")
     try:
         sets = feat.parse(feature_sets)
         feat.replace_feature_tables(root, res, sets, {"model": physics.get("label", "")})
@@ -129,7 +130,7 @@ class TrainedRuns:
     records: tuple[dict, ...]
     holdout: str
     notes: tuple[str, ...]
-    out_dir: Path
+    out_dir: Path  # or a UPath in an object store
 
 
 def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
@@ -149,8 +150,8 @@ def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureS
     for n in plan.notes:
         log(f"note: {n}")
     log(f"training {len(plan.experiments)} models, holdout {holdout} -> {out_dir}")
-    records = learning.run_plan(plan, tables_by_set, Path(out_dir), physics, request.config(), flight_kinds, log=log)
-    return TrainedRuns(tuple(records), holdout, tuple(plan.notes), Path(out_dir))
+    records = learning.run_plan(plan, tables_by_set, out_dir, physics, request.config(), flight_kinds, log=log)
+    return TrainedRuns(tuple(records), holdout, tuple(plan.notes), out_dir)
 
 
 def write_learning_report(root, residuals: dict[str, pl.DataFrame] | None = None,
