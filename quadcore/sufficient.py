@@ -35,14 +35,13 @@ take is a quadratic form, summed over blocks and flights as needed:
 
 So a fleet fit, a fold, a held-out test costs a sum over flights of small matrices: it does
 not grow with the rows, and a new flight adds its own statistics only. Stored per flight under
-``<root>/stats/flight=<id>/stats.npz`` with the :func:`stats_key` they were computed for.
+``<root>/stats/flight=<id>/stats.bin`` with the :func:`stats_key` they were computed for.
 """
 
 from __future__ import annotations
 
 import hashlib
 import inspect
-import io
 import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
@@ -136,24 +135,27 @@ def library_layout() -> Layout:
 
 @dataclass(frozen=True)
 class FlightStats:
-    """One flight's statistics (see the module): ``gram`` (B, 6, W, W) and ``rows`` (B,) per
-    1 s block, ``strided`` (6, W, W), ``noise`` (6,) the sensor-noise floor RMS, and the logged
-    battery voltage's spread and median (a stuck voltage log)."""
+    """One flight's statistics (see the module): ``total`` (6, W, W) the flight's Gram matrix,
+    ``rows`` (B,) per 1 s block, ``strided`` (6, W, W), ``noise`` (6,) the sensor-noise floor
+    RMS, the logged battery voltage's spread and median (a stuck voltage log), and the per-block
+    Gram matrices (B, 6, W, W) :attr:`gram`, given or read when first asked for (``blocks``: a
+    function that returns them): a fit needs only the totals, a held-out test the blocks."""
 
     flight: str
     layout: Layout
     key: str
-    gram: np.ndarray
+    total: np.ndarray
     rows: np.ndarray
     strided: np.ndarray
     noise: np.ndarray
     vbat_std_V: float
     vbat_median_V: float
+    blocks_source: Callable[[], np.ndarray]
 
     @cached_property
-    def total(self) -> np.ndarray:
-        """(6, W, W) the Gram matrix of the whole flight."""
-        return self.gram.sum(axis=0)
+    def gram(self) -> np.ndarray:
+        """(B, 6, W, W) the Gram matrix of each block."""
+        return self.blocks_source()
 
     @property
     def n(self) -> int:
@@ -162,6 +164,13 @@ class FlightStats:
     @property
     def blocks(self) -> int:
         return len(self.rows)
+
+
+def from_blocks(flight: str, layout: Layout, key: str, gram: np.ndarray, rows: np.ndarray, strided: np.ndarray,
+                noise: np.ndarray, vbat_std_V: float, vbat_median_V: float) -> FlightStats:
+    """Statistics from their per-block Gram matrices (``total`` their sum)."""
+    return FlightStats(flight, layout, key, gram.sum(axis=0), rows, strided, noise, vbat_std_V, vbat_median_V,
+                       lambda: gram)
 
 
 def design_rows(fd, vehicle: Vehicle, layout: Layout, extras: dict[str, np.ndarray] | None = None) -> np.ndarray:
@@ -193,10 +202,8 @@ def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
     gram = np.stack([np.einsum("nci,ncj->cij", Z[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) \
         if B else np.zeros((0, 6, layout.width, layout.width))
     thin = Z[::GRAM_STRIDE]
-    vbat = fd.state.vbat_V
-    return FlightStats(fd.flight, layout, key, gram, np.diff(starts), np.einsum("nci,ncj->cij", thin, thin),
-                       np.asarray(fd.noise, dtype=float), float(np.std(vbat[fd.mask])) if fd.mask.any() else 0.0,
-                       float(np.median(vbat)) if len(vbat) else 0.0)
+    return from_blocks(fd.flight, layout, key, gram, np.diff(starts), np.einsum("nci,ncj->cij", thin, thin),
+                       np.asarray(fd.noise, dtype=float), fd.vbat_std_V, fd.vbat_median_V)
 
 
 # ---------------------------------------------------------------------------------------
@@ -346,35 +353,83 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
 
 
 def stats_path(root: Any, flight: str) -> Any:
-    return store.as_root(root) / "stats" / f"flight={check_component(flight, 'flight id')}" / "stats.npz"
+    return store.as_root(root) / "stats" / f"flight={check_component(flight, 'flight id')}" / "stats.bin"
+
+
+def _upper(width: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.triu_indices(width)
+
+
+def _packed(G: np.ndarray) -> np.ndarray:
+    """The upper triangles of symmetric (..., W, W) matrices, (..., W (W + 1) / 2)."""
+    return G[(..., *_upper(G.shape[-1]))]
+
+
+def _unpacked(P: np.ndarray, width: int) -> np.ndarray:
+    i, j = _upper(width)
+    G = np.zeros((*P.shape[:-1], width, width))
+    G[..., i, j] = P
+    G[..., j, i] = P
+    return G
+
+
+MAGIC = b"QCSTATS\n"
+
+
+def _encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each
+    array's dtype, shape and offset), then the arrays' bytes: read back without a parser."""
+    offset, parts, index = 0, [], {}
+    for name, a in arrays.items():
+        a = np.ascontiguousarray(a)
+        index[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
+        parts.append(a.tobytes())
+        offset += a.nbytes
+    text = json.dumps({**header, "arrays": index}).encode()
+    return MAGIC + len(text).to_bytes(8, "little") + text + b"".join(parts)
+
+
+def _decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
+    if not raw.startswith(MAGIC):
+        raise ValueError("no statistics header")
+    length = int.from_bytes(raw[len(MAGIC): len(MAGIC) + 8], "little")
+    start = len(MAGIC) + 8 + length
+    header = json.loads(raw[len(MAGIC) + 8: start])
+
+    def array(name: str) -> np.ndarray:
+        spec = header["arrays"][name]
+        count = int(np.prod(spec["shape"]))
+        return np.frombuffer(raw, np.dtype(spec["dtype"]), count, start + spec["offset"]).reshape(spec["shape"])
+
+    return header, array
 
 
 def save(s: FlightStats, root: Any) -> Any:
-    """Write a flight's statistics under the data root (atomically; an object store too)."""
+    """Write a flight's statistics under the data root (atomically; an object store too). The
+    symmetric matrices are stored as their upper triangles."""
     header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
               "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V}
-
-    def write(tmp: str) -> None:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, header=np.array(json.dumps(header)), gram=s.gram, rows=s.rows, strided=s.strided,
-                     noise=s.noise)
-
-    return store.atomic_write(stats_path(root, s.flight), write)
+    data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
+                            "noise": s.noise, "gram": _packed(s.gram)})
+    return store.atomic_write(stats_path(root, s.flight), lambda tmp: Path(tmp).write_bytes(data))
 
 
 def load(root: Any, flight: str) -> FlightStats:
-    """A flight's stored statistics; :class:`StatsError` when the file is not one."""
+    """A flight's stored statistics (the per-block matrices unpacked when first asked for);
+    :class:`StatsError` when the file is not one."""
     path = stats_path(root, flight)
     raw = path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
     try:
-        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-            header = json.loads(str(z["header"]))
-            layout = header["layout"]
-            return FlightStats(header["flight"], Layout(tuple(layout["effects"]), tuple(layout["sizes"]),
-                                                        tuple(layout["extras"])),
-                               header["key"], z["gram"], z["rows"], z["strided"], z["noise"],
-                               float(header["vbat_std_V"]), float(header["vbat_median_V"]))
-    except (ValueError, KeyError, OSError) as exc:
+        header, array = _decode(raw)
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
+        lay = header["layout"]
+        layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]))
+        width = layout.width
+        return FlightStats(header["flight"], layout, header["key"], _unpacked(array("total"), width), array("rows"),
+                           _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
+                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width))
+    except (ValueError, KeyError, TypeError) as exc:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
 
 
