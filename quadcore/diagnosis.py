@@ -98,7 +98,16 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore import effects as effectlib, evidence, fitting, rotations, sessions as sessionlib, signals, spectrum
+from quadcore import (
+    effects as effectlib,
+    evidence,
+    fitting,
+    rotations,
+    sessions as sessionlib,
+    signals,
+    spectrum,
+    sufficient,
+)
 from quadcore.dynamics import GRAVITY_W_MPS2, XYZ
 from quadcore.fitting import FlightData
 from quadcore.model import EffectTerm, ModelSpec, PhysicsModel
@@ -107,7 +116,6 @@ MIN_EXPLAINED = 0.05  # screening: below this share of the residual a candidate 
 MIN_SIGMA = 3.0  # a fit within this many standard errors of 'no effect' is not significant
 SAME_SIGNATURE = 0.1  # share of one prediction another candidate cannot reproduce, below which they are alike
 TIE_MARGIN = 0.02  # score difference within which two alike candidates are a tie (parsimony decides)
-GRAM_STRIDE = 4  # sample thinning for the signature comparisons (see _SpanOverlap)
 LARGE_SNR = 3.0  # a found effect whose removed residual exceeds this many noise floors (RMS) is "large"
 
 SPEED_BINS = [0.0, 0.25, 0.5, 1.0, 1.5]
@@ -237,11 +245,6 @@ def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
     return functools.reduce(np.add, parts)
 
 
-def _ss(resid: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Sum of squares per channel (6,) on usable samples."""
-    return (resid[mask] ** 2).sum(axis=0)
-
-
 def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
     b = before[channels].sum()
     return float(1.0 - after[channels].sum() / b) if b > 0 else 0.0
@@ -263,6 +266,107 @@ def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
     return out
 
 
+class _Flights:
+    """The diagnosis's flights, in one of two forms, and the rows where they are needed.
+
+    A model of linear effects is scored from the flights' sufficient statistics
+    (:mod:`quadcore.sufficient`: ``flight(f)`` a :class:`~quadcore.sufficient.FlightStats`,
+    every residual and linear prediction a signal vector); a model with a nonlinear effect
+    from rows (``flight(f)`` a :class:`~quadcore.fitting.FlightData`, signals (n, 6) arrays).
+    Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): nonlinear candidates
+    on their training flights, and the evaluated flights' tables and spectra."""
+
+    def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
+        self.decoded, self.spec, self.ids = decoded, spec, ids
+        self._rows: dict[str, FlightData] = {}
+        self.linear = all(effectlib.get(n).linear for n in spec.effects)
+        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
+
+    def rows(self, f: str) -> FlightData:
+        if f not in self._rows:  # a session's thrust map for its state
+            self._rows[f] = fitting.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
+        return self._rows[f]
+
+    def flight(self, f: str):
+        return self.stats[f] if self.stats is not None else self.rows(f)
+
+    def target(self, f: str) -> np.ndarray:
+        if self.stats is not None:
+            return self.stats[f].layout.target()
+        fd = self.rows(f)
+        return np.concatenate([fd.r_f, fd.r_tau], axis=1)
+
+    def signal_rows(self, f: str, signal: np.ndarray) -> np.ndarray:
+        """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are)."""
+        if self.stats is None or signal.ndim == 2:
+            return signal
+        layout = self.stats[f].layout  # the evaluated flights' extra columns are no part of a residual
+        if np.any(signal[layout.width:]):
+            raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
+        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width])
+
+
+def _ss(resid: np.ndarray, flight) -> np.ndarray:
+    """Sum of squares per channel (6,) on usable samples (of a signal vector: from statistics)."""
+    if resid.ndim == 1:
+        return sufficient.sum_of_squares(flight, resid)
+    return (resid[flight.mask] ** 2).sum(axis=0)
+
+
+def _weights(flights: list, signals: list[np.ndarray]) -> np.ndarray:
+    if signals and signals[0].ndim == 1:
+        return sufficient.channel_weights(flights, signals)
+    return fitting.channel_weights([y[fd.mask] for fd, y in zip(flights, signals)])
+
+
+def _evaluated(fl: _Flights, eval_ids: list[str], cands, cand_pred: dict, eval_resid: dict, by_rows: dict) -> list:
+    """The evaluated flights as the scores take them. From statistics, a nonlinear candidate's
+    held-out prediction (and its unit wrenches, :func:`detection_limits`) are extra columns
+    of the evaluated flights' statistics (``pred:``, ``unit:``, ``ref:`` + its name; their rows
+    read once), and the signals of ``cand_pred`` and ``eval_resid`` are moved into that layout."""
+    if fl.stats is None:
+        return [fl.rows(f) for f in eval_ids]
+    nonlinear = [c for c in cands if by_rows[c.name]]
+    if not nonlinear:
+        return [fl.stats[f] for f in eval_ids]
+    vehicle, out = fl.spec.vehicle, []
+    for f in eval_ids:
+        fd, base = fl.rows(f), fl.stats[f]
+        extras = {}
+        for c in nonlinear:
+            extras[f"pred:{c.name}"] = cand_pred[c.name][f]
+            extras.update({f"unit:{c.name}:{p.name}": evidence.unit_wrench(c, p, fd, vehicle) for p in c.parameters})
+            if c.sensitivity_reference:
+                ref = {**c.defaults(), **c.sensitivity_reference}
+                extras[f"ref:{c.name}"] = fitting.prediction(c, ref, fd, vehicle)
+        layout = base.layout.with_extras(list(extras))
+        s = sufficient.flight_stats(fd, vehicle, layout, base.key, extras)
+        eval_resid[f] = layout.pad(eval_resid[f])
+        for c in cands:
+            cand_pred[c.name][f] = (layout.unit(layout.extra(f"pred:{c.name}")) if by_rows[c.name]
+                                    else layout.pad(cand_pred[c.name][f]))
+        out.append(s)
+    return out
+
+
+def _unit(c, p, fd, vehicle) -> np.ndarray:
+    """:func:`quadcore.evidence.unit_wrench` on rows, or as a signal vector on statistics."""
+    if isinstance(fd, FlightData):
+        return evidence.unit_wrench(c, p, fd, vehicle)
+    if c.linear:
+        return sufficient.unit_vector(c, p, fd, vehicle, evidence.SECANT)
+    return fd.layout.unit(fd.layout.extra(f"unit:{c.name}:{p.name}"))
+
+
+def _reference_ss(c, fd, vehicle) -> float:
+    """Energy of a candidate's prediction at its sensitivity reference on a flight's usable samples."""
+    ref = {**c.defaults(), **c.sensitivity_reference}
+    if isinstance(fd, FlightData):
+        return float((fitting.prediction(c, ref, fd, vehicle)[fd.mask] ** 2).sum())
+    v = (fd.layout.coefficients(c, ref, vehicle) if c.linear else fd.layout.unit(fd.layout.extra(f"ref:{c.name}")))
+    return float(sufficient.sum_of_squares(fd, v).sum())
+
+
 def diagnose(
     decoded: dict[str, pl.DataFrame],
     spec: ModelSpec,
@@ -271,18 +375,40 @@ def diagnose(
     n_folds: int = 5,
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
+    stats=None,
 ) -> dict:
     """Fit the model, score it on held-out flights, rank the missing effects, and find the
     parameters that differ between groups of flights (``sessions``: name -> flights, from a
-    sessions file; None: groups found from the data). JSON-ready dict."""
+    sessions file; None: groups found from the data). JSON-ready dict.
+
+    With a model of linear effects, fits, folds and held-out tests combine the flights'
+    sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
+    decoded table); nonlinear candidates read their training flights' rows, and the evaluated
+    flights' rows give the regime tables and spectra."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
-    fds = {fid: fitting.flight_data(fid, decoded[fid], spec.vehicle_for(fid)) for fid in ids}  # a session's map
-    targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     model_effects = [effectlib.get(n) for n in spec.effects]
     names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
                                                        if n not in spec.effects and e.offered]
     cands = [effectlib.get(n) for n in names]
+    fl = _Flights(decoded, spec, ids, sufficient.layout_of(model_effects + cands), stats)
+    fds = {f: fl.flight(f) for f in ids}
+    targets = {f: fl.target(f) for f in ids}
+    by_rows = {c.name: fl.stats is not None and not c.linear for c in cands}  # fitted from rows, not statistics
+
+    def fit_candidate(c, flights: list[str], resid: dict) -> fitting.Fit:
+        if by_rows[c.name]:
+            return fitting.fit_effects([c], [fl.rows(f) for f in flights], [row_resid(f, resid) for f in flights],
+                                       vehicle)
+        return fitting.fit_effects([c], [fds[f] for f in flights], [resid[f] for f in flights], vehicle)
+
+    row_cache: dict[tuple[int, str], np.ndarray] = {}
+
+    def row_resid(f: str, resid: dict) -> np.ndarray:
+        key = (id(resid), f)  # a fold's residual turned into rows once for all nonlinear candidates
+        if key not in row_cache:
+            row_cache[key] = fl.signal_rows(f, resid[f])
+        return row_cache[key]
 
     holdout = [h for h in (holdout or [])]
     if holdout:
@@ -309,10 +435,10 @@ def diagnose(
             fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train], vehicle, spec.fixed)
             resid = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in {*train, *test}}
         for c in cands:
-            fit_c = fold_fits[c.name] = fitting.fit_effects([c], tr, [resid[f] for f in train], vehicle)
+            fit_c = fold_fits[c.name] = fit_candidate(c, train, resid)
             fold_params[c.name].append(fit_c.params[c.name])
             for f in test:
-                cand_pred[c.name][f] = fit_c.predict([c], fds[f], vehicle)
+                cand_pred[c.name][f] = fit_c.predict([c], fl.rows(f) if by_rows[c.name] else fds[f], vehicle)
         for f in test:
             eval_resid[f] = resid[f]
     # With a single split on all training flights (holdout), its fits are the final ones.
@@ -335,13 +461,13 @@ def diagnose(
         for group in fitting.folds(train_all, n_folds):
             sub = [f for f in train_all if f not in group]
             for c in cands:
-                fit_g = fitting.fit_effects([c], [fds[f] for f in sub], [resid_train[f] for f in sub], vehicle)
-                fold_params[c.name].append(fit_g.params[c.name])
+                fold_params[c.name].append(fit_candidate(c, sub, resid_train).params[c.name])
         fold_params = {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
 
     eval_ids = sorted(eval_resid)
-    before = _total(_ss(eval_resid[f], fds[f].mask) for f in eval_ids)
-    n_eval = sum(int(fds[f].mask.sum()) for f in eval_ids)
+    eval_fds = _evaluated(fl, eval_ids, cands, cand_pred, eval_resid, by_rows)
+    before = _total(_ss(eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
+    n_eval = sum(fd.n for fd in eval_fds)
     baseline = {
         "force_rmse_N": [float(np.sqrt(before[j] / n_eval)) for j in range(3)],
         "torque_rmse_Nm": [float(np.sqrt(before[3 + j] / n_eval)) for j in range(3)],
@@ -349,19 +475,17 @@ def diagnose(
 
     # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
     # holds no evidence FOR an effect (only against one that would add error there).
-    noise_ss = _total(fds[f].noise ** 2 * int(fds[f].mask.sum()) for f in eval_ids)
+    noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss)
-    eval_fds = [fds[f] for f in eval_ids]
 
     rows: list[dict[str, Any]] = []
-    w = fitting.channel_weights([eval_resid[f][fds[f].mask] for f in eval_ids])
+    w = _weights(eval_fds, [eval_resid[f] for f in eval_ids])
     for c in cands:
-        after = _total(_ss(eval_resid[f] - cand_pred[c.name][f], fds[f].mask) for f in eval_ids)
+        after = _total(_ss(eval_resid[f] - cand_pred[c.name][f], fd) for f, fd in zip(eval_ids, eval_fds))
         raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
         ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
         target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
-        fit_c = (fold_fits[c.name] if reuse
-                 else fitting.fit_effects([c], tr, [resid_train[f] for f in train_all], vehicle))
+        fit_c = fold_fits[c.name] if reuse else fit_candidate(c, train_all, resid_train)
         params = fit_c.params[c.name]
         spread = _jackknife_std(fold_params[c.name])
         # the larger of the sample-based error and the spread between groups of flights: flights
@@ -464,9 +588,17 @@ def diagnose(
 
     # Parameters that differ between sessions: the model's effects, and the best candidate beside them
     best = [effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
-    disagree = sessionlib.disagreements(model_effects + best, fds, targets, vehicle, spec.fixed, sessions, log)
+    if all(e.linear for e in model_effects + best):
+        disagree = sessionlib.disagreements(model_effects + best, fds, targets, vehicle, spec.fixed, sessions, log)
+    else:  # a nonlinear effect: fitted on each flight's rows
+        disagree = sessionlib.disagreements(model_effects + best, {f: fl.rows(f) for f in ids},
+                                            {f: fl.signal_rows(f, targets[f]) for f in ids}, vehicle, spec.fixed,
+                                            sessions, log)
 
-    long = long_table([fds[f] for f in eval_ids], eval_resid, vehicle)
+    # the evaluated flights' rows: the residual by regime, by flight, in time and in frequency
+    eval_rows = [fl.rows(f) for f in eval_ids]
+    resid_rows = {f: fl.signal_rows(f, eval_resid[f]) for f in eval_ids}
+    long = long_table(eval_rows, resid_rows, vehicle)
     text = verdict(rows, at_noise, sensitivity)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
@@ -491,7 +623,7 @@ def diagnose(
         "regimes": regime_table(long).to_dicts(),
         "flights": flight_table(long).to_dicts(),
         "worst_segments": worst_segments(long).to_dicts(),
-        "frequency": spectrum.frequency_view([fds[f] for f in eval_ids], eval_resid, vehicle),
+        "frequency": spectrum.frequency_view(eval_rows, resid_rows, vehicle),
     }
 
 
@@ -595,10 +727,9 @@ def detection_limits(cands, flights: list[FlightData], resid: dict[str, np.ndarr
         reference = c.sensitivity_reference
         base_ss = 0.0
         if reference:
-            ref = {**c.defaults(), **reference}
-            base_ss = sum(float((fitting.prediction(c, ref, fd, vehicle)[fd.mask] ** 2).sum()) for fd in flights)
+            base_ss = sum(_reference_ss(c, fd, vehicle) for fd in flights)
         for p in c.parameters:
-            unit = {fd.flight: evidence.unit_wrench(c, p, fd, vehicle) for fd in flights}
+            unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
             conditional = bool(reference) and p.name not in reference
             v = evidence.detection_limit(flights, resid, unit, noise_ss, MIN_SIGMA, n_candidates,
                                          min_share=2 * TIE_MARGIN if conditional else 0.0,
@@ -688,15 +819,29 @@ class _SpanOverlap:
         sw = np.sqrt(w)
         self.gram = {"force": np.zeros((k, k)), "torque": np.zeros((k, k))}
         for fd in flights:
+            if not isinstance(fd, FlightData):  # statistics: the same Gram from the strided one
+                self._add_stats(fd, cands, cand_pred, resid, w, vehicle)
+                continue
             # every GRAM_STRIDE-th usable sample: the signals are smoothed over a 31-sample
             # window, so the thinned sums give the same energy ratios at a fraction of the cost
-            m = np.flatnonzero(fd.mask)[::GRAM_STRIDE]
+            m = np.flatnonzero(fd.mask)[::sufficient.GRAM_STRIDE]
             blocks = [resid[fd.flight][m][:, :, None]] + [cand_pred[c.name][fd.flight][m][:, :, None] for c in cands]
             for c in cands:
                 blocks.append(fd.basis(c, vehicle)[m] if c.linear else cand_pred[c.name][fd.flight][m][:, :, None])
             Z = np.concatenate(blocks, axis=2) * sw[None, :, None]  # (m, 6, k)
             for ch, sl in TARGET_CHANNELS.items():
                 self.gram[ch] += np.einsum("nci,ncj->ij", Z[:, sl, :], Z[:, sl, :])
+
+    def _add_stats(self, s, cands, cand_pred, resid, w, vehicle) -> None:
+        """One flight's part from its statistics: the columns above as signal vectors ``T``,
+        ``Tᵀ (Σ_c w_c G_c) T`` per channel group, ``G`` the strided Gram matrix."""
+        cols = [resid[s.flight]] + [cand_pred[c.name][s.flight] for c in cands]
+        for c in cands:
+            cols += ([s.layout.unit(i) for i in s.layout.cols(c.name)] if c.linear
+                     else [cand_pred[c.name][s.flight]])
+        T = np.stack(cols, axis=1)
+        for ch, sl in TARGET_CHANNELS.items():
+            self.gram[ch] += T.T @ np.tensordot(w[sl], s.strided[sl], axes=1) @ T
 
     def _G(self, channel: str | None) -> np.ndarray:
         return self.gram[channel] if channel else self.gram["force"] + self.gram["torque"]

@@ -173,7 +173,7 @@ def detection_limit(flights: list[FlightData], resid: dict[str, np.ndarray], uni
     ``min_share``, the injected part must also be that share of the channel's residual plus
     ``base_ss`` (the energy of a reference effect it rides on)."""
     z_power = float(stats.norm.isf(1 - POWER))
-    n = sum(int(fd.mask.sum()) for fd in flights)
+    n = sum(fd.n for fd in flights)
     best = np.inf
     for ch in CHANNELS:
         w = channel_mask([ch])

@@ -129,3 +129,34 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     es = [effects.get(n) for n in spec.effects]
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
     _close({t.name: t.params for t in fitted.terms}, rows.params, rel=1e-7)
+
+
+class _OnlyThese(dict):
+    """Decoded tables where only the named flights' rows may be read."""
+
+    def __init__(self, tables: dict, readable: set[str]):
+        super().__init__({f: None for f in tables})
+        self._tables, self._readable = tables, readable
+
+    def __getitem__(self, flight):
+        assert flight in self._readable, f"{flight}'s rows were read"
+        return self._tables[flight]
+
+
+def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_fleet, fleet):
+    """Model, candidates, folds, held-out tests, sensitivity and disagreements from the stored
+    statistics: the training flights' rows are never read, the held-out flight's are (its
+    regime tables and spectra)."""
+    from quadcore import diagnosis
+
+    _, stats = fleet
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
+    held = sorted(tables)[-1]
+    linear = [n for n in LINEAR if n != "rotor_drag"]
+    spec = model.spec_from(VEHICLE, ["rotor_drag"])
+    result = diagnosis.diagnose(_OnlyThese(tables, {held}), spec, [held], linear, stats=stats.get)
+    again = diagnosis.diagnose(tables, spec, [held], linear)  # statistics computed from the rows
+    assert result["verdict"] == again["verdict"]
+    assert [r["effect"] for r in result["candidates"]] == [r["effect"] for r in again["candidates"]]
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        assert result["baseline"][key] == pytest.approx(again["baseline"][key], rel=1e-9)
