@@ -63,6 +63,7 @@ import functools
 import re
 import textwrap
 import warnings
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -501,7 +502,7 @@ def _order_and_prune(fold_grams, stable: list[int], y: int) -> list[int]:
 
 
 def discover(
-    decoded: dict[str, pl.DataFrame],
+    decoded: Mapping[str, pl.DataFrame],
     spec: ModelSpec,
     holdout: list[str] | None = None,
     n_folds: int = 5,
@@ -511,40 +512,49 @@ def discover(
 ) -> Discovery:
     """Find the terms the model lacks (see the module docstring). ``sessions`` (name ->
     flights, from a sessions file) group the flights of per-session effects, as in
-    :func:`quadcore.diagnosis.diagnose`; None: the model file's, else the groups the data show."""
+    :func:`quadcore.diagnosis.diagnose`; None: the model file's, else the groups the data show.
+
+    Flight by flight: each flight's rows become its Gram matrix (the statistics the selection,
+    the folds and the coefficients combine) and are dropped; the evaluated flights are read again
+    for the held-out RMSE. ``decoded`` may read each table as it is looked up
+    (:class:`quadcore.store.FlightTables`). Fitting the model's own effects reads the training
+    flights' rows together (and every flight's for per-session effects)."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
     train = [f for f in ids if f not in holdout]
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
-    fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}  # a session's map
-    targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
-    model_effects = [effectlib.get(n) for n in spec.effects]
-    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
-        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
-        resid = {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in ids}
-    elif model_effects:
-        log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
-        fit = fitting.fit_effects(model_effects, [fds[f] for f in train], [targets[f] for f in train], vehicle,
-                                  spec.fixed)
-        resid = {f: targets[f] - fit.predict(model_effects, fds[f], vehicle) for f in ids}
-    else:
-        resid = targets
+    predict = _model_fit(spec, decoded, ids, train, sessions, log)
 
-    vars_ = variables(fds[ids[0]].state, vehicle)
-    if any(fds[f].state.motor_radps is None for f in ids):  # motor terms only when every flight has them
-        vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
-    terms = library(vars_)
+    def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
+        """One flight's rows and its residual under the model."""
+        fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
+        target = fitting.targets_of([fd])[0]
+        return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
+
+    # motor terms only when every flight has them (read off the columns, before any Gram matrix)
+    motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
     fx_effects = list(effectlib.registry().values())
-    cols = _columns(terms, fx_effects)
-    log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
-        f"accumulating on {len(ids)} flights")
-    grams = {f: _flight_gram(fds[f], resid[f], cols, fx_effects, vehicle, stride) for f in ids}
+    grams: dict[str, np.ndarray] = {}
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    for f in ids:
+        fd, r = flight(f)
+        if not grams:
+            vars_ = variables(fd.state, vehicle)
+            if not motors:
+                vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
+            terms = library(vars_)
+            cols = _columns(terms, fx_effects)
+            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
+                f"accumulating on {len(ids)} flights")
+        grams[f] = _flight_gram(fd, r, cols, fx_effects, vehicle, stride)
+        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
     folds = fitting.folds(train, n_folds)
     fold_grams = [(sum(grams[f] for f in train if f not in fold), sum(grams[f] for f in fold)) for fold in folds]
     G_train = sum(grams[f] for f in train)
-    noise = _noise_floor([fds[f] for f in train])
+    noise = _noise_floor([samples[f] for f in train], [noise_of[f] for f in train])
 
     kept: list[DiscoveredTerm] = []
     axes: list[AxisResult] = []
@@ -580,7 +590,9 @@ def discover(
         axes.append(AxisResult(target, float(sum(shares)), False,
                                _modelled_side_note(G_train, cols, chosen, beta, axis, target)))
     eval_ids = holdout or ids
-    base, after = _held_out_rmse(fds, resid, eval_ids, holdout, folds, grams, train, cols, terms, coefs, vehicle)
+    train_gram = {f: G_train for f in eval_ids} if holdout else {
+        f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
+    base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, cols, terms, coefs, vehicle)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
@@ -613,9 +625,33 @@ def _rows(G: np.ndarray) -> float:
     return float(G[0, 0])
 
 
-def _noise_floor(flights: list[fitting.FlightData]) -> np.ndarray:
-    n = np.array([fd.mask.sum() for fd in flights], dtype=float)
-    return np.sqrt(np.sum(n[:, None] * np.array([fd.noise for fd in flights]) ** 2, axis=0) / n.sum())
+def _noise_floor(samples: list[int], noises: list[np.ndarray]) -> np.ndarray:
+    """(6,) the flights' sensor-noise floors pooled by their usable samples."""
+    n = np.array(samples, dtype=float)
+    return np.sqrt(np.sum(n[:, None] * np.array(noises) ** 2, axis=0) / n.sum())
+
+
+def _logs_motors(df: pl.DataFrame, vehicle: Vehicle) -> bool:
+    """Whether a decoded table has every rotor's speed (``FlightState.motor_radps`` is set)."""
+    return all(f"motor_{i}_radps" in df.columns for i in range(1, vehicle.n_rotors + 1))
+
+
+def _model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
+               sessions: dict[str, list[str]] | None, log) -> Callable | None:
+    """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training
+    flights (per session for per-session effects), or None for a model without effects."""
+    model_effects = [effectlib.get(n) for n in spec.effects]
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
+        targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
+        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
+        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
+    if not model_effects:
+        return None
+    log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
+    fds_train = [fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
+    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed)
+    return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
 
 
 def _sequential_shares(grams, train, holdout, folds, chosen, y) -> list[float]:
@@ -668,21 +704,18 @@ def _modelled_side_note(G, cols: _Columns, chosen, beta, axis: int, target: str)
             f"the controller holds off), not a new mechanism by itself"),)
 
 
-def _held_out_rmse(fds, resid, eval_ids, holdout, folds, grams, train, cols, terms, coefs, vehicle):
+def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
     """RMSE per axis on the evaluated flights (every usable sample) before and after the
-    discovered terms (fitted on training flights; per fold without a holdout)."""
-    fold_of = {f: i for i, fold in enumerate(folds) for f in fold}
+    discovered terms (fitted on training flights: ``train_gram[f]``, the Gram matrix flight
+    ``f`` is scored with, of its fold's training flights without a holdout). ``flight(f)``
+    gives a flight's rows and residual, read one flight at a time."""
     before = np.zeros(6)
     after = np.zeros(6)
     n = 0
     for f in eval_ids:
-        fd = fds[f]
-        r = resid[f]
+        fd, r = flight(f)
         pred = np.zeros_like(r)
-        if holdout:
-            G = sum(grams[g] for g in train)
-        else:
-            G = sum(grams[g] for g in train if fold_of.get(g) != fold_of.get(f))
+        G = train_gram[f]
         for axis, (chosen, _) in coefs.items():
             if not chosen:
                 continue
