@@ -5,9 +5,9 @@
 LOGS_FOLDER defaults to ``<repo>/../shared/crazyflie/logs`` (the shared data set that sits
 beside the clone). Every log file in it is decoded
 
-- by quadcore, best of 3 each: ``quadcore.logformat.decode_file`` (the vectorised decode
-  alone: raw values, like the baseline), ``quadcore.flight.decode_flight`` (decode + SI
-  tables + provenance), and ``decode_flight`` + ``quadcore.store.write_decoded`` (SI
+- by quadcore, best of 3 each: ``quadcore.logs.logformat.decode_file`` (the vectorised decode
+  alone: raw values, like the baseline), ``quadcore.logs.flight.decode_flight`` (decode + SI
+  tables + provenance), and ``decode_flight`` + ``quadcore.store.store.write_decoded`` (SI
   Parquet to a temp dir);
 - by the baseline below: one ``struct.unpack_from`` per record, the obvious way to read the
   format (decode only, no SI, no Parquet), one pass.
@@ -39,7 +39,7 @@ MAIN_EVENT = "fixedFrequency"
 
 
 # --------------------------------------------------------------------------------------
-# Baseline: the format as described in quadcore/logformat.py, read one record at a time.
+# Baseline: the format as described in quadcore/logs/logformat.py, read one record at a time.
 # --------------------------------------------------------------------------------------
 
 def _cstring(buf: bytes, pos: int) -> tuple[str, int]:
@@ -96,7 +96,7 @@ def baseline_decode(buf: bytes) -> dict:
 # --------------------------------------------------------------------------------------
 
 def find_logs(folder: Path) -> list[Path]:
-    from quadcore import flight
+    from quadcore.logs import flight
 
     return flight.discover_logs(folder)
 
@@ -108,7 +108,8 @@ def main(argv: list[str]) -> int:
         print("The shared Crazyflie data set is absent on this machine; pass its path as the first argument.")
         return 0
 
-    from quadcore import flight, logformat, store
+    from quadcore.logs import flight, logformat
+    from quadcore.store import store
 
     paths = find_logs(folder)
     if not paths:

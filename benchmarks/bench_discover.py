@@ -10,7 +10,9 @@ import time
 
 from _common import logs_folder
 
-from quadcore import discovery, flight, model, vehicle
+from quadcore.identify import discovery, model
+from quadcore.logs import flight
+from quadcore.physics import vehicle
 
 EFFECTS = ["thrust_scale", "com_offset", "rotor_drag", "motor_lag"]
 

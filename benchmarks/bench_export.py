@@ -1,9 +1,9 @@
-"""MCAP export per flight: protobuf (quadcore.export) against JSON messages, the way it was written before.
+"""MCAP export per flight: protobuf (quadcore.export.mcap) against JSON messages, the way it was written before.
 
     python benchmarks/bench_export.py [LOGS_FOLDER]
 
 Both write the same seven topics, one message per sample, from the residual table of each real
-flight: ``quadcore.export.write_mcap`` (protobuf, Foxglove's schemas, the Foxglove SDK's writer)
+flight: ``quadcore.export.mcap.write_mcap`` (protobuf, Foxglove's schemas, the Foxglove SDK's writer)
 and the reference below (one ``json.dumps`` per message and the ``mcap`` package's Python writer,
 the exporter before protobuf). Target: at least 5x faster per flight. Best of 3 each; the
 ratio is reference / protobuf. A report, not a test: exits 0 either way.
@@ -21,7 +21,9 @@ from _jobs import REPO, report
 
 sys.path.insert(0, str(REPO))
 
-from quadcore import export, flight, residuals, vehicle  # noqa: E402
+from quadcore.export import mcap as export  # noqa: E402
+from quadcore.logs import flight  # noqa: E402
+from quadcore.physics import residuals, vehicle  # noqa: E402
 
 XYZ = "xyz"
 
@@ -31,7 +33,7 @@ def _vec(table, names, keys=XYZ):
 
 
 def write_json_mcap(table, path: Path, start_ns: int) -> int:
-    """The reference: JSON messages, Python writer (what quadcore.export did before protobuf)."""
+    """The reference: JSON messages, Python writer (what quadcore.export.mcap did before protobuf)."""
     from mcap.writer import Writer
 
     t_ns = [start_ns + round(t * 1e9) for t in table["t_s"].to_list()]

@@ -25,8 +25,12 @@ from pathlib import Path
 import numpy as np
 from _common import logs_folder
 
-from quadcore import dynamics, export_c, features as feat, fitting, flight, learning, model, vehicle
-from quadcore.export_c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
+from quadcore.export import c as export_c
+from quadcore.export.c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
+from quadcore.identify import fitting, model
+from quadcore.learn import features as feat, learning
+from quadcore.logs import flight
+from quadcore.physics import dynamics, vehicle
 
 HOLDOUT = "jana02"
 EFFECTS = ["rotor_drag", "com_offset", "thrust_scale", "motor_lag"]
@@ -48,7 +52,7 @@ MAC_CYCLES = (3, 6)
 
 def arm_function_bytes(source_dir: Path, name: str) -> int | None:
     """Bytes of one function compiled for the Cortex-M4 (None without arm-none-eabi-gcc)."""
-    from quadcore.export_c import build
+    from quadcore.export.c import build
 
     cc, nm = shutil.which("arm-none-eabi-gcc"), shutil.which("arm-none-eabi-nm")
     if not cc or not nm:

@@ -21,7 +21,10 @@ from typing import Any
 import numpy as np
 from _common import best_of, logs_folder
 
-from quadcore import evaluation, features as feat, flight, learning, model, vehicle
+from quadcore.identify import model
+from quadcore.learn import evaluation, features as feat, learning
+from quadcore.logs import flight
+from quadcore.physics import vehicle
 
 HOLDOUT = "jana02"
 CANDIDATES = {
@@ -109,7 +112,8 @@ def main() -> None:
     tm = evaluation.mae(evaluation.metrics(y, np.broadcast_to(mean, y.shape)))
     rows.append({"model": "ours: training mean", **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", tm[:3])},
                  "train [s]": None, "predict held-out [s]": None, "µs/sample": None, "µs/sample (library)": None})
-    print(f"\nheld-out {HOLDOUT}, force MAE beside the study (the study's residual differs: see quadcore.evaluation):")
+    print(f"\nheld-out {HOLDOUT}, force MAE beside the study"
+          " (the study's residual differs: see quadcore.learn.evaluation):")
     print(evaluation.text_table(rows))
     print()
     for v in verdicts:

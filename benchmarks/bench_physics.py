@@ -10,7 +10,9 @@ import time
 
 from _common import best_of, logs_folder
 
-from quadcore import diagnosis, flight, model, residuals, vehicle
+from quadcore.identify import diagnosis, model
+from quadcore.logs import flight
+from quadcore.physics import residuals, vehicle
 
 
 def main() -> None:

@@ -31,8 +31,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from quadcore import diagnosis, effects, flight, model, simulation, vehicle  # noqa: E402
-from quadcore.simulation import SimConfig  # noqa: E402
+from quadcore import effects  # noqa: E402
+from quadcore.identify import diagnosis, model  # noqa: E402
+from quadcore.logs import flight  # noqa: E402
+from quadcore.physics import vehicle  # noqa: E402
+from quadcore.sim import simulation  # noqa: E402
+from quadcore.sim.simulation import SimConfig  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 DURATION_S = 4.0

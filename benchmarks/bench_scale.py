@@ -32,7 +32,7 @@ from _jobs import REPO, report, run_main_job
 
 sys.path.insert(0, str(REPO))
 
-from quadcore import simulation  # noqa: E402
+from quadcore.sim import simulation  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
 

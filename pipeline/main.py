@@ -34,7 +34,9 @@ from pipeline.resources import (
     model_config_from_env,
     retrain_cron,
 )
-from quadcore import flight, history, safewrite, store
+from quadcore.identify import history
+from quadcore.logs import flight
+from quadcore.store import safewrite, store
 from quadcore.workflows import identify, learn
 from quadcore.workflows.demo import simulate_demo_flights, write_demo_model_file
 

@@ -14,7 +14,8 @@ import os
 import dagster as dg
 
 from pipeline.resources import DataRoot
-from quadcore import plots, store
+from quadcore.report import plots
+from quadcore.store import store
 
 PLOTS_URL_ENV = "QUADCORE_PLOTS_URL"
 PLOTS_FOLDER = "plots"

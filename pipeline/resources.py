@@ -1,7 +1,7 @@
 """Paths the pipeline reads and writes, configurable by environment variables.
 
 - ``QUADCORE_DATA_ROOT``: the data root (default ``data`` in the working directory);
-  outputs go under it (see ``quadcore.store``).
+  outputs go under it (see ``quadcore.store.store``).
 - ``QUADCORE_RAW_DIR``: the folder of incoming raw logs (default ``<root>/raw``). Point it
   at a read-only folder of logs to process them without copying.
 """
@@ -42,7 +42,7 @@ class DataRoot(dg.ConfigurableResource):
     @property
     def root_path(self) -> Path:
         """The root folder, or a ``UPath`` for an object-store URL (``s3://bucket/prefix``)."""
-        from quadcore.store import as_root, is_remote
+        from quadcore.store.store import as_root, is_remote
 
         root = as_root(self.root)
         return root if is_remote(root) else root.resolve()
@@ -53,7 +53,7 @@ class DataRoot(dg.ConfigurableResource):
 
     def raw_log(self, flight: str) -> Path:
         """The raw log of a flight id (``FileNotFoundError`` if it is gone)."""
-        from quadcore.flight import find_log
+        from quadcore.logs.flight import find_log
 
         return find_log(self.raw_path, flight)
 

@@ -11,7 +11,8 @@ from pipeline.assets.export import flight_mcap
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
-from quadcore import flight, logformat, store
+from quadcore.logs import flight, logformat
+from quadcore.store import store
 
 
 def raw_logs(data_root: DataRoot) -> dict[str, Path]:

@@ -1,8 +1,9 @@
 """quadcore: a small physics and data library for quadrotor flight logs.
 
-One module per idea: ``logformat`` (the uSD binary format), ``units`` (SI names and
-conversions), ``flight`` (a decoded flight), ``store`` (Parquet layout under the data
-root), and the physics modules built on them.
+One package per stage of the data flow: ``logs`` (the uSD format, SI units, a decoded
+flight), ``physics`` (vehicle, dynamics, residuals), ``effects``, ``sim``, ``identify``
+(model fitting, diagnosis, discovery), ``learn`` (learned residual models), ``report``,
+``store`` (the data root) and ``export`` (MCAP, C); ``cli`` and ``workflows`` on top.
 """
 
 __version__ = "0.1.0"

@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore import flight as flightmod, vehicle
+    from quadcore.logs import flight as flightmod
+    from quadcore.physics import vehicle
 
 class UserError(Exception):
     """A mistake in what the user asked for: printed as a message, exit code 2."""
@@ -80,7 +81,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 
 def _vehicle(args: argparse.Namespace):
-    from quadcore import vehicle
+    from quadcore.physics import vehicle
 
     try:
         v = vehicle.load(args.vehicle)
@@ -112,7 +113,8 @@ def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> dict[
 def cmd_residuals(args: argparse.Namespace) -> int:
     import polars as pl
 
-    from quadcore import residuals, store, vehicle
+    from quadcore.physics import residuals, vehicle
+    from quadcore.store import store
 
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
@@ -141,7 +143,7 @@ def _residual_row(fid: str, table: pl.DataFrame) -> list[str]:
     import numpy as np
     import polars as pl
 
-    from quadcore import residuals
+    from quadcore.physics import residuals
 
     s = residuals.summary(table)
     ok = table.filter(~pl.col("near_gap"))
@@ -157,7 +159,7 @@ def cmd_fit_thrust(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from quadcore import thrustfit, vehicle
+    from quadcore.physics import thrustfit, vehicle
 
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None, log=lambda m: None)
@@ -188,7 +190,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate closed-loop flights with known effects: uSD logs + ``<log>.truth.json`` under --out."""
     from dataclasses import replace
 
-    from quadcore import simulation
+    from quadcore.sim import simulation
 
     veh = _vehicle(args)
     try:
@@ -229,12 +231,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from quadcore import export, flight as flightmod, residuals
+    from quadcore.export import mcap as export
+    from quadcore.logs import flight as flightmod
+    from quadcore.physics import residuals
 
     veh = _vehicle(args)
     flights, _ = load_flights(args.paths, None)
     out = Path(args.out)
-    from quadcore import features as feat
+    from quadcore.learn import features as feat
 
     try:
         given = flightmod.read_flight_starts(args.flights or feat.find_flights_csv(*map(Path, args.paths)))
@@ -255,8 +259,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_export_c(args: argparse.Namespace) -> int:
-    """The current model as C99 for a flight controller (see quadcore.export_c)."""
-    from quadcore import export_c, learning
+    """The current model as C99 for a flight controller (see quadcore.export.c)."""
+    from quadcore.export import c as export_c
+    from quadcore.learn import learning
 
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -303,7 +308,7 @@ def _progress(args: argparse.Namespace):
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore import diagnosis
+    from quadcore.identify import diagnosis
     from quadcore.workflows import identify
 
     spec, flights, holdout = _model_and_flights(args)
@@ -348,7 +353,7 @@ def _rmse_line(label: str, d: dict) -> str:
 
 def cmd_discover(args: argparse.Namespace) -> int:
     """Terms the effect library lacks: sparse regression of the residual on candidate terms."""
-    from quadcore import discovery
+    from quadcore.identify import discovery
     from quadcore.workflows import identify
 
     spec, flights, holdout = _model_and_flights(args)
@@ -389,7 +394,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
-    from quadcore import evaluation, features as feat, learning, workflows
+    from quadcore import workflows
+    from quadcore.learn import evaluation, features as feat, learning
     from quadcore.workflows import fleet, identify, learn
 
     data, names = _data_and_effects(args)
@@ -568,7 +574,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_errors() -> tuple[type[Exception], ...]:
     """The exceptions that mean "the user asked for something wrong" (imported only once a
     command has run, so that ``--help`` stays fast)."""
-    from quadcore import dynamics, effects, model, vehicle, workflows
+    from quadcore import effects, workflows
+    from quadcore.identify import model
+    from quadcore.physics import dynamics, vehicle
 
     return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError,
             effects.UnknownEffectError, workflows.WorkflowError)
@@ -584,7 +592,7 @@ def _data_root_held(args: argparse.Namespace):
     if args.verb not in DATA_ROOT_VERBS:
         yield
         return
-    from quadcore import safewrite
+    from quadcore.store import safewrite
 
     out = _output_folder(args.out)
     created = not out.exists()

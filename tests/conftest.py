@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadcore import logformat
+from quadcore.logs import logformat
 
 REAL_LOGS = Path(__file__).resolve().parents[1].parent / "shared" / "crazyflie" / "logs"
 
@@ -40,7 +40,7 @@ def drag_fleet(tmp_path_factory) -> Path:
     ``FLEET_EFFECT`` hidden, as uSD logs with their ``.truth.json``: the pipeline and operations
     tests share them. Four, so that with the last one held out (the flight the learned models are
     scored on) discovery still has three training flights to cross-validate over."""
-    from quadcore import simulation
+    from quadcore.sim import simulation
 
     folder = tmp_path_factory.mktemp("drag_fleet")
     configs = [simulation.SimConfig(kind="random", duration_s=d, seed=s) for s, d in ((21, 5.0), (22, 5.0),
@@ -109,7 +109,7 @@ def _synthetic_values(et: logformat.EventType, n: int, rng: np.random.Generator)
 def make_synthetic_log(tmp_path):
     """Factory: ``make_synthetic_log(version=2, n_fast=40, n_slow=17, with_crc=True, name=...)``.
 
-    Builds a log with :func:`quadcore.logformat.encode` holding two interleaved event
+    Builds a log with :func:`quadcore.logs.logformat.encode` holding two interleaved event
     types (ids 0xFFFF and 8, record sizes differing), writes it under ``tmp_path`` and
     returns a :class:`SyntheticLog`. Timestamps: "fast" every 2 ms, "slow" every 5 ms
     from an offset, so records interleave irregularly and some timestamps coincide.

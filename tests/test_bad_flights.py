@@ -14,7 +14,10 @@ from fuzz.badlogs import KINDS, bad_logs
 
 from pipeline.main import run_all
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import checks, cli, simulation, store
+from quadcore import cli
+from quadcore.logs import checks
+from quadcore.sim import simulation
+from quadcore.store import store
 
 GOOD = ["sim000", "sim001", "sim002"]
 # Physically odd but usable: processed, with a failed decode check that says why.
@@ -98,7 +101,7 @@ def test_main_job_gives_every_good_flight_its_outputs(raw, tmp_path):
 def test_filters_do_not_reach_across_a_long_gap():
     import numpy as np
 
-    from quadcore import signals
+    from quadcore.physics import signals
 
     t = np.concatenate([np.arange(500) * 0.002, 10.0 + np.arange(500) * 0.002])
     x = np.where(t < 5, 0.0, 5.0)  # constant on each side, a jump across the 10 s gap

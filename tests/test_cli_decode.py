@@ -12,7 +12,8 @@ import polars as pl
 import pyarrow.parquet as pq
 import pytest
 
-from quadcore import cli, store
+from quadcore import cli
+from quadcore.store import store
 
 TOTAL_FIXED_FREQUENCY_ROWS = 175_473
 

@@ -9,7 +9,10 @@ from importlib import resources
 
 import pytest
 
-from quadcore import cli, model, simulation, vehicle
+from quadcore import cli
+from quadcore.identify import model
+from quadcore.physics import vehicle
+from quadcore.sim import simulation
 
 VEHICLE_TEXT = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
 FOURTH_ROTOR = "[[rotors]]\narm_m = 0.046\nangle_deg = 45.0\nyaw_sign = 1\n"

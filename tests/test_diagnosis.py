@@ -2,7 +2,7 @@
 and is honest where the data cannot decide; the ``quadcore diagnose`` contract; user effects.
 
 Every flight set here is simulated once per session (closed loop, real log format, real
-noise levels; :mod:`quadcore.simulation`) with ONE effect switched on, then diagnosed with
+noise levels; :mod:`quadcore.sim.simulation`) with ONE effect switched on, then diagnosed with
 the nominal model (cross-validation over flights), and again with that effect in the model.
 """
 
@@ -18,8 +18,12 @@ import numpy as np
 import pytest
 import snapshot
 
-from quadcore import cli, diagnosis, effects, fitting, flight, model, simulation, vehicle
-from quadcore.simulation import SimConfig
+from quadcore import cli, effects
+from quadcore.identify import diagnosis, fitting, model
+from quadcore.logs import flight
+from quadcore.physics import vehicle
+from quadcore.sim import simulation
+from quadcore.sim.simulation import SimConfig
 
 VEHICLE = vehicle.load()
 REPO = Path(__file__).resolve().parents[1]
@@ -728,7 +732,7 @@ def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):
     log is no three clusters with a zero score (which would inflate the degrees of freedom)."""
     import polars as pl
 
-    from quadcore import evidence
+    from quadcore.identify import evidence
 
     simulation.simulate_set(tmp_path, [SimConfig(kind="random", duration_s=8.0, seed=5)], {}, VEHICLE)
     (table,) = _decode(tmp_path).values()

@@ -16,8 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadcore import cli, discovery, dynamics, effects, simulation, vehicle
-from quadcore.simulation import SimConfig
+from quadcore import cli, effects
+from quadcore.identify import discovery
+from quadcore.physics import dynamics, vehicle
+from quadcore.sim import simulation
+from quadcore.sim.simulation import SimConfig
 
 HIDDEN = Path(__file__).resolve().parent / "plugins" / "hidden_terms.py"
 TRUTH = {"k_lift_s2_per_m2": 0.03, "k_flap_s": 3e-4}
@@ -250,7 +253,8 @@ def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
 def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path):
     """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
     per-session effects on those groups, as the diagnosis does: the same starting residual."""
-    from quadcore import diagnosis, flight, model
+    from quadcore.identify import diagnosis, model
+    from quadcore.logs import flight
 
     model_file = tmp_path / "model.toml"
     model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')

@@ -9,7 +9,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from quadcore import cli, export, flight as flightmod, residuals, simulation, vehicle
+from quadcore import cli
+from quadcore.export import mcap as export
+from quadcore.logs import flight as flightmod
+from quadcore.physics import residuals, vehicle
+from quadcore.sim import simulation
 
 
 @pytest.fixture(scope="module")

@@ -16,24 +16,17 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore import (
-    cli,
-    dynamics,
-    effects,
-    evaluation,
-    export_c,
-    features as feat,
-    fitting,
-    flight,
-    learning,
-    model,
-    simulation,
-    store,
-    vehicle,
-)
-from quadcore.export_c.learned import raw_thresholds
-from quadcore.model import EffectTerm, PhysicsModel
-from quadcore.simulation import SimConfig
+from quadcore import cli, effects
+from quadcore.export import c as export_c
+from quadcore.export.c.learned import raw_thresholds
+from quadcore.identify import fitting, model
+from quadcore.identify.model import EffectTerm, PhysicsModel
+from quadcore.learn import evaluation, features as feat, learning
+from quadcore.logs import flight
+from quadcore.physics import dynamics, vehicle
+from quadcore.sim import simulation
+from quadcore.sim.simulation import SimConfig
+from quadcore.store import store
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                                 reason="no C compiler (install gcc: .ci/run does)")
@@ -297,7 +290,7 @@ def test_discovered_terms_export_when_they_have_an_on_board_form(decoded, tmp_pa
               "tz_abs": 1e-4, "fz_const": 0.003}
     timing = [("tau_res_b_x_Nm", "d(tau_rotor_x_Nm)/dt", "tx_rate", "s", 1.0)]
     for name, rows in (("found_terms", terms), ("found_timing", timing)):  # modules as discover writes them
-        (tmp_path / f"{name}.py").write_text("from quadcore.discovery import DiscoveredEffect\n"
+        (tmp_path / f"{name}.py").write_text("from quadcore.identify.discovery import DiscoveredEffect\n"
                                              f"EFFECT = DiscoveredEffect({name!r}, {rows!r})\n")
         effects.load_plugin(tmp_path / f"{name}.py")
     try:

@@ -6,7 +6,10 @@ from __future__ import annotations
 import polars as pl
 import pytest
 
-from quadcore import checks, flight, simulation, store, vehicle
+from quadcore.logs import checks, flight
+from quadcore.physics import vehicle
+from quadcore.sim import simulation
+from quadcore.store import store
 
 MAIN_EVENT = "fixedFrequency"
 

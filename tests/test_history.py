@@ -7,7 +7,8 @@ import io
 
 from PIL import Image
 
-from quadcore import history, report
+from quadcore.identify import history
+from quadcore.report import report
 
 
 def _record(root, label, force_x, flights, mode="holdout", params=None):

@@ -14,7 +14,9 @@ import polars as pl
 import pytest
 from conftest import FAST, SLOW
 
-from quadcore import cli, logformat, names, store
+from quadcore import cli
+from quadcore.logs import logformat
+from quadcore.store import names, store
 
 
 def _files_under(folder: Path) -> set[Path]:
@@ -236,7 +238,7 @@ def test_sensor_header_check_reports_an_unreadable_file_instead_of_raising(tmp_p
 
 
 def test_variables_with_one_si_name_are_both_kept():
-    from quadcore import units
+    from quadcore.logs import units
 
     values = np.zeros(3, dtype=[("a.b", "<f4"), ("a_b", "<f4")])
     values["a.b"], values["a_b"] = 1.0, 2.0

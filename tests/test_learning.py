@@ -18,20 +18,14 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore import (
-    cli,
-    evaluation,
-    features as feat,
-    fitting,
-    flight,
-    history,
-    learning,
-    model,
-    simulation,
-    store,
-    vehicle,
-)
-from quadcore.simulation import SimConfig
+from quadcore import cli
+from quadcore.identify import fitting, history, model
+from quadcore.learn import evaluation, features as feat, learning
+from quadcore.logs import flight
+from quadcore.physics import vehicle
+from quadcore.sim import simulation
+from quadcore.sim.simulation import SimConfig
+from quadcore.store import store
 
 VEHICLE = vehicle.load()
 HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}

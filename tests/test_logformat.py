@@ -1,4 +1,4 @@
-"""The uSD log decoder and encoder (quadcore.logformat) and the SI flight layer (quadcore.flight)."""
+"""The uSD log decoder and encoder (quadcore.logs.logformat) and the SI flight layer (quadcore.logs.flight)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import struct
 import numpy as np
 import pytest
 
-from quadcore import flight, logformat
+from quadcore.logs import flight, logformat
 
 TOTAL_FIXED_FREQUENCY_ROWS = 175_473  # the shared data set's README: 175,473 samples in all
 REAL_LOG_NAMES = [

@@ -11,7 +11,8 @@ import pytest
 
 from pipeline.assets.model import current_model
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import model, store
+from quadcore.identify import model
+from quadcore.store import store
 from quadcore.workflows import identify
 
 BASE = 'vehicle = "heavy.toml"\neffects = ["rotor_drag", "thrust_scale"]\nplugins = ["plugin.py"]\n'

@@ -12,8 +12,9 @@ from pipeline.definitions import PER_FLIGHT
 from pipeline.main import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import simulation, store
-from quadcore.names import UnsafeNameError
+from quadcore.sim import simulation
+from quadcore.store import store
+from quadcore.store.names import UnsafeNameError
 
 moto_server = pytest.importorskip("moto.server", reason="moto[server] is a dev dependency")
 pytest.importorskip("s3fs", reason="s3fs is a dev dependency")
@@ -99,7 +100,7 @@ def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monk
     assert diagnosis["model"]["label"] == fitted["label"]
     assert "<html" in (root / "reports" / "diagnosis.html").read_text().lower()
     assert store.read_json(root / "reports" / "discovery.json")["effects_in_model"] == ["rotor_drag"]
-    from quadcore import history
+    from quadcore.identify import history
 
     assert history.read(root)["model_label"].to_list()[0] == fitted["label"]
     index = store.read_json(root / "learned" / "index.json")

@@ -16,7 +16,9 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import AGAINST_MODEL, FLEET, PER_FLIGHT, defs
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.sensors import raw_log_sensor
-from quadcore import logformat, simulation, store
+from quadcore.logs import logformat
+from quadcore.sim import simulation
+from quadcore.store import store
 
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
 
@@ -349,7 +351,7 @@ def test_every_output_has_the_mode_of_a_plain_file(tmp_path):
 
 
 def test_every_parquet_output_states_the_unit_of_every_column(sim_logs, tmp_path):
-    from quadcore import features as feat
+    from quadcore.learn import features as feat
 
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(sim_logs))
     with dg.instance_for_test() as instance:
@@ -370,7 +372,7 @@ def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
     """The demo's next turn is written to <root>/model.toml (the repository's file untouched),
     and the model the pipeline loads from then on is that one: a second run continues the story."""
     from pipeline.resources import model_config_from_env
-    from quadcore import model
+    from quadcore.identify import model
     from quadcore.workflows.demo import write_demo_model_file
 
     repo_file = Path(__file__).resolve().parents[1] / "model.toml"

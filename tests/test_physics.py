@@ -9,7 +9,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore import cli, dynamics, flight, propagation, residuals, rotations, signals, simulation, vehicle
+from quadcore import cli
+from quadcore.logs import flight
+from quadcore.physics import dynamics, propagation, residuals, rotations, signals, vehicle
+from quadcore.sim import simulation
 
 VEH = vehicle.load()
 RATE_HZ = 500.0
@@ -169,7 +172,7 @@ def test_fit_thrust_recovers_the_simulated_k_F(tmp_path):
     folder = tmp_path / "raw"
     simulation.simulate_set(folder, [simulation.SimConfig(kind="figure8", duration_s=8.0, seed=4)], {})
     table = flight.decode_flight(folder / "sim000").tables["fixedFrequency"]
-    from quadcore import thrustfit
+    from quadcore.physics import thrustfit
 
     k_F, _ = thrustfit.fit_k_F({"sim000": table}, VEH)
     assert k_F == pytest.approx(VEH.motor_speed.k_F_N_per_radps2, rel=0.02)

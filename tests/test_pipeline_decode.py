@@ -12,7 +12,8 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot
 from pipeline.sensors import raw_log_sensor
-from quadcore import checks, store
+from quadcore.logs import checks
+from quadcore.store import store
 
 
 @pytest.fixture

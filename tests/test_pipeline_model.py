@@ -14,8 +14,9 @@ from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import history, store
-from quadcore.report import kept_reports
+from quadcore.identify import history
+from quadcore.report.report import kept_reports
+from quadcore.store import store
 
 pytestmark = pytest.mark.slow  # the whole loop materialised in Dagster
 
@@ -131,7 +132,9 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
     """The loop with a term the user did not know: discovery on the nominal model writes an
     effect module; named in a model file (plugins + effects, unedited) the fleet assets fit it,
     the held-out error falls and the history records both evaluations."""
-    from quadcore import discovery, effects, model, vehicle
+    from quadcore import effects
+    from quadcore.identify import discovery, model
+    from quadcore.physics import vehicle
 
     root = tmp_path / "root"
     data_root = DataRoot(root=str(root), raw=str(raw))
@@ -160,8 +163,9 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
 def test_rollouts_use_each_flights_session_values(raw, tmp_path):
     """A model with a per-session thrust scale: a flight's open-loop rollout flies its
     session's value, as its residual table does, not the fleet value."""
-    from quadcore import model, vehicle
-    from quadcore.model import EffectTerm, PhysicsModel
+    from quadcore.identify import model
+    from quadcore.identify.model import EffectTerm, PhysicsModel
+    from quadcore.physics import vehicle
 
     root = tmp_path / "root"
     data_root = DataRoot(root=str(root), raw=str(raw))

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 from fuzz import kills
 
-from quadcore import learning, safewrite, store
+from quadcore.learn import learning
+from quadcore.store import safewrite, store
 
 
 def _dead_pid() -> int:
@@ -53,7 +54,7 @@ def test_temp_names_carry_the_writer_and_are_unique(tmp_path, monkeypatch):
 
 def test_a_second_job_on_one_data_root_waits(tmp_path):
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time\nfrom quadcore import safewrite\n"
+        [sys.executable, "-c", "import sys, time\nfrom quadcore.store import safewrite\n"
          "with safewrite.data_root_lock(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(1.5)\n",
          str(tmp_path)],
         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},

@@ -11,7 +11,8 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import PER_FLIGHT, process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import simulation, store
+from quadcore.sim import simulation
+from quadcore.store import store
 from quadcore.workflows import learn
 
 pytestmark = pytest.mark.slow  # whole per-flight runs, one with the multiprocess executor

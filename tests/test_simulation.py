@@ -13,8 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadcore import cli, dynamics, effects, flight, logformat, residuals, signals, simulation, trajectories, vehicle
-from quadcore.simulation import SimConfig
+from quadcore import cli, effects
+from quadcore.logs import flight, logformat
+from quadcore.physics import dynamics, residuals, signals, vehicle
+from quadcore.sim import simulation, trajectories
+from quadcore.sim.simulation import SimConfig
 
 # Measured on the real logs (jana00..jana33) in steady hover: |v| < 0.1 m/s, z > 0.2 m, in
 # 61-sample windows away from gaps (15 flights have enough hover). Noise = std of the signal
@@ -283,7 +286,7 @@ def test_a_plugin_mechanism_flies_through_its_hook(tmp_path):
     module = tmp_path / "weak_rotor.py"
     module.write_text('''
 import numpy as np
-from quadcore import dynamics
+from quadcore.physics import dynamics
 from quadcore.effects import Effect, Parameter, SimHook
 from quadcore.effects.base import body_z
 

@@ -1,11 +1,13 @@
-"""The frequency view of the residual (quadcore.spectrum) on a real flight with a gap."""
+"""The frequency view of the residual (quadcore.identify.spectrum) on a real flight with a gap."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from quadcore import fitting, flight, spectrum, vehicle
+from quadcore.identify import fitting, spectrum
+from quadcore.logs import flight
+from quadcore.physics import vehicle
 
 VEH = vehicle.load()
 

@@ -6,7 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from quadcore import effects, evidence, fitting, flight, model, sessions, sufficient, vehicle
+from quadcore import effects
+from quadcore.identify import evidence, fitting, model, sessions, sufficient
+from quadcore.logs import flight
+from quadcore.physics import vehicle
 
 VEHICLE = vehicle.load()
 REL = 1e-9
@@ -147,7 +150,7 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
     """Model, candidates, folds, held-out tests, sensitivity and disagreements from the stored
     statistics: the training flights' rows are never read, the held-out flight's are (its
     regime tables and spectra)."""
-    from quadcore import diagnosis
+    from quadcore.identify import diagnosis
 
     _, stats = fleet
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from quadcore import simulation
+from quadcore.sim import simulation
 
 sys.path.insert(0, str(Path(__file__).parent))
 from cdp import Browser, chromium_path, free_port  # noqa: E402
@@ -244,7 +244,7 @@ def test_diagnosis_page_shows_its_plot(webserver):
 
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
 def test_error_history_is_a_falling_step_chart_per_evaluation_set(webserver):
-    from quadcore import history
+    from quadcore.identify import history
 
     _, _, base = webserver
     sets = history.series(history.read(base / "root"))

@@ -15,7 +15,10 @@ import pytest
 
 from pipeline.assets.model import diagnosis_flights, failing_on_user_errors
 from pipeline.resources import ModelConfig
-from quadcore import cli, effects, model, store, vehicle, workflows
+from quadcore import cli, effects, workflows
+from quadcore.identify import model
+from quadcore.physics import vehicle
+from quadcore.store import store
 from quadcore.workflows import Fleet, identify, learn
 
 FLIGHTS = ["sim000", "sim001", "sim002"]

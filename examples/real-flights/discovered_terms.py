@@ -33,10 +33,10 @@ Literature:
         pitch; in yaw, rotors whose torque-to-thrust ratios differ, or tilted motors
 
 Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.discovery.evaluate.
+The terms are evaluated by quadcore.identify.discovery.evaluate.
 """
 
-from quadcore.discovery import DiscoveredEffect
+from quadcore.identify.discovery import DiscoveredEffect
 
 # (target axis, term, parameter, unit of the parameter, bound on |parameter|)
 TERMS = [

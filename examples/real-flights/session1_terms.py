@@ -24,10 +24,10 @@ Literature:
     d(Omega_net_radps)/dt: rotor inertia: reaction torque of accelerating rotors
 
 Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.discovery.evaluate.
+The terms are evaluated by quadcore.identify.discovery.evaluate.
 """
 
-from quadcore.discovery import DiscoveredEffect
+from quadcore.identify.discovery import DiscoveredEffect
 
 # (target axis, term, parameter, unit of the parameter, bound on |parameter|)
 TERMS = [

@@ -7,9 +7,10 @@ import dagster as dg
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number
 from pipeline.resources import DataRoot
-from quadcore import checks, flight, logformat, store
-from quadcore.features import find_flights_csv
-from quadcore.names import check_component
+from quadcore.learn.features import find_flights_csv
+from quadcore.logs import checks, flight, logformat
+from quadcore.store import store
+from quadcore.store.names import check_component
 
 MAIN_EVENT = "fixedFrequency"
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]

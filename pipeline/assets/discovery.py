@@ -1,5 +1,5 @@
 """Stage 3b: terms the effect library lacks, found in the residual of the current model
-(:mod:`quadcore.discovery`). Fan-in over all decoded flights; the diagnosis report shows them."""
+(:mod:`quadcore.identify.discovery`). Fan-in over all decoded flights; the diagnosis report shows them."""
 
 import dagster as dg
 
@@ -14,7 +14,8 @@ from pipeline.assets.model import (
 )
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import plots, report, store
+from quadcore.report import plots, report
+from quadcore.store import store
 from quadcore.workflows import identify
 
 

@@ -10,8 +10,10 @@ from pipeline.assets.physics import residual_table
 from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
-from quadcore import export, export_c, learning, store
-from quadcore.names import check_component
+from quadcore.export import c as export_c, mcap as export
+from quadcore.learn import learning
+from quadcore.store import store
+from quadcore.store.names import check_component
 
 
 @dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="export", deps=[residual_table], kinds={"mcap"},

@@ -9,7 +9,9 @@ from pipeline.assets.physics import residual_table
 from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig, retrain_cron
-from quadcore import evaluation, features as feat, plots, store
+from quadcore.learn import evaluation, features as feat
+from quadcore.report import plots
+from quadcore.store import store
 from quadcore.workflows import learn
 
 ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
@@ -49,7 +51,7 @@ class LearningConfig(dg.Config):
     flights_csv: str = ""
     stride: int = 5
     seed: int = 0
-    threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learning)
+    threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learn.learning)
 
 
 @dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=NIGHTLY)

@@ -11,7 +11,10 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import diagnosis, history, learning, plots, report, sessions, workflows
+from quadcore import workflows
+from quadcore.identify import diagnosis, history, sessions
+from quadcore.learn import learning
+from quadcore.report import plots, report
 from quadcore.workflows import Fleet, fleet, identify
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]

@@ -8,7 +8,9 @@ from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore import dynamics, plots, propagation, residuals, store
+from quadcore.physics import dynamics, propagation, residuals
+from quadcore.report import plots
+from quadcore.store import store
 
 
 def decoded_main_table(data_root: DataRoot, fid: str):

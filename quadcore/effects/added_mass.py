@@ -10,7 +10,6 @@ linearly in ``c = m_p / (m + m_p)``, then ``m_p = c m / (1 - c)``.
 
 import numpy as np
 
-from quadcore.ccode import CCode
 from quadcore.effects.base import (
     Effect,
     Parameter,
@@ -18,6 +17,7 @@ from quadcore.effects.base import (
     body_z,
     collective_thrust_N,
 )
+from quadcore.export.ccode import CCode
 
 
 class PayloadHook(SimHook):

@@ -11,7 +11,7 @@ Effects compose by adding their wrenches. An effect that is *linear in its param
 basis ``B_k`` through :meth:`Effect.basis`; it is fitted by linear least squares. An
 effect linear in some other coordinates ``c`` (e.g. ``m_p / (m + m_p)``) gives its basis
 per unit of ``c`` and maps back with ``from_linear`` / ``to_linear``. Any other effect is
-fitted by a bounded nonlinear search (:func:`quadcore.fitting.fit_effects`).
+fitted by a bounded nonlinear search (:func:`quadcore.identify.fitting.fit_effects`).
 
 **In the simulator** an effect is by default evaluated through :meth:`Effect.wrench` on the
 true state at every physics step. An effect that is a *mechanism* rather than a memoryless
@@ -32,10 +32,10 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from quadcore import dynamics
-from quadcore.ccode import CCode
-from quadcore.dynamics import FlightState
-from quadcore.vehicle import Vehicle
+from quadcore.export.ccode import CCode
+from quadcore.physics import dynamics
+from quadcore.physics.dynamics import FlightState
+from quadcore.physics.vehicle import Vehicle
 
 Wrench = tuple[np.ndarray, np.ndarray]  # (f_b (n, 3) N, tau_b (n, 3) N m)
 Target = Literal["force", "torque", "both"]
@@ -61,7 +61,7 @@ class SimContext:
 
     ``t_s`` (n,) are the control/log instants, ``dt_s`` their spacing, ``h_s`` the physics
     step (``dt_s / substeps``); ``vehicle`` is the NOMINAL vehicle (what the controller
-    believes); ``config`` the :class:`quadcore.simulation.SimConfig`; ``rng`` a random
+    believes); ``config`` the :class:`quadcore.sim.simulation.SimConfig`; ``rng`` a random
     stream reserved for effects (deterministic given the flight's seed).
     """
 
@@ -130,7 +130,7 @@ class Effect(ABC):
     fit something other than itself on ordinary flights; it can still be put in a model).
     """
 
-    # Not ClassVar: an effect built at run time (quadcore.discovery) sets these per instance.
+    # Not ClassVar: an effect built at run time (quadcore.identify.discovery) sets these per instance.
     name: str = ""
     target: Target = "force"
     linear: ClassVar[bool] = False
@@ -139,7 +139,7 @@ class Effect(ABC):
     offered: ClassVar[bool] = True
     doc: str = ""
     # values of some parameters at which the others' sensitivity is stated, for parameters
-    # that show only through another (a wind only through a drag); see quadcore.evidence
+    # that show only through another (a wind only through a drag); see quadcore.identify.evidence
     sensitivity_reference: ClassVar[dict[str, float]] = {}
 
     def defaults(self) -> dict[str, float]:
@@ -181,7 +181,7 @@ class Effect(ABC):
         return [params[p.name] - p.default for p in self.parameters]
 
     def c_code(self, vehicle: Vehicle, params: dict[str, float]) -> CCode | None:
-        """The wrench as C99 statements for ``quadcore export-c`` (see :mod:`quadcore.ccode`).
+        """The wrench as C99 statements for ``quadcore export-c`` (see :mod:`quadcore.export.ccode`).
         ``None``, the default, means no C form: exporting a model with this effect fails with
         an error naming it."""
         return None

@@ -8,8 +8,8 @@ Linear in (x_c, y_c).
 
 import numpy as np
 
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, collective_thrust_N
+from quadcore.export.ccode import CCode
 
 
 class ComOffset(Effect):

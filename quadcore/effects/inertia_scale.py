@@ -25,9 +25,9 @@ inertia is in doubt.
 
 import numpy as np
 
-from quadcore import dynamics
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, SimHook
+from quadcore.export.ccode import CCode
+from quadcore.physics import dynamics
 
 AXES = ("x", "y", "z")
 

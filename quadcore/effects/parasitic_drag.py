@@ -8,8 +8,8 @@ simulated wind the simulator applies it to the airspeed.
 
 import numpy as np
 
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter
+from quadcore.export.ccode import CCode
 
 
 class ParasiticDrag(Effect):

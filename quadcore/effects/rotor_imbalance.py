@@ -3,7 +3,7 @@
 
     Δf_i = d_i f_i,   d_4 = -(d_1 + d_2 + d_3),     [T, tau_b] = A Δf              [d] = 1
 
-``A`` is the vehicle's allocation (:mod:`quadcore.vehicle`). The common part of the four
+``A`` is the vehicle's allocation (:mod:`quadcore.physics.vehicle`). The common part of the four
 factors is ``thrust_scale``; what is left here shows in yaw (``t2t Σ yaw_sign_i Δf_i``) and
 in roll and pitch, where in hover it looks like a CoM offset (``a T d / 4``) and differs
 from one when the rotors' thrusts part. Linear in (d_1, d_2, d_3). Four rotors only.
@@ -11,8 +11,8 @@ from one when the rotors' thrusts part. Linear in (d_1, d_2, d_3). Four rotors o
 
 import numpy as np
 
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, rotor_wrench
+from quadcore.export.ccode import CCode
 
 
 def rotor_factors(params: dict[str, float]) -> np.ndarray:

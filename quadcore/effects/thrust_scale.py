@@ -7,9 +7,9 @@ Linear in (s - 1). In force it is indistinguishable from an unmodelled payload
 (``added_mass``); only the torque part can tell them apart.
 """
 
-from quadcore import dynamics
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
+from quadcore.export.ccode import CCode
+from quadcore.physics import dynamics
 
 
 class ThrustScale(Effect):

@@ -17,9 +17,9 @@ from typing import ClassVar
 import numpy as np
 from scipy.signal import lfilter
 
-from quadcore import rotations
-from quadcore.ccode import CCode
 from quadcore.effects.base import Effect, Parameter, SimHook, collective_thrust_N
+from quadcore.export.ccode import CCode
+from quadcore.physics import rotations
 
 
 class WindHook(SimHook):

@@ -13,7 +13,7 @@ DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
 
 def simulate_demo_flights(raw: Path, log: Callable[[str], None] = print) -> list[Path]:
     """Six simulated flights with ``DEMO_EFFECT`` hidden in them, as uSD logs under ``raw``."""
-    from quadcore import simulation
+    from quadcore.sim import simulation
 
     log(f"No logs in {raw}: simulating 6 demo flights with a hidden effect (see {raw}/*.truth.json) ...")
     written = simulation.simulate_set(raw, simulation.default_flights(seed=0), DEMO_EFFECT)
@@ -23,7 +23,7 @@ def simulate_demo_flights(raw: Path, log: Callable[[str], None] = print) -> list
 def write_demo_model_file(root: Path, template: str, effects: list[str]) -> Path:
     """The demo's own model file ``<root>/model.toml``: the template's text (the repository's
     model.toml) with its ``effects`` list set to ``effects``."""
-    from quadcore import store
+    from quadcore.store import store
 
     text = Path(template).read_text() if template and Path(template).is_file() else "effects = []\n"
     listed = "effects = [" + ", ".join(f'"{e}"' for e in effects) + "]"

@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore import flight as flightmod
-    from quadcore.model import ModelSpec
-    from quadcore.vehicle import Vehicle
+    from quadcore.identify.model import ModelSpec
+    from quadcore.logs import flight as flightmod
+    from quadcore.physics.vehicle import Vehicle
 
 MAIN_EVENT = "fixedFrequency"  # the decoded table the physics reads
 
@@ -51,7 +51,7 @@ class Fleet:
 
 
 def _subset(tables: Mapping[str, pl.DataFrame], flights: Iterable[str]) -> Mapping[str, pl.DataFrame]:
-    from quadcore import store
+    from quadcore.store import store
 
     return tables.subset(flights) if isinstance(tables, store.FlightTables) else {f: tables[f] for f in flights}
 
@@ -66,7 +66,8 @@ def decode_logs(paths: list[str], out: Path | None = None,
                 log: Callable[[str], None] = lambda m: None) -> tuple[list[flightmod.Flight], dict[str, str]]:
     """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
     there. Returns (flights, quarantined: id -> reason); one unreadable log never stops the others."""
-    from quadcore import flight as flightmod, logformat, store
+    from quadcore.logs import flight as flightmod, logformat
+    from quadcore.store import store
 
     try:
         logs = flightmod.discover_logs(*paths)
@@ -99,7 +100,7 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
            warn: Callable[[str], None] = lambda m: None) -> Fleet:
     """The flights the physics can use with ``vehicle``; each other one is skipped with its
     reason, said through ``warn``."""
-    from quadcore import checks
+    from quadcore.logs import checks
 
     good, unusable = checks.usable_flights(tables, vehicle)  # one table at a time
     skipped = {**(skipped or {}), **unusable}
@@ -127,7 +128,7 @@ def fleet_from_logs(paths: list[str], vehicle: Vehicle, warn: Callable[[str], No
 
 def fleet_from_store(root, vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
     """Every decoded flight under the data root that the physics can use."""
-    from quadcore import store
+    from quadcore.store import store
 
     return usable(store.read_all_decoded(root, MAIN_EVENT), vehicle, warn=warn)
 
@@ -153,7 +154,7 @@ def held_out(requested: list[str], flights: list[str], where: str = "the decoded
     else the project's default held-out flight (jana02, or the last flight where there is no
     jana02). The physics model, its diagnosis and the learned models all leave these out, so
     none is scored on (or chosen with) a flight it has seen."""
-    from quadcore import learning
+    from quadcore.learn import learning
 
     named = named_holdout(requested, flights, where)
     if named:
@@ -184,9 +185,10 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
     ``QUADCORE_SESSIONS``) joins the spec, so that its digest, and hence the fit's freshness,
     follows the file's content.
 
-    Raises :class:`quadcore.model.ModelFileError`, :class:`quadcore.vehicle.VehicleFileError` or
+    Raises :class:`quadcore.identify.model.ModelFileError`, :class:`quadcore.physics.vehicle.VehicleFileError` or
     :class:`quadcore.effects.UnknownEffectError` with the reason."""
-    from quadcore import model, vehicle
+    from quadcore.identify import model
+    from quadcore.physics import vehicle
 
     if model_file:
         spec = model.load_model_file(model_file, vehicle_override=vehicle_name or None)
@@ -204,8 +206,8 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
 def sessions_of(spec: ModelSpec, flights: list[str]) -> dict[str, list[str]] | None:
     """The sessions file's groups among ``flights`` (session -> flights), or None without one
     (the workflows then use the model file's sessions, or the groups the data show).
-    Raises :class:`quadcore.sessions.SessionsFileError` (a :class:`WorkflowError`)."""
-    from quadcore import sessions
+    Raises :class:`quadcore.identify.sessions.SessionsFileError` (a :class:`WorkflowError`)."""
+    from quadcore.identify import sessions
 
     if not spec.sessions_file:
         return None

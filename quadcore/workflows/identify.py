@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, scored_flights, sessions_of
 
 if TYPE_CHECKING:
-    from quadcore.discovery import Discovery
-    from quadcore.model import FittedModel, ModelSpec, PhysicsModel
+    from quadcore.identify.discovery import Discovery
+    from quadcore.identify.model import FittedModel, ModelSpec, PhysicsModel
 
 Log = Callable[[str], None]
 
@@ -27,7 +27,7 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet) ->
     (:func:`quadcore.workflows.fleet.held_out` of ``holdout``: the named ones, else the
     project's default), per session where the spec asks (sessions from its sessions file, its
     model file, or the data)."""
-    from quadcore import fitting, model
+    from quadcore.identify import fitting, model
 
     if len(fleet.tables) < 2:
         raise WorkflowError("fitting needs at least two usable decoded flights (one is held out)")
@@ -42,16 +42,17 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet) ->
 
 def save_fit(root, fitted: FittedModel) -> Path:
     """Write the fitted model file (``store.physics_model_path``)."""
-    from quadcore import store
+    from quadcore.store import store
 
     return store.write_json(fitted.to_dict(), store.physics_model_path(root))
 
 
 def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
     """The fitted model under ``root`` if it was fitted for ``spec`` as it is now
-    (:func:`quadcore.model.fitted_for`), else the nominal vehicle (said through ``warn`` when
+    (:func:`quadcore.identify.model.fitted_for`), else the nominal vehicle (said through ``warn`` when
     the spec has effects: the fit has not been made for it yet)."""
-    from quadcore import model, store
+    from quadcore.identify import model
+    from quadcore.store import store
 
     path = store.physics_model_path(root)
     if path.is_file():
@@ -68,7 +69,8 @@ def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
 def fit_is_stale(root, spec: ModelSpec) -> bool:
     """Whether the saved fit was made for another spec than ``spec`` (an effect added, a fixed
     value changed, a sessions file edited...). False when nothing is fitted."""
-    from quadcore import model, store
+    from quadcore.identify import model
+    from quadcore.store import store
 
     path = store.physics_model_path(root)
     return path.is_file() and not model.fitted_for(store.read_json(path), spec)
@@ -88,10 +90,10 @@ def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
 
 
 def diagnose(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> dict:
-    """:func:`quadcore.diagnosis.diagnose` on the fleet, with the flights skipped on the way
+    """:func:`quadcore.identify.diagnosis.diagnose` on the fleet, with the flights skipped on the way
     (``skipped_flights``): the JSON document ``quadcore diagnose --json`` and
     ``reports/diagnosis.json`` hold."""
-    from quadcore import diagnosis
+    from quadcore.identify import diagnosis
 
     result = diagnosis.diagnose(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids))
     return {**result, "skipped_flights": fleet.skipped}
@@ -103,7 +105,7 @@ def diagnosis_json(result: dict) -> str:
 
 
 def write_diagnosis_json(result: dict, path) -> Path:
-    from quadcore import store
+    from quadcore.store import store
 
     return store.write_text(diagnosis_json(result), path)
 
@@ -111,7 +113,7 @@ def write_diagnosis_json(result: dict, path) -> Path:
 def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     """The discovery kept in ``reports_dir`` (``discovery.json``), if it was made on top of these
     effects (otherwise it is about another model, and left out)."""
-    from quadcore import store
+    from quadcore.store import store
 
     path = store.as_root(reports_dir) / store.DISCOVERY_FILE  # a folder here or in an object store
     disc = store.read_json(path) if path.is_file() else None
@@ -122,7 +124,8 @@ def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, 
     """The diagnosis report (Markdown and HTML, with the plots) in ``reports_dir``, with the
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
     history. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
-    from quadcore import history, report
+    from quadcore.identify import history
+    from quadcore.report import report
 
     hist = history.read(root) if root is not None else None
     return report.write(result, reports_dir, hist, discovery_for(reports_dir, result["effects_in_model"]))
@@ -131,7 +134,8 @@ def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, 
 def record_diagnosis(root, result: dict, spec: ModelSpec) -> tuple[Path, Path]:
     """Write a data root's diagnosis: ``reports/diagnosis.json``, a row of the error history and
     the report. Returns the report's (md, html)."""
-    from quadcore import history, store
+    from quadcore.identify import history
+    from quadcore.store import store
 
     write_diagnosis_json(result, store.diagnosis_path(root))
     b, ev = result["baseline"], result["evaluation"]
@@ -157,9 +161,9 @@ def can_discover(fleet: Fleet, holdout: list[str] | None) -> bool:
 
 
 def discover(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> Discovery:
-    """:func:`quadcore.discovery.discover` on the fleet (:class:`WorkflowError` with fewer than
+    """:func:`quadcore.identify.discovery.discover` on the fleet (:class:`WorkflowError` with fewer than
     two training flights)."""
-    from quadcore import discovery
+    from quadcore.identify import discovery
 
     if not can_discover(fleet, holdout):
         raise WorkflowError("discovery needs at least two training flights (its folds are grouped by flight)")
@@ -167,6 +171,6 @@ def discover(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log 
 
 
 def write_discovery(result: Discovery, path) -> Path:
-    from quadcore import store
+    from quadcore.store import store
 
     return store.write_json(result.to_dict(), path)

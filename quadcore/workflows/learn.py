@@ -10,15 +10,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.model import PLUGINS, SPEC_DIGEST
+from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.workflows.fleet import WorkflowError, held_out
 
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore.features import FeatureSet
-    from quadcore.learning import LearnerSpec, Plan, TrainConfig
-    from quadcore.model import PhysicsModel
+    from quadcore.identify.model import PhysicsModel
+    from quadcore.learn.features import FeatureSet
+    from quadcore.learn.learning import LearnerSpec, Plan, TrainConfig
 
 Log = Callable[[str], None]
 
@@ -41,8 +41,8 @@ class LearningRequest:
     threads: int = 1
 
     def learner_specs(self) -> dict[str, LearnerSpec]:
-        """Kind -> learner spec (:class:`quadcore.learning.LearningError` for a bad option or kind)."""
-        from quadcore import learning
+        """Kind -> learner spec (:class:`quadcore.learn.learning.LearningError` for a bad option or kind)."""
+        from quadcore.learn import learning
 
         if not self.models:
             raise learning.LearningError("no model kind named")
@@ -51,7 +51,7 @@ class LearningRequest:
         return {k: learning.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
 
     def config(self) -> TrainConfig:
-        from quadcore import learning
+        from quadcore.learn import learning
 
         return learning.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
 
@@ -67,7 +67,7 @@ def physics_of_residuals(root) -> dict:
     the fitted model file is that model.
     :class:`WorkflowError` when the tables were computed against different models (some not
     refreshed after a refit)."""
-    from quadcore import store
+    from quadcore.store import store
 
     files = sorted((store.as_root(root) / "residuals").glob("flight=*/data.parquet"))
     models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
@@ -95,7 +95,8 @@ def physics_of_residuals(root) -> dict:
 def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int]:
     """Every feature set's table per flight from the data root's residual tables (swapped in
     whole under ``features/``). Returns (the sets, the number of flights)."""
-    from quadcore import features as feat, store
+    from quadcore.learn import features as feat
+    from quadcore.store import store
 
     physics = physics_of_residuals(root)  # every residual table against one physics model
     res = feat.read_residual_tables(root)
@@ -115,7 +116,7 @@ def learning_holdout(requested: str | None, flights: list[str], named_model_hold
     """(the flight the learned models are scored on, note): ``requested`` (with ``explicit``, it
     must exist), else the physics model's held-out flight (:func:`held_out` of its named
     holdout: the same default everywhere)."""
-    from quadcore import learning
+    from quadcore.learn import learning
 
     if requested:
         return learning.resolve_holdout(requested, flights, explicit=explicit)
@@ -135,10 +136,10 @@ class TrainedRuns:
 
 def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
           request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet) -> TrainedRuns:
-    """Plan the experiments (:func:`quadcore.learning.plan`) and run them into ``out_dir``.
+    """Plan the experiments (:func:`quadcore.learn.learning.plan`) and run them into ``out_dir``.
     Refuses a holdout the physics model's effects were fitted on: the learned models would be
     scored on a flight the physics under them has seen."""
-    from quadcore import learning
+    from quadcore.learn import learning
 
     if holdout in (physics.get("trained_on") or []):
         raise learning.LearningError(
@@ -159,7 +160,8 @@ def write_learning_report(root, residuals: dict[str, pl.DataFrame] | None = None
     """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
     data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
     Returns (report, plots, paths)."""
-    from quadcore import evaluation, features as feat, learning, store
+    from quadcore.learn import evaluation, features as feat, learning
+    from quadcore.store import store
 
     index, _ = learning.read_runs(store.learned_dir(root))
     physics = index.get("physics_model", {})
@@ -174,7 +176,7 @@ def learning_is_stale(root) -> str | None:
     or thrust map); or for another model spec than the current fit's (``spec_digest``: a fixed
     value, a per-session effect, a sessions file or a plugin's code changed). A refit on new
     flights alone waits for the nightly retraining."""
-    from quadcore import store
+    from quadcore.store import store
 
     index_path = store.learned_dir(root) / "index.json"
     if not index_path.is_file() or not store.learning_report_path(root).is_file():

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from quadcore import logformat
+from quadcore.logs import logformat
 
 MAIN = "fixedFrequency"
 

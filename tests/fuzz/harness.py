@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from quadcore import flight, logformat, store
+from quadcore.logs import flight, logformat
+from quadcore.store import store
 
 from .mutants import ESCAPE_MARK, Layout, Mutant, layout, mutants
 
@@ -183,7 +184,7 @@ def good_logs(folder: Path | None, count: int = 3) -> tuple[list[bytes], str]:
     if folder.is_dir():
         paths = sorted(flight.discover_logs(folder), key=lambda p: p.stat().st_size)[:count]
         return [p.read_bytes() for p in paths], f"real logs {', '.join(p.name for p in paths)} from {folder}"
-    from quadcore import simulation
+    from quadcore.sim import simulation
 
     with tempfile.TemporaryDirectory() as tmp:
         configs = [simulation.SimConfig(kind="random", duration_s=10.0, seed=s) for s in range(count)]
@@ -192,7 +193,7 @@ def good_logs(folder: Path | None, count: int = 3) -> tuple[list[bytes], str]:
 
 
 def _pipeline_kills(n: int, seed: int) -> bool:
-    from quadcore import simulation
+    from quadcore.sim import simulation
 
     from . import kills
 

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore import learning, safewrite, store
+from quadcore.learn import learning
+from quadcore.store import safewrite, store
 
 CHILD_TEMPLATE = "template"  # folder of models the child copies from (trained once by the parent)
 OUTPUTS = ("xgboost", "mlp")
@@ -42,7 +43,7 @@ class KillReport:
 
 def train_templates(folder: Path) -> None:
     """One tiny XGBoost and one tiny MLP model, trained on random data, saved under ``folder``."""
-    from quadcore import features as feat
+    from quadcore.learn import features as feat
 
     fs = feat.FEATURE_SETS["vel_rate"]
     rng = np.random.default_rng(0)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quadcore import logformat
+from quadcore.logs import logformat
 
 ESCAPE_MARK = "quadcore-fuzz-escape"  # a hostile event name tries to create a file with this name
 

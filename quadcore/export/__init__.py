@@ -1,0 +1,2 @@
+"""Outputs for other tools: a flight as MCAP for Foxglove (``mcap``), the model as C for a flight
+controller (``c``) and the C form an effect returns for it (``ccode``)."""

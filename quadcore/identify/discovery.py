@@ -1,0 +1,885 @@
+"""Discovery of terms the effect library lacks: sparse regression of the residual on a
+library of candidate terms, cross-validated over flights.
+
+Starting point: the residual the current model leaves (its effects fitted on the training
+flights), force and torque in the body frame (:mod:`quadcore.physics.residuals`).
+
+**The candidate library** is built from the flight's state and inputs, named with the
+residual table's columns, every term with its unit (:func:`library`):
+
+* each variable alone (body velocity, body rate, position, collective and per-rotor thrust,
+  motor speeds, battery voltage, a constant);
+* products of pairs and squares of the core variables (``v_b``, ``omega_b``, ``T_N``,
+  ``p_w_z_m``; ``vbat_V`` only with ``T_N``: the voltage barely changes, so ``x vbat`` would
+  duplicate ``x``), and signed squares ``x|x|`` of velocity and rate;
+* physically motivated combinations: per-rotor thrust differences, time derivatives of motor
+  speed, rotor thrust and rotor torque (a delay or lag ``Δ`` turns ``f(t-Δ)`` into
+  ``f - Δ df/dt``), the net rotor
+  speed ``Σ s_i Ω_i`` and its gyroscopic products with the body rate (rotor inertia), the
+  ground-effect term ``(R/4h)² T`` (Cheeseman & Bennett), ``T |v_h|²`` (translational lift).
+
+**The tautology guard.** A residual is measured minus modelled. A term built from either
+side of the *same* residual reconstructs it without any physics (the gyro derivative
+``omega_dot_b`` rebuilds the torque residual exactly; the accelerometer the force
+residual). So the torque library never holds ``omega_dot_b``, the force library never holds
+``sf_b``, and neither holds the modelled side of its own axis: ``T_N`` and the per-rotor
+map thrusts for ``f_z``, the per-rotor map thrusts and their differences for the torques
+(the rotor torque is a combination of them). This matters more than it seems: in closed
+loop the attitude controller holds off any slow disturbance torque with rotor-thrust
+differences, so the modelled rotor torque *is* minus the disturbance at low frequency, and
+a library holding it "explains" every disturbance as "the model's torque does not act"
+(on the 19 real flights: -0.9 × the modelled torque, hiding a flapping moment ``∝ T v``).
+As a second line, when the terms kept for an axis still rebuild a multiple of its modelled
+force or torque, the result says so: the model's own term is mis-scaled or cancelled by
+something, which is not a new mechanism by itself. Per-rotor thrusts stay in the
+horizontal force library, motor speeds (a separate measurement) and time derivatives of
+the map thrusts (timing) in every library.
+
+**Every term goes through the residual's own filter** (force: the smoother; torque: the
+gyro derivative's filter, :func:`quadcore.identify.fitting.smoothed_wrench`), so a coefficient found
+here is exactly the parameter of a linear effect with that term as its basis
+(:func:`write_effect`).
+
+**Selection** per residual axis, from Gram matrices accumulated flight by flight (every
+``stride``-th usable sample): orthogonal matching pursuit (``sklearn.linear_model.
+orthogonal_mp_gram``, the greedy member of the LARS family) on each fold of a
+cross-validation grouped by flight, scored on the fold's flights. The number of terms is
+where one more term adds less than ``MIN_GAIN`` of the held-out variance. A term is kept
+when it is selected in most folds (stability selection) and, refitted with the other kept
+terms, still adds ``MIN_GAIN`` of the held-out variance. An axis whose residual is within
+``evidence.NOISE_MARGIN`` (RMS) of the sensor-noise floor gets no terms, the same
+margin the diagnosis uses.
+
+**Reported** per term: the formula with its SI coefficient and grouped-jackknife standard
+error, the held-out variance it explains (in the order of selection, so the shares add up),
+its stability, the library effects whose basis it matches, the mechanism's name in the
+literature where there is one, and the candidates it is collinear with (which the data
+cannot separate from it).
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import textwrap
+import warnings
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+from sklearn.linear_model import orthogonal_mp_gram
+
+from quadcore import effects as effectlib
+from quadcore.effects.base import Effect, Parameter
+from quadcore.identify import evidence, fitting, sessions as sessionlib
+from quadcore.identify.model import ModelSpec
+from quadcore.physics import dynamics, signals
+from quadcore.physics.dynamics import XYZ, FlightState
+from quadcore.physics.vehicle import Vehicle
+from quadcore.store import store
+
+TARGETS = tuple([f"f_res_b_{a}_N" for a in XYZ] + [f"tau_res_b_{a}_Nm" for a in XYZ])
+MIN_GAIN = 0.02  # a term must add this share of the held-out variance of its axis
+MIN_STABILITY = 0.6  # selected in at least this share of the folds ("most folds")
+MAX_TERMS = 8  # per axis
+COLLINEAR = 0.95  # |cosine| between two terms above which the data cannot separate them
+MATCH = 0.9  # share of a term's energy in an effect's basis above which the term "is" that effect
+MIN_HEIGHT_M = 0.02  # the ground-effect term is evaluated at no less than this height
+
+# --- units, as exponents of (kg, m, s, rad, V) ------------------------------------------
+
+_BASE = ("kg", "m", "s", "rad", "V")
+UNIT = {
+    "1": (0, 0, 0, 0, 0), "N": (1, 1, -2, 0, 0), "N m": (1, 2, -2, 0, 0), "m": (0, 1, 0, 0, 0),
+    "m/s": (0, 1, -1, 0, 0), "m/s^2": (0, 1, -2, 0, 0), "rad/s": (0, 0, -1, 1, 0), "rad/s^2": (0, 0, -2, 1, 0),
+    "V": (0, 0, 0, 0, 1), "N/s": (1, 1, -3, 0, 0),
+}
+
+
+def _mul(a, b, sign=1):
+    return tuple(x + sign * y for x, y in zip(a, b))
+
+
+def unit_text(exps) -> str:
+    """``(1, 1, -2, 0, 0)`` -> ``"N"``; other combinations as ``kg m^2/(s rad)``."""
+    for name, e in UNIT.items():
+        if tuple(exps) == e and name != "1":
+            return name
+    num = [f"{b}^{e}" if e > 1 else b for b, e in zip(_BASE, exps) if e > 0]
+    den = [f"{b}^{-e}" if e < -1 else b for b, e in zip(_BASE, exps) if e < 0]
+    if not num and not den:
+        return "1"
+    top = " ".join(num) or "1"
+    return top if not den else f"{top}/{den[0]}" if len(den) == 1 else f"{top}/({' '.join(den)})"
+
+
+# --- the candidate library ----------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Term:
+    """One candidate: its expression (factors joined by ``*``; ``|x|`` is an absolute value),
+    the residual-table columns it is built from, its unit, and where it may be used
+    (``force``, ``torque`` or ``both``)."""
+
+    expression: str
+    variables: tuple[str, ...]
+    unit: tuple[int, ...]
+    channel: str = "both"
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A signal a term is built from: values over the flight, unit, source columns."""
+
+    values: np.ndarray
+    unit: tuple[int, ...]
+    sources: tuple[str, ...]
+    channel: str = "both"
+
+
+CORE = ("v_b_x_mps", "v_b_y_mps", "v_b_z_mps", "omega_b_x_radps", "omega_b_y_radps", "omega_b_z_radps",
+        "T_N", "p_w_z_m", "vbat_V")
+SIGNED_SQUARES = CORE[:6]
+
+
+def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
+    """Every signal terms are built from, by name. Derived ones name their source columns."""
+    out: dict[str, Variable] = {"1": Variable(np.ones(state.n), UNIT["1"], ())}
+
+    def put(name, values, unit, sources=None, channel="both"):
+        out[name] = Variable(np.asarray(values, dtype=float), UNIT[unit], tuple(sources or (name,)), channel)
+
+    for j, a in enumerate(XYZ):
+        put(f"v_b_{a}_mps", state.v_b_mps[:, j], "m/s")
+        put(f"omega_b_{a}_radps", state.omega_b_radps[:, j], "rad/s")
+        put(f"p_w_{a}_m", state.p_w_m[:, j], "m")
+    T = state.f_rotor_N.sum(axis=1)
+    put("T_N", T, "N")
+    put("vbat_V", state.vbat_V, "V")
+    # the measured side of one residual is a fair variable for the other one only
+    omega_dot = signals.derivative(state.omega_b_radps, state.t_s)
+    for j, a in enumerate(XYZ):
+        put(f"omega_dot_b_{a}_radps2", omega_dot[:, j], "rad/s^2", channel="force")
+        put(f"sf_b_{a}_mps2", state.sf_b_mps2[:, j], "m/s^2", channel="torque")
+    n_rot = state.f_rotor_N.shape[1]
+    for i in range(n_rot):
+        put(f"f_rotor_{i + 1}_N", state.f_rotor_N[:, i], "N")
+    for i in range(n_rot):
+        for k in range(i + 1, n_rot):
+            put(f"(f_rotor_{i + 1}_N-f_rotor_{k + 1}_N)", state.f_rotor_N[:, i] - state.f_rotor_N[:, k], "N",
+                (f"f_rotor_{i + 1}_N", f"f_rotor_{k + 1}_N"))
+    f_dot = signals.derivative(state.f_rotor_N, state.t_s)
+    for i in range(n_rot):
+        put(f"d(f_rotor_{i + 1}_N)/dt", f_dot[:, i], "N/s", (f"f_rotor_{i + 1}_N",))
+    put("d(T_N)/dt", f_dot.sum(axis=1), "N/s", ("T_N",))
+    _, tau_dot = dynamics.wrench_from_thrusts(vehicle, f_dot)  # the modelled rotor torque's rate: timing
+    rotors = tuple(f"f_rotor_{i + 1}_N" for i in range(n_rot))
+    for j, a in enumerate(XYZ):
+        out[f"d(tau_rotor_{a}_Nm)/dt"] = Variable(tau_dot[:, j], _mul(UNIT["N m"], (0, 0, -1, 0, 0)), rotors, "torque")
+    h = np.maximum(state.p_w_m[:, 2], MIN_HEIGHT_M)
+    put("(R/4h)^2*T_N", (vehicle.rotor_radius_m / (4 * h)) ** 2 * T, "N", ("p_w_z_m", "T_N"))
+    put("T_N*|v_h|^2", T * (state.v_b_mps[:, 0] ** 2 + state.v_b_mps[:, 1] ** 2), "N",
+        ("T_N", "v_b_x_mps", "v_b_y_mps"))
+    out["T_N*|v_h|^2"] = Variable(out["T_N*|v_h|^2"].values, _mul(UNIT["N"], _mul(UNIT["m/s"], UNIT["m/s"])),
+                                   out["T_N*|v_h|^2"].sources)
+    if state.motor_radps is not None:
+        motors = tuple(f"motor_{i + 1}_radps" for i in range(n_rot))
+        for i, name in enumerate(motors):
+            put(name, state.motor_radps[:, i], "rad/s")
+        m_dot = signals.derivative(state.motor_radps, state.t_s)
+        for i, name in enumerate(motors):
+            put(f"d({name})/dt", m_dot[:, i], "rad/s^2", (name,))
+        sign = np.asarray(vehicle.yaw_sign, dtype=float)
+        put("Omega_net_radps", state.motor_radps @ sign, "rad/s", motors)
+        put("d(Omega_net_radps)/dt", m_dot @ sign, "rad/s^2", motors)
+    return out
+
+
+def _literature(expr: str, channel: str = "force") -> str:
+    """The mechanism's name in the multirotor literature, where a term has an obvious one
+    (``channel``: where the term acts, force or torque)."""
+    torque_rules = [
+        (r"^(T_N\*)?v_b_[xy]_mps$", ("a moment growing with the horizontal velocity: the blade-flapping hub moment "
+                                     "(Mahony, Kumar & Corke 2012), or rotor drag acting above the centre of mass "
+                                     "(r × F); the two have the same form")),
+        (r"^(1|T_N|T_N\*T_N)$", ("a trim torque growing with thrust: centre-of-mass offset (r × thrust) in roll and "
+                                "pitch; in yaw, rotors whose torque-to-thrust ratios differ, or tilted motors")),
+    ]
+    rules = (torque_rules if channel == "torque" else []) + [
+        (r"^T_N\*v_b_[xy]_mps$", ("rotor drag / blade flapping (Mahony, Kumar & Corke 2012; Faessler et al. 2018): "
+                                 "in force a drag -kTv, in torque the flapping hub moment")),
+        (r"^v_b_[xyz]_mps$", "linear airframe drag (or rotor drag at constant thrust)"),
+        (r"^v_b_([xyz])_mps\*\|v_b_\1_mps\|$", "parasitic (quadratic) airframe drag"),
+        (r"^\(R/4h\)\^2\*T_N$", "ground effect (Cheeseman & Bennett 1955)"),
+        (r"^T_N\*\|v_h\|\^2$", "translational lift (momentum theory)"),
+        (r"^v_b_([xy])_mps\*v_b_\1_mps$", "a force growing with the horizontal speed squared: translational lift "
+                                          "along z (momentum theory), quadratic drag in the horizontal"),
+        (r"^(T_N\*)?v_b_z_mps$|^T_N\*v_b_z_mps$", "axial inflow: thrust changes with climb speed (momentum theory)"),
+        (r"^d\(motor_\d_radps\)/dt$|^d\(Omega_net_radps\)/dt$",
+         "rotor inertia: reaction torque of accelerating rotors"),
+        (r"^omega_b_[xyz]_radps\*Omega_net_radps$", "gyroscopic torque of the spinning rotors"),
+        (r"^d\((f_rotor_\d_N|T_N|tau_rotor_[xyz]_Nm)\)/dt$",
+         "timing: a delay or lag between the logged command and the thrust (f(t-Δ) ≈ f - Δ df/dt)"),
+        (r"^f_rotor_\d_N$|^\(f_rotor_\d_N-f_rotor_\d_N\)$", "per-rotor thrust-map error (rotor imbalance)"),
+        (r"^omega_b_([xyz])_radps$", "rotor / aerodynamic damping of the body rate"),
+        (r"^omega_b_[xyz]_radps\*omega_b_[xyz]_radps$", "inertia-tensor error (Euler's ω × Jω term)"),
+        (r"^T_N$", "centre-of-mass offset (r × thrust) in torque; thrust-map scale or payload in force"),
+        (r"^omega_dot_b_[xyz]_radps2$", "centre-of-mass offset (tangential acceleration α × r)"),
+        (r"vbat_V", "battery-voltage dependence of the thrust map"),
+        (r"^1$", "a constant bias: sensor bias, or a fixed disturbance"),
+    ]
+    forms = {expr, "*".join(reversed(expr.split("*")))}  # products match in either order
+    for pattern, name in rules:
+        if any(re.search(pattern, f) for f in forms):
+            return name
+    return ""
+
+
+def library(vars_: dict[str, Variable]) -> list[Term]:
+    """The candidate terms over the given variables (see the module docstring)."""
+    terms = [Term(name, v.sources, v.unit, v.channel) for name, v in vars_.items()]
+    core = [c for c in CORE if c in vars_]
+    for i, a in enumerate(core):
+        for b in core[i:]:
+            if "vbat_V" in (a, b) and "T_N" not in (a, b):
+                continue  # a nearly constant voltage times x duplicates x; T vbat is the map's voltage error
+            expr = f"{a}*{b}"
+            terms.append(Term(expr, tuple(dict.fromkeys((a, b))), _mul(vars_[a].unit, vars_[b].unit)))
+    for a in SIGNED_SQUARES:
+        expr = f"{a}*|{a}|"
+        terms.append(Term(expr, (a,), _mul(vars_[a].unit, vars_[a].unit)))
+    if "Omega_net_radps" in vars_:
+        for a in ("x", "y"):
+            expr = f"omega_b_{a}_radps*Omega_net_radps"
+            terms.append(Term(expr, (f"omega_b_{a}_radps", *vars_["Omega_net_radps"].sources),
+                              _mul(UNIT["rad/s"], UNIT["rad/s"]), "torque"))
+    return terms
+
+
+def _factor(vars_: dict[str, Variable], text: str) -> np.ndarray:
+    if text.startswith("|") and text.endswith("|"):
+        return np.abs(vars_[text[1:-1]].values)
+    return vars_[text].values
+
+
+def evaluate(expressions: list[str], state: FlightState, vehicle: Vehicle) -> np.ndarray:
+    """(n, k) raw values of the given term expressions over a flight."""
+    vars_ = variables(state, vehicle)
+    out = np.empty((state.n, len(expressions)))
+    for k, expr in enumerate(expressions):
+        if expr in vars_:
+            out[:, k] = vars_[expr].values
+            continue
+        factors = expr.split("*")
+        if any(f.strip("|") not in vars_ for f in factors):
+            raise KeyError(f"unknown term {expr!r}: its variables are not in this flight")
+        out[:, k] = np.prod([_factor(vars_, f) for f in factors], axis=0)
+    return out
+
+
+def excluded(term: Term, target: str) -> bool:
+    """True when ``term`` holds an ingredient of ``target``'s own residual (see the module
+    docstring): the measured side, or the modelled side of the same axis."""
+    channel = "force" if target.startswith("f_") else "torque"
+    if term.channel not in ("both", channel):
+        return True
+    per_rotor = re.fullmatch(r"f_rotor_\d+_N", term.expression) is not None
+    if channel == "torque":  # the rotor torque is a combination of the map's rotor thrusts
+        return per_rotor or re.fullmatch(r"\(f_rotor_\d+_N-f_rotor_\d+_N\)", term.expression) is not None
+    return target == "f_res_b_z_N" and (term.expression == "T_N" or per_rotor)
+
+
+# --- results --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DiscoveredTerm:
+    """A kept term: ``target ≈ coefficient · expression`` (SI)."""
+
+    target: str
+    expression: str
+    variables: tuple[str, ...]
+    coefficient: float
+    std: float
+    unit: str  # of the coefficient
+    term_unit: str
+    explained_variance: float  # held-out share of the target's variance it adds (selection order)
+    stability: float  # share of folds selecting it
+    folds_selected: int
+    folds: int
+    matches_effects: tuple[str, ...] = ()
+    literature: str = ""
+    collinear_with: tuple[str, ...] = ()
+
+    @property
+    def formula(self) -> str:
+        unit = f" {self.unit}" if self.unit != "1" else ""
+        return (f"{self.target} ≈ {self.coefficient:+.3g}{unit} · {self.expression} "
+                f"(± {self.std:.2g}; explains {self.explained_variance:.0%} held out, kept in "
+                f"{self.folds_selected}/{self.folds} folds)")
+
+    def to_dict(self) -> dict:
+        return {"target": self.target, "expression": self.expression, "variables": list(self.variables),
+                "coefficient": self.coefficient, "std": self.std, "unit": self.unit, "term_unit": self.term_unit,
+                "explained_variance": self.explained_variance, "stability": self.stability,
+                "formula": self.formula, "matches_effects": list(self.matches_effects),
+                "literature": self.literature, "collinear_with": list(self.collinear_with)}
+
+
+@dataclass(frozen=True)
+class AxisResult:
+    """What discovery concluded on one residual axis."""
+
+    target: str
+    explained_variance: float  # of all kept terms together, held out
+    at_noise_level: bool
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Discovery:
+    terms: tuple[DiscoveredTerm, ...]
+    axes: tuple[AxisResult, ...]
+    baseline: dict
+    after: dict
+    noise_floor: dict
+    evaluation: dict
+    effects_in_model: tuple[str, ...]
+    library_size: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "terms": [t.to_dict() for t in self.terms],
+            "axes": [{"target": a.target, "explained_variance": a.explained_variance,
+                      "at_noise_level": a.at_noise_level, "notes": list(a.notes)} for a in self.axes],
+            "baseline": self.baseline, "after": self.after, "noise_floor": self.noise_floor,
+            "evaluation": self.evaluation, "effects_in_model": list(self.effects_in_model),
+            "library_size": self.library_size,
+        }
+
+    @property
+    def summary(self) -> str:
+        """A paragraph a person reads first."""
+        if not self.terms:
+            return ("No term of the candidate library explains a stable share of the held-out residual "
+                    f"(at least {MIN_GAIN:.0%} of an axis' variance, in most folds).")
+        lines = ["Terms the model lacks (held-out variance explained, stability over folds):"]
+        lines += [f"  {t.formula}" + (f" [{t.literature}]" if t.literature else "") for t in self.terms]
+        return "\n".join(lines)
+
+
+# --- the computation -----------------------------------------------------------------------
+
+@dataclass
+class _Columns:
+    """The columns accumulated in the Gram matrices and where each block starts."""
+
+    terms: list[Term]
+    force: list[int]  # indices into terms usable for force targets
+    torque: list[int]
+    effect_cols: dict[tuple[str, int], list[int]]  # (effect, axis) -> Gram columns
+    n_total: int
+
+    def term_col(self, k: int, axis: int) -> int:
+        """Gram column of term ``k`` filtered for ``axis`` (0-2 force, 3-5 torque)."""
+        return self.force.index(k) if axis < 3 else len(self.force) + self.torque.index(k)
+
+    @property
+    def target0(self) -> int:
+        return len(self.force) + len(self.torque)
+
+    @property
+    def model0(self) -> int:
+        return self.target0 + 6
+
+
+def _effect_basis(effect: Effect, state: FlightState, vehicle: Vehicle) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Its basis (linear effects) or its linearisation about 'no effect' (others)."""
+    if effect.linear:
+        return effect.basis(state, vehicle)
+    out = []
+    for p in effect.parameters:
+        params = effect.defaults()
+        h = 0.01 * (p.upper - p.lower) if np.isfinite(p.upper - p.lower) else 1e-3
+        params[p.name] += h if p.default + h <= p.upper else -h
+        f, tau = effect.wrench(state, vehicle, params)
+        out.append((f / h, tau / h))
+    return out
+
+
+def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle, stride: int):
+    """Gram matrix of one flight's filtered terms, residual targets, modelled sides and the
+    effects' bases, on every ``stride``-th usable sample."""
+    s = fd.state
+    rows = np.flatnonzero(fd.mask)[::stride]
+    raw = evaluate([t.expression for t in cols.terms], s, vehicle)
+    F = signals.smooth(raw[:, cols.force])[rows]
+    Tq = signals.matched_to_derivative(raw[:, cols.torque], s.t_s)[rows]
+    T_N, tau_rotor = dynamics.wrench_from_thrusts(vehicle, s.f_rotor_N)
+    f_model = np.zeros((s.n, 3))
+    f_model[:, 2] = T_N
+    model = fitting.smoothed_wrench(f_model, tau_rotor, s.t_s)[rows]
+    blocks = [F, Tq, resid[rows], model]
+    for e in fx_effects:
+        try:
+            basis = [fitting.smoothed_wrench(f, t, s.t_s)[rows] for f, t in _effect_basis(e, s, vehicle)]
+        # a user's effect failing here: not matched
+        except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):
+            basis = [np.zeros((len(rows), 6)) for _ in e.parameters]
+        blocks += [np.stack([b[:, axis] for b in basis], axis=1) for axis in range(6)]
+    Z = np.concatenate(blocks, axis=1)
+    return Z.T @ Z
+
+
+def _sse(G: np.ndarray, cols: list[int], y: int, beta: np.ndarray) -> float:
+    """Residual sum of squares of ``y - X[:, cols] beta`` from a Gram matrix."""
+    if not cols:
+        return float(G[y, y])
+    return float(G[y, y] - 2 * beta @ G[cols, y] + beta @ G[np.ix_(cols, cols)] @ beta)
+
+
+def _ols(G: np.ndarray, cols: list[int], y: int) -> np.ndarray:
+    if not cols:
+        return np.zeros(0)
+    return np.linalg.lstsq(G[np.ix_(cols, cols)], G[cols, y], rcond=1e-12)[0]
+
+
+def _omp_path(G: np.ndarray, cols: list[int], y: int, n_max: int) -> list[list[int]]:
+    """Supports of the greedy path (1, 2, ... terms), columns normalised for the selection."""
+    sub = G[np.ix_(cols, cols)]
+    d = np.sqrt(np.maximum(np.diag(sub), 1e-300))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "ended prematurely": fewer independent columns than asked
+        path = orthogonal_mp_gram(sub / np.outer(d, d), G[cols, y] / d, n_nonzero_coefs=n_max, return_path=True)
+    path = path.reshape(len(cols), -1)
+    supports, seen = [], []
+    for s in range(path.shape[1]):
+        new = [cols[i] for i in np.flatnonzero(path[:, s]) if cols[i] not in seen]
+        seen += new
+        supports.append(list(seen))
+    return supports
+
+
+def _cv_ev(grams: list[tuple[np.ndarray, np.ndarray]], cols: list[int], y: int) -> float:
+    """Held-out share of variance over folds: fit on each (train, test) Gram pair's train."""
+    sse = sum(_sse(te, cols, y, _ols(tr, cols, y)) for tr, te in grams)
+    tot = sum(te[y, y] for _, te in grams)
+    return 1.0 - sse / tot if tot > 0 else 0.0
+
+
+def _select(fold_grams, G_train, candidates: list[int], y: int) -> tuple[list[int], dict[int, int]]:
+    """Stable terms of one axis and how many folds selected each."""
+    paths = [_omp_path(tr, candidates, y, MAX_TERMS) for tr, _ in fold_grams]
+    n_steps = min(len(p) for p in paths)
+    ev = [0.0]
+    for s in range(n_steps):  # held-out variance with s+1 terms, each fold its own path
+        sse = sum(_sse(te, p[s], y, _ols(tr, p[s], y)) for (tr, te), p in zip(fold_grams, paths))
+        tot = sum(te[y, y] for _, te in fold_grams)
+        ev.append(1.0 - sse / tot)
+    k = 0
+    while k < n_steps and ev[k + 1] - ev[k] >= MIN_GAIN:
+        k += 1
+    counts: dict[int, int] = {}
+    for p in paths:
+        for c in (p[k - 1] if k else []):
+            counts[c] = counts.get(c, 0) + 1
+    stable = [c for c, n in counts.items() if n >= MIN_STABILITY * len(fold_grams)]
+    return _order_and_prune(fold_grams, stable, y), counts
+
+
+def _order_and_prune(fold_grams, stable: list[int], y: int) -> list[int]:
+    """Greedy order of the stable terms by held-out gain; drop those adding < MIN_GAIN."""
+    chosen: list[int] = []
+    left = list(stable)
+    base = 0.0
+    while left:
+        gains = [(_cv_ev(fold_grams, chosen + [c], y) - base, c) for c in left]
+        gain, best = max(gains)
+        if gain < MIN_GAIN:
+            break
+        chosen.append(best)
+        left.remove(best)
+        base += gain
+    return chosen
+
+
+def discover(
+    decoded: Mapping[str, pl.DataFrame],
+    spec: ModelSpec,
+    holdout: list[str] | None = None,
+    n_folds: int = 5,
+    stride: int = 4,
+    log=lambda msg: None,
+    sessions: dict[str, list[str]] | None = None,
+) -> Discovery:
+    """Find the terms the model lacks (see the module docstring). ``sessions`` (name ->
+    flights, from a sessions file) group the flights of per-session effects, as in
+    :func:`quadcore.identify.diagnosis.diagnose`; None: the model file's, else the groups the data show.
+
+    Flight by flight: each flight's rows become its Gram matrix (the statistics the selection,
+    the folds and the coefficients combine) and are dropped; the evaluated flights are read again
+    for the held-out RMSE. ``decoded`` may read each table as it is looked up
+    (:class:`quadcore.store.store.FlightTables`). Fitting the model's own effects reads the training
+    flights' rows together (and every flight's for per-session effects)."""
+    vehicle = spec.vehicle
+    ids = sorted(decoded)
+    holdout = [h for h in (holdout or []) if h in decoded]
+    train = [f for f in ids if f not in holdout]
+    if len(train) < 2:
+        raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
+    predict = _model_fit(spec, decoded, ids, train, sessions, log)
+
+    def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
+        """One flight's rows and its residual under the model."""
+        fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
+        target = fitting.targets_of([fd])[0]
+        return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
+
+    # motor terms only when every flight has them (read off the columns, before any Gram matrix)
+    motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
+    fx_effects = list(effectlib.registry().values())
+    grams: dict[str, np.ndarray] = {}
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    for f in ids:
+        fd, r = flight(f)
+        if not grams:
+            vars_ = variables(fd.state, vehicle)
+            if not motors:
+                vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
+            terms = library(vars_)
+            cols = _columns(terms, fx_effects)
+            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
+                f"accumulating on {len(ids)} flights")
+        grams[f] = _flight_gram(fd, r, cols, fx_effects, vehicle, stride)
+        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
+    folds = fitting.folds(train, n_folds)
+    fold_grams = [(sum(grams[f] for f in train if f not in fold), sum(grams[f] for f in fold)) for fold in folds]
+    G_train = sum(grams[f] for f in train)
+    noise = _noise_floor([samples[f] for f in train], [noise_of[f] for f in train])
+
+    kept: list[DiscoveredTerm] = []
+    axes: list[AxisResult] = []
+    coefs: dict[int, tuple[list[int], np.ndarray]] = {}
+    for axis, target in enumerate(TARGETS):
+        y = cols.target0 + axis
+        rms = np.sqrt(G_train[y, y] / _rows(G_train))
+        if rms <= (1 + evidence.NOISE_MARGIN) * noise[axis]:
+            why = (f"residual RMS {rms:.3g} within {evidence.NOISE_MARGIN:.0%} of the "
+                   f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
+            axes.append(AxisResult(target, 0.0, True, (why,)))
+            continue
+        candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
+                      if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
+        chosen, counts = _select(fold_grams, G_train, candidates, y)
+        beta = _ols(G_train, chosen, y)
+        coefs[axis] = (chosen, beta)
+        jack = [_ols(tr, chosen, y) for tr, _ in fold_grams]
+        k_f = len(fold_grams)
+        std = np.sqrt((k_f - 1) / k_f * np.sum((np.array(jack) - np.mean(jack, axis=0)) ** 2, axis=0)) if chosen \
+            else np.zeros(0)
+        shares = _sequential_shares(grams, train, holdout, folds, chosen, y)
+        col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
+        for i, c in enumerate(chosen):
+            t = col_term[c]
+            coef_unit = _mul(UNIT["N"] if axis < 3 else UNIT["N m"], t.unit, -1)
+            kept.append(DiscoveredTerm(
+                target, t.expression, t.variables, float(beta[i]), float(std[i]), unit_text(coef_unit),
+                unit_text(t.unit), shares[i], counts.get(c, 0) / k_f, counts.get(c, 0), k_f,
+                _matches(G_train, cols, c, axis, fx_effects, spec.effects),
+                _literature(t.expression, "force" if axis < 3 else "torque"),
+                _collinear(G_train, c, [d for d in candidates if d != c], col_term)))
+        axes.append(AxisResult(target, float(sum(shares)), False,
+                               _modelled_side_note(G_train, cols, chosen, beta, axis, target)))
+    eval_ids = holdout or ids
+    train_gram = {f: G_train for f in eval_ids} if holdout else {
+        f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
+    base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, cols, terms, coefs, vehicle)
+    return Discovery(
+        tuple(kept), tuple(axes), base, after,
+        {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
+        {"mode": "holdout" if holdout else "cross-validation", "train_flights": train, "eval_flights": eval_ids,
+         "folds": len(folds), "stride": stride,
+         # with a holdout the model's effects never see it; without one they are fitted on all flights
+         "model_effects_fitted_on": train},
+        tuple(spec.effects), {"force": len(cols.force), "torque": len(cols.torque)})
+
+
+def _usable(cols: _Columns, axis: int, terms: list[Term]) -> list[Term]:
+    idx = cols.force if axis < 3 else cols.torque
+    return [terms[k] for k in idx]
+
+
+def _columns(terms: list[Term], fx_effects: list[Effect]) -> _Columns:
+    force = [k for k, t in enumerate(terms) if t.channel in ("both", "force")]
+    torque = [k for k, t in enumerate(terms) if t.channel in ("both", "torque")]
+    i = len(force) + len(torque) + 12
+    effect_cols = {}
+    for e in fx_effects:
+        for axis in range(6):
+            effect_cols[(e.name, axis)] = list(range(i, i + len(e.parameters)))
+            i += len(e.parameters)
+    return _Columns(terms, force, torque, effect_cols, i)
+
+
+def _rows(G: np.ndarray) -> float:
+    """Samples behind a Gram matrix: the constant term "1" is the first force column."""
+    return float(G[0, 0])
+
+
+def _noise_floor(samples: list[int], noises: list[np.ndarray]) -> np.ndarray:
+    """(6,) the flights' sensor-noise floors pooled by their usable samples."""
+    n = np.array(samples, dtype=float)
+    return np.sqrt(np.sum(n[:, None] * np.array(noises) ** 2, axis=0) / n.sum())
+
+
+def _logs_motors(df: pl.DataFrame, vehicle: Vehicle) -> bool:
+    """Whether a decoded table has every rotor's speed (``FlightState.motor_radps`` is set)."""
+    return all(f"motor_{i}_radps" in df.columns for i in range(1, vehicle.n_rotors + 1))
+
+
+def _model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
+               sessions: dict[str, list[str]] | None, log) -> Callable | None:
+    """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training
+    flights (per session for per-session effects), or None for a model without effects."""
+    model_effects = [effectlib.get(n) for n in spec.effects]
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
+        targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
+        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
+        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
+    if not model_effects:
+        return None
+    log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
+    fds_train = [fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
+    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed)
+    return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
+
+
+def _sequential_shares(grams, train, holdout, folds, chosen, y) -> list[float]:
+    """Held-out variance each term adds, in the order of selection (they sum to the total)."""
+    if holdout:
+        pairs = [(sum(grams[f] for f in train), sum(grams[f] for f in holdout))]
+    else:
+        pairs = [(sum(grams[f] for f in train if f not in fold), sum(grams[f] for f in fold)) for fold in folds]
+    evs = [_cv_ev(pairs, chosen[:i], y) for i in range(len(chosen) + 1)]
+    return [float(evs[i + 1] - evs[i]) for i in range(len(chosen))]
+
+
+def _matches(G, cols: _Columns, c: int, axis: int, fx_effects, in_model) -> tuple[str, ...]:
+    """Library effects whose basis (on this axis) holds at least MATCH of the term's energy."""
+    out = []
+    gcc = G[c, c]
+    for e in fx_effects:
+        b = cols.effect_cols[(e.name, axis)]
+        if not b or gcc <= 0 or np.allclose(G[np.ix_(b, b)], 0):
+            continue
+        coef = np.linalg.lstsq(G[np.ix_(b, b)], G[b, c], rcond=1e-12)[0]
+        r2 = float(G[c, b] @ coef / gcc)
+        if r2 >= MATCH:
+            out.append(f"{e.name}{' (in the model)' if e.name in in_model else ''}")
+    return tuple(out)
+
+
+def _collinear(G, c: int, others: list[int], col_term: dict[int, Term]) -> tuple[str, ...]:
+    d = np.sqrt(np.maximum(np.diag(G), 1e-300))
+    return tuple(col_term[o].expression for o in others if abs(G[c, o] / (d[c] * d[o])) >= COLLINEAR)
+
+
+def _modelled_side_note(G, cols: _Columns, chosen, beta, axis: int, target: str) -> tuple[str, ...]:
+    """Say so when the kept terms rebuild a multiple of the axis' own modelled side."""
+    m = cols.model0 + axis
+    if not chosen or G[m, m] <= 0:
+        return ()
+    # prediction p = X beta; its projection on the modelled side: k = <p, m> / <m, m>
+    pm = float(beta @ G[chosen, m])
+    pp = float(beta @ G[np.ix_(chosen, chosen)] @ beta)
+    if pp <= 0:
+        return ()
+    r2 = pm**2 / (pp * G[m, m])
+    if r2 < 0.5:
+        return ()
+    k = pm / G[m, m]
+    side = "thrust T" if axis < 3 else "rotor torque the thrust map gives"
+    return ((f"{r2:.0%} of what the kept terms predict on {target} is {k:+.2f} × the modelled {side}: the model's own "
+            f"term is mis-scaled or cancelled by something it does not model (a thrust-map error, or a disturbance "
+            f"the controller holds off), not a new mechanism by itself"),)
+
+
+def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
+    """RMSE per axis on the evaluated flights (every usable sample) before and after the
+    discovered terms (fitted on training flights: ``train_gram[f]``, the Gram matrix flight
+    ``f`` is scored with, of its fold's training flights without a holdout). ``flight(f)``
+    gives a flight's rows and residual, read one flight at a time."""
+    before = np.zeros(6)
+    after = np.zeros(6)
+    n = 0
+    for f in eval_ids:
+        fd, r = flight(f)
+        pred = np.zeros_like(r)
+        G = train_gram[f]
+        for axis, (chosen, _) in coefs.items():
+            if not chosen:
+                continue
+            beta = _ols(G, chosen, cols.target0 + axis)
+            col_term = {cols.term_col(k, axis): t.expression for k, t in enumerate(terms)
+                        if k in (cols.force if axis < 3 else cols.torque)}
+            raw = evaluate([col_term[c] for c in chosen], fd.state, vehicle)
+            filt = signals.smooth(raw) if axis < 3 else signals.matched_to_derivative(raw, fd.state.t_s)
+            pred[:, axis] = filt @ beta
+        m = fd.mask
+        before += (r[m] ** 2).sum(axis=0)
+        after += ((r - pred)[m] ** 2).sum(axis=0)
+        n += int(m.sum())
+
+    def pack(ss):
+        rms = np.sqrt(ss / max(n, 1))
+        return {"force_rmse_N": [float(v) for v in rms[:3]], "torque_rmse_Nm": [float(v) for v in rms[3:]]}
+
+    return pack(before), pack(after)
+
+
+# --- the generated effect ---------------------------------------------------------------------
+
+class DiscoveredEffect(Effect):
+    """A linear effect whose basis is a list of discovered terms, each acting on one axis::
+
+        f_b[a] = Σ_k c_k term_k(state)     (a force axis),   tau_b[a] likewise (a torque axis)
+
+    Built by the modules :func:`write_effect` generates; parameters are the coefficients
+    ``c_k`` (SI), default 0 (no effect)."""
+
+    linear = True
+
+    def __init__(self, name: str, terms: list[tuple[str, str, str, str, float]], doc: str = ""):
+        """``terms``: (target, expression, parameter name, coefficient unit, bound) per term."""
+        self.name = name
+        self.doc = doc
+        self._terms = [(TARGETS.index(t), e) for t, e, *_ in terms]
+        channels = {"force" if t.startswith("f_") else "torque" for t, *_ in terms}
+        self.target = "both" if len(channels) > 1 else "force" if channels == {"force"} else "torque"
+        self.parameters = tuple(Parameter(p, u, 0.0, -b, b, f"{t} per unit of {e}") for t, e, p, u, b in terms)
+
+    def basis(self, state, vehicle):
+        values = evaluate([e for _, e in self._terms], state, vehicle) if state.n > 1 else \
+            np.zeros((state.n, len(self._terms)))
+        out = []
+        for k, (axis, _) in enumerate(self._terms):
+            w = np.zeros((state.n, 6))
+            w[:, axis] = values[:, k]
+            out.append((w[:, :3], w[:, 3:]))
+        return out
+
+    def wrench(self, state, vehicle, params):
+        f, tau = np.zeros((state.n, 3)), np.zeros((state.n, 3))
+        for p, (bf, bt) in zip(self.parameters, self.basis(state, vehicle)):
+            f += params[p.name] * bf
+            tau += params[p.name] * bt
+        return f, tau
+
+    def c_code(self, vehicle, params):
+        """The terms in C for ``quadcore export-c`` when every one has an on-board form; ``None``
+        when one needs a time derivative or a sensor the residual is measured with."""
+        from quadcore.export.ccode import CCode
+
+        lines = []
+        for p, (axis, expr) in zip(self.parameters, self._terms):
+            value = c_term(expr, vehicle)
+            if value is None:
+                return None
+            out = f"f_b_N[{axis}]" if axis < 3 else f"tau_b_Nm[{axis - 3}]"
+            lines.append(f"{out} += {p.name} * ({value});")
+        return CCode("\n".join(lines))
+
+
+def c_term(expression: str, vehicle: Vehicle) -> str | None:
+    """A term of :func:`variables` as a C expression (names of :mod:`quadcore.export.ccode`), or None."""
+    from quadcore.export.c.inputs import ExportError, feature_expression
+
+    h = f"(p_w_m[2] > {MIN_HEIGHT_M!r}f ? p_w_m[2] : {MIN_HEIGHT_M!r}f)"
+    special = {
+        "1": "1.0f",
+        "(R/4h)^2*T_N": f"QC_ROTOR_RADIUS_M * QC_ROTOR_RADIUS_M / (16 * {h} * {h}) * T_N",
+        "T_N*|v_h|^2": "T_N * (v_b_mps[0] * v_b_mps[0] + v_b_mps[1] * v_b_mps[1])",
+        "Omega_net_radps": " + ".join(f"({float(s)!r}f * motor_radps[{i}])" for i, s in enumerate(vehicle.yaw_sign)),
+    }
+
+    def variable(name: str) -> str | None:
+        pair = re.fullmatch(r"\(f_rotor_(\d+)_N-f_rotor_(\d+)_N\)", name)
+        if name in special:
+            return special[name]
+        if pair:
+            return f"(f_rotor_N[{int(pair[1]) - 1}] - f_rotor_N[{int(pair[2]) - 1}])"
+        try:
+            return feature_expression(name, vehicle)
+        except ExportError:  # a time derivative, or the residual's own sensors
+            return None
+
+    if expression in special:
+        return special[expression]
+    factors = [(f.startswith("|"), variable(f.strip("|"))) for f in expression.split("*")]
+    if any(c is None for _, c in factors):
+        return None
+    return " * ".join(f"qc_fabs({c})" if absolute else f"({c})" for absolute, c in factors)
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"_+", "_", re.sub(r"[^0-9A-Za-z]+", "_", text)).strip("_")
+
+
+def parameter_name(target: str, expression: str, unit: str) -> str:
+    """``tau_res_b_x_Nm``, ``T_N*v_b_y_mps``, ``s`` -> ``tau_x__T_N_times_v_b_y_mps__s``
+    (``s^2/m^2`` -> ``s2_per_m2``)."""
+    axis = target.replace("_res_b_", "_").removesuffix("_Nm").removesuffix("_N")
+    body = (expression.replace("*|", "_times_abs_").replace("*", "_times_").replace("(R/4h)^2", "ground_R_over_4h_sq")
+            .replace("|v_h|^2", "vh_sq").replace("d(", "d_").replace(")/dt", "_dt").replace("-", "_minus_"))
+    unit_slug = _slug(unit.replace("^", "").replace("/", " per ")) or "one"
+    return f"{_slug(axis)}__{_slug(body)}__{unit_slug}"
+
+
+NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def write_effect(result: Discovery, path: str | Path) -> Path:
+    """Write the kept terms as a linear effect plugin module named after the file's stem."""
+    path = Path(path)
+    name = path.stem
+    if path.suffix != ".py" or not NAME_RE.match(name):
+        raise ValueError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {path}")
+    if name in effectlib.builtin_names():
+        raise ValueError(f"{name!r} is a built-in effect; choose another name")
+    if not result.terms:
+        raise ValueError("no term was kept: there is no effect to write")
+    rows = []
+    for t in result.terms:
+        bound = max(100 * abs(t.coefficient), 100 * t.std, 1e-12)
+        rows.append((t.target, t.expression, parameter_name(t.target, t.expression, t.unit), t.unit, bound))
+    wrap = functools.partial(textwrap.fill, width=100, initial_indent="    ", subsequent_indent="        ")
+    formulas = "\n".join(wrap(t.formula) for t in result.terms)
+    literature = "\n".join(wrap(f"{t.expression}: {t.literature}") for t in result.terms if t.literature)
+    terms_src = "\n".join("    (\n" + "".join(f"        {v!r},\n" for v in row) + "    )," for row in rows)
+    evaluation = textwrap.fill(f"Discovered on top of the model {'+'.join(['nominal', *result.effects_in_model])} "
+                               f"({result.evaluation['mode']}; evaluated on "
+                               f"{', '.join(result.evaluation['eval_flights'])}):", width=100)
+    text = f'''"""{name}: terms found by ``quadcore discover``, as a linear effect. List this file under
+``plugins`` in the model file and ``{name}`` under ``effects``: the fit refits the coefficients.
+
+{evaluation.strip()}
+
+{formulas}
+{("" if not literature else chr(10) + "Literature:" + chr(10) + literature + chr(10))}
+Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
+The terms are evaluated by quadcore.identify.discovery.evaluate.
+"""
+
+from quadcore.identify.discovery import DiscoveredEffect
+
+# (target axis, term, parameter, unit of the parameter, bound on |parameter|)
+TERMS = [
+{terms_src}
+]
+
+EFFECT = DiscoveredEffect({name!r}, TERMS, __doc__)
+'''
+    return store.write_text(text, path)

@@ -1,0 +1,201 @@
+"""What counts as evidence for a missing effect, and how small an effect could have been missed.
+
+**Held-out significance.** A candidate fitted on training flights predicts a wrench ``p`` on
+flights it never saw, whose residual is ``r``. If the effect is real, ``p`` points where ``r``
+does: in the regression ``r = β p + e`` (summed over the chosen channels, each weighted) the
+slope ``β`` is positive. Its t-statistic uses a cluster-robust variance with blocks of
+``BLOCK_S`` seconds of one flight as clusters, because neighbouring samples of a smoothed
+residual are not independent (the smoother spans 62 ms; blocks of 1 s are far apart)::
+
+    β̂ = Σ p·r / Σ p·p,      se² = B/(B-1) Σ_b (Σ_{i∈b} p_i·e_i)² / (Σ p·p)²,      t = β̂ / se
+
+and the one-sided p-value is that of Student's t with ``B - 1`` degrees of freedom (``B``
+blocks). Unlike a fixed share of the residual, this does not care how small the effect is
+next to the noise, only whether the held-out data confirm it.
+
+**The noise floor.** A channel whose held-out residual RMS is within ``NOISE_MARGIN`` of
+its sensor-noise floor (:func:`quadcore.identify.fitting.sensor_noise_floor`) holds no evidence
+*for* any effect. This is not a threshold on size but on what the data can say: the
+controller closes its loop on the same noisy gyro the torque residual is computed from, so
+commanded rotor torques correlate with the gyro noise in the "measured" torque (errors in
+variables), and a thrust scale or motor lag then "explains", significantly, a third of pure
+noise even on held-out flights. The margin covers the floor's own error (the residual of
+simulated flights with nothing hidden lies within 4 % RMS of it).
+
+**Sensitivity.** The smallest deviation ``v`` of one parameter from 'no effect' that these
+flights would detect with probability ``POWER`` at false-alarm rate ``ALPHA``, by the
+analytic variance of the test above with the effect injected into the flights' own
+residual ``r0``. With ``u`` the held-out wrench per unit of the parameter (a secant over
+``SECANT`` of its range) and the injected effect predicted exactly (``p = v u``):
+``t = v S / sqrt(Q)`` with ``S = Σ u·u`` and ``Q = B/(B-1) Σ_b (Σ_{i∈b} u_i·e_i)²``, ``e`` the
+residual with its projection on ``u`` removed (an effect already there is no noise to itself), so
+
+    v_test  = (t_crit + z_power) sqrt(Q) / S
+    v_sigma = (MIN_SIGMA + z_power) sqrt(ms W / S)     (the fit's own standard error)
+    v_floor = sqrt(max(0, (1 + NOISE_MARGIN)² F - R) / S)   (lift the channel off its floor)
+
+and the sensitivity in a channel is the largest of the three (all must pass), over channels
+the smallest. ``ms`` is the residual's mean square, ``W`` the samples per independent one,
+``F`` and ``R`` the channel's floor and residual sums of squares. For a nonlinear effect the
+secant is all that is known: its sensitivity is never stated below the secant's step (for
+``motor_lag``, 2 ms: its discrete lag adds a whole sample of delay for any τ > 0, so a lag
+much shorter than a sample cannot be fitted).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from quadcore.identify import fitting
+from quadcore.identify.fitting import FlightData
+
+ALPHA = 0.01  # one-sided false-alarm probability of the held-out test, per candidate
+POWER = 0.9  # detection probability the sensitivity is stated at
+BLOCK_S = 1.0  # length of the blocks (clusters) of the held-out test, s
+NOISE_MARGIN = 0.10  # a channel within this fraction (RMS) of its noise floor holds no evidence
+SECANT = 0.01  # share of a parameter's range over which its unit wrench is taken
+CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
+
+
+@dataclass(frozen=True)
+class HeldOutTest:
+    """The held-out regression of the residual on a prediction: slope, t and p-value."""
+
+    beta: float
+    t: float
+    p_value: float
+    blocks: int
+
+
+NO_TEST = HeldOutTest(0.0, 0.0, 1.0, 0)
+
+
+def channel_mask(channels) -> np.ndarray:
+    """(6,) 1 on the channels named (``force`` / ``torque``), 0 elsewhere."""
+    m = np.zeros(6)
+    for ch in channels:
+        m[CHANNELS[ch]] = 1.0
+    return m
+
+
+def _blocks(fd: FlightData) -> np.ndarray:
+    """Block index of each usable sample of a flight (blocks of ``BLOCK_S`` seconds), numbered
+    over the blocks that hold samples: a gap in the log makes no empty cluster (which would
+    count as a block with a zero score in the test's degrees of freedom and spread)."""
+    t = fd.state.t_s[fd.mask]
+    if not len(t):
+        return np.zeros(0, dtype=int)
+    return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
+
+
+def block_sums(flights: list[FlightData], a: dict[str, np.ndarray], b: dict[str, np.ndarray],
+               weights: np.ndarray) -> np.ndarray:
+    """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples. On flights'
+    :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the same from their Gram
+    matrices (:func:`quadcore.identify.sufficient.block_sums`)."""
+    if flights and not isinstance(flights[0], FlightData):
+        from quadcore.identify import sufficient
+
+        return sufficient.block_sums(flights, a, b, weights)
+    out = []
+    for fd in flights:
+        prod = (a[fd.flight][fd.mask] * b[fd.flight][fd.mask]) @ weights
+        out.append(np.bincount(_blocks(fd), weights=prod))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
+    n = len(scores)
+    if n < 3 or den <= 0:
+        return NO_TEST
+    beta = float(num.sum() / den)
+    se = float(np.sqrt(n / (n - 1) * np.sum(scores**2)) / den)
+    t = beta / se if se > 0 else (np.inf if beta > 0 else 0.0)
+    return HeldOutTest(beta, float(min(t, 1e6)), float(stats.t.sf(t, n - 1)), n)
+
+
+def held_out_test(flights: list[FlightData], resid: dict[str, np.ndarray], pred: dict[str, np.ndarray],
+                  weights: np.ndarray) -> HeldOutTest:
+    """Is ``pred`` (n, 6 per flight) confirmed by ``resid`` on these flights? (see the module)"""
+    pr = block_sums(flights, pred, resid, weights)
+    pp = block_sums(flights, pred, pred, weights)
+    den = float(pp.sum())
+    if den <= 0:
+        return NO_TEST
+    beta = pr.sum() / den
+    return _t_and_p(pr, den, pr - beta * pp)
+
+
+def compare(flights: list[FlightData], resid: dict[str, np.ndarray], pred_a: dict[str, np.ndarray],
+            pred_b: dict[str, np.ndarray], weights: np.ndarray) -> HeldOutTest:
+    """Does ``pred_a`` fit the held-out ``resid`` better than ``pred_b``? The difference of their
+    weighted squared errors, ``|r - b|² - |r - a|² = 2 (a - b)·(r - (a + b)/2)``, summed per
+    block; two-sided t-test of its mean (``t > 0``: ``a`` fits better)."""
+    d = {f: pred_a[f] - pred_b[f] for f in pred_a}
+    centred = {f: resid[f] - 0.5 * (pred_a[f] + pred_b[f]) for f in pred_a}
+    g = block_sums(flights, d, centred, weights)
+    n = len(g)
+    if n < 3 or not np.any(g):
+        return NO_TEST
+    sd = float(np.std(g, ddof=1))
+    t = float(np.mean(g) / (sd / np.sqrt(n))) if sd > 0 else 0.0
+    return HeldOutTest(float(np.mean(g)), t, float(2 * stats.t.sf(abs(t), n - 1)), n)
+
+
+def critical_t(blocks: int, n_candidates: int = 1) -> float:
+    return float(stats.t.isf(alpha_each(n_candidates), max(blocks - 1, 1)))
+
+
+def unit_wrench(effect, param, fd: FlightData, vehicle) -> np.ndarray:
+    """(n, 6) smoothed wrench per unit of ``param`` away from 'no effect' (a secant)."""
+    step = SECANT * (param.upper - param.lower)
+    params = {**effect.defaults(), **effect.sensitivity_reference}
+    if param.name in effect.sensitivity_reference:
+        params[param.name] = param.default
+    base = fitting.prediction(effect, params, fd, vehicle)
+    params[param.name] += step if param.default + step <= param.upper else -step
+    return (fitting.prediction(effect, params, fd, vehicle) - base) / step
+
+
+def alpha_each(n_candidates: int) -> float:
+    """Per-candidate level of the held-out test: ``ALPHA`` for the whole library (Bonferroni)."""
+    return ALPHA / max(n_candidates, 1)
+
+
+def detection_limit(flights: list[FlightData], resid: dict[str, np.ndarray], unit: dict[str, np.ndarray],
+                    floor_ss: np.ndarray, min_sigma: float, n_candidates: int = 1,
+                    min_share: float = 0.0, base_ss: float = 0.0) -> float:
+    """Smallest |deviation| of a parameter with unit wrench ``unit`` that the test, the fit's
+    significance and the noise floor all let through (see the module); inf if none. With
+    ``min_share``, the injected part must also be that share of the channel's residual plus
+    ``base_ss`` (the energy of a reference effect it rides on)."""
+    z_power = float(stats.norm.isf(1 - POWER))
+    n = sum(fd.n for fd in flights)
+    best = np.inf
+    for ch in CHANNELS:
+        w = channel_mask([ch])
+        ur, uu = block_sums(flights, unit, resid, w), block_sums(flights, unit, unit, w)
+        S = float(uu.sum())
+        if S <= 0 or len(ur) < 3:
+            continue
+        # the effect may already be in the residual: its own share is no noise to it
+        beta = float(ur.sum()) / S
+        R = float(block_sums(flights, resid, resid, w).sum())
+        F = float(floor_ss[CHANNELS[ch]].sum())
+        Q = len(ur) / (len(ur) - 1) * float(np.sum((ur - beta * uu) ** 2))
+        v_test = (critical_t(len(ur), n_candidates) + z_power) * np.sqrt(Q) / S
+        ms = max(R - beta**2 * S, 0.0) / (3 * n)
+        v_sigma = (min_sigma + z_power) * np.sqrt(ms * fitting.SAMPLES_PER_INDEPENDENT / S)
+        v_floor = np.sqrt(max(0.0, (1 + NOISE_MARGIN) ** 2 * F - R) / S)
+        v_share = np.sqrt(min_share * (R + base_ss) / S)
+        best = min(best, max(v_test, v_sigma, v_floor, v_share))
+    return float(best)
+
+
+def at_noise_level(resid_ss: np.ndarray, floor_ss: np.ndarray) -> dict[str, bool]:
+    """Per channel: is the residual (sum of squares per axis) within the margin of its floor?"""
+    return {ch: bool(resid_ss[sl].sum() <= (1 + NOISE_MARGIN) ** 2 * floor_ss[sl].sum())
+            for ch, sl in CHANNELS.items()}

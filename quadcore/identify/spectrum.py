@@ -1,0 +1,158 @@
+"""Where the model fails, in frequency: the residual's power by band, and how the modelled
+force and torque relate to the measured ones band by band.
+
+For each body-frame channel (force x, y, z; torque x, y, z), on the evaluated flights,
+Welch spectra (Hann windows of ``SEGMENT`` samples, half overlap) of the measured signal
+``m`` (``m sf_b`` / ``J dω/dt + ω × Jω``), the modelled one ``p`` (thrust map + effects,
+through the same filters) and the residual ``r = m - p`` are averaged over flights
+(weighted by their samples; each stretch between gaps in the log is a signal of its own,
+so no Welch segment spans a gap). Per band:
+
+* ``residual_rms``: ``sqrt(∫ S_rr df)`` over the band, and ``residual_share`` the share of
+  the residual's mean square that lies there. Each segment's mean is removed before the
+  spectra, so a constant offset per flight (a trim, a bias) is reported apart:
+  ``residual_mean_rms`` (RMS over flights of each flight's mean residual) and ``mean_share``;
+  band shares and mean share add up to about 1;
+* ``coherence``: ``|S_pm|² / (S_pp S_mm)``, averaged over the band's bins: 1 where the
+  measurement is a linear, time-invariant function of the model, 0 where they are unrelated;
+* ``gain`` and ``phase_deg``: the transfer from modelled to measured,
+  ``H = Σ S_pm / Σ S_pp`` over the band: a gain below 1 with a phase near 0 is a mis-scaled
+  model; a phase lag growing with frequency is timing (a lag or a delay between the logged
+  inputs and the force).
+
+How to read it (``reading``): residual power in a band with high coherence is the model's
+own signal, mis-scaled or mistimed there (fix the map or the timing); residual power in a
+band with low coherence is something the model's inputs do not carry: slow physics or an
+offset below ~0.5 Hz, input or sensor noise at high frequency.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy import signal
+
+from quadcore.physics import residuals, signals
+from quadcore.physics.dynamics import XYZ
+
+BANDS_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
+SEGMENT = 1024  # samples per Welch segment (about 2 s at 500 Hz: 0.5 Hz resolution)
+COHERENT = 0.7  # band coherence above which the residual there is the model's own signal, mis-scaled or late
+CHANNELS = tuple([f"force_{a}" for a in XYZ] + [f"torque_{a}" for a in XYZ])
+
+
+def _spectra(meas: np.ndarray, model: np.ndarray, fs: float):
+    """Frequencies and (n_freq, 6) auto/cross spectra of model p, measurement m and residual."""
+    n = min(SEGMENT, len(meas))
+    kw = {"fs": fs, "nperseg": n, "axis": 0, "detrend": "constant"}  # each segment's mean is reported apart
+    f, s_pp = signal.welch(model, **kw)
+    _, s_mm = signal.welch(meas, **kw)
+    _, s_rr = signal.welch(meas - model, **kw)
+    _, s_pm = signal.csd(model, meas, **kw)
+    return f, s_pp, s_mm, s_rr, s_pm
+
+
+def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
+    """The residual by frequency band and the coherence of model and measurement (JSON-ready).
+
+    ``flights`` are :class:`quadcore.identify.fitting.FlightData`, ``resid[flight]`` their (n, 6)
+    residual under the evaluated model (force N, torque N m)."""
+    fs = float(np.median([1.0 / np.median(np.diff(fd.state.t_s)) for fd in flights]))
+    grid = np.fft.rfftfreq(SEGMENT, 1.0 / fs)
+    acc = {k: np.zeros((len(grid), 6), dtype=complex if k == "pm" else float) for k in ("pp", "mm", "rr", "pm")}
+    weight = 0.0
+    mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
+    for fd in flights:
+        # Welch segments must not straddle a gap in the log: each gap-free stretch is its own signal
+        stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * SEGMENT]
+        if not stretches:
+            continue  # too short to resolve the slow bands
+        arrays = residuals.residual_arrays(fd.state, vehicle)
+        meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
+        model = meas - resid[fd.flight]
+        for part in stretches:
+            _, *specs = _spectra(meas[part], model[part], fs)
+            for key, s in zip(("pp", "mm", "rr", "pm"), specs):
+                acc[key] += (part.stop - part.start) * s
+        n = sum(p.stop - p.start for p in stretches)
+        mean_sq += n * resid[fd.flight][fd.mask].mean(axis=0) ** 2
+        weight += n
+    if weight == 0:
+        return {"bands_hz": [list(b) for b in BANDS_HZ], "channels": [], "reading": ["flights too short for spectra"]}
+    s = {k: v / weight for k, v in acc.items()}
+    mean_sq /= weight
+    df = grid[1] - grid[0]
+    coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
+    rows = []
+    for c, name in enumerate(CHANNELS):
+        row: dict[str, Any] = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
+               "modelled_rms": [], "coherence": [], "gain": [], "phase_deg": []}
+        total = float(s["rr"][1:, c].sum() * df + mean_sq[c])
+        shares = []
+        for lo, hi in BANDS_HZ:
+            b = (grid >= lo) & (grid < hi) & (grid > 0)
+            h = s["pm"][b, c].sum() / max(s["pp"][b, c].sum(), 1e-300)
+            row["residual_rms"].append(float(np.sqrt(s["rr"][b, c].sum() * df)))
+            row["measured_rms"].append(float(np.sqrt(s["mm"][b, c].sum() * df)))
+            row["modelled_rms"].append(float(np.sqrt(s["pp"][b, c].sum() * df)))
+            row["coherence"].append(float(coh[b, c].mean()) if b.any() else float("nan"))
+            row["gain"].append(float(np.abs(h)))
+            row["phase_deg"].append(float(np.degrees(np.angle(h))))
+            shares.append(float(s["rr"][b, c].sum() * df / total) if total > 0 else 0.0)
+        row["residual_share"] = shares
+        row["residual_mean_rms"] = float(np.sqrt(mean_sq[c]))
+        row["mean_share"] = float(mean_sq[c] / total) if total > 0 else 0.0
+        rows.append(row)
+    return {"bands_hz": [list(b) for b in BANDS_HZ], "sample_rate_hz": fs, "segment_samples": SEGMENT,
+            "channels": rows, "reading": [reading(r) for r in rows]}
+
+
+def _mismatched(row: dict, i: int) -> bool:
+    """The transfer from model to measurement in band ``i`` is not ~1 (gain within 15 %, phase within 15°)."""
+    return abs(row["gain"][i] - 1) > 0.15 or abs(row["phase_deg"][i]) > 15
+
+
+def _band(i: int) -> str:
+    lo, hi = BANDS_HZ[i]
+    return f"{lo:g}-{hi:g} Hz"
+
+
+def reading(row: dict) -> str:
+    """One sentence per channel: where its residual lies and what that band says."""
+    shares = np.asarray(row["residual_share"])
+    top = int(np.argmax(shares))
+    coherent = [i for i, c in enumerate(row["coherence"]) if c >= COHERENT and shares[i] >= 0.1 and _mismatched(row, i)]
+    if row["mean_share"] >= shares[top]:
+        text = (f"{row['channel']}: {row['mean_share']:.0%} of the residual power is a constant offset per flight "
+                f"(RMS of the flights' means {row['residual_mean_rms']:.3g} {row['unit']}): a trim or bias that "
+                f"changes between flights (a centre of mass, a thrust map, a sensor bias); the largest band is "
+                f"{_band(top)} ({shares[top]:.0%})")
+        others = [i for i in coherent]
+        if others:
+            text += "; coherent but mismatched at " + ", ".join(
+                f"{_band(i)} ({shares[i]:.0%}: gain {row['gain'][i]:.2f}, {row['phase_deg'][i]:+.0f}°)" for i in others)
+        return text + "."
+    text = f"{row['channel']}: {shares[top]:.0%} of the residual power is at {_band(top)}"
+    c = row["coherence"][top]
+    if max(row["modelled_rms"]) <= 1e-9 * max(max(row["measured_rms"]), 1e-300):
+        return text + ": the model predicts nothing on this axis, so the residual is the measurement itself."
+    if c >= COHERENT and not _mismatched(row, top):
+        text += (f", where model and measurement are coherent ({c:.2f}) and agree (gain {row['gain'][top]:.2f}, "
+                 f"{row['phase_deg'][top]:+.0f}°): what is left there is the incoherent part (noise, or what the "
+                 "inputs do not carry)")
+    elif c >= COHERENT:
+        text += (f", where model and measurement are coherent ({c:.2f}) but the measurement is "
+                 f"{row['gain'][top]:.2f} × the model at {row['phase_deg'][top]:+.0f}°: the model's own signal, "
+                 + ("late or early (timing: a lag or delay)" if abs(row["phase_deg"][top]) > 20 else "mis-scaled"))
+    elif BANDS_HZ[top][1] <= 0.5:
+        text += (f", where model and measurement are not coherent ({c:.2f}): a slow offset or drift the model's "
+                 "inputs do not carry (slow physics, a per-flight trim or bias)")
+    else:
+        text += (f", where model and measurement are not coherent ({c:.2f}): something the model's inputs do "
+                 "not carry (unmodelled physics, or input / sensor noise)")
+    others = [i for i in coherent if i != top]
+    if others:
+        text += "; coherent but mismatched also at " + ", ".join(
+            f"{_band(i)} ({shares[i]:.0%}: gain {row['gain'][i]:.2f}, {row['phase_deg'][i]:+.0f}°)" for i in others)
+    return text + "."

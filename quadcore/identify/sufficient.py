@@ -1,0 +1,446 @@
+"""Per-flight sufficient statistics of the linear effects: what every linear fit, fold and
+held-out test needs from a flight, without its rows.
+
+**The augmented design.** On a flight's usable samples ``i`` (away from gaps) and channels
+``c`` (force x, y, z in N; torque x, y, z in N m; body frame) the augmented row is
+
+    z_ic = [X_ic1 … X_icK | y0_ic | e_ic1 …]
+
+``X_ick`` the smoothed wrench per unit of linear coordinate ``k`` of every linear effect of
+the :class:`Layout` (:meth:`quadcore.effects.Effect.basis`, as :meth:`FlightData.basis`),
+``y0`` the nominal residual (measured minus the nominal model, with the flight's own thrust
+map), and ``e`` optional extra signals (a nonlinear effect's prediction on a held-out flight).
+Per block ``b`` of :data:`quadcore.identify.evidence.BLOCK_S` seconds (the clusters of the held-out
+test), per channel, the statistics are the Gram matrix and the sample count
+
+    G_bc = Σ_{i∈b} z_ic z_icᵀ,        n_b = |b|,
+
+with the flight's sensor-noise floor (:func:`quadcore.identify.fitting.sensor_noise_floor`) and the
+Gram matrix of every ``GRAM_STRIDE``-th usable sample (the diagnosis's signature comparison).
+
+**Signals are vectors.** Any per-flight signal that is a combination of the columns is a
+vector ``v`` with ``s_ic = z_ic·v``: the nominal residual is ``e_y0``, a linear effect's
+prediction ``[θ; 0]``, a residual after a fit ``[-θ; 1]``. Then every sum the fits and tests
+take is a quadratic form, summed over blocks and flights as needed:
+
+    Σ_{i∈b} Σ_c w_c s_ic t_ic = Σ_c w_c uᵀ G_bc v            (s = z·u, t = z·v)
+
+* the weighted normal equations of the coordinates ``k ∈ K_e`` of the fitted effects, for a
+  target ``y_f = z·v_f`` per flight: ``A = Σ_f Σ_c w_c G_fc[K_e, K_e]``,
+  ``b = Σ_f Σ_c w_c G_fc[K_e, :] v_f``, ``θ = A⁻¹ b`` (least squares), and the residual sum of
+  squares ``Σ w yᵀy - 2 θᵀb + θᵀAθ``;
+* the held-out test's per-block score of a prediction ``p = z·u`` against a residual
+  ``r = z·v`` (:mod:`quadcore.identify.evidence`): ``Σ_c w_c uᵀ G_bc v`` and ``Σ_c w_c uᵀ G_bc u``; for a
+  prediction ``Xθ`` the block's gain in squared error is ``2 θᵀX_bᵀr_b − θᵀX_bᵀX_bθ``.
+
+So a fleet fit, a fold, a held-out test costs a sum over flights of small matrices: it does
+not grow with the rows, and a new flight adds its own statistics only. Stored per flight under
+``<root>/stats/flight=<id>/stats.bin`` with the :func:`stats_key` they were computed for.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quadcore import effects as effectlib
+from quadcore.effects import Effect
+from quadcore.physics.vehicle import Vehicle
+from quadcore.store import store
+from quadcore.store.names import check_component
+
+FORMAT = 1  # bump when what the statistics mean changes: stored ones become stale
+Y0 = "y0"
+GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis._SpanOverlap)
+
+
+class StatsError(ValueError):
+    """Statistics that cannot serve a request (an effect missing from their layout, a nonlinear
+    effect asked of them, a file that is not a statistics file)."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Which column is which: the linear coordinates of each effect (in order), then ``y0``,
+    then named extra signals."""
+
+    effects: tuple[str, ...]
+    sizes: tuple[int, ...]
+    extras: tuple[str, ...] = ()
+
+    @property
+    def y0(self) -> int:
+        return int(sum(self.sizes))
+
+    @property
+    def width(self) -> int:
+        return self.y0 + 1 + len(self.extras)
+
+    def cols(self, effect: str) -> np.ndarray:
+        """Column indices of an effect's linear coordinates."""
+        if effect not in self.effects:
+            raise StatsError(f"effect {effect!r} is not in these statistics (they hold {', '.join(self.effects)})")
+        i = self.effects.index(effect)
+        start = int(sum(self.sizes[:i]))
+        return np.arange(start, start + self.sizes[i])
+
+    def extra(self, name: str) -> int:
+        return self.y0 + 1 + self.extras.index(name)
+
+    def with_extras(self, names: Sequence[str]) -> Layout:
+        return Layout(self.effects, self.sizes, tuple(names))
+
+    def unit(self, index: int) -> np.ndarray:
+        v = np.zeros(self.width)
+        v[index] = 1.0
+        return v
+
+    def target(self) -> np.ndarray:
+        """The nominal residual ``y0`` as a signal vector."""
+        return self.unit(self.y0)
+
+    def coefficients(self, effect: Effect, params: dict, vehicle: Vehicle) -> np.ndarray:
+        """The signal vector of a linear effect's prediction at ``params``: its linear coordinates
+        (:meth:`Effect.to_linear`) in its columns."""
+        if not effect.linear:
+            raise StatsError(f"{effect.name} is nonlinear: its prediction is no combination of columns")
+        v = np.zeros(self.width)
+        v[self.cols(effect.name)] = effect.to_linear({**effect.defaults(), **params}, vehicle)
+        return v
+
+    def pad(self, v: np.ndarray) -> np.ndarray:
+        """A vector of a layout with fewer extras, in this one (the extras it lacks are zero)."""
+        out = np.zeros(self.width)
+        out[: len(v)] = v
+        return out
+
+
+def layout_of(effects: Iterable[Effect]) -> Layout:
+    """The layout of the linear ones of ``effects``, in the order given."""
+    lin = [e for e in effects if e.linear]
+    return Layout(tuple(e.name for e in lin), tuple(len(e.parameters) for e in lin))
+
+
+def library_layout() -> Layout:
+    """Every linear effect known (built-in, then loaded plugins): what the per-flight asset stores."""
+    return layout_of(effectlib.registry().values())
+
+
+@dataclass(frozen=True)
+class FlightStats:
+    """One flight's statistics (see the module): ``total`` (6, W, W) the flight's Gram matrix,
+    ``rows`` (B,) per 1 s block, ``strided`` (6, W, W), ``noise`` (6,) the sensor-noise floor
+    RMS, the logged battery voltage's spread and median (a stuck voltage log), and the per-block
+    Gram matrices (B, 6, W, W) :attr:`gram`, given or read when first asked for (``blocks``: a
+    function that returns them): a fit needs only the totals, a held-out test the blocks."""
+
+    flight: str
+    layout: Layout
+    key: str
+    total: np.ndarray
+    rows: np.ndarray
+    strided: np.ndarray
+    noise: np.ndarray
+    vbat_std_V: float
+    vbat_median_V: float
+    blocks_source: Callable[[], np.ndarray]
+
+    @cached_property
+    def gram(self) -> np.ndarray:
+        """(B, 6, W, W) the Gram matrix of each block."""
+        return self.blocks_source()
+
+    @property
+    def n(self) -> int:
+        return int(self.rows.sum())
+
+    @property
+    def blocks(self) -> int:
+        return len(self.rows)
+
+
+def from_blocks(flight: str, layout: Layout, key: str, gram: np.ndarray, rows: np.ndarray, strided: np.ndarray,
+                noise: np.ndarray, vbat_std_V: float, vbat_median_V: float) -> FlightStats:
+    """Statistics from their per-block Gram matrices (``total`` their sum)."""
+    return FlightStats(flight, layout, key, gram.sum(axis=0), rows, strided, noise, vbat_std_V, vbat_median_V,
+                       lambda: gram)
+
+
+def design_rows(fd, vehicle: Vehicle, layout: Layout, extras: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """(n, 6, W) the augmented design of a flight (all samples): bases, ``y0``, extras."""
+    extras = extras or {}
+    parts = [fd.basis(effectlib.get(name), vehicle) for name in layout.effects]
+    y0 = np.concatenate([fd.r_f, fd.r_tau], axis=1)[:, :, None]
+    parts += [y0] + [np.asarray(extras[name])[:, :, None] for name in layout.extras]
+    return np.concatenate(parts, axis=2)
+
+
+def block_index(t_s: np.ndarray) -> np.ndarray:
+    """Block of each usable sample (times ``t_s`` of the usable samples), numbered over the
+    blocks that hold samples (:data:`quadcore.identify.evidence.BLOCK_S`)."""
+    from quadcore.identify.evidence import BLOCK_S
+
+    if not len(t_s):
+        return np.zeros(0, dtype=int)
+    return np.unique(((t_s - t_s[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
+
+
+def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
+                 extras: dict[str, np.ndarray] | None = None) -> FlightStats:
+    """The statistics of a :class:`quadcore.identify.fitting.FlightData` (its rows read once)."""
+    Z = design_rows(fd, vehicle, layout, extras)[fd.mask]
+    blocks = block_index(fd.state.t_s[fd.mask])
+    B = int(blocks.max()) + 1 if len(blocks) else 0
+    starts = np.searchsorted(blocks, np.arange(B + 1))  # blocks are runs of consecutive samples
+    gram = np.stack([np.einsum("nci,ncj->cij", Z[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) \
+        if B else np.zeros((0, 6, layout.width, layout.width))
+    thin = Z[::GRAM_STRIDE]
+    return from_blocks(fd.flight, layout, key, gram, np.diff(starts), np.einsum("nci,ncj->cij", thin, thin),
+                       np.asarray(fd.noise, dtype=float), fd.vbat_std_V, fd.vbat_median_V)
+
+
+# ---------------------------------------------------------------------------------------
+# Quadratic forms
+# ---------------------------------------------------------------------------------------
+
+def channel_sums(G: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``uᵀ G_c v`` per channel (and per block, for a (B, 6, W, W) ``G``)."""
+    return np.einsum("...ij,i,j->...", G, u, v)
+
+
+def block_sums(stats: Sequence[FlightStats], a: dict[str, np.ndarray], b: dict[str, np.ndarray],
+               weights: np.ndarray) -> np.ndarray:
+    """Per block of every flight: ``Σ_c w_c a_fᵀ G_bc b_f`` (as :func:`quadcore.identify.evidence.block_sums`)."""
+    out = [channel_sums(s.gram, a[s.flight], b[s.flight]) @ weights for s in stats]
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
+    """(6,) per channel: the sum of squares of the signal ``z·v`` over the flight."""
+    return channel_sums(s.total, v, v)
+
+
+def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`quadcore.identify.fitting.channel_weights` of the targets ``z·v_f``: 1/σ² for the force
+    and the torque channels from their mean squares."""
+    from quadcore.identify import fitting
+
+    ss = sum((sum_of_squares(s, v) for s, v in zip(stats, targets)), np.zeros(6))
+    return fitting.weights_from_sums(ss, sum(s.n for s in stats))
+
+
+def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None):
+    """:func:`quadcore.identify.fitting.fit_effects` from statistics: jointly fit linear ``effects`` to
+    the targets ``z·v_f`` (normal equations, see the module); those named in ``fixed`` keep
+    their values and are subtracted first. Returns a :class:`quadcore.identify.fitting.Fit`."""
+    from quadcore.identify import fitting
+
+    fixed = fixed or {}
+    nonlinear = [e.name for e in effects if not e.linear]
+    if nonlinear:
+        raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics")
+    vs = [np.asarray(v, dtype=float) for v in targets]
+    w = channel_weights(stats, vs)
+    params: dict[str, dict[str, float]] = {}
+    std: dict[str, dict[str, float]] = {}
+    for e in effects:
+        if e.name in fixed:
+            params[e.name] = {**e.defaults(), **fixed[e.name]}
+            std[e.name] = {p.name: 0.0 for p in e.parameters}
+            vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
+    lin = [e for e in effects if e.name not in fixed]
+    if lin:
+        k = sum(len(e.parameters) for e in lin)
+        A, b, yy, n = np.zeros((k, k)), np.zeros(k), 0.0, 0
+        for s, v in zip(stats, vs):  # each flight in its own layout
+            cols = np.concatenate([s.layout.cols(e.name) for e in lin])
+            Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
+            A += Gw[np.ix_(cols, cols)]
+            b += Gw[cols] @ v
+            yy += float(v @ Gw @ v)
+            n += 6 * s.n
+        theta = np.linalg.lstsq(A, b, rcond=None)[0]
+        rss = max(yy - 2 * theta @ b + theta @ A @ theta, 0.0)
+        fitting.linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
+    return fitting.Fit(params, std, w)
+
+
+def prediction(effects: list[Effect], params: dict[str, dict[str, float]], s: FlightStats,
+               vehicle: Vehicle) -> np.ndarray:
+    """The signal vector of the linear ``effects``' summed prediction at ``params``."""
+    return sum((s.layout.coefficients(e, params[e.name], vehicle) for e in effects), np.zeros(s.layout.width))
+
+
+def unit_vector(effect: Effect, param, s: FlightStats, vehicle: Vehicle, secant: float) -> np.ndarray:
+    """:func:`quadcore.identify.evidence.unit_wrench` of a linear effect as a signal vector: the secant
+    of its prediction over ``secant`` of the parameter's range."""
+    step = secant * (param.upper - param.lower)
+    params = {**effect.defaults(), **effect.sensitivity_reference}
+    if param.name in effect.sensitivity_reference:
+        params[param.name] = param.default
+    base = s.layout.coefficients(effect, params, vehicle)
+    params[param.name] += step if param.default + step <= param.upper else -step
+    return (s.layout.coefficients(effect, params, vehicle) - base) / step
+
+
+def signal_rows(fd, vehicle: Vehicle, layout: Layout, v: np.ndarray,
+                extras: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """(n, 6) the signal ``z·v`` on every sample of a flight (its rows read)."""
+    used = [name for name in layout.effects if np.any(v[layout.cols(name)])]
+    out = np.concatenate([fd.r_f, fd.r_tau], axis=1) * v[layout.y0]
+    for name in used:
+        out = out + fd.basis(effectlib.get(name), vehicle) @ v[layout.cols(name)]
+    for name in layout.extras:
+        if v[layout.extra(name)]:
+            out = out + (extras or {})[name] * v[layout.extra(name)]
+    return out
+
+
+def compute(spec, flight: str, decoded, layout: Layout) -> FlightStats:
+    """A flight's statistics from its decoded table, for a :class:`quadcore.identify.model.ModelSpec`:
+    the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle."""
+    from quadcore.identify import fitting
+
+    fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    return flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
+
+
+def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
+                stored: Callable[[str], FlightStats | None] | None = None) -> dict[str, FlightStats]:
+    """Statistics of ``flights`` holding ``layout``'s effects: the stored ones (``stored(flight)``,
+    None when missing or stale), else computed from the decoded table (its rows read once)."""
+    out = {}
+    for f in flights:
+        s = stored(f) if stored else None
+        if s is None or not set(layout.effects) <= set(s.layout.effects):
+            s = compute(spec, f, decoded[f], layout)
+        out[f] = s
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Identity and storage
+# ---------------------------------------------------------------------------------------
+
+def _source_digest(effect: Effect) -> str:
+    try:
+        return hashlib.sha256(inspect.getsource(type(effect)).encode()).hexdigest()[:16]
+    except (OSError, TypeError):
+        return "unknown"
+
+
+def _content(vehicle: Vehicle) -> dict:
+    return {k: v for k, v in asdict(vehicle).items() if k != "source"}
+
+
+def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
+    """What the statistics were computed for: the model's vehicle (the bases), the flight's own
+    (its session's thrust map: the state and ``y0``), the layout and the source of each effect
+    in it. Stored statistics with another key are stale."""
+    content = {"format": FORMAT, "layout": asdict(layout), "vehicle": _content(vehicle),
+               "flight_vehicle": _content(flight_vehicle),
+               "effects": {n: _source_digest(effectlib.get(n)) for n in layout.effects}}
+    text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def stats_path(root: Any, flight: str) -> Any:
+    return store.as_root(root) / "stats" / f"flight={check_component(flight, 'flight id')}" / "stats.bin"
+
+
+def _upper(width: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.triu_indices(width)
+
+
+def _packed(G: np.ndarray) -> np.ndarray:
+    """The upper triangles of symmetric (..., W, W) matrices, (..., W (W + 1) / 2)."""
+    return G[(..., *_upper(G.shape[-1]))]
+
+
+def _unpacked(P: np.ndarray, width: int) -> np.ndarray:
+    i, j = _upper(width)
+    G = np.zeros((*P.shape[:-1], width, width))
+    G[..., i, j] = P
+    G[..., j, i] = P
+    return G
+
+
+MAGIC = b"QCSTATS\n"
+
+
+def _encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each
+    array's dtype, shape and offset), then the arrays' bytes: read back without a parser."""
+    offset, parts, index = 0, [], {}
+    for name, a in arrays.items():
+        a = np.ascontiguousarray(a)
+        index[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
+        parts.append(a.tobytes())
+        offset += a.nbytes
+    text = json.dumps({**header, "arrays": index}).encode()
+    return MAGIC + len(text).to_bytes(8, "little") + text + b"".join(parts)
+
+
+def _decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
+    if not raw.startswith(MAGIC):
+        raise ValueError("no statistics header")
+    length = int.from_bytes(raw[len(MAGIC): len(MAGIC) + 8], "little")
+    start = len(MAGIC) + 8 + length
+    header = json.loads(raw[len(MAGIC) + 8: start])
+
+    def array(name: str) -> np.ndarray:
+        spec = header["arrays"][name]
+        count = int(np.prod(spec["shape"]))
+        return np.frombuffer(raw, np.dtype(spec["dtype"]), count, start + spec["offset"]).reshape(spec["shape"])
+
+    return header, array
+
+
+def save(s: FlightStats, root: Any) -> Any:
+    """Write a flight's statistics under the data root (atomically; an object store too). The
+    symmetric matrices are stored as their upper triangles."""
+    header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
+              "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V}
+    data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
+                            "noise": s.noise, "gram": _packed(s.gram)})
+    return store.atomic_write(stats_path(root, s.flight), lambda tmp: Path(tmp).write_bytes(data))
+
+
+def load(root: Any, flight: str) -> FlightStats:
+    """A flight's stored statistics (the per-block matrices unpacked when first asked for);
+    :class:`StatsError` when the file is not one."""
+    path = stats_path(root, flight)
+    raw = path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
+    try:
+        header, array = _decode(raw)
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
+        lay = header["layout"]
+        layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]))
+        width = layout.width
+        return FlightStats(header["flight"], layout, header["key"], _unpacked(array("total"), width), array("rows"),
+                           _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
+                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StatsError(f"{path}: not a statistics file ({exc})") from None
+
+
+def load_current(root: Any, flight: str, key: str) -> FlightStats | None:
+    """A flight's stored statistics if they were computed for ``key``, else None."""
+    path = stats_path(root, flight)
+    if not path.exists():
+        return None
+    try:
+        s = load(root, flight)
+    except StatsError:
+        return None
+    return s if s.key == key else None

@@ -1,0 +1,3 @@
+"""Stage 1, the flight log: the uSD binary format (``logformat``), SI names and unit conversions
+(``units``), a decoded flight with its provenance (``flight``) and the checks that refuse or flag a
+log (``checks``)."""

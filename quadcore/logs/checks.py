@@ -1,0 +1,169 @@
+"""Plausibility checks on a decoded flight, as plain data (the pipeline turns them into
+asset checks). Each returns ``(passed, description, metrics)``; none raises.
+
+:func:`physics_problem` is the gate before any physics: a flight it refuses (too few rows,
+time not increasing, non-finite or absurd values, quaternions far from unit length) is
+skipped by every fleet stage with its reason, and the per-flight stages fail for it alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import polars as pl
+
+from quadcore.physics import dynamics
+
+# Physically plausible ranges for a small quadrotor (SI). Values outside are flagged, not dropped.
+VALUE_RANGES = {
+    "p_w_x_m": (-20.0, 20.0),
+    "p_w_y_m": (-20.0, 20.0),
+    "p_w_z_m": (-1.0, 20.0),
+    "v_w_x_mps": (-15.0, 15.0),
+    "v_w_y_mps": (-15.0, 15.0),
+    "v_w_z_mps": (-15.0, 15.0),
+    "omega_b_x_radps": (-35.0, 35.0),  # the gyro's 2000 deg/s full scale
+    "omega_b_y_radps": (-35.0, 35.0),
+    "omega_b_z_radps": (-35.0, 35.0),
+    "sf_b_x_mps2": (-160.0, 160.0),  # the accelerometer's 16 g full scale
+    "sf_b_y_mps2": (-160.0, 160.0),
+    "sf_b_z_mps2": (-160.0, 160.0),
+    "vbat_V": (2.5, 4.5),
+    "pwm_1": (0.0, 1.0),
+    "pwm_2": (0.0, 1.0),
+    "pwm_3": (0.0, 1.0),
+    "pwm_4": (0.0, 1.0),
+}
+GAP_WARN_S = 0.05
+MIN_ROWS = 250  # 0.5 s at 500 Hz: less cannot fill the smoothing window and a 0.1 s rollout
+QUATERNION_NORM_TOL = 0.05  # the estimator keeps |q| = 1 to float32 precision; 5 % is a broken log
+VBAT_MIN_V = 2.5  # a 1S LiPo is flat at 3.0 V; below 2.5 V the logged voltage is wrong, not low
+MAX_ABS_VALUE = 1e4  # no SI value of a small quadrotor comes near this (PWM <= 1, rates <= 35 rad/s)
+
+
+def physics_problem(df: pl.DataFrame, columns: list[str]) -> str | None:
+    """Why the physics cannot use this flight (``columns``: the ones it reads), or None."""
+    if df.height < MIN_ROWS:
+        return f"{df.height} samples; the physics needs at least {MIN_ROWS}"
+    t = df["t_s"].to_numpy()
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if len(back):
+        return f"time does not increase at {len(back)} samples (first at t = {t[back[0]]:.3f} s)"
+    value_columns = [c for c in columns if c != "t_s"]
+    values = df.select(value_columns).to_numpy().astype(np.float64)
+    bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_VALUE)
+    if bad.any():
+        worst = ", ".join(f"{c} ({n} rows)" for c, n in zip(value_columns, bad.sum(axis=0)) if n)
+        return f"non-finite or absurd (|x| > {MAX_ABS_VALUE:g}) values in {worst}"
+    if {"q_x", "q_y", "q_z", "q_w"} <= set(df.columns):
+        norm = np.linalg.norm(df.select("q_x", "q_y", "q_z", "q_w").to_numpy().astype(np.float64), axis=1)
+        off = int(np.count_nonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOL))
+        if off:
+            return f"{off} attitude quaternions are not unit length (|q| from {norm.min():.3g} to {norm.max():.3g})"
+    if "vbat_V" in columns:
+        low = int((df["vbat_V"] < VBAT_MIN_V).sum())
+        if low:
+            return f"battery voltage below {VBAT_MIN_V} V in {low} rows: the thrust map cannot use it"
+    flew, desc, _ = has_flight_phase(df)
+    return None if flew else desc
+
+
+def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    """The physics gate as a check, on the columns the nominal quadrotor model reads."""
+    missing = [c for c in dynamics.NOMINAL_COLUMNS if c not in df.columns]
+    problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, dynamics.NOMINAL_COLUMNS)
+    return problem is None, problem or "usable for the physics", {}
+
+
+def split_usable(tables: dict[str, pl.DataFrame], vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
+    """(the flights the physics can use with ``vehicle``, skipped: flight -> reason)."""
+    usable, skipped = usable_flights(tables, vehicle)
+    return {f: tables[f] for f in usable}, skipped
+
+
+def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle) -> tuple[list[str], dict[str, str]]:
+    """(ids of the flights the physics can use with ``vehicle``, skipped: flight -> reason),
+    looking at one table at a time (``tables`` may read each as it is looked up)."""
+    need = dynamics.required_columns(vehicle)
+    usable, skipped = [], {}
+    for fid in tables:
+        df = tables[fid]
+        missing = [c for c in need if c not in df.columns]
+        problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, need)
+        if problem:
+            skipped[fid] = problem
+        else:
+            usable.append(fid)
+    return usable, skipped
+
+
+def monotonic_time(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    t = df["t_s"].to_numpy()
+    backwards = int(np.count_nonzero(np.diff(t) <= 0)) if len(t) > 1 else 0
+    return backwards == 0, f"{backwards} non-increasing timestamps", {"non_increasing": backwards}
+
+
+def sample_gaps(df: pl.DataFrame, limit_s: float = GAP_WARN_S) -> tuple[bool, str, dict]:
+    t = df["t_s"].to_numpy()
+    dt = np.diff(t) if len(t) > 1 else np.zeros(1)
+    n = int(np.count_nonzero(dt > limit_s))
+    return n == 0, f"{n} gaps longer than {limit_s * 1e3:.0f} ms (longest {dt.max() * 1e3:.1f} ms)", {
+        "gaps": n,
+        "dt_max_ms": float(dt.max() * 1e3),
+    }
+
+
+def value_ranges(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    bad = {}
+    for col, (lo, hi) in VALUE_RANGES.items():
+        if col in df.columns:
+            n = df.filter((pl.col(col) < lo) | (pl.col(col) > hi)).height
+            if n:
+                bad[col] = n
+    desc = "all values in range" if not bad else "out of range: " + ", ".join(f"{c} ({n} rows)" for c, n in bad.items())
+    return not bad, desc, {"columns_out_of_range": len(bad)}
+
+
+def no_nans(df: pl.DataFrame) -> tuple[bool, str, dict]:
+    counts = {c: int(df[c].is_nan().sum()) for c, dt in df.schema.items() if dt.is_float()}
+    bad = {c: n for c, n in counts.items() if n}
+    desc = "no NaN" if not bad else "NaN in " + ", ".join(f"{c} ({n})" for c, n in bad.items())
+    return not bad, desc, {"nan_values": sum(bad.values())}
+
+
+def stuck_sensors(df: pl.DataFrame, min_rows: int = 500) -> tuple[bool, str, dict]:
+    """A sensor column that never changes over a whole flight is stuck (e.g. vbat at 3.7 V)."""
+    if df.height < min_rows:
+        return True, "too short to judge", {"stuck_columns": 0}
+    skip = {"t_s", "timestamp_us"}
+    stuck = [c for c, dt in df.schema.items() if dt.is_numeric() and c not in skip and df[c].n_unique() == 1]
+    desc = "no stuck sensor" if not stuck else "constant over the whole flight: " + ", ".join(stuck)
+    return not stuck, desc, {"stuck_columns": len(stuck)}
+
+
+def has_flight_phase(df: pl.DataFrame, min_move_m: float = 0.05, min_height_m: float = 0.1,
+                     min_pwm: float = 0.3) -> tuple[bool, str, dict]:
+    """A flight log should contain flight: motors driven, and the vehicle moving or off the ground."""
+    pos = [c for c in ("p_w_x_m", "p_w_y_m", "p_w_z_m") if c in df.columns]
+    pwm_cols = [c for c in df.columns if c.startswith("pwm_")]
+    if df.height == 0 or len(pos) < 3 or not pwm_cols:
+        return False, "no position or PWM columns to judge", {}
+    move = max(float(df.select(pl.col(c).max() - pl.col(c).min()).item()) for c in pos)
+    z_max = float(df.select(pl.col("p_w_z_m").max()).item())
+    pwm_max = float(df.select(pwm_cols).max().max_horizontal()[0])
+    ok = pwm_max >= min_pwm and (move >= min_move_m or z_max >= min_height_m)
+    desc = (f"largest position range {move:.2f} m, highest z {z_max:.2f} m, highest PWM {pwm_max:.2f}"
+            + ("" if ok else ": no flight phase (motors idle, or the vehicle never moved nor left the ground)"))
+    return ok, desc, {"position_range_m": move, "z_max_m": z_max, "pwm_max": pwm_max}
+
+
+ALL_CHECKS = {
+    "monotonic_time": monotonic_time,
+    "sample_gaps": sample_gaps,
+    "value_ranges": value_ranges,
+    "no_nans": no_nans,
+    "stuck_sensors": stuck_sensors,
+    "has_flight_phase": has_flight_phase,
+    "usable_for_physics": usable_for_physics,
+}

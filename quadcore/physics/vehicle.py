@@ -1,0 +1,255 @@
+"""The vehicle: mass, inertia, rotor layout and thrust map, read from a TOML file.
+
+Body frame: x forward, y left, z up, origin at the centre of mass. Rotor ``i`` sits at
+``r_i = arm_i (cos a_i, sin a_i, 0)`` and pushes ``f_i`` along body +z. The actuation
+(allocation) matrix ``A`` maps rotor thrusts to collective thrust and body torques::
+
+    [T, tau_x, tau_y, tau_z]^T = A f,   A[:, i] = [1, y_i, -x_i, t2t * yaw_sign_i]
+
+For the Crazyflie (X layout, a = arm / sqrt 2) this is the inverse of the firmware's
+mixer: ``tau_x = a(-f1 - f2 + f3 + f4)``, ``tau_y = a(-f1 + f2 + f3 - f4)``,
+``tau_z = t2t(-f1 + f2 - f3 + f4)``.
+
+The built-in default is ``vehicles/crazyflie21.toml``; every constant lives there.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from quadcore.logs.units import G0_MPS2
+
+DEFAULT_VEHICLE = "crazyflie21"
+THRUST_MAP_KINDS = ("pwm_vbat", "motor_speed")
+
+
+class VehicleFileError(ValueError):
+    """A vehicle file that is missing, unreadable or incomplete."""
+
+
+@dataclass(frozen=True)
+class PwmVbatThrustMap:
+    """Per-rotor thrust in grams from normalised PWM p and battery ratio b = vbat/vbat_ref:
+    ``f_g = c0 + cp p + cb b + cpp p^2 + cpb p b`` (clipped at zero)."""
+
+    c0: float
+    cp: float
+    cb: float
+    cpp: float
+    cpb: float
+    vbat_ref_V: float
+
+    def thrust_N(self, pwm: np.ndarray, vbat_V: np.ndarray | float) -> np.ndarray:
+        """``pwm`` in 0..1 (any shape, rotors last), ``vbat_V`` broadcastable to it."""
+        p, b = pwm, vbat_V / self.vbat_ref_V
+        grams = self.c0 + self.cp * p + self.cb * b + self.cpp * p**2 + self.cpb * p * b
+        return np.maximum(grams, 0.0) * (G0_MPS2 / 1000.0)
+
+    def pwm_for_thrust(self, thrust_N: np.ndarray, vbat_V: np.ndarray | float) -> np.ndarray:
+        """Inverse map: the PWM (0..1) giving ``thrust_N`` at ``vbat_V`` (larger root, clipped)."""
+        b = vbat_V / self.vbat_ref_V
+        grams = np.asarray(thrust_N) * (1000.0 / G0_MPS2)
+        qa, qb, qc = self.cpp, self.cp + self.cpb * b, self.c0 + self.cb * b - grams
+        disc = np.maximum(qb**2 - 4 * qa * qc, 0.0)
+        return np.clip((-qb + np.sqrt(disc)) / (2 * qa), 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class MotorSpeedThrustMap:
+    """Per-rotor thrust from measured motor speed: ``f = k_F omega^2`` (omega in rad/s)."""
+
+    k_F_N_per_radps2: float
+
+    def thrust_N(self, omega_radps: np.ndarray) -> np.ndarray:
+        return self.k_F_N_per_radps2 * np.square(omega_radps)
+
+    def speed_for_thrust(self, thrust_N: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(thrust_N, 0.0) / self.k_F_N_per_radps2)
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """Rigid-body parameters and rotor layout (see module docstring for frames)."""
+
+    name: str
+    mass_kg: float
+    inertia_kgm2: np.ndarray  # (3, 3), body frame, about the centre of mass
+    rotor_xy_m: np.ndarray  # (n_rotors, 2) rotor positions in the body x-y plane
+    yaw_sign: np.ndarray  # (n_rotors,) +1 / -1
+    torque_to_thrust_m: float
+    rotor_radius_m: float
+    thrust_map_kind: str
+    pwm_vbat: PwmVbatThrustMap
+    motor_speed: MotorSpeedThrustMap
+    source: str = field(default="", compare=False)
+
+    @property
+    def n_rotors(self) -> int:
+        return len(self.yaw_sign)
+
+    @property
+    def weight_N(self) -> float:
+        return self.mass_kg * G0_MPS2
+
+    @property
+    def allocation(self) -> np.ndarray:
+        """(4, n_rotors): rotor thrusts -> [T, tau_x, tau_y, tau_z]."""
+        x, y = self.rotor_xy_m[:, 0], self.rotor_xy_m[:, 1]
+        return np.vstack([np.ones_like(x), y, -x, self.torque_to_thrust_m * self.yaw_sign])
+
+    def rotor_thrusts_N(self, pwm: np.ndarray, vbat_V: np.ndarray, motor_radps: np.ndarray | None) -> np.ndarray:
+        """(n, n_rotors) thrusts from the selected map. ``pwm`` 0..1 (n, rotors), ``vbat_V`` (n,)."""
+        if self.thrust_map_kind == "motor_speed":
+            if motor_radps is None:
+                raise VehicleFileError("thrust map 'motor_speed' needs motor speed columns in the log")
+            if self.motor_speed.k_F_N_per_radps2 <= 0:
+                raise VehicleFileError(
+                    f"vehicle {self.name!r}: motor_speed thrust map has no k_F; run `quadcore fit-thrust`"
+                )
+            return self.motor_speed.thrust_N(motor_radps)
+        return self.pwm_vbat.thrust_N(pwm, np.asarray(vbat_V)[..., None])
+
+    def with_thrust_map(self, kind: str) -> Vehicle:
+        if kind not in THRUST_MAP_KINDS:
+            raise VehicleFileError(f"unknown thrust map {kind!r}; choose one of {', '.join(THRUST_MAP_KINDS)}")
+        return replace(self, thrust_map_kind=kind)
+
+
+KNOWN_KEYS = {
+    "": {"name", "mass_kg", "inertia_kgm2", "torque_to_thrust_m", "rotor_radius_m", "rotors", "thrust_map"},
+    "rotors": {"arm_m", "angle_deg", "yaw_sign"},
+    "thrust_map": {"kind", "pwm_vbat", "motor_speed"},
+    "thrust_map.pwm_vbat": {"c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V"},
+    "thrust_map.motor_speed": {"k_F_N_per_radps2"},
+}
+
+
+def _table(d, key: str, where: str) -> dict:
+    value = d.get(key) if isinstance(d, dict) else None
+    if not isinstance(value, dict):
+        raise VehicleFileError(f"{where}: [{key}]: expected a table, got {_shown(value)}")
+    return value
+
+
+def _shown(value) -> str:
+    return "nothing (missing)" if value is None else f"{value!r:.60}"
+
+
+def _check_keys(d: dict, section: str, where: str) -> None:
+    unknown = sorted(set(d) - KNOWN_KEYS[section])
+    if unknown:
+        label = f"[{section}] " if section else ""
+        raise VehicleFileError(f"{where}: {label}unknown key {unknown[0]!r}: expected one of "
+                               f"{', '.join(sorted(KNOWN_KEYS[section]))}")
+
+
+def _number(d: dict, key: str, where: str, lo: float | None = None, strict: bool = True, default=None) -> float:
+    """``d[key]`` as a finite float (not a bool), ``> lo`` (``>= lo`` when not ``strict``)."""
+    value = d.get(key, default)
+    bound = "" if lo is None else f" {'>' if strict else '>='} {lo:g}"
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if strict else value >= lo
+    if not ok:
+        raise VehicleFileError(f"{where}: {key} = {_shown(value)}: expected a finite number{bound}")
+    return float(value)
+
+
+def from_dict(d: dict, source: str = "") -> Vehicle:
+    """A vehicle from a parsed file. Every value is checked (type, finiteness, range, rotor
+    layout); an error names the file, the key and what was expected."""
+    where = source or "vehicle"
+    _check_keys(d, "", where)
+    inertia = _inertia(d, where)
+    rotors = d.get("rotors")
+    if not isinstance(rotors, list) or not all(isinstance(r, dict) for r in rotors):
+        raise VehicleFileError(f"{where}: rotors = {_shown(rotors)}: expected [[rotors]] tables")
+    for i, r in enumerate(rotors, 1):
+        _check_keys(r, "rotors", f"{where}: rotor {i}")
+    arms = np.array([_number(r, "arm_m", f"{where}: rotor {i}", 0.0) for i, r in enumerate(rotors, 1)])
+    angles = np.radians([_number(r, "angle_deg", f"{where}: rotor {i}") for i, r in enumerate(rotors, 1)])
+    yaw = np.array([_number(r, "yaw_sign", f"{where}: rotor {i}") for i, r in enumerate(rotors, 1)])
+    if not np.all(np.isin(yaw, (-1.0, 1.0))):
+        raise VehicleFileError(f"{where}: yaw_sign = {yaw.tolist()}: expected -1 or +1 for every rotor")
+    tm = _table(d, "thrust_map", where)
+    _check_keys(tm, "thrust_map", where)
+    kind = tm.get("kind", "pwm_vbat")
+    if kind not in THRUST_MAP_KINDS:
+        raise VehicleFileError(f"{where}: [thrust_map] kind = {_shown(kind)}: expected one of {THRUST_MAP_KINDS}")
+    pv = _table(tm, "pwm_vbat", f"{where}: [thrust_map]")
+    _check_keys(pv, "thrust_map.pwm_vbat", where)
+    pv_where = f"{where}: [thrust_map.pwm_vbat]"
+    coeffs = {k: _number(pv, k, pv_where) for k in ("c0", "cp", "cb", "cpp", "cpb")}
+    ms = tm.get("motor_speed", {})
+    if not isinstance(ms, dict):
+        raise VehicleFileError(f"{where}: [thrust_map.motor_speed]: expected a table, got {_shown(ms)}")
+    _check_keys(ms, "thrust_map.motor_speed", where)
+    name = d.get("name", Path(source).stem if source else "vehicle")
+    if not isinstance(name, str):
+        raise VehicleFileError(f"{where}: name = {_shown(name)}: expected a string")
+    vehicle = Vehicle(
+        name=name,
+        mass_kg=_number(d, "mass_kg", where, 0.0),
+        inertia_kgm2=inertia,
+        rotor_xy_m=np.column_stack([arms * np.cos(angles), arms * np.sin(angles)]),
+        yaw_sign=yaw,
+        torque_to_thrust_m=_number(d, "torque_to_thrust_m", where, 0.0),
+        rotor_radius_m=_number(d, "rotor_radius_m", where, 0.0),
+        thrust_map_kind=kind,
+        pwm_vbat=PwmVbatThrustMap(**coeffs, vbat_ref_V=_number(pv, "vbat_ref_V", pv_where, 0.0)),
+        motor_speed=MotorSpeedThrustMap(_number(ms, "k_F_N_per_radps2", f"{where}: [thrust_map.motor_speed]",
+                                                0.0, strict=False, default=0.0)),
+        source=source,
+    )
+    _check_layout(vehicle, where)
+    return vehicle
+
+
+def _inertia(d: dict, where: str) -> np.ndarray:
+    raw = d.get("inertia_kgm2")
+    try:
+        inertia = np.asarray(raw, dtype=float)
+    except (TypeError, ValueError):
+        inertia = np.zeros(0)
+    numbers = isinstance(raw, list) and all(isinstance(r, list) and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in raw)
+    if not numbers or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)) \
+            or not np.allclose(inertia, inertia.T) or np.any(np.linalg.eigvalsh(inertia) <= 0):
+        raise VehicleFileError(f"{where}: inertia_kgm2 = {_shown(raw)}: expected a symmetric, positive "
+                               "definite 3x3 matrix of finite numbers (kg m^2)")
+    return inertia
+
+
+def _check_layout(vehicle: Vehicle, where: str) -> None:
+    """The rotors must be able to produce thrust and all three torques: the allocation matrix
+    ``A`` (4 x rotors) has rank 4. Three rotors, or all on one line, cannot."""
+    if vehicle.n_rotors < 4 or np.linalg.matrix_rank(vehicle.allocation, tol=1e-12) < 4:
+        raise VehicleFileError(
+            f"{where}: rotors: {vehicle.n_rotors} rotors whose layout cannot produce thrust and roll, pitch "
+            "and yaw torque independently: expected at least 4 rotors around the centre of mass with both "
+            "yaw_sign values")
+
+
+def load(path_or_name: str | Path | None = None) -> Vehicle:
+    """Load a vehicle file (a path), or a built-in by name (default: the Crazyflie 2.1)."""
+    if path_or_name is None or str(path_or_name) == DEFAULT_VEHICLE:
+        text = resources.files("quadcore").joinpath(f"vehicles/{DEFAULT_VEHICLE}.toml").read_text()
+        return from_dict(tomllib.loads(text), source=f"builtin:{DEFAULT_VEHICLE}")
+    path = Path(path_or_name)
+    return from_dict(read_toml(path, VehicleFileError, "vehicle file"), source=str(path))
+
+
+def read_toml(path: Path, error: type[Exception], what: str) -> dict:
+    """A TOML file as a dict; a missing or malformed file raises ``error`` saying which."""
+    if not path.is_file():
+        raise error(f"{what} not found: {path}")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from None
+

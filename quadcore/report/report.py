@@ -1,0 +1,324 @@
+"""Reports on disk: the diagnosis as Markdown and as a standalone HTML page, plots inline.
+
+Both are generated from the same sections, so they always say the same thing.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+from datetime import UTC, datetime
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import polars as pl  # noqa: E402
+
+from quadcore.identify import diagnosis, history, sessions  # noqa: E402
+from quadcore.identify.history import RMSE_COLUMNS  # noqa: E402
+from quadcore.report import plots  # noqa: E402
+from quadcore.store import store  # noqa: E402
+
+
+def candidates_plot(d: dict) -> bytes:
+    """Share of the held-out residual each candidate removes, force and torque. Found
+    candidates in full colour; the others faded and labelled with why (an unphysical fit is
+    hatched: whatever it removes, it is no explanation)."""
+    rows = d["candidates"][::-1]
+    fig, ax = plt.subplots(figsize=(8, 0.4 * len(rows) + 1.3), layout="constrained")
+    y = np.arange(len(rows))
+    for offset, key, colour, label in ((-0.2, "explained_variance_force", "C0", "force"),
+                                       (0.2, "explained_variance_torque", "C1", "torque")):
+        for yi, r in zip(y, rows):
+            found = r.get("found", r.get("useful", True))
+            ax.barh(yi + offset, r[key], 0.4, color=colour, alpha=1.0 if found else 0.35,
+                    hatch="//" if not r["physical"] else None, edgecolor="k" if not r["physical"] else None,
+                    label=label if yi == y[-1] else None)
+    ax.set_yticks(y, [f"{r['effect']} ({_short_status(r)})" for r in rows], fontsize=8)
+    ax.axvline(0, color="k", lw=0.5)
+    ax.set_xlabel("fraction of held-out residual removed (faded: not found; hatched: unphysical fit)")
+    ax.set_xlim(-0.1, 1.0)
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3, axis="x")
+    return plots._png(fig)
+
+
+def _short_status(r: dict) -> str:
+    status = r.get("status", "found" if r.get("useful") else "not found")
+    if status == "tied":
+        return f"tied, {r.get('grade', '')}"
+    return r.get("grade", status) if status == "found" else status.replace("_", " ")
+
+
+def regimes_plot(d: dict) -> bytes:
+    reg = pl.DataFrame(d["regimes"])
+    regimes = reg["regime"].unique(maintain_order=True).to_list()
+    fig, axes = plt.subplots(2, (len(regimes) + 1) // 2, figsize=(13, 5.5), layout="constrained")
+    for ax, regime in zip(axes.flat, regimes):
+        r = reg.filter(pl.col("regime") == regime)
+        x = np.arange(r.height)
+        for j, a in enumerate("xyz"):
+            ax.bar(x + (j - 1) * 0.27, r[f"force_rmse_{a}_N"], 0.27, label=f"F_{a}")
+        ax.set_xticks(x, r["bin"].to_list(), rotation=30, fontsize=7)
+        ax.set_title(regime, fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+    axes.flat[0].set_ylabel("force residual RMSE [N]")
+    axes.flat[0].legend(fontsize=7)
+    for ax in list(axes.flat)[len(regimes):]:
+        ax.axis("off")
+    return plots._png(fig)
+
+
+def frequency_plot(freq: dict) -> bytes:
+    """Residual RMS of each flight's constant offset and by frequency band (top), coherence and
+    gain of modelled vs measured by band (bottom); force left, torque right."""
+    labels = ["mean"] + [f"{lo:g}-{hi:g}" for lo, hi in freq["bands_hz"]]
+    x = np.arange(len(labels))
+    rows = {r["channel"]: r for r in freq["channels"]}
+    fig, axes = plt.subplots(2, 2, figsize=(12, 6), layout="constrained", sharex=True)
+    for col, (kind, unit, scale) in enumerate((("force", "N", 1.0), ("torque", "mN m", 1e3))):
+        for j, a in enumerate("xyz"):
+            r = rows.get(f"{kind}_{a}")
+            if r is None:
+                continue
+            rms = np.asarray([r.get("residual_mean_rms", np.nan), *r["residual_rms"]]) * scale
+            axes[0, col].bar(x + (j - 1) * 0.27, rms, 0.27, label=f"{kind} {a}")
+            line = axes[1, col].plot(x[1:], r["coherence"], "o-", label=f"coherence {a}")[0]
+            axes[1, col].plot(x[1:], r["gain"], "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
+        axes[0, col].set_ylabel(f"residual RMS [{unit}]")
+        axes[0, col].legend(fontsize=7)
+        axes[1, col].set_ylabel("model vs measured")
+        axes[1, col].set_ylim(0, 1.6)
+        axes[1, col].axhline(1.0, color="k", lw=0.5)
+        axes[1, col].legend(fontsize=6, ncol=3)
+        axes[1, col].set_xticks(x, labels)
+        axes[1, col].set_xlabel("each flight's mean, then frequency band [Hz]")
+        for ax in axes[:, col]:
+            ax.grid(alpha=0.3)
+    return plots._png(fig)
+
+
+def frequency_table(freq: dict) -> pl.DataFrame:
+    """One row per channel and band: residual RMS, its share, coherence, gain, phase."""
+    return pl.DataFrame([
+        {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}", "residual_rms": r["residual_rms"][i],
+         "share": r["residual_share"][i], "coherence": r["coherence"][i], "gain": r["gain"][i],
+         "phase_deg": r["phase_deg"][i]}
+        for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])]
+        + [{"channel": r["channel"], "band_hz": "mean per flight", "residual_rms": r["residual_mean_rms"],
+            "share": r["mean_share"], "coherence": float("nan"), "gain": float("nan"), "phase_deg": float("nan")}
+           for r in freq["channels"]])
+
+
+def discovery_table(disc: dict) -> pl.DataFrame:
+    """The kept terms of a discovery (:mod:`quadcore.identify.discovery`), one row each."""
+    return pl.DataFrame([
+        {"target": t["target"], "term": t["expression"], "coefficient": t["coefficient"], "std": t["std"],
+         "unit": t["unit"], "explained_held_out": t["explained_variance"], "stability": t["stability"],
+         "matches": ", ".join(t.get("matches_effects", [])), "literature": t.get("literature", ""),
+         "collinear_with": ", ".join(t.get("collinear_with", [])[:4])}
+        for t in disc["terms"]])
+
+
+def discovery_plot(disc: dict) -> bytes:
+    """Held-out residual RMSE per axis before and after the discovered terms, relative."""
+    fig, ax = plt.subplots(figsize=(7, 3), layout="constrained")
+    labels = [f"F{a}" for a in "xyz"] + [f"τ{a}" for a in "xyz"]
+    before = np.array(disc["baseline"]["force_rmse_N"] + disc["baseline"]["torque_rmse_Nm"])
+    after = np.array(disc["after"]["force_rmse_N"] + disc["after"]["torque_rmse_Nm"])
+    x = np.arange(6)
+    ax.bar(x - 0.2, np.ones(6), 0.4, label="current model")
+    ax.bar(x + 0.2, np.divide(after, before, out=np.ones(6), where=before > 0), 0.4, label="+ discovered terms")
+    ax.set_xticks(x, labels)
+    ax.set_ylabel("held-out residual RMSE (relative)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, axis="y")
+    return plots._png(fig)
+
+
+def discovery_sections(disc: dict) -> list[tuple[str, str, object]]:
+    """The discovery's part of the diagnosis report."""
+    notes = [f"{a['target']}: {n}" for a in disc["axes"] for n in a["notes"]]
+    out: list[tuple[str, str, object]] = [("Terms the library lacks (quadcore discover)", "text",
+            f"On top of {'+'.join(['nominal', *disc['effects_in_model']])}, {disc['evaluation']['mode']}: "
+            + ("; ".join(t["formula"] for t in disc["terms"]) if disc["terms"] else "no term kept") + "."
+            + (" Notes: " + " ".join(notes) if notes else ""))]
+    if disc["terms"]:
+        out += [("Discovered terms", "table", discovery_table(disc)),
+                ("Held-out error with the discovered terms", "image", discovery_plot(disc))]
+    return out
+
+
+# How many evaluation sets the history plot shows (the most recently evaluated ones).
+HISTORY_PLOT_SETS = 3
+
+
+def history_plot(hist: pl.DataFrame) -> bytes:
+    """The falling-error plot: one row of panels per evaluation set (like with like), force [N]
+    and torque [mN m] per axis as steps from one model to the next."""
+    sets = list(history.series(hist).items())[:HISTORY_PLOT_SETS]
+    fig, axes = plt.subplots(len(sets), 2, figsize=(12, 3.4 * len(sets)), layout="constrained", squeeze=False)
+    for (name, rows), (ax_f, ax_t) in zip(sets, axes):
+        x = np.arange(rows.height)
+        labels = [f"{i}: {lab}" for i, lab in enumerate(rows["model_label"].to_list())]
+        for ax, kind, unit, scale in ((ax_f, "force", "N", 1.0), (ax_t, "torque", "mN m", 1e3)):
+            for a in "xyz":
+                col = f"{kind}_rmse_{a}_{'N' if kind == 'force' else 'Nm'}"
+                ax.step(x, rows[col].to_numpy() * scale, where="post", marker="o", label=f"{kind} {a}")
+            ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=7)
+            ax.set_title(f"{name}: held-out {kind} residual RMSE", fontsize=9)
+            ax.set_ylabel(f"RMSE [{unit}]")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+            ax.set_ylim(bottom=0)
+    return plots._png(fig)
+
+
+def history_table(hist: pl.DataFrame) -> pl.DataFrame:
+    """The history as a table: evaluation set, source, model, RMSE (force in N, torque in mN m)."""
+    named = pl.concat([rows for rows in history.series(hist).values()]).sort("evaluated_at")
+    return named.select(
+        pl.col("evaluated_at").dt.strftime("%Y-%m-%d %H:%M:%S"), "evaluation_set", "source", "model_label",
+        *[pl.col(c).round_sig_figs(3) for c in RMSE_COLUMNS if c.endswith("_N")],
+        *[(pl.col(c) * 1e3).round_sig_figs(3).alias(c.replace("_Nm", "_mNm")) for c in RMSE_COLUMNS
+          if c.endswith("_Nm")])
+
+
+def _table(df: pl.DataFrame) -> pl.DataFrame:
+    return df.with_columns(pl.col(pl.Float64).round_sig_figs(3))
+
+
+def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None) -> list[tuple[str, str, object]]:
+    """(title, kind, content) with kind in text / table / image."""
+    b = d["baseline"]
+    ev = d["evaluation"]
+    out: list[tuple[str, str, object] | None] = [
+        ("Verdict", "text", d["verdict"]),
+        ("Model", "text", f"{d['model']['label']} on vehicle {d['model']['vehicle']} "
+                          f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
+                          f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)."),
+        ("Baseline residual (held-out) and sensor-noise floor", "table", pl.DataFrame({
+            "quantity": ["force RMSE [N]", "torque RMSE [mN m]"]
+            + (["force noise floor [N]", "torque noise floor [mN m]"] if "noise_floor" in d else []),
+            **{a: [b["force_rmse_N"][i], b["torque_rmse_Nm"][i] * 1e3]
+               + ([d["noise_floor"]["force_rmse_N"][i], d["noise_floor"]["torque_rmse_Nm"][i] * 1e3]
+                  if "noise_floor" in d else [])
+               for i, a in enumerate("xyz")},
+        })),
+    ]
+    if d["model"]["effects"]:
+        out.append(("Effects in the model", "table", pl.DataFrame([
+            {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan"))}
+            for e in d["model"]["effects"] for k, v in e["params"].items()
+        ])))
+    cands = pl.DataFrame(diagnosis.candidate_summary(d)) if d["candidates"] else pl.DataFrame()
+    sens = diagnosis.sensitivity_rows(d)
+    basis = d.get("sensitivity_basis", {})
+    out += [
+        ("Candidate effects, best first, and why each is ranked there", "table", cands),
+        ("Sensitivity: the smallest effect these flights would detect", "text",
+         (f"Each parameter alone, detected {basis.get('detection_probability', 0.9):.0%} of the time at "
+          f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
+          "values an effect would go unnoticed on these flights.")) if sens else None,
+        ("Sensitivity", "table", pl.DataFrame(sens)) if sens else None,
+        ("Parameters that differ between groups of flights", "table",
+         pl.DataFrame(sessions.table_rows(d["disagreements"]))) if d.get("disagreements") else None,
+        ("Parameters that differ between groups of flights: notes", "text",
+         " ".join(n for dis in d["disagreements"] for n in dis["notes"]))
+        if any(dis["notes"] for dis in d.get("disagreements", [])) else None,
+        (("Fraction of held-out residual each candidate removes", "image", candidates_plot(d))
+         if d["candidates"] else None),
+        ("Where it fails: residual by regime", "image", regimes_plot(d)),
+        ("Residual by regime", "table", pl.DataFrame(d["regimes"])),
+        ("Residual by flight", "table", pl.DataFrame(d["flights"])),
+        ("Worst segments", "table", pl.DataFrame(d["worst_segments"])),
+    ]
+    freq = d.get("frequency")
+    if freq and freq.get("channels"):
+        out += [
+            ("Where it fails, in frequency", "text", " ".join(freq["reading"])),
+            ("Residual by frequency band; coherence and gain of modelled vs measured", "image", frequency_plot(freq)),
+            ("Frequency bands", "table", frequency_table(freq)),
+        ]
+    if disc is not None:
+        out += discovery_sections(disc)
+    if hist is not None and hist.height:
+        out.append(("History: the error, evaluation after evaluation", "image", history_plot(hist)))
+        out.append(("History (torque in mN m)", "table", history_table(hist)))
+    return [s for s in out if s is not None]
+
+
+def to_markdown(secs, images: dict[str, str] | None = None) -> str:
+    """The report as Markdown; ``images``: section title -> the PNG's path relative to the .md
+    (the PNG beside it), else the PNG inline as base64."""
+    lines = ["# Dynamics model diagnosis", ""]
+    for title, kind, content in secs:
+        lines += [f"## {title}", ""]
+        if kind == "text":
+            lines.append(str(content))
+        elif kind == "table":
+            lines.append(plots.markdown_table(_table(content)) if content.height else "(none)")
+        elif images and title in images:
+            lines.append(f"![{title}]({images[title]})")
+        else:
+            lines.append(plots.markdown_image(content, title))
+        lines.append("")
+    return "\n".join(lines)
+
+
+def to_html(secs) -> str:
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Dynamics model diagnosis</title>",
+             "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto}table{border-collapse:collapse;"
+             "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}img{max-width:100%}</style>",
+             "</head><body><h1>Dynamics model diagnosis</h1>"]
+    for title, kind, content in secs:
+        parts.append(f"<h2>{html.escape(title)}</h2>")
+        if kind == "text":
+            parts.append(f"<p>{html.escape(str(content))}</p>")
+        elif kind == "table":
+            t = _table(content)
+            head = "".join(f"<th>{html.escape(c)}</th>" for c in t.columns)
+            body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
+                           for row in t.iter_rows())
+            parts.append(f"<table><tr>{head}</tr>{body}</table>")
+        else:
+            b64 = base64.b64encode(content).decode()
+            parts.append(f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None) -> tuple[Path, Path]:
+    """Write the report (with a discovery's section when ``disc`` is given), kept for good in
+    ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
+    beside the .md), and as the latest in ``out_dir/diagnosis.{md,html}`` (its .md links the kept
+    PNGs). The .html is self-contained. Returns the latest (md, html)."""
+    out_dir = store.as_root(out_dir)  # a folder here or in an object store
+    secs = sections(d, hist, disc)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    kept = out_dir / "diagnosis" / f"{stamp}-{_slug(d['model']['label'])}"
+    pngs = {title: f"{i:02d}-{_slug(title)}.png" for i, (title, kind, _) in enumerate(secs) if kind == "image"}
+    for title, kind, content in secs:
+        if kind == "image" and isinstance(content, bytes):
+            store.write_bytes(content, kept / pngs[title])
+    store.write_json(d, kept / "diagnosis.json")
+    page_text = to_html(secs)
+    store.write_text(to_markdown(secs, pngs), kept / "diagnosis.md")
+    store.write_text(page_text, kept / "diagnosis.html")
+    latest = {title: f"diagnosis/{kept.name}/{name}" for title, name in pngs.items()}
+    md = store.write_text(to_markdown(secs, latest), out_dir / "diagnosis.md")
+    page = store.write_text(page_text, out_dir / "diagnosis.html")
+    return md, page
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^0-9A-Za-z]+", "-", text).strip("-")[:60] or "report"
+
+
+def kept_reports(out_dir: Path) -> list[Path]:
+    """Every kept diagnosis report folder under ``out_dir``, oldest first."""
+    return sorted(p for p in (store.as_root(out_dir) / "diagnosis").glob("*") if p.is_dir())

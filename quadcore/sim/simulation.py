@@ -1,0 +1,749 @@
+"""A closed-loop quadrotor simulator that writes real uSD logs with a known ground truth.
+
+Why: the diagnosis stages must find effects we *know* are there. A simulated flight has the
+same log format, header, rates and roughly the same noise as the real Crazyflie logs, and a
+``<log>.truth.json`` sidecar with the effects and parameters it was flown with.
+
+**What is simulated** (body frame x forward, y left, z up; world z up; SI throughout)
+
+* Rigid body: mass, full inertia and X rotor layout of the :class:`~quadcore.physics.vehicle.Vehicle`.
+  Newton-Euler as in :mod:`quadcore.physics.dynamics`.
+* Closed loop at the log rate (500 Hz): :mod:`quadcore.sim.controller` (position PID with
+  acceleration feed-forward, geometric attitude control on SO(3)), using the NOMINAL vehicle
+  and the noisy sensor readings, -> rotor thrust commands ``A^-1 [T, tau]`` clipped to
+  ``[0, f(pwm=1, vbat)]``.
+* Actuation through the real chain: command -> PWM with ``pwm_vbat.pwm_for_thrust`` at the
+  battery voltage *as logged* -> integer PWM (as logged) -> the map thrust
+  ``pwm_vbat.thrust_N(pwm, vbat)``. So the logged PWM and vbat reproduce the rotor thrust
+  exactly when no effect is on. Motor speed is logged as ``sqrt(f_actual / k_F)`` (rpm).
+* Battery: open-circuit voltage falling linearly from ``ocv_start_V``, minus an internal
+  resistance times a load current proportional to the total thrust (1.05 V per newton of
+  thrust, fitted on jana00..jana11: ``vbat = a + b t - 1.05 T``), plus ADC noise, in whole mV.
+* Effects (the vocabulary and parameter names of :mod:`quadcore.effects`), composed. The
+  simulator names no effect: each effect either flies its own mechanism through a
+  :class:`~quadcore.effects.base.SimHook` (true mass, true inertia, air velocity, the chain
+  from map thrust to actual rotor thrust, an extra wrench with memory), or, by default, has
+  its ``wrench(state, vehicle, params)`` evaluated on the TRUE state at every physics step (a
+  one-sample FlightState whose ``f_rotor_N`` is the map thrust and ``motor_radps`` the true
+  rotor speed) and added to the force and torque. Effects that ``acts_on_airspeed`` see
+  the velocity relative to the air when a hook sets one (a wind). For example
+  ``motor_lag`` lags each rotor's thrust (integrated exactly per physics step),
+  ``thrust_scale`` scales it, ``added_mass`` changes the true mass (Newton and
+  accelerometer), ``wind`` blows (mean + Ornstein-Uhlenbeck gust, ``SimConfig``'s
+  ``wind_gust_std_mps`` and ``wind_gust_tau_s``).
+
+  So the residual of :func:`quadcore.physics.residuals.residual_table` on the decoded log equals
+  the sum of the effects' wrenches evaluated on the decoded flight, within noise (the tests
+  check this effect by effect).
+* Sensors: accelerometer = true specific force (non-gravitational force / TRUE mass) in g
+  plus white noise; gyro = true body rate in deg/s plus white noise; state estimate = true
+  position, velocity, attitude plus small noise; ``estPose`` (motion capture) at
+  ``mocap_rate_hz`` with packet loss, timing jitter and noise. Noise levels are measured on
+  the real logs (:class:`SensorNoise`). Random dropped log samples (gaps), as on the deck.
+
+**Integration**: the controller, the PWM and the sensors run at the log rate (500 Hz,
+zero-order hold of the rotor commands, as the firmware's 500 Hz stabiliser loop); the rigid
+body is integrated with semi-implicit Euler (``v += a h; p += v h; w += dw/dt h;
+q = q (x) exp(w h)``) at ``log_rate_hz * physics_substeps`` = 1 kHz by default. A log
+sample ``k`` holds the state at ``t_k`` and the accelerometer reading of the forces acting
+just after the PWM of sample ``k`` is applied, so sample ``k``'s PWM and acceleration belong
+together (the residual contract).
+
+Deterministic given ``SimConfig.seed`` (``numpy.random.SeedSequence``, one child stream per
+purpose). A 30 s flight takes about a second or two.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from quadcore import effects as effects_mod
+from quadcore.logs import logformat
+from quadcore.logs.units import DEG_TO_RAD, G0_MPS2, PWM_FULL_SCALE, RPM_TO_RADPS
+from quadcore.physics import vehicle as vehicle_mod
+from quadcore.physics.dynamics import FlightState
+from quadcore.sim import trajectories
+from quadcore.sim.controller import Controller, Gains
+from quadcore.store import store
+
+KINDS = ("figure8", "circle0", "yaw0", "random", "hover", "low_pass")
+TRUTH_SUFFIX = ".truth.json"
+TRUTH_FORMAT = "quadcore-sim-truth/1"
+
+# The real logs' header (jana00..jana33), copied from ``logformat.parse_header``: event ids,
+# names, variables, type characters and their order. Hard-coded so the simulator works
+# without the shared data set.
+FIXED_FREQUENCY = logformat.EventType(
+    event_id=0xFFFF,
+    name="fixedFrequency",
+    variables=(
+        "stateEstimate.x", "stateEstimate.y", "stateEstimate.z",
+        "stateEstimate.qx", "stateEstimate.qy", "stateEstimate.qz", "stateEstimate.qw",
+        "stateEstimate.vx", "stateEstimate.vy", "stateEstimate.vz",
+        "gyro.x", "gyro.y", "gyro.z", "acc.x", "acc.y", "acc.z",
+        "rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4",
+        "pwm.m1_pwm", "pwm.m2_pwm", "pwm.m3_pwm", "pwm.m4_pwm", "pm.vbatMV",
+    ),
+    type_chars=("f",) * 16 + ("H",) * 4 + ("H", "H", "H", "I", "H"),
+)
+EST_POSE = logformat.EventType(
+    event_id=8,
+    name="estPose",
+    variables=("locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qx", "locSrv.qy", "locSrv.qz", "locSrv.qw"),
+    type_chars=("f",) * 7,
+)
+LOG_EVENT_TYPES = (FIXED_FREQUENCY, EST_POSE)
+LOG_VERSION = 2
+
+
+class SimulationError(ValueError):
+    """A simulation request that cannot be met (unknown effect or parameter, bad config)."""
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """White-noise standard deviations, per axis where a tuple.
+
+    Measured on the real logs in steady hover (|v| < 0.1 m/s, z > 0.2 m, 61-sample windows
+    away from gaps; 15 of the 19 flights have enough hover): the signal minus its
+    Savitzky-Golay trend (``quadcore.physics.signals.smooth``, 31 samples), scaled by
+    ``1 / sqrt(1 - h0) = 1.038`` to undo the part of white noise the trend absorbs, median
+    over flights. acc (0.0050, 0.0065, 0.0051) g; gyro (0.70, 0.74, 0.29) deg/s; position
+    ~1e-4 m; velocity ~5e-4 m/s; quaternion components (6.4e-5, 7.6e-5, 2.0e-5), i.e.
+    twice that in rotation angle; motor speed ~15 rpm; vbat ~1.2 mV (the ADC steps by
+    ~5 mV). Motion capture (estPose): second differences in the hover-heavy flights
+    jana04..06 give ~2.5e-4 m.
+    """
+
+    acc_g: tuple[float, float, float] = (0.0050, 0.0065, 0.0051)
+    gyro_dps: tuple[float, float, float] = (0.70, 0.74, 0.29)
+    pos_m: float = 1.0e-4
+    vel_mps: float = 5.0e-4
+    att_rad: tuple[float, float, float] = (1.3e-4, 1.5e-4, 4.0e-5)
+    rpm: float = 15.0
+    vbat_V: float = 0.0012
+    mocap_pos_m: float = 2.5e-4
+    mocap_att_rad: float = 2.0e-4
+
+
+@dataclass(frozen=True)
+class Battery:
+    """Open-circuit voltage ``ocv_start_V + ocv_rate_V_per_s t`` (floored at ``ocv_min_V``)
+    minus ``r_internal_ohm * current_per_thrust_A_per_N * T``. The product (1.05 V/N) is the
+    sag per newton of total thrust fitted on the real logs jana00..jana11; their in-flight
+    voltage is 3.27-3.58 V and falls by 2-5 mV/s."""
+
+    ocv_start_V: float = 3.9
+    ocv_rate_V_per_s: float = -0.003
+    ocv_min_V: float = 3.3
+    r_internal_ohm: float = 0.105
+    current_per_thrust_A_per_N: float = 10.0
+
+    def ocv(self, t_s: np.ndarray) -> np.ndarray:
+        return np.maximum(self.ocv_start_V + self.ocv_rate_V_per_s * np.asarray(t_s), self.ocv_min_V)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """One simulated flight.
+
+    ``kind``: figure8 / circle0 / yaw0 (the polynomial plans: take-off, hover, plan at
+    ``timescale`` and ``height_m``, end hover), random (go-to flights to random points in
+    ``box_min_m``..``box_max_m`` at peak speeds in ``speed_min_mps``..``speed_max_mps``), hover,
+    low_pass (repeated passes at ``low_pass_height_m``, drawn in 0.03-0.08 m when None).
+    ``duration_s``: None = the plan's natural length (plans) or 10 s; otherwise the flight is
+    cut or its end hover extended to this length.
+    """
+
+    kind: str = "figure8"
+    duration_s: float | None = None
+    height_m: float = 0.5
+    timescale: float = 1.0
+    speed_min_mps: float = 0.2
+    speed_max_mps: float = 1.0
+    box_min_m: tuple[float, float, float] = (-0.5, -0.5, 0.1)
+    box_max_m: tuple[float, float, float] = (0.5, 0.5, 1.0)
+    low_pass_height_m: float | None = None
+    accel_max_mps2: float = 4.0  # peak acceleration of generated moves (random, low_pass)
+    seed: int = 0
+    battery: Battery = field(default_factory=Battery)
+    noise: SensorNoise = field(default_factory=SensorNoise)
+    drop_prob: float = 3.0e-4  # per sample: probability that a gap starts (~1.5 gaps per 10 s)
+    drop_max_samples: int = 25  # gap length uniform in 1..this many samples (up to 50 ms)
+    # Real estPose: median spacing 10.3-11.1 ms (90-97 Hz) but ~55 Hz on average (lost packets).
+    mocap_rate_hz: float = 95.0
+    mocap_drop_prob: float = 0.42
+    mocap_jitter_s: float = 0.0015
+    wind_gust_std_mps: float = 0.0
+    wind_gust_tau_s: float = 1.0
+    start_height_m: float = 0.1  # the log starts airborne here (no ground contact model)
+    takeoff_s: float = 2.0
+    hover_s: float = 1.0
+    end_hover_s: float = 1.0
+    log_rate_hz: float = 500.0
+    physics_substeps: int = 2
+    gains: Gains = field(default_factory=Gains)
+    name: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SimConfig:
+        d = dict(d)
+        nested = {"battery": Battery, "noise": SensorNoise, "gains": Gains}
+        for key, typ in nested.items():
+            if isinstance(d.get(key), dict):
+                d[key] = typ(**{k: tuple(v) if isinstance(v, list) else v for k, v in d[key].items()})
+        for key in ("box_min_m", "box_max_m"):
+            if isinstance(d.get(key), list):
+                d[key] = tuple(d[key])
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def validate(self) -> None:
+        if self.kind not in KINDS:
+            raise SimulationError(f"unknown kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+        if self.duration_s is not None and self.duration_s <= 0:
+            raise SimulationError("duration_s must be positive")
+        if self.timescale <= 0:
+            raise SimulationError("timescale must be positive")
+        if self.accel_max_mps2 <= 0:
+            raise SimulationError("accel_max_mps2 must be positive")
+        if not 0 < self.speed_min_mps <= self.speed_max_mps:
+            raise SimulationError("need 0 < speed_min_mps <= speed_max_mps")
+        if any(a >= b for a, b in zip(self.box_min_m, self.box_max_m)):
+            raise SimulationError("box_min_m must be below box_max_m on every axis")
+        if self.physics_substeps < 1 or self.log_rate_hz <= 0:
+            raise SimulationError("physics_substeps >= 1 and log_rate_hz > 0 required")
+        if not 0 <= self.drop_prob < 1 or not 0 <= self.mocap_drop_prob < 1:
+            raise SimulationError("drop probabilities must be in [0, 1)")
+
+
+@dataclass
+class SimFlight:
+    """A simulated flight: the log bytes, what was logged (SI), and the ground truth.
+
+    Arrays are at every control step ``t_s`` (n,); ``kept`` (n,) says which samples made it
+    into the log (the others were dropped). ``*_true`` arrays are noise-free.
+    """
+
+    config: SimConfig
+    vehicle_name: str
+    effects: dict[str, dict[str, float]]
+    true_mass_kg: float
+    nominal_mass_kg: float
+    data: bytes
+    t_s: np.ndarray
+    kept: np.ndarray
+    p_true: np.ndarray
+    v_true: np.ndarray
+    q_true: np.ndarray
+    omega_true: np.ndarray
+    sf_true: np.ndarray
+    f_map_N: np.ndarray
+    f_actual_N: np.ndarray
+    pwm_raw: np.ndarray
+    vbat_V: np.ndarray
+    wind_w_mps: np.ndarray
+    reference: trajectories.Reference
+
+    def truth(self) -> dict:
+        kept_t = self.t_s[self.kept]
+        gaps = np.diff(kept_t) > 1.5 / self.config.log_rate_hz
+        return {
+            "format": TRUTH_FORMAT,
+            "name": self.config.name,
+            "vehicle": self.vehicle_name,
+            "nominal_mass_kg": self.nominal_mass_kg,
+            "true_mass_kg": self.true_mass_kg,
+            "effects": self.effects,
+            "seed": self.config.seed,
+            "config": self.config.to_dict(),
+            "samples": int(self.kept.sum()),
+            "samples_dropped": int((~self.kept).sum()),
+            "gaps": int(gaps.sum()),
+            "duration_s": float(self.t_s[-1] - self.t_s[0]) if len(self.t_s) else 0.0,
+            "wind_mean_w_mps": [float(x) for x in self.wind_w_mps.mean(axis=0)] if len(self.t_s) else [0.0] * 3,
+        }
+
+    def write(self, path: str | Path) -> tuple[Path, Path]:
+        return write_flight(self, path)
+
+
+# ---------------------------------------------------------------------------------------
+# Effects
+# ---------------------------------------------------------------------------------------
+
+def validate_effects(effects: dict[str, dict[str, float]] | None) -> dict[str, dict[str, float]]:
+    """Check names and parameters against :mod:`quadcore.effects`; fill defaults; floats."""
+    out: dict[str, dict[str, float]] = {}
+    known = effects_mod.registry()
+    for name, params in (effects or {}).items():
+        if name not in known:
+            raise SimulationError(f"unknown effect {name!r}; known: {', '.join(known)}")
+        eff = known[name]
+        allowed = {p.name: p for p in eff.parameters}
+        params = dict(params or {})
+        bad = [k for k in params if k not in allowed]
+        if bad:
+            raise SimulationError(
+                f"effect {name!r} has no parameter {', '.join(map(repr, bad))}; its parameters: {', '.join(allowed)}")
+        full = eff.defaults()
+        for k, v in params.items():
+            try:
+                full[k] = float(v)
+            except (TypeError, ValueError):
+                raise SimulationError(f"effect {name!r}: parameter {k!r} must be a number, got {v!r}") from None
+            if not math.isfinite(full[k]):
+                raise SimulationError(f"effect {name!r}: parameter {k!r} must be finite")
+        try:
+            eff.check(full)
+        except ValueError as exc:
+            raise SimulationError(f"{name}: {exc}") from None
+        out[name] = full
+    return out
+
+
+def _effect_hooks(eff: dict[str, dict[str, float]], context) -> tuple[list, list]:
+    """The effects' simulator hooks, and the (effect, params) pairs simulated through their
+    memoryless wrench (those without a hook)."""
+    hooks, generic = [], []
+    for name, params in eff.items():
+        effect = effects_mod.get(name)
+        try:
+            hook = effect.simulator(params, context)
+        except ValueError as exc:
+            raise SimulationError(f"{name}: {exc}") from None
+        if hook is not None:
+            hooks.append(hook)
+        else:
+            generic.append((effect, params))
+    return hooks, generic
+
+
+def _overrides(hook, method: str) -> bool:
+    return getattr(type(hook), method) is not getattr(effects_mod.SimHook, method)
+
+
+def _one_sample_state(t, p, v, q, w, sf, pwm, vbat, motor, R, v_b, f_map) -> FlightState:
+    return FlightState(
+        t_s=np.array([t]), p_w_m=np.array([p]), v_w_mps=np.array([v]), q_xyzw=np.array([q]),
+        omega_b_radps=np.array([w]), sf_b_mps2=np.array([sf]), pwm=np.array([pwm]), vbat_V=np.array([vbat]),
+        motor_radps=np.array([motor]), R_wb=np.array([R]), v_b_mps=np.array([v_b]), f_rotor_N=np.array([f_map]),
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Small float helpers for the inner loop
+# ---------------------------------------------------------------------------------------
+
+def _rot(q):
+    x, y, z, w = q
+    return (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+        (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+        (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
+    )
+
+
+def _qmul_exp(q, wx, wy, wz, h):
+    """q (x) exp(w h): rotate by the body-frame rotation vector w h, renormalised."""
+    ax, ay, az = wx * h, wy * h, wz * h
+    th = math.sqrt(ax * ax + ay * ay + az * az)
+    if th < 1e-12:
+        s, c = 0.5, 1.0
+    else:
+        s, c = math.sin(0.5 * th) / th, math.cos(0.5 * th)
+    x2, y2, z2, w2 = ax * s, ay * s, az * s, c
+    x1, y1, z1, w1 = q
+    x = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+    y = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+    z = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+    w = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return (x / n, y / n, z / n, w / n)
+
+
+def _quat_noise(q: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """(n, 4) q (x) exp(rotvec), vectorised (small rotations)."""
+    th = np.linalg.norm(rotvec, axis=1, keepdims=True)
+    s = np.where(th > 1e-12, np.sin(0.5 * th) / np.maximum(th, 1e-300), 0.5)
+    d = np.concatenate([rotvec * s, np.cos(0.5 * th)], axis=1)
+    x1, y1, z1, w1 = q.T
+    x2, y2, z2, w2 = d.T
+    out = np.column_stack([
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+    ])
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+# ---------------------------------------------------------------------------------------
+# References
+# ---------------------------------------------------------------------------------------
+
+def flight_duration(config: SimConfig) -> float:
+    if config.duration_s is not None:
+        return float(config.duration_s)
+    if config.kind in trajectories.BUILTIN_PLANS:
+        plan = trajectories.load_plan(config.kind)
+        return trajectories.plan_flight_duration(plan, config.timescale, config.takeoff_s, config.hover_s,
+                                                 config.end_hover_s)
+    return 10.0
+
+
+def build_reference(config: SimConfig, t_s: np.ndarray, rng: np.random.Generator) -> trajectories.Reference:
+    c = config
+    if c.kind in trajectories.BUILTIN_PLANS:
+        return trajectories.plan_reference(t_s, trajectories.load_plan(c.kind), c.height_m, c.timescale,
+                                           c.start_height_m, c.takeoff_s, c.hover_s)
+    if c.kind == "hover":
+        return trajectories.hover_reference(t_s, c.height_m, c.start_height_m, c.takeoff_s)
+    if c.kind == "random":
+        return trajectories.random_reference(t_s, rng, c.box_min_m, c.box_max_m, c.speed_min_mps, c.speed_max_mps,
+                                             c.height_m, c.start_height_m, c.takeoff_s, c.accel_max_mps2)
+    if c.kind == "low_pass":
+        return trajectories.low_pass_reference(t_s, rng, c.box_min_m, c.box_max_m, c.speed_min_mps,
+                                               c.speed_max_mps, c.height_m, c.low_pass_height_m,
+                                               c.start_height_m, c.takeoff_s, c.accel_max_mps2)
+    raise SimulationError(f"unknown kind {c.kind!r}")
+
+
+# ---------------------------------------------------------------------------------------
+# The simulator
+# ---------------------------------------------------------------------------------------
+
+def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
+             effects: dict[str, dict[str, float]] | None = None) -> SimFlight:
+    """Fly one closed-loop flight and encode it as a uSD log. See the module docstring."""
+    config.validate()
+    veh = vehicle if vehicle is not None else vehicle_mod.load()
+    if veh.n_rotors != 4:
+        raise SimulationError(f"vehicle {veh.name!r} has {veh.n_rotors} rotors; the log format holds 4")
+    eff = validate_effects(effects)
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(6)]
+    ref_rng, noise_rng, drop_rng, gust_rng, mocap_rng, clock_rng = streams
+
+    rate = float(config.log_rate_hz)
+    dt = 1.0 / rate
+    S = int(config.physics_substeps)
+    h = dt / S
+    n = max(int(round(flight_duration(config) * rate)), 2)
+    t = np.arange(n) * dt
+    ref = build_reference(config, t, ref_rng)
+    noise = config.noise
+
+    # --- effects: hooks (mechanisms) and memoryless wrenches -----------------------------
+    context = effects_mod.SimContext(t_s=t, dt_s=dt, h_s=h, vehicle=veh, config=config, rng=gust_rng)
+    hooks, generic = _effect_hooks(eff, context)
+    m_nom = float(veh.mass_kg)
+    m_true, J, air = m_nom, np.asarray(veh.inertia_kgm2, float), np.zeros((n, 3))
+    try:
+        for hook in hooks:
+            m_true = float(hook.true_mass_kg(m_true))
+            J = np.asarray(hook.true_inertia_kgm2(J), float)
+            hook_air = hook.air_velocity_w_mps()
+            air = air + hook_air if hook_air is not None else air
+    except ValueError as exc:
+        raise SimulationError(f"effects {', '.join(eff)}: {exc}") from None
+    if m_true <= 0:
+        raise SimulationError(f"effects {', '.join(eff)}: the true mass must be positive")
+    chain = [hk for hk in hooks if _overrides(hk, "rotor_thrusts")]
+    extra = [hk for hk in hooks if _overrides(hk, "wrench")]
+    airspeed = bool(np.any(air))
+
+    # --- noise drawn up front (the controller sees the same noisy readings as the log) --
+    n_pos = noise_rng.normal(0.0, 1.0, (n, 3)) * noise.pos_m
+    n_vel = noise_rng.normal(0.0, 1.0, (n, 3)) * noise.vel_mps
+    n_att = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.att_rad)
+    n_gyro = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.gyro_dps) * DEG_TO_RAD
+    n_acc = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.acc_g)
+    n_rpm = noise_rng.normal(0.0, 1.0, (n, 4)) * noise.rpm
+    n_vbat = noise_rng.normal(0.0, 1.0, n) * noise.vbat_V
+    ocv = config.battery.ocv(t)
+    sag_per_N = config.battery.r_internal_ohm * config.battery.current_per_thrust_A_per_N
+
+    # --- state ----------------------------------------------------------------------------
+    p = [float(x) for x in ref.p_w_m[0]]
+    v = [0.0, 0.0, 0.0]
+    yaw0 = float(ref.yaw_rad[0])
+    q = (0.0, 0.0, math.sin(0.5 * yaw0), math.cos(0.5 * yaw0))
+    w = [0.0, 0.0, 0.0]
+    Jt = tuple(tuple(float(x) for x in row) for row in J)
+    Ji = tuple(tuple(float(x) for x in row) for row in np.linalg.inv(J))
+    A = tuple(tuple(float(x) for x in row) for row in veh.allocation)
+    T_prev = m_true * G0_MPS2
+    ctrl = Controller(veh, config.gains)
+    pv = veh.pwm_vbat
+    k_F = veh.motor_speed.k_F_N_per_radps2
+    gz = -G0_MPS2
+
+    # recorded arrays
+    P, V, W, SF = (np.zeros((n, 3)) for _ in range(4))
+    Q = np.zeros((n, 4))
+    F_MAP, F_ACT = np.zeros((n, 4)), np.zeros((n, 4))
+    PWM = np.zeros((n, 4), dtype=np.int64)
+    VBAT_MV = np.zeros(n, dtype=np.int64)
+
+    rp, rv, ra = ref.p_w_m.tolist(), ref.v_w_mps.tolist(), ref.a_w_mps2.tolist()
+    ryaw, ryr, rya = ref.yaw_rad.tolist(), ref.yaw_rate_radps.tolist(), ref.yaw_acc_radps2.tolist()
+    npos, nvel, ngyro = n_pos.tolist(), n_vel.tolist(), n_gyro.tolist()
+    vbat_noisy = (ocv + n_vbat).tolist()
+    airl = air.tolist()
+    att_noise = n_att.tolist()
+
+    for k in range(n):
+        tk = k * dt
+        # battery: the voltage the ESCs see is the one logged (whole mV)
+        vbat_mV = int(round((vbat_noisy[k] - sag_per_N * T_prev) * 1000.0))
+        vbat_mV = min(max(vbat_mV, 0), 65535)
+        vbat = vbat_mV * 1e-3
+        VBAT_MV[k] = vbat_mV
+        # sensors as the controller sees them
+        pe = (p[0] + npos[k][0], p[1] + npos[k][1], p[2] + npos[k][2])
+        ve = (v[0] + nvel[k][0], v[1] + nvel[k][1], v[2] + nvel[k][2])
+        an = att_noise[k]
+        qe = _qmul_exp(q, an[0], an[1], an[2], 1.0)
+        we = (w[0] + ngyro[k][0], w[1] + ngyro[k][1], w[2] + ngyro[k][2])
+        f_cmd, _, _ = ctrl.step(dt, pe, ve, _rot(qe), we, rp[k], rv[k], ra[k], ryaw[k], ryr[k], rya[k])
+        f_max = float(pv.thrust_N(np.array(1.0), np.array(vbat)))
+        f_clip = np.clip(np.array(f_cmd), 0.0, f_max)
+        pwm_raw = np.rint(pv.pwm_for_thrust(f_clip, vbat) * PWM_FULL_SCALE).astype(np.int64)
+        f_map_arr = pv.thrust_N(pwm_raw / PWM_FULL_SCALE, vbat)
+        PWM[k] = pwm_raw
+        F_MAP[k] = f_map_arr
+        f_map = f_map_arr.tolist()
+        pwm_si = (pwm_raw / PWM_FULL_SCALE).tolist()
+        wk = airl[k]
+
+        for j in range(S):
+            fa = f_map
+            for hook in chain:
+                fa = hook.rotor_thrusts(fa, k, j)
+            T = fa[0] + fa[1] + fa[2] + fa[3]
+            tau = [A[r][0] * fa[0] + A[r][1] * fa[1] + A[r][2] * fa[2] + A[r][3] * fa[3] for r in (1, 2, 3)]
+            Fb = [0.0, 0.0, T]
+            R = _rot(q)
+            if generic or extra:
+                vb = [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
+                motor = [math.sqrt(max(x, 0.0) / k_F) if k_F > 0 else 0.0 for x in fa]
+                st = _one_sample_state(tk + j * h, p, v, q, w, [0.0, 0.0, 0.0], pwm_si, vbat, motor, R, vb, f_map)
+                if airspeed:
+                    va = [v[i] - wk[i] for i in range(3)]
+                    vab = [R[0][i] * va[0] + R[1][i] * va[1] + R[2][i] * va[2] for i in range(3)]
+                    st_air = replace(st, v_w_mps=np.array([va]), v_b_mps=np.array([vab]))
+                for effect, params in generic:
+                    fe, te = effect.wrench(st_air if airspeed and effect.acts_on_airspeed else st, veh, params)
+                    Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
+                    tau[0] += te[0, 0]; tau[1] += te[0, 1]; tau[2] += te[0, 2]
+                for hook in extra:
+                    out = hook.wrench(st, k, j)
+                    if out is not None:
+                        (f0, f1, f2), (t0, t1, t2) = out
+                        Fb[0] += f0; Fb[1] += f1; Fb[2] += f2
+                        tau[0] += t0; tau[1] += t1; tau[2] += t2
+            sf = (Fb[0] / m_true, Fb[1] / m_true, Fb[2] / m_true)
+            if j == 0:
+                P[k], V[k], Q[k], W[k], SF[k] = p, v, q, w, sf
+                F_ACT[k] = fa
+                T_prev = T
+            # Newton (world) and Euler (body), semi-implicit Euler step
+            ax = R[0][0] * sf[0] + R[0][1] * sf[1] + R[0][2] * sf[2]
+            ay = R[1][0] * sf[0] + R[1][1] * sf[1] + R[1][2] * sf[2]
+            az = R[2][0] * sf[0] + R[2][1] * sf[1] + R[2][2] * sf[2] + gz
+            v = [v[0] + ax * h, v[1] + ay * h, v[2] + az * h]
+            p = [p[0] + v[0] * h, p[1] + v[1] * h, p[2] + v[2] * h]
+            if p[2] < 0.0:  # no ground contact model: keep out of the floor (the references never go there)
+                p[2] = 0.0
+                v[2] = max(v[2], 0.0)
+            Jw = [Jt[r][0] * w[0] + Jt[r][1] * w[1] + Jt[r][2] * w[2] for r in range(3)]
+            g0 = tau[0] - (w[1] * Jw[2] - w[2] * Jw[1])
+            g1 = tau[1] - (w[2] * Jw[0] - w[0] * Jw[2])
+            g2 = tau[2] - (w[0] * Jw[1] - w[1] * Jw[0])
+            w = [w[r] + h * (Ji[r][0] * g0 + Ji[r][1] * g1 + Ji[r][2] * g2) for r in range(3)]
+            q = _qmul_exp(q, w[0], w[1], w[2], h)
+
+    data, kept = _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, veh.motor_speed,
+                         n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm, drop_rng, mocap_rng, clock_rng)
+    return SimFlight(
+        config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=m_true, nominal_mass_kg=m_nom, data=data,
+        t_s=t, kept=kept, p_true=P, v_true=V, q_true=Q, omega_true=W, sf_true=SF, f_map_N=F_MAP,
+        f_actual_N=F_ACT, pwm_raw=PWM, vbat_V=VBAT_MV * 1e-3, wind_w_mps=air, reference=ref,
+    )
+
+
+def _drop_mask(n: int, config: SimConfig, rng: np.random.Generator) -> np.ndarray:
+    """True for samples kept. Gaps start with probability ``drop_prob`` per sample and last
+    1..``drop_max_samples`` samples; the first and last few samples are always kept."""
+    kept = np.ones(n, dtype=bool)
+    starts = np.flatnonzero(rng.random(n) < config.drop_prob)
+    lengths = rng.integers(1, max(config.drop_max_samples, 1) + 1, size=len(starts))
+    for s, L in zip(starts, lengths):
+        kept[s:s + L] = False
+    kept[:5] = True
+    kept[-5:] = True
+    return kept
+
+
+def _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, motor_map, n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm,
+            drop_rng, mocap_rng, clock_rng) -> tuple[bytes, np.ndarray]:
+    n = len(t)
+    noise = config.noise
+    kept = _drop_mask(n, config, drop_rng)
+    t0_us = int(clock_rng.integers(5_000_000, 200_000_000))  # the deck's clock: time since boot
+    ts = t0_us + np.rint(t * 1e6).astype(np.int64)
+
+    q_est = _quat_noise(Q, n_att)
+    if motor_map.k_F_N_per_radps2 > 0:
+        rpm = motor_map.speed_for_thrust(F_ACT) / RPM_TO_RADPS + n_rpm
+    else:
+        rpm = np.zeros_like(F_ACT)
+    ff = np.empty(n, dtype=FIXED_FREQUENCY.payload_dtype())
+    cols = {
+        "stateEstimate.x": P[:, 0] + n_pos[:, 0], "stateEstimate.y": P[:, 1] + n_pos[:, 1],
+        "stateEstimate.z": P[:, 2] + n_pos[:, 2],
+        "stateEstimate.qx": q_est[:, 0], "stateEstimate.qy": q_est[:, 1], "stateEstimate.qz": q_est[:, 2],
+        "stateEstimate.qw": q_est[:, 3],
+        "stateEstimate.vx": V[:, 0] + n_vel[:, 0], "stateEstimate.vy": V[:, 1] + n_vel[:, 1],
+        "stateEstimate.vz": V[:, 2] + n_vel[:, 2],
+        "gyro.x": (W[:, 0] + n_gyro[:, 0]) / DEG_TO_RAD, "gyro.y": (W[:, 1] + n_gyro[:, 1]) / DEG_TO_RAD,
+        "gyro.z": (W[:, 2] + n_gyro[:, 2]) / DEG_TO_RAD,
+        "acc.x": SF[:, 0] / G0_MPS2 + n_acc[:, 0], "acc.y": SF[:, 1] / G0_MPS2 + n_acc[:, 1],
+        "acc.z": SF[:, 2] / G0_MPS2 + n_acc[:, 2],
+    }
+    for i in range(4):
+        cols[f"rpm.m{i + 1}"] = np.clip(np.rint(rpm[:, i]), 0, 65535)
+        cols[f"pwm.m{i + 1}_pwm"] = np.clip(PWM[:, i], 0, 65535)
+    cols["pm.vbatMV"] = np.clip(VBAT_MV, 0, 65535)
+    for var in FIXED_FREQUENCY.variables:
+        ff[var] = cols[var]
+
+    # motion capture: packets every 1/rate with jitter, some lost; pose interpolated + noise
+    period = 1.0 / config.mocap_rate_hz
+    tm = np.arange(0.0, t[-1], period)
+    tm = tm + mocap_rng.uniform(0.0, config.mocap_jitter_s, size=len(tm))
+    tm = tm[(tm >= t[0]) & (tm <= t[-1])]
+    tm = tm[mocap_rng.random(len(tm)) >= config.mocap_drop_prob]
+    pm = np.column_stack([np.interp(tm, t, P[:, i]) for i in range(3)])
+    idx = np.clip(np.searchsorted(t, tm), 1, n - 1)
+    frac = ((tm - t[idx - 1]) / (t[idx] - t[idx - 1]))[:, None]
+    q0, q1 = Q[idx - 1], Q[idx]
+    q1 = np.where((np.sum(q0 * q1, axis=1) < 0)[:, None], -q1, q1)
+    qm = (1 - frac) * q0 + frac * q1
+    qm /= np.linalg.norm(qm, axis=1, keepdims=True)
+    pm = pm + mocap_rng.normal(0.0, noise.mocap_pos_m, pm.shape)
+    qm = _quat_noise(qm, mocap_rng.normal(0.0, noise.mocap_att_rad, (len(tm), 3)))
+    ep = np.empty(len(tm), dtype=EST_POSE.payload_dtype())
+    for i, var in enumerate(("locSrv.x", "locSrv.y", "locSrv.z")):
+        ep[var] = pm[:, i]
+    for i, var in enumerate(("locSrv.qx", "locSrv.qy", "locSrv.qz", "locSrv.qw")):
+        ep[var] = qm[:, i]
+    ts_ep = t0_us + np.rint(tm * 1e6).astype(np.int64)
+
+    data = logformat.encode(list(LOG_EVENT_TYPES),
+                            [(FIXED_FREQUENCY.name, ts[kept], ff[kept]), (EST_POSE.name, ts_ep, ep)],
+                            version=LOG_VERSION, with_crc=True)
+    return data, kept
+
+
+# ---------------------------------------------------------------------------------------
+# Writing flights and sets
+# ---------------------------------------------------------------------------------------
+
+def truth_path(log_path: str | Path) -> Path:
+    """``<log>.truth.json`` beside the log (a ``.json`` name: log discovery skips it)."""
+    return Path(str(log_path) + TRUTH_SUFFIX)
+
+
+def write_flight(sim: SimFlight, path: str | Path) -> tuple[Path, Path]:
+    """Write the log and its ground-truth sidecar. Returns (log path, truth path)."""
+    path = Path(path)
+    store.write_bytes(sim.data, path)  # atomic: a watched raw folder never sees half a log
+    truth = sim.truth()
+    truth["log_file"] = path.name
+    tp = store.write_text(json.dumps(truth, indent=2, sort_keys=False) + "\n", truth_path(path))
+    return path, tp
+
+
+def read_truth(log_path: str | Path) -> dict:
+    return json.loads(truth_path(log_path).read_text())
+
+
+def simulate_set(
+    out_dir: str | Path,
+    configs: list[SimConfig],
+    effects: dict[str, dict[str, float]] | list[dict[str, dict[str, float]]] | None = None,
+    vehicle: vehicle_mod.Vehicle | None = None,
+    prefix: str = "sim",
+) -> list[tuple[Path, Path]]:
+    """Simulate and write several flights as ``<out_dir>/sim000``, ``sim001``, ... (+ truth).
+
+    ``effects`` is one dict for every flight, or a list with one dict per flight.
+    """
+    out = Path(out_dir)
+    veh = vehicle if vehicle is not None else vehicle_mod.load()
+    per_flight = effects if isinstance(effects, list) else [effects or {}] * len(configs)
+    if len(per_flight) != len(configs):
+        raise SimulationError(f"{len(per_flight)} effect sets for {len(configs)} flights")
+    for e in per_flight:
+        validate_effects(e)  # fail before simulating anything
+    written = []
+    for i, (cfg, eff) in enumerate(zip(configs, per_flight)):
+        name = f"{prefix}{i:03d}"
+        cfg = cfg if cfg.name else replace(cfg, name=name)
+        written.append(write_flight(simulate(cfg, veh, eff), out / name))
+    return written
+
+
+def default_flights(seed: int = 0) -> list[SimConfig]:
+    """A small varied set (about 60 s of flight) that excites every effect: a fast figure 8
+    (up to 1.2 m/s, 3 m/s^2), a circle, yawing (about 4 rad/s), two random go-to flights
+    (slow and up to 1.5 m/s, heights 0.2-1.0 m) and low passes at 3-8 cm."""
+    return [
+        SimConfig(kind="figure8", timescale=1.0, height_m=0.5, seed=seed),
+        SimConfig(kind="circle0", timescale=2.5, height_m=0.5, seed=seed + 1),
+        SimConfig(kind="yaw0", timescale=3.0, height_m=0.5, duration_s=10.0, seed=seed + 2),
+        SimConfig(kind="random", speed_min_mps=0.2, speed_max_mps=0.8, duration_s=10.0,
+                  box_min_m=(-0.5, -0.5, 0.2), box_max_m=(0.5, 0.5, 1.0), seed=seed + 3),
+        SimConfig(kind="random", speed_min_mps=0.8, speed_max_mps=1.5, duration_s=10.0,
+                  box_min_m=(-0.7, -0.7, 0.2), box_max_m=(0.7, 0.7, 1.0), seed=seed + 4),
+        SimConfig(kind="low_pass", speed_min_mps=0.3, speed_max_mps=0.8, duration_s=12.0,
+                  box_min_m=(-0.6, -0.5, 0.1), box_max_m=(0.6, 0.5, 1.0), seed=seed + 5),
+    ]
+
+
+def parse_effect_spec(spec: str) -> tuple[str, dict[str, float]]:
+    """``"rotor_drag:k_x_s_per_m=0.3,k_y_s_per_m=0.3"`` -> ``("rotor_drag", {...})``, checked
+    against the effect library (raises :class:`SimulationError`)."""
+    name, _, rest = spec.partition(":")
+    name = name.strip()
+    if not name:
+        raise SimulationError(f"bad effect {spec!r}: expected NAME:param=value,param=value")
+    params: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise SimulationError(f"bad effect parameter {item!r} in {spec!r}: expected param=value")
+        try:
+            params[key.strip()] = float(value)
+        except ValueError:
+            raise SimulationError(
+                f"effect {name!r}: parameter {key.strip()!r} must be a number, got {value!r}") from None
+    known = effects_mod.registry()
+    if name not in known:
+        raise SimulationError(f"unknown effect {name!r}; known: {', '.join(known)}")
+    if not params:
+        raise SimulationError(
+            f"effect {name!r} needs parameters (its defaults mean 'no effect'), e.g. "
+            f"{name}:{known[name].parameters[0].name}=VALUE; parameters: "
+            f"{', '.join(p.name for p in known[name].parameters)}")
+    validate_effects({name: params})
+    return name, params
