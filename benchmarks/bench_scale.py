@@ -1,43 +1,55 @@
-"""Lab scale: the main job on N simulated flights, time per flight and peak memory, and the
-refresh after one more flight.
+"""Lab scale: time per flight and peak memory against the number of flights, and the refresh
+after one more flight.
 
-    nice -n 10 python benchmarks/bench_scale.py [N ...]                 (default: 10 50 100)
-    nice -n 10 python benchmarks/bench_scale.py --per-flight [N ...]    (default: 10 100 300)
+    nice -n 10 python benchmarks/bench_scale.py [N ...]                 the main job (default: 10 50 100)
+    nice -n 10 python benchmarks/bench_scale.py --per-flight [N ...]    per-flight stages (default: 10 100 300)
+    nice -n 10 python benchmarks/bench_scale.py --fleet [N ...]         fleet stages (default: 10 100 1000)
 
 N flights: a pool of 20 simulated flights (random go-to flights, 10 s each, simulated once and
 cached under $TMPDIR/quadcore_bench_scale), linked under N flight ids (flight ``sim0042`` is pool
-flight 42 mod 20: same bytes, its own partition and outputs). For each N, ``python -m pipeline``
-on an empty data root (a fresh process: wall time, peak resident memory, seconds per stage), then
-one more flight and the job again: the refit + diagnosis + history refresh. ``--per-flight`` runs
-only the per-flight stages (decode, then residuals, rollouts and MCAP, each over all flights in
-one run, as the main job does) in a fresh process: the time per flight and the memory of the part
-that grows with the fleet one flight at a time. Prints a table (N, wall, per-flight seconds of the
-per-flight stages, fleet seconds, learning seconds, peak MB, refresh seconds) and, with two N or
-more, a plot of time per flight and memory against N (scale.png beside the cache).
+flight 42 mod 20: same bytes, its own partition and outputs).
 
-Targets (issue 13): per-flight time flat from 10 to 1,000 flights (ratio of the largest N's
-per-flight time to the smallest's, target <= 1.5), peak memory < 4 GB, the refresh after one more
-flight <= 15 s. 1,000 flights take about an hour on the 2-core machine (simulation alone ~13 min).
-A report, not a test: exits 0 either way.
+- Main job: for each N, ``python -m pipeline`` on an empty data root (a fresh process: wall time,
+  peak resident memory, seconds per stage), then one more flight and the job again: the refit +
+  diagnosis + history refresh.
+- ``--per-flight``: only the per-flight stages (decode, then residuals, rollouts and MCAP, each
+  over all flights in one run, as the main job does) in a fresh process: the part that grows
+  with the fleet one flight at a time.
+- ``--fleet``: only the fleet stages (fit, discovery, diagnosis, history: the main job's stage 2)
+  in a fresh process on N decoded flights (the pool's decoded tables linked under N ids), then
+  one more flight decoded and the fleet stages again (the refresh a new flight costs).
+
+Each prints a table and, with two N or more, writes a plot of time per flight and peak memory
+against N (``quadcore.plots.scaling``) beside the cache: scale_main.png, scale_per_flight.png,
+scale_fleet.png.
+
+Targets (issue 13): time per flight flat from 10 to 1,000 flights (ratio of the largest N's
+per-flight time to the smallest's, target <= 1.5), peak memory < 4 GB, the refresh after one
+more flight <= 15 s. A report, not a test: exits 0 either way.
 """
 
 from __future__ import annotations
 
+import os
+import resource
 import shutil
+import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from _jobs import REPO, report, run_main_job
 
 sys.path.insert(0, str(REPO))
 
+from quadcore.report import plots  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
+from quadcore.store import store  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
-
-
 POOL = 20
+EVENTS = ("fixedFrequency", "estPose")
 
 
 def pool_log(i: int) -> Path:
@@ -65,58 +77,148 @@ def simulated(n: int) -> Path:
     return raw
 
 
+def fid(i: int) -> str:
+    return f"sim{i:04d}"
+
+
+def child(args: list[str]) -> subprocess.CompletedProcess:
+    """This script in a fresh process (its own peak memory), stdout captured."""
+    return subprocess.run([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True,
+                          env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
+
+
+def peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def table(header: list[str], rows: list[list]) -> None:
+    print("\n" + " ".join(f"{h:>12}" for h in header))
+    for r in rows:
+        print(" ".join(f"{v:>12.3f}" if isinstance(v, float) else f"{v:>12}" for v in r))
+
+
+def plot(name: str, flights: list[int], series: dict[str, list[float]], mem: list[float], title: str) -> None:
+    if len(flights) > 1:
+        path = store.write_bytes(plots.scaling(flights, series, mem, title), CACHE / name)
+        print(f"plot: {path}")
+
+
+# -- per-flight stages ---------------------------------------------------------------------------
+
 def per_flight_child(n: int) -> None:
     """In a fresh process: the per-flight stages on n flights, one run per stage; prints seconds."""
-    import time
-
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import PER_FLIGHT
+    from pipeline.definitions import AGAINST_MODEL, DECODE
     from pipeline.resources import DataRoot, ModelConfig
 
     raw, root = simulated(n), CACHE / f"root{n}"
     shutil.rmtree(root, ignore_errors=True)
     resources = {"data_root": DataRoot(root=str(root), raw=str(raw)), "model": ModelConfig()}
-    ids = [f"sim{i:04d}" for i in range(n)]
+    ids = [fid(i) for i in range(n)]
     with dg.instance_for_test() as instance:
         t0 = time.perf_counter()
-        failed = job.run_flights(instance, resources, ids, PER_FLIGHT[:1], "decode", log=lambda *_: None)
+        failed = job.run_flights(instance, resources, ids, DECODE, "decode", log=lambda *_: None)
         t1 = time.perf_counter()
-        failed.update(job.run_flights(instance, resources, ids, PER_FLIGHT[1:], "flights", log=lambda *_: None))
+        failed.update(job.run_flights(instance, resources, ids, AGAINST_MODEL, "flights", log=lambda *_: None))
         t2 = time.perf_counter()
-    print(f"{t1 - t0:.3f} {t2 - t1:.3f} {len(failed)}")
+    print(f"{t1 - t0:.3f} {t2 - t1:.3f} {len(failed)} {peak_mb():.0f}")
 
 
 def per_flight_main(sizes: list[int]) -> None:
-    import os
-    import subprocess
-
     rows = []
     for n in sizes:
         simulated(n)  # outside the timed process
-        proc = subprocess.Popen([sys.executable, __file__, "--child", str(n)], stdout=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO)})
-        out = proc.stdout.read() if proc.stdout else ""
-        _, _, usage = os.wait4(proc.pid, 0)
-        decode_s, tables_s, failed = out.split()[-3:]
-        rows.append((n, float(decode_s), float(tables_s), usage.ru_maxrss / 1024, int(failed)))
-        print(f"N={n}: decode {float(decode_s):.1f} s, residuals+rollouts+MCAP {float(tables_s):.1f} s, "
-              f"{(float(decode_s) + float(tables_s)) / n:.3f} s/flight, peak {usage.ru_maxrss / 1024:.0f} MB, "
-              f"{failed} failed", flush=True)
-    per = [(d + t) / n for n, d, t, _, _ in rows]
-    report(f"per-flight stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", per[-1] / per[0], 1.5, "x")
-    report(f"per-flight stages: peak memory at {rows[-1][0]} flights", rows[-1][3], 4096.0, "MB")
+        decode_s, tables_s, failed, mb = child(["--per-flight-child", str(n)]).stdout.split()[-4:]
+        d, t = float(decode_s), float(tables_s)
+        rows.append([n, d, t, (d + t) / n, float(mb), int(failed)])
+        print(f"N={n}: decode {d:.1f} s, residuals+rollouts+MCAP {t:.1f} s, {(d + t) / n:.3f} s/flight, "
+              f"peak {float(mb):.0f} MB, {failed} failed", flush=True)
+    table(["flights", "decode s", "tables s", "s/flight", "peak MB", "failed"], rows)
+    report(f"per-flight stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][3] / rows[0][3],
+           1.5, "x")
+    report(f"per-flight stages: peak memory at {rows[-1][0]} flights", rows[-1][4], 4096.0, "MB")
+    plot("scale_per_flight.png", [r[0] for r in rows], {"decode": [r[1] / r[0] for r in rows],
+         "residuals + rollouts + MCAP": [r[2] / r[0] for r in rows]}, [r[4] for r in rows],
+         "per-flight stages (bench_scale.py --per-flight)")
 
 
-def main() -> None:
-    if sys.argv[1:2] == ["--child"]:
-        per_flight_child(int(sys.argv[2]))
-        return
-    if sys.argv[1:2] == ["--per-flight"]:
-        per_flight_main([int(a) for a in sys.argv[2:]] or [10, 100, 300])
-        return
-    sizes = [int(a) for a in sys.argv[1:]] or [10, 50, 100]
+# -- fleet stages --------------------------------------------------------------------------------
+
+def decoded_pool() -> Path:
+    """The pool's flights decoded once (their tables are linked under every id that uses them)."""
+    from quadcore.logs import flight
+
+    root = CACHE / "decoded_pool"
+    for i in range(POOL):
+        if not store.decoded_path(root, EVENTS[0], fid(i)).is_file():
+            store.write_decoded(root, flight.decode_flight(pool_log(i)))
+    return root
+
+
+def fleet_root(n: int) -> tuple[Path, Path]:
+    """(data root with n decoded flights linked from the pool, raw folder of n + 1 flights)."""
+    pool, raw, root = decoded_pool(), simulated(n + 1), CACHE / f"fleet{n}"
+    shutil.rmtree(root, ignore_errors=True)
+    for i in range(n):
+        for event in EVENTS:
+            src = store.decoded_path(pool, event, fid(i % POOL))
+            if src.is_file():
+                dest = store.decoded_path(root, event, fid(i))
+                dest.parent.mkdir(parents=True)
+                dest.symlink_to(src)
+    return root, raw
+
+
+def fleet_child(n: int) -> None:
+    """In a fresh process: the fleet stages on n decoded flights, then one more flight decoded and
+    the fleet stages again. Prints fleet seconds, peak MB, refresh seconds, peak MB, then each
+    asset's seconds of the first run."""
+    import dagster as dg
+
+    from pipeline import main as job
+    from pipeline.definitions import DECODE, FLEET
+    from pipeline.resources import DataRoot, ModelConfig
+
+    root, raw = CACHE / f"fleet{n}", CACHE / f"raw{n + 1}"
+    resources = {"data_root": DataRoot(root=str(root), raw=str(raw)), "model": ModelConfig()}
+    with dg.instance_for_test() as instance:
+        t0 = time.perf_counter()
+        first = job.materialize(FLEET, resources, instance)
+        fleet_s, fleet_mb = time.perf_counter() - t0, peak_mb()
+        steps = {s.step_key: s.end_time - s.start_time for s in instance.get_run_step_stats(first.run_id)
+                 if s.end_time and s.start_time}
+        t0 = time.perf_counter()
+        job.run_flights(instance, resources, [fid(n)], DECODE, "decode", log=lambda *_: None)
+        again = job.materialize(FLEET, resources, instance)
+        refresh_s = time.perf_counter() - t0
+    ok = first.success and again.success
+    print(" ".join(f"{k}={v:.2f}" for k, v in steps.items()))
+    print(f"{fleet_s:.3f} {fleet_mb:.0f} {refresh_s:.3f} {peak_mb():.0f} {int(ok)}")
+
+
+def fleet_main(sizes: list[int]) -> None:
+    rows = []
+    for n in sizes:
+        fleet_root(n)  # outside the timed process
+        out = child(["--fleet-child", str(n)]).stdout.strip().splitlines()
+        fleet_s, fleet_mb, refresh_s, mb, ok = (float(x) for x in out[-1].split())
+        rows.append([n, fleet_s, fleet_s / n, fleet_mb, refresh_s, mb, "yes" if ok else "FAILED"])
+        print(f"N={n}: fleet stages {fleet_s:.1f} s ({out[-2] if len(out) > 1 else ''}), peak {fleet_mb:.0f} MB; "
+              f"one more flight (decode + fleet stages) {refresh_s:.1f} s, peak {mb:.0f} MB", flush=True)
+    table(["flights", "fleet s", "s/flight", "peak MB", "+1 refresh s", "+1 peak MB", "ok"], rows)
+    report(f"fleet stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][2] / rows[0][2], 1.5,
+           "x")
+    report(f"fleet stages: peak memory at {rows[-1][0]} flights", max(rows[-1][3], rows[-1][5]), 4096.0, "MB")
+    report(f"refit + diagnosis + history after one more flight ({rows[-1][0]}+1)", rows[-1][4], 15.0)
+    plot("scale_fleet.png", [r[0] for r in rows], {"fleet stages": [r[2] for r in rows]}, [r[3] for r in rows],
+         "fleet stages: fit, discovery, diagnosis, history (bench_scale.py --fleet)")
+
+
+# -- the main job --------------------------------------------------------------------------------
+
+def main_job(sizes: list[int]) -> None:
     rows = []
     for n in sizes:
         raw = simulated(n)
@@ -124,41 +226,37 @@ def main() -> None:
         shutil.rmtree(root, ignore_errors=True)
         run = run_main_job(root, raw)
         per_flight = (run.stage_s.get("1", 0.0) + run.stage_s.get("3", 0.0)) / n
-        (raw / f"sim{n:04d}").symlink_to(pool_log(n))
+        (raw / fid(n)).symlink_to(pool_log(n))
         more = run_main_job(root, raw)
         refresh = sum(more.stage_s.get(k, 0.0) for k in ("1", "2", "3"))
-        rows.append((n, run.wall_s, per_flight, run.stage_s.get("2", 0.0), run.stage_s.get("4", 0.0),
-                     run.peak_rss_mb, refresh, more.wall_s, run.returncode))
+        rows.append([n, run.wall_s, run.wall_s / n, per_flight, run.stage_s.get("2", 0.0), run.stage_s.get("4", 0.0),
+                     run.peak_rss_mb, refresh, more.wall_s, run.returncode])
         print(f"N={n}: job {run.wall_s:.1f} s (exit {run.returncode}), per flight {per_flight:.3f} s, "
               f"peak {run.peak_rss_mb:.0f} MB; one more flight: stages {refresh:.1f} s, job {more.wall_s:.1f} s",
               flush=True)
-    print(f"\n{'flights':>8} {'job s':>8} {'s/flight':>9} {'fleet s':>8} {'learn s':>8} {'peak MB':>8} "
-          f"{'+1 refresh s':>13} {'+1 job s':>9}")
-    for n, wall, pf, fleet, learn, mb, refresh, more_wall, _ in rows:
-        print(f"{n:>8} {wall:>8.1f} {pf:>9.3f} {fleet:>8.1f} {learn:>8.1f} {mb:>8.0f} "
-              f"{refresh:>13.1f} {more_wall:>9.1f}")
-    largest = rows[-1]
-    report(f"per-flight time, {rows[-1][0]} vs {rows[0][0]} flights (ratio)", largest[2] / rows[0][2], 1.5, "x")
-    report(f"peak memory, {largest[0]} flights", largest[5], 4096.0, "MB")
-    report(f"refit + diagnosis + history after one more flight ({largest[0]}+1)", largest[6], 15.0)
-    if len(rows) > 1:
-        _plot(rows, CACHE / "scale.png")
-        print(f"plot: {CACHE / 'scale.png'}")
+    table(["flights", "job s", "job s/flight", "stages 1+3 s/fl", "fleet s", "learn s", "peak MB", "+1 refresh s",
+           "+1 job s", "exit"], rows)
+    report(f"main job: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][2] / rows[0][2], 1.5, "x")
+    report(f"main job: peak memory at {rows[-1][0]} flights", rows[-1][6], 4096.0, "MB")
+    report(f"refit + diagnosis + history after one more flight ({rows[-1][0]}+1)", rows[-1][7], 15.0)
+    plot("scale_main.png", [r[0] for r in rows], {"main job": [r[2] for r in rows],
+         "per-flight stages (1 + 3)": [r[3] for r in rows]}, [r[6] for r in rows],
+         "the main job (bench_scale.py)")
 
 
-def _plot(rows, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = [r[0] for r in rows]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.5), layout="constrained")
-    a.plot(n, [r[2] for r in rows], "o-")
-    a.set(xscale="log", xlabel="flights", ylabel="per-flight stages [s / flight]", ylim=(0, None))
-    b.plot(n, [r[5] for r in rows], "o-")
-    b.set(xscale="log", xlabel="flights", ylabel="peak memory [MB]", ylim=(0, None))
-    fig.savefig(path, dpi=80)
+def main() -> None:
+    mode, sizes = (sys.argv[1], sys.argv[2:]) if sys.argv[1:2] and sys.argv[1].startswith("--") else ("", sys.argv[1:])
+    n = [int(a) for a in sizes]
+    if mode == "--per-flight-child":
+        per_flight_child(n[0])
+    elif mode == "--fleet-child":
+        fleet_child(n[0])
+    elif mode == "--per-flight":
+        per_flight_main(n or [10, 100, 300])
+    elif mode == "--fleet":
+        fleet_main(n or [10, 100, 1000])
+    else:
+        main_job(n or [10, 50, 100])
 
 
 if __name__ == "__main__":

@@ -94,3 +94,21 @@ def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
     fig.suptitle(title or "open-loop rollout error growth")
     return _png(fig, THUMB_DPI, tight=False)
 
+
+
+def scaling(flights: list[int], series: dict[str, list[float]], peak_mb: list[float], title: str = "") -> bytes:
+    """Cost against fleet size: seconds per flight of each named series (left; flat is the
+    target: the cost grows with the flights, not faster) and peak memory (right), log x."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5), layout="constrained")
+    for name, values in series.items():
+        left.plot(flights, values, "o-", label=name)
+    left.set(xscale="log", xlabel="flights", ylabel="wall time per flight [s]", ylim=(0, None))
+    left.legend(fontsize=7)
+    right.plot(flights, peak_mb, "o-")
+    right.set(xscale="log", xlabel="flights", ylabel="peak resident memory [MB]", ylim=(0, None))
+    for ax in (left, right):
+        ax.set_xticks(flights, [str(n) for n in flights])
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.grid(alpha=0.3)
+    fig.suptitle(title or "time per flight and memory against the number of flights")
+    return _png(fig)
