@@ -22,7 +22,8 @@ import numpy as np
 from _common import best_of, logs_folder
 
 from quadcore.identify import model
-from quadcore.learn import evaluation, features as feat, learning
+from quadcore.learn import features as feat, learning, metrics
+from quadcore.learn.tables import STUDY, text_table
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -83,9 +84,9 @@ def main() -> None:
         p, t_pred = learning.time_predict(m, X)
         lat = learning.latency_us(m.predict_one, X[0], 2000)
         lat_lib = learning.latency_us(m.predict_matrix, X[:1], 500)
-        met = evaluation.metrics(y, p)
-        a = evaluation.mae(met)
-        study = evaluation.STUDY[kind]
+        met = metrics.metrics(y, p)
+        a = metrics.mae(met)
+        study = STUDY[kind]
         rows.append({"model": study["label"], **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", study["force_mae_N"])},
                      "train [s]": study["train_s"], "predict held-out [s]": study["predict_s"], "µs/sample": None,
                      "µs/sample (library)": None})
@@ -102,19 +103,19 @@ def main() -> None:
         else:
             verdicts.append(f"mlp per-sample prediction {lat:.1f} us (torch, (1, k) tensor, no_grad)")
         verdicts.append(f"  {kind} torque MAE [mN m]: " + " / ".join(f"{v * 1e3:.3f}" for v in a[3:])
-                        + "; R² force " + " / ".join(f"{v:.2f}" for v in evaluation.r2(met)[:3]))
-    base = evaluation.metrics(y, np.zeros_like(y))
-    b = evaluation.mae(base)
+                        + "; R² force " + " / ".join(f"{v:.2f}" for v in metrics.r2(met)[:3]))
+    base = metrics.metrics(y, np.zeros_like(y))
+    b = metrics.mae(base)
     rows.append({"model": "ours: physics-only (nominal, no learned correction)",
                  **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", b[:3])}, "train [s]": None,
                  "predict held-out [s]": None, "µs/sample": None, "µs/sample (library)": None})
     mean = np.concatenate([feat.targets(res[f])[feat.usable(res[f])] for f in train]).mean(axis=0)
-    tm = evaluation.mae(evaluation.metrics(y, np.broadcast_to(mean, y.shape)))
+    tm = metrics.mae(metrics.metrics(y, np.broadcast_to(mean, y.shape)))
     rows.append({"model": "ours: training mean", **{f"F{ax} MAE [N]": v for ax, v in zip("xyz", tm[:3])},
                  "train [s]": None, "predict held-out [s]": None, "µs/sample": None, "µs/sample (library)": None})
     print(f"\nheld-out {HOLDOUT}, force MAE beside the study"
           " (the study's residual differs: see quadcore.learn.evaluation):")
-    print(evaluation.text_table(rows))
+    print(text_table(rows))
     print()
     for v in verdicts:
         print(v)

@@ -14,7 +14,7 @@ import os
 import dagster as dg
 
 from pipeline.resources import DataRoot
-from quadcore.report import plots
+from quadcore.report import render
 from quadcore.store import store
 
 PLOTS_URL_ENV = "QUADCORE_PLOTS_URL"
@@ -25,7 +25,7 @@ def plot_md(data_root: DataRoot, png: bytes, alt: str) -> dg.MetadataValue:
     """A plot as Markdown metadata: a link to its file under the plots URL, else the PNG inline."""
     url = os.environ.get(PLOTS_URL_ENV, "").rstrip("/")
     if not url:
-        return dg.MetadataValue.md(plots.markdown_image(png, alt))
+        return dg.MetadataValue.md(render.markdown_image(png, alt))
     name = f"{hashlib.sha256(png).hexdigest()[:20]}.png"  # same plot, same file: reruns add nothing
     path = data_root.root_path / PLOTS_FOLDER / name
     if not path.is_file():

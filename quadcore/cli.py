@@ -395,7 +395,8 @@ def cmd_discover(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
     from quadcore import workflows
-    from quadcore.learn import evaluation, features as feat, learning
+    from quadcore.learn import features as feat, learning
+    from quadcore.learn.tables import TABLE_TITLES, text_table
     from quadcore.workflows import fleet, identify, learn
 
     data, names = _data_and_effects(args)
@@ -446,7 +447,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     for key in ("headline", "feature_sets", "training_size", "complexity", "lofo"):
         rows = report["tables"].get(key)
         if rows:
-            print(f"{evaluation.TABLE_TITLES[key]}:\n{evaluation.text_table(rows)}\n")
+            print(f"{TABLE_TITLES[key]}:\n{text_table(rows)}\n")
     for n in report["notes"]:
         print(f"note: {n}")
     print(f"\n{report['verdict']}\n")

@@ -20,7 +20,7 @@ import pytest
 
 from quadcore import cli
 from quadcore.identify import fitting, history, model
-from quadcore.learn import evaluation, features as feat, learning
+from quadcore.learn import evaluation, features as feat, learning, metrics, tables as learn_tables
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -182,9 +182,9 @@ def test_models_are_reproducible_and_learn_the_hidden_drag(spec, physics_tables)
     np.testing.assert_array_equal(pa, pb)  # same seed, same model
     c = _train(spec, tables, seed=1)
     assert not np.array_equal(pa, c.predict_matrix(X))  # the seed matters (subsampling / init)
-    m = evaluation.metrics(Y, pa)
-    zero = evaluation.metrics(Y, np.zeros_like(Y))
-    mean = evaluation.metrics(Y, np.broadcast_to(Y.mean(axis=0) * 0 + a.y_scaler.mean, Y.shape))
+    m = metrics.metrics(Y, pa)
+    zero = metrics.metrics(Y, np.zeros_like(Y))
+    mean = metrics.metrics(Y, np.broadcast_to(Y.mean(axis=0) * 0 + a.y_scaler.mean, Y.shape))
     assert m["force_r2_x"] > 0.5 and m["force_r2_y"] > 0.5, m
     for ax in "xy":
         assert m[f"force_mae_{ax}_N"] < 0.6 * zero[f"force_mae_{ax}_N"]
@@ -308,10 +308,10 @@ def test_report_tables_baselines_and_files(report_run, residual_tables):
     assert base["training mean"]["force_mae_y_N"] == pytest.approx(np.abs(y[:, 1] - mean[1]).mean())
     # every run's metrics are finite; the best models beat physics-only on the drag axes
     for r in report["runs"]:
-        assert all(np.isfinite(v) for v in evaluation.mae(r["metrics"]))
+        assert all(np.isfinite(v) for v in metrics.mae(r["metrics"]))
         assert r["train_time_s"] > 0 and r["predict_time_s"] > 0 and r["latency_us"] > 0
     for kind, name in report["best"].items():
-        r = evaluation.report_run(report, name)
+        r = learn_tables.report_run(report, name)
         assert r["causal"]
         for ax in "xy":
             assert r["metrics"][f"force_mae_{ax}_N"] < base["physics-only"][f"force_mae_{ax}_N"], (kind, ax)
@@ -340,12 +340,12 @@ def test_nominal_baseline_with_effects_in_the_model(decoded, residual_tables):
     train = [f for f in decoded if f != HOLDOUT]
     fitted = fitting.fit_model(model.spec_from(VEHICLE, ["rotor_drag"]), decoded, train)
     with_drag = fitted.residual_table(decoded[HOLDOUT])
-    np.testing.assert_allclose(evaluation.nominal_residual(with_drag, VEHICLE),
+    np.testing.assert_allclose(metrics.nominal_residual(with_drag, VEHICLE),
                                feat.targets(residual_tables[HOLDOUT]), atol=1e-9)
     tables = {f: fitted.residual_table(df) for f, df in decoded.items()}
-    base = evaluation.baseline_predictions(tables, train, [HOLDOUT], VEHICLE)
-    zero = evaluation.metrics(*evaluation._yp(base["zero"]))
-    phys = evaluation.metrics(*evaluation._yp(base["physics-only"]))
+    base = metrics.baseline_predictions(tables, train, [HOLDOUT], VEHICLE)
+    zero = metrics.metrics(*metrics._yp(base["zero"]))
+    phys = metrics.metrics(*metrics._yp(base["physics-only"]))
     assert phys["force_mae_x_N"] < 0.5 * zero["force_mae_x_N"]  # the fitted drag explains most of it
 
 
@@ -466,7 +466,7 @@ def test_real_logs_holdout_jana02(real_logs, tmp_path):
     base = report["baselines"]["holdout-jana02"]
     assert base["physics-only"]["rows"] == report["runs"][0]["metrics"]["rows"] > 3800
     for r in report["runs"]:
-        vals = evaluation.mae(r["metrics"]) + evaluation.r2(r["metrics"])
+        vals = metrics.mae(r["metrics"]) + metrics.r2(r["metrics"])
         assert np.isfinite(vals).all()
         assert r["train_time_s"] < 60
     assert set(report["best"]) == {"xgboost", "mlp"}
@@ -481,11 +481,11 @@ def test_share_of_the_learned_gain_the_physics_captures():
     y = np.random.default_rng(0).normal(size=(200, 6))
 
     def m(err):
-        return evaluation.metrics(y, y + err)
+        return metrics.metrics(y, y + err)
 
     base = {"zero": m(1.0), "physics-only": m(0.5), "training mean": m(2.0)}
     best = {"xgboost": {"metrics": m(np.array([0.25, 0.25, 0.25, 0.75, 0.75, 0.75])), "feature_set": {"name": "f"}}}
-    share = evaluation.captured_share(best, base)["xgboost"]
+    share = learn_tables.captured_share(best, base)["xgboost"]
     assert share["force"] == pytest.approx(2 / 3) and share["torque"] == pytest.approx(2.0)
-    assert "captures 67% in force" in evaluation.verdict(best, base, None)
-    assert evaluation.captured_share(best, {**base, "zero": m(0.5)}) == {}  # no effects: nothing to compare
+    assert "captures 67% in force" in learn_tables.verdict(best, base, None)
+    assert learn_tables.captured_share(best, {**base, "zero": m(0.5)}) == {}  # no effects: nothing to compare

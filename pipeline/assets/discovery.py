@@ -14,7 +14,7 @@ from pipeline.assets.model import (
 )
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.report import plots, report
+from quadcore.report import render, report
 from quadcore.store import store
 from quadcore.workflows import identify
 
@@ -40,7 +40,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
         "summary": dg.MetadataValue.md(result.summary.replace("\n", "\n\n")),
-        "terms": dg.MetadataValue.md(plots.markdown_table(report.discovery_table(result.to_dict()))
+        "terms": dg.MetadataValue.md(render.markdown_table(report.discovery_table(result.to_dict()))
                                      if result.terms else "no term kept"),
         "discovery_plot": plot_md(data_root, report.discovery_plot(result.to_dict()), "discovery"),
         "notes": dg.MetadataValue.md("\n\n".join(f"{x.target}: {n}" for x in result.axes for n in x.notes) or "none"),

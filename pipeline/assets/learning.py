@@ -9,8 +9,8 @@ from pipeline.assets.physics import residual_table
 from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig, retrain_cron
-from quadcore.learn import evaluation, features as feat
-from quadcore.report import plots
+from quadcore.learn import features as feat, tables
+from quadcore.report import render
 from quadcore.store import store
 from quadcore.workflows import learn
 
@@ -62,7 +62,7 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
     with failing_on_user_errors():
         sets, n_flights = learn.build_features(root, config.feature_sets)
     return dg.MaterializeResult(metadata={
-        "feature_sets": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+        "feature_sets": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             [{"set": fs.name, "columns": ", ".join(fs.columns), "causal": str(fs.causal), "note": fs.note}
              for fs in sets]))),
         "flights": n_flights,
@@ -97,7 +97,7 @@ def learned_models(
     return dg.MaterializeResult(metadata={
         "holdout": holdout,
         "models": len(runs.records),
-        "runs": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame([
+        "runs": dg.MetadataValue.md(render.markdown_table(pl.DataFrame([
             {"run": r["name"], "train s": r["train_time_s"], "val loss": r["val_loss"], "rows": r["rows_fit"],
              "µs/sample": r["latency_us"]} for r in runs.records]))),
         "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in notes) or "none"),
@@ -115,8 +115,8 @@ def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
     md = {k: plot_md(data_root, v, k) for k, v in pngs.items()}
     return dg.MaterializeResult(metadata={
         "verdict": dg.MetadataValue.md(report["verdict"]),
-        "headline": dg.MetadataValue.md(evaluation.markdown_table(evaluation.frame(report["tables"]["headline"]))),
-        "holdout_table": dg.MetadataValue.md(evaluation.markdown_table(evaluation.frame(report["tables"]["holdout"]))),
+        "headline": dg.MetadataValue.md(render.markdown_table(tables.frame(report["tables"]["headline"]))),
+        "holdout_table": dg.MetadataValue.md(render.markdown_table(tables.frame(report["tables"]["holdout"]))),
         **{f"{k}_plot": v for k, v in md.items()},
         "report": dg.MetadataValue.path(str(paths["html"])),
     })

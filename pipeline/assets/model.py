@@ -14,7 +14,7 @@ from pipeline.resources import DataRoot, ModelConfig
 from quadcore import workflows
 from quadcore.identify import diagnosis, history, sessions
 from quadcore.learn import learning
-from quadcore.report import plots, report
+from quadcore.report import render, report
 from quadcore.workflows import Fleet, fleet, identify
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
@@ -85,7 +85,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
         MODEL_VERSION: model_version(current_model(data_root, model).to_dict()),
         "effects": dg.MetadataValue.json(fitted.model.effect_names),
         "parameters": dg.MetadataValue.md(
-            plots.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
+            render.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
         "trained_on": len(fitted.trained_on),
         "held_out": ", ".join(fitted.held_out),
         "model_file": spec.source or "(none: nominal)",
@@ -115,16 +115,16 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "model": result["model"]["label"],
         **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b["force_rmse_N"])},
         **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
-        "candidates": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+        "candidates": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             diagnosis.candidate_summary({"candidates": top})))),
-        "sensitivity": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
+        "sensitivity": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
         "sensitivity_json": dg.MetadataValue.json(result["sensitivity"]),
-        "disagreements": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(
+        "disagreements": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             sessions.table_rows(result["disagreements"]))) if result["disagreements"] else "none: one value fits all"),
         "disagreements_json": dg.MetadataValue.json(result["disagreements"]),
         "candidates_plot": plot_md(data_root, report.candidates_plot(result), "candidates"),
         "regimes_plot": plot_md(data_root, report.regimes_plot(result), "regimes"),
-        "worst_segments": dg.MetadataValue.md(plots.markdown_table(pl.DataFrame(result["worst_segments"]))),
+        "worst_segments": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(result["worst_segments"]))),
         **_frequency_metadata(data_root, result.get("frequency")),
         "report": dg.MetadataValue.path(str(page)),
         **skipped_metadata(flights.skipped),

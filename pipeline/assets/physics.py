@@ -9,7 +9,7 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.physics import dynamics, propagation, residuals
-from quadcore.report import plots
+from quadcore.report import plots, render
 from quadcore.store import store
 
 
@@ -84,7 +84,7 @@ def rollout_errors(context: dg.AssetExecutionContext, data_root: DataRoot, model
         png = plots.error_growth(growth, f"{fid}: open-loop error growth")
         return {
             **meta,
-            "horizons": dg.MetadataValue.md(plots.markdown_table(ends)),
+            "horizons": dg.MetadataValue.md(render.markdown_table(ends)),
             "error_growth": plot_md(data_root, png, "error growth"),
             "parquet": dg.MetadataValue.path(str(path)),
         }

@@ -1,12 +1,11 @@
 """Plots people look at, as PNG bytes (matplotlib, no display needed).
 
 Every function returns PNG bytes so that callers can write a file, embed it in HTML
-or Markdown (``markdown_image``), or attach it to Dagster metadata.
+or Markdown (:func:`quadcore.report.render.markdown_image`), or attach it to Dagster metadata.
 """
 
 from __future__ import annotations
 
-import base64
 import io
 
 import matplotlib
@@ -32,21 +31,6 @@ def _png(fig, dpi: int = 80, tight: bool = True) -> bytes:
 THUMB_DPI = 60
 THUMB_POINTS = 600
 THUMB_LINE = {"antialiased": False}
-
-
-def markdown_image(png: bytes, alt: str = "plot") -> str:
-    """A Markdown image with the PNG inline (renders in the Dagster UI and in reports)."""
-    return f"![{alt}](data:image/png;base64,{base64.b64encode(png).decode()})"
-
-
-def markdown_table(df: pl.DataFrame, digits: int = 4) -> str:
-    """A polars table as a Markdown table (floats to ``digits`` significant digits)."""
-    def fmt(v):
-        return f"{v:.{digits}g}" if isinstance(v, float) else str(v)
-
-    lines = ["| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.iter_rows()]
-    return "\n".join(lines)
 
 
 def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = THUMB_POINTS) -> bytes:

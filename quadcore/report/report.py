@@ -1,12 +1,8 @@
-"""Reports on disk: the diagnosis as Markdown and as a standalone HTML page, plots inline.
-
-Both are generated from the same sections, so they always say the same thing.
-"""
+"""The diagnosis report: its plots and sections, kept on disk as Markdown and a standalone HTML page
+(rendered by :mod:`quadcore.report.render`), plots inline or beside the Markdown."""
 
 from __future__ import annotations
 
-import base64
-import html
 import re
 from datetime import UTC, datetime
 from pathlib import Path
@@ -20,8 +16,10 @@ import polars as pl  # noqa: E402
 
 from quadcore.identify import diagnosis, history, sessions  # noqa: E402
 from quadcore.identify.history import RMSE_COLUMNS  # noqa: E402
-from quadcore.report import plots  # noqa: E402
+from quadcore.report import plots, render  # noqa: E402
 from quadcore.store import store  # noqa: E402
+
+TITLE = "Dynamics model diagnosis"
 
 
 def candidates_plot(d: dict) -> bytes:
@@ -188,10 +186,6 @@ def history_table(hist: pl.DataFrame) -> pl.DataFrame:
           if c.endswith("_Nm")])
 
 
-def _table(df: pl.DataFrame) -> pl.DataFrame:
-    return df.with_columns(pl.col(pl.Float64).round_sig_figs(3))
-
-
 def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None) -> list[tuple[str, str, object]]:
     """(title, kind, content) with kind in text / table / image."""
     b = d["baseline"]
@@ -252,46 +246,6 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     return [s for s in out if s is not None]
 
 
-def to_markdown(secs, images: dict[str, str] | None = None) -> str:
-    """The report as Markdown; ``images``: section title -> the PNG's path relative to the .md
-    (the PNG beside it), else the PNG inline as base64."""
-    lines = ["# Dynamics model diagnosis", ""]
-    for title, kind, content in secs:
-        lines += [f"## {title}", ""]
-        if kind == "text":
-            lines.append(str(content))
-        elif kind == "table":
-            lines.append(plots.markdown_table(_table(content)) if content.height else "(none)")
-        elif images and title in images:
-            lines.append(f"![{title}]({images[title]})")
-        else:
-            lines.append(plots.markdown_image(content, title))
-        lines.append("")
-    return "\n".join(lines)
-
-
-def to_html(secs) -> str:
-    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Dynamics model diagnosis</title>",
-             "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto}table{border-collapse:collapse;"
-             "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}img{max-width:100%}</style>",
-             "</head><body><h1>Dynamics model diagnosis</h1>"]
-    for title, kind, content in secs:
-        parts.append(f"<h2>{html.escape(title)}</h2>")
-        if kind == "text":
-            parts.append(f"<p>{html.escape(str(content))}</p>")
-        elif kind == "table":
-            t = _table(content)
-            head = "".join(f"<th>{html.escape(c)}</th>" for c in t.columns)
-            body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
-                           for row in t.iter_rows())
-            parts.append(f"<table><tr>{head}</tr>{body}</table>")
-        else:
-            b64 = base64.b64encode(content).decode()
-            parts.append(f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
-
-
 def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None) -> tuple[Path, Path]:
     """Write the report (with a discovery's section when ``disc`` is given), kept for good in
     ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
@@ -306,11 +260,11 @@ def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict |
         if kind == "image" and isinstance(content, bytes):
             store.write_bytes(content, kept / pngs[title])
     store.write_json(d, kept / "diagnosis.json")
-    page_text = to_html(secs)
-    store.write_text(to_markdown(secs, pngs), kept / "diagnosis.md")
+    page_text = render.to_html(TITLE, secs)
+    store.write_text(render.to_markdown(TITLE, secs, pngs), kept / "diagnosis.md")
     store.write_text(page_text, kept / "diagnosis.html")
     latest = {title: f"diagnosis/{kept.name}/{name}" for title, name in pngs.items()}
-    md = store.write_text(to_markdown(secs, latest), out_dir / "diagnosis.md")
+    md = store.write_text(render.to_markdown(TITLE, secs, latest), out_dir / "diagnosis.md")
     page = store.write_text(page_text, out_dir / "diagnosis.html")
     return md, page
 
