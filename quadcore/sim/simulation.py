@@ -421,6 +421,206 @@ def build_reference(config: SimConfig, t_s: np.ndarray, rng: np.random.Generator
 # The simulator
 # ---------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class _TrueBody:
+    """The vehicle as the effects make it fly: true mass and inertia, the air's velocity
+    (world, m/s, per log sample), and the effects' hooks by what they do."""
+
+    mass_kg: float
+    inertia_kgm2: np.ndarray
+    air_w_mps: np.ndarray
+    chain: list  # hooks that change the rotor thrusts (map thrust -> actual)
+    extra: list  # hooks that add a wrench (with memory)
+    generic: list  # (effect, params) simulated through their memoryless wrench
+    airspeed: bool  # some hook sets a wind: effects that act on airspeed see v - wind
+
+
+def _true_body(veh: vehicle_mod.Vehicle, eff: dict[str, dict[str, float]], context, n: int) -> _TrueBody:
+    """Apply the effects' hooks to the nominal vehicle (mass, inertia, air velocity)."""
+    hooks, generic = _effect_hooks(eff, context)
+    m_true, J, air = float(veh.mass_kg), np.asarray(veh.inertia_kgm2, float), np.zeros((n, 3))
+    try:
+        for hook in hooks:
+            m_true = float(hook.true_mass_kg(m_true))
+            J = np.asarray(hook.true_inertia_kgm2(J), float)
+            hook_air = hook.air_velocity_w_mps()
+            air = air + hook_air if hook_air is not None else air
+    except ValueError as exc:
+        raise SimulationError(f"effects {', '.join(eff)}: {exc}") from None
+    if m_true <= 0:
+        raise SimulationError(f"effects {', '.join(eff)}: the true mass must be positive")
+    return _TrueBody(m_true, J, air, [hk for hk in hooks if _overrides(hk, "rotor_thrusts")],
+                     [hk for hk in hooks if _overrides(hk, "wrench")], generic, bool(np.any(air)))
+
+
+@dataclass(frozen=True)
+class _Noise:
+    """Sensor noise for every log sample, drawn up front (the controller sees the same noisy
+    readings as the log): position m, velocity m/s, attitude rad, gyro rad/s, accelerometer g,
+    motor rpm, battery V."""
+
+    pos: np.ndarray
+    vel: np.ndarray
+    att: np.ndarray
+    gyro: np.ndarray
+    acc: np.ndarray
+    rpm: np.ndarray
+    vbat: np.ndarray
+
+
+def _draw_noise(rng: np.random.Generator, noise: SensorNoise, n: int) -> _Noise:
+    return _Noise(
+        pos=rng.normal(0.0, 1.0, (n, 3)) * noise.pos_m,
+        vel=rng.normal(0.0, 1.0, (n, 3)) * noise.vel_mps,
+        att=rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.att_rad),
+        gyro=rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.gyro_dps) * DEG_TO_RAD,
+        acc=rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.acc_g),
+        rpm=rng.normal(0.0, 1.0, (n, 4)) * noise.rpm,
+        vbat=rng.normal(0.0, 1.0, n) * noise.vbat_V,
+    )
+
+
+@dataclass
+class _Record:
+    """The true state at every log sample (world p, v; body w; body specific force sf) and
+    the actuation: map and actual rotor thrust N, PWM as logged, battery mV as logged."""
+
+    P: np.ndarray
+    V: np.ndarray
+    W: np.ndarray
+    SF: np.ndarray
+    Q: np.ndarray
+    F_MAP: np.ndarray
+    F_ACT: np.ndarray
+    PWM: np.ndarray
+    VBAT_MV: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> _Record:
+        P, V, W, SF = (np.zeros((n, 3)) for _ in range(4))
+        return cls(P, V, W, SF, np.zeros((n, 4)), np.zeros((n, 4)), np.zeros((n, 4)),
+                   np.zeros((n, 4), dtype=np.int64), np.zeros(n, dtype=np.int64))
+
+
+def _command(ctrl: Controller, pv, dt: float, vbat: float, sensed, ref_k) -> tuple[np.ndarray, np.ndarray]:
+    """The controller's rotor thrusts from the sensed state -> integer PWM at the battery
+    voltage (as logged) -> the map's thrust for that PWM, N. Returns (pwm_raw, f_map_N)."""
+    pe, ve, qe, we = sensed
+    f_cmd, _, _ = ctrl.step(dt, pe, ve, _rot(qe), we, *ref_k)
+    f_max = float(pv.thrust_N(np.array(1.0), np.array(vbat)))
+    f_clip = np.clip(np.array(f_cmd), 0.0, f_max)
+    pwm_raw = np.rint(pv.pwm_for_thrust(f_clip, vbat) * PWM_FULL_SCALE).astype(np.int64)
+    return pwm_raw, pv.thrust_N(pwm_raw / PWM_FULL_SCALE, vbat)
+
+
+def _body_wrench(body: _TrueBody, veh, k_F: float, A, fa, st_args, R, wk, k: int, j: int):
+    """Thrust T (N), body force Fb (N) and torque tau (N m) on the true body for one physics
+    step: the rotors' thrusts ``fa`` through the allocation, plus every effect's wrench
+    evaluated on the true state (against the air where a hook sets a wind)."""
+    T = fa[0] + fa[1] + fa[2] + fa[3]
+    tau = [A[r][0] * fa[0] + A[r][1] * fa[1] + A[r][2] * fa[2] + A[r][3] * fa[3] for r in (1, 2, 3)]
+    Fb = [0.0, 0.0, T]
+    generic, extra = body.generic, body.extra
+    if generic or extra:
+        t, p, v, q, w, pwm_si, vbat, f_map = st_args
+        vb = [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
+        motor = [math.sqrt(max(x, 0.0) / k_F) if k_F > 0 else 0.0 for x in fa]
+        st = _one_sample_state(t, p, v, q, w, [0.0, 0.0, 0.0], pwm_si, vbat, motor, R, vb, f_map)
+        airspeed = body.airspeed
+        if airspeed:
+            va = [v[i] - wk[i] for i in range(3)]
+            vab = [R[0][i] * va[0] + R[1][i] * va[1] + R[2][i] * va[2] for i in range(3)]
+            st_air = replace(st, v_w_mps=np.array([va]), v_b_mps=np.array([vab]))
+        for effect, params in generic:
+            fe, te = effect.wrench(st_air if airspeed and effect.acts_on_airspeed else st, veh, params)
+            Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
+            tau[0] += te[0, 0]; tau[1] += te[0, 1]; tau[2] += te[0, 2]
+        for hook in extra:
+            out = hook.wrench(st, k, j)
+            if out is not None:
+                (f0, f1, f2), (t0, t1, t2) = out
+                Fb[0] += f0; Fb[1] += f1; Fb[2] += f2
+                tau[0] += t0; tau[1] += t1; tau[2] += t2
+    return T, Fb, tau
+
+
+def _integrate(p, v, q, w, R, sf, tau, Jt, Ji, h: float):
+    """One semi-implicit Euler step: Newton in the world frame (specific force ``sf`` in the
+    body frame, rotated by R_wb, plus gravity), Euler's equation in the body frame
+    (``J dw/dt = tau - w x J w``), then ``q = q (x) exp(w h)``. Returns (p, v, q, w)."""
+    ax = R[0][0] * sf[0] + R[0][1] * sf[1] + R[0][2] * sf[2]
+    ay = R[1][0] * sf[0] + R[1][1] * sf[1] + R[1][2] * sf[2]
+    az = R[2][0] * sf[0] + R[2][1] * sf[1] + R[2][2] * sf[2] - G0_MPS2
+    v = [v[0] + ax * h, v[1] + ay * h, v[2] + az * h]
+    p = [p[0] + v[0] * h, p[1] + v[1] * h, p[2] + v[2] * h]
+    if p[2] < 0.0:  # no ground contact model: keep out of the floor (the references never go there)
+        p[2] = 0.0
+        v[2] = max(v[2], 0.0)
+    Jw = [Jt[r][0] * w[0] + Jt[r][1] * w[1] + Jt[r][2] * w[2] for r in range(3)]
+    g0 = tau[0] - (w[1] * Jw[2] - w[2] * Jw[1])
+    g1 = tau[1] - (w[2] * Jw[0] - w[0] * Jw[2])
+    g2 = tau[2] - (w[0] * Jw[1] - w[1] * Jw[0])
+    w = [w[r] + h * (Ji[r][0] * g0 + Ji[r][1] * g1 + Ji[r][2] * g2) for r in range(3)]
+    return p, v, _qmul_exp(q, w[0], w[1], w[2], h), w
+
+
+def _fly(config: SimConfig, veh: vehicle_mod.Vehicle, ref: trajectories.Reference, body: _TrueBody,
+         noise: _Noise, t: np.ndarray) -> _Record:
+    """The closed loop: at each log sample the battery, the sensors, the controller and the
+    PWM; then ``physics_substeps`` physics steps with the rotor commands held."""
+    n, dt, S = len(t), 1.0 / float(config.log_rate_hz), int(config.physics_substeps)
+    h = dt / S
+    sag_per_N = config.battery.r_internal_ohm * config.battery.current_per_thrust_A_per_N
+    p, v, w = [float(x) for x in ref.p_w_m[0]], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+    yaw0 = float(ref.yaw_rad[0])
+    q = (0.0, 0.0, math.sin(0.5 * yaw0), math.cos(0.5 * yaw0))
+    Jt = tuple(tuple(float(x) for x in row) for row in body.inertia_kgm2)
+    Ji = tuple(tuple(float(x) for x in row) for row in np.linalg.inv(body.inertia_kgm2))
+    A = tuple(tuple(float(x) for x in row) for row in veh.allocation)
+    T_prev = body.mass_kg * G0_MPS2
+    ctrl, pv, k_F = Controller(veh, config.gains), veh.pwm_vbat, veh.motor_speed.k_F_N_per_radps2
+    rec = _Record.empty(n)
+    refs = list(zip(ref.p_w_m.tolist(), ref.v_w_mps.tolist(), ref.a_w_mps2.tolist(), ref.yaw_rad.tolist(),
+                    ref.yaw_rate_radps.tolist(), ref.yaw_acc_radps2.tolist()))
+    npos, nvel, ngyro, att_noise = noise.pos.tolist(), noise.vel.tolist(), noise.gyro.tolist(), noise.att.tolist()
+    vbat_noisy = (config.battery.ocv(t) + noise.vbat).tolist()
+    airl = body.air_w_mps.tolist()
+
+    for k in range(n):
+        tk = k * dt
+        # battery: the voltage the ESCs see is the one logged (whole mV)
+        vbat_mV = int(round((vbat_noisy[k] - sag_per_N * T_prev) * 1000.0))
+        vbat_mV = min(max(vbat_mV, 0), 65535)
+        vbat = vbat_mV * 1e-3
+        rec.VBAT_MV[k] = vbat_mV
+        # sensors as the controller sees them
+        an = att_noise[k]
+        sensed = ((p[0] + npos[k][0], p[1] + npos[k][1], p[2] + npos[k][2]),
+                  (v[0] + nvel[k][0], v[1] + nvel[k][1], v[2] + nvel[k][2]),
+                  _qmul_exp(q, an[0], an[1], an[2], 1.0),
+                  (w[0] + ngyro[k][0], w[1] + ngyro[k][1], w[2] + ngyro[k][2]))
+        pwm_raw, f_map_arr = _command(ctrl, pv, dt, vbat, sensed, refs[k])
+        rec.PWM[k] = pwm_raw
+        rec.F_MAP[k] = f_map_arr
+        f_map = f_map_arr.tolist()
+        pwm_si = (pwm_raw / PWM_FULL_SCALE).tolist()
+
+        for j in range(S):
+            fa = f_map
+            for hook in body.chain:
+                fa = hook.rotor_thrusts(fa, k, j)
+            R = _rot(q)
+            T, Fb, tau = _body_wrench(body, veh, k_F, A, fa, (tk + j * h, p, v, q, w, pwm_si, vbat, f_map), R,
+                                      airl[k], k, j)
+            sf = (Fb[0] / body.mass_kg, Fb[1] / body.mass_kg, Fb[2] / body.mass_kg)
+            if j == 0:
+                rec.P[k], rec.V[k], rec.Q[k], rec.W[k], rec.SF[k] = p, v, q, w, sf
+                rec.F_ACT[k] = fa
+                T_prev = T
+            p, v, q, w = _integrate(p, v, q, w, R, sf, tau, Jt, Ji, h)
+    return rec
+
+
 def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
              effects: dict[str, dict[str, float]] | None = None) -> SimFlight:
     """Fly one closed-loop flight and encode it as a uSD log. See the module docstring."""
@@ -434,149 +634,23 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
 
     rate = float(config.log_rate_hz)
     dt = 1.0 / rate
-    S = int(config.physics_substeps)
-    h = dt / S
     n = max(int(round(flight_duration(config) * rate)), 2)
     t = np.arange(n) * dt
     ref = build_reference(config, t, ref_rng)
-    noise = config.noise
+    context = effects_mod.SimContext(t_s=t, dt_s=dt, h_s=dt / int(config.physics_substeps), vehicle=veh,
+                                     config=config, rng=gust_rng)
+    body = _true_body(veh, eff, context, n)
+    noise = _draw_noise(noise_rng, config.noise, n)
+    rec = _fly(config, veh, ref, body, noise, t)
 
-    # --- effects: hooks (mechanisms) and memoryless wrenches -----------------------------
-    context = effects_mod.SimContext(t_s=t, dt_s=dt, h_s=h, vehicle=veh, config=config, rng=gust_rng)
-    hooks, generic = _effect_hooks(eff, context)
-    m_nom = float(veh.mass_kg)
-    m_true, J, air = m_nom, np.asarray(veh.inertia_kgm2, float), np.zeros((n, 3))
-    try:
-        for hook in hooks:
-            m_true = float(hook.true_mass_kg(m_true))
-            J = np.asarray(hook.true_inertia_kgm2(J), float)
-            hook_air = hook.air_velocity_w_mps()
-            air = air + hook_air if hook_air is not None else air
-    except ValueError as exc:
-        raise SimulationError(f"effects {', '.join(eff)}: {exc}") from None
-    if m_true <= 0:
-        raise SimulationError(f"effects {', '.join(eff)}: the true mass must be positive")
-    chain = [hk for hk in hooks if _overrides(hk, "rotor_thrusts")]
-    extra = [hk for hk in hooks if _overrides(hk, "wrench")]
-    airspeed = bool(np.any(air))
-
-    # --- noise drawn up front (the controller sees the same noisy readings as the log) --
-    n_pos = noise_rng.normal(0.0, 1.0, (n, 3)) * noise.pos_m
-    n_vel = noise_rng.normal(0.0, 1.0, (n, 3)) * noise.vel_mps
-    n_att = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.att_rad)
-    n_gyro = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.gyro_dps) * DEG_TO_RAD
-    n_acc = noise_rng.normal(0.0, 1.0, (n, 3)) * np.asarray(noise.acc_g)
-    n_rpm = noise_rng.normal(0.0, 1.0, (n, 4)) * noise.rpm
-    n_vbat = noise_rng.normal(0.0, 1.0, n) * noise.vbat_V
-    ocv = config.battery.ocv(t)
-    sag_per_N = config.battery.r_internal_ohm * config.battery.current_per_thrust_A_per_N
-
-    # --- state ----------------------------------------------------------------------------
-    p = [float(x) for x in ref.p_w_m[0]]
-    v = [0.0, 0.0, 0.0]
-    yaw0 = float(ref.yaw_rad[0])
-    q = (0.0, 0.0, math.sin(0.5 * yaw0), math.cos(0.5 * yaw0))
-    w = [0.0, 0.0, 0.0]
-    Jt = tuple(tuple(float(x) for x in row) for row in J)
-    Ji = tuple(tuple(float(x) for x in row) for row in np.linalg.inv(J))
-    A = tuple(tuple(float(x) for x in row) for row in veh.allocation)
-    T_prev = m_true * G0_MPS2
-    ctrl = Controller(veh, config.gains)
-    pv = veh.pwm_vbat
-    k_F = veh.motor_speed.k_F_N_per_radps2
-    gz = -G0_MPS2
-
-    # recorded arrays
-    P, V, W, SF = (np.zeros((n, 3)) for _ in range(4))
-    Q = np.zeros((n, 4))
-    F_MAP, F_ACT = np.zeros((n, 4)), np.zeros((n, 4))
-    PWM = np.zeros((n, 4), dtype=np.int64)
-    VBAT_MV = np.zeros(n, dtype=np.int64)
-
-    rp, rv, ra = ref.p_w_m.tolist(), ref.v_w_mps.tolist(), ref.a_w_mps2.tolist()
-    ryaw, ryr, rya = ref.yaw_rad.tolist(), ref.yaw_rate_radps.tolist(), ref.yaw_acc_radps2.tolist()
-    npos, nvel, ngyro = n_pos.tolist(), n_vel.tolist(), n_gyro.tolist()
-    vbat_noisy = (ocv + n_vbat).tolist()
-    airl = air.tolist()
-    att_noise = n_att.tolist()
-
-    for k in range(n):
-        tk = k * dt
-        # battery: the voltage the ESCs see is the one logged (whole mV)
-        vbat_mV = int(round((vbat_noisy[k] - sag_per_N * T_prev) * 1000.0))
-        vbat_mV = min(max(vbat_mV, 0), 65535)
-        vbat = vbat_mV * 1e-3
-        VBAT_MV[k] = vbat_mV
-        # sensors as the controller sees them
-        pe = (p[0] + npos[k][0], p[1] + npos[k][1], p[2] + npos[k][2])
-        ve = (v[0] + nvel[k][0], v[1] + nvel[k][1], v[2] + nvel[k][2])
-        an = att_noise[k]
-        qe = _qmul_exp(q, an[0], an[1], an[2], 1.0)
-        we = (w[0] + ngyro[k][0], w[1] + ngyro[k][1], w[2] + ngyro[k][2])
-        f_cmd, _, _ = ctrl.step(dt, pe, ve, _rot(qe), we, rp[k], rv[k], ra[k], ryaw[k], ryr[k], rya[k])
-        f_max = float(pv.thrust_N(np.array(1.0), np.array(vbat)))
-        f_clip = np.clip(np.array(f_cmd), 0.0, f_max)
-        pwm_raw = np.rint(pv.pwm_for_thrust(f_clip, vbat) * PWM_FULL_SCALE).astype(np.int64)
-        f_map_arr = pv.thrust_N(pwm_raw / PWM_FULL_SCALE, vbat)
-        PWM[k] = pwm_raw
-        F_MAP[k] = f_map_arr
-        f_map = f_map_arr.tolist()
-        pwm_si = (pwm_raw / PWM_FULL_SCALE).tolist()
-        wk = airl[k]
-
-        for j in range(S):
-            fa = f_map
-            for hook in chain:
-                fa = hook.rotor_thrusts(fa, k, j)
-            T = fa[0] + fa[1] + fa[2] + fa[3]
-            tau = [A[r][0] * fa[0] + A[r][1] * fa[1] + A[r][2] * fa[2] + A[r][3] * fa[3] for r in (1, 2, 3)]
-            Fb = [0.0, 0.0, T]
-            R = _rot(q)
-            if generic or extra:
-                vb = [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
-                motor = [math.sqrt(max(x, 0.0) / k_F) if k_F > 0 else 0.0 for x in fa]
-                st = _one_sample_state(tk + j * h, p, v, q, w, [0.0, 0.0, 0.0], pwm_si, vbat, motor, R, vb, f_map)
-                if airspeed:
-                    va = [v[i] - wk[i] for i in range(3)]
-                    vab = [R[0][i] * va[0] + R[1][i] * va[1] + R[2][i] * va[2] for i in range(3)]
-                    st_air = replace(st, v_w_mps=np.array([va]), v_b_mps=np.array([vab]))
-                for effect, params in generic:
-                    fe, te = effect.wrench(st_air if airspeed and effect.acts_on_airspeed else st, veh, params)
-                    Fb[0] += fe[0, 0]; Fb[1] += fe[0, 1]; Fb[2] += fe[0, 2]
-                    tau[0] += te[0, 0]; tau[1] += te[0, 1]; tau[2] += te[0, 2]
-                for hook in extra:
-                    out = hook.wrench(st, k, j)
-                    if out is not None:
-                        (f0, f1, f2), (t0, t1, t2) = out
-                        Fb[0] += f0; Fb[1] += f1; Fb[2] += f2
-                        tau[0] += t0; tau[1] += t1; tau[2] += t2
-            sf = (Fb[0] / m_true, Fb[1] / m_true, Fb[2] / m_true)
-            if j == 0:
-                P[k], V[k], Q[k], W[k], SF[k] = p, v, q, w, sf
-                F_ACT[k] = fa
-                T_prev = T
-            # Newton (world) and Euler (body), semi-implicit Euler step
-            ax = R[0][0] * sf[0] + R[0][1] * sf[1] + R[0][2] * sf[2]
-            ay = R[1][0] * sf[0] + R[1][1] * sf[1] + R[1][2] * sf[2]
-            az = R[2][0] * sf[0] + R[2][1] * sf[1] + R[2][2] * sf[2] + gz
-            v = [v[0] + ax * h, v[1] + ay * h, v[2] + az * h]
-            p = [p[0] + v[0] * h, p[1] + v[1] * h, p[2] + v[2] * h]
-            if p[2] < 0.0:  # no ground contact model: keep out of the floor (the references never go there)
-                p[2] = 0.0
-                v[2] = max(v[2], 0.0)
-            Jw = [Jt[r][0] * w[0] + Jt[r][1] * w[1] + Jt[r][2] * w[2] for r in range(3)]
-            g0 = tau[0] - (w[1] * Jw[2] - w[2] * Jw[1])
-            g1 = tau[1] - (w[2] * Jw[0] - w[0] * Jw[2])
-            g2 = tau[2] - (w[0] * Jw[1] - w[1] * Jw[0])
-            w = [w[r] + h * (Ji[r][0] * g0 + Ji[r][1] * g1 + Ji[r][2] * g2) for r in range(3)]
-            q = _qmul_exp(q, w[0], w[1], w[2], h)
-
-    data, kept = _encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, veh.motor_speed,
-                         n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm, drop_rng, mocap_rng, clock_rng)
+    data, kept = _encode(config, t, rec.P, rec.V, rec.Q, rec.W, rec.SF, rec.F_ACT, rec.PWM, rec.VBAT_MV,
+                         veh.motor_speed, noise.pos, noise.vel, noise.att, noise.gyro, noise.acc, noise.rpm,
+                         drop_rng, mocap_rng, clock_rng)
     return SimFlight(
-        config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=m_true, nominal_mass_kg=m_nom, data=data,
-        t_s=t, kept=kept, p_true=P, v_true=V, q_true=Q, omega_true=W, sf_true=SF, f_map_N=F_MAP,
-        f_actual_N=F_ACT, pwm_raw=PWM, vbat_V=VBAT_MV * 1e-3, wind_w_mps=air, reference=ref,
+        config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=body.mass_kg,
+        nominal_mass_kg=float(veh.mass_kg), data=data, t_s=t, kept=kept, p_true=rec.P, v_true=rec.V,
+        q_true=rec.Q, omega_true=rec.W, sf_true=rec.SF, f_map_N=rec.F_MAP, f_actual_N=rec.F_ACT,
+        pwm_raw=rec.PWM, vbat_V=rec.VBAT_MV * 1e-3, wind_w_mps=body.air_w_mps, reference=ref,
     )
 
 
