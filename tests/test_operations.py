@@ -17,7 +17,7 @@ from pipeline.definitions import AGAINST_MODEL, FLEET, PER_FLIGHT, defs
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.sensors import raw_log_sensor
 from quadcore.logs import logformat
-from quadcore.sim import simulation
+from quadcore.sim import usdlog
 from quadcore.store import store
 
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
@@ -261,7 +261,7 @@ def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
     ff["stateEstimate.z"] = 0.01  # never left the ground
     t = log.timestamps_us["fixedFrequency"].copy()
     t[len(t) // 2:] += 200_000  # a 200 ms hole
-    data = logformat.encode(list(simulation.LOG_EVENT_TYPES), [("fixedFrequency", t, ff)])
+    data = logformat.encode(list(usdlog.LOG_EVENT_TYPES), [("fixedFrequency", t, ff)])
     raw = tmp_path / "raw"
     raw.mkdir()
     (raw / "odd").write_bytes(data)

@@ -16,7 +16,7 @@ import pytest
 from quadcore import cli, effects
 from quadcore.logs import flight, logformat
 from quadcore.physics import dynamics, residuals, signals, vehicle
-from quadcore.sim import simulation, trajectories
+from quadcore.sim import simulation, trajectories, usdlog
 from quadcore.sim.simulation import SimConfig
 
 # Measured on the real logs (jana00..jana33) in steady hover: |v| < 0.1 m/s, z > 0.2 m, in
@@ -115,7 +115,7 @@ def test_header_equals_a_real_logs_header(real_logs):
     _, types, _ = logformat.parse_header((real_logs / "jana00").read_bytes())
     def by_id(e):
         return e.event_id
-    assert sorted(types.values(), key=by_id) == sorted(simulation.LOG_EVENT_TYPES, key=by_id)
+    assert sorted(types.values(), key=by_id) == sorted(usdlog.LOG_EVENT_TYPES, key=by_id)
 
 
 def test_statistics_look_like_the_real_logs(hover):

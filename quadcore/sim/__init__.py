@@ -1,3 +1,4 @@
 """Simulated flights, for tests and for checking what the identification recovers: the simulator
-(``simulation``), its position/attitude controller (``controller``) and reference trajectories
-(``trajectories``; the CSV files live in ``quadcore/trajectories/``)."""
+(``simulation``), its position/attitude controller (``controller``), reference trajectories
+(``trajectories``; the CSV files live in ``quadcore/trajectories/``) and the uSD log it writes
+(``usdlog``)."""
