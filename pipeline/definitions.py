@@ -11,6 +11,7 @@ from pipeline.assets.export import exported_model, flight_mcap
 from pipeline.assets.learning import learned_models, learning_features, learning_report
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
+from pipeline.assets.statistics import flight_statistics
 from pipeline.resources import (
     automation_status,
     data_root_from_env,
@@ -21,8 +22,10 @@ from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
 # Computed per flight partition (the sensor's runs and the main job run these): decoding, which
 # needs no model, then the tables computed against the fitted physics model.
 DECODE = [decoded_flight]
+# Each flight's sufficient statistics of the linear effects, which the fleet fit combines.
+STATISTICS = [flight_statistics]
 AGAINST_MODEL = [residual_table, rollout_errors, flight_mcap]
-PER_FLIGHT = [*DECODE, *AGAINST_MODEL]
+PER_FLIGHT = [*DECODE, *STATISTICS, *AGAINST_MODEL]
 # Computed over all flights.
 FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
 # Learned residual models on top of the physics model (fan-in over all residual tables).

@@ -19,6 +19,7 @@ import dagster as dg
 from pipeline.resources import data_root_from_env, model_config_from_env
 
 MODEL_VERSION = "model_version"
+STATS_VERSION = "stats_version"  # what a flight's sufficient statistics were computed for
 
 
 def model_version(model_dict: dict | None) -> str:
@@ -36,9 +37,10 @@ def current_model_version() -> str:
     return model_version(current_model(data_root_from_env(), model_config_from_env()).to_dict())
 
 
-def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: set[str]) -> dict[str, str | None]:
-    """Partition -> ``model_version`` of its latest materialisation (None: materialised before
-    versions were recorded); partitions never materialised are left out."""
+def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: set[str],
+                  entry_key: str = MODEL_VERSION) -> dict[str, str | None]:
+    """Partition -> ``model_version`` (or ``entry_key``) of its latest materialisation (None:
+    materialised before versions were recorded); partitions never materialised are left out."""
     used: dict[str, str | None] = {}
     cursor = None
     while len(used) < len(partitions):
@@ -48,7 +50,7 @@ def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: se
         for record in page.records:  # newest first: the first one seen per partition is its latest
             mat = record.asset_materialization
             if mat is not None and mat.partition is not None and mat.partition not in used:
-                entry = mat.metadata.get(MODEL_VERSION)
+                entry = mat.metadata.get(entry_key)
                 used[mat.partition] = str(entry.value) if entry is not None else None
         if not page.has_more:
             break
@@ -127,3 +129,46 @@ REFRESH = (
 ALL_FLIGHTS_FRESH = ~dg.AutomationCondition.any_deps_match(
     ComputedAgainstOlderModel() | dg.AutomationCondition.in_progress()
 ).with_label("every flight computed against the current model")
+
+
+class StatisticsOutdated(dg.AutomationCondition):
+    """True for the flight partitions whose statistics were computed for another vehicle,
+    session thrust map or effect library than the model file gives now (metadata
+    ``stats_version`` against :func:`quadcore.identify.sufficient.current_key`). Not the
+    fitted model's version: the fit is made from the statistics, so that would be a cycle."""
+
+    @property
+    def name(self) -> str:
+        return "statistics_outdated"
+
+    @property
+    def description(self) -> str:
+        return "computed for another vehicle, thrust map or effect library"
+
+    def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
+        from quadcore.identify import sufficient
+
+        candidates = context.candidate_subset.expensively_compute_partition_keys()
+        if not candidates or context.partitions_def is None:
+            return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
+        try:
+            spec = model_config_from_env().spec()
+        except (ValueError, KeyError, OSError) as exc:  # a bad model file: the runs say why
+            context.log.warning(f"cannot read the model file: {exc}")
+            return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
+        used = versions_used(context.asset_graph_view.instance, context.key, set(candidates), STATS_VERSION)
+        stale = sorted(p for p, v in used.items() if v != sufficient.current_key(spec, p))
+        subset = context.asset_graph_view.get_subset_from_partition_keys(context.key, context.partitions_def,
+                                                                         set(stale))
+        return dg.AutomationResult(context=context, true_subset=subset, metadata={"stale_flights": len(stale)})
+
+
+# A flight's statistics: computed when decoded (eager), again when the model file names another
+# vehicle, thrust map or effect library; never while a run for it is going on or after a failure.
+STATS_REFRESH = (
+    dg.AutomationCondition.eager()
+    | (StatisticsOutdated()
+       & ~dg.AutomationCondition.in_progress()
+       & ~dg.AutomationCondition.any_deps_in_progress()
+       & ~dg.AutomationCondition.execution_failed())
+).with_label("compute when decoded, or when the model file names another vehicle, thrust map or effect library")

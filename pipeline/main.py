@@ -23,7 +23,7 @@ from dagster._core.storage.tags import (
 
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
-from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING
+from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.freshness import model_version
 from pipeline.instance import ensure_dagster_home
 from pipeline.partitions import failed_flights, flights
@@ -34,7 +34,7 @@ from pipeline.resources import (
     model_config_from_env,
     retrain_cron,
 )
-from quadcore.identify import history
+from quadcore.identify import history, sufficient
 from quadcore.logs import flight
 from quadcore.store import safewrite, store
 from quadcore.workflows import identify, learn
@@ -179,6 +179,13 @@ def to_recompute(
     return out
 
 
+def to_restat(data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_now: list[str]) -> list[str]:
+    """Flights whose sufficient statistics are missing, or older than their decode, or made for
+    another vehicle, thrust map or effect library than the model file gives now."""
+    current = sufficient.stored(data_root.root_path, model.spec())
+    return [f for f in ids if f in decoded_now or current(f) is None]
+
+
 def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bool:
     """Whether to refit and re-diagnose: flights were (re)decoded, or the fitted model or the
     diagnosis is missing, or the fit was made for another model spec than the model file's now."""
@@ -219,6 +226,9 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     if len(good) < 2:
         log("fewer than two flights decoded: stopping before the fleet-wide stages")
         return 1
+    restat = good if RECOMPUTE else to_restat(data_root, model, good, decode)
+    if restat:
+        failures.update(run_flights(instance, resources, restat, STATISTICS, "statistics", log))
     refit = RECOMPUTE or fleet_is_stale(root, model, decode)
     if refit:
         log("2/4 fit the model, diagnose, record the error history")

@@ -9,6 +9,7 @@ import dagster as dg
 from pipeline.assets.decode import MAIN_EVENT, decoded_flight
 from pipeline.assets.export import flight_mcap
 from pipeline.assets.physics import residual_table, rollout_errors
+from pipeline.assets.statistics import flight_statistics
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore.logs import flight, logformat
@@ -93,7 +94,7 @@ def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
     )
 
 
-PER_FLIGHT = dg.AssetSelection.assets(decoded_flight, residual_table, rollout_errors, flight_mcap)
+PER_FLIGHT = dg.AssetSelection.assets(decoded_flight, flight_statistics, residual_table, rollout_errors, flight_mcap)
 
 
 # One flight through every per-flight stage: what the sensor launches (its runs are filed under

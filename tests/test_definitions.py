@@ -53,14 +53,19 @@ def test_the_snapshot_covers_every_kind():
 
 
 def test_the_main_job_stages_follow_the_graph(monkeypatch, tmp_path):
-    """``python -m pipeline`` decodes first (DECODE) and computes the per-flight tables after the
-    fit (AGAINST_MODEL): the split is by what each asset depends on, not by list order."""
+    """``python -m pipeline`` decodes first (DECODE), then each flight's statistics (STATISTICS,
+    which the fit combines), and computes the per-flight tables after the fit (AGAINST_MODEL):
+    the split is by what each asset depends on, not by list order."""
     monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path))
-    from pipeline.definitions import AGAINST_MODEL, DECODE, PER_FLIGHT, defs
+    from pipeline.definitions import AGAINST_MODEL, DECODE, PER_FLIGHT, STATISTICS, defs
 
     graph = defs.resolve_asset_graph()
     model_key = dg.AssetKey("physics_model")
-    assert set(DECODE) | set(AGAINST_MODEL) == set(PER_FLIGHT) and not set(DECODE) & set(AGAINST_MODEL)
+    stages = [set(DECODE), set(STATISTICS), set(AGAINST_MODEL)]
+    assert set.union(*stages) == set(PER_FLIGHT) and sum(map(len, stages)) == len(PER_FLIGHT)
+    for asset in STATISTICS:
+        assert model_key not in graph.get_ancestor_asset_keys(asset.key), asset.key
+        assert asset.key in graph.get_ancestor_asset_keys(model_key), asset.key
     for asset in DECODE:
         assert model_key not in graph.get_ancestor_asset_keys(asset.key), asset.key
     for asset in AGAINST_MODEL:

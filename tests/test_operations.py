@@ -124,7 +124,7 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
         assert raw_log_sensor.job_name == "process_flight"
         job = defs.resolve_job_def("process_flight")
         assert {k.to_user_string() for k in job.asset_layer.executable_asset_keys} == {
-            "decoded_flight", "residual_table", "rollout_errors", "flight_mcap"}  # per-flight assets only
+            "decoded_flight", "flight_statistics", "residual_table", "rollout_errors", "flight_mcap"}  # per flight only
         # the same flight id with other bytes is processed again
         (raw / "sim000").unlink()
         (raw / "sim000").symlink_to(sim_logs / "sim002")
@@ -315,7 +315,7 @@ def test_readme_queries_run(sim_logs, tmp_path):
     with dg.instance_for_test() as instance:
         instance.add_dynamic_partitions("flights", ["sim000", "sim001"])
         for key in ("sim000", "sim001"):
-            run(PER_FLIGHT[:2], {"data_root": data_root, "model": ModelConfig()}, instance, key)
+            run([decoded_flight, AGAINST_MODEL[0]], {"data_root": data_root, "model": ModelConfig()}, instance, key)
     speed = (pl.col("v_w_x_mps") ** 2 + pl.col("v_w_y_mps") ** 2 + pl.col("v_w_z_mps") ** 2).sqrt()
     by_polars = (
         pl.scan_parquet(root / "residuals" / "**" / "*.parquet", hive_partitioning=True,

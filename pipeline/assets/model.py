@@ -8,16 +8,19 @@ import dagster as dg
 import polars as pl
 
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import workflows
-from quadcore.identify import diagnosis, history, sessions
+from quadcore.identify import diagnosis, history, sessions, sufficient
 from quadcore.learn import learning
 from quadcore.report import render, report
 from quadcore.workflows import Fleet, fleet, identify
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
+# the fit and the diagnosis combine the flights' statistics (computed from the rows where missing)
+ALL_STATISTICS = [dg.AssetDep(flight_statistics, partition_mapping=dg.AllPartitionMapping())]
 
 # Retrain when flights have arrived or changed (not on every tick when nothing changed); a
 # flight that was registered but never decoded (quarantined) does not block retraining.
@@ -69,7 +72,7 @@ REFIT = (RETRAIN | (ModelFileChanged() & ~dg.AutomationCondition.in_progress()
     "refit when flights arrive or the model file changes")
 
 
-@dg.asset(group_name="model", deps=ALL_FLIGHTS, kinds={"json"}, automation_condition=REFIT)
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, *ALL_STATISTICS], kinds={"json"}, automation_condition=REFIT)
 def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """The model file's effects, fitted on the training flights: every decoded flight but the
     held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
@@ -77,7 +80,8 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     spec = model.spec()
     flights = load_fleet(data_root, spec.vehicle, context.log)
     with failing_on_user_errors():
-        fitted = identify.fit(flights, spec, model.holdout_flights, context.log.info)
+        fitted = identify.fit(flights, spec, model.holdout_flights, context.log.info,
+                              sufficient.stored(data_root.root_path, spec))
     path = identify.save_fit(data_root.root_path, fitted)
     params = fitted.parameter_rows()
     return dg.MaterializeResult(metadata={
@@ -94,7 +98,8 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     })
 
 
-@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model, dg.AssetKey("term_discovery")], kinds={"html"},
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, *ALL_STATISTICS, physics_model, dg.AssetKey("term_discovery")],
+          kinds={"html"},
           automation_condition=RETRAIN)
 def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Where the model fails (by regime, flight, segment) and which effect is missing, scored on
@@ -106,7 +111,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
             description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
     seen, holdout = diagnosis_flights(model, flights)
     with failing_on_user_errors():
-        result = identify.diagnose(seen, spec, holdout, context.log.info)
+        result = identify.diagnose(seen, spec, holdout, context.log.info, sufficient.stored(data_root.root_path, spec))
     md, page = identify.record_diagnosis(data_root.root_path, result, spec)
     b = result["baseline"]
     top = result["candidates"][:5]

@@ -434,6 +434,23 @@ def load(root: Any, flight: str) -> FlightStats:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
 
 
+def current_key(spec, flight: str) -> str:
+    """The key a flight's stored statistics must carry for ``spec`` as it is now (the model's
+    vehicle, the flight's session thrust map, every linear effect of the library)."""
+    return stats_key(spec.vehicle, spec.vehicle_for(flight), library_layout())
+
+
+def compute_current(spec, flight: str, decoded) -> FlightStats:
+    """What the per-flight asset stores: the statistics of every linear effect of the library."""
+    return compute(spec, flight, decoded, library_layout())
+
+
+def stored(root: Any, spec) -> Callable[[str], FlightStats | None]:
+    """``flight -> FlightStats | None``: a flight's statistics under the data root if they are
+    current for ``spec`` (:func:`current_key`); None when missing or stale."""
+    return lambda flight: load_current(root, flight, current_key(spec, flight))
+
+
 def load_current(root: Any, flight: str, key: str) -> FlightStats | None:
     """A flight's stored statistics if they were computed for ``key``, else None."""
     path = stats_path(root, flight)

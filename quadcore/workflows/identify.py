@@ -22,11 +22,12 @@ def _quiet(msg: str) -> None:
     pass
 
 
-def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet) -> FittedModel:
+def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, stats=None) -> FittedModel:
     """The spec's effects fitted on every flight of the fleet but the held-out ones
     (:func:`quadcore.workflows.fleet.held_out` of ``holdout``: the named ones, else the
     project's default), per session where the spec asks (sessions from its sessions file, its
-    model file, or the data)."""
+    model file, or the data). ``stats``: the flights' stored sufficient statistics
+    (:func:`quadcore.identify.sufficient.stored`), combined for linear effects instead of reading rows."""
     from quadcore.identify import fitting, model
 
     if len(fleet.tables) < 2:
@@ -36,7 +37,7 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet) ->
         log(note)
     train = [f for f in fleet.tables if f not in held]
     log(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
-    fitted = fitting.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log)
+    fitted = fitting.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log, stats)
     return model.FittedModel.of(fitted, spec, train, held)
 
 
@@ -89,13 +90,14 @@ def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
     return fleet.only(seen), holdout or None
 
 
-def diagnose(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> dict:
+def diagnose(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet, stats=None) -> dict:
     """:func:`quadcore.identify.diagnosis.diagnose` on the fleet, with the flights skipped on the way
     (``skipped_flights``): the JSON document ``quadcore diagnose --json`` and
-    ``reports/diagnosis.json`` hold."""
+    ``reports/diagnosis.json`` hold. ``stats`` as for :func:`fit`."""
     from quadcore.identify import diagnosis
 
-    result = diagnosis.diagnose(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids))
+    result = diagnosis.diagnose(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids),
+                                stats=stats)
     return {**result, "skipped_flights": fleet.skipped}
 
 
