@@ -89,16 +89,9 @@ MAX_TREE_FEATURES = 32  # five bits of a node's first byte
 LEFT_LEAF, RIGHT_LEAF, DEFAULT_LEFT = 0x20, 0x40, 0x80
 
 
-def trees_c(model: LearnedModel) -> tuple[str, dict]:
-    """C for an XGBoost model and figures about it.
-
-    Each feature's split values (raw scale, see :func:`raw_thresholds`) are sorted into a cut
-    table (XGBoost's ``hist`` uses at most 256 per feature). Per call the C code ranks every
-    input once (how many of its cuts are <= x, by bisection); ``x < cut[b]`` is then
-    ``rank <= b``. A node is 4 bytes: a split (feature and flags, cut index, index of its left
-    child; the right child follows it) or a leaf value. Single-leaf trees fold into the base.
-    """
-    forest = CompiledForest(model.impl)
+def _cut_tables(forest: CompiledForest, model: LearnedModel) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Which nodes are leaves, every node's threshold on the raw input, and each feature's sorted
+    split values (its cut table)."""
     n_features = len(model.features)
     if n_features > MAX_TREE_FEATURES:
         raise ExportError(f"the tree model has {n_features} features; the C node format holds {MAX_TREE_FEATURES}")
@@ -111,6 +104,14 @@ def trees_c(model: LearnedModel) -> tuple[str, dict]:
     if len(cuts[worst]) > 256:
         raise ExportError(f"feature {model.features[worst]!r} has {len(cuts[worst])} distinct split values; the C node "
                           "format holds 256 (XGBoost's hist method with max_bin <= 256 stays within it)")
+    return is_leaf, raw, cuts
+
+
+def _tree_nodes(forest: CompiledForest, is_leaf: np.ndarray, raw: np.ndarray,
+                cuts: list[np.ndarray]) -> tuple[list[str], list[int], list[int], np.ndarray]:
+    """The C initialisers of every node, trees grouped by output; the index of each tree's first
+    node; the number of trees per output; the base score per output with the single-leaf trees
+    folded into it."""
     base = forest.base.astype(np.float64).copy()
     nodes: list[str] = []
     tree_start: list[int] = []
@@ -135,33 +136,11 @@ def trees_c(model: LearnedModel) -> tuple[str, dict]:
                      | (DEFAULT_LEFT if forest.default_left[n] else 0))
             b = int(np.searchsorted(cuts[f], raw[n]))
             nodes.append(f"{{.split = {{{flags}, {b}, {local[left]}}}}}")
-    first = np.concatenate([[0], np.cumsum(trees_of)])
-    cut_start = np.concatenate([[0], np.cumsum([len(c) for c in cuts])])
-    all_cuts = np.concatenate(cuts) if cut_start[-1] else np.zeros(1)
-    start_type = "unsigned short" if len(nodes) <= 65535 else "unsigned long"
-    nodes_text = ",\n    ".join(nodes) if nodes else "{.leaf = 0.0f}"
-    code = f"""/* XGBoost: {len(tree_start)} trees, {len(nodes)} nodes (single-leaf trees folded into the base).
-   A split sends input f left when x_f < cut (rank(x_f) <= bin), else right; its right child follows its left;
-   a NaN input goes left when the default-left flag is set. Flags: bits 0-4 feature, 0x20 left child is a
-   leaf, 0x40 right child is a leaf, 0x80 default left. Cuts are on the raw inputs: exactly the branches of
-   the standardised Python model. */
-typedef union {{
-    struct {{ unsigned char feature_flags, bin; unsigned short left; }} split;
-    float leaf;
-}} qc_node;
-static const qc_node QC_NODES[{max(len(nodes), 1)}] = {{
-    {nodes_text}
-}};
-static const {start_type} QC_TREE_START[{max(len(tree_start), 1)}] = {{{", ".join(map(str, tree_start)) or "0"}}};
-/* output k: trees [first[k], first[k+1]) */
-static const unsigned short QC_FIRST_TREE[7] = {{{", ".join(str(int(v)) for v in first)}}};
-{float_table("QC_CUTS", all_cuts)}
-static const unsigned short QC_CUT_START[QC_N_FEATURES + 1] = {{{", ".join(str(int(v)) for v in cut_start)}}};
-{float_table("QC_BASE", base)}  /* XGBoost base score per output */
-{float_table("QC_Y_MEAN", model.y_scaler.mean)}
-{float_table("QC_Y_STD", model.y_scaler.std)}
+    return nodes, tree_start, trees_of, base
 
-static void qc_learned(const float x[QC_N_FEATURES], float y[6])
+
+# The evaluation of the node arrays: rank each input in its cut table, then walk every tree.
+QC_LEARNED_C = f"""static void qc_learned(const float x[QC_N_FEATURES], float y[6])
 {{
     short rank[QC_N_FEATURES];  /* how many cuts of feature f are <= x_f; -1 for NaN */
     int f, k;
@@ -200,6 +179,47 @@ static void qc_learned(const float x[QC_N_FEATURES], float y[6])
     }}
 }}
 """
+
+
+def trees_c(model: LearnedModel) -> tuple[str, dict]:
+    """C for an XGBoost model and figures about it.
+
+    Each feature's split values (raw scale, see :func:`raw_thresholds`) are sorted into a cut
+    table (XGBoost's ``hist`` uses at most 256 per feature). Per call the C code ranks every
+    input once (how many of its cuts are <= x, by bisection); ``x < cut[b]`` is then
+    ``rank <= b``. A node is 4 bytes: a split (feature and flags, cut index, index of its left
+    child; the right child follows it) or a leaf value. Single-leaf trees fold into the base.
+    """
+    forest = CompiledForest(model.impl)
+    is_leaf, raw, cuts = _cut_tables(forest, model)
+    nodes, tree_start, trees_of, base = _tree_nodes(forest, is_leaf, raw, cuts)
+    first = np.concatenate([[0], np.cumsum(trees_of)])
+    cut_start = np.concatenate([[0], np.cumsum([len(c) for c in cuts])])
+    all_cuts = np.concatenate(cuts) if cut_start[-1] else np.zeros(1)
+    start_type = "unsigned short" if len(nodes) <= 65535 else "unsigned long"
+    nodes_text = ",\n    ".join(nodes) if nodes else "{.leaf = 0.0f}"
+    code = f"""/* XGBoost: {len(tree_start)} trees, {len(nodes)} nodes (single-leaf trees folded into the base).
+   A split sends input f left when x_f < cut (rank(x_f) <= bin), else right; its right child follows its left;
+   a NaN input goes left when the default-left flag is set. Flags: bits 0-4 feature, 0x20 left child is a
+   leaf, 0x40 right child is a leaf, 0x80 default left. Cuts are on the raw inputs: exactly the branches of
+   the standardised Python model. */
+typedef union {{
+    struct {{ unsigned char feature_flags, bin; unsigned short left; }} split;
+    float leaf;
+}} qc_node;
+static const qc_node QC_NODES[{max(len(nodes), 1)}] = {{
+    {nodes_text}
+}};
+static const {start_type} QC_TREE_START[{max(len(tree_start), 1)}] = {{{", ".join(map(str, tree_start)) or "0"}}};
+/* output k: trees [first[k], first[k+1]) */
+static const unsigned short QC_FIRST_TREE[7] = {{{", ".join(str(int(v)) for v in first)}}};
+{float_table("QC_CUTS", all_cuts)}
+static const unsigned short QC_CUT_START[QC_N_FEATURES + 1] = {{{", ".join(str(int(v)) for v in cut_start)}}};
+{float_table("QC_BASE", base)}  /* XGBoost base score per output */
+{float_table("QC_Y_MEAN", model.y_scaler.mean)}
+{float_table("QC_Y_STD", model.y_scaler.std)}
+
+""" + QC_LEARNED_C
     figures = {"kind": "xgboost", "trees": len(tree_start), "nodes": len(nodes), "trees_per_output": trees_of,
                "max_depth": int(forest.depth), "cuts": int(cut_start[-1])}
     return code, figures
