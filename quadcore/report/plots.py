@@ -7,12 +7,15 @@ or Markdown (:func:`quadcore.report.render.markdown_image`), or attach it to Dag
 from __future__ import annotations
 
 import io
+import threading
+from collections.abc import Callable
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import polars as pl  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.ticker import NullLocator  # noqa: E402
 
 from quadcore.physics.dynamics import XYZ  # noqa: E402
@@ -33,51 +36,97 @@ THUMB_POINTS = 600
 THUMB_LINE = {"antialiased": False}
 
 
+# Per-flight figures of one layout, built once per thread and redrawn with each flight's lines:
+# making a fresh figure's axes and tick artists is about half the cost of a thumbnail.
+_REUSED = threading.local()
+
+
+def _reused(layout: str, build: Callable[[], tuple[Figure, list]]) -> tuple[Figure, list]:
+    """The ``layout`` figure and its axes (built by ``build`` on first use in this thread),
+    emptied of the previous flight's lines; the caller draws, rescales and names it again.
+    Not closed after use (a plain ``Figure``, outside pyplot's registry)."""
+    figures = _REUSED.__dict__.setdefault("figures", {})
+    if layout not in figures:
+        figures[layout] = build()
+    fig, axes = figures[layout]
+    for ax in axes:
+        for line in list(ax.lines):
+            line.remove()
+    return fig, axes
+
+
+def _thumbnail_png(fig: Figure, axes: list) -> bytes:
+    """PNG of a reused figure, its axes rescaled to the lines now in them."""
+    for ax in axes:
+        ax.relim()
+        ax.autoscale_view()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=THUMB_DPI)
+    return buf.getvalue()
+
+
+def _model_vs_measured_figure() -> tuple[Figure, list]:
+    fig = Figure(figsize=(9, 5.5))
+    grid = fig.subplots(3, 2, sharex=True)
+    fig.subplots_adjust(left=0.09, right=0.98, top=0.92, bottom=0.09, wspace=0.3, hspace=0.15)
+    for row, axis in enumerate(XYZ):
+        for col, (kind, unit) in enumerate((("f", "N"), ("tau", "Nm"))):
+            grid[row, col].set_ylabel(f"{'F' if kind == 'f' else 'τ'}_{axis} body [{unit.replace('Nm', 'N m')}]")
+            grid[row, col].grid(alpha=0.3)
+    grid[-1, 0].set_xlabel("t [s]")
+    grid[-1, 1].set_xlabel("t [s]")
+    return fig, list(grid.flat)
+
+
 def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = THUMB_POINTS) -> bytes:
     """Measured and modelled body force and torque over time, with the residual, per axis."""
     step = max(1, res.height // max_points)
     d = res.gather_every(step)
     t = d["t_s"].to_numpy()
-    fig, axes = plt.subplots(3, 2, figsize=(9, 5.5), sharex=True)
-    fig.subplots_adjust(left=0.09, right=0.98, top=0.92, bottom=0.09, wspace=0.3, hspace=0.15)
-    for row, axis in enumerate(XYZ):
-        for col, (kind, unit) in enumerate((("f", "N"), ("tau", "Nm"))):
-            ax = axes[row, col]
-            ax.plot(t, d[f"{kind}_meas_b_{axis}_{unit}"], lw=0.8, label="measured", **THUMB_LINE)
-            ax.plot(t, d[f"{kind}_model_b_{axis}_{unit}"], lw=0.8, label="model", **THUMB_LINE)
-            ax.plot(t, d[f"{kind}_res_b_{axis}_{unit}"], lw=0.6, color="tab:red", alpha=0.7, label="residual",
-                    **THUMB_LINE)
-            ax.set_ylabel(f"{'F' if kind == 'f' else 'τ'}_{axis} body [{unit.replace('Nm', 'N m')}]")
-            ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc="upper right", fontsize=8)
-    axes[-1, 0].set_xlabel("t [s]")
-    axes[-1, 1].set_xlabel("t [s]")
+    fig, axes = _reused("model_vs_measured", _model_vs_measured_figure)
+    panels = [(axis, kind, unit) for axis in XYZ for kind, unit in (("f", "N"), ("tau", "Nm"))]
+    for ax, (axis, kind, unit) in zip(axes, panels):
+        ax.set_prop_cycle(None)  # each flight's lines in the same colours
+        ax.plot(t, d[f"{kind}_meas_b_{axis}_{unit}"], lw=0.8, label="measured", **THUMB_LINE)
+        ax.plot(t, d[f"{kind}_model_b_{axis}_{unit}"], lw=0.8, label="model", **THUMB_LINE)
+        ax.plot(t, d[f"{kind}_res_b_{axis}_{unit}"], lw=0.6, color="tab:red", alpha=0.7, label="residual",
+                **THUMB_LINE)
+    axes[0].legend(loc="upper right", fontsize=8)
     fig.suptitle(title or "model vs measurement")
-    return _png(fig, THUMB_DPI, tight=False)
+    return _thumbnail_png(fig, axes)
 
 
-def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
-    """Open-loop rollout error against time ahead, one line per horizon."""
-    fig, axes = plt.subplots(1, 4, figsize=(11, 3))
+_GROWTH_PANELS = (("pos_err_m", "position error [m]"), ("vel_err_mps", "velocity error [m/s]"),
+                  ("att_err_deg", "attitude error [deg]"), ("rate_err_radps", "rate error [rad/s]"))
+
+
+def _error_growth_figure() -> tuple[Figure, list]:
+    fig = Figure(figsize=(11, 3))
+    axes = list(fig.subplots(1, 4))
     fig.subplots_adjust(left=0.06, right=0.99, top=0.86, bottom=0.16, wspace=0.35)
-    panels = (("pos_err_m", "position error [m]"), ("vel_err_mps", "velocity error [m/s]"),
-              ("att_err_deg", "attitude error [deg]"), ("rate_err_radps", "rate error [rad/s]"))
-    horizons = sorted(growth["horizon_s"].unique().to_list())
-    longest = growth.filter(pl.col("horizon_s") == horizons[-1])
-    for ax, (col, label) in zip(axes, panels):
-        ax.plot(longest["t_ahead_s"], longest[col], lw=1.2, **THUMB_LINE)
-        for h in horizons:
-            end = growth.filter(pl.col("horizon_s") == h).sort("step").tail(1)
-            ax.plot(end["t_ahead_s"], end[col], "o", ms=4, label=f"{h:.3g} s")
+    for ax, (_, label) in zip(axes, _GROWTH_PANELS):
         ax.set_xlabel("time ahead [s]")
         ax.set_ylabel(label)
         ax.set_yscale("log")
         ax.yaxis.set_minor_locator(NullLocator())  # minor ticks of a log axis cost more than the plot
         ax.grid(alpha=0.3)
+    return fig, axes
+
+
+def error_growth(growth: pl.DataFrame, title: str = "") -> bytes:
+    """Open-loop rollout error against time ahead, one line per horizon."""
+    fig, axes = _reused("error_growth", _error_growth_figure)
+    horizons = sorted(growth["horizon_s"].unique().to_list())
+    longest = growth.filter(pl.col("horizon_s") == horizons[-1])
+    for ax, (col, _) in zip(axes, _GROWTH_PANELS):
+        ax.set_prop_cycle(None)  # each flight's lines in the same colours
+        ax.plot(longest["t_ahead_s"], longest[col], lw=1.2, **THUMB_LINE)
+        for h in horizons:
+            end = growth.filter(pl.col("horizon_s") == h).sort("step").tail(1)
+            ax.plot(end["t_ahead_s"], end[col], "o", ms=4, label=f"{h:.3g} s")
     axes[0].legend(fontsize=7, title="horizon")
     fig.suptitle(title or "open-loop rollout error growth")
-    return _png(fig, THUMB_DPI, tight=False)
-
+    return _thumbnail_png(fig, axes)
 
 
 def scaling(flights: list[int], series: dict[str, list[float]], peak_mb: list[float], title: str = "") -> bytes:
