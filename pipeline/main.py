@@ -25,7 +25,7 @@ from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.freshness import model_version
-from pipeline.instance import ensure_dagster_home
+from pipeline.instance import ensure_dagster_home, unsynced_event_log
 from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
     DataRoot,
@@ -298,6 +298,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
 def main() -> int:
     data_root = data_root_from_env()
     home = ensure_dagster_home(data_root.root_path)
+    unsynced_event_log(home)
     print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}\n")
     try:
         model = model_config_from_env()
