@@ -192,6 +192,22 @@ def test_models_are_reproducible_and_learn_the_hidden_drag(spec, physics_tables)
     assert a.manifest["train_time_s"] > 0 and a.manifest["val_loss"] < 1.0
 
 
+def test_two_lanes_train_the_models_one_lane_trains(physics_tables):
+    """XGBoost and MLP experiments trained side by side (two MLPs, so torch's seed is set twice
+    in the MLP lane) give bit-for-bit the models of a sequential run, in plan order."""
+    sets = [feat.FEATURE_SETS["physics"]]
+    p = learning.plan(sorted(physics_tables["physics"]), sets, ["xgboost", "mlp"], HOLDOUT, None, compare=False,
+                      specs={"xgboost": XGB, "mlp": replace(MLP, max_epochs=6)})
+    exps = p.experiments + [replace(p.experiments[1], spec=replace(MLP, hidden=(8,), max_epochs=4))]
+    tables = {"physics": physics_tables["physics"]}
+    X, _ = _holdout(physics_tables["physics"])
+    one = learning.train_experiments(exps, tables, replace(CONFIG, lanes=1))
+    two = learning.train_experiments(exps, tables, replace(CONFIG, lanes=2))
+    assert [m.kind for m in two] == [e.spec.kind for e in exps] == ["xgboost", "mlp", "mlp"]
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(a.predict_matrix(X), b.predict_matrix(X))
+
+
 def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_tables, decoded):
     tables = physics_tables["physics"]
     X, _ = _holdout(tables)
