@@ -95,19 +95,11 @@ def _warn(message: str) -> None:
 
 
 def _main_tables(flights: list[flightmod.Flight], veh: vehicle.Vehicle) -> dict[str, pl.DataFrame]:
-    """The flights the physics can use with ``veh`` (the skipped ones said on stderr): one bad
-    flight never stops the others."""
+    """The flights the physics can use with ``veh`` (:func:`quadcore.workflows.fleet.main_tables`;
+    the skipped ones said on stderr): one bad flight never stops the others."""
     from quadcore.workflows import fleet
 
-    tables = {f.flight_id: f.tables[fleet.MAIN_EVENT] for f in flights if fleet.MAIN_EVENT in f.tables}
-    for f in flights:
-        if fleet.MAIN_EVENT not in f.tables:
-            _warn(f"{f.flight_id} skipped: no {fleet.MAIN_EVENT!r} records")
-    usable = fleet.usable(tables, veh, warn=_warn).tables
-    if not usable:
-        raise UserError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
-                        f"{fleet.MAIN_EVENT!r} records)")
-    return usable
+    return dict(fleet.main_tables(flights, veh, warn=_warn).tables)
 
 
 def cmd_residuals(args: argparse.Namespace) -> int:
@@ -291,16 +283,13 @@ def _data_and_effects(args: argparse.Namespace) -> tuple[Path, list[str]]:
 
 def _model_and_flights(args: argparse.Namespace):
     """The model (``--model`` file or ``--effects``, ``--sessions``), the usable flights of DATA
-    and the ``--holdout`` (checked; None: cross-validation): what ``diagnose`` and ``discover``
-    start from."""
+    and the ``--holdout`` names: what ``diagnose`` and ``discover`` start from."""
     from quadcore import workflows
-    from quadcore.workflows import fleet, identify
+    from quadcore.workflows import fleet
 
     data, names = _data_and_effects(args)
     spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names, args.sessions)
-    flights = fleet.fleet_from_logs([str(data)], spec.vehicle, _warn)
-    seen, holdout = identify.diagnosis_flights(flights, workflows.parse_names(args.holdout), False, str(data))
-    return spec, seen, holdout
+    return spec, fleet.fleet_from_logs([str(data)], spec.vehicle, _warn), workflows.parse_names(args.holdout)
 
 
 def _progress(args: argparse.Namespace):
@@ -312,9 +301,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     from quadcore.workflows import identify
 
     spec, flights, holdout = _model_and_flights(args)
-    log = _progress(args)
-    log(f"diagnosing {len(flights.tables)} flights against {spec.effects or 'the nominal model'}")
-    result = identify.diagnose(flights, spec, holdout, log)
+    result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
     out = identify.write_diagnosis_json(result, Path(args.json))
     b = result["baseline"]
     print(f"model: {result['model']['label']}  ({result['evaluation']['mode']}, "
@@ -361,7 +348,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
         target = Path(args.write_effect)
         if target.suffix != ".py" or not discovery.NAME_RE.match(target.stem):
             raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
-    result = identify.discover(flights, spec, holdout, _progress(args))
+    result = identify.discover(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
     out = Path(args.json)
     try:
         identify.write_discovery(result, out)

@@ -13,7 +13,7 @@ import dagster as dg
 import polars as pl
 import pytest
 
-from pipeline.assets.model import diagnosis_flights, failing_on_user_errors
+from pipeline.assets.model import failing_on_user_errors
 from pipeline.resources import ModelConfig
 from quadcore import cli, effects, workflows
 from quadcore.identify import model
@@ -31,6 +31,12 @@ def _decoded(names=FLIGHTS) -> Fleet:
 def _held_out(config: ModelConfig, fleet: Fleet):
     with failing_on_user_errors():
         return workflows.held_out(config.holdout_flights, fleet.ids)
+
+
+def diagnosis_flights(config: ModelConfig, fleet: Fleet):
+    """The flights model_diagnosis and term_discovery see, failing as they fail."""
+    with failing_on_user_errors():
+        return identify.diagnosis_flights(fleet, config.holdout_flights, default_held=True)
 
 
 def test_named_holdout_is_checked_not_filtered():

@@ -6,7 +6,6 @@ import dagster as dg
 from pipeline.assets.model import (
     ALL_FLIGHTS,
     RETRAIN,
-    diagnosis_flights,
     failing_on_user_errors,
     load_fleet,
     physics_model,
@@ -27,15 +26,13 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     scored on is left out unless ``QUADCORE_HOLDOUT`` names the holdout). Writes reports/discovery.json."""
     spec = model.spec()
     flights = load_fleet(data_root, spec.vehicle, context.log)
-    seen, holdout = diagnosis_flights(model, flights)  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
-    if not identify.can_discover(seen, holdout):  # a young fleet: the diagnosis still runs, discovery waits
-        why = (f"skipped: discovery needs at least two training flights besides the held-out ones "
-               f"(folds are grouped by flight); {len(flights.tables)} usable decoded")
-        context.log.warning(why)
-        return dg.MaterializeResult(metadata={"summary": why, "flights": len(seen.tables),
-                                              **skipped_metadata(flights.skipped)})
-    with failing_on_user_errors():
-        result = identify.discover(seen, spec, holdout, context.log.info)
+    with failing_on_user_errors():  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
+        try:
+            result = identify.discover(flights, spec, model.holdout_flights, context.log.info)
+        except identify.TooFewFlights as exc:  # a young fleet: the diagnosis still runs, discovery waits
+            why = f"skipped: {exc}; {len(flights.tables)} usable decoded"
+            context.log.warning(why)
+            return dg.MaterializeResult(metadata={"summary": why, **skipped_metadata(flights.skipped)})
     path = identify.write_discovery(result, store.discovery_path(data_root.root_path))
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
@@ -48,7 +45,7 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
         **{f"after_torque_rmse_{ax}_Nm": number(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},
         "baseline": dg.MetadataValue.json(b),
         "path": dg.MetadataValue.path(str(path)),
-        "flights": len(seen.tables),
+        "flights": len({*result.evaluation["train_flights"], *result.evaluation["eval_flights"]}),
         **skipped_metadata(flights.skipped),
     })
 

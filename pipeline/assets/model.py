@@ -54,12 +54,6 @@ def skipped_metadata(skipped: dict[str, str]) -> dict:
             "skipped_count": len(skipped)}
 
 
-def diagnosis_flights(model: ModelConfig, flights: Fleet) -> tuple[Fleet, list[str] | None]:
-    """The flights the diagnosis and the discovery see (:func:`quadcore.workflows.identify.diagnosis_flights`)."""
-    with failing_on_user_errors():
-        return identify.diagnosis_flights(flights, model.holdout_flights, default_held=True)
-
-
 def current_model(data_root: DataRoot, model: ModelConfig, log=None):
     """:func:`quadcore.workflows.identify.current_model` for the model these settings name."""
     warn = log.warning if log is not None else (lambda m: None)
@@ -106,12 +100,9 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     held-out flights. Writes reports/diagnosis.{json,md,html} and appends to the history."""
     spec = model.spec()
     flights = load_fleet(data_root, spec.vehicle, context.log)
-    if len(flights.tables) < 2:
-        raise dg.Failure(
-            description="the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
-    seen, holdout = diagnosis_flights(model, flights)
     with failing_on_user_errors():
-        result = identify.diagnose(seen, spec, holdout, context.log.info, sufficient.stored(data_root.root_path, spec))
+        result = identify.diagnose(flights, spec, model.holdout_flights, context.log.info,
+                                   stats=sufficient.stored(data_root.root_path, spec))
     md, page = identify.record_diagnosis(data_root.root_path, result, spec)
     b = result["baseline"]
     top = result["candidates"][:5]

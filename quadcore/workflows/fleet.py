@@ -109,21 +109,30 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     return Fleet(_subset(tables, good), skipped)
 
 
-def fleet_from_logs(paths: list[str], vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
-    """Decode the logs under ``paths`` (nothing written) and keep the flights the physics can use.
-    Raises :class:`NoFlightsError` when none is left."""
-    flights, quarantined = decode_logs(paths)
-    for fid, why in quarantined.items():
+def main_tables(flights: list[flightmod.Flight], vehicle: Vehicle, quarantined: dict[str, str] | None = None,
+                warn: Callable[[str], None] = lambda m: None) -> Fleet:
+    """The main table of every decoded flight the physics can use; the quarantined ones, those
+    without a main table and the unusable ones are skipped, each with its reason said through
+    ``warn``. Raises :class:`NoFlightsError` when none is left."""
+    for fid, why in (quarantined or {}).items():
         warn(f"{fid} skipped: {why}")
     tables = {f.flight_id: f.tables[MAIN_EVENT] for f in flights if MAIN_EVENT in f.tables}
     no_main = {f.flight_id: f"no {MAIN_EVENT!r} records" for f in flights if MAIN_EVENT not in f.tables}
     for fid, why in no_main.items():
         warn(f"{fid} skipped: {why}")
-    fleet = usable(tables, vehicle, {**{f: f"quarantined: {w}" for f, w in quarantined.items()}, **no_main}, warn)
+    skipped = {**{f: f"quarantined: {w}" for f, w in (quarantined or {}).items()}, **no_main}
+    fleet = usable(tables, vehicle, skipped, warn)
     if not fleet.tables:
         raise NoFlightsError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
                              f"{MAIN_EVENT!r} records)")
     return fleet
+
+
+def fleet_from_logs(paths: list[str], vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
+    """Decode the logs under ``paths`` (nothing written) and keep the flights the physics can use
+    (:func:`main_tables`)."""
+    flights, quarantined = decode_logs(paths)
+    return main_tables(flights, vehicle, quarantined, warn)
 
 
 def fleet_from_store(root, vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:

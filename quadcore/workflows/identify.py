@@ -79,24 +79,33 @@ def fit_is_stale(root, spec: ModelSpec) -> bool:
 
 # --- diagnosis -----------------------------------------------------------------------------
 
+class TooFewFlights(WorkflowError):
+    """Too few flights for the diagnosis or the discovery (a young fleet)."""
+
+
 def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
                       where: str = "the decoded flights") -> tuple[Fleet, list[str] | None]:
     """(the flights a diagnosis or discovery sees, its holdout or None for cross-validation).
     ``named``: the requested holdout (checked). Without one and with ``default_held`` (the data
     root's fleet, where the learned models hold a flight out) that flight is left out of the
     cross-validation; the CLI cross-validates over every flight it is given."""
+    if default_held and len(fleet.tables) < 2:
+        raise TooFewFlights("the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
     held, _ = held_out(named, fleet.ids, where) if named or default_held else ([], "")
     seen, holdout = scored_flights(fleet.ids, named, held)
     return fleet.only(seen), holdout or None
 
 
-def diagnose(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet, stats=None) -> dict:
-    """:func:`quadcore.identify.diagnosis.diagnose` on the fleet, with the flights skipped on the way
-    (``skipped_flights``): the JSON document ``quadcore diagnose --json`` and
-    ``reports/diagnosis.json`` hold. ``stats`` as for :func:`fit`."""
+def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
+             where: str = "the decoded flights", stats=None) -> dict:
+    """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks, with the
+    flights skipped on the way (``skipped_flights``): the JSON document ``quadcore diagnose
+    --json`` and ``reports/diagnosis.json`` hold. ``stats`` as for :func:`fit`."""
     from quadcore.identify import diagnosis
 
-    result = diagnosis.diagnose(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids),
+    seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
+    log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
+    result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
                                 stats=stats)
     return {**result, "skipped_flights": fleet.skipped}
 
@@ -158,18 +167,17 @@ def suggestion(result: dict) -> str | None:
 MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
 
 
-def can_discover(fleet: Fleet, holdout: list[str] | None) -> bool:
-    return len(fleet.tables) - len(holdout or []) >= MIN_DISCOVERY_TRAINING
-
-
-def discover(fleet: Fleet, spec: ModelSpec, holdout: list[str] | None, log: Log = _quiet) -> Discovery:
-    """:func:`quadcore.identify.discovery.discover` on the fleet (:class:`WorkflowError` with fewer than
-    two training flights)."""
+def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
+             where: str = "the decoded flights") -> Discovery:
+    """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`).
+    Raises :class:`TooFewFlights` with fewer than two training flights."""
     from quadcore.identify import discovery
 
-    if not can_discover(fleet, holdout):
-        raise WorkflowError("discovery needs at least two training flights (its folds are grouped by flight)")
-    return discovery.discover(fleet.tables, spec, holdout, log=log, sessions=sessions_of(spec, fleet.ids))
+    seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
+    if len(seen.tables) - len(holdout or []) < MIN_DISCOVERY_TRAINING:
+        raise TooFewFlights("discovery needs at least two training flights besides the held-out ones (its folds "
+                            "are grouped by flight)")
+    return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids))
 
 
 def write_discovery(result: Discovery, path) -> Path:
