@@ -31,7 +31,7 @@ def main() -> None:
     result = diagnosis.diagnose(decoded, model.spec_from(veh, []))
     t_diag = time.perf_counter() - t0
     print(f"diagnosis incl. decoding (5-fold): {t_diag:7.3f} s   target < 20 s: {'MET' if t_diag < 20 else 'NOT MET'}")
-    print(f"  top candidate: {result['candidates'][0]['effect']}")
+    print(f"  top candidate: {result.candidates[0].effect}")
 
 
 if __name__ == "__main__":

@@ -63,7 +63,7 @@ def diagnose(configs: list[SimConfig], hidden: dict) -> dict:
     try:
         simulation.simulate_set(folder, configs, hidden, VEHICLE)
         tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
-        return diagnosis.diagnose(tables, model.spec_from(VEHICLE, []))
+        return diagnosis.diagnose(tables, model.spec_from(VEHICLE, [])).to_dict()
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 

@@ -303,27 +303,28 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     spec, flights, holdout = _model_and_flights(args)
     result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
     out = identify.write_diagnosis_json(result, Path(args.json))
-    b = result["baseline"]
-    print(f"model: {result['model']['label']}  ({result['evaluation']['mode']}, "
-          f"{len(result['evaluation']['eval_flights'])} flights evaluated)")
-    print("baseline residual RMSE  force [N]: " + " ".join(f"{v:.4f}" for v in b["force_rmse_N"])
-          + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b["torque_rmse_Nm"]))
+    b = result.baseline
+    print(f"model: {result.model.label}  ({result.evaluation.mode}, {len(result.evaluation.eval_flights)} flights "
+          "evaluated)")
+    print("baseline residual RMSE  force [N]: " + " ".join(f"{v:.4f}" for v in b.force_rmse_N)
+          + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b.torque_rmse_Nm))
     print()
     _print_table([[r["effect"], r["status"], r["target"], f"{r['explained']:.1%}", f"{r['above_noise']:.1%}",
-                   f"{r['held_out_p']:.2g}", r["why"]] for r in diagnosis.candidate_summary(result)],
+                   f"{r['held_out_p']:.2g}", r["why"]] for r in diagnosis.candidate_summary(result.candidates)],
                  ["candidate", "status", "target", "explained", "above noise", "held-out p", "why it is ranked here"])
     print("\nsmallest effect these flights would detect "
-          f"({result['sensitivity_basis']['detection_probability']:.0%} of the time):")
+          f"({result.sensitivity_basis['detection_probability']:.0%} of the time):")
     _print_table([[r["effect"], r["of"], "not in range" if r["undetected_below"] is None
-                   else f"{r['undetected_below']:.2g} {r['unit']}"] for r in diagnosis.sensitivity_rows(result)],
+                   else f"{r['undetected_below']:.2g} {r['unit']}"]
+                  for r in diagnosis.sensitivity_rows(result.sensitivity, result.sensitivity_basis)],
                  ["effect", "parameter", "undetected below"])
-    for d in result["disagreements"]:
-        print(f"\n{d['effect']}.{d['parameter']} differs between groups of flights ({d['source']}):")
-        for g in d["groups"]:
-            print(f"  {g['value']:.4g} ± {g['std']:.2g}: {', '.join(g['flights'])}")
-        for note in d["notes"]:
+    for d in result.disagreements:
+        print(f"\n{d.effect}.{d.parameter} differs between groups of flights ({d.source}):")
+        for g in d.groups:
+            print(f"  {g.value:.4g} ± {g.std:.2g}: {', '.join(g.flights)}")
+        for note in d.notes:
             print(f"  note: {note}")
-    print(f"\n{result['verdict']}\n\nwrote {out}")
+    print(f"\n{result.verdict}\n\nwrote {out}")
     if args.report:
         md, page = identify.write_diagnosis_report(result, Path(args.report))
         with_discovery = identify.discovery_for(args.report, spec.effects) is not None

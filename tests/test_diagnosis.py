@@ -98,7 +98,7 @@ def sim_sets(tmp_path_factory):
 
 
 def _diagnose(tables: dict, effect_names=(), holdout=None, candidates=None) -> dict:
-    return diagnosis.diagnose(tables, model.spec_from(VEHICLE, list(effect_names)), holdout, candidates)
+    return diagnosis.diagnose(tables, model.spec_from(VEHICLE, list(effect_names)), holdout, candidates).to_dict()
 
 
 def _rmse(result: dict, channel: str) -> np.ndarray:
@@ -681,7 +681,7 @@ def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
 
     # held out, with named sessions: sim005 is scored with its session's scale, better than one fleet scale
     path.write_text(path.read_text() + '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]"]\n')
-    per_session = diagnosis.diagnose(tables, model.load_model_file(path), ["sim005"])
+    per_session = diagnosis.diagnose(tables, model.load_model_file(path), ["sim005"]).to_dict()
     fleet = _diagnose(tables, ["thrust_scale"], holdout=["sim005"])
     assert per_session["model"]["effects"][0]["per_session"]["tuesday"]["scale"] == pytest.approx(
         SESSION_SCALES["late"], rel=0.02)

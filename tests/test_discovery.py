@@ -263,7 +263,7 @@ def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights
                for p in flight.discover_logs(hidden_flights)}
     groups = {"one": ["sim000", "sim003"], "two": ["sim001", "sim002"]}
     found = discovery.discover(decoded, spec, [HOLDOUT], sessions=groups)
-    diagnosed = diagnosis.diagnose(decoded, spec, [HOLDOUT], sessions=groups)
+    diagnosed = diagnosis.diagnose(decoded, spec, [HOLDOUT], sessions=groups).to_dict()
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         np.testing.assert_allclose(found.baseline[key], diagnosed["baseline"][key], rtol=1e-6)
 

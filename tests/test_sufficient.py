@@ -157,8 +157,8 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
     held = sorted(tables)[-1]
     linear = [n for n in LINEAR if n != "rotor_drag"]
     spec = model.spec_from(VEHICLE, ["rotor_drag"])
-    result = diagnosis.diagnose(_OnlyThese(tables, {held}), spec, [held], linear, stats=stats.get)
-    again = diagnosis.diagnose(tables, spec, [held], linear)  # statistics computed from the rows
+    result = diagnosis.diagnose(_OnlyThese(tables, {held}), spec, [held], linear, stats=stats.get).to_dict()
+    again = diagnosis.diagnose(tables, spec, [held], linear).to_dict()  # statistics computed from the rows
     assert result["verdict"] == again["verdict"]
     assert [r["effect"] for r in result["candidates"]] == [r["effect"] for r in again["candidates"]]
     for key in ("force_rmse_N", "torque_rmse_Nm"):

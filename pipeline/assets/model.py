@@ -104,24 +104,25 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         result = identify.diagnose(flights, spec, model.holdout_flights, context.log.info,
                                    stats=sufficient.stored(data_root.root_path, spec))
     md, page = identify.record_diagnosis(data_root.root_path, result, spec)
-    b = result["baseline"]
-    top = result["candidates"][:5]
+    b, doc = result.baseline, result.to_dict()  # the plots draw the JSON document
+    disagreements = [d.to_dict() for d in result.disagreements]
     return dg.MaterializeResult(metadata={
-        "verdict": dg.MetadataValue.md(result["verdict"]),
-        "model": result["model"]["label"],
-        **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b["force_rmse_N"])},
-        **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b["torque_rmse_Nm"])},
+        "verdict": dg.MetadataValue.md(result.verdict),
+        "model": result.model.label,
+        **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b.force_rmse_N)},
+        **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b.torque_rmse_Nm)},
         "candidates": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
-            diagnosis.candidate_summary({"candidates": top})))),
-        "sensitivity": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(diagnosis.sensitivity_rows(result)))),
-        "sensitivity_json": dg.MetadataValue.json(result["sensitivity"]),
+            diagnosis.candidate_summary(result.candidates[:5])))),
+        "sensitivity": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
+            diagnosis.sensitivity_rows(result.sensitivity, result.sensitivity_basis)))),
+        "sensitivity_json": dg.MetadataValue.json(doc["sensitivity"]),
         "disagreements": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
-            sessions.table_rows(result["disagreements"]))) if result["disagreements"] else "none: one value fits all"),
-        "disagreements_json": dg.MetadataValue.json(result["disagreements"]),
-        "candidates_plot": plot_md(data_root, report.candidates_plot(result), "candidates"),
-        "regimes_plot": plot_md(data_root, report.regimes_plot(result), "regimes"),
-        "worst_segments": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(result["worst_segments"]))),
-        **_frequency_metadata(data_root, result.get("frequency")),
+            sessions.table_rows(disagreements))) if disagreements else "none: one value fits all"),
+        "disagreements_json": dg.MetadataValue.json(disagreements),
+        "candidates_plot": plot_md(data_root, report.candidates_plot(doc), "candidates"),
+        "regimes_plot": plot_md(data_root, report.regimes_plot(doc), "regimes"),
+        "worst_segments": dg.MetadataValue.md(render.markdown_table(result.worst_segments)),
+        **_frequency_metadata(data_root, doc["frequency"]),
         "report": dg.MetadataValue.path(str(page)),
         **skipped_metadata(flights.skipped),
     })

@@ -91,7 +91,7 @@ from __future__ import annotations
 
 import functools
 import operator
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -102,6 +102,7 @@ from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions as sessionlib, spectrum, sufficient
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
+from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse
 from quadcore.physics import rotations, signals
 from quadcore.physics.dynamics import GRAVITY_W_MPS2, XYZ
 
@@ -369,10 +370,10 @@ def diagnose(
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
     stats=None,
-) -> dict:
+) -> Diagnosis:
     """Fit the model, score it on held-out flights, rank the missing effects, and find the
     parameters that differ between groups of flights (``sessions``: name -> flights, from a
-    sessions file; None: groups found from the data). JSON-ready dict.
+    sessions file; None: groups found from the data). Its ``to_dict()`` is the JSON document.
 
     With a model of linear effects, fits, folds and held-out tests combine the flights'
     sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
@@ -461,10 +462,6 @@ def diagnose(
     eval_fds = _evaluated(fl, eval_ids, cands, cand_pred, eval_resid, by_rows)
     before = _total(_ss(eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
-    baseline = {
-        "force_rmse_N": [float(np.sqrt(before[j] / n_eval)) for j in range(3)],
-        "torque_rmse_Nm": [float(np.sqrt(before[3 + j] / n_eval)) for j in range(3)],
-    }
 
     # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
     # holds no evidence FOR an effect (only against one that would add error there).
@@ -595,29 +592,31 @@ def diagnose(
     text = verdict(rows, at_noise, sensitivity)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
-    return {
-        "effects_in_model": spec.effects,
-        "model": model.to_dict(),
-        "evaluation": {"mode": mode, "folds": len(splits), "train_flights": train_all, "eval_flights": eval_ids,
-                       "samples": n_eval},
-        "baseline": baseline,
-        "noise_floor": {
-            "force_rmse_N": [float(np.sqrt(noise_ss[j] / n_eval)) for j in range(3)],
-            "torque_rmse_Nm": [float(np.sqrt(noise_ss[3 + j] / n_eval)) for j in range(3)],
-        },
-        "at_noise_level": at_noise,
-        "residual_to_noise": {ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
-                              else None for ch, sl in TARGET_CHANNELS.items()},
-        "candidates": rows,
-        "sensitivity": sensitivity,
-        "sensitivity_basis": sensitivity_basis(cands),
-        "verdict": text,
-        "disagreements": [d.to_dict() for d in disagree],
-        "regimes": regime_table(long).to_dicts(),
-        "flights": flight_table(long).to_dicts(),
-        "worst_segments": worst_segments(long).to_dicts(),
-        "frequency": spectrum.frequency_view(eval_rows, resid_rows, vehicle),
-    }
+    return Diagnosis(
+        effects_in_model=tuple(spec.effects),
+        model=model,
+        evaluation=Evaluation(mode, len(splits), tuple(train_all), tuple(eval_ids), n_eval),
+        baseline=_rmse(before, n_eval),
+        noise_floor=_rmse(noise_ss, n_eval),
+        at_noise_level=at_noise,
+        residual_to_noise={ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
+                           else None for ch, sl in TARGET_CHANNELS.items()},
+        candidates=tuple(CandidateScore.from_dict(r) for r in rows),
+        sensitivity=sensitivity,
+        sensitivity_basis=sensitivity_basis(cands),
+        verdict=text,
+        disagreements=tuple(disagree),
+        regimes=regime_table(long),
+        flights=flight_table(long),
+        worst_segments=worst_segments(long),
+        frequency=spectrum.frequency_view(eval_rows, resid_rows, vehicle),
+    )
+
+
+def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
+    """Per-axis RMS from the sums of squares (6,) over ``n`` samples."""
+    return ResidualRmse(tuple(float(np.sqrt(ss[j] / n)) for j in range(3)),
+                        tuple(float(np.sqrt(ss[3 + j] / n)) for j in range(3)))
 
 
 # ---------------------------------------------------------------------------------------
@@ -984,28 +983,29 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
     return text + missed
 
 
-def candidate_summary(d: dict) -> list[dict]:
+def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:
     """One row per candidate, best first, for people: its status and why it is ranked there
     (the console, the reports and the UI show the same)."""
     return [{
         "rank": i,
-        "effect": r["effect"],
-        "status": r.get("status", "found" if r.get("useful") else "-"),
-        "target": r["target"],
-        "explained": round(r["explained_variance"], 3),
-        "above_noise": round(r.get("explained_above_noise", float("nan")), 3),
-        "held_out_p": float(f"{r.get('held_out_p_value', float('nan')):.2g}"),
-        "parameters": ", ".join(f"{k}={v:.4g}±{r['parameter_std'].get(k, float('nan')):.2g}"
-                                for k, v in r["parameters"].items()),
-        "why": r.get("reason", "; ".join(r["notes"])),
-    } for i, r in enumerate(d["candidates"], 1)]
+        "effect": c.effect,
+        "status": c.status,
+        "target": c.target,
+        "explained": round(c.explained_variance, 3),
+        "above_noise": round(c.explained_above_noise, 3),
+        "held_out_p": float(f"{c.held_out_p_value:.2g}"),
+        "parameters": ", ".join(f"{k}={v:.4g}±{c.parameter_std.get(k, float('nan')):.2g}"
+                                for k, v in c.parameters.items()),
+        "why": c.reason,
+    } for i, c in enumerate(candidates, 1)]
 
 
-def sensitivity_rows(d: dict) -> list[dict]:
-    """One row per effect and parameter: the smallest deviation these flights would detect."""
-    basis = d.get("sensitivity_basis", {})
+def sensitivity_rows(sensitivity: Mapping[str, Mapping[str, float | None]],
+                     basis: Mapping[str, Any]) -> list[dict]:
+    """One row per effect and parameter: the smallest deviation these flights would detect
+    (``sensitivity`` and ``sensitivity_basis`` of a :class:`Diagnosis`)."""
     rows = []
-    for name, params in d.get("sensitivity", {}).items():
+    for name, params in sensitivity.items():
         known = {p.name: p for p in effectlib.get(name).parameters} if name in effectlib.registry() else {}
         cond = basis.get("conditions", {}).get(name, {})
         for k, v in params.items():

@@ -14,6 +14,7 @@ from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, scored_flig
 if TYPE_CHECKING:
     from quadcore.identify.discovery import Discovery
     from quadcore.identify.model import FittedModel, ModelSpec, PhysicsModel
+    from quadcore.identify.results import Diagnosis
 
 Log = Callable[[str], None]
 
@@ -97,25 +98,25 @@ def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
 
 
 def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
-             where: str = "the decoded flights", stats=None) -> dict:
-    """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks, with the
-    flights skipped on the way (``skipped_flights``): the JSON document ``quadcore diagnose
-    --json`` and ``reports/diagnosis.json`` hold. ``stats`` as for :func:`fit`."""
+             where: str = "the decoded flights", stats=None) -> Diagnosis:
+    """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
+    with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`."""
     from quadcore.identify import diagnosis
 
     seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
                                 stats=stats)
-    return {**result, "skipped_flights": fleet.skipped}
+    return result.with_skipped(fleet.skipped)
 
 
-def diagnosis_json(result: dict) -> str:
-    """The diagnosis as its JSON text (the contract ``tests/test_json_contracts.py`` pins)."""
-    return json.dumps(result, indent=2, default=float)
+def diagnosis_json(result: Diagnosis) -> str:
+    """The diagnosis as its JSON text, the document ``quadcore diagnose --json`` and
+    ``reports/diagnosis.json`` hold (``tests/test_json_contracts.py`` pins it)."""
+    return json.dumps(result.to_dict(), indent=2, default=float)
 
 
-def write_diagnosis_json(result: dict, path) -> Path:
+def write_diagnosis_json(result: Diagnosis, path) -> Path:
     from quadcore.store import store
 
     return store.write_text(diagnosis_json(result), path)
@@ -131,7 +132,7 @@ def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
 
 
-def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, Path]:
+def write_diagnosis_report(result: Diagnosis, reports_dir, root=None) -> tuple[Path, Path]:
     """The diagnosis report (Markdown and HTML, with the plots) in ``reports_dir``, with the
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
     history. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
@@ -139,25 +140,25 @@ def write_diagnosis_report(result: dict, reports_dir, root=None) -> tuple[Path, 
     from quadcore.report import report
 
     hist = history.read(root) if root is not None else None
-    return report.write(result, reports_dir, hist, discovery_for(reports_dir, result["effects_in_model"]))
+    return report.write(result.to_dict(), reports_dir, hist, discovery_for(reports_dir, list(result.effects_in_model)))
 
 
-def record_diagnosis(root, result: dict, spec: ModelSpec) -> tuple[Path, Path]:
+def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Path]:
     """Write a data root's diagnosis: ``reports/diagnosis.json``, a row of the error history and
     the report. Returns the report's (md, html)."""
     from quadcore.identify import history
     from quadcore.store import store
 
     write_diagnosis_json(result, store.diagnosis_path(root))
-    b, ev = result["baseline"], result["evaluation"]
-    history.record(root, "diagnosis", result["model"]["label"], b["force_rmse_N"], b["torque_rmse_Nm"],
-                   spec.effects, {e["name"]: e["params"] for e in result["model"]["effects"]},
-                   ev["mode"], ev["eval_flights"])
+    b, ev = result.baseline, result.evaluation
+    history.record(root, "diagnosis", result.model.label, list(b.force_rmse_N), list(b.torque_rmse_Nm),
+                   spec.effects, {t.name: t.params for t in result.model.terms}, ev.mode, list(ev.eval_flights))
     return write_diagnosis_report(result, store.reports_dir(root), root)
 
 
 def suggestion(result: dict) -> str | None:
-    """The diagnosis' top candidate if it is found (explains something, significantly)."""
+    """The top candidate of a diagnosis document (``reports/diagnosis.json``) if it is found
+    (explains something, significantly)."""
     useful = [r for r in result["candidates"] if r["useful"]]
     return useful[0]["effect"] if useful else None
 

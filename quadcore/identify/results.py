@@ -1,0 +1,165 @@
+"""The diagnosis as types: one :class:`CandidateScore` per candidate effect and the
+:class:`Diagnosis` around them (:func:`quadcore.identify.diagnosis.diagnose`). Serialised only at
+the JSON boundary (:meth:`Diagnosis.to_dict`), in the key order of the ``quadcore diagnose
+--json`` contract (``tests/test_json_contracts.py`` pins it byte for byte)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import polars as pl
+
+    from quadcore.identify.model import PhysicsModel
+    from quadcore.identify.sessions import Disagreement
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """A candidate effect fitted on the training flights and scored on held-out ones: how much
+    of the residual it removes (raw, per channel and axis, above the noise floor), its fitted
+    parameters with their uncertainty, the held-out test, the decision (``found``, ``grade``,
+    ``status``, ``reason``), the candidates the data cannot tell it from, and the smallest
+    value of each parameter these flights would detect."""
+
+    effect: str
+    target: str  # the channel it explains: "force" or "torque"
+    acts_on: str  # the channel(s) the effect acts in: "force", "torque" or "both"
+    explained_variance: float
+    explained_variance_force: float
+    explained_variance_torque: float
+    explained_variance_raw: Mapping[str, float]
+    score: float
+    force_rmse_N: tuple[float, ...]
+    torque_rmse_Nm: tuple[float, ...]
+    parameters: Mapping[str, float]
+    parameter_spread_between_flights: Mapping[str, float]
+    parameter_std: Mapping[str, float]
+    n_parameters: int
+    explained_variance_per_axis: Mapping[str, float]
+    physical: bool
+    significance_sigma: float
+    significant: bool
+    notes: tuple[str, ...]
+    held_out_slope: float
+    held_out_t: float
+    held_out_p_value: float
+    held_out_blocks: int
+    explained_above_noise: float
+    signal_to_noise: float
+    held_out_alpha: float
+    found: bool
+    grade: str
+    indistinguishable_from: tuple[str, ...]
+    tied_with: tuple[str, ...]
+    separated_by: Mapping[str, str]
+    explained_after_top: float
+    status: str
+    reason: str
+    sensitivity: Mapping[str, float | None]
+
+    @property
+    def useful(self) -> bool:
+        """The JSON's older name of ``found``."""
+        return self.found
+
+    @classmethod
+    def from_dict(cls, row: Mapping[str, Any]) -> CandidateScore:
+        """From a candidate row as the diagnosis builds it (or as the JSON holds it)."""
+        values = {name: row[name] for name in cls.__dataclass_fields__}
+        for name in ("force_rmse_N", "torque_rmse_Nm", "notes", "indistinguishable_from", "tied_with"):
+            values[name] = tuple(values[name])
+        return cls(**values)
+
+    def to_dict(self) -> dict:
+        """The candidate's JSON object; ``useful`` (the older name of ``found``) follows ``found``."""
+        out: dict[str, Any] = {}
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if isinstance(value, tuple | Mapping):  # JSON lists and objects, copied
+                value = list(value) if isinstance(value, tuple) else dict(value)
+            out[name] = value
+            if name == "found":
+                out["useful"] = self.found
+        return out
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """How the diagnosis was scored: ``mode`` (holdout, cross-validation, in-sample), the folds,
+    the flights fitted on and scored on, and the samples scored."""
+
+    mode: str
+    folds: int
+    train_flights: tuple[str, ...]
+    eval_flights: tuple[str, ...]
+    samples: int
+
+    def to_dict(self) -> dict:
+        return {"mode": self.mode, "folds": self.folds, "train_flights": list(self.train_flights),
+                "eval_flights": list(self.eval_flights), "samples": self.samples}
+
+
+@dataclass(frozen=True)
+class ResidualRmse:
+    """Residual RMSE per body axis: force in N, torque in N m."""
+
+    force_rmse_N: tuple[float, float, float]
+    torque_rmse_Nm: tuple[float, float, float]
+
+    def to_dict(self) -> dict:
+        return {"force_rmse_N": list(self.force_rmse_N), "torque_rmse_Nm": list(self.torque_rmse_Nm)}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Where the model fails and what is missing (see :mod:`quadcore.identify.diagnosis`)."""
+
+    effects_in_model: tuple[str, ...]
+    model: PhysicsModel  # the model's effects fitted on the training flights
+    evaluation: Evaluation
+    baseline: ResidualRmse  # the model's held-out residual
+    noise_floor: ResidualRmse  # the sensor-noise floor on the same samples
+    at_noise_level: Mapping[str, bool]
+    residual_to_noise: Mapping[str, float | None]
+    candidates: tuple[CandidateScore, ...]  # best first
+    sensitivity: Mapping[str, Mapping[str, float | None]]
+    sensitivity_basis: Mapping[str, Any]
+    verdict: str
+    disagreements: tuple[Disagreement, ...]
+    regimes: pl.DataFrame
+    flights: pl.DataFrame
+    worst_segments: pl.DataFrame
+    frequency: Mapping[str, Any]
+    skipped_flights: Mapping[str, str] | None = None  # flight -> why, where the caller skipped some
+
+    def with_skipped(self, skipped: Mapping[str, str]) -> Diagnosis:
+        return replace(self, skipped_flights=dict(skipped))
+
+    def suggestion(self) -> str | None:
+        """The top candidate if it is found."""
+        return next((c.effect for c in self.candidates if c.found), None)
+
+    def to_dict(self) -> dict:
+        """The JSON document (``quadcore diagnose --json``, ``reports/diagnosis.json``)."""
+        return {
+            "effects_in_model": list(self.effects_in_model),
+            "model": self.model.to_dict(),
+            "evaluation": self.evaluation.to_dict(),
+            "baseline": self.baseline.to_dict(),
+            "noise_floor": self.noise_floor.to_dict(),
+            "at_noise_level": dict(self.at_noise_level),
+            "residual_to_noise": dict(self.residual_to_noise),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "sensitivity": {k: dict(v) for k, v in self.sensitivity.items()},
+            "sensitivity_basis": dict(self.sensitivity_basis),
+            "verdict": self.verdict,
+            "disagreements": [d.to_dict() for d in self.disagreements],
+            "regimes": self.regimes.to_dicts(),
+            "flights": self.flights.to_dicts(),
+            "worst_segments": self.worst_segments.to_dicts(),
+            "frequency": self.frequency,
+            **({"skipped_flights": dict(self.skipped_flights)} if self.skipped_flights is not None else {}),
+        }
