@@ -287,20 +287,20 @@ def report_run(tmp_path_factory, residual_tables):
 @pytest.mark.slow  # the whole learning plan and report
 def test_plan_covers_the_comparisons(report_run):
     _, p, records, *_ = report_run
-    groups = {g for r in records for g in r["groups"]}
+    groups = {g for r in records for g in r.groups}
     assert groups == {"feature_sets", "complexity", "training_size", "lofo"}
-    names = [r["name"] for r in records]
+    names = [r.name for r in records]
     assert len(names) == len(set(names))  # shared runs are trained once
-    complexity = {r["spec"]["max_depth"] for r in records if r["kind"] == "xgboost" and "complexity" in r["groups"]}
+    complexity = {r.spec.max_depth for r in records if r.kind == "xgboost" and "complexity" in r.groups}
     assert complexity == {2, 4, 6, 8}
-    assert {tuple(r["spec"]["hidden"]) for r in records if r["kind"] == "mlp" and "complexity" in r["groups"]} == \
+    assert {tuple(r.spec.hidden) for r in records if r.kind == "mlp" and "complexity" in r.groups} == \
         {(), (64,), (64, 64)}
     # training size: random flights only (sim000, sim001) vs all; one preplanned training flight is too few
-    assert {r["train_group"] for r in records if "training_size" in r["groups"]} == {"all", "random"}
+    assert {r.train_group for r in records if "training_size" in r.groups} == {"all", "random"}
     assert any("only 1 preplanned" in n for n in p.notes)
-    lofo = [r for r in records if "lofo" in r["groups"]]
-    assert sorted({r["test_flights"][0] for r in lofo}) == sorted(SIM_KINDS)
-    assert all(r["test_flights"][0] not in r["train_flights"] for r in records)
+    lofo = [r for r in records if "lofo" in r.groups]
+    assert sorted({r.split.test[0] for r in lofo}) == sorted(SIM_KINDS)
+    assert all(r.split.test[0] not in r.train_flights for r in records)
 
 
 @pytest.mark.slow  # the whole learning plan and report
@@ -476,7 +476,7 @@ def test_real_logs_holdout_jana02(real_logs, tmp_path):
     records = learning.run_plan(p, feat.feature_tables(res, sets), tmp_path / "learned",
                                 {**nominal.to_dict(), "trained_on": [f for f in res if f != "jana02"]},
                                 learning.TrainConfig(threads=1), kinds, log=lambda m: None, latency_repeats=30)
-    assert len(records) == 2 and all(len(r["train_flights"]) == 18 for r in records)
+    assert len(records) == 2 and all(len(r.train_flights) == 18 for r in records)
     report, _, paths = evaluation.full_report(tmp_path / "learned", res, VEHICLE, tmp_path / "reports", tmp_path)
     assert paths["html"].is_file()
     base = report["baselines"]["holdout-jana02"]

@@ -98,8 +98,8 @@ def learned_models(
         "holdout": holdout,
         "models": len(runs.records),
         "runs": dg.MetadataValue.md(render.markdown_table(pl.DataFrame([
-            {"run": r["name"], "train s": r["train_time_s"], "val loss": r["val_loss"], "rows": r["rows_fit"],
-             "µs/sample": r["latency_us"]} for r in runs.records]))),
+            {"run": r.name, "train s": r.train_time_s, "val loss": r.val_loss, "rows": r.rows_fit,
+             "µs/sample": r.latency_us} for r in runs.records]))),
         "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in notes) or "none"),
         "folder": dg.MetadataValue.path(str(store.learned_dir(root))),
     })

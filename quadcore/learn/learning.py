@@ -61,10 +61,11 @@ import json
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -861,10 +862,48 @@ def train_experiments(experiments: list[Experiment], tables_by_set: dict[str, di
     return [m for _, m in sorted(done, key=lambda pair: pair[0])]
 
 
+@dataclass(frozen=True)
+class RunRecord:
+    """One trained model as :func:`run_plan` saved it under ``path``: what was trained (learner
+    spec, feature set, split and training group, the comparison tables it appears in), on which
+    flights, and how it went (training time, validation loss, rows fitted, latency per sample).
+    ``manifest`` is the whole saved manifest (the JSON boundary: :meth:`to_dict`)."""
+
+    name: str
+    spec: LearnerSpec
+    feature_set: FeatureSet
+    split: Split
+    train_group: str
+    groups: tuple[str, ...]
+    train_flights: tuple[str, ...]
+    train_time_s: float
+    val_loss: float
+    rows_fit: int
+    latency_us: float
+    path: Path
+    manifest: Mapping[str, Any]
+
+    @property
+    def kind(self) -> str:
+        return self.spec.kind
+
+    @classmethod
+    def from_manifest(cls, m: Mapping[str, Any], path) -> RunRecord:
+        split = m["split"]
+        return cls(m["name"], LearnerSpec.from_dict(m["spec"]), FeatureSet.from_dict(m["feature_set"]),
+                   Split(split["name"], split["mode"], tuple(m["train_flights"]), tuple(split["test"])),
+                   m["train_group"], tuple(m["groups"]), tuple(m["train_flights"]), m["train_time_s"],
+                   m["val_loss"], m["rows_fit"], m["latency_us"], path, m)
+
+    def to_dict(self) -> dict:
+        """The record as JSON: the manifest with the folder and the spec's label."""
+        return {**self.manifest, "path": str(self.path), "spec_label": self.spec.label}
+
+
 def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir: str | Path,
              physics: dict | None = None, config: TrainConfig | None = None,
              flight_kinds: dict[str, str] | None = None, log: Callable[[str], None] = print,
-             latency_repeats: int = 300) -> list[dict]:
+             latency_repeats: int = 300) -> list[RunRecord]:
     """Train every experiment, save its artefacts and its predictions on its test flights under
     ``out_dir/<experiment name>/``, and an index ``out_dir/index.json``. Returns the run records."""
     config = config or TrainConfig()
@@ -897,15 +936,15 @@ def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir
             "latency_path": "compiled NumPy forest" if e.spec.kind == "xgboost" else "torch (1, k) tensor, no_grad",
         })
         folder = model.save(out / e.name, pl.concat(frames))
-        rec = {**model.manifest, "kind": e.spec.kind, "spec": e.spec.to_dict(), "spec_label": e.spec.label,
-               "feature_set": e.feature_set.to_dict(), "path": str(folder)}
+        rec = RunRecord.from_manifest({**model.manifest, "kind": e.spec.kind, "spec": e.spec.to_dict(),
+                                       "feature_set": e.feature_set.to_dict()}, folder)
         records.append(rec)
-        log(f"  [{i}/{len(p.experiments)}] {e.name}: trained in {rec['train_time_s']:.2f} s "
-            f"({rec['rows_fit']} rows), val loss {rec['val_loss']:.4f}, predicted {len(X_test)} rows in "
+        log(f"  [{i}/{len(p.experiments)}] {e.name}: trained in {rec.train_time_s:.2f} s "
+            f"({rec.rows_fit} rows), val loss {rec.val_loss:.4f}, predicted {len(X_test)} rows in "
             f"{predict_s * 1e3:.1f} ms, {lat:.0f} us/sample")
     store.write_json({"format": FORMAT, "holdout": p.holdout, "primary_feature_set": p.primary_feature_set,
                       "notes": p.notes, "config": config.to_dict(), "physics_model": physics or {},
-                      "flight_kinds": flight_kinds or {}, "runs": [r["name"] for r in records]},
+                      "flight_kinds": flight_kinds or {}, "runs": [r.name for r in records]},
                      out / "index.json")
     return records
 

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
     from quadcore.identify.model import PhysicsModel
     from quadcore.learn.features import FeatureSet
-    from quadcore.learn.learning import LearnerSpec, Plan, TrainConfig
+    from quadcore.learn.learning import LearnerSpec, Plan, RunRecord, TrainConfig
 
 Log = Callable[[str], None]
 
@@ -128,7 +128,7 @@ def learning_holdout(requested: str | None, flights: list[str], named_model_hold
 class TrainedRuns:
     """What a training wrote under ``out_dir``: the run records, the holdout and the plan's notes."""
 
-    records: tuple[dict, ...]
+    records: tuple[RunRecord, ...]
     holdout: str
     notes: tuple[str, ...]
     out_dir: Path  # or a UPath in an object store
