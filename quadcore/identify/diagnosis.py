@@ -362,7 +362,7 @@ def _reference_ss(c, fd, vehicle) -> float:
 
 
 def diagnose(
-    decoded: dict[str, pl.DataFrame],
+    decoded: Mapping[str, pl.DataFrame],
     spec: ModelSpec,
     holdout: list[str] | None = None,
     candidates: list[str] | None = None,

@@ -33,6 +33,7 @@ smoother.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -396,7 +397,7 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     return [ids[i::k] for i in range(k)]
 
 
-def fit_model(spec, decoded: dict, train: list[str], sessions: dict[str, list[str]] | None = None, log=None,
+def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None, log=None,
               stats=None):
     """Fit the effects a :class:`quadcore.identify.model.ModelSpec` names on the ``train`` flights (its
     ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`).

@@ -344,7 +344,8 @@ class FittedModel:
     plugins: tuple[str, ...] = ()
 
     @classmethod
-    def of(cls, model: PhysicsModel, spec: ModelSpec, trained_on: list[str], held_out: list[str] = ()) -> FittedModel:
+    def of(cls, model: PhysicsModel, spec: ModelSpec, trained_on: list[str],
+           held_out: tuple[str, ...] | list[str] = ()) -> FittedModel:
         return cls(model, tuple(trained_on), tuple(held_out), spec.digest(), tuple(spec.plugins))
 
     def to_dict(self) -> dict:

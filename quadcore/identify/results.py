@@ -106,8 +106,8 @@ class Evaluation:
 class ResidualRmse:
     """Residual RMSE per body axis: force in N, torque in N m."""
 
-    force_rmse_N: tuple[float, float, float]
-    torque_rmse_Nm: tuple[float, float, float]
+    force_rmse_N: tuple[float, ...]  # x, y, z
+    torque_rmse_Nm: tuple[float, ...]
 
     def to_dict(self) -> dict:
         return {"force_rmse_N": list(self.force_rmse_N), "torque_rmse_Nm": list(self.torque_rmse_Nm)}

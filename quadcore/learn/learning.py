@@ -263,7 +263,8 @@ def validation_flights(train: list[str], fraction: float = 0.2, seed: int = 0,
 # Data for one training run
 # ---------------------------------------------------------------------------------------
 
-def _rows(tables: dict[str, pl.DataFrame], flights, fs: FeatureSet, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def _rows(tables: Mapping[str, pl.DataFrame], flights, fs: FeatureSet,
+          stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Usable rows (every ``stride``-th) of ``flights``: inputs (n, k) float32, targets (n, 6)."""
     Xs, Ys = [], []
     for f in flights:
@@ -291,7 +292,7 @@ class TrainingData:
     validation: str  # how the validation rows were chosen
 
 
-def training_data(tables: dict[str, pl.DataFrame], fs: FeatureSet, train: list[str], config: TrainConfig,
+def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: list[str], config: TrainConfig,
                   kinds: dict[str, str] | None = None) -> TrainingData:
     missing = [f for f in train if f not in tables]
     if missing:
@@ -664,7 +665,7 @@ def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> Learne
     return LearnedModel(spec, fs, xs, ys, impl, manifest)
 
 
-def train(spec: LearnerSpec, fs: FeatureSet, tables: dict[str, pl.DataFrame], train_flights: list[str],
+def train(spec: LearnerSpec, fs: FeatureSet, tables: Mapping[str, pl.DataFrame], train_flights: list[str],
           config: TrainConfig | None = None, physics: dict | None = None,
           kinds: dict[str, str] | None = None) -> LearnedModel:
     """Train one model on ``train_flights`` (feature or residual tables by flight id).
@@ -900,7 +901,7 @@ class RunRecord:
         return {**self.manifest, "path": str(self.path), "spec_label": self.spec.label}
 
 
-def run_plan(p: Plan, tables_by_set: dict[str, dict[str, pl.DataFrame]], out_dir: str | Path,
+def run_plan(p: Plan, tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], out_dir: str | Path,
              physics: dict | None = None, config: TrainConfig | None = None,
              flight_kinds: dict[str, str] | None = None, log: Callable[[str], None] = print,
              latency_repeats: int = 300) -> list[RunRecord]:

@@ -5,7 +5,7 @@ and the learning assets call these."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -56,7 +56,7 @@ class LearningRequest:
         return learning.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
 
 
-def residual_tables(tables: dict[str, pl.DataFrame], physics: PhysicsModel) -> dict[str, pl.DataFrame]:
+def residual_tables(tables: Mapping[str, pl.DataFrame], physics: PhysicsModel) -> dict[str, pl.DataFrame]:
     """Each flight's residual table against ``physics``, with its session's values and thrust map."""
     return {fid: physics.for_flight(fid).residual_table(df) for fid, df in tables.items()}
 
@@ -111,7 +111,7 @@ def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int
     return sets, len(res)
 
 
-def learning_holdout(requested: str | None, flights: list[str], named_model_holdout: list[str] = (),
+def learning_holdout(requested: str | None, flights: list[str], named_model_holdout: list[str] | None = None,
                      explicit: bool = False) -> tuple[str, str]:
     """(the flight the learned models are scored on, note): ``requested`` (with ``explicit``, it
     must exist), else the physics model's held-out flight (:func:`held_out` of its named
@@ -120,7 +120,7 @@ def learning_holdout(requested: str | None, flights: list[str], named_model_hold
 
     if requested:
         return learning.resolve_holdout(requested, flights, explicit=explicit)
-    (holdout, *_), note = held_out(list(named_model_holdout), flights)
+    (holdout, *_), note = held_out(list(named_model_holdout or []), flights)
     return holdout, note
 
 
@@ -134,7 +134,7 @@ class TrainedRuns:
     out_dir: Path  # or a UPath in an object store
 
 
-def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
+def train(tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
           request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet) -> TrainedRuns:
     """Plan the experiments (:func:`quadcore.learn.learning.plan`) and run them into ``out_dir``.
     Refuses a holdout the physics model's effects were fitted on: the learned models would be
@@ -155,7 +155,7 @@ def train(tables_by_set: dict[str, dict[str, pl.DataFrame]], sets: list[FeatureS
     return TrainedRuns(tuple(records), holdout, tuple(plan.notes), out_dir)
 
 
-def write_learning_report(root, residuals: dict[str, pl.DataFrame] | None = None,
+def write_learning_report(root, residuals: Mapping[str, pl.DataFrame] | None = None,
                           trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
     """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
     data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
