@@ -839,7 +839,7 @@ def _clear_runs(out: Path) -> None:
                 store.remove_tree(d)
 
 
-def train_experiments(experiments: list[Experiment], tables_by_set: dict[str, dict[str, pl.DataFrame]],
+def train_experiments(experiments: list[Experiment], tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]],
                       config: TrainConfig, physics: dict | None = None,
                       flight_kinds: dict[str, str] | None = None) -> list[LearnedModel]:
     """The trained model of each experiment, in order. With ``config.lanes`` >= 2 the XGBoost
