@@ -539,12 +539,13 @@ def discover(
     # motor terms only when every flight has them (read off the columns, before any Gram matrix)
     motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
     fx_effects = list(effectlib.registry().values())
-    grams: dict[str, np.ndarray] = {}
+    folds = fitting.folds(train, n_folds)
+    sums = _GramSums(folds, holdout)
     samples: dict[str, int] = {}
     noise_of: dict[str, np.ndarray] = {}
     for f in ids:
         fd, r = flight(f)
-        if not grams:
+        if f == ids[0]:
             vars_ = variables(fd.state, vehicle)
             if not motors:
                 vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
@@ -552,11 +553,9 @@ def discover(
             cols = _columns(terms, fx_effects)
             log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
                 f"accumulating on {len(ids)} flights")
-        grams[f] = _flight_gram(fd, r, cols, fx_effects, vehicle, stride)
+        sums.add(f, _flight_gram(fd, r, cols, fx_effects, vehicle, stride))
         samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
-    folds = fitting.folds(train, n_folds)
-    fold_grams = [(sum(grams[f] for f in train if f not in fold), sum(grams[f] for f in fold)) for fold in folds]
-    G_train = sum(grams[f] for f in train)
+    fold_grams, G_train = sums.fold_grams(), sums.train
     noise = _noise_floor([samples[f] for f in train], [noise_of[f] for f in train])
 
     kept: list[DiscoveredTerm] = []
@@ -579,7 +578,7 @@ def discover(
         k_f = len(fold_grams)
         std = np.sqrt((k_f - 1) / k_f * np.sum((np.array(jack) - np.mean(jack, axis=0)) ** 2, axis=0)) if chosen \
             else np.zeros(0)
-        shares = _sequential_shares(grams, train, holdout, folds, chosen, y)
+        shares = _sequential_shares([(G_train, sums.held_out())] if holdout else fold_grams, chosen, y)
         col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
         for i, c in enumerate(chosen):
             t = col_term[c]
@@ -657,12 +656,48 @@ def _model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[s
     return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
 
 
-def _sequential_shares(grams, train, holdout, folds, chosen, y) -> list[float]:
-    """Held-out variance each term adds, in the order of selection (they sum to the total)."""
-    if holdout:
-        pairs = [(sum(grams[f] for f in train), sum(grams[f] for f in holdout))]
-    else:
-        pairs = [(sum(grams[f] for f in train if f not in fold), sum(grams[f] for f in fold)) for fold in folds]
+class _GramSums:
+    """The sums of the flights' Gram matrices discovery combines, added up flight by flight as
+    each flight's matrix is made (in the training flights' order: the same additions in the same
+    order as summing every flight's matrix at the end, so the same numbers), so that memory holds
+    a few sums, not one matrix per flight: the training total; per fold, the training flights
+    outside it and the flights in it; and the held-out flights' own matrices (a few)."""
+
+    def __init__(self, folds: list[list[str]], holdout: list[str]):
+        self.fold_of = {f: i for i, fold in enumerate(folds) for f in fold}
+        self.holdout = holdout
+        self.train: np.ndarray | None = None
+        self.outside: list[np.ndarray | None] = [None] * len(folds)
+        self.inside: list[np.ndarray | None] = [None] * len(folds)
+        self.held: dict[str, np.ndarray] = {}
+
+    @staticmethod
+    def _plus(total: np.ndarray | None, G: np.ndarray) -> np.ndarray:
+        return G.copy() if total is None else np.add(total, G, out=total)
+
+    def add(self, flight: str, G: np.ndarray) -> None:
+        if flight in self.holdout:
+            self.held[flight] = G
+            return
+        self.train = self._plus(self.train, G)
+        k = self.fold_of[flight]
+        for i in range(len(self.outside)):
+            if i == k:
+                self.inside[i] = self._plus(self.inside[i], G)
+            else:
+                self.outside[i] = self._plus(self.outside[i], G)
+
+    def fold_grams(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per fold (its training flights' sum, its own flights' sum)."""
+        return list(zip(self.outside, self.inside))  # type: ignore[arg-type]
+
+    def held_out(self) -> np.ndarray:
+        return sum(self.held[f] for f in self.holdout)  # type: ignore[return-value]
+
+
+def _sequential_shares(pairs, chosen, y) -> list[float]:
+    """Held-out variance each term adds, in the order of selection (they sum to the total):
+    ``pairs`` (training sum, held-out sum) per fold, or the one of the holdout."""
     evs = [_cv_ev(pairs, chosen[:i], y) for i in range(len(chosen) + 1)]
     return [float(evs[i + 1] - evs[i]) for i in range(len(chosen))]
 
