@@ -105,6 +105,22 @@ def test_smoother_has_no_phase_lag():
     assert lags[int(np.argmax(xc))] == 0
 
 
+@pytest.mark.parametrize("shape", [(7,), (32, 3), (3900, 3), (100, 2, 2)])
+def test_cached_savitzky_golay_is_scipys(shape):
+    """The smoother and the derivative with their plan cached give scipy's ``savgol_filter``
+    (mode ``interp``): the same convolution inside, bit for bit, the same edge fits to rounding."""
+    from scipy.signal import savgol_filter
+
+    x = np.random.default_rng(3).standard_normal(shape).cumsum(axis=0)
+    t = np.arange(shape[0]) / RATE_HZ
+    w = signals._window(shape[0], signals.WINDOW)
+    for deriv, got in ((0, signals.smooth(x)), (1, signals.derivative(x, t))):
+        want = savgol_filter(x, w, signals.ORDER, deriv=deriv, delta=float(np.median(np.diff(t))), axis=0,
+                             mode="interp")
+        np.testing.assert_array_equal(got[w // 2: len(x) - w // 2], want[w // 2: len(x) - w // 2])
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(want).max())
+
+
 @pytest.fixture(scope="module")
 def sim_flight(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sim")
