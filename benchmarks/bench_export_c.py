@@ -28,15 +28,15 @@ from _common import logs_folder
 from quadcore.export import c as export_c
 from quadcore.export.c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
 from quadcore.identify import fitting, model
-from quadcore.learn import features as feat, learning
+from quadcore.learn import artefacts, features as feat, learners, trainers, trees
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle
 
 HOLDOUT = "jana02"
 EFFECTS = ["rotor_drag", "com_offset", "thrust_scale", "motor_lag"]
 CANDIDATES = {
-    "xgboost": [replace(learning.default_spec("xgboost"), max_depth=d) for d in (4, 6)],
-    "mlp": [replace(learning.default_spec("mlp"), hidden=h) for h in ((), (64, 64))],
+    "xgboost": [replace(learners.default_spec("xgboost"), max_depth=d) for d in (4, 6)],
+    "mlp": [replace(learners.default_spec("mlp"), hidden=h) for h in ((), (64, 64))],
 }
 SETS = ("physics", "physics_rate")
 CLOCK_HZ = 168e6
@@ -71,7 +71,7 @@ def arm_function_bytes(source_dir: Path, name: str) -> int | None:
 def cycle_estimate(learned, X, physics_bytes: int | None) -> tuple[float, float, str]:
     """(low, high) cycles per call and how they were counted."""
     if learned.kind == "xgboost":
-        forest = learning.CompiledForest(learned.impl)
+        forest = trees.CompiledForest(learned.impl)
         z = learned.x_scaler.transform(X)
         node = np.broadcast_to(forest.roots, (len(z), len(forest.roots))).copy()
         rows = np.arange(len(z))[:, None]
@@ -118,11 +118,11 @@ def main() -> None:
           f"held out {HOLDOUT}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
     tables = feat.feature_tables(res, [feat.FEATURE_SETS[s] for s in SETS])
-    candidates: dict[str, learning.LearnedModel] = {}  # per spec, its best feature set
+    candidates: dict[str, artefacts.LearnedModel] = {}  # per spec, its best feature set
     for kind, specs in CANDIDATES.items():
         for spec in specs:
             for s in SETS:
-                m = learning.train(spec, feat.FEATURE_SETS[s], tables[s], train, learning.TrainConfig(),
+                m = trainers.train(spec, feat.FEATURE_SETS[s], tables[s], train, learners.TrainConfig(),
                                    {**physics.to_dict(), "trained_on": train})
                 print(f"  {kind:8s} {spec.slug:14s} {s:13s} val loss {m.manifest['val_loss']:.4f}")
                 if spec.slug not in candidates or m.manifest["val_loss"] < candidates[spec.slug].manifest["val_loss"]:
@@ -160,7 +160,7 @@ def report(physics, models, best: set[str], table, residual_table, work: Path) -
             X = feat.matrix(residual_table, learned.feature_set)
             y = learned.predict_matrix(X)
             f_py, tau_py = f_py + y[:, :3], tau_py + y[:, 3:]
-            py = f"{learning.latency_us(learned.predict_one, X[0], 2000):.1f}"  # the learned part alone
+            py = f"{trainers.latency_us(learned.predict_one, X[0], 2000):.1f}"  # the learned part alone
             low, high, how = cycle_estimate(learned, X, arm_function_bytes(out, "quadcore_residual"))
             cycles, m4_us = f"{low:,.0f}-{high:,.0f}", f"{low / CLOCK_HZ * 1e6:.0f}-{high / CLOCK_HZ * 1e6:.0f}"
             star = "*" if learned.spec.slug in best else ""

@@ -22,15 +22,15 @@ import numpy as np
 from _common import best_of, logs_folder
 
 from quadcore.identify import model
-from quadcore.learn import features as feat, learning, metrics
+from quadcore.learn import features as feat, learners, metrics, trainers
 from quadcore.learn.tables import STUDY, text_table
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
 HOLDOUT = "jana02"
 CANDIDATES = {
-    "xgboost": [replace(learning.default_spec("xgboost"), max_depth=d) for d in (2, 4, 6)],
-    "mlp": [replace(learning.default_spec("mlp"), hidden=h) for h in ((), (64, 64))],
+    "xgboost": [replace(learners.default_spec("xgboost"), max_depth=d) for d in (2, 4, 6)],
+    "mlp": [replace(learners.default_spec("mlp"), hidden=h) for h in ((), (64, 64))],
 }
 SETS = ("physics", "physics_rate", "full_state")
 TARGETS = {"xgboost": 10.0, "mlp": 60.0}
@@ -51,7 +51,7 @@ def main() -> None:
     n_rows = sum(t.height for t in res.values())
     print(f"flights: {len(res)} (train {len(train)}, held out {HOLDOUT}), rows: {n_rows:,}; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    cfg = learning.TrainConfig()
+    cfg = learners.TrainConfig()
     print(f"fitting rows: every {cfg.stride}th sample; XGBoost threads {cfg.threads}, "
           f"torch threads {cfg.torch_threads}\n")
 
@@ -61,7 +61,7 @@ def main() -> None:
         for spec in specs:
             for s in SETS:
                 fs = feat.FEATURE_SETS[s]
-                m = learning.train(spec, fs, tables[s], train, cfg, nominal.to_dict(), kinds)
+                m = trainers.train(spec, fs, tables[s], train, cfg, nominal.to_dict(), kinds)
                 print(f"  {kind:8s} {spec.slug:14s} {s:13s} val loss {m.manifest['val_loss']:.4f}  "
                       f"trained in {m.manifest['train_time_s']:6.2f} s")
                 if kind not in best or m.manifest["val_loss"] < best[kind][0].manifest["val_loss"]:
@@ -74,16 +74,16 @@ def main() -> None:
     verdicts: list[str] = []
     for kind, (m, spec, fs) in best.items():
         tabs = tables[fs.name]
-        t_train, m = best_of(partial(learning.train, spec, fs, tabs, train, cfg, nominal.to_dict(), kinds))
+        t_train, m = best_of(partial(trainers.train, spec, fs, tabs, train, cfg, nominal.to_dict(), kinds))
         extra = ""
         if kind == "xgboost":
-            t_train2, _ = best_of(partial(learning.train, spec, fs, tabs, train, replace(cfg, threads=2),
+            t_train2, _ = best_of(partial(trainers.train, spec, fs, tabs, train, replace(cfg, threads=2),
                                           nominal.to_dict(), kinds))
             extra = f" on {cfg.threads} thread(s) (on 2 threads: {t_train2:.2f} s)"
         X = feat.matrix(tabs[HOLDOUT], fs)[ok]
-        p, t_pred = learning.time_predict(m, X)
-        lat = learning.latency_us(m.predict_one, X[0], 2000)
-        lat_lib = learning.latency_us(m.predict_matrix, X[:1], 500)
+        p, t_pred = trainers.time_predict(m, X)
+        lat = trainers.latency_us(m.predict_one, X[0], 2000)
+        lat_lib = trainers.latency_us(m.predict_matrix, X[:1], 500)
         met = metrics.metrics(y, p)
         a = metrics.mae(met)
         study = STUDY[kind]

@@ -253,13 +253,13 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_export_c(args: argparse.Namespace) -> int:
     """The current model as C99 for a flight controller (see quadcore.export.c)."""
     from quadcore.export import c as export_c
-    from quadcore.learn import learning
+    from quadcore.learn import learners
 
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             exported = export_c.export(args.model, args.out, args.learned)
-    except (export_c.ExportError, learning.LearningError) as exc:
+    except (export_c.ExportError, learners.LearningError) as exc:
         raise UserError(str(exc)) from None
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
@@ -383,19 +383,19 @@ def cmd_discover(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
     from quadcore import workflows
-    from quadcore.learn import features as feat, learning
+    from quadcore.learn import features as feat, learners, splits
     from quadcore.learn.tables import TABLE_TITLES, text_table
     from quadcore.workflows import fleet, identify, learn
 
     data, names = _data_and_effects(args)
     request = learn.LearningRequest(
-        models=tuple(workflows.parse_names(args.models)), options={k: getattr(args, k, "") for k in learning.KINDS},
+        models=tuple(workflows.parse_names(args.models)), options={k: getattr(args, k, "") for k in learners.KINDS},
         loo=args.loo, compare=not args.no_compare, stride=args.stride, seed=args.seed, threads=args.threads)
     try:
         spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
         sets = feat.parse(args.feature_sets)
         request.learner_specs()  # a bad option fails before any decoding
-    except (feat.FeatureError, learning.LearningError) as exc:
+    except (feat.FeatureError, learners.LearningError) as exc:
         raise UserError(str(exc)) from None
     csv_path = Path(args.flights_csv) if args.flights_csv else feat.find_flights_csv(data)
     if args.flights_csv and not (csv_path and csv_path.is_file()):
@@ -404,9 +404,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     flights = fleet.fleet_from_logs([str(data)], spec.vehicle, _warn)
     try:
-        holdout, note = learn.learning_holdout(args.holdout or learning.DEFAULT_HOLDOUT, flights.ids,
+        holdout, note = learn.learning_holdout(args.holdout or splits.DEFAULT_HOLDOUT, flights.ids,
                                                explicit=args.holdout is not None)
-    except learning.LearningError as exc:
+    except learners.LearningError as exc:
         raise UserError(str(exc)) from None
     if note:
         print(f"note: {note}", file=sys.stderr)
@@ -427,7 +427,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     try:
         learn.train(by_set, sets, holdout, physics_info, request, kinds, out / "learned", log)
         report, _, paths = learn.write_learning_report(out, res, train)
-    except learning.LearningError as exc:
+    except learners.LearningError as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:
         raise UserError(f"cannot write to {out}: {exc}") from None

@@ -21,7 +21,7 @@ from quadcore.export import c as export_c
 from quadcore.export.c.learned import raw_thresholds
 from quadcore.identify import fitting, model
 from quadcore.identify.model import EffectTerm, PhysicsModel
-from quadcore.learn import evaluation, features as feat, learning
+from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, trainers
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle
 from quadcore.sim import simulation
@@ -34,8 +34,8 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc
 VEHICLE = vehicle.load()
 HOLDOUT = "sim002"
 FORCE_TOL_N, TORQUE_TOL_NM = 1e-5, 1e-8
-XGB = learning.LearnerSpec("xgboost", max_depth=4, n_estimators=40, early_stopping_rounds=8)
-MLP = learning.LearnerSpec("mlp", hidden=(16, 16), max_epochs=15, patience=5, lr=3e-3)
+XGB = learners.LearnerSpec("xgboost", max_depth=4, n_estimators=40, early_stopping_rounds=8)
+MLP = learners.LearnerSpec("mlp", hidden=(16, 16), max_epochs=15, patience=5, lr=3e-3)
 
 
 @pytest.fixture(scope="module")
@@ -138,11 +138,11 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
     model.save(physics, root / "models" / "physics_model.json", train, spec)
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
     sets = feat.parse("physics,vel_rate,full_state")
-    plan = learning.plan(sorted(res), sets, ["xgboost", "mlp"], HOLDOUT, compare=False,
+    plan = experiments.plan(sorted(res), sets, ["xgboost", "mlp"], HOLDOUT, compare=False,
                          specs={"xgboost": XGB, "mlp": MLP})
     physics_info = {**physics.to_dict(), "trained_on": train}
-    learning.run_plan(plan, feat.feature_tables(res, sets), root / "learned", physics_info,
-                      learning.TrainConfig(stride=2), log=lambda m: None, latency_repeats=5)
+    experiments.run_plan(plan, feat.feature_tables(res, sets), root / "learned", physics_info,
+                      learners.TrainConfig(stride=2), log=lambda m: None, latency_repeats=5)
     return root, physics
 
 
@@ -151,9 +151,9 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
 def test_best_learned_model_on_top_of_the_physics_matches_python(kind, data_root, decoded, tmp_path):
     root, physics = data_root
     exported = export_c.export(root, tmp_path / "out", kind)
-    index, records = learning.read_runs(root / "learned")
+    index, records = experiments.read_runs(root / "learned")
     best = evaluation.best_runs([{**r, "causal": r["feature_set"]["causal"]} for r in records])[kind]
-    learned = learning.load(best["path"])
+    learned = artefacts.load(best["path"])
     assert exported.generated.feature_columns == tuple(learned.features)
     assert exported.generated.label == f"{physics.label} + {kind}({learned.feature_set.name})"
 
@@ -170,10 +170,10 @@ def test_best_learned_model_on_top_of_the_physics_matches_python(kind, data_root
 def test_every_feature_set_the_exporter_can_compute(data_root, decoded, tmp_path):
     """Each causal feature set's learned model (not only the best) through the C feature code."""
     root, physics = data_root
-    _, records = learning.read_runs(root / "learned")
+    _, records = experiments.read_runs(root / "learned")
     table = physics.residual_table(decoded[HOLDOUT])
     for r in (r for r in records if r["kind"] == "xgboost"):
-        learned = learning.load(r["path"])
+        learned = artefacts.load(r["path"])
         exported = export_c.export_models(physics, learned, tmp_path / r["name"], r["name"])
         out = _run_c(exported, decoded[HOLDOUT], tmp_path / f"build-{r['name']}")
         f_py, tau_py = learned.predict(table)
@@ -215,7 +215,7 @@ def test_leaky_feature_set_has_no_on_board_form(data_root, decoded, tmp_path):
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
     fs = feat.FEATURE_SETS["acc_rate_rot"]
     tables = feat.feature_tables(res, [fs])[fs.name]
-    learned = learning.train(XGB, fs, tables, [f for f in res if f != HOLDOUT], learning.TrainConfig(stride=4))
+    learned = trainers.train(XGB, fs, tables, [f for f in res if f != HOLDOUT], learners.TrainConfig(stride=4))
     with pytest.raises(export_c.ExportError, match="'a_meas_w_x_mps2' has no on-board form"):
         export_c.export_models(physics, learned, tmp_path / "out", "leaky")
 

@@ -20,7 +20,18 @@ import pytest
 
 from quadcore import cli
 from quadcore.identify import fitting, history, model
-from quadcore.learn import evaluation, features as feat, learning, metrics, tables as learn_tables
+from quadcore.learn import (
+    artefacts,
+    evaluation,
+    experiments,
+    features as feat,
+    learners,
+    metrics,
+    splits,
+    tables as learn_tables,
+    trainers,
+    trees,
+)
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -32,9 +43,9 @@ HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}
 SIM_KINDS = {"sim000": "random", "sim001": "random", "sim002": "preplanned", "sim003": "preplanned"}
 HOLDOUT = "sim003"
 # Small, quick models; threads=1 keeps the tests fast on a busy 2-core machine.
-XGB = learning.LearnerSpec("xgboost", max_depth=3, n_estimators=60, early_stopping_rounds=10)
-MLP = learning.LearnerSpec("mlp", hidden=(32,), max_epochs=40, patience=8, batch_size=256, lr=3e-3)
-CONFIG = learning.TrainConfig(stride=2, threads=1)
+XGB = learners.LearnerSpec("xgboost", max_depth=3, n_estimators=60, early_stopping_rounds=10)
+MLP = learners.LearnerSpec("mlp", hidden=(32,), max_epochs=40, patience=8, batch_size=256, lr=3e-3)
+CONFIG = learners.TrainConfig(stride=2, threads=1)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +78,7 @@ def physics_tables(residual_tables):
 
 def _train(kind_spec, tables, seed=0, fs="physics"):
     train = [f for f in tables if f != HOLDOUT]
-    return learning.train(kind_spec, feat.FEATURE_SETS[fs], tables, train, replace(CONFIG, seed=seed),
+    return trainers.train(kind_spec, feat.FEATURE_SETS[fs], tables, train, replace(CONFIG, seed=seed),
                           model.PhysicsModel(VEHICLE, []).to_dict(), SIM_KINDS)
 
 
@@ -152,12 +163,12 @@ def test_scaling_is_fitted_on_training_flights_only(physics_tables):
 def test_validation_flights_are_seeded_and_balanced_over_kinds():
     flights = [f"f{i:02d}" for i in range(18)]
     kinds = {f: ("random" if i < 10 else "preplanned") for i, f in enumerate(flights)}
-    v = learning.validation_flights(flights, 0.2, 0, kinds)
-    assert v == learning.validation_flights(flights, 0.2, 0, kinds) and len(v) == 4
+    v = splits.validation_flights(flights, 0.2, 0, kinds)
+    assert v == splits.validation_flights(flights, 0.2, 0, kinds) and len(v) == 4
     assert {kinds[f] for f in v} == {"random", "preplanned"}
-    assert learning.validation_flights(["a"], 0.2, 0) == []
-    assert len(learning.lofo_splits(flights)) == 18
-    assert learning.holdout_split(flights, "f03").train == tuple(f for f in flights if f != "f03")
+    assert splits.validation_flights(["a"], 0.2, 0) == []
+    assert len(splits.lofo_splits(flights)) == 18
+    assert splits.holdout_split(flights, "f03").train == tuple(f for f in flights if f != "f03")
 
 
 # ---------------------------------------------------------------------------------------
@@ -167,8 +178,8 @@ def test_validation_flights_are_seeded_and_balanced_over_kinds():
 @pytest.mark.parametrize("options", ["epochs=0", "lr=1e30"], ids=["no epoch", "diverged"])
 def test_mlp_without_a_finite_validation_loss_is_a_learning_error(options, physics_tables):
     """No epoch run, or a loss that is NaN from the first epoch: no weights worth keeping."""
-    spec = learning.parse_spec(f"mlp:hidden=8,patience=1,epochs=2,{options}")
-    with pytest.raises(learning.LearningError, match="no epoch gave a finite validation loss"):
+    spec = learners.parse_spec(f"mlp:hidden=8,patience=1,epochs=2,{options}")
+    with pytest.raises(learners.LearningError, match="no epoch gave a finite validation loss"):
         _train(spec, physics_tables["physics"])
 
 
@@ -196,13 +207,13 @@ def test_two_lanes_train_the_models_one_lane_trains(physics_tables):
     """XGBoost and MLP experiments trained side by side (two MLPs, so torch's seed is set twice
     in the MLP lane) give bit-for-bit the models of a sequential run, in plan order."""
     sets = [feat.FEATURE_SETS["physics"]]
-    p = learning.plan(sorted(physics_tables["physics"]), sets, ["xgboost", "mlp"], HOLDOUT, None, compare=False,
+    p = experiments.plan(sorted(physics_tables["physics"]), sets, ["xgboost", "mlp"], HOLDOUT, None, compare=False,
                       specs={"xgboost": XGB, "mlp": replace(MLP, max_epochs=6)})
     exps = p.experiments + [replace(p.experiments[1], spec=replace(MLP, hidden=(8,), max_epochs=4))]
     tables = {"physics": physics_tables["physics"]}
     X, _ = _holdout(physics_tables["physics"])
-    one = learning.train_experiments(exps, tables, replace(CONFIG, lanes=1))
-    two = learning.train_experiments(exps, tables, replace(CONFIG, lanes=2))
+    one = experiments.train_experiments(exps, tables, replace(CONFIG, lanes=1))
+    two = experiments.train_experiments(exps, tables, replace(CONFIG, lanes=2))
     assert [m.kind for m in two] == [e.spec.kind for e in exps] == ["xgboost", "mlp", "mlp"]
     for a, b in zip(one, two):
         np.testing.assert_array_equal(a.predict_matrix(X), b.predict_matrix(X))
@@ -222,7 +233,7 @@ def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_
         assert manifest["train_flights"] == ["sim000", "sim001", "sim002"]
         columns = json.loads((folder / "features.json").read_text())["columns"]
         assert columns == list(feat.FEATURE_SETS["physics"].columns)
-        loaded = learning.load(folder, threads=1)
+        loaded = artefacts.load(folder, threads=1)
         np.testing.assert_allclose(loaded.predict_matrix(X), m.predict_matrix(X), rtol=1e-6, atol=1e-12)
         # the predict API: a flight table in, residual force (N) and torque (N m) out
         f, tau = loaded.predict(residual_tables[HOLDOUT])
@@ -233,12 +244,12 @@ def test_artefacts_save_load_and_predict_api(tmp_path, physics_tables, residual_
         f2, tau2 = loaded.predict(decoded[HOLDOUT])
         np.testing.assert_allclose(f2, f, rtol=1e-5, atol=1e-9)
         pt = loaded.predict_table(residual_tables[HOLDOUT])
-        assert pt.columns == ["t_s", *learning.PRED_COLUMNS]
+        assert pt.columns == ["t_s", *artefacts.PRED_COLUMNS]
         # the per-sample path gives the same answer
         np.testing.assert_allclose(loaded.predict_one(X[7]), full[feat.usable(tables[HOLDOUT])][7],
                                    rtol=1e-4, atol=1e-7)
-    with pytest.raises(learning.LearningError, match="no learned model"):
-        learning.load(tmp_path / "nothing")
+    with pytest.raises(learners.LearningError, match="no learned model"):
+        artefacts.load(tmp_path / "nothing")
 
 
 def test_a_decoded_flight_is_predicted_on_its_sessions_physics(tmp_path, physics_tables, decoded):
@@ -248,7 +259,7 @@ def test_a_decoded_flight_is_predicted_on_its_sessions_physics(tmp_path, physics
     per_session = model.PhysicsModel(VEHICLE, [], {"late": [HOLDOUT]}, {"late": "motor_speed"})
     trained = _train(XGB, physics_tables["physics"])
     trained.manifest["physics_model"] = per_session.to_dict()
-    loaded = learning.load(trained.save(tmp_path / "xgb"))
+    loaded = artefacts.load(trained.save(tmp_path / "xgb"))
     f, tau = loaded.predict(decoded[HOLDOUT], HOLDOUT)
     f_ref, tau_ref = loaded.predict(per_session.for_flight(HOLDOUT).residual_table(decoded[HOLDOUT]))
     np.testing.assert_array_equal(np.concatenate([f, tau], axis=1), np.concatenate([f_ref, tau_ref], axis=1))
@@ -261,7 +272,7 @@ def test_compiled_forest_matches_xgboost(physics_tables):
     X, _ = _holdout(physics_tables["physics"])
     Z = m.x_scaler.transform(X[:300])
     Z[::7, 2] = np.nan  # missing values take the trees' default branch
-    forest = learning.CompiledForest(m.impl)
+    forest = trees.CompiledForest(m.impl)
     ref = m.impl.inplace_predict(Z)
     np.testing.assert_allclose(forest.predict(Z), ref, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.array([forest.predict_one(z) for z in Z[:40]]), ref[:40], rtol=1e-5, atol=1e-6)
@@ -275,10 +286,10 @@ def test_compiled_forest_matches_xgboost(physics_tables):
 def report_run(tmp_path_factory, residual_tables):
     root = tmp_path_factory.mktemp("learn_root")
     sets = feat.parse("physics,vel_rate")
-    p = learning.plan(sorted(residual_tables), sets, ["xgboost", "mlp"], HOLDOUT, SIM_KINDS, loo=True, compare=True,
+    p = experiments.plan(sorted(residual_tables), sets, ["xgboost", "mlp"], HOLDOUT, SIM_KINDS, loo=True, compare=True,
                       specs={"xgboost": XGB, "mlp": replace(MLP, max_epochs=15)})
     physics = {**model.PhysicsModel(VEHICLE, []).to_dict(), "trained_on": [f for f in residual_tables if f != HOLDOUT]}
-    records = learning.run_plan(p, feat.feature_tables(residual_tables, sets), root / "learned", physics, CONFIG,
+    records = experiments.run_plan(p, feat.feature_tables(residual_tables, sets), root / "learned", physics, CONFIG,
                                 SIM_KINDS, log=lambda m: None, latency_repeats=30)
     report, pngs, paths = evaluation.full_report(root / "learned", residual_tables, VEHICLE, root / "reports", root)
     return root, p, records, report, pngs, paths
@@ -470,12 +481,12 @@ def test_real_logs_holdout_jana02(real_logs, tmp_path):
     assert len(res) == 19
     kinds = feat.read_flight_kinds(real_logs.parent / "flights.csv")
     sets = feat.parse("physics")
-    p = learning.plan(sorted(res), sets, ["xgboost", "mlp"], "jana02", kinds, compare=False,
+    p = experiments.plan(sorted(res), sets, ["xgboost", "mlp"], "jana02", kinds, compare=False,
                       specs={"xgboost": replace(XGB, max_depth=4, n_estimators=80),
                              "mlp": replace(MLP, max_epochs=8)})
-    records = learning.run_plan(p, feat.feature_tables(res, sets), tmp_path / "learned",
+    records = experiments.run_plan(p, feat.feature_tables(res, sets), tmp_path / "learned",
                                 {**nominal.to_dict(), "trained_on": [f for f in res if f != "jana02"]},
-                                learning.TrainConfig(threads=1), kinds, log=lambda m: None, latency_repeats=30)
+                                learners.TrainConfig(threads=1), kinds, log=lambda m: None, latency_repeats=30)
     assert len(records) == 2 and all(len(r.train_flights) == 18 for r in records)
     report, _, paths = evaluation.full_report(tmp_path / "learned", res, VEHICLE, tmp_path / "reports", tmp_path)
     assert paths["html"].is_file()

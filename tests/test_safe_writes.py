@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from fuzz import kills
 
-from quadcore.learn import learning
+from quadcore.learn import artefacts, learners
 from quadcore.store import safewrite, store
 
 
@@ -75,12 +75,12 @@ def templates(tmp_path_factory) -> Path:
 
 
 def test_save_leaves_no_staging_and_replaces_whole(templates, tmp_path):
-    model = learning.load(templates / kills.CHILD_TEMPLATE / "xgboost")
+    model = artefacts.load(templates / kills.CHILD_TEMPLATE / "xgboost")
     target = tmp_path / "run"
     for _ in range(2):
         model.save(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
-    assert (target / "manifest.json").is_file() and learning.load(target).kind == "xgboost"
+    assert (target / "manifest.json").is_file() and artefacts.load(target).kind == "xgboost"
 
 
 CORRUPTIONS = {
@@ -103,8 +103,8 @@ def test_malformed_artefacts_raise_learning_error(templates, tmp_path, kind, cas
     if case == "weights truncated":
         data = (folder / name).read_bytes()[:50]
     (folder / name).write_bytes(data)
-    with pytest.raises(learning.LearningError, match="malformed|manifest"):
-        learning.load(folder)
+    with pytest.raises(learners.LearningError, match="malformed|manifest"):
+        artefacts.load(folder)
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot
 from quadcore.export import c as export_c, mcap as export
-from quadcore.learn import learning
+from quadcore.learn import learners
 from quadcore.store import store
 from quadcore.store.names import check_component
 
@@ -55,7 +55,7 @@ def exported_model(config: ExportCConfig, data_root: DataRoot) -> dg.Materialize
     root = data_root.root_path
     try:
         exported = export_c.export(root, store.export_c_dir(root), config.learned)
-    except (export_c.ExportError, learning.LearningError) as exc:
+    except (export_c.ExportError, learners.LearningError) as exc:
         raise dg.Failure(description=str(exc)) from None
     metadata: dict[str, dg.RawMetadataValue] = {
         "model": exported.generated.label,

@@ -51,7 +51,7 @@ class LearningConfig(dg.Config):
     flights_csv: str = ""
     stride: int = 5
     seed: int = 0
-    threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learn.learning)
+    threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learn.learners.TrainConfig)
 
 
 @dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=NIGHTLY)

@@ -14,7 +14,7 @@ from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import workflows
 from quadcore.identify import diagnosis, history, sessions, sufficient
-from quadcore.learn import learning
+from quadcore.learn import learners
 from quadcore.report import render, report
 from quadcore.workflows import Fleet, fleet, identify
 
@@ -39,7 +39,7 @@ def failing_on_user_errors():
         yield
     except workflows.HoldoutError as exc:
         raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
-    except (workflows.WorkflowError, learning.LearningError) as exc:
+    except (workflows.WorkflowError, learners.LearningError) as exc:
         raise dg.Failure(description=str(exc)) from None
 
 

@@ -1,3 +1,4 @@
-"""Stage 4, learned residual models: feature sets (``features``), trainers, artefacts and experiments
-(``learning``; load a trained model with ``quadcore.learn.learning.load``) and their evaluation
-(``evaluation``)."""
+"""Stage 4, learned residual models (``docs/learning.md``): feature sets (``features``), what to train
+(``learners``), which flights (``splits``), the trainers (``trainers``, ``trees`` for the compiled
+forest), a trained model's folder (``artefacts``; ``quadcore.learn.artefacts.load``), experiments
+(``experiments``) and how good they are (``evaluation``, ``metrics``, ``tables``)."""

@@ -22,7 +22,7 @@ SS_tot`` about the held-out mean; below 0 means worse than predicting the held-o
 * ``training mean``: ``P`` plus a constant per-axis correction, the mean residual of the
   training flights (a bias trim: the simplest thing a "learned" model could do).
 
-**Learned models** (:mod:`quadcore.learn.learning`): ``P`` plus the model's predicted residual.
+**Learned models** (:mod:`quadcore.learn.trainers` (``docs/learning.md``)): ``P`` plus the model's predicted residual.
 Timings: training (data preparation + fitting with early stopping), prediction of the whole
 held-out flight (median of 5 calls after a warm-up), and per single sample (median of 300
 calls with one row: the compiled NumPy forest for trees, a (1, k) torch tensor under
@@ -51,7 +51,7 @@ from pathlib import Path
 import polars as pl
 
 from quadcore.identify import history
-from quadcore.learn import learning
+from quadcore.learn import experiments, learners
 from quadcore.learn.metrics import BASELINES, _yp, baseline_predictions, metrics, rmse
 from quadcore.learn.tables import (
     _model_has_effects,
@@ -67,16 +67,16 @@ from quadcore.report.learning import make_plots, write_report
 
 def evaluate(out_dir: str | Path, residual_tables: dict[str, pl.DataFrame], vehicle,
              physics_trained_on: list[str] | None = None) -> dict:
-    """Score every run of ``out_dir`` (see :func:`quadcore.learn.learning.run_plan`) and the baselines
+    """Score every run of ``out_dir`` (see :func:`quadcore.learn.experiments.run_plan`) and the baselines
     on the same held-out rows; build the comparison tables. Returns the report as a dict
     (JSON-able; tables as lists of rows)."""
-    index, runs = learning.read_runs(out_dir)
+    index, runs = experiments.read_runs(out_dir)
     physics = index.get("physics_model") or {}
     holdout = index["holdout"]
     missing = sorted({f for r in runs for f in r["test_flights"] + r["train_flights"]} - set(residual_tables))
     if missing:
-        raise learning.LearningError(f"no residual table for flight(s) {', '.join(missing)}")
-    preds = {r["name"]: learning.read_predictions(r) for r in runs}
+        raise learners.LearningError(f"no residual table for flight(s) {', '.join(missing)}")
+    preds = {r["name"]: experiments.read_predictions(r) for r in runs}
     for r in runs:
         r["metrics"] = metrics(*_yp(preds[r["name"]]))
         r["causal"] = r["feature_set"].get("causal", True)

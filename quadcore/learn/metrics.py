@@ -11,8 +11,8 @@ import numpy as np
 import polars as pl
 
 from quadcore.learn import features as feat
+from quadcore.learn.artefacts import PRED_COLUMNS
 from quadcore.learn.features import TARGETS
-from quadcore.learn.learning import PRED_COLUMNS
 from quadcore.physics import dynamics, residuals
 from quadcore.physics.dynamics import XYZ
 

@@ -11,7 +11,7 @@ import numpy as np
 import polars as pl
 
 from quadcore.identify import diagnosis
-from quadcore.learn import features as feat, learning
+from quadcore.learn import artefacts, features as feat
 from quadcore.learn.metrics import AXES, BASELINES, _yp, baseline_predictions, mae, metrics, r2
 from quadcore.physics.dynamics import XYZ
 from quadcore.store import store
@@ -257,7 +257,7 @@ def regime_table(report: dict, out_dir: Path, residual_tables: dict[str, pl.Data
     return pl.DataFrame(frames)
 
 
-def permutation_importance(model: learning.LearnedModel, table: pl.DataFrame, seed: int = 0) -> dict[str, float]:
+def permutation_importance(model: artefacts.LearnedModel, table: pl.DataFrame, seed: int = 0) -> dict[str, float]:
     """Increase of the held-out error (MSE in training-standardised target units, averaged over
     the six outputs) when one input column is shuffled."""
     m = feat.usable(table)
@@ -281,7 +281,7 @@ def importance(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFr
     """Per best model: permutation importance on the held-out flight, and XGBoost's gain."""
     out = {}
     for k, name in report["best"].items():
-        mdl = learning.load(store.as_root(out_dir) / name)
+        mdl = artefacts.load(store.as_root(out_dir) / name)
         t = feat.with_derived(residual_tables[report["holdout"]])
         out[k] = {"feature_set": mdl.feature_set.name, "permutation": permutation_importance(mdl, t),
                   "gain": mdl.importance()}

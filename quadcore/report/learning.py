@@ -14,8 +14,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import polars as pl
 
+from quadcore.learn.artefacts import PRED_COLUMNS
 from quadcore.learn.features import TARGETS
-from quadcore.learn.learning import PRED_COLUMNS
 from quadcore.learn.metrics import AXES, mae
 from quadcore.learn.tables import REGIME_BINS, TABLE_TITLES, _best_preds, frame, importance, regime_table, report_run
 from quadcore.report import plots, render

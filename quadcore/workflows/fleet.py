@@ -163,12 +163,12 @@ def held_out(requested: list[str], flights: list[str], where: str = "the decoded
     else the project's default held-out flight (jana02, or the last flight where there is no
     jana02). The physics model, its diagnosis and the learned models all leave these out, so
     none is scored on (or chosen with) a flight it has seen."""
-    from quadcore.learn import learning
+    from quadcore.learn import splits
 
     named = named_holdout(requested, flights, where)
     if named:
         return named, ""
-    flight, note = learning.resolve_holdout(learning.DEFAULT_HOLDOUT, flights)
+    flight, note = splits.resolve_holdout(splits.DEFAULT_HOLDOUT, flights)
     return [flight], note
 
 

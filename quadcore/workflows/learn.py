@@ -17,8 +17,9 @@ if TYPE_CHECKING:
     import polars as pl
 
     from quadcore.identify.model import PhysicsModel
+    from quadcore.learn.experiments import Plan, RunRecord
     from quadcore.learn.features import FeatureSet
-    from quadcore.learn.learning import LearnerSpec, Plan, RunRecord, TrainConfig
+    from quadcore.learn.learners import LearnerSpec, TrainConfig
 
 Log = Callable[[str], None]
 
@@ -41,19 +42,19 @@ class LearningRequest:
     threads: int = 1
 
     def learner_specs(self) -> dict[str, LearnerSpec]:
-        """Kind -> learner spec (:class:`quadcore.learn.learning.LearningError` for a bad option or kind)."""
-        from quadcore.learn import learning
+        """Kind -> learner spec (:class:`quadcore.learn.learners.LearningError` for a bad option or kind)."""
+        from quadcore.learn import learners
 
         if not self.models:
-            raise learning.LearningError("no model kind named")
+            raise learners.LearningError("no model kind named")
         if self.stride < 1 or self.threads < 1:
-            raise learning.LearningError("stride and threads must be at least 1")
-        return {k: learning.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
+            raise learners.LearningError("stride and threads must be at least 1")
+        return {k: learners.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
 
     def config(self) -> TrainConfig:
-        from quadcore.learn import learning
+        from quadcore.learn import learners
 
-        return learning.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
+        return learners.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
 
 
 def residual_tables(tables: Mapping[str, pl.DataFrame], physics: PhysicsModel) -> dict[str, pl.DataFrame]:
@@ -116,10 +117,10 @@ def learning_holdout(requested: str | None, flights: list[str], named_model_hold
     """(the flight the learned models are scored on, note): ``requested`` (with ``explicit``, it
     must exist), else the physics model's held-out flight (:func:`held_out` of its named
     holdout: the same default everywhere)."""
-    from quadcore.learn import learning
+    from quadcore.learn import splits
 
     if requested:
-        return learning.resolve_holdout(requested, flights, explicit=explicit)
+        return splits.resolve_holdout(requested, flights, explicit=explicit)
     (holdout, *_), note = held_out(list(named_model_holdout or []), flights)
     return holdout, note
 
@@ -136,22 +137,22 @@ class TrainedRuns:
 
 def train(tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
           request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet) -> TrainedRuns:
-    """Plan the experiments (:func:`quadcore.learn.learning.plan`) and run them into ``out_dir``.
+    """Plan the experiments (:func:`quadcore.learn.experiments.plan`) and run them into ``out_dir``.
     Refuses a holdout the physics model's effects were fitted on: the learned models would be
     scored on a flight the physics under them has seen."""
-    from quadcore.learn import learning
+    from quadcore.learn import experiments, learners
 
     if holdout in (physics.get("trained_on") or []):
-        raise learning.LearningError(
+        raise learners.LearningError(
             f"the physics model's effects were fitted on {holdout}, the flight the learned models are scored "
             f"on: re-materialise physics_model with the same holdout, then residual_table")
     flights = sorted(next(iter(tables_by_set.values())))
-    plan: Plan = learning.plan(flights, sets, list(request.models), holdout, flight_kinds, request.loo,
+    plan: Plan = experiments.plan(flights, sets, list(request.models), holdout, flight_kinds, request.loo,
                                request.compare, request.learner_specs())
     for n in plan.notes:
         log(f"note: {n}")
     log(f"training {len(plan.experiments)} models, holdout {holdout} -> {out_dir}")
-    records = learning.run_plan(plan, tables_by_set, out_dir, physics, request.config(), flight_kinds, log=log)
+    records = experiments.run_plan(plan, tables_by_set, out_dir, physics, request.config(), flight_kinds, log=log)
     return TrainedRuns(tuple(records), holdout, tuple(plan.notes), out_dir)
 
 
@@ -160,13 +161,13 @@ def write_learning_report(root, residuals: Mapping[str, pl.DataFrame] | None = N
     """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
     data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
     Returns (report, plots, paths)."""
-    from quadcore.learn import evaluation, features as feat, learning
+    from quadcore.learn import artefacts, evaluation, experiments, features as feat
     from quadcore.store import store
 
-    index, _ = learning.read_runs(store.learned_dir(root))
+    index, _ = experiments.read_runs(store.learned_dir(root))
     physics = index.get("physics_model", {})
     residuals = residuals if residuals is not None else feat.read_residual_tables(root)
-    return evaluation.full_report(store.learned_dir(root), residuals, learning.vehicle_of(physics),
+    return evaluation.full_report(store.learned_dir(root), residuals, artefacts.vehicle_of(physics),
                                   store.reports_dir(root), root, trained_on)
 
 

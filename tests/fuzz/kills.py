@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from quadcore.learn import learning
+from quadcore.learn import artefacts, learners, trainers
 from quadcore.store import safewrite, store
 
 CHILD_TEMPLATE = "template"  # folder of models the child copies from (trained once by the parent)
@@ -53,16 +53,16 @@ def train_templates(folder: Path) -> None:
         cols: dict[str, np.ndarray] = {c: rng.normal(size=n).astype(np.float32) for c in fs.columns}
         cols.update({c: rng.normal(size=n) for c in feat.TARGETS})
         tables[f] = pl.DataFrame({"t_s": np.arange(n) * 0.002, "near_gap": np.zeros(n, bool), **cols})
-    config = learning.TrainConfig(stride=1, threads=1)
-    specs = {"xgboost": learning.LearnerSpec("xgboost", max_depth=2, n_estimators=20, early_stopping_rounds=5),
-             "mlp": learning.LearnerSpec("mlp", hidden=(8,), max_epochs=3, patience=2, batch_size=128)}
+    config = learners.TrainConfig(stride=1, threads=1)
+    specs = {"xgboost": learners.LearnerSpec("xgboost", max_depth=2, n_estimators=20, early_stopping_rounds=5),
+             "mlp": learners.LearnerSpec("mlp", hidden=(8,), max_epochs=3, patience=2, batch_size=128)}
     for kind, spec in specs.items():
-        learning.train(spec, fs, tables, ["a", "b"], config).save(folder / kind)
+        trainers.train(spec, fs, tables, ["a", "b"], config).save(folder / kind)
 
 
 def child(root: Path) -> None:
     """Rewrite the outputs forever (until killed)."""
-    models = {k: learning.load(root / CHILD_TEMPLATE / k) for k in OUTPUTS}
+    models = {k: artefacts.load(root / CHILD_TEMPLATE / k) for k in OUTPUTS}
     table = pl.DataFrame({"x": np.arange(200_000, dtype=np.float64)})
     print("ready", flush=True)
     while True:
@@ -83,8 +83,8 @@ def _check(root: Path) -> tuple[int, int]:
     for kind in OUTPUTS:
         if (root / "out" / kind).exists():
             try:
-                learning.load(root / "out" / kind)
-            except learning.LearningError:
+                artefacts.load(root / "out" / kind)
+            except learners.LearningError:
                 unloadable += 1
     return torn, unloadable
 
@@ -135,8 +135,8 @@ def check_data_root(root: Path) -> tuple[int, int]:
             torn += 1
     for m in filter(visible, root.glob("learned/*/manifest.json")):
         try:
-            learning.load(m.parent)
-        except learning.LearningError:
+            artefacts.load(m.parent)
+        except learners.LearningError:
             unloadable += 1
     return torn, unloadable
 

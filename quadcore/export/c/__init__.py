@@ -33,7 +33,7 @@ from quadcore.export.c.build import CompileError, Footprint, HostModel, check_st
 from quadcore.export.c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
 from quadcore.export.c.inputs import ExportError, Field
 from quadcore.identify.model import ModelFileError, PhysicsModel, load_plugins
-from quadcore.learn import learning
+from quadcore.learn import artefacts, experiments, learners
 from quadcore.store import store
 
 __all__ = ["ExportError", "NoCFormError", "CompileError", "Exported", "Footprint", "HostModel", "export",
@@ -74,13 +74,13 @@ def _physics_from_json(path: Path) -> PhysicsModel:
         load_plugins(d)  # the effects a plugin module defines, as the fit recorded them
     except ModelFileError as exc:
         raise ExportError(f"{path}: {exc}") from None
-    return PhysicsModel.from_dict(d, learning.vehicle_of(d))
+    return PhysicsModel.from_dict(d, artefacts.vehicle_of(d))
 
 
 def _best_run(learned_dir: Path, kind: str) -> Path:
     from quadcore.learn import evaluation
 
-    index, records = learning.read_runs(learned_dir)
+    index, records = experiments.read_runs(learned_dir)
     hold = [{**r, "causal": r["feature_set"].get("causal", True)} for r in records
             if r["split"]["name"] == f"holdout-{index['holdout']}"]
     best = evaluation.best_runs(hold)
@@ -91,7 +91,7 @@ def _best_run(learned_dir: Path, kind: str) -> Path:
 
 
 def load_source(path: str | Path, learned_kind: str = "xgboost"
-                ) -> tuple[PhysicsModel, learning.LearnedModel | None, str]:
+                ) -> tuple[PhysicsModel, artefacts.LearnedModel | None, str]:
     """(physics model, learned model or None, a description of where they came from)."""
     if learned_kind not in LEARNED_KINDS:
         raise ExportError(f"unknown learned kind {learned_kind!r}; choose one of {', '.join(LEARNED_KINDS)}")
@@ -111,16 +111,16 @@ def load_source(path: str | Path, learned_kind: str = "xgboost"
             return _physics_from_json(physics_file), None, f"physics model {physics_file}"
         folder = _best_run(learned_dir, learned_kind)
     try:
-        model = learning.load(folder)
+        model = artefacts.load(folder)
         physics = model.physics_model()
-    except (learning.LearningError, ModelFileError, OSError, json.JSONDecodeError) as exc:
+    except (learners.LearningError, ModelFileError, OSError, json.JSONDecodeError) as exc:
         raise ExportError(f"cannot load the learned model in {folder}: {exc}") from None
     if learned_kind == "none":
         return physics, None, f"the physics model of learned model {folder}"
     return physics, model, f"learned model {folder.name} and its physics model"
 
 
-def export_models(physics: PhysicsModel, learned: learning.LearnedModel | None, out_dir: str | Path,
+def export_models(physics: PhysicsModel, learned: artefacts.LearnedModel | None, out_dir: str | Path,
                   provenance: str = "") -> Exported:
     """Generate, check with the strict C99 flags when a compiler is present, measure the
     footprint, and write ``quadcore_model.{h,c}`` under ``out_dir`` (each atomically)."""

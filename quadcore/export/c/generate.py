@@ -10,7 +10,7 @@ from quadcore.export.c import inputs
 from quadcore.export.c.inputs import Derived, ExportError, Field
 from quadcore.export.c.learned import learned_c
 from quadcore.identify.model import PhysicsModel
-from quadcore.learn.learning import LearnedModel
+from quadcore.learn.artefacts import LearnedModel
 from quadcore.logs.units import G0_MPS2
 
 HEADER = "quadcore_model.h"

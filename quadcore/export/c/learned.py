@@ -20,7 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from quadcore.export.c.inputs import ExportError
-from quadcore.learn.learning import CompiledForest, LearnedModel
+from quadcore.learn.artefacts import LearnedModel
+from quadcore.learn.trees import CompiledForest
 
 
 def c_float(value: float) -> str:
