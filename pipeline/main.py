@@ -281,7 +281,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     log(f"  diagnosis report   {store.diagnosis_path(root).with_suffix('.html')} (and .md, .json)")
     log(f"  learned models     {store.learned_dir(root)}/<run>/ (model, scaler, features, manifest)")
     log(f"  learning report    {store.learning_report_path(root).with_suffix('.html')} (and .md, .json)")
-    log(f"  flights as MCAP    {root / 'mcap'}/<flight>.mcap (open in Foxglove)")
+    log(f"  flights as MCAP    {store.mcap_dir(root)}/<flight>.mcap (open in Foxglove)")
     log(f"  model as C         {store.export_c_dir(root)}/quadcore_model.{{h,c}} (for the flight controller)")
     log(f"  error history      {root / 'history'}/*.parquet")
     _print_history(root, log)

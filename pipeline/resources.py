@@ -99,7 +99,9 @@ class ModelConfig(dg.ConfigurableResource):
 def model_config_from_env() -> ModelConfig:
     """The model from the environment; its file is ``QUADCORE_MODEL``, else the data root's own
     ``model.toml`` (the demo writes one, so that later runs continue its story), else ./model.toml."""
-    own = data_root_from_env().root_path / "model.toml"
+    from quadcore.store import store
+
+    own = store.own_model_file(data_root_from_env().root_path)
     default_file = str(own) if own.is_file() else "model.toml" if Path("model.toml").is_file() else ""
     return ModelConfig(
         model_file=os.environ.get("QUADCORE_MODEL", default_file),

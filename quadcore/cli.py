@@ -385,6 +385,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from quadcore import workflows
     from quadcore.learn import features as feat, learners, splits
     from quadcore.learn.tables import TABLE_TITLES, text_table
+    from quadcore.store import store
     from quadcore.workflows import fleet, identify, learn
 
     data, names = _data_and_effects(args)
@@ -425,7 +426,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     physics_info = fitted.to_dict()  # the model, its training flights, spec digest and plugins
     try:
-        learn.train(by_set, sets, holdout, physics_info, request, kinds, out / "learned", log)
+        learn.train(by_set, sets, holdout, physics_info, request, kinds, store.learned_dir(out), log)
         report, _, paths = learn.write_learning_report(out, res, train)
     except learners.LearningError as exc:
         raise UserError(str(exc)) from None

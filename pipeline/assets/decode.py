@@ -10,7 +10,6 @@ from pipeline.resources import DataRoot
 from quadcore.learn.features import find_flights_csv
 from quadcore.logs import checks, flight, logformat
 from quadcore.store import store
-from quadcore.store.names import check_component
 
 MAIN_EVENT = "fixedFrequency"
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
@@ -64,7 +63,7 @@ def _utc(ns: int | None) -> str:
 def check_outcomes_path(data_root: DataRoot, fid: str):
     """Where a flight's latest check outcomes are kept (a check result in Dagster is per asset,
     not per flight: this keeps every flight's, for the per-flight table)."""
-    return data_root.root_path / "checks" / f"{check_component(fid, 'flight id')}.json"
+    return store.check_outcomes_path(data_root.root_path, fid)
 
 
 def _keep_outcomes(data_root: DataRoot, fid: str, outcomes: dict) -> None:
@@ -75,7 +74,7 @@ def _keep_outcomes(data_root: DataRoot, fid: str, outcomes: dict) -> None:
 def _flights_table(data_root: DataRoot, name: str) -> str:
     """Every flight's latest outcome of check ``name`` as a Markdown table (failing flights first)."""
     rows = []
-    for path in sorted((data_root.root_path / "checks").glob("*.json")):
+    for path in sorted(store.checks_dir(data_root.root_path).glob("*.json")):
         outcome = store.read_json(path).get(name)
         if outcome is not None:
             rows.append((outcome["passed"], path.stem, outcome["reason"]))

@@ -13,7 +13,6 @@ from pipeline.resources import DataRoot
 from quadcore.export import c as export_c, mcap as export
 from quadcore.learn import learners
 from quadcore.store import store
-from quadcore.store.names import check_component
 
 
 @dg.asset(partitions_def=flights, backfill_policy=ONE_RUN, group_name="export", deps=[residual_table], kinds={"mcap"},
@@ -29,7 +28,7 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
         if provenance is None or provenance.start_ns is None:
             raise dg.Failure(
                 description=f"{fid}: no start time in its decoded provenance: re-materialise decoded_flight")
-        path = root / "mcap" / f"{check_component(fid, 'flight id')}.mcap"
+        path = store.mcap_path(root, fid)
         counts = export.write_mcap(table, path, provenance.start_ns,
                                    {"flight": fid, "start_source": provenance.start_source})
         used = store.read_metadata(store.table_path(root, "residuals", fid)).get("model", {})

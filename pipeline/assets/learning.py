@@ -67,7 +67,7 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
              for fs in sets]))),
         "flights": n_flights,
         "targets": dg.MetadataValue.json(feat.TARGETS),
-        "folder": dg.MetadataValue.path(str(root / "features")),
+        "folder": dg.MetadataValue.path(str(store.features_dir(root))),
     })
 
 
@@ -81,7 +81,8 @@ def learned_models(
     root = data_root.root_path
     sets, tables = feat.read_feature_tables(root)
     if not sets:
-        raise dg.Failure(description=f"no feature tables in {root / 'features'}: materialise learning_features first")
+        raise dg.Failure(description=f"no feature tables in {store.features_dir(root)}: materialise learning_features "
+                                     "first")
     csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp}, config.loo,
                                     config.compare, config.stride, config.seed, config.threads)

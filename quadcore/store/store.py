@@ -104,6 +104,34 @@ def learning_report_path(root: Path) -> Path:
     return reports_dir(root) / LEARNING_FILE
 
 
+def features_dir(root: Path) -> Path:
+    """The feature tables (``features/<set>/flight=<id>/data.parquet``)."""
+    return as_root(root) / "features"
+
+
+def mcap_dir(root: Path) -> Path:
+    return as_root(root) / "mcap"
+
+
+def mcap_path(root: Path, flight: str) -> Path:
+    """A flight as MCAP for Foxglove."""
+    return mcap_dir(root) / f"{check_component(flight, 'flight id')}.mcap"
+
+
+def checks_dir(root: Path) -> Path:
+    """Every flight's latest plausibility-check outcomes (``decoded_flight``'s checks, kept per flight)."""
+    return as_root(root) / "checks"
+
+
+def check_outcomes_path(root: Path, flight: str) -> Path:
+    return checks_dir(root) / f"{check_component(flight, 'flight id')}.json"
+
+
+def own_model_file(root: Path) -> Path:
+    """The data root's own model file (the demo writes one; it is the default model file there)."""
+    return as_root(root) / "model.toml"
+
+
 def learned_dir(root: Path) -> Path:
     """The learned models (``learned/<run>/``) and their ``index.json``."""
     return as_root(root) / "learned"

@@ -28,4 +28,4 @@ def write_demo_model_file(root: Path, template: str, effects: list[str]) -> Path
     text = Path(template).read_text() if template and Path(template).is_file() else "effects = []\n"
     listed = "effects = [" + ", ".join(f'"{e}"' for e in effects) + "]"
     text, n = re.subn(r"(?m)^effects\s*=\s*\[[^\]]*\]", listed, text)
-    return store.write_text(text if n else f"{listed}\n{text}", root / "model.toml")
+    return store.write_text(text if n else f"{listed}\n{text}", store.own_model_file(root))
