@@ -385,8 +385,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from quadcore import workflows
     from quadcore.learn import features as feat, learners, splits
     from quadcore.learn.tables import TABLE_TITLES, text_table
-    from quadcore.store import store
-    from quadcore.workflows import fleet, identify, learn
+    from quadcore.workflows import fleet, learn
 
     data, names = _data_and_effects(args)
     request = learn.LearningRequest(
@@ -411,28 +410,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     if note:
         print(f"note: {note}", file=sys.stderr)
-    fitted = identify.fit(flights, spec, [holdout], log if spec.effects else (lambda m: None))
-    train = list(fitted.trained_on)
-    physics = fitted.model
-    try:
-        res = learn.residual_tables(flights.tables, physics)
-        by_set = feat.feature_tables(res, sets)
-    except feat.FeatureError as exc:
-        raise UserError(str(exc)) from None
     kinds = feat.read_flight_kinds(csv_path)
     if not kinds:
         print("note: no flights.csv (flight,kind): the training-size comparison (random vs preplanned) is skipped",
               file=sys.stderr)
     out = Path(args.out)
-    physics_info = fitted.to_dict()  # the model, its training flights, spec digest and plugins
     try:
-        learn.train(by_set, sets, holdout, physics_info, request, kinds, store.learned_dir(out), log)
-        report, _, paths = learn.write_learning_report(out, res, train)
+        done = learn.train_on_flights(flights, spec, sets, request, holdout, kinds, out, log)
     except learners.LearningError as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:
         raise UserError(f"cannot write to {out}: {exc}") from None
-    print(f"physics model: {physics.label}; held out: {holdout}; trained on {len(train)} flights\n")
+    report, paths = done.report, done.paths
+    print(f"physics model: {done.physics.label}; held out: {holdout}; trained on {len(done.trained_on)} flights\n")
     for key in ("headline", "feature_sets", "training_size", "complexity", "lofo"):
         rows = report["tables"].get(key)
         if rows:

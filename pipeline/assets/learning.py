@@ -79,29 +79,20 @@ def learned_models(
     flights but the holdout with early stopping on validation flights; artefacts and held-out
     predictions under ``<root>/learned/<run>/``."""
     root = data_root.root_path
-    sets, tables = feat.read_feature_tables(root)
-    if not sets:
-        raise dg.Failure(description=f"no feature tables in {store.features_dir(root)}: materialise learning_features "
-                                     "first")
-    csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp}, config.loo,
                                     config.compare, config.stride, config.seed, config.threads)
+    csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     with failing_on_user_errors():
-        physics = learn.physics_of_residuals(root)
-        holdout, note = learn.learning_holdout(config.holdout, sorted(next(iter(tables.values()))),
-                                               model.holdout_flights)
-        if note:
-            context.log.warning(note)
-        runs = learn.train(tables, sets, holdout, physics, request, feat.read_flight_kinds(csv_path),
-                           store.learned_dir(root), log=context.log.info)
-    notes = ([note] if note else []) + list(runs.notes)
+        runs = learn.train_data_root(root, request, config.holdout, model.holdout_flights, csv_path, context.log.info)
+    for note in runs.notes:
+        context.log.warning(note)
     return dg.MaterializeResult(metadata={
-        "holdout": holdout,
+        "holdout": runs.holdout,
         "models": len(runs.records),
         "runs": dg.MetadataValue.md(render.markdown_table(pl.DataFrame([
             {"run": r.name, "train s": r.train_time_s, "val loss": r.val_loss, "rows": r.rows_fit,
              "µs/sample": r.latency_us} for r in runs.records]))),
-        "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in notes) or "none"),
+        "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in runs.notes) or "none"),
         "folder": dg.MetadataValue.path(str(store.learned_dir(root))),
     })
 

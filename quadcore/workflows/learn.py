@@ -6,17 +6,17 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.identify.model import PLUGINS, SPEC_DIGEST
-from quadcore.workflows.fleet import WorkflowError, held_out
+from quadcore.workflows.fleet import Fleet, WorkflowError, held_out
 
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore.identify.model import PhysicsModel
+    from quadcore.identify.model import ModelSpec, PhysicsModel
     from quadcore.learn.experiments import Plan, RunRecord
     from quadcore.learn.features import FeatureSet
     from quadcore.learn.learners import LearnerSpec, TrainConfig
@@ -149,11 +149,60 @@ def train(tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], sets: list[Fe
     flights = sorted(next(iter(tables_by_set.values())))
     plan: Plan = experiments.plan(flights, sets, list(request.models), holdout, flight_kinds, request.loo,
                                request.compare, request.learner_specs())
-    for n in plan.notes:
-        log(f"note: {n}")
     log(f"training {len(plan.experiments)} models, holdout {holdout} -> {out_dir}")
     records = experiments.run_plan(plan, tables_by_set, out_dir, physics, request.config(), flight_kinds, log=log)
     return TrainedRuns(tuple(records), holdout, tuple(plan.notes), out_dir)
+
+
+def train_data_root(root, request: LearningRequest, requested_holdout: str, model_holdout: list[str],
+                    flights_csv, log: Log = _quiet) -> TrainedRuns:
+    """The learning assets' training: the feature tables under ``root``, the physics model their
+    residuals were computed against, the holdout (``requested_holdout``, else the physics
+    model's), then :func:`train` into ``root/learned``. The holdout's note leads the notes."""
+    from quadcore.learn import features as feat
+    from quadcore.store import store
+
+    sets, tables = feat.read_feature_tables(root)
+    if not sets:
+        raise WorkflowError(f"no feature tables in {store.features_dir(root)}: materialise learning_features first")
+    physics = physics_of_residuals(root)
+    holdout, note = learning_holdout(requested_holdout, sorted(next(iter(tables.values()))), model_holdout)
+    runs = train(tables, sets, holdout, physics, request, feat.read_flight_kinds(flights_csv),
+                 store.learned_dir(root), log)
+    return replace(runs, notes=(note, *runs.notes)) if note else runs
+
+
+@dataclass(frozen=True)
+class Training:
+    """What ``quadcore train`` did: the physics model under the learned ones, the holdout and the
+    flights trained on, the runs, and the learning report (its document and files)."""
+
+    physics: PhysicsModel
+    holdout: str
+    trained_on: tuple[str, ...]
+    runs: TrainedRuns
+    report: dict
+    paths: dict[str, Path]
+
+
+def train_on_flights(flights: Fleet, spec: ModelSpec, feature_sets: list[FeatureSet], request: LearningRequest,
+                     holdout: str, flight_kinds: dict[str, str], out, log: Log = _quiet) -> Training:
+    """``quadcore train``: fit the spec's effects on every flight but ``holdout``, build each
+    flight's residual and feature tables against that fit (its session's values), train into
+    ``out/learned`` and write the learning report (and the history) under ``out``."""
+    from quadcore.learn import features as feat
+    from quadcore.store import store
+    from quadcore.workflows import identify
+
+    fitted = identify.fit(flights, spec, [holdout], log if spec.effects else _quiet)
+    res = residual_tables(flights.tables, fitted.model)
+    try:
+        by_set = feat.feature_tables(res, feature_sets)
+    except feat.FeatureError as exc:
+        raise WorkflowError(str(exc)) from None
+    runs = train(by_set, feature_sets, holdout, fitted.to_dict(), request, flight_kinds, store.learned_dir(out), log)
+    report, _, paths = write_learning_report(out, res, list(fitted.trained_on))
+    return Training(fitted.model, holdout, fitted.trained_on, runs, report, paths)
 
 
 def write_learning_report(root, residuals: Mapping[str, pl.DataFrame] | None = None,
