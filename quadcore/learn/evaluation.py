@@ -46,6 +46,7 @@ step in the falling-error plot.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import polars as pl
@@ -65,7 +66,7 @@ from quadcore.learn.tables import (
 from quadcore.report.learning import make_plots, write_report
 
 
-def evaluate(out_dir: str | Path, residual_tables: dict[str, pl.DataFrame], vehicle,
+def evaluate(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
              physics_trained_on: list[str] | None = None) -> dict:
     """Score every run of ``out_dir`` (see :func:`quadcore.learn.experiments.run_plan`) and the baselines
     on the same held-out rows; build the comparison tables. Returns the report as a dict
@@ -216,7 +217,7 @@ def record_history(root: str | Path, report: dict) -> list[Path]:
     return [p for p in written if p is not None]
 
 
-def full_report(out_dir: str | Path, residual_tables: dict[str, pl.DataFrame], vehicle, report_dir: str | Path,
+def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle, report_dir: str | Path,
                 root_for_history: str | Path | None = None,
                 physics_trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
     """Evaluate, record the history (when ``root_for_history``), plot and write the report.

@@ -358,7 +358,7 @@ def find_flights_csv(*folders: str | Path | None) -> Path | None:
     return None
 
 
-def feature_tables(residual_tables: dict[str, pl.DataFrame],
+def feature_tables(residual_tables: Mapping[str, pl.DataFrame],
                    sets: list[FeatureSet]) -> dict[str, dict[str, pl.DataFrame]]:
     """{set name: {flight: feature table}} for every set and flight (in memory)."""
     return {fs.name: {fid: feature_table(t, fs) for fid, t in residual_tables.items()} for fs in sets}

@@ -7,6 +7,8 @@ Each row predicts the residual force ``f_res_b_{x,y,z}_N`` (N) and torque ``tau_
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import polars as pl
 
@@ -59,7 +61,7 @@ def nominal_residual(table: pl.DataFrame, vehicle) -> np.ndarray:
     return np.concatenate([r["f_res_b"], r["tau_res_b"]], axis=1)
 
 
-def baseline_predictions(residual_tables: dict[str, pl.DataFrame], train: list[str], test: list[str],
+def baseline_predictions(residual_tables: Mapping[str, pl.DataFrame], train: list[str], test: list[str],
                          vehicle) -> dict[str, pl.DataFrame]:
     """Baseline predictions on the usable rows of the ``test`` flights, in the layout of a
     run's ``predictions.parquet`` (flight, row, t_s, targets, predictions)."""

@@ -4,6 +4,7 @@ leave-one-flight-out summaries, error by regime, feature importance, the verdict
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -228,7 +229,7 @@ def regime_values(table: pl.DataFrame, vehicle) -> dict[str, np.ndarray]:
     }
 
 
-def regime_table(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFrame], vehicle) -> pl.DataFrame:
+def regime_table(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame], vehicle) -> pl.DataFrame:
     """Force and torque MAE (mean over axes) of the baselines and best models per regime bin,
     on the held-out flight."""
     holdout = report["holdout"]
@@ -277,7 +278,7 @@ def permutation_importance(model: artefacts.LearnedModel, table: pl.DataFrame, s
     return out
 
 
-def importance(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFrame]) -> dict[str, dict]:
+def importance(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame]) -> dict[str, dict]:
     """Per best model: permutation importance on the held-out flight, and XGBoost's gain."""
     out = {}
     for k, name in report["best"].items():

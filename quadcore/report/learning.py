@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
 import matplotlib
@@ -125,7 +126,7 @@ def comparison_plot(report: dict) -> bytes:
     return plots._png(fig)
 
 
-def make_plots(report: dict, out_dir: Path, residual_tables: dict[str, pl.DataFrame], vehicle,
+def make_plots(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
                hist: pl.DataFrame | None = None) -> dict[str, bytes]:
     """All plots as PNG bytes; also stores the regime table and importances in ``report``."""
     from quadcore.report import report as diagnosis_report
