@@ -42,3 +42,14 @@ def test_history_plot_has_a_row_of_panels_per_set_and_the_table_states_units(tmp
     assert "torque_rmse_x_mNm" in table.columns and table["torque_rmse_x_mNm"].to_list() == [0.1, 0.1, 0.1]
     assert table["evaluation_set"].to_list() == ["holdout on jana02", "cross-validation on 3 flights",
                                                  "holdout on jana02"]
+
+
+def test_a_history_plot_is_drawn_once_per_history(tmp_path):
+    """The report and the error_history asset show the same history: the second asks for a plot
+    already drawn and gets it without drawing; another history is drawn anew."""
+    _record(tmp_path, "nominal", 0.014, ["jana02"])
+    first = report.history_plot(history.read(tmp_path))
+    assert report.history_plot(history.read(tmp_path)) is first  # an equal table read again
+    _record(tmp_path, "nominal+rotor_drag", 0.0005, ["jana02"])
+    changed = report.history_plot(history.read(tmp_path))
+    assert changed != first

@@ -3,7 +3,12 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import re
+from collections import OrderedDict
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -22,7 +27,38 @@ from quadcore.store import store  # noqa: E402
 
 TITLE = "Dynamics model diagnosis"
 
+# How many plots each plot function remembers (see _drawn_once).
+REMEMBERED_PLOTS = 4
 
+
+def _drawn_once(fingerprint: Callable[..., bytes]):
+    """A plot function that remembers its last few PNGs by a fingerprint of its input: the
+    diagnosis asset attaches to its metadata the plots the report has just drawn (and
+    error_history the history plot the report drew), so each is drawn once, not twice."""
+    def wrap(draw: Callable[..., bytes]) -> Callable[..., bytes]:
+        drawn: OrderedDict[str, bytes] = OrderedDict()
+
+        @functools.wraps(draw)
+        def plot(*args) -> bytes:
+            key = hashlib.sha256(fingerprint(*args)).hexdigest()
+            if key not in drawn:
+                drawn[key] = draw(*args)
+                while len(drawn) > REMEMBERED_PLOTS:
+                    drawn.popitem(last=False)
+            return drawn[key]
+        return plot
+    return wrap
+
+
+def _json_of(*parts) -> bytes:
+    return json.dumps(parts, sort_keys=True, default=str).encode()
+
+
+def _frame_bytes(hist: pl.DataFrame) -> bytes:
+    return _json_of(hist.columns, [str(t) for t in hist.dtypes], hist.rows())
+
+
+@_drawn_once(lambda d: _json_of(d["candidates"]))
 def candidates_plot(d: dict) -> bytes:
     """Share of the held-out residual each candidate removes, force and torque. Found
     candidates in full colour; the others faded and labelled with why (an unphysical fit is
@@ -53,6 +89,7 @@ def _short_status(r: dict) -> str:
     return r.get("grade", status) if status == "found" else status.replace("_", " ")
 
 
+@_drawn_once(lambda d: _json_of(d["regimes"]))
 def regimes_plot(d: dict) -> bytes:
     reg = pl.DataFrame(d["regimes"])
     regimes = reg["regime"].unique(maintain_order=True).to_list()
@@ -72,6 +109,7 @@ def regimes_plot(d: dict) -> bytes:
     return plots._png(fig)
 
 
+@_drawn_once(lambda freq: _json_of(freq))
 def frequency_plot(freq: dict) -> bytes:
     """Residual RMS of each flight's constant offset and by frequency band (top), coherence and
     gain of modelled vs measured by band (bottom); force left, torque right."""
@@ -156,6 +194,7 @@ def discovery_sections(disc: dict) -> list[tuple[str, str, object]]:
 HISTORY_PLOT_SETS = 3
 
 
+@_drawn_once(_frame_bytes)
 def history_plot(hist: pl.DataFrame) -> bytes:
     """The falling-error plot: one row of panels per evaluation set (like with like), force [N]
     and torque [mN m] per axis as steps from one model to the next."""
