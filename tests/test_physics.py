@@ -151,6 +151,20 @@ def test_rollout_error_grows_with_horizon_and_one_step_is_small(sim_flight):
     assert ends.filter(pl.col("horizon_s") == 0.1)["pos_err_m"][0] < 0.02
 
 
+def test_windows_of_several_lengths_in_one_rollout_are_each_window_alone(sim_flight):
+    """One rollout with a step count per start (what error_growth runs for all its horizons)
+    gives every window the errors it has when rolled out on its own (to rounding: NumPy's
+    vectorised sin/cos may round a row differently in another batch), NaN past its end."""
+    state = dynamics.flight_state(sim_flight, VEH)
+    starts, steps = np.array([700, 100, 400, 1000]), np.array([5, 60, 1, 60])
+    together = propagation.rollout(state, VEH, starts, steps)
+    for row, (start, n) in enumerate(zip(starts, steps)):
+        alone = propagation.rollout(state, VEH, np.array([start]), int(n))
+        for key, errors in together.items():
+            np.testing.assert_allclose(errors[row, :n + 1], alone[key][0], rtol=1e-12, atol=1e-15)
+            assert np.isnan(errors[row, n + 1:]).all()
+
+
 def test_quaternion_integration_is_exact_for_constant_rate():
     q0 = np.array([[0.0, 0.0, 0.0, 1.0]])
     w = np.array([[0.0, 0.0, np.pi]])  # half a turn per second about z
