@@ -4,6 +4,7 @@ after one more flight.
     nice -n 10 python benchmarks/bench_scale.py [N ...]                 the main job (default: 10 50 100)
     nice -n 10 python benchmarks/bench_scale.py --per-flight [N ...]    per-flight stages (default: 10 100 300)
     nice -n 10 python benchmarks/bench_scale.py --fleet [N ...]         fleet stages (default: 10 100 1000)
+    nice -n 10 python benchmarks/bench_scale.py --learning [N ...]      learning stage (default: 10 100)
 
 N flights: a pool of 20 simulated flights (random go-to flights, 10 s each, simulated once and
 cached under $TMPDIR/quadcore_bench_scale), linked under N flight ids (flight ``sim0042`` is pool
@@ -18,6 +19,8 @@ flight 42 mod 20: same bytes, its own partition and outputs).
 - ``--fleet``: only the fleet stages (fit, discovery, diagnosis, history: the main job's stage 2)
   in a fresh process on N decoded flights (the pool's decoded tables linked under N ids), then
   one more flight decoded and the fleet stages again (the refresh a new flight costs).
+- ``--learning``: only the learning stage and the C export (the main job's stage 4) in a fresh
+  process, on the residual tables ``--per-flight N`` left.
 
 Each prints a table and, with two N or more, writes a plot of time per flight and peak memory
 against N (``quadcore.plots.scaling``) beside the cache: scale_main.png, scale_per_flight.png,
@@ -106,11 +109,12 @@ def plot(name: str, flights: list[int], series: dict[str, list[float]], mem: lis
 # -- per-flight stages ---------------------------------------------------------------------------
 
 def per_flight_child(n: int) -> None:
-    """In a fresh process: the per-flight stages on n flights, one run per stage; prints seconds."""
+    """In a fresh process: the per-flight stages on n flights, one run per stage (decode and the
+    sufficient statistics, then the tables against the model); prints seconds."""
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import AGAINST_MODEL, DECODE
+    from pipeline.definitions import AGAINST_MODEL, DECODE, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
     raw, root = simulated(n), CACHE / f"root{n}"
@@ -120,6 +124,7 @@ def per_flight_child(n: int) -> None:
     with dg.instance_for_test() as instance:
         t0 = time.perf_counter()
         failed = job.run_flights(instance, resources, ids, DECODE, "decode", log=lambda *_: None)
+        failed.update(job.run_flights(instance, resources, ids, STATISTICS, "statistics", log=lambda *_: None))
         t1 = time.perf_counter()
         failed.update(job.run_flights(instance, resources, ids, AGAINST_MODEL, "flights", log=lambda *_: None))
         t2 = time.perf_counter()
@@ -133,13 +138,13 @@ def per_flight_main(sizes: list[int]) -> None:
         decode_s, tables_s, failed, mb = child(["--per-flight-child", str(n)]).stdout.split()[-4:]
         d, t = float(decode_s), float(tables_s)
         rows.append([n, d, t, (d + t) / n, float(mb), int(failed)])
-        print(f"N={n}: decode {d:.1f} s, residuals+rollouts+MCAP {t:.1f} s, {(d + t) / n:.3f} s/flight, "
+        print(f"N={n}: decode + statistics {d:.1f} s, residuals+rollouts+MCAP {t:.1f} s, {(d + t) / n:.3f} s/flight, "
               f"peak {float(mb):.0f} MB, {failed} failed", flush=True)
-    table(["flights", "decode s", "tables s", "s/flight", "peak MB", "failed"], rows)
+    table(["flights", "decode+st s", "tables s", "s/flight", "peak MB", "failed"], rows)
     report(f"per-flight stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][3] / rows[0][3],
            1.5, "x")
     report(f"per-flight stages: peak memory at {rows[-1][0]} flights", rows[-1][4], 4096.0, "MB")
-    plot("scale_per_flight.png", [r[0] for r in rows], {"decode": [r[1] / r[0] for r in rows],
+    plot("scale_per_flight.png", [r[0] for r in rows], {"decode + statistics": [r[1] / r[0] for r in rows],
          "residuals + rollouts + MCAP": [r[2] / r[0] for r in rows]}, [r[4] for r in rows],
          "per-flight stages (bench_scale.py --per-flight)")
 
@@ -172,25 +177,27 @@ def fleet_root(n: int) -> tuple[Path, Path]:
 
 
 def fleet_child(n: int) -> None:
-    """In a fresh process: the fleet stages on n decoded flights, then one more flight decoded and
-    the fleet stages again. Prints fleet seconds, peak MB, refresh seconds, peak MB, then each
-    asset's seconds of the first run."""
+    """In a fresh process: the flights' sufficient statistics (untimed: a per-flight stage), the
+    fleet stages on n decoded flights, then one more flight decoded with its statistics and the
+    fleet stages again. Prints each asset's seconds of the first run, then fleet seconds, peak
+    MB, refresh seconds, peak MB."""
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import DECODE, FLEET
+    from pipeline.definitions import DECODE, FLEET, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
     root, raw = CACHE / f"fleet{n}", CACHE / f"raw{n + 1}"
     resources = {"data_root": DataRoot(root=str(root), raw=str(raw)), "model": ModelConfig()}
     with dg.instance_for_test() as instance:
+        job.run_flights(instance, resources, [fid(i) for i in range(n)], STATISTICS, "statistics", log=lambda *_: None)
         t0 = time.perf_counter()
         first = job.materialize(FLEET, resources, instance)
         fleet_s, fleet_mb = time.perf_counter() - t0, peak_mb()
         steps = {s.step_key: s.end_time - s.start_time for s in instance.get_run_step_stats(first.run_id)
                  if s.end_time and s.start_time}
         t0 = time.perf_counter()
-        job.run_flights(instance, resources, [fid(n)], DECODE, "decode", log=lambda *_: None)
+        job.run_flights(instance, resources, [fid(n)], [*DECODE, *STATISTICS], "decode", log=lambda *_: None)
         again = job.materialize(FLEET, resources, instance)
         refresh_s = time.perf_counter() - t0
     ok = first.success and again.success
@@ -214,6 +221,47 @@ def fleet_main(sizes: list[int]) -> None:
     report(f"refit + diagnosis + history after one more flight ({rows[-1][0]}+1)", rows[-1][4], 15.0)
     plot("scale_fleet.png", [r[0] for r in rows], {"fleet stages": [r[2] for r in rows]}, [r[3] for r in rows],
          "fleet stages: fit, discovery, diagnosis, history (bench_scale.py --fleet)")
+
+
+# -- learning ------------------------------------------------------------------------------------
+
+def learning_child(n: int) -> None:
+    """In a fresh process: the learning stage and the C export (the main job's stage 4) on the
+    residual tables ``--per-flight n`` left; prints seconds per asset, peak MB."""
+    import dagster as dg
+
+    from pipeline import main as job
+    from pipeline.definitions import EXPORT, LEARNING
+    from pipeline.resources import DataRoot, ModelConfig
+
+    resources = {"data_root": DataRoot(root=str(CACHE / f"root{n}"), raw=str(CACHE / f"raw{n}")),
+                 "model": ModelConfig()}
+    with dg.instance_for_test() as instance:
+        t0 = time.perf_counter()
+        result = job.materialize([*LEARNING, *EXPORT], resources, instance)
+        wall = time.perf_counter() - t0
+        steps = {s.step_key: s.end_time - s.start_time for s in instance.get_run_step_stats(result.run_id)
+                 if s.end_time and s.start_time}
+    print(" ".join(f"{k}={v:.1f}" for k, v in steps.items()))
+    print(f"{wall:.3f} {peak_mb():.0f} {int(result.success)}")
+
+
+def learning_main(sizes: list[int]) -> None:
+    rows = []
+    for n in sizes:
+        if not (CACHE / f"root{n}" / "residuals").is_dir():
+            print(f"N={n}: no residual tables in {CACHE / f'root{n}'}: run --per-flight {n} first")
+            continue
+        out = child(["--learning-child", str(n)]).stdout.strip().splitlines()
+        wall, mb, ok = (float(x) for x in out[-1].split())
+        rows.append([n, wall, wall / n, mb, "yes" if ok else "FAILED"])
+        print(f"N={n}: learning + C export {wall:.1f} s ({out[-2] if len(out) > 1 else ''}), peak {mb:.0f} MB",
+              flush=True)
+    if rows:
+        table(["flights", "learning s", "s/flight", "peak MB", "ok"], rows)
+        report(f"learning: peak memory at {rows[-1][0]} flights", rows[-1][3], 4096.0, "MB")
+        plot("scale_learning.png", [r[0] for r in rows], {"learning + C export": [r[2] for r in rows]},
+             [r[3] for r in rows], "learning stage (bench_scale.py --learning)")
 
 
 # -- the main job --------------------------------------------------------------------------------
@@ -251,6 +299,10 @@ def main() -> None:
         per_flight_child(n[0])
     elif mode == "--fleet-child":
         fleet_child(n[0])
+    elif mode == "--learning-child":
+        learning_child(n[0])
+    elif mode == "--learning":
+        learning_main(n or [10, 100])
     elif mode == "--per-flight":
         per_flight_main(n or [10, 100, 300])
     elif mode == "--fleet":
