@@ -187,3 +187,23 @@ def test_export_c_loads_the_plugins_the_fit_recorded(tmp_path):
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert "d_xy_kg_per_s = ((qc_real)0.04)" in (tmp_path / "c" / "quadcore_model.c").read_text()
+
+
+# ---------------------------------------------------------------------------------------
+# The layering itself: the CLI and the Dagster wiring leave the decisions to the workflows
+# ---------------------------------------------------------------------------------------
+
+# Calls that fit, pick or check a holdout, or write a report or the history: each belongs in
+# quadcore.workflows, which both the CLI and the assets call.
+ORCHESTRATION = ("fit_model", "fit_effects", "diagnosis.diagnose(", "discovery.discover(", "resolve_holdout",
+                 "named_holdout", "report.write(", "history.record(", "full_report(", "run_plan(", "plan(",
+                 "split_usable", "usable_flights", "read_sessions_file", "fitted_for", "write_report(")
+
+
+def test_the_cli_and_the_assets_leave_fitting_holdout_and_reports_to_the_workflows():
+    repo = Path(__file__).resolve().parents[1]
+    sources = [repo / "quadcore" / "cli.py", *sorted((repo / "pipeline").rglob("*.py"))]
+    found = [f"{path.relative_to(repo)}:{i}: {line.strip()}" for path in sources
+             for i, line in enumerate(path.read_text().splitlines(), 1)
+             if any(name in line for name in ORCHESTRATION) and not line.lstrip().startswith("#")]
+    assert not found, "orchestration outside quadcore.workflows:\n" + "\n".join(found)
