@@ -53,6 +53,7 @@ bench: $(STAMP)
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_scale.py 10 100
 	$(VENV_PYTHON) benchmarks/bench_decode.py
 	$(VENV_PYTHON) benchmarks/bench_physics.py
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_sufficient.py
 	$(VENV_PYTHON) benchmarks/bench_learning.py
 	$(VENV_PYTHON) benchmarks/bench_discover.py
 	$(VENV_PYTHON) benchmarks/bench_export_c.py

@@ -257,12 +257,9 @@ def fit_effects(
     fixed = fixed or {}
     w = channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
     ys = [y.copy() for y in targets]
-    params: dict[str, dict[str, float]] = {}
-    std: dict[str, dict[str, float]] = {}
+    params, std = fixed_values(effects, fixed)
     for e in effects:
         if e.name in fixed:
-            params[e.name] = {**e.defaults(), **fixed[e.name]}
-            std[e.name] = {p.name: 0.0 for p in e.parameters}
             ys = [y - prediction(e, params[e.name], fd, vehicle) for fd, y in zip(flights, ys)]
     free = [e for e in effects if e.name not in fixed]
     lin = [e for e in free if e.linear]
@@ -283,6 +280,14 @@ def fit_effects(
         theta, A, rss, n = _linear_solve(lin, flights, ys, w, vehicle)
         linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
     return Fit(params, std, w)
+
+
+def fixed_values(effects: list[Effect], fixed: dict[str, dict[str, float]]) -> tuple[dict, dict]:
+    """(parameters, standard errors) of the effects named in ``fixed``: their given values over
+    the defaults, with no uncertainty."""
+    named = [e for e in effects if e.name in fixed]
+    return ({e.name: {**e.defaults(), **fixed[e.name]} for e in named},
+            {e.name: {p.name: 0.0 for p in e.parameters} for e in named})
 
 
 def linear_parameters(lin: list[Effect], theta: np.ndarray, A: np.ndarray, rss: float, n: int, vehicle: Vehicle,

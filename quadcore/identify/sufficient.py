@@ -250,12 +250,9 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
         raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics")
     vs = [np.asarray(v, dtype=float) for v in targets]
     w = channel_weights(stats, vs)
-    params: dict[str, dict[str, float]] = {}
-    std: dict[str, dict[str, float]] = {}
+    params, std = fitting.fixed_values(effects, fixed)
     for e in effects:
         if e.name in fixed:
-            params[e.name] = {**e.defaults(), **fixed[e.name]}
-            std[e.name] = {p.name: 0.0 for p in e.parameters}
             vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
     lin = [e for e in effects if e.name not in fixed]
     if lin:
