@@ -297,7 +297,7 @@ def _progress(args: argparse.Namespace):
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore.identify import diagnosis
+    from quadcore.identify import verdict
     from quadcore.workflows import identify
 
     spec, flights, holdout = _model_and_flights(args)
@@ -310,13 +310,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
           + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b.torque_rmse_Nm))
     print()
     _print_table([[r["effect"], r["status"], r["target"], f"{r['explained']:.1%}", f"{r['above_noise']:.1%}",
-                   f"{r['held_out_p']:.2g}", r["why"]] for r in diagnosis.candidate_summary(result.candidates)],
+                   f"{r['held_out_p']:.2g}", r["why"]] for r in verdict.candidate_summary(result.candidates)],
                  ["candidate", "status", "target", "explained", "above noise", "held-out p", "why it is ranked here"])
     print("\nsmallest effect these flights would detect "
           f"({result.sensitivity_basis['detection_probability']:.0%} of the time):")
     _print_table([[r["effect"], r["of"], "not in range" if r["undetected_below"] is None
                    else f"{r['undetected_below']:.2g} {r['unit']}"]
-                  for r in diagnosis.sensitivity_rows(result.sensitivity, result.sensitivity_basis)],
+                  for r in verdict.sensitivity_rows(result.sensitivity, result.sensitivity_basis)],
                  ["effect", "parameter", "undetected below"])
     for d in result.disagreements:
         print(f"\n{d.effect}.{d.parameter} differs between groups of flights ({d.source}):")

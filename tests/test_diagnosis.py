@@ -19,7 +19,7 @@ import pytest
 import snapshot
 
 from quadcore import cli, effects
-from quadcore.identify import diagnosis, fitting, model
+from quadcore.identify import diagnosis, evidence, fitting, model
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -186,7 +186,7 @@ def test_thrust_scale_and_added_mass_are_alike_in_force_and_the_torque_decides(h
     assert "thrust_scale" in top["indistinguishable_from"] and top["separated_by"]["thrust_scale"] == "torque"
     assert "indistinguishable from thrust_scale" in nominal["verdict"]
     ts = next(r for r in nominal["candidates"] if r["effect"] == "thrust_scale")
-    assert ts["score"] < top["score"] - diagnosis.TIE_MARGIN  # a thrust scale would leave a torque error
+    assert ts["score"] < top["score"] - evidence.TIE_MARGIN  # a thrust scale would leave a torque error
 
 
 def test_in_hover_thrust_scale_and_added_mass_are_an_honest_tie(sim_sets):
@@ -258,12 +258,12 @@ def test_a_delay_and_a_lag_are_told_apart_by_the_data(hidden):
     delay, _ = hidden("thrust_delay")
     top, lag = delay["candidates"][0], next(r for r in delay["candidates"] if r["effect"] == "motor_lag")
     assert top["effect"] == "thrust_delay" and "motor_lag" not in top["tied_with"]
-    assert lag["score"] < top["score"] - diagnosis.TIE_MARGIN
+    assert lag["score"] < top["score"] - evidence.TIE_MARGIN
     assert "motor_lag" in delay["verdict"]
     lagged, _ = hidden("motor_lag")
     top, late = lagged["candidates"][0], next(r for r in lagged["candidates"] if r["effect"] == "thrust_delay")
     assert top["effect"] == "motor_lag" and "thrust_delay" not in top["tied_with"]
-    assert late["score"] < top["score"] - diagnosis.TIE_MARGIN
+    assert late["score"] < top["score"] - evidence.TIE_MARGIN
     assert "thrust_delay" in lagged["verdict"]
 
 
@@ -318,7 +318,7 @@ def test_no_hidden_effect_no_explanation(sim_sets):
     assert "sensor-noise floor" in result["verdict"] and "nothing left to explain" in result["verdict"]
     for r in result["candidates"]:
         assert not r["found"] and not r["useful"], r
-        assert r["explained_variance"] < diagnosis.MIN_EXPLAINED or not r["significant"], r
+        assert r["explained_variance"] < evidence.MIN_EXPLAINED or not r["significant"], r
     # what "nothing" means here: a rotor drag a tenth of the real Crazyflie's would have been seen
     assert 0 < result["sensitivity"]["rotor_drag"]["k_x_s_per_m"] < 0.004
     # the residual is at the sensor-noise level (~0.5 mN, ~2 uN m), and the diagnosis knows it

@@ -13,7 +13,7 @@ from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import workflows
-from quadcore.identify import diagnosis, history, sessions, sufficient
+from quadcore.identify import history, sessions, sufficient, verdict
 from quadcore.learn import learners
 from quadcore.report import render, report
 from quadcore.workflows import Fleet, fleet, identify
@@ -112,9 +112,9 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b.force_rmse_N)},
         **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b.torque_rmse_Nm)},
         "candidates": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
-            diagnosis.candidate_summary(result.candidates[:5])))),
+            verdict.candidate_summary(result.candidates[:5])))),
         "sensitivity": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
-            diagnosis.sensitivity_rows(result.sensitivity, result.sensitivity_basis)))),
+            verdict.sensitivity_rows(result.sensitivity, result.sensitivity_basis)))),
         "sensitivity_json": dg.MetadataValue.json(doc["sensitivity"]),
         "disagreements": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             sessions.table_rows(disagreements))) if disagreements else "none: one value fits all"),

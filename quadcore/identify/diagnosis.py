@@ -1,98 +1,16 @@
-"""Where the model fails, and which physical effect is missing.
+"""Where the model fails, and which physical effect is missing: :func:`diagnose` fits every effect
+of the library that the model lacks on the training flights and scores it on flights it never saw.
 
-1. **Where it fails.** The residual of the model on the evaluated flights, broken down by
-   flight regime (speed, height, thrust-to-weight, angular rate, battery voltage,
-   acceleration, flight phase) and by flight, with the worst segments in time.
-
-2. **What is missing.** Every effect of the library that is not yet in the model (built-in
-   or plugin) is fitted on the training flights' residuals -- force and torque together,
-   each weighted by the inverse of its mean square (:mod:`quadcore.identify.fitting`) -- and scored
-   on flights it never saw: either the held-out flights, or, with no holdout, a
-   cross-validation over flights (the model's own effects are refitted inside each fold
-   too). Per channel, the *explained variance* is the fraction of the held-out residual
-   (sum over the three axes) it removes; a candidate's ``score`` is the mean over force and
-   torque, so an effect that acts in both channels must explain both, and a candidate that
-   adds error in a channel is penalised there. The reported parameters are those fitted on
-   all training flights, with standard errors.
-
-3. **What counts as evidence** (:mod:`quadcore.identify.evidence`). A candidate is *found*
-   (``found``, alias ``useful``) when all of these hold -- whatever its size next to the noise:
-
-   * *Held-out significance.* Its held-out prediction is confirmed by the held-out residual
-     of its target channel: a regression of the residual on the prediction with a
-     cluster-robust t-test over 1 s blocks, one-sided, at ``ALPHA`` for the whole library
-     (Bonferroni over the candidates).
-   * *Significant parameters.* A fit whose parameters are all within ``MIN_SIGMA`` standard
-     errors of "no effect" is noise fitted to noise.
-   * *Physical values.* A fit outside the parameters' physical bounds (negative drag, a
-     negative payload, less thrust near the ground) is never an explanation, whatever it
-     removes.
-   * *Above the sensor noise.* The white-noise floor of each residual channel is measured on
-     the flights themselves (:func:`quadcore.identify.fitting.sensor_noise_floor`). A channel whose
-     held-out residual is within ``evidence.NOISE_MARGIN`` (RMS) of its floor holds no
-     evidence FOR any effect: its explained variance is clipped to ``<= 0`` (it still counts
-     AGAINST a candidate that would add error there). The controller closes its loop on the
-     same noisy gyro that the torque residual is computed from, so the commanded rotor
-     torques correlate with the gyro noise in the "measured" torque (errors in variables): a
-     thrust scale or a motor lag "explains", significantly, a third of pure noise even on
-     held-out flights. With the clip, a hover flight does not invent a motor lag.
-
-   Beside the raw share of the residual it removes, each candidate states the share of the
-   part *above the noise floor* (``explained_above_noise``) and its size in noise floors
-   (``signal_to_noise``), graded ``large`` (>= ``LARGE_SNR``), ``clear`` (>= 1) or ``small
-   but certain`` (weaker than the sensor noise, yet confirmed). Candidates are ranked in
-   tiers (found; physical; unphysical), by score within a tier, and each gets a ``status``
-   and a ``reason``: why it is ranked where it is. ``sensitivity`` states, for every
-   candidate and parameter, the smallest value these flights would have detected
-   (:func:`quadcore.identify.evidence.detection_limit`); every verdict carries it.
-
-4. **Honesty: explanations the data cannot tell apart.** Two candidates are *alike in a
-   channel* when each can reproduce the other's held-out prediction there (at least
-   ``1 - SAME_SIGNATURE`` of its energy) with physical parameter values -- a projection
-   onto the other's basis, independent of how large either fit came out (so a thrust scale
-   that the torque pulled to zero still shows that its force signature is a payload's).
-   ``indistinguishable_from`` lists the candidates alike to this one in the channel it
-   explains (its ``target``). If their scores are within ``TIE_MARGIN``, or the held-out
-   flights do not prefer either significantly (:func:`quadcore.identify.evidence.compare`, in the
-   channels above the noise), nothing else separates them: they are ``tied_with`` each other, the one
-   with fewer parameters ranks first (parsimony; then the higher score), and the verdict says the
-   data cannot choose.
-   Otherwise the other channel separates them (``separated_by``) and the verdict says how.
-   The physics behind the two pairs that matter:
-
-   * **thrust_scale vs added_mass.** Less thrust than mapped (``s < 1``) and an unmodelled
-     payload give the same force residual, ``-c T`` along body z with ``c = 1 - s =
-     m_p / (m + m_p)``: in force they are one effect. Only the torque can tell them apart: a
-     thrust-map error scales every rotor's thrust and hence the roll, pitch and yaw torques
-     the model computes from them; a payload at the centre of mass changes no torque (its
-     inertia is not modelled; a payload off the centre of mass is ``com_offset``). So when
-     the torque residual is above the noise and the thrust scale explains it, thrust_scale
-     ranks first; when a thrust scale large enough for the force would add a torque error
-     that the gyros do not see, added_mass ranks first; and in hover, where the rotor
-     torques are mere trims and 8 % of them is below the gyro-derivative noise, the two are
-     a tie and the verdict says so (which one is listed first is then immaterial).
-   * **rotor_drag vs wind.** A wind effect with ``w = 0`` *is* rotor drag with
-     ``k_x = k_y``. When the fitted air speed is nil the two tie and rotor drag, with fewer
-     parameters, ranks first: nothing in the data asks for a wind. A real wind is a force
-     that does not vanish at zero ground speed and turns with the heading; rotor drag
-     cannot reproduce it, and the wind ranks first by a wide margin.
-
-5. **Beyond the best one.** For every other candidate, ``explained_after_top`` is the share
-   of the baseline residual it can still remove once the best candidate's held-out
-   prediction is subtracted (least squares on the evaluated flights: a screening number).
-   The verdict lists those above ``MIN_EXPLAINED`` as "also missing" (e.g. a CoM offset
-   found beside rotor drag) and the others as alternatives to the best one, not additions.
-   When nothing is found, the verdict says that no effect of the library explains what is
-   left, and says "at the noise level" only when the residual is also within the margin of
-   the floor in both channels.
+How it decides (held-out significance, the noise floor, ties the data cannot break, what is
+missing beside the best one) is in ``docs/diagnosis.md``; the regime tables are in
+:mod:`quadcore.identify.regimes`, the verdict text and report rows in :mod:`quadcore.identify.verdict`,
+the thresholds in :mod:`quadcore.identify.evidence`.
 """
 
 from __future__ import annotations
 
 import functools
-import operator
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -100,138 +18,13 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions as sessionlib, spectrum, sufficient
+from quadcore.identify.evidence import LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
+from quadcore.identify.regimes import flight_table, long_table, regime_table, worst_segments
 from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse
-from quadcore.physics import rotations, signals
-from quadcore.physics.dynamics import GRAVITY_W_MPS2, XYZ
-
-MIN_EXPLAINED = 0.05  # screening: below this share of the residual a candidate adds nothing beyond the best one
-MIN_SIGMA = 3.0  # a fit within this many standard errors of 'no effect' is not significant
-SAME_SIGNATURE = 0.1  # share of one prediction another candidate cannot reproduce, below which they are alike
-TIE_MARGIN = 0.02  # score difference within which two alike candidates are a tie (parsimony decides)
-LARGE_SNR = 3.0  # a found effect whose removed residual exceeds this many noise floors (RMS) is "large"
-
-SPEED_BINS = [0.0, 0.25, 0.5, 1.0, 1.5]
-HEIGHT_BINS = [-np.inf, 0.1, 0.3, 0.6, 1.0]
-THRUST_BINS = [0.0, 0.8, 0.95, 1.05, 1.2]
-RATE_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
-VBAT_BINS = [0.0, 3.5, 3.7, 3.9]
-ACCEL_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
-
-
-@dataclass
-class RegimeColumns:
-    """Per-sample regime variables of one flight."""
-
-    speed_mps: np.ndarray
-    height_m: np.ndarray
-    thrust_to_weight: np.ndarray
-    angular_rate_radps: np.ndarray
-    vbat_V: np.ndarray
-    acceleration_mps2: np.ndarray
-    phase: np.ndarray
-
-
-def regime_columns(fd: FlightData, vehicle) -> RegimeColumns:
-    s = fd.state
-    sf_w = rotations.body_to_world(s.R_wb, signals.smooth(s.sf_b_mps2))
-    a_w = GRAVITY_W_MPS2 + sf_w  # kinematic acceleration, from the smoothed accelerometer
-    speed = np.linalg.norm(s.v_w_mps, axis=1)
-    vz = s.v_w_mps[:, 2]
-    tw = s.f_rotor_N.sum(axis=1) / vehicle.weight_N
-    phase = np.where(
-        tw < 0.5, "ground",
-        np.where(vz > 0.2, "climb", np.where(vz < -0.2, "descent", np.where(speed < 0.1, "hover", "cruise"))),
-    )
-    return RegimeColumns(speed, s.p_w_m[:, 2], tw, np.linalg.norm(s.omega_b_radps, axis=1), s.vbat_V,
-                         np.linalg.norm(a_w, axis=1), phase)
-
-
-def bin_labels(edges: list[float], unit: str = "") -> list[str]:
-    """The label of each bin: ``<e1``, ``e1-e2``, ..., ``ek+`` (edges ascending, first may be -inf)."""
-    labels = []
-    for i, lo in enumerate(edges):
-        if i + 1 == len(edges):
-            labels.append(f"{lo:g}+ {unit}")
-        elif np.isinf(lo):
-            labels.append(f"<{edges[i + 1]:g} {unit}")
-        else:
-            labels.append(f"{lo:g}-{edges[i + 1]:g} {unit}")
-    return [label.strip() for label in labels]
-
-
-def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
-    """Label each value with its bin (see :func:`bin_labels`)."""
-    idx = np.searchsorted(np.asarray(edges[1:]), x, side="right")
-    return np.asarray(bin_labels(edges, unit))[idx]
-
-
-def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle) -> pl.DataFrame:
-    """One row per usable sample of the evaluated flights: regime labels and the residual."""
-    frames = []
-    for fd in flights:
-        r = resid[fd.flight]
-        rc = regime_columns(fd, vehicle)
-        m = fd.mask
-        frame = {
-            "flight": np.full(m.sum(), fd.flight),
-            "t_s": fd.state.t_s[m],
-            "speed": _bin_labels(rc.speed_mps[m], SPEED_BINS, "m/s"),
-            "height": _bin_labels(rc.height_m[m], HEIGHT_BINS, "m"),
-            "thrust_to_weight": _bin_labels(rc.thrust_to_weight[m], THRUST_BINS, ""),
-            "angular_rate": _bin_labels(rc.angular_rate_radps[m], RATE_BINS, "rad/s"),
-            "battery": _bin_labels(rc.vbat_V[m], VBAT_BINS, "V"),
-            "acceleration": _bin_labels(rc.acceleration_mps2[m], ACCEL_BINS, "m/s^2"),
-            "phase": rc.phase[m],
-        }
-        for j, a in enumerate(XYZ):
-            frame[f"f_res_b_{a}_N"] = r[m, j]
-            frame[f"tau_res_b_{a}_Nm"] = r[m, 3 + j]
-        frames.append(pl.DataFrame(frame))
-    return pl.concat(frames)
-
-
-REGIMES = ("speed", "height", "thrust_to_weight", "angular_rate", "battery", "acceleration", "phase")
-RMSE_EXPRS = [
-    *[(pl.col(f"f_res_b_{a}_N") ** 2).mean().sqrt().alias(f"force_rmse_{a}_N") for a in XYZ],
-    *[(pl.col(f"tau_res_b_{a}_Nm") ** 2).mean().sqrt().alias(f"torque_rmse_{a}_Nm") for a in XYZ],
-]
-
-
-def regime_table(long: pl.DataFrame) -> pl.DataFrame:
-    """Residual RMSE per axis in every bin of every regime variable, and the share of samples."""
-    frames = []
-    for regime in REGIMES:
-        g = long.group_by(regime).agg(pl.len().alias("samples"), *RMSE_EXPRS).rename({regime: "bin"})
-        frames.append(g.with_columns(pl.lit(regime).alias("regime")).sort("bin"))
-    out = pl.concat(frames).select("regime", "bin", "samples", pl.exclude("regime", "bin", "samples"))
-    return out.with_columns((pl.col("samples") / long.height).alias("share"))
-
-
-def flight_table(long: pl.DataFrame) -> pl.DataFrame:
-    return long.group_by("flight").agg(pl.len().alias("samples"), *RMSE_EXPRS).sort("flight")
-
-
-def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> pl.DataFrame:
-    """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS."""
-    force_sq = functools.reduce(operator.add, [pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ])
-    seg = (
-        long.with_columns((pl.col("t_s") // window_s).alias("segment"), force_sq.alias("f2"))
-        .group_by("flight", "segment")
-        .agg(
-            pl.col("t_s").min().alias("t_start_s"),
-            pl.col("t_s").max().alias("t_end_s"),
-            pl.col("f2").mean().sqrt().alias("force_rms_N"),
-            pl.col("phase").mode().first().alias("phase"),
-            pl.col("speed").mode().first().alias("speed"),
-            pl.col("height").mode().first().alias("height"),
-        )
-        .sort("force_rms_N", descending=True)
-        .head(top)
-        .drop("segment")
-    )
-    return seg
+from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict
+from quadcore.physics.dynamics import XYZ
 
 
 def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
@@ -661,51 +454,6 @@ def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
         r["grade"] = "small but certain"
 
 
-def _why_not(r: dict, at_noise: dict[str, bool]) -> tuple[str, str]:
-    """(status, reason) of a candidate that is not found."""
-    ch = r["target"]
-    if not r["physical"]:
-        return "unphysical", "unphysical fit: " + "; ".join(n for n in r["notes"] if "outside" in n)
-    if at_noise[ch]:
-        return "noise_level", (f"no evidence: the held-out {ch} residual is within {evidence.NOISE_MARGIN:.0%} "
-                               "of the sensor-noise floor")
-    if r["explained_variance"] <= 0:
-        return "no_gain", f"removes nothing from the held-out {ch} residual"
-    if r["significance_sigma"] >= MIN_SIGMA:
-        return "not_significant", (f"indistinguishable from noise on held-out flights "
-                                   f"(p = {r['held_out_p_value']:.2g}, needs p < {r['held_out_alpha']:.2g})")
-    return "not_significant", f"its fit is within noise of 'no effect' ({r['significance_sigma']:.1f} σ)"
-
-
-def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
-    """Give every candidate (best first) a ``status`` and a ``reason``: why it is ranked where
-    it is (found and how large; tied with; an alternative to the best one; unphysical; not
-    significant; at the noise level)."""
-    top = rows[0] if rows and rows[0]["found"] else None
-    for i, r in enumerate(rows):
-        if not r["found"]:
-            r["status"], r["reason"] = _why_not(r, at_noise)
-            above = [o["effect"] for o in rows[:i] if o["effect"] in r.get("indistinguishable_from", [])]
-            if above and r["physical"]:
-                r["reason"] += f"; indistinguishable from {', '.join(above)}"
-            continue
-        size = (f"{r['grade']}: removes {_pct(r['explained_variance'])} of the held-out {r['target']} residual "
-                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), "
-                f"p = {r['held_out_p_value']:.2g}")
-        assert top is not None  # rows are ranked: a found candidate never follows one not found
-        if r is top:
-            r["status"], r["reason"] = "found", size
-        elif top["effect"] in r.get("tied_with", []):
-            r["status"] = "tied"
-            r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
-                           f"many parameters; {size}")
-        elif r.get("explained_after_top", 0.0) >= MIN_EXPLAINED:
-            r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
-        else:
-            r["status"] = "alternative"
-            r["reason"] = f"an alternative to {top['effect']} (explains the same residual, less well); {size}"
-
-
 def detection_limits(cands, flights: list[FlightData], resid: dict[str, np.ndarray], noise_ss: np.ndarray,
                      vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
     """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
@@ -743,26 +491,6 @@ def sensitivity_basis(cands) -> dict:
     }
 
 
-def _below(p, v: float | None) -> str:
-    """``k_x_s_per_m < 0.003 s/m`` or ``|scale - 1| < 0.006``: a deviation below ``v``."""
-    if v is None:
-        return f"{p.name} not detectable in its range"
-    name = p.name if p.default == 0 else f"|{p.name} - {p.default:g}|"
-    return f"{name} < {v:.2g} {p.unit if p.unit != '1' else ''}".rstrip()
-
-
-def sensitivity_text(sensitivity: dict, effects: list[str] | None = None) -> str:
-    """``rotor_drag k_x_s_per_m < 0.003 s/m, ...`` for the named effects (all by default)."""
-    parts = []
-    for name in effects or list(sensitivity):
-        if name not in effectlib.registry():
-            continue
-        params = {p.name: p for p in effectlib.get(name).parameters}
-        vals = ", ".join(_below(params[k], v) for k, v in sensitivity.get(name, {}).items() if k in params)
-        parts.append(f"{name} ({vals})")
-    return "; ".join(parts)
-
-
 def _significance(effect, params: dict, std: dict) -> float:
     """How many standard errors the fitted effect is from 'no effect': the largest
     ``|p - default| / std`` over its parameters (inf when a parameter has zero std but moved)."""
@@ -775,14 +503,6 @@ def _significance(effect, params: dict, std: dict) -> float:
         z = d / s if s > 0 and np.isfinite(s) else (np.inf if s == 0 else 0.0)
         best = max(best, float(z))
     return min(best, 1e6)  # finite, for JSON
-
-
-def _ev_on(row: dict, channel: str) -> float:
-    return row["explained_variance_force"] if channel == "force" else row["explained_variance_torque"]
-
-
-def _other(channel: str) -> str:
-    return "torque" if channel == "force" else "force"
 
 
 class _SpanOverlap:
@@ -893,128 +613,3 @@ def _rank(rows: list[dict]) -> list[dict]:
     return ordered
 
 
-def _one_per_tie(rows: list[dict]) -> list[dict]:
-    """The first of each group of candidates the data cannot tell apart (rows best first)."""
-    out, seen = [], set()
-    for r in rows:
-        if r["effect"] not in seen:
-            out.append(r)
-        seen |= {r["effect"], *r.get("tied_with", [])}
-    return out
-
-
-def _pct(x: float) -> str:
-    return f"{max(x, 0.0):.0%}"
-
-
-def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
-    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
-    and how small an effect these flights could have missed."""
-    found = [r for r in rows if r.get("found", r.get("useful", False))]
-    unseen = [r["effect"] for r in rows if r not in found[:1]]
-    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
-              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
-              if sensitivity else "")
-    if not found:
-        if at_noise and all(at_noise.values()):
-            return ("No effect of the library explains the residual on held-out flights: none improves it "
-                    f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
-                    "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
-        best = rows[0] if rows else None
-        tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
-        return ("No effect of the library explains the residual on held-out flights" + tail +
-                ": what is left is a physical effect outside the library, or one below what these flights can "
-                "detect." + missed)
-    top = found[0]
-    grade = top.get("grade", "clear")
-    size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
-        grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
-    by_name = {r["effect"]: r for r in rows}
-    params = ", ".join(
-        f"{k} = {v:.4g} ± {top['parameter_std'].get(k, float('nan')):.2g}" for k, v in top["parameters"].items()
-    )
-    ch, other = top["target"], _other(top["target"])
-    text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
-            f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
-            "the sensor-noise floor)")
-    if top["acts_on"] == "both" and _ev_on(top, other) >= MIN_EXPLAINED:
-        text += f" and {_ev_on(top, other):.0%} of the {other} residual"
-    text += f" ({params})."
-    if top["notes"]:
-        text += " Note: " + "; ".join(top["notes"]) + "."
-    tied = top.get("tied_with", [])
-    if tied:
-        fewer = all(by_name[o]["n_parameters"] > top["n_parameters"] for o in tied if o in by_name)
-        text += (f" This data cannot tell it apart from {', '.join(tied)}: they explain the held-out residual equally "
-                 f"well, with nearly the same predictions wherever the residual is above the sensor noise; it is "
-                 f"ranked first "
-                 + ("because it needs fewer parameters" if fewer else "by a margin within noise")
-                 + ". Flights that separate them are needed (or knowledge of the vehicle) before choosing.")
-    for o, by in top.get("separated_by", {}).items():
-        r = by_name.get(o)
-        if r is None:
-            continue
-        if by == ch:
-            text += (f" Its {ch} signature resembles that of {o}, which explains less of it "
-                     f"({_pct(_ev_on(r, ch))} against {_pct(_ev_on(top, ch))}).")
-            continue
-        text += f" In {ch} alone it is indistinguishable from {o}; the {by} residual tells them apart: "
-        if _ev_on(top, by) >= MIN_EXPLAINED and _ev_on(top, by) - _ev_on(r, by) >= TIE_MARGIN:
-            text += (f"{top['effect']} also removes {_pct(_ev_on(top, by))} of the held-out {by} residual, "
-                     f"{o} {_pct(_ev_on(r, by))}.")
-        else:
-            text += (f"{o} cannot explain the {ch} residual without an error in {by} that is not there "
-                     f"(fitted to both, it removes only {_pct(_ev_on(r, ch))} of the {ch} residual).")
-    alike = set(top.get("indistinguishable_from", [])) | set(tied)
-    others = [r for r in found[1:] if r["effect"] not in alike]
-    independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
-    overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
-    if independent:
-        text += (" Also missing, beyond it: "
-                 + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
-                             f"on top of {top['effect']}, {r['explained_variance']:.0%} alone"
-                             + (f"; indistinguishable from {', '.join(r['tied_with'])}" if r.get("tied_with") else "")
-                             + ")" for r in independent[:3]) + ".")
-    if overlapping:
-        text += (f" Explaining the same residual as {top['effect']} (alternatives, nothing left for them once it is "
-                 "in the model): "
-                 + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
-                 + ".")
-    return text + missed
-
-
-def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:
-    """One row per candidate, best first, for people: its status and why it is ranked there
-    (the console, the reports and the UI show the same)."""
-    return [{
-        "rank": i,
-        "effect": c.effect,
-        "status": c.status,
-        "target": c.target,
-        "explained": round(c.explained_variance, 3),
-        "above_noise": round(c.explained_above_noise, 3),
-        "held_out_p": float(f"{c.held_out_p_value:.2g}"),
-        "parameters": ", ".join(f"{k}={v:.4g}±{c.parameter_std.get(k, float('nan')):.2g}"
-                                for k, v in c.parameters.items()),
-        "why": c.reason,
-    } for i, c in enumerate(candidates, 1)]
-
-
-def sensitivity_rows(sensitivity: Mapping[str, Mapping[str, float | None]],
-                     basis: Mapping[str, Any]) -> list[dict]:
-    """One row per effect and parameter: the smallest deviation these flights would detect
-    (``sensitivity`` and ``sensitivity_basis`` of a :class:`Diagnosis`)."""
-    rows = []
-    for name, params in sensitivity.items():
-        known = {p.name: p for p in effectlib.get(name).parameters} if name in effectlib.registry() else {}
-        cond = basis.get("conditions", {}).get(name, {})
-        for k, v in params.items():
-            p = known.get(k)
-            rows.append({
-                "effect": name, "parameter": k,
-                "undetected_below": None if v is None else float(f"{v:.2g}"),
-                "unit": p.unit if p and p.unit != "1" else "",
-                "of": (f"|{k} - {p.default:g}|" if p and p.default != 0 else k)
-                + (", at " + ", ".join(f"{c}={x:g}" for c, x in cond.items()) if cond and k not in cond else ""),
-            })
-    return rows

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import diagnosis
+from quadcore.identify import regimes
 from quadcore.learn import artefacts, features as feat
 from quadcore.learn.metrics import AXES, BASELINES, _yp, baseline_predictions, mae, metrics, r2
 from quadcore.physics.dynamics import XYZ
@@ -213,10 +213,10 @@ def report_run(report: dict, name: str) -> dict:
 
 
 REGIME_BINS = {  # the diagnosis's bins, so both reports cut the flight envelope alike
-    "speed [m/s]": diagnosis.SPEED_BINS,
-    "height [m]": diagnosis.HEIGHT_BINS,
-    "angular rate [rad/s]": diagnosis.RATE_BINS,
-    "thrust / weight": diagnosis.THRUST_BINS,
+    "speed [m/s]": regimes.SPEED_BINS,
+    "height [m]": regimes.HEIGHT_BINS,
+    "angular rate [rad/s]": regimes.RATE_BINS,
+    "thrust / weight": regimes.THRUST_BINS,
 }
 
 
@@ -249,7 +249,7 @@ def regime_table(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.D
         for regime, edges in REGIME_BINS.items():
             x = values[regime][rows]
             idx = np.clip(np.searchsorted(np.asarray(edges[1:]), x, side="right"), 0, len(edges) - 1)
-            labels = diagnosis.bin_labels(edges)
+            labels = regimes.bin_labels(edges)
             for b in np.unique(idx):
                 sel = idx == b
                 frames.append({"model": name, "regime": regime, "bin": labels[b], "bin_index": int(b),

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from quadcore.identify import diagnosis, history, sessions  # noqa: E402
+from quadcore.identify import history, sessions, verdict  # noqa: E402
 from quadcore.identify.history import RMSE_COLUMNS  # noqa: E402
 from quadcore.identify.results import CandidateScore  # noqa: E402
 from quadcore.report import plots, render  # noqa: E402
@@ -249,9 +249,9 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
             {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan"))}
             for e in d["model"]["effects"] for k, v in e["params"].items()
         ])))
-    cands = (pl.DataFrame(diagnosis.candidate_summary(CandidateScore.from_dict(r) for r in d["candidates"]))
+    cands = (pl.DataFrame(verdict.candidate_summary(CandidateScore.from_dict(r) for r in d["candidates"]))
              if d["candidates"] else pl.DataFrame())
-    sens = diagnosis.sensitivity_rows(d.get("sensitivity", {}), d.get("sensitivity_basis", {}))
+    sens = verdict.sensitivity_rows(d.get("sensitivity", {}), d.get("sensitivity_basis", {}))
     basis = d.get("sensitivity_basis", {})
     out += [
         ("Candidate effects, best first, and why each is ranked there", "table", cands),

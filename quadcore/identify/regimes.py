@@ -1,0 +1,140 @@
+"""Where the model fails: the residual of the evaluated flights by flight regime (speed, height,
+thrust-to-weight, angular rate, battery voltage, acceleration, flight phase), by flight, and its
+worst segments in time (``docs/diagnosis.md``, part 1).
+"""
+
+from __future__ import annotations
+
+import functools
+import operator
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from quadcore.identify.fitting import FlightData
+from quadcore.physics import rotations, signals
+from quadcore.physics.dynamics import GRAVITY_W_MPS2, XYZ
+
+SPEED_BINS = [0.0, 0.25, 0.5, 1.0, 1.5]
+HEIGHT_BINS = [-np.inf, 0.1, 0.3, 0.6, 1.0]
+THRUST_BINS = [0.0, 0.8, 0.95, 1.05, 1.2]
+RATE_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
+VBAT_BINS = [0.0, 3.5, 3.7, 3.9]
+ACCEL_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
+
+
+@dataclass
+class RegimeColumns:
+    """Per-sample regime variables of one flight."""
+
+    speed_mps: np.ndarray
+    height_m: np.ndarray
+    thrust_to_weight: np.ndarray
+    angular_rate_radps: np.ndarray
+    vbat_V: np.ndarray
+    acceleration_mps2: np.ndarray
+    phase: np.ndarray
+
+
+def regime_columns(fd: FlightData, vehicle) -> RegimeColumns:
+    s = fd.state
+    sf_w = rotations.body_to_world(s.R_wb, signals.smooth(s.sf_b_mps2))
+    a_w = GRAVITY_W_MPS2 + sf_w  # kinematic acceleration, from the smoothed accelerometer
+    speed = np.linalg.norm(s.v_w_mps, axis=1)
+    vz = s.v_w_mps[:, 2]
+    tw = s.f_rotor_N.sum(axis=1) / vehicle.weight_N
+    phase = np.where(
+        tw < 0.5, "ground",
+        np.where(vz > 0.2, "climb", np.where(vz < -0.2, "descent", np.where(speed < 0.1, "hover", "cruise"))),
+    )
+    return RegimeColumns(speed, s.p_w_m[:, 2], tw, np.linalg.norm(s.omega_b_radps, axis=1), s.vbat_V,
+                         np.linalg.norm(a_w, axis=1), phase)
+
+
+def bin_labels(edges: list[float], unit: str = "") -> list[str]:
+    """The label of each bin: ``<e1``, ``e1-e2``, ..., ``ek+`` (edges ascending, first may be -inf)."""
+    labels = []
+    for i, lo in enumerate(edges):
+        if i + 1 == len(edges):
+            labels.append(f"{lo:g}+ {unit}")
+        elif np.isinf(lo):
+            labels.append(f"<{edges[i + 1]:g} {unit}")
+        else:
+            labels.append(f"{lo:g}-{edges[i + 1]:g} {unit}")
+    return [label.strip() for label in labels]
+
+
+def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
+    """Label each value with its bin (see :func:`bin_labels`)."""
+    idx = np.searchsorted(np.asarray(edges[1:]), x, side="right")
+    return np.asarray(bin_labels(edges, unit))[idx]
+
+
+def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle) -> pl.DataFrame:
+    """One row per usable sample of the evaluated flights: regime labels and the residual."""
+    frames = []
+    for fd in flights:
+        r = resid[fd.flight]
+        rc = regime_columns(fd, vehicle)
+        m = fd.mask
+        frame = {
+            "flight": np.full(m.sum(), fd.flight),
+            "t_s": fd.state.t_s[m],
+            "speed": _bin_labels(rc.speed_mps[m], SPEED_BINS, "m/s"),
+            "height": _bin_labels(rc.height_m[m], HEIGHT_BINS, "m"),
+            "thrust_to_weight": _bin_labels(rc.thrust_to_weight[m], THRUST_BINS, ""),
+            "angular_rate": _bin_labels(rc.angular_rate_radps[m], RATE_BINS, "rad/s"),
+            "battery": _bin_labels(rc.vbat_V[m], VBAT_BINS, "V"),
+            "acceleration": _bin_labels(rc.acceleration_mps2[m], ACCEL_BINS, "m/s^2"),
+            "phase": rc.phase[m],
+        }
+        for j, a in enumerate(XYZ):
+            frame[f"f_res_b_{a}_N"] = r[m, j]
+            frame[f"tau_res_b_{a}_Nm"] = r[m, 3 + j]
+        frames.append(pl.DataFrame(frame))
+    return pl.concat(frames)
+
+
+REGIMES = ("speed", "height", "thrust_to_weight", "angular_rate", "battery", "acceleration", "phase")
+
+
+RMSE_EXPRS = [
+    *[(pl.col(f"f_res_b_{a}_N") ** 2).mean().sqrt().alias(f"force_rmse_{a}_N") for a in XYZ],
+    *[(pl.col(f"tau_res_b_{a}_Nm") ** 2).mean().sqrt().alias(f"torque_rmse_{a}_Nm") for a in XYZ],
+]
+
+
+def regime_table(long: pl.DataFrame) -> pl.DataFrame:
+    """Residual RMSE per axis in every bin of every regime variable, and the share of samples."""
+    frames = []
+    for regime in REGIMES:
+        g = long.group_by(regime).agg(pl.len().alias("samples"), *RMSE_EXPRS).rename({regime: "bin"})
+        frames.append(g.with_columns(pl.lit(regime).alias("regime")).sort("bin"))
+    out = pl.concat(frames).select("regime", "bin", "samples", pl.exclude("regime", "bin", "samples"))
+    return out.with_columns((pl.col("samples") / long.height).alias("share"))
+
+
+def flight_table(long: pl.DataFrame) -> pl.DataFrame:
+    return long.group_by("flight").agg(pl.len().alias("samples"), *RMSE_EXPRS).sort("flight")
+
+
+def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> pl.DataFrame:
+    """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS."""
+    force_sq = functools.reduce(operator.add, [pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ])
+    seg = (
+        long.with_columns((pl.col("t_s") // window_s).alias("segment"), force_sq.alias("f2"))
+        .group_by("flight", "segment")
+        .agg(
+            pl.col("t_s").min().alias("t_start_s"),
+            pl.col("t_s").max().alias("t_end_s"),
+            pl.col("f2").mean().sqrt().alias("force_rms_N"),
+            pl.col("phase").mode().first().alias("phase"),
+            pl.col("speed").mode().first().alias("speed"),
+            pl.col("height").mode().first().alias("height"),
+        )
+        .sort("force_rms_N", descending=True)
+        .head(top)
+        .drop("segment")
+    )
+    return seg

@@ -1,0 +1,214 @@
+"""What the diagnosis says: why each candidate is ranked where it is, the verdict sentence (what is
+missing, what the data cannot tell apart, what would go unnoticed), and the candidate and
+sensitivity rows of the reports (``docs/diagnosis.md``, parts 3 to 5).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from quadcore import effects as effectlib
+from quadcore.identify import evidence
+from quadcore.identify.evidence import MIN_EXPLAINED, MIN_SIGMA, TIE_MARGIN
+from quadcore.identify.results import CandidateScore
+
+
+def _why_not(r: dict, at_noise: dict[str, bool]) -> tuple[str, str]:
+    """(status, reason) of a candidate that is not found."""
+    ch = r["target"]
+    if not r["physical"]:
+        return "unphysical", "unphysical fit: " + "; ".join(n for n in r["notes"] if "outside" in n)
+    if at_noise[ch]:
+        return "noise_level", (f"no evidence: the held-out {ch} residual is within {evidence.NOISE_MARGIN:.0%} "
+                               "of the sensor-noise floor")
+    if r["explained_variance"] <= 0:
+        return "no_gain", f"removes nothing from the held-out {ch} residual"
+    if r["significance_sigma"] >= MIN_SIGMA:
+        return "not_significant", (f"indistinguishable from noise on held-out flights "
+                                   f"(p = {r['held_out_p_value']:.2g}, needs p < {r['held_out_alpha']:.2g})")
+    return "not_significant", f"its fit is within noise of 'no effect' ({r['significance_sigma']:.1f} σ)"
+
+
+def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
+    """Give every candidate (best first) a ``status`` and a ``reason``: why it is ranked where
+    it is (found and how large; tied with; an alternative to the best one; unphysical; not
+    significant; at the noise level)."""
+    top = rows[0] if rows and rows[0]["found"] else None
+    for i, r in enumerate(rows):
+        if not r["found"]:
+            r["status"], r["reason"] = _why_not(r, at_noise)
+            above = [o["effect"] for o in rows[:i] if o["effect"] in r.get("indistinguishable_from", [])]
+            if above and r["physical"]:
+                r["reason"] += f"; indistinguishable from {', '.join(above)}"
+            continue
+        size = (f"{r['grade']}: removes {_pct(r['explained_variance'])} of the held-out {r['target']} residual "
+                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), "
+                f"p = {r['held_out_p_value']:.2g}")
+        assert top is not None  # rows are ranked: a found candidate never follows one not found
+        if r is top:
+            r["status"], r["reason"] = "found", size
+        elif top["effect"] in r.get("tied_with", []):
+            r["status"] = "tied"
+            r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
+                           f"many parameters; {size}")
+        elif r.get("explained_after_top", 0.0) >= MIN_EXPLAINED:
+            r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
+        else:
+            r["status"] = "alternative"
+            r["reason"] = f"an alternative to {top['effect']} (explains the same residual, less well); {size}"
+
+
+def _below(p, v: float | None) -> str:
+    """``k_x_s_per_m < 0.003 s/m`` or ``|scale - 1| < 0.006``: a deviation below ``v``."""
+    if v is None:
+        return f"{p.name} not detectable in its range"
+    name = p.name if p.default == 0 else f"|{p.name} - {p.default:g}|"
+    return f"{name} < {v:.2g} {p.unit if p.unit != '1' else ''}".rstrip()
+
+
+def sensitivity_text(sensitivity: dict, effects: list[str] | None = None) -> str:
+    """``rotor_drag k_x_s_per_m < 0.003 s/m, ...`` for the named effects (all by default)."""
+    parts = []
+    for name in effects or list(sensitivity):
+        if name not in effectlib.registry():
+            continue
+        params = {p.name: p for p in effectlib.get(name).parameters}
+        vals = ", ".join(_below(params[k], v) for k, v in sensitivity.get(name, {}).items() if k in params)
+        parts.append(f"{name} ({vals})")
+    return "; ".join(parts)
+
+
+def _ev_on(row: dict, channel: str) -> float:
+    return row["explained_variance_force"] if channel == "force" else row["explained_variance_torque"]
+
+
+def _other(channel: str) -> str:
+    return "torque" if channel == "force" else "force"
+
+
+def _one_per_tie(rows: list[dict]) -> list[dict]:
+    """The first of each group of candidates the data cannot tell apart (rows best first)."""
+    out, seen = [], set()
+    for r in rows:
+        if r["effect"] not in seen:
+            out.append(r)
+        seen |= {r["effect"], *r.get("tied_with", [])}
+    return out
+
+
+def _pct(x: float) -> str:
+    return f"{max(x, 0.0):.0%}"
+
+
+def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
+    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
+    and how small an effect these flights could have missed."""
+    found = [r for r in rows if r.get("found", r.get("useful", False))]
+    unseen = [r["effect"] for r in rows if r not in found[:1]]
+    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
+              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
+              if sensitivity else "")
+    if not found:
+        if at_noise and all(at_noise.values()):
+            return ("No effect of the library explains the residual on held-out flights: none improves it "
+                    f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
+                    "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
+        best = rows[0] if rows else None
+        tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
+        return ("No effect of the library explains the residual on held-out flights" + tail +
+                ": what is left is a physical effect outside the library, or one below what these flights can "
+                "detect." + missed)
+    top = found[0]
+    grade = top.get("grade", "clear")
+    size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
+        grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
+    by_name = {r["effect"]: r for r in rows}
+    params = ", ".join(
+        f"{k} = {v:.4g} ± {top['parameter_std'].get(k, float('nan')):.2g}" for k, v in top["parameters"].items()
+    )
+    ch, other = top["target"], _other(top["target"])
+    text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
+            f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
+            "the sensor-noise floor)")
+    if top["acts_on"] == "both" and _ev_on(top, other) >= MIN_EXPLAINED:
+        text += f" and {_ev_on(top, other):.0%} of the {other} residual"
+    text += f" ({params})."
+    if top["notes"]:
+        text += " Note: " + "; ".join(top["notes"]) + "."
+    tied = top.get("tied_with", [])
+    if tied:
+        fewer = all(by_name[o]["n_parameters"] > top["n_parameters"] for o in tied if o in by_name)
+        text += (f" This data cannot tell it apart from {', '.join(tied)}: they explain the held-out residual equally "
+                 f"well, with nearly the same predictions wherever the residual is above the sensor noise; it is "
+                 f"ranked first "
+                 + ("because it needs fewer parameters" if fewer else "by a margin within noise")
+                 + ". Flights that separate them are needed (or knowledge of the vehicle) before choosing.")
+    for o, by in top.get("separated_by", {}).items():
+        r = by_name.get(o)
+        if r is None:
+            continue
+        if by == ch:
+            text += (f" Its {ch} signature resembles that of {o}, which explains less of it "
+                     f"({_pct(_ev_on(r, ch))} against {_pct(_ev_on(top, ch))}).")
+            continue
+        text += f" In {ch} alone it is indistinguishable from {o}; the {by} residual tells them apart: "
+        if _ev_on(top, by) >= MIN_EXPLAINED and _ev_on(top, by) - _ev_on(r, by) >= TIE_MARGIN:
+            text += (f"{top['effect']} also removes {_pct(_ev_on(top, by))} of the held-out {by} residual, "
+                     f"{o} {_pct(_ev_on(r, by))}.")
+        else:
+            text += (f"{o} cannot explain the {ch} residual without an error in {by} that is not there "
+                     f"(fitted to both, it removes only {_pct(_ev_on(r, ch))} of the {ch} residual).")
+    alike = set(top.get("indistinguishable_from", [])) | set(tied)
+    others = [r for r in found[1:] if r["effect"] not in alike]
+    independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
+    overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
+    if independent:
+        text += (" Also missing, beyond it: "
+                 + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
+                             f"on top of {top['effect']}, {r['explained_variance']:.0%} alone"
+                             + (f"; indistinguishable from {', '.join(r['tied_with'])}" if r.get("tied_with") else "")
+                             + ")" for r in independent[:3]) + ".")
+    if overlapping:
+        text += (f" Explaining the same residual as {top['effect']} (alternatives, nothing left for them once it is "
+                 "in the model): "
+                 + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
+                 + ".")
+    return text + missed
+
+
+def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:
+    """One row per candidate, best first, for people: its status and why it is ranked there
+    (the console, the reports and the UI show the same)."""
+    return [{
+        "rank": i,
+        "effect": c.effect,
+        "status": c.status,
+        "target": c.target,
+        "explained": round(c.explained_variance, 3),
+        "above_noise": round(c.explained_above_noise, 3),
+        "held_out_p": float(f"{c.held_out_p_value:.2g}"),
+        "parameters": ", ".join(f"{k}={v:.4g}±{c.parameter_std.get(k, float('nan')):.2g}"
+                                for k, v in c.parameters.items()),
+        "why": c.reason,
+    } for i, c in enumerate(candidates, 1)]
+
+
+def sensitivity_rows(sensitivity: Mapping[str, Mapping[str, float | None]],
+                     basis: Mapping[str, Any]) -> list[dict]:
+    """One row per effect and parameter: the smallest deviation these flights would detect
+    (``sensitivity`` and ``sensitivity_basis`` of a :class:`Diagnosis`)."""
+    rows = []
+    for name, params in sensitivity.items():
+        known = {p.name: p for p in effectlib.get(name).parameters} if name in effectlib.registry() else {}
+        cond = basis.get("conditions", {}).get(name, {})
+        for k, v in params.items():
+            p = known.get(k)
+            rows.append({
+                "effect": name, "parameter": k,
+                "undetected_below": None if v is None else float(f"{v:.2g}"),
+                "unit": p.unit if p and p.unit != "1" else "",
+                "of": (f"|{k} - {p.default:g}|" if p and p.default != 0 else k)
+                + (", at " + ", ".join(f"{c}={x:g}" for c, x in cond.items()) if cond and k not in cond else ""),
+            })
+    return rows
