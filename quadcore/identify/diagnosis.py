@@ -128,6 +128,7 @@ def _evaluated(fl: _Flights, eval_ids: list[str], cands, cand_pred: dict, eval_r
                 extras[f"ref:{c.name}"] = fitting.prediction(c, ref, fd, vehicle)
         layout = base.layout.with_extras(list(extras))
         s = sufficient.flight_stats(fd, vehicle, layout, base.key, extras)
+        fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
         eval_resid[f] = layout.pad(eval_resid[f])
         for c in cands:
             cand_pred[c.name][f] = (layout.unit(layout.extra(f"pred:{c.name}")) if by_rows[c.name]

@@ -33,6 +33,7 @@ smoother.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -65,6 +66,7 @@ class FlightData:
     noise: np.ndarray = field(default_factory=lambda: np.zeros(6))  # (6,) sensor-noise RMS of r_f, r_tau
     _basis: dict = field(default_factory=dict, repr=False)
     _predictions: dict = field(default_factory=dict, repr=False)
+    _sums: dict = field(default_factory=dict, repr=False)
     _designs: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -106,6 +108,26 @@ class FlightData:
                 self._predictions.clear()
             self._predictions[key] = prediction(effect, params, self, vehicle)
         return self._predictions[key]
+
+
+    def forget_bases(self) -> None:
+        """Drop the cached bases and designs (a flight's statistics hold what they gave)."""
+        self._basis.clear()
+        self._designs.clear()
+
+    def cached_sums(self, nonlin: list[Effect], params: dict, y: np.ndarray, target_key: str,
+                    vehicle: Vehicle) -> np.ndarray:
+        """(6,) ``Σ (y - Σ_e p_e)²`` per channel over the usable samples, for nonlinear effects at
+        ``params`` and the target ``y`` (``target_key``: its digest), cached: a search keeps six
+        numbers per value and flight instead of a prediction, and a value met again (the grid's,
+        in every fold on the same target) costs nothing."""
+        key = (target_key, tuple((e.name, tuple(sorted(params[e.name].items()))) for e in nonlin))
+        if key not in self._sums:
+            p = np.zeros_like(y)
+            for e in nonlin:
+                p += prediction(e, params[e.name], self, vehicle)
+            self._sums[key] = ((y - p)[self.mask] ** 2).sum(axis=0)
+        return self._sums[key]
 
 
 def flight_data(flight: str, decoded, vehicle: Vehicle) -> FlightData:
@@ -326,8 +348,16 @@ def _after(nonlin, nl, flights, ys, vehicle) -> list[np.ndarray]:
     return out
 
 
-def _objective(nonlin, lin, flights, ys, w, vehicle, x) -> tuple[float, int]:
-    """Weighted residual sum of squares with the linear effects solved for (variable projection)."""
+def _objective(nonlin, lin, flights, ys, w, vehicle, x, keys=None) -> tuple[float, int]:
+    """Weighted residual sum of squares with the linear effects solved for (variable projection).
+    Without linear effects, from each flight's cached sums of squares (:meth:`FlightData.cached_sums`,
+    ``keys`` the targets' digests): the same sums, added in the same order."""
+    if not lin and keys is not None:
+        nl, yy, n = _unpack(nonlin, x), 0.0, 0
+        for fd, y, key in zip(flights, ys, keys):
+            yy += float(fd.cached_sums(nonlin, nl, y, key, vehicle) @ w)
+            n += int(fd.mask.sum()) * y.shape[1]
+        return max(yy, 0.0), n
     ys2 = _after(nonlin, _unpack(nonlin, x), flights, ys, vehicle)
     _, _, rss, n = _linear_solve(lin, flights, ys2, w, vehicle)
     return rss, n
@@ -340,11 +370,13 @@ def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
     (p,) = [q for e in nonlin for q in e.parameters]
     span = p.upper - p.lower
     memo: dict[float, tuple[float, int]] = {}
+    keys = None if lin else [hashlib.blake2b(np.ascontiguousarray(y).tobytes(), digest_size=16).hexdigest()
+                             for y in ys]
 
     def J(v: float) -> float:
         v = float(min(max(v, p.lower), p.upper))
         if v not in memo:
-            memo[v] = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([v]))
+            memo[v] = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([v]), keys)
         return memo[v][0]
 
     grid = np.unique(np.concatenate([[p.lower], p.lower + span * np.geomspace(1e-3, 1.0, 16)]))
