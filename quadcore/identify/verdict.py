@@ -101,29 +101,23 @@ def _pct(x: float) -> str:
     return f"{max(x, 0.0):.0%}"
 
 
-def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
-    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
-    and how small an effect these flights could have missed."""
-    found = [r for r in rows if r.get("found", r.get("useful", False))]
-    unseen = [r["effect"] for r in rows if r not in found[:1]]
-    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
-              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
-              if sensitivity else "")
-    if not found:
-        if at_noise and all(at_noise.values()):
-            return ("No effect of the library explains the residual on held-out flights: none improves it "
-                    f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
-                    "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
-        best = rows[0] if rows else None
-        tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
-        return ("No effect of the library explains the residual on held-out flights" + tail +
-                ": what is left is a physical effect outside the library, or one below what these flights can "
-                "detect." + missed)
-    top = found[0]
+def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str) -> str:
+    if at_noise and all(at_noise.values()):
+        return ("No effect of the library explains the residual on held-out flights: none improves it "
+                f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
+                "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
+    best = rows[0] if rows else None
+    tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
+    return ("No effect of the library explains the residual on held-out flights" + tail +
+            ": what is left is a physical effect outside the library, or one below what these flights can "
+            "detect." + missed)
+
+
+def _most_likely(top: dict) -> str:
+    """The best candidate found: how large, how sure, what it removes, its parameters."""
     grade = top.get("grade", "clear")
     size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
         grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
-    by_name = {r["effect"]: r for r in rows}
     params = ", ".join(
         f"{k} = {v:.4g} ± {top['parameter_std'].get(k, float('nan')):.2g}" for k, v in top["parameters"].items()
     )
@@ -136,6 +130,13 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
     text += f" ({params})."
     if top["notes"]:
         text += " Note: " + "; ".join(top["notes"]) + "."
+    return text
+
+
+def _alike(top: dict, by_name: dict[str, dict]) -> str:
+    """What the data cannot tell apart from the best candidate, and what separates the others."""
+    text = ""
+    ch = top["target"]
     tied = top.get("tied_with", [])
     if tied:
         fewer = all(by_name[o]["n_parameters"] > top["n_parameters"] for o in tied if o in by_name)
@@ -159,7 +160,13 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
         else:
             text += (f"{o} cannot explain the {ch} residual without an error in {by} that is not there "
                      f"(fitted to both, it removes only {_pct(_ev_on(r, ch))} of the {ch} residual).")
-    alike = set(top.get("indistinguishable_from", [])) | set(tied)
+    return text
+
+
+def _beyond_the_best(top: dict, found: list[dict]) -> str:
+    """The other found candidates: also missing (they explain more once the best is in), or alternatives."""
+    text = ""
+    alike = set(top.get("indistinguishable_from", [])) | set(top.get("tied_with", []))
     others = [r for r in found[1:] if r["effect"] not in alike]
     independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
     overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
@@ -174,7 +181,22 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
                  "in the model): "
                  + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
                  + ".")
-    return text + missed
+    return text
+
+
+def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
+    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
+    and how small an effect these flights could have missed."""
+    found = [r for r in rows if r.get("found", r.get("useful", False))]
+    unseen = [r["effect"] for r in rows if r not in found[:1]]
+    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
+              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
+              if sensitivity else "")
+    if not found:
+        return _nothing_found(rows, at_noise, missed)
+    top = found[0]
+    by_name = {r["effect"]: r for r in rows}
+    return _most_likely(top) + _alike(top, by_name) + _beyond_the_best(top, found) + missed
 
 
 def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:

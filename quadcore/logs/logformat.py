@@ -361,12 +361,12 @@ def _safe_event_types(types_by_id: dict[int, EventType]) -> tuple[dict[int, Even
     return renamed, [f"event type: {w}" for w in warnings]
 
 
-def decode_bytes(buf: bytes) -> DecodedLog:
-    """Decode a whole uSD log held in memory. See the module docstring."""
-    version, types_by_id, data_start = parse_header(buf)
-    types_by_id, warnings = _safe_event_types(types_by_id)
+def _record_chain(buf: bytes, version: int, types_by_id: dict[int, EventType], data_start: int,
+                  warnings: list[str]) -> tuple[_Walk, int, bool | None]:
+    """Walk the records from ``data_start`` to the CRC trailer (or to the end of a file without
+    one, or whichever reading recovers more). Returns (the walk, where the data ends, CRC ok:
+    True / False, None without a trailer); appends what it finds to ``warnings``."""
     n_total = len(buf)
-
     crc_ok: bool | None = None
     data_end = n_total - CRC_SIZE
     if data_end >= data_start:
@@ -396,20 +396,13 @@ def decode_bytes(buf: bytes) -> DecodedLog:
                 warnings.append("no valid CRC trailer: file looks truncated; decoded what was there")
         if crc_ok is False:
             warnings.append("CRC mismatch: the file is damaged; values may be wrong")
+    return w, end_used, crc_ok
 
-    region_len = end_used - data_start
-    region = np.frombuffer(buf, dtype=np.uint8, count=region_len, offset=data_start)
-    skipped = _skipped_stretches(w, region, data_start, version)
-    bytes_skipped = int(sum(s.byte_end - s.byte_start for s in skipped))
-    bytes_dropped = (region_len - w.stop if w.reason != "end" else 0) + bytes_skipped
-    if w.reason == "partial":
-        warnings.append(f"partial last record: dropped {region_len - w.stop} bytes at the end")
-    elif w.reason == "garbage":
-        warnings.append(
-            f"record chain broken at byte {data_start + w.stop}: kept {len(w.starts)} records, "
-            f"dropped {region_len - w.stop} bytes"
-        )
 
+def _tables(region: np.ndarray, w: _Walk, types_by_id: dict[int, EventType],
+            version: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Each event type's records as a structured array of its variables (a view, no copy of the
+    values) and their timestamps in us."""
     tables: dict[str, np.ndarray] = {}
     timestamps: dict[str, np.ndarray] = {}
     for eid, et in types_by_id.items():
@@ -432,7 +425,30 @@ def decode_bytes(buf: bytes) -> DecodedLog:
             "itemsize": size,
         }))
         timestamps[et.name] = records["timestamp"].astype(np.int64) * TIMESTAMP_TO_US[version]
+    return tables, timestamps
 
+
+def decode_bytes(buf: bytes) -> DecodedLog:
+    """Decode a whole uSD log held in memory. See the module docstring."""
+    version, types_by_id, data_start = parse_header(buf)
+    types_by_id, warnings = _safe_event_types(types_by_id)
+    n_total = len(buf)
+    w, end_used, crc_ok = _record_chain(buf, version, types_by_id, data_start, warnings)
+
+    region_len = end_used - data_start
+    region = np.frombuffer(buf, dtype=np.uint8, count=region_len, offset=data_start)
+    skipped = _skipped_stretches(w, region, data_start, version)
+    bytes_skipped = int(sum(s.byte_end - s.byte_start for s in skipped))
+    bytes_dropped = (region_len - w.stop if w.reason != "end" else 0) + bytes_skipped
+    if w.reason == "partial":
+        warnings.append(f"partial last record: dropped {region_len - w.stop} bytes at the end")
+    elif w.reason == "garbage":
+        warnings.append(
+            f"record chain broken at byte {data_start + w.stop}: kept {len(w.starts)} records, "
+            f"dropped {region_len - w.stop} bytes"
+        )
+
+    tables, timestamps = _tables(region, w, types_by_id, version)
     if skipped:
         firsts = [int(ts[0]) for ts in timestamps.values() if len(ts)]
         warnings.append(_skip_warning(skipped, min(firsts) if firsts else 0))
