@@ -8,7 +8,7 @@ import io
 from PIL import Image
 
 from quadcore.identify import history
-from quadcore.report import report
+from quadcore.report import diagnosis as diagnosis_report
 
 
 def _record(root, label, force_x, flights, mode="holdout", params=None):
@@ -35,10 +35,10 @@ def test_history_plot_has_a_row_of_panels_per_set_and_the_table_states_units(tmp
     _record(tmp_path, "nominal", 0.020, ["a", "b", "c"], mode="cross-validation")
     _record(tmp_path, "nominal+rotor_drag", 0.0005, ["jana02"])
     hist = history.read(tmp_path)
-    one = Image.open(io.BytesIO(report.history_plot(hist.filter(hist["eval_mode"] == "holdout"))))
-    two = Image.open(io.BytesIO(report.history_plot(hist)))
+    one = Image.open(io.BytesIO(diagnosis_report.history_plot(hist.filter(hist["eval_mode"] == "holdout"))))
+    two = Image.open(io.BytesIO(diagnosis_report.history_plot(hist)))
     assert two.size[1] > 1.6 * one.size[1]  # a second row of panels for the second set
-    table = report.history_table(hist)
+    table = diagnosis_report.history_table(hist)
     assert "torque_rmse_x_mNm" in table.columns and table["torque_rmse_x_mNm"].to_list() == [0.1, 0.1, 0.1]
     assert table["evaluation_set"].to_list() == ["holdout on jana02", "cross-validation on 3 flights",
                                                  "holdout on jana02"]
@@ -48,8 +48,8 @@ def test_a_history_plot_is_drawn_once_per_history(tmp_path):
     """The report and the error_history asset show the same history: the second asks for a plot
     already drawn and gets it without drawing; another history is drawn anew."""
     _record(tmp_path, "nominal", 0.014, ["jana02"])
-    first = report.history_plot(history.read(tmp_path))
-    assert report.history_plot(history.read(tmp_path)) is first  # an equal table read again
+    first = diagnosis_report.history_plot(history.read(tmp_path))
+    assert diagnosis_report.history_plot(history.read(tmp_path)) is first  # an equal table read again
     _record(tmp_path, "nominal+rotor_drag", 0.0005, ["jana02"])
-    changed = report.history_plot(history.read(tmp_path))
+    changed = diagnosis_report.history_plot(history.read(tmp_path))
     assert changed != first

@@ -15,7 +15,7 @@ from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.identify import history
-from quadcore.report.report import kept_reports
+from quadcore.report.diagnosis import kept_reports
 from quadcore.store import store
 
 pytestmark = pytest.mark.slow  # the whole loop materialised in Dagster

@@ -13,7 +13,7 @@ from pipeline.assets.model import (
 )
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.report import render, report
+from quadcore.report import diagnosis as diagnosis_report, render
 from quadcore.store import store
 from quadcore.workflows import identify
 
@@ -37,9 +37,9 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     b, a = result.baseline, result.after
     return dg.MaterializeResult(metadata={
         "summary": dg.MetadataValue.md(result.summary.replace("\n", "\n\n")),
-        "terms": dg.MetadataValue.md(render.markdown_table(report.discovery_table(result.to_dict()))
+        "terms": dg.MetadataValue.md(render.markdown_table(diagnosis_report.discovery_table(result.to_dict()))
                                      if result.terms else "no term kept"),
-        "discovery_plot": plot_md(data_root, report.discovery_plot(result.to_dict()), "discovery"),
+        "discovery_plot": plot_md(data_root, diagnosis_report.discovery_plot(result.to_dict()), "discovery"),
         "notes": dg.MetadataValue.md("\n\n".join(f"{x.target}: {n}" for x in result.axes for n in x.notes) or "none"),
         **{f"after_force_rmse_{ax}_N": number(v) for ax, v in zip("xyz", a["force_rmse_N"])},
         **{f"after_torque_rmse_{ax}_Nm": number(v) for ax, v in zip("xyz", a["torque_rmse_Nm"])},

@@ -15,7 +15,7 @@ from pipeline.resources import DataRoot, ModelConfig
 from quadcore import workflows
 from quadcore.identify import history, sessions, sufficient, verdict
 from quadcore.learn import learners
-from quadcore.report import render, report
+from quadcore.report import diagnosis as diagnosis_report, render
 from quadcore.workflows import Fleet, fleet, identify
 
 ALL_FLIGHTS = [dg.AssetDep(decoded_flight, partition_mapping=dg.AllPartitionMapping())]
@@ -119,8 +119,8 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "disagreements": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             sessions.table_rows(disagreements))) if disagreements else "none: one value fits all"),
         "disagreements_json": dg.MetadataValue.json(disagreements),
-        "candidates_plot": plot_md(data_root, report.candidates_plot(doc), "candidates"),
-        "regimes_plot": plot_md(data_root, report.regimes_plot(doc), "regimes"),
+        "candidates_plot": plot_md(data_root, diagnosis_report.candidates_plot(doc), "candidates"),
+        "regimes_plot": plot_md(data_root, diagnosis_report.regimes_plot(doc), "regimes"),
         "worst_segments": dg.MetadataValue.md(render.markdown_table(result.worst_segments)),
         **_frequency_metadata(data_root, doc["frequency"]),
         "report": dg.MetadataValue.path(str(page)),
@@ -133,7 +133,7 @@ def _frequency_metadata(data_root: DataRoot, freq: dict | None) -> dict:
     if not freq or not freq.get("channels"):
         return {}
     return {"frequency": dg.MetadataValue.md("\n\n".join(freq["reading"])),
-            "frequency_plot": plot_md(data_root, report.frequency_plot(freq), "frequency")}
+            "frequency_plot": plot_md(data_root, diagnosis_report.frequency_plot(freq), "frequency")}
 
 
 @dg.asset(group_name="model", deps=[model_diagnosis], kinds={"parquet"}, automation_condition=RETRAIN)
@@ -147,6 +147,6 @@ def error_history(data_root: DataRoot) -> dg.MaterializeResult:
         "evaluations": hist.height,
         "latest_model": last["model_label"],
         **{c: number(last[c]) for c in history.RMSE_COLUMNS},
-        "history_plot": plot_md(data_root, report.history_plot(hist), "history"),
+        "history_plot": plot_md(data_root, diagnosis_report.history_plot(hist), "history"),
         "folder": dg.MetadataValue.path(str(history.history_dir(data_root.root_path))),
     })

@@ -1,1 +1,2 @@
-"""Reports for people: the diagnosis as Markdown and HTML (``report``) and the plots (``plots``)."""
+"""Reports for people: one Markdown/HTML renderer (``render``), the diagnosis report (``diagnosis``),
+the learning report (``learning``) and the plots (``plots``)."""

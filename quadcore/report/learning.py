@@ -129,7 +129,7 @@ def comparison_plot(report: dict) -> bytes:
 def make_plots(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
                hist: pl.DataFrame | None = None) -> dict[str, bytes]:
     """All plots as PNG bytes; also stores the regime table and importances in ``report``."""
-    from quadcore.report import report as diagnosis_report
+    from quadcore.report import diagnosis as diagnosis_report
 
     out = {"comparison": comparison_plot(report), "timeseries": timeseries_plot(report, out_dir)}
     if report["best"]:

@@ -137,10 +137,11 @@ def write_diagnosis_report(result: Diagnosis, reports_dir, root=None) -> tuple[P
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
     history. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
     from quadcore.identify import history
-    from quadcore.report import report
+    from quadcore.report import diagnosis as diagnosis_report
 
     hist = history.read(root) if root is not None else None
-    return report.write(result.to_dict(), reports_dir, hist, discovery_for(reports_dir, list(result.effects_in_model)))
+    return diagnosis_report.write(result.to_dict(), reports_dir, hist,
+                                  discovery_for(reports_dir, list(result.effects_in_model)))
 
 
 def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Path]:
