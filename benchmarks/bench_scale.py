@@ -40,7 +40,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 from _jobs import REPO, report, run_main_job
 
@@ -94,7 +96,47 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def table(header: list[str], rows: list[list]) -> None:
+class PerFlightRow(NamedTuple):
+    flights: int
+    decode_s: float
+    tables_s: float
+    s_per_flight: float
+    peak_mb: float
+    failed: int
+
+
+class FleetRow(NamedTuple):
+    flights: int
+    fleet_s: float
+    s_per_flight: float
+    peak_mb: float
+    refresh_s: float
+    refresh_peak_mb: float
+    ok: str
+
+
+class LearningRow(NamedTuple):
+    flights: int
+    wall_s: float
+    s_per_flight: float
+    peak_mb: float
+    ok: str
+
+
+class MainJobRow(NamedTuple):
+    flights: int
+    wall_s: float
+    s_per_flight: float
+    per_flight_stages_s: float
+    fleet_s: float
+    learning_s: float
+    peak_mb: float
+    refresh_s: float
+    refresh_wall_s: float
+    exit: int
+
+
+def table(header: list[str], rows: Sequence[tuple]) -> None:
     print("\n" + " ".join(f"{h:>12}" for h in header))
     for r in rows:
         print(" ".join(f"{v:>12.3f}" if isinstance(v, float) else f"{v:>12}" for v in r))
@@ -132,20 +174,22 @@ def per_flight_child(n: int) -> None:
 
 
 def per_flight_main(sizes: list[int]) -> None:
-    rows = []
+    rows: list[PerFlightRow] = []
     for n in sizes:
         simulated(n)  # outside the timed process
         decode_s, tables_s, failed, mb = child(["--per-flight-child", str(n)]).stdout.split()[-4:]
         d, t = float(decode_s), float(tables_s)
-        rows.append([n, d, t, (d + t) / n, float(mb), int(failed)])
+        rows.append(PerFlightRow(n, d, t, (d + t) / n, float(mb), int(failed)))
         print(f"N={n}: decode + statistics {d:.1f} s, residuals+rollouts+MCAP {t:.1f} s, {(d + t) / n:.3f} s/flight, "
               f"peak {float(mb):.0f} MB, {failed} failed", flush=True)
     table(["flights", "decode+st s", "tables s", "s/flight", "peak MB", "failed"], rows)
-    report(f"per-flight stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][3] / rows[0][3],
-           1.5, "x")
-    report(f"per-flight stages: peak memory at {rows[-1][0]} flights", rows[-1][4], 4096.0, "MB")
-    plot("scale_per_flight.png", [r[0] for r in rows], {"decode + statistics": [r[1] / r[0] for r in rows],
-         "residuals + rollouts + MCAP": [r[2] / r[0] for r in rows]}, [r[4] for r in rows],
+    first, last = rows[0], rows[-1]
+    report(f"per-flight stages: s/flight at {last.flights} vs {first.flights} flights (ratio)",
+           last.s_per_flight / first.s_per_flight, 1.5, "x")
+    report(f"per-flight stages: peak memory at {last.flights} flights", last.peak_mb, 4096.0, "MB")
+    plot("scale_per_flight.png", [r.flights for r in rows],
+         {"decode + statistics": [r.decode_s / r.flights for r in rows],
+          "residuals + rollouts + MCAP": [r.tables_s / r.flights for r in rows]}, [r.peak_mb for r in rows],
          "per-flight stages (bench_scale.py --per-flight)")
 
 
@@ -206,20 +250,23 @@ def fleet_child(n: int) -> None:
 
 
 def fleet_main(sizes: list[int]) -> None:
-    rows = []
+    rows: list[FleetRow] = []
     for n in sizes:
         fleet_root(n)  # outside the timed process
         out = child(["--fleet-child", str(n)]).stdout.strip().splitlines()
         fleet_s, fleet_mb, refresh_s, mb, ok = (float(x) for x in out[-1].split())
-        rows.append([n, fleet_s, fleet_s / n, fleet_mb, refresh_s, mb, "yes" if ok else "FAILED"])
+        rows.append(FleetRow(n, fleet_s, fleet_s / n, fleet_mb, refresh_s, mb, "yes" if ok else "FAILED"))
         print(f"N={n}: fleet stages {fleet_s:.1f} s ({out[-2] if len(out) > 1 else ''}), peak {fleet_mb:.0f} MB; "
               f"one more flight (decode + fleet stages) {refresh_s:.1f} s, peak {mb:.0f} MB", flush=True)
     table(["flights", "fleet s", "s/flight", "peak MB", "+1 refresh s", "+1 peak MB", "ok"], rows)
-    report(f"fleet stages: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][2] / rows[0][2], 1.5,
-           "x")
-    report(f"fleet stages: peak memory at {rows[-1][0]} flights", max(rows[-1][3], rows[-1][5]), 4096.0, "MB")
-    report(f"refit + diagnosis + history after one more flight ({rows[-1][0]}+1)", rows[-1][4], 15.0)
-    plot("scale_fleet.png", [r[0] for r in rows], {"fleet stages": [r[2] for r in rows]}, [r[3] for r in rows],
+    first, last = rows[0], rows[-1]
+    report(f"fleet stages: s/flight at {last.flights} vs {first.flights} flights (ratio)",
+           last.s_per_flight / first.s_per_flight, 1.5, "x")
+    report(f"fleet stages: peak memory at {last.flights} flights", max(last.peak_mb, last.refresh_peak_mb), 4096.0,
+           "MB")
+    report(f"refit + diagnosis + history after one more flight ({last.flights}+1)", last.refresh_s, 15.0)
+    plot("scale_fleet.png", [r.flights for r in rows], {"fleet stages": [r.s_per_flight for r in rows]},
+         [r.peak_mb for r in rows],
          "fleet stages: fit, discovery, diagnosis, history (bench_scale.py --fleet)")
 
 
@@ -247,27 +294,27 @@ def learning_child(n: int) -> None:
 
 
 def learning_main(sizes: list[int]) -> None:
-    rows = []
+    rows: list[LearningRow] = []
     for n in sizes:
         if not (CACHE / f"root{n}" / "residuals").is_dir():
             print(f"N={n}: no residual tables in {CACHE / f'root{n}'}: run --per-flight {n} first")
             continue
         out = child(["--learning-child", str(n)]).stdout.strip().splitlines()
         wall, mb, ok = (float(x) for x in out[-1].split())
-        rows.append([n, wall, wall / n, mb, "yes" if ok else "FAILED"])
+        rows.append(LearningRow(n, wall, wall / n, mb, "yes" if ok else "FAILED"))
         print(f"N={n}: learning + C export {wall:.1f} s ({out[-2] if len(out) > 1 else ''}), peak {mb:.0f} MB",
               flush=True)
     if rows:
         table(["flights", "learning s", "s/flight", "peak MB", "ok"], rows)
-        report(f"learning: peak memory at {rows[-1][0]} flights", rows[-1][3], 4096.0, "MB")
-        plot("scale_learning.png", [r[0] for r in rows], {"learning + C export": [r[2] for r in rows]},
-             [r[3] for r in rows], "learning stage (bench_scale.py --learning)")
+        report(f"learning: peak memory at {rows[-1].flights} flights", rows[-1].peak_mb, 4096.0, "MB")
+        plot("scale_learning.png", [r.flights for r in rows], {"learning + C export": [r.s_per_flight for r in rows]},
+             [r.peak_mb for r in rows], "learning stage (bench_scale.py --learning)")
 
 
 # -- the main job --------------------------------------------------------------------------------
 
 def main_job(sizes: list[int]) -> None:
-    rows = []
+    rows: list[MainJobRow] = []
     for n in sizes:
         raw = simulated(n)
         root = CACHE / f"root{n}"
@@ -277,18 +324,20 @@ def main_job(sizes: list[int]) -> None:
         (raw / fid(n)).symlink_to(pool_log(n))
         more = run_main_job(root, raw)
         refresh = sum(more.stage_s.get(k, 0.0) for k in ("1", "2", "3"))
-        rows.append([n, run.wall_s, run.wall_s / n, per_flight, run.stage_s.get("2", 0.0), run.stage_s.get("4", 0.0),
-                     run.peak_rss_mb, refresh, more.wall_s, run.returncode])
+        rows.append(MainJobRow(n, run.wall_s, run.wall_s / n, per_flight, run.stage_s.get("2", 0.0),
+                               run.stage_s.get("4", 0.0), run.peak_rss_mb, refresh, more.wall_s, run.returncode))
         print(f"N={n}: job {run.wall_s:.1f} s (exit {run.returncode}), per flight {per_flight:.3f} s, "
               f"peak {run.peak_rss_mb:.0f} MB; one more flight: stages {refresh:.1f} s, job {more.wall_s:.1f} s",
               flush=True)
     table(["flights", "job s", "job s/flight", "stages 1+3 s/fl", "fleet s", "learn s", "peak MB", "+1 refresh s",
            "+1 job s", "exit"], rows)
-    report(f"main job: s/flight at {rows[-1][0]} vs {rows[0][0]} flights (ratio)", rows[-1][2] / rows[0][2], 1.5, "x")
-    report(f"main job: peak memory at {rows[-1][0]} flights", rows[-1][6], 4096.0, "MB")
-    report(f"refit + diagnosis + history after one more flight ({rows[-1][0]}+1)", rows[-1][7], 15.0)
-    plot("scale_main.png", [r[0] for r in rows], {"main job": [r[2] for r in rows],
-         "per-flight stages (1 + 3)": [r[3] for r in rows]}, [r[6] for r in rows],
+    first, last = rows[0], rows[-1]
+    report(f"main job: s/flight at {last.flights} vs {first.flights} flights (ratio)",
+           last.s_per_flight / first.s_per_flight, 1.5, "x")
+    report(f"main job: peak memory at {last.flights} flights", last.peak_mb, 4096.0, "MB")
+    report(f"refit + diagnosis + history after one more flight ({last.flights}+1)", last.refresh_s, 15.0)
+    plot("scale_main.png", [r.flights for r in rows], {"main job": [r.s_per_flight for r in rows],
+         "per-flight stages (1 + 3)": [r.per_flight_stages_s for r in rows]}, [r.peak_mb for r in rows],
          "the main job (bench_scale.py)")
 
 

@@ -58,12 +58,14 @@ def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: se
     return used
 
 
-def _recorded_otherwise(context: dg.AutomationContext, candidates, entry_key: str, current_of):
-    """(subset, partition -> recorded value, stale partitions): the candidate partitions whose
-    latest materialisation recorded another ``entry_key`` than ``current_of(partition)``."""
+def _recorded_otherwise(context: dg.AutomationContext, partitions: dg.PartitionsDefinition, candidates,
+                        entry_key: str, current_of):
+    """(subset, partition -> recorded value, stale partitions): the candidate partitions (of the
+    asset's ``partitions``) whose latest materialisation recorded another ``entry_key`` than
+    ``current_of(partition)``."""
     used = versions_used(context.asset_graph_view.instance, context.key, set(candidates), entry_key)
     stale = sorted(p for p, v in used.items() if v != current_of(p))
-    subset = context.asset_graph_view.get_subset_from_partition_keys(context.key, context.partitions_def, set(stale))
+    subset = context.asset_graph_view.get_subset_from_partition_keys(context.key, partitions, set(stale))
     return subset, used, stale
 
 
@@ -88,7 +90,8 @@ class ComputedAgainstOlderModel(dg.AutomationCondition):
         except (ValueError, KeyError, OSError) as exc:  # a bad model or vehicle file: the runs say why
             context.log.warning(f"cannot tell the current physics model: {exc}")
             return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
-        subset, used, stale = _recorded_otherwise(context, candidates, MODEL_VERSION, lambda p: current)
+        subset, used, stale = _recorded_otherwise(context, context.partitions_def, candidates, MODEL_VERSION,
+                                                  lambda p: current)
         why = {p: f"computed against model {used[p] or 'of unknown version'}, current is {current}" for p in stale}
         return dg.AutomationResult(context=context, true_subset=subset,
                                    metadata={"current_model_version": current, "stale_flights": len(stale),
@@ -162,7 +165,7 @@ class StatisticsOutdated(dg.AutomationCondition):
         except (ValueError, KeyError, OSError) as exc:  # a bad model file: the runs say why
             context.log.warning(f"cannot read the model file: {exc}")
             return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
-        subset, _, stale = _recorded_otherwise(context, candidates, STATS_VERSION,
+        subset, _, stale = _recorded_otherwise(context, context.partitions_def, candidates, STATS_VERSION,
                                                lambda p: sufficient.current_key(spec, p))
         return dg.AutomationResult(context=context, true_subset=subset, metadata={"stale_flights": len(stale)})
 

@@ -11,7 +11,7 @@ from pipeline.instance import ensure_dagster_home, unsynced_event_log
 
 def _synchronous(db) -> int:
     with create_engine(f"sqlite:///{db}").connect() as conn:
-        return int(conn.execute(text("PRAGMA synchronous")).scalar())
+        return int(conn.execute(text("PRAGMA synchronous")).scalar_one())
 
 
 def test_the_main_jobs_event_log_is_unsynced_and_nothing_else(tmp_path, monkeypatch):

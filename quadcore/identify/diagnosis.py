@@ -455,7 +455,7 @@ def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
         r["grade"] = "small but certain"
 
 
-def detection_limits(cands, flights: list[FlightData], resid: dict[str, np.ndarray], noise_ss: np.ndarray,
+def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.ndarray], noise_ss: np.ndarray,
                      vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
     """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
     would detect (:func:`quadcore.identify.evidence.detection_limit`); None when no value within the

@@ -555,7 +555,7 @@ def discover(
                 f"accumulating on {len(ids)} flights")
         sums.add(f, _flight_gram(fd, r, cols, fx_effects, vehicle, stride))
         samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
-    fold_grams, G_train = sums.fold_grams(), sums.train
+    fold_grams, G_train = sums.fold_grams(), sums.training_total()
     noise = _noise_floor([samples[f] for f in train], [noise_of[f] for f in train])
 
     kept: list[DiscoveredTerm] = []
@@ -686,6 +686,12 @@ class _GramSums:
                 self.inside[i] = self._plus(self.inside[i], G)
             else:
                 self.outside[i] = self._plus(self.outside[i], G)
+
+    def training_total(self) -> np.ndarray:
+        """The training flights' sum (discovery checks there are at least two of them)."""
+        if self.train is None:
+            raise ValueError("no training flight was added")
+        return self.train
 
     def fold_grams(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per fold (its training flights' sum, its own flights' sum)."""

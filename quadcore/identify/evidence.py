@@ -45,12 +45,16 @@ much shorter than a sample cannot be fitted).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
 
 from quadcore.identify import fitting
 from quadcore.identify.fitting import FlightData
+
+if TYPE_CHECKING:
+    from quadcore.identify.sufficient import Flights
 
 ALPHA = 0.01  # one-sided false-alarm probability of the held-out test, per candidate
 POWER = 0.9  # detection probability the sensitivity is stated at
@@ -96,14 +100,14 @@ def _blocks(fd: FlightData) -> np.ndarray:
     return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
 
 
-def block_sums(flights: list[FlightData], a: dict[str, np.ndarray], b: dict[str, np.ndarray],
+def block_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray],
                weights: np.ndarray) -> np.ndarray:
     """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples. On flights'
     :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the same from their Gram
     matrices (:func:`quadcore.identify.sufficient.block_sums`)."""
-    if flights and not isinstance(flights[0], FlightData):
-        from quadcore.identify import sufficient
+    from quadcore.identify import sufficient
 
+    if sufficient.are_stats(flights):
         return sufficient.block_sums(flights, a, b, weights)
     out = []
     for fd in flights:
@@ -122,7 +126,7 @@ def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
     return HeldOutTest(beta, float(min(t, 1e6)), float(stats.t.sf(t, n - 1)), n)
 
 
-def held_out_test(flights: list[FlightData], resid: dict[str, np.ndarray], pred: dict[str, np.ndarray],
+def held_out_test(flights: Flights, resid: dict[str, np.ndarray], pred: dict[str, np.ndarray],
                   weights: np.ndarray) -> HeldOutTest:
     """Is ``pred`` (n, 6 per flight) confirmed by ``resid`` on these flights? (see the module)"""
     pr = block_sums(flights, pred, resid, weights)
@@ -134,7 +138,7 @@ def held_out_test(flights: list[FlightData], resid: dict[str, np.ndarray], pred:
     return _t_and_p(pr, den, pr - beta * pp)
 
 
-def compare(flights: list[FlightData], resid: dict[str, np.ndarray], pred_a: dict[str, np.ndarray],
+def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np.ndarray],
             pred_b: dict[str, np.ndarray], weights: np.ndarray) -> HeldOutTest:
     """Does ``pred_a`` fit the held-out ``resid`` better than ``pred_b``? The difference of their
     weighted squared errors, ``|r - b|² - |r - a|² = 2 (a - b)·(r - (a + b)/2)``, summed per
@@ -170,7 +174,7 @@ def alpha_each(n_candidates: int) -> float:
     return ALPHA / max(n_candidates, 1)
 
 
-def detection_limit(flights: list[FlightData], resid: dict[str, np.ndarray], unit: dict[str, np.ndarray],
+def detection_limit(flights: Flights, resid: dict[str, np.ndarray], unit: dict[str, np.ndarray],
                     floor_ss: np.ndarray, min_sigma: float, n_candidates: int = 1,
                     min_share: float = 0.0, base_ss: float = 0.0) -> float:
     """Smallest |deviation| of a parameter with unit wrench ``unit`` that the test, the fit's

@@ -34,8 +34,9 @@ smoother.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
@@ -44,6 +45,9 @@ from quadcore.effects import Effect
 from quadcore.physics import dynamics, residuals, signals
 from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
+
+if TYPE_CHECKING:
+    from quadcore.identify.sufficient import Flights, FlightStats
 
 SAMPLES_PER_INDEPENDENT = signals.WINDOW
 
@@ -219,7 +223,8 @@ def weights_from_sums(ss: np.ndarray, n: int) -> np.ndarray:
     return np.array([1 / (ms_f or 1.0)] * 3 + [1 / (ms_t or 1.0)] * 3)
 
 
-def _linear_solve(lin: list[Effect], flights: list[FlightData], ys: list[np.ndarray], w: np.ndarray, vehicle: Vehicle):
+def _linear_solve(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
+                  vehicle: Vehicle):
     """Weighted least squares for the stacked linear coordinates: (θ, A, rss, n_rows)."""
     k = sum(len(e.parameters) for e in lin)
     A, b, yy, n = np.zeros((k, k)), np.zeros(k), 0.0, 0
@@ -261,8 +266,8 @@ def _params_with_std(effect: Effect, coeffs: np.ndarray, cov: np.ndarray, vehicl
 
 def fit_effects(
     effects: list[Effect],
-    flights: list[FlightData],
-    targets: list[np.ndarray],
+    flights: Flights,
+    targets: Sequence[np.ndarray],
     vehicle: Vehicle,
     fixed: dict[str, dict[str, float]] | None = None,
 ) -> Fit:
@@ -272,9 +277,9 @@ def fit_effects(
     :class:`quadcore.identify.sufficient.FlightStats` with signal-vector targets (linear effects only),
     the same fit from the flights' statistics (:func:`quadcore.identify.sufficient.fit_effects`).
     """
-    if flights and not isinstance(flights[0], FlightData):
-        from quadcore.identify import sufficient
+    from quadcore.identify import sufficient
 
+    if sufficient.are_stats(flights):
         return sufficient.fit_effects(effects, flights, targets, vehicle, fixed)
     fixed = fixed or {}
     w = channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
@@ -422,7 +427,7 @@ def _vector_search(nonlin, lin, flights, ys, w, vehicle):
     return sol.x, cov
 
 
-def targets_of(flights: list[FlightData]) -> list[np.ndarray]:
+def targets_of(flights: Sequence[FlightData]) -> list[np.ndarray]:
     """(n, 6) nominal residual per flight."""
     return [np.concatenate([fd.r_f, fd.r_tau], axis=1) for fd in flights]
 
@@ -451,16 +456,20 @@ def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list
             else ({}, {}, {}))
     if not effect_list:
         return PhysicsModel(spec.vehicle, [], *maps)
+    by_id: Mapping[str, FlightData] | Mapping[str, FlightStats]
+    flights: Flights
     if all(e.linear for e in effect_list):
         by_id = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
+        flights = [by_id[f] for f in train]
         targets = {f: s.layout.target() for f, s in by_id.items()}
     else:
         by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
-        targets = dict(zip(train, targets_of([by_id[f] for f in train])))
+        flights = [by_id[f] for f in train]
+        targets = dict(zip(train, targets_of(flights)))
     if spec.per_session:
         from quadcore.identify import sessions as sessionlib
 
         return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None))
-    fit = fit_effects(effect_list, [by_id[f] for f in train], [targets[f] for f in train], spec.vehicle, spec.fixed)
+    fit = fit_effects(effect_list, flights, [targets[f] for f in train], spec.vehicle, spec.fixed)
     terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
     return PhysicsModel(spec.vehicle, terms, *maps)

@@ -30,12 +30,12 @@ from quadcore.store import store
 RMSE_COLUMNS = [f"force_rmse_{a}_N" for a in XYZ] + [f"torque_rmse_{a}_Nm" for a in XYZ]
 
 
-def history_dir(root: Path) -> Path:
+def history_dir(root: str | Path) -> Path:
     return store.as_root(root) / "history"
 
 
 def record(
-    root: Path,
+    root: str | Path,
     source: str,
     model_label: str,
     force_rmse_N: list[float],
@@ -100,7 +100,7 @@ def series(hist: pl.DataFrame) -> dict[str, pl.DataFrame]:
             for name in latest["evaluation_set"]}
 
 
-def read(root: Path) -> pl.DataFrame:
+def read(root: str | Path) -> pl.DataFrame:
     """All evaluations, oldest first (empty frame if none)."""
     files = sorted(history_dir(root).glob("*.parquet"))  # a folder here or in an object store
     if not files:

@@ -47,7 +47,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
@@ -56,6 +56,11 @@ from quadcore.effects import Effect
 from quadcore.physics.vehicle import Vehicle
 from quadcore.store import store
 from quadcore.store.names import check_component
+
+if TYPE_CHECKING:
+    from typing_extensions import TypeIs  # typing's own from Python 3.13
+
+    from quadcore.identify.fitting import FlightData
 
 FORMAT = 1  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
@@ -167,6 +172,16 @@ class FlightStats:
         return len(self.rows)
 
 
+# What the fits and held-out tests take: flights' rows, or their statistics (linear effects only).
+Flights: TypeAlias = "Sequence[FlightData] | Sequence[FlightStats]"
+
+
+def are_stats(flights: Flights) -> TypeIs[Sequence[FlightStats]]:
+    """Whether ``flights`` are flights' statistics rather than their rows: what the fits and the
+    held-out tests take either of (an empty list counts as rows)."""
+    return bool(flights) and isinstance(flights[0], FlightStats)
+
+
 def from_blocks(flight: str, layout: Layout, key: str, gram: np.ndarray, rows: np.ndarray, strided: np.ndarray,
                 noise: np.ndarray, vbat_std_V: float, vbat_median_V: float) -> FlightStats:
     """Statistics from their per-block Gram matrices (``total`` their sum)."""
@@ -266,7 +281,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
             yy += float(v @ Gw @ v)
             n += 6 * s.n
         theta = np.linalg.lstsq(A, b, rcond=None)[0]
-        rss = max(yy - 2 * theta @ b + theta @ A @ theta, 0.0)
+        rss = max(float(yy - 2 * theta @ b + theta @ A @ theta), 0.0)
         fitting.linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
     return fitting.Fit(params, std, w)
 

@@ -148,15 +148,15 @@ class LearnedModel:
         """Write the artefacts (and ``predictions.parquet``) into a staging folder, the manifest
         last, and put it in place whole: a kill leaves the previous model or the new one, never
         a torn one."""
-        folder = store.as_root(folder)
-        if store.is_remote(folder):  # written here, then uploaded with the manifest last
+        dest: Path = store.as_root(folder)  # a local Path, or a UPath in an object store
+        if store.is_remote(dest):  # written here, then uploaded with the manifest last
             with tempfile.TemporaryDirectory(prefix="quadcore-model-") as local:
-                self._write(Path(local), folder.name, predictions)
-                return store.upload_folder(Path(local), folder, last="manifest.json")
-        staging = safewrite.staging_folder(folder)
+                self._write(Path(local), dest.name, predictions)
+                return store.upload_folder(Path(local), dest, last="manifest.json")
+        staging = safewrite.staging_folder(dest)
         try:
-            self._write(staging, folder.name, predictions)
-            return safewrite.replace_folder(staging, folder)
+            self._write(staging, dest.name, predictions)
+            return safewrite.replace_folder(staging, dest)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
@@ -190,20 +190,20 @@ def vehicle_of(physics: dict):
 def load(folder: str | Path, threads: int = 1, torch_threads: int = 1) -> LearnedModel:
     """A model saved by :meth:`LearnedModel.save`; :class:`LearningError` for anything else
     (a missing or malformed manifest, scaler, feature list or weights)."""
-    folder = store.as_root(folder)
-    mpath = folder / "manifest.json"
+    where: Path = store.as_root(folder)  # a local Path, or a UPath in an object store
+    mpath = where / "manifest.json"
     if not mpath.is_file():
-        raise LearningError(f"no learned model in {folder} (no manifest.json)")
+        raise LearningError(f"no learned model in {where} (no manifest.json)")
     try:
-        if store.is_remote(folder):  # the weights load from local files: copied here first
+        if store.is_remote(where):  # the weights load from local files: copied here first
             with tempfile.TemporaryDirectory(prefix="quadcore-model-") as local:
-                here = store.download_folder(folder, Path(local))
+                here = store.download_folder(where, Path(local))
                 return _load(here, here / "manifest.json", threads, torch_threads)
-        return _load(folder, mpath, threads, torch_threads)
+        return _load(where, mpath, threads, torch_threads)
     except LearningError:
         raise
     except Exception as exc:  # noqa: BLE001 (json, xgboost, torch and pickle each have their own errors)
-        raise LearningError(f"{folder}: malformed learned model ({type(exc).__name__}: {str(exc)[:200]})") from None
+        raise LearningError(f"{where}: malformed learned model ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
 def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> LearnedModel:

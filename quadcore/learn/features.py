@@ -313,7 +313,8 @@ def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping
     and its tables, each read when it is looked up: (sets, {set name: {flight: table}})."""
     from quadcore.store import store
 
-    sets, tables = [], {}
+    sets: list[FeatureSet] = []
+    tables: dict[str, Mapping[str, pl.DataFrame]] = {}
     base = store.as_root(root) / "features"
     for folder in sorted(p for p in base.glob("*") if p.is_dir()) if base.is_dir() else []:
         files = sorted(folder.glob("flight=*/data.parquet"))

@@ -203,7 +203,7 @@ def captured_sentence(kind: str, share: dict[str, float]) -> str:
             f"captures {one('force')} and {one('torque')}.")
 
 
-def _best_preds(report: dict, out_dir: Path) -> dict[str, pl.DataFrame]:
+def _best_preds(report: dict, out_dir: str | Path) -> dict[str, pl.DataFrame]:
     return {k: store.read_parquet(store.as_root(out_dir) / name / "predictions.parquet")
             for k, name in report["best"].items()}
 
@@ -229,7 +229,8 @@ def regime_values(table: pl.DataFrame, vehicle) -> dict[str, np.ndarray]:
     }
 
 
-def regime_table(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame], vehicle) -> pl.DataFrame:
+def regime_table(report: dict, out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame],
+                 vehicle) -> pl.DataFrame:
     """Force and torque MAE (mean over axes) of the baselines and best models per regime bin,
     on the held-out flight."""
     holdout = report["holdout"]
@@ -278,7 +279,7 @@ def permutation_importance(model: artefacts.LearnedModel, table: pl.DataFrame, s
     return out
 
 
-def importance(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame]) -> dict[str, dict]:
+def importance(report: dict, out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame]) -> dict[str, dict]:
     """Per best model: permutation importance on the held-out flight, and XGBoost's gain."""
     out = {}
     for k, name in report["best"].items():

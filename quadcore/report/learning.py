@@ -25,7 +25,7 @@ from quadcore.store import store
 TITLE = "Learned residual models"
 
 
-def timeseries_plot(report: dict, out_dir: Path, max_points: int = 4000) -> bytes:
+def timeseries_plot(report: dict, out_dir: str | Path, max_points: int = 4000) -> bytes:
     """Measured residual and the best models' predictions over time on the held-out flight."""
     preds = _best_preds(report, out_dir)
     fig, axes = plt.subplots(3, 2, figsize=(12, 7), sharex=True, layout="constrained")
@@ -126,7 +126,7 @@ def comparison_plot(report: dict) -> bytes:
     return plots._png(fig)
 
 
-def make_plots(report: dict, out_dir: Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
+def make_plots(report: dict, out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
                hist: pl.DataFrame | None = None) -> dict[str, bytes]:
     """All plots as PNG bytes; also stores the regime table and importances in ``report``."""
     from quadcore.report import diagnosis as diagnosis_report

@@ -326,9 +326,9 @@ class FlightTables(Mapping[str, pl.DataFrame]):
             return self._cache[flight]
         df = read_parquet(self._paths[flight])
         self._cache[flight] = df
-        self._held += df.estimated_size()
+        self._held += _nbytes(df)
         while len(self._cache) > 1 and self._held > self._cache_bytes:
-            self._held -= self._cache.popitem(last=False)[1].estimated_size()
+            self._held -= _nbytes(self._cache.popitem(last=False)[1])
         return df
 
     def __iter__(self) -> Iterator[str]:
@@ -346,8 +346,13 @@ class FlightTables(Mapping[str, pl.DataFrame]):
         for f, df in self._cache.items():
             if f in out._paths:
                 out._cache[f] = df
-                out._held += df.estimated_size()
+                out._held += _nbytes(df)
         return out
+
+
+def _nbytes(df: pl.DataFrame) -> int:
+    """Polars' estimate of the frame's size in bytes (typed ``int | float`` for other units)."""
+    return int(df.estimated_size())
 
 
 def flight_tables(folder: Any) -> FlightTables:
