@@ -111,3 +111,20 @@ def test_pipeline_refuses_a_bad_model_file_before_any_work(tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "parameters" in err
     assert not (tmp_path / "root" / "decoded").exists()
+
+
+def test_python_m_pipeline_exits_with_the_jobs_code(tmp_path):
+    """The entry point (``python -m pipeline``, its garbage collector paused for the imports and
+    frozen before exit) still exits with the job's own code and message."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bad = tmp_path / "model.toml"
+    bad.write_text("parameters = 5\n")
+    env = {**os.environ, "QUADCORE_MODEL": str(bad), "QUADCORE_DATA_ROOT": str(tmp_path / "root"),
+           "DAGSTER_HOME": str(tmp_path / "home"), "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, "-m", "pipeline"], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "parameters" in done.stderr
