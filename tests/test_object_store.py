@@ -112,3 +112,24 @@ def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]  # nothing written locally in its place
     with pytest.raises(UnsafeNameError):  # the data-root jail holds in the bucket too
         store.table_path(root, "residuals", "../../other-bucket")
+
+
+@pytest.mark.slow  # an S3 server
+def test_flight_statistics_round_trip_through_s3(s3_url, drag_fleet):
+    """A flight's sufficient statistics written to the bucket in one PUT and read back whole,
+    as the fleet fit reads them from an s3:// data root."""
+    import numpy as np
+
+    from quadcore.identify import fitting, sufficient
+    from quadcore.logs import flight
+    from quadcore.physics import vehicle
+
+    veh = vehicle.load()
+    fd = fitting.flight_data("sim000", flight.decode_flight(drag_fleet / "sim000").tables["fixedFrequency"], veh)
+    layout = sufficient.library_layout()
+    s = sufficient.flight_stats(fd, veh, layout, sufficient.stats_key(veh, veh, layout))
+    sufficient.save(s, s3_url)
+    back = sufficient.load_current(s3_url, "sim000", s.key)
+    assert back is not None and back.layout == s.layout and back.n == s.n
+    np.testing.assert_array_equal(back.gram, s.gram)
+    np.testing.assert_allclose(back.total, s.total, rtol=1e-12)

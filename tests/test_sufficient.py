@@ -163,3 +163,4 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
     assert [r["effect"] for r in result["candidates"]] == [r["effect"] for r in again["candidates"]]
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         assert result["baseline"][key] == pytest.approx(again["baseline"][key], rel=1e-9)
+
