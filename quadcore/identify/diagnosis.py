@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -155,188 +156,254 @@ def _reference_ss(c, fd, vehicle) -> float:
     return float(sufficient.sum_of_squares(fd, v).sum())
 
 
-def diagnose(
-    decoded: Mapping[str, pl.DataFrame],
-    spec: ModelSpec,
-    holdout: list[str] | None = None,
-    candidates: list[str] | None = None,
-    n_folds: int = 5,
-    log=lambda msg: None,
-    sessions: dict[str, list[str]] | None = None,
-    stats=None,
-) -> Diagnosis:
-    """Fit the model, score it on held-out flights, rank the missing effects, and find the
-    parameters that differ between groups of flights (``sessions``: name -> flights, from a
-    sessions file; None: groups found from the data). Its ``to_dict()`` is the JSON document.
+class _Problem:
+    """One diagnosis's flights in the form it scores them (:class:`_Flights`), their targets, the
+    model's effects and the candidates, and how a candidate is fitted: from the flights'
+    statistics, or (``by_rows``: a nonlinear candidate beside statistics) from its training
+    flights' rows."""
 
-    With a model of linear effects, fits, folds and held-out tests combine the flights'
-    sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
-    decoded table); nonlinear candidates read their training flights' rows, and the evaluated
-    flights' rows give the regime tables and spectra."""
-    vehicle = spec.vehicle
-    ids = sorted(decoded)
-    model_effects = [effectlib.get(n) for n in spec.effects]
-    names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
-                                                       if n not in spec.effects and e.offered]
-    cands = [effectlib.get(n) for n in names]
-    fl = _Flights(decoded, spec, ids, sufficient.layout_of(model_effects + cands), stats)
-    fds = {f: fl.flight(f) for f in ids}
-    targets = {f: fl.target(f) for f in ids}
-    by_rows = {c.name: fl.stats is not None and not c.linear for c in cands}  # fitted from rows, not statistics
+    def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats):
+        self.spec, self.vehicle = spec, spec.vehicle
+        self.ids = sorted(decoded)
+        self.model_effects = [effectlib.get(n) for n in spec.effects]
+        names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
+                                                           if n not in spec.effects and e.offered]
+        self.cands = [effectlib.get(n) for n in names]
+        self.effect_of = {c.name: c for c in self.cands}
+        self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
+        self.fds = {f: self.fl.flight(f) for f in self.ids}
+        self.targets = {f: self.fl.target(f) for f in self.ids}
+        self.by_rows = {c.name: self.fl.stats is not None and not c.linear for c in self.cands}
+        # a fold's residual turned into rows once for all nonlinear candidates; each entry keeps
+        # its residual alive, so no later residual can take its id while the entry is here
+        self._row_cache: dict[tuple[int, str], tuple[dict, np.ndarray]] = {}
 
-    def fit_candidate(c, flights: list[str], resid: dict) -> fitting.Fit:
-        if by_rows[c.name]:
-            return fitting.fit_effects([c], [fl.rows(f) for f in flights], [row_resid(f, resid) for f in flights],
-                                       vehicle)
-        return fitting.fit_effects([c], [fds[f] for f in flights], [resid[f] for f in flights], vehicle)
+    def fit_candidate(self, c, flights: list[str], resid: dict) -> fitting.Fit:
+        """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``."""
+        if self.by_rows[c.name]:
+            return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
+                                       [self._row_resid(f, resid) for f in flights], self.vehicle)
+        return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle)
 
-    row_cache: dict[tuple[int, str], np.ndarray] = {}
+    def _row_resid(self, f: str, resid: dict) -> np.ndarray:
+        key = (id(resid), f)
+        if key not in self._row_cache:
+            self._row_cache[key] = (resid, self.fl.signal_rows(f, resid[f]))
+        return self._row_cache[key][1]
 
-    def row_resid(f: str, resid: dict) -> np.ndarray:
-        key = (id(resid), f)  # a fold's residual turned into rows once for all nonlinear candidates
-        if key not in row_cache:
-            row_cache[key] = fl.signal_rows(f, resid[f])
-        return row_cache[key]
+    def scored_flight(self, c, f: str):
+        """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
+        return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
 
+
+def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
+            ) -> tuple[list[tuple[list[str], list[str]]], list[str], str]:
+    """The (training, test) flights of each fold, all the training flights, and the mode: the
+    held-out flights when given, else folds over the flights (in-sample with one flight)."""
     holdout = [h for h in (holdout or [])]
     if holdout:
         train_all = [f for f in ids if f not in holdout]
-        splits = [(train_all, holdout)]
-        mode = "holdout"
-    else:
-        train_all = ids
-        splits = ([([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)]
-                  if len(ids) > 1 else [(ids, ids)])
-        mode = "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
+        return [(train_all, holdout)], train_all, "holdout"
+    splits = ([([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)]
+              if len(ids) > 1 else [(ids, ids)])
+    return splits, ids, "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
 
+
+def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, log) -> tuple[Any, dict]:
+    """The model fitted on ``train`` (per session for a model with per-session effects), and its
+    residual (target minus prediction) on the ``train`` and ``test`` flights."""
+    fds, targets = p.fds, p.targets
+    tr = [fds[f] for f in train]
+    if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
+        pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log)
+        return pm, {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
+    fit_m = fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed)
+    return fit_m, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in {*train, *test}}
+
+
+@dataclass(frozen=True)
+class _Folds:
+    """What the folds leave: each test flight's model residual and every candidate's prediction
+    there (fitted without it), each candidate's parameters per fold (the flight-to-flight
+    spread), and the last fold's fits of the model and of each candidate."""
+
+    eval_resid: dict[str, np.ndarray]
+    cand_pred: dict[str, dict[str, np.ndarray]]
+    params: dict[str, list[dict]]
+    fits: dict[str, fitting.Fit]
+    model_fit: Any
+
+
+def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log) -> _Folds:
+    """Per fold: the model and each candidate (on the model's residual) fitted on the training
+    flights, and their residual and predictions on the test flights."""
     eval_resid: dict[str, np.ndarray] = {}
-    cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in cands}
+    cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
     fold_fits: dict[str, fitting.Fit] = {}
-    fold_params: dict[str, list[dict]] = {c.name: [] for c in cands}  # per fold: the flight-to-flight spread
+    fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    model_fit = None
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
-        tr = [fds[f] for f in train]
-        if spec.per_session:  # the model's per-session effects fitted per session of the training flights
-            pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
-            resid = {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
-        else:
-            fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train], vehicle, spec.fixed)
-            resid = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in {*train, *test}}
-        for c in cands:
-            fit_c = fold_fits[c.name] = fit_candidate(c, train, resid)
+        model_fit, resid = _model_residuals(p, train, test, sessions, log)
+        for c in p.cands:
+            fit_c = fold_fits[c.name] = p.fit_candidate(c, train, resid)
             fold_params[c.name].append(fit_c.params[c.name])
             for f in test:
-                cand_pred[c.name][f] = fit_c.predict([c], fl.rows(f) if by_rows[c.name] else fds[f], vehicle)
+                cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
             eval_resid[f] = resid[f]
-    # With a single split on all training flights (holdout), its fits are the final ones.
-    reuse = len(splits) == 1 and splits[0][0] == train_all
+    return _Folds(eval_resid, cand_pred, fold_params, fold_fits, model_fit)
 
-    # Parameters reported: fitted on all training flights.
+
+def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, dict]:
+    """The model fitted on all training flights (the parameters reported; ``fold_fit``, the only
+    fold's fit, when it is that one) and its residual on them."""
+    fds, targets, spec = p.fds, p.targets, p.spec
     tr = [fds[f] for f in train_all]
     if spec.per_session:
-        model = pm if reuse else sessionlib.fit_per_session(spec, fds, targets, train_all, sessions, log)
-        resid_train = {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
-    else:
-        if not reuse:
-            fit_m = fitting.fit_effects(model_effects, tr, [targets[f] for f in train_all], vehicle, spec.fixed)
-        model = PhysicsModel(vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
-                                                  e.name in spec.fixed) for e in model_effects],
-                             spec.sessions_of(ids) if spec.session_maps else {}, spec.session_maps)
-        resid_train = {f: targets[f] - fit_m.predict(model_effects, fds[f], vehicle) for f in train_all}
-    if reuse and len(train_all) >= 3:
-        # one split only: refit each candidate leaving out groups of training flights, for the spread
-        for group in fitting.folds(train_all, n_folds):
-            sub = [f for f in train_all if f not in group]
-            for c in cands:
-                fold_params[c.name].append(fit_candidate(c, sub, resid_train).params[c.name])
-        fold_params = {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
+        model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
+                                                                                 sessions, log)
+        return model, {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
+    fit_m = (fold_fit if fold_fit is not None
+             else fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed))
+    model = PhysicsModel(p.vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
+                                                e.name in spec.fixed) for e in p.model_effects],
+                         spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
+    return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
 
-    eval_ids = sorted(eval_resid)
-    eval_fds = _evaluated(fl, eval_ids, cands, cand_pred, eval_resid, by_rows)
-    before = _total(_ss(eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
+
+def _group_spread(p: _Problem, fold_params: dict[str, list[dict]], train_all: list[str], resid_train: dict,
+                  n_folds: int) -> dict[str, list[dict]]:
+    """One split only: each candidate refitted leaving out groups of training flights, for the
+    spread, in place of its fit on all of them."""
+    fold_params = {k: list(v) for k, v in fold_params.items()}
+    for group in fitting.folds(train_all, n_folds):
+        sub = [f for f in train_all if f not in group]
+        for c in p.cands:
+            fold_params[c.name].append(p.fit_candidate(c, sub, resid_train).params[c.name])
+    return {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
+
+
+@dataclass(frozen=True)
+class _HeldOut:
+    """The evaluated flights as the scores take them (:func:`_evaluated`), the model's residual
+    and each candidate's prediction on them, the residual's sums of squares per channel
+    (``before``) over ``n`` samples, the sensor-noise floor's, the channels at that floor, and
+    the channel weights."""
+
+    ids: list[str]
+    flights: list
+    resid: dict[str, np.ndarray]
+    cand_pred: dict[str, dict[str, np.ndarray]]
+    before: np.ndarray
+    n: int
+    noise_ss: np.ndarray
+    at_noise: dict[str, bool]
+    w: np.ndarray
+
+
+def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
+    eval_ids = sorted(folds.eval_resid)
+    eval_fds = _evaluated(p.fl, eval_ids, p.cands, folds.cand_pred, folds.eval_resid, p.by_rows)
+    before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
-
     # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
     # holds no evidence FOR an effect (only against one that would add error there).
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss)
+    w = _weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
+    return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
 
-    rows: list[dict[str, Any]] = []
-    w = _weights(eval_fds, [eval_resid[f] for f in eval_ids])
-    for c in cands:
-        after = _total(_ss(eval_resid[f] - cand_pred[c.name][f], fd) for f, fd in zip(eval_ids, eval_fds))
-        raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
-        ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
-        target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
-        fit_c = fold_fits[c.name] if reuse else fit_candidate(c, train_all, resid_train)
-        params = fit_c.params[c.name]
-        spread = _jackknife_std(fold_params[c.name])
-        # the larger of the sample-based error and the spread between groups of flights: flights
-        # differ (battery, propellers, a stuck log variable) more than samples within a flight do
-        std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
-        bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
-        outside = [k for k, v in params.items() if not bounds[k][0] <= v <= bounds[k][1]]
-        at_bound = [k for k, v in params.items()
-                    if k not in outside
-                    and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
-                    and v != c.defaults()[k]]
-        sigma = _significance(c, params, std)
-        notes = ([f"fitted {', '.join(outside)} outside the physical bounds: not a physical explanation"]
-                 if outside else [])
-        notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
-        if sigma < MIN_SIGMA:
-            notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
-        rows.append({
-            "effect": c.name,
-            "target": target,
-            "acts_on": c.target,
-            "explained_variance": max(0.0, ev_f if target == "force" else ev_t),
-            "explained_variance_force": ev_f,
-            "explained_variance_torque": ev_t,
-            "explained_variance_raw": raw,
-            "score": 0.5 * (ev_f + ev_t),
-            "force_rmse_N": [float(np.sqrt(after[j] / n_eval)) for j in range(3)],
-            "torque_rmse_Nm": [float(np.sqrt(after[3 + j] / n_eval)) for j in range(3)],
-            "parameters": params,
-            "parameter_spread_between_flights": spread,
-            "parameter_std": std,
-            "n_parameters": len(c.parameters),
-            "explained_variance_per_axis": {
-                f"{q}_{a}": float(1 - after[i] / before[i]) if before[i] > 0 else 0.0
-                for i, (q, a) in enumerate([("force", a) for a in XYZ] + [("torque", a) for a in XYZ])
-            },
-            "physical": not outside,
-            "significance_sigma": sigma,
-            "significant": sigma >= MIN_SIGMA,
-            "notes": notes,
-            **_held_out_evidence(evidence.held_out_test(eval_fds, eval_resid, cand_pred[c.name],
-                                                        evidence.channel_mask([target])),
-                                 before, after, noise_ss, target),
-        })
-    for r in rows:
-        _decide(r, at_noise, len(rows))
 
-    # Which candidates leave the same signature on the evaluated flights?
-    span = _SpanOverlap(cands, cand_pred, eval_fds, eval_resid, w, vehicle)
-    evidence_w = w * evidence.channel_mask([ch for ch, quiet in at_noise.items() if not quiet])
+def _out_of_range(c, params: dict[str, float]) -> tuple[list[str], list[str]]:
+    """The parameters fitted outside their physical bounds, and those at a bound (and moved from
+    'no effect')."""
+    bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
+    outside = [k for k, v in params.items() if not bounds[k][0] <= v <= bounds[k][1]]
+    at_bound = [k for k, v in params.items()
+                if k not in outside
+                and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
+                and v != c.defaults()[k]]
+    return outside, at_bound
+
+
+def _parameter_notes(outside: list[str], at_bound: list[str], sigma: float) -> list[str]:
+    notes = ([f"fitted {', '.join(outside)} outside the physical bounds: not a physical explanation"]
+             if outside else [])
+    notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
+    if sigma < MIN_SIGMA:
+        notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
+    return notes
+
+
+def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict]) -> dict[str, Any]:
+    """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
+    channel it explains, its parameters (``fit_c``: on all training flights) with their
+    uncertainty (``fold_params``: per fold, for the spread) and checks, and the held-out test."""
+    before, at_noise = held.before, held.at_noise
+    after = _total(_ss(held.resid[f] - held.cand_pred[c.name][f], fd) for f, fd in zip(held.ids, held.flights))
+    raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
+    ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
+    target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
+    params = fit_c.params[c.name]
+    spread = _jackknife_std(fold_params)
+    # the larger of the sample-based error and the spread between groups of flights: flights
+    # differ (battery, propellers, a stuck log variable) more than samples within a flight do
+    std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
+    outside, at_bound = _out_of_range(c, params)
+    sigma = _significance(c, params, std)
+    return {
+        "effect": c.name,
+        "target": target,
+        "acts_on": c.target,
+        "explained_variance": max(0.0, ev_f if target == "force" else ev_t),
+        "explained_variance_force": ev_f,
+        "explained_variance_torque": ev_t,
+        "explained_variance_raw": raw,
+        "score": 0.5 * (ev_f + ev_t),
+        "force_rmse_N": [float(np.sqrt(after[j] / held.n)) for j in range(3)],
+        "torque_rmse_Nm": [float(np.sqrt(after[3 + j] / held.n)) for j in range(3)],
+        "parameters": params,
+        "parameter_spread_between_flights": spread,
+        "parameter_std": std,
+        "n_parameters": len(c.parameters),
+        "explained_variance_per_axis": {
+            f"{q}_{a}": float(1 - after[i] / before[i]) if before[i] > 0 else 0.0
+            for i, (q, a) in enumerate([("force", a) for a in XYZ] + [("torque", a) for a in XYZ])
+        },
+        "physical": not outside,
+        "significance_sigma": sigma,
+        "significant": sigma >= MIN_SIGMA,
+        "notes": _parameter_notes(outside, at_bound, sigma),
+        **_held_out_evidence(evidence.held_out_test(held.flights, held.resid, held.cand_pred[c.name],
+                                                    evidence.channel_mask([target])),
+                             before, after, held.noise_ss, target),
+    }
+
+
+def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem) -> None:
+    """Which candidates leave the same signature on the evaluated flights: per row, the physical
+    ones that reproduce its prediction in its channel and it theirs (``indistinguishable_from``),
+    those of them it ties with (scores within TIE_MARGIN, or the held-out flights prefer
+    neither; a tie goes both ways), and what separates it from the others (``separated_by``)."""
+    evidence_w = held.w * evidence.channel_mask([ch for ch, quiet in held.at_noise.items() if not quiet])
 
     def separated(a: str, b: str) -> bool:
         """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the noise)."""
-        return evidence.compare(eval_fds, eval_resid, cand_pred[a], cand_pred[b], evidence_w).p_value < evidence.ALPHA
+        return (evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], evidence_w).p_value
+                < evidence.ALPHA)
     by_name = {r["effect"]: r for r in rows}
-    effect_of = {c.name: c for c in cands}
 
     def can_mimic(a: str, b: str, ch: str) -> bool:
         """``b``, with physical parameter values, reproduces ``a``'s held-out prediction in ``ch``."""
         r2, beta = span.mimic(a, b, ch)
         if r2 < 1 - SAME_SIGNATURE:
             return False
-        e = effect_of[b]
+        e = p.effect_of[b]
         if not e.linear:  # only its own fitted prediction is known to be physical
             return 0.5 <= float(beta[0]) <= 2.0
-        params = e.from_linear(beta, vehicle)
-        return all(p.lower <= params[p.name] <= p.upper for p in e.parameters)
+        params = e.from_linear(beta, p.vehicle)
+        return all(q.lower <= params[q.name] <= q.upper for q in e.parameters)
 
     for r in rows:
         ch = r["target"]
@@ -358,53 +425,110 @@ def diagnose(
             if r["effect"] not in by_name[o]["tied_with"]:
                 by_name[o]["tied_with"].append(r["effect"])
                 by_name[o]["separated_by"].pop(r["effect"], None)
-    rows = _rank(rows)
-    for r in rows:  # what each could still explain once the best one is in the model
-        r["explained_after_top"] = (r["explained_variance"] if r is rows[0] or at_noise[r["target"]]
+
+
+def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem
+                     ) -> dict[str, dict[str, float | None]]:
+    """On the ranked rows: what each could still explain once the best one is in the model
+    (``explained_after_top``), why each is ranked where it is, and how small an effect could
+    hide in what is left then (``sensitivity``, also returned)."""
+    for r in rows:
+        r["explained_after_top"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
                                     else span.left_after(r["effect"], rows[0]["effect"], r["target"]))
-    rank_reasons(rows, at_noise)
-    # how small an effect could hide in what is left once the best one found is in the model
-    left = ({f: eval_resid[f] - cand_pred[rows[0]["effect"]][f] for f in eval_ids} if rows and rows[0]["found"]
-            else eval_resid)
-    sensitivity = detection_limits(cands, eval_fds, left, noise_ss, vehicle, len(cands))
+    rank_reasons(rows, held.at_noise)
+    left = ({f: held.resid[f] - held.cand_pred[rows[0]["effect"]][f] for f in held.ids}
+            if rows and rows[0]["found"] else held.resid)
+    sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands))
     for r in rows:
         r["sensitivity"] = sensitivity[r["effect"]]
+    return sensitivity
 
-    # Parameters that differ between sessions: the model's effects, and the best candidate beside them
-    best = [effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
-    if all(e.linear for e in model_effects + best):
-        disagree = sessionlib.disagreements(model_effects + best, fds, targets, vehicle, spec.fixed, sessions, log)
-    else:  # a nonlinear effect: fitted on each flight's rows
-        disagree = sessionlib.disagreements(model_effects + best, {f: fl.rows(f) for f in ids},
-                                            {f: fl.signal_rows(f, targets[f]) for f in ids}, vehicle, spec.fixed,
-                                            sessions, log)
 
-    # the evaluated flights' rows: the residual by regime, by flight, in time and in frequency
-    eval_rows = [fl.rows(f) for f in eval_ids]
-    resid_rows = {f: fl.signal_rows(f, eval_resid[f]) for f in eval_ids}
-    long = long_table(eval_rows, resid_rows, vehicle)
-    text = verdict(rows, at_noise, sensitivity)
+def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list:
+    """Parameters that differ between sessions: the model's effects, and the best candidate
+    beside them (fitted on each flight's rows when one of them is nonlinear)."""
+    best = [p.effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
+    if all(e.linear for e in p.model_effects + best):
+        return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
+                                        log)
+    return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
+                                    {f: p.fl.signal_rows(f, p.targets[f]) for f in p.ids}, p.vehicle, p.spec.fixed,
+                                    sessions, log)
+
+
+def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[dict],
+              sensitivity: dict, disagree: list) -> Diagnosis:
+    """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
+    and in frequency (from their rows) and the verdict."""
+    eval_rows = [p.fl.rows(f) for f in held.ids]
+    resid_rows = {f: p.fl.signal_rows(f, held.resid[f]) for f in held.ids}
+    long = long_table(eval_rows, resid_rows, p.vehicle)
+    text = verdict(rows, held.at_noise, sensitivity)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
+    before, noise_ss = held.before, held.noise_ss
     return Diagnosis(
-        effects_in_model=tuple(spec.effects),
+        effects_in_model=tuple(p.spec.effects),
         model=model,
-        evaluation=Evaluation(mode, len(splits), tuple(train_all), tuple(eval_ids), n_eval),
-        baseline=_rmse(before, n_eval),
-        noise_floor=_rmse(noise_ss, n_eval),
-        at_noise_level=at_noise,
+        evaluation=evaluation,
+        baseline=_rmse(before, held.n),
+        noise_floor=_rmse(noise_ss, held.n),
+        at_noise_level=held.at_noise,
         residual_to_noise={ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
                            else None for ch, sl in TARGET_CHANNELS.items()},
         candidates=tuple(CandidateScore.from_dict(r) for r in rows),
         sensitivity=sensitivity,
-        sensitivity_basis=sensitivity_basis(cands),
+        sensitivity_basis=sensitivity_basis(p.cands),
         verdict=text,
         disagreements=tuple(disagree),
         regimes=regime_table(long),
         flights=flight_table(long),
         worst_segments=worst_segments(long),
-        frequency=spectrum.frequency_view(eval_rows, resid_rows, vehicle),
+        frequency=spectrum.frequency_view(eval_rows, resid_rows, p.vehicle),
     )
+
+
+def diagnose(
+    decoded: Mapping[str, pl.DataFrame],
+    spec: ModelSpec,
+    holdout: list[str] | None = None,
+    candidates: list[str] | None = None,
+    n_folds: int = 5,
+    log=lambda msg: None,
+    sessions: dict[str, list[str]] | None = None,
+    stats=None,
+) -> Diagnosis:
+    """Fit the model, score it on held-out flights, rank the missing effects, and find the
+    parameters that differ between groups of flights (``sessions``: name -> flights, from a
+    sessions file; None: groups found from the data). Its ``to_dict()`` is the JSON document.
+
+    With a model of linear effects, fits, folds and held-out tests combine the flights'
+    sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
+    decoded table); nonlinear candidates read their training flights' rows, and the evaluated
+    flights' rows give the regime tables and spectra."""
+    p = _Problem(decoded, spec, candidates, stats)
+    splits, train_all, mode = _splits(p.ids, holdout, n_folds)
+    folds = _cross_fit(p, splits, sessions, log)
+    # With a single split on all training flights (holdout), its fits are the final ones.
+    reuse = len(splits) == 1 and splits[0][0] == train_all
+    model, resid_train = _training_model(p, folds.model_fit if reuse else None, train_all, sessions, log)
+    fold_params = (_group_spread(p, folds.params, train_all, resid_train, n_folds) if reuse and len(train_all) >= 3
+                   else folds.params)
+
+    held = _held_out(p, folds)
+    rows: list[dict[str, Any]] = []
+    for c in p.cands:
+        fit_c = folds.fits[c.name] if reuse else p.fit_candidate(c, train_all, resid_train)
+        rows.append(_score(c, held, fit_c, fold_params[c.name]))
+    for r in rows:
+        _decide(r, held.at_noise, len(rows))
+    span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)
+    _mark_alike(rows, span, held, p)
+    rows = _rank(rows)
+    sensitivity = _beyond_the_best(rows, span, held, p)
+    disagree = _session_disagreements(p, rows, sessions, log)
+    evaluation = Evaluation(mode, len(splits), tuple(train_all), tuple(held.ids), held.n)
+    return _assemble(p, held, model, evaluation, rows, sensitivity, disagree)
 
 
 def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
