@@ -436,6 +436,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # one flat table of the verbs and their options, read top to bottom: long, not deep (issue #15)
     parser = argparse.ArgumentParser(prog="quadcore",
                                      description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
     sub = parser.add_subparsers(dest="verb", required=True)

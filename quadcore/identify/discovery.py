@@ -504,6 +504,81 @@ def _order_and_prune(fold_grams, stable: list[int], y: int) -> list[int]:
     return chosen
 
 
+@dataclass(frozen=True)
+class _Library:
+    """The candidate library (its terms and their Gram columns) and the flights' Gram matrices
+    accumulated flight by flight, with each flight's usable samples and sensor noise."""
+
+    terms: list[Term]
+    cols: _Columns
+    sums: _GramSums
+    samples: dict[str, int]
+    noise_of: dict[str, np.ndarray]
+
+
+def _accumulate(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
+                fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, log) -> _Library:
+    """Each flight's rows (``flight(f)``: its rows and residual) turned into its Gram matrix and
+    dropped; the library is built from the first flight's variables."""
+    vehicle = spec.vehicle
+    # motor terms only when every flight has them (read off the columns, before any Gram matrix)
+    motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
+    sums = _GramSums(folds, holdout)
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    for f in ids:
+        fd, r = flight(f)
+        if f == ids[0]:
+            vars_ = variables(fd.state, vehicle)
+            if not motors:
+                vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
+            terms = library(vars_)
+            cols = _columns(terms, fx_effects)
+            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
+                f"accumulating on {len(ids)} flights")
+        sums.add(f, _flight_gram(fd, r, cols, fx_effects, vehicle, stride))
+        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
+    return _Library(terms, cols, sums, samples, noise_of)
+
+
+def _discover_axis(axis: int, target: str, lib: _Library, fold_grams, G_train: np.ndarray, noise: np.ndarray,
+                   holdout: bool, model_effects, fx_effects: list[Effect]
+                   ) -> tuple[AxisResult, list[DiscoveredTerm], tuple[list[int], np.ndarray] | None]:
+    """One residual axis: nothing when its residual is at the sensor-noise floor; else the
+    stable terms (:func:`_select`) fitted on all training flights, with their jackknife
+    standard errors over the folds and held-out shares, and their coefficients."""
+    cols, terms = lib.cols, lib.terms
+    y = cols.target0 + axis
+    rms = np.sqrt(G_train[y, y] / _rows(G_train))
+    if rms <= (1 + evidence.NOISE_MARGIN) * noise[axis]:
+        why = (f"residual RMS {rms:.3g} within {evidence.NOISE_MARGIN:.0%} of the "
+               f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
+        return AxisResult(target, 0.0, True, (why,)), [], None
+    candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
+                  if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
+    chosen, counts = _select(fold_grams, G_train, candidates, y)
+    beta = _ols(G_train, chosen, y)
+    jack = [_ols(tr, chosen, y) for tr, _ in fold_grams]
+    k_f = len(fold_grams)
+    std = np.sqrt((k_f - 1) / k_f * np.sum((np.array(jack) - np.mean(jack, axis=0)) ** 2, axis=0)) if chosen \
+        else np.zeros(0)
+    shares = _sequential_shares([(G_train, lib.sums.held_out())] if holdout else fold_grams, chosen, y)
+    col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
+    kept = []
+    for i, c in enumerate(chosen):
+        t = col_term[c]
+        coef_unit = _mul(UNIT["N"] if axis < 3 else UNIT["N m"], t.unit, -1)
+        kept.append(DiscoveredTerm(
+            target, t.expression, t.variables, float(beta[i]), float(std[i]), unit_text(coef_unit),
+            unit_text(t.unit), shares[i], counts.get(c, 0) / k_f, counts.get(c, 0), k_f,
+            _matches(G_train, cols, c, axis, fx_effects, model_effects),
+            _literature(t.expression, "force" if axis < 3 else "torque"),
+            _collinear(G_train, c, [d for d in candidates if d != c], col_term)))
+    result = AxisResult(target, float(sum(shares)), False,
+                        _modelled_side_note(G_train, cols, chosen, beta, axis, target))
+    return result, kept, (chosen, beta)
+
+
 def discover(
     decoded: Mapping[str, pl.DataFrame],
     spec: ModelSpec,
@@ -536,65 +611,27 @@ def discover(
         target = fitting.targets_of([fd])[0]
         return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
 
-    # motor terms only when every flight has them (read off the columns, before any Gram matrix)
-    motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
     fx_effects = list(effectlib.registry().values())
     folds = fitting.folds(train, n_folds)
-    sums = _GramSums(folds, holdout)
-    samples: dict[str, int] = {}
-    noise_of: dict[str, np.ndarray] = {}
-    for f in ids:
-        fd, r = flight(f)
-        if f == ids[0]:
-            vars_ = variables(fd.state, vehicle)
-            if not motors:
-                vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
-            terms = library(vars_)
-            cols = _columns(terms, fx_effects)
-            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
-                f"accumulating on {len(ids)} flights")
-        sums.add(f, _flight_gram(fd, r, cols, fx_effects, vehicle, stride))
-        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
-    fold_grams, G_train = sums.fold_grams(), sums.training_total()
-    noise = _noise_floor([samples[f] for f in train], [noise_of[f] for f in train])
+    lib = _accumulate(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
+    fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
+    noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
 
     kept: list[DiscoveredTerm] = []
     axes: list[AxisResult] = []
     coefs: dict[int, tuple[list[int], np.ndarray]] = {}
     for axis, target in enumerate(TARGETS):
-        y = cols.target0 + axis
-        rms = np.sqrt(G_train[y, y] / _rows(G_train))
-        if rms <= (1 + evidence.NOISE_MARGIN) * noise[axis]:
-            why = (f"residual RMS {rms:.3g} within {evidence.NOISE_MARGIN:.0%} of the "
-                   f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
-            axes.append(AxisResult(target, 0.0, True, (why,)))
-            continue
-        candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
-                      if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
-        chosen, counts = _select(fold_grams, G_train, candidates, y)
-        beta = _ols(G_train, chosen, y)
-        coefs[axis] = (chosen, beta)
-        jack = [_ols(tr, chosen, y) for tr, _ in fold_grams]
-        k_f = len(fold_grams)
-        std = np.sqrt((k_f - 1) / k_f * np.sum((np.array(jack) - np.mean(jack, axis=0)) ** 2, axis=0)) if chosen \
-            else np.zeros(0)
-        shares = _sequential_shares([(G_train, sums.held_out())] if holdout else fold_grams, chosen, y)
-        col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
-        for i, c in enumerate(chosen):
-            t = col_term[c]
-            coef_unit = _mul(UNIT["N"] if axis < 3 else UNIT["N m"], t.unit, -1)
-            kept.append(DiscoveredTerm(
-                target, t.expression, t.variables, float(beta[i]), float(std[i]), unit_text(coef_unit),
-                unit_text(t.unit), shares[i], counts.get(c, 0) / k_f, counts.get(c, 0), k_f,
-                _matches(G_train, cols, c, axis, fx_effects, spec.effects),
-                _literature(t.expression, "force" if axis < 3 else "torque"),
-                _collinear(G_train, c, [d for d in candidates if d != c], col_term)))
-        axes.append(AxisResult(target, float(sum(shares)), False,
-                               _modelled_side_note(G_train, cols, chosen, beta, axis, target)))
+        result, terms, coef = _discover_axis(axis, target, lib, fold_grams, G_train, noise, bool(holdout),
+                                             spec.effects, fx_effects)
+        axes.append(result)
+        kept += terms
+        if coef is not None:
+            coefs[axis] = coef
     eval_ids = holdout or ids
     train_gram = {f: G_train for f in eval_ids} if holdout else {
         f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
-    base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, cols, terms, coefs, vehicle)
+    base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms, coefs,
+                                 vehicle)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
@@ -602,7 +639,7 @@ def discover(
          "folds": len(folds), "stride": stride,
          # with a holdout the model's effects never see it; without one they are fitted on all flights
          "model_effects_fitted_on": train},
-        tuple(spec.effects), {"force": len(cols.force), "torque": len(cols.torque)})
+        tuple(spec.effects), {"force": len(lib.cols.force), "torque": len(lib.cols.torque)})
 
 
 def _usable(cols: _Columns, axis: int, terms: list[Term]) -> list[Term]:
