@@ -301,7 +301,8 @@ def fit_effects(
             params[e.name] = nl[e.name]
             std[e.name] = {p.name: float(np.sqrt(max(cov[i + j, i + j], 0.0))) for j, p in enumerate(e.parameters)}
             i += len(e.parameters)
-        ys = _after(nonlin, nl, flights, ys, vehicle)
+        if lin:  # the linear effects are solved on what the nonlinear ones leave
+            ys = _after(nonlin, nl, flights, ys, vehicle)
 
     if lin:
         theta, A, rss, n = _linear_solve(lin, flights, ys, w, vehicle)
