@@ -11,7 +11,7 @@ from quadcore.learn.features import find_flights_csv
 from quadcore.logs import checks, flight, logformat
 from quadcore.store import store
 
-MAIN_EVENT = "fixedFrequency"
+MAIN_EVENT = store.MAIN_EVENT
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
 
 

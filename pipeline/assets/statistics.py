@@ -28,7 +28,8 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
         if not path.is_file():
             raise dg.Failure(description=f"{fid}: the log has no {MAIN_EVENT!r} records", allow_retries=False)
         try:
-            s = sufficient.compute_current(spec, fid, store.read_parquet(path))
+            source = sufficient.decoded_source(data_root.root_path, fid) or ""
+            s = sufficient.compute_current(spec, fid, store.read_parquet(path), source)
         except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         written = sufficient.save(s, data_root.root_path)

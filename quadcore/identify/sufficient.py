@@ -44,7 +44,7 @@ import hashlib
 import inspect
 import json
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -157,6 +157,7 @@ class FlightStats:
     vbat_std_V: float
     vbat_median_V: float
     blocks_source: Callable[[], np.ndarray]
+    source: str = ""  # the SHA-256 of the log the decoded table came from (stale once it is re-decoded)
 
     @cached_property
     def gram(self) -> np.ndarray:
@@ -317,13 +318,15 @@ def signal_rows(fd, vehicle: Vehicle, layout: Layout, v: np.ndarray,
     return out
 
 
-def compute(spec, flight: str, decoded, layout: Layout) -> FlightStats:
+def compute(spec, flight: str, decoded, layout: Layout, source: str = "") -> FlightStats:
     """A flight's statistics from its decoded table, for a :class:`quadcore.identify.model.ModelSpec`:
-    the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle."""
+    the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle.
+    ``source``: the SHA-256 of the log the table was decoded from (its provenance)."""
     from quadcore.identify import fitting
 
     fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
-    return flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
+    s = flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
+    return replace(s, source=source)
 
 
 def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
@@ -421,7 +424,7 @@ def save(s: FlightStats, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically; an object store too). The
     symmetric matrices are stored as their upper triangles."""
     header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
-              "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V}
+              "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V, "source": s.source}
     data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
                             "noise": s.noise, "gram": _packed(s.gram)})
     return store.atomic_write(stats_path(root, s.flight), lambda tmp: Path(tmp).write_bytes(data))
@@ -441,7 +444,8 @@ def load(root: Any, flight: str) -> FlightStats:
         width = layout.width
         return FlightStats(header["flight"], layout, header["key"], _unpacked(array("total"), width), array("rows"),
                            _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
-                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width))
+                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width),
+                           str(header.get("source", "")))
     except (ValueError, KeyError, TypeError) as exc:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
 
@@ -452,15 +456,28 @@ def current_key(spec, flight: str) -> str:
     return stats_key(spec.vehicle, spec.vehicle_for(flight), library_layout())
 
 
-def compute_current(spec, flight: str, decoded) -> FlightStats:
-    """What the per-flight asset stores: the statistics of every linear effect of the library."""
-    return compute(spec, flight, decoded, library_layout())
+def compute_current(spec, flight: str, decoded, source: str = "") -> FlightStats:
+    """What the per-flight asset stores: the statistics of every linear effect of the library
+    (``source`` as for :func:`compute`)."""
+    return compute(spec, flight, decoded, library_layout(), source)
+
+
+def decoded_source(root: Any, flight: str) -> str | None:
+    """The SHA-256 of the log the flight's main table under the data root was decoded from
+    (None when it is not decoded)."""
+    provenance = store.recorded_provenance(root, store.MAIN_EVENT, flight)
+    return provenance.source_sha256 if provenance is not None else None
 
 
 def stored(root: Any, spec) -> Callable[[str], FlightStats | None]:
     """``flight -> FlightStats | None``: a flight's statistics under the data root if they are
-    current for ``spec`` (:func:`current_key`); None when missing or stale."""
-    return lambda flight: load_current(root, flight, current_key(spec, flight))
+    current for ``spec`` (:func:`current_key`) and were made from the flight's decoded table as
+    it is now (a log decoded again from other bytes makes them stale); None when missing or stale."""
+    def current(flight: str) -> FlightStats | None:
+        s = load_current(root, flight, current_key(spec, flight))
+        return s if s is not None and s.source == decoded_source(root, flight) else None
+
+    return current
 
 
 def load_current(root: Any, flight: str, key: str) -> FlightStats | None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import re
 
+MAIN_EVENT = "fixedFrequency"  # the event whose decoded table the physics reads
 MAX_COMPONENT_CHARS = 100  # leaves room for ".<name>.<random>.tmp" within the usual 255-byte limit
 SAFE_COMPONENT = re.compile(rf"[A-Za-z0-9_+-][A-Za-z0-9_.+-]{{0,{MAX_COMPONENT_CHARS - 1}}}")
 _HASH_CHARS = 8

@@ -9,14 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
+
 if TYPE_CHECKING:
     import polars as pl
 
     from quadcore.identify.model import ModelSpec
     from quadcore.logs import flight as flightmod
     from quadcore.physics.vehicle import Vehicle
-
-MAIN_EVENT = "fixedFrequency"  # the decoded table the physics reads
 
 
 class WorkflowError(ValueError):
