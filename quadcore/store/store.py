@@ -36,7 +36,10 @@ import polars as pl
 
 from quadcore.logs import units
 from quadcore.logs.flight import Provenance
-from quadcore.store.names import MAIN_EVENT, check_component
+from quadcore.store.names import (
+    MAIN_EVENT as MAIN_EVENT,  # re-exported: store.MAIN_EVENT
+    check_component,
+)
 from quadcore.store.safewrite import temp_prefix
 
 METADATA_KEY = b"quadcore"
