@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import dagster as dg
 from dagster._core.storage.tags import (
@@ -34,10 +35,10 @@ from pipeline.resources import (
     model_config_from_env,
     retrain_cron,
 )
-from quadcore.identify import history, sufficient
+from quadcore.identify import sufficient
 from quadcore.logs import flight
 from quadcore.store import safewrite, store
-from quadcore.workflows import identify, learn
+from quadcore.workflows import identify, learn, summary
 from quadcore.workflows.demo import simulate_demo_flights, write_demo_model_file
 
 # QUADCORE_RECOMPUTE=1: every stage for every flight, even where its outputs are up to date.
@@ -129,20 +130,6 @@ def run_fleet(instance, resources: dict, log) -> dict | None:
     return diag
 
 
-def _print_history(root: Path, log) -> None:
-    hist = history.read(root)
-    if hist.height == 0:
-        return
-    log("\nError history (held-out residual RMSE, force N / torque mN m). Compare rows scored on the "
-        "same flights only:")
-    for row in hist.tail(8).iter_rows(named=True):
-        f = " ".join(f"{row[f'force_rmse_{a}_N']:.4f}" for a in "xyz")
-        t = " ".join(f"{row[f'torque_rmse_{a}_Nm'] * 1e3:.4f}" for a in "xyz")
-        n = len([x for x in row["eval_flights"].split(",") if x])
-        scored = f"{row['eval_mode']} on {n} flight{'s' if n != 1 else ''}"
-        log(f"  {row['source']:<9} {row['model_label']:<40} {scored:<28} force {f}   torque {t}")
-
-
 def _materialized(instance, asset: str) -> set[str]:
     return instance.get_materialized_partitions(dg.AssetKey(asset))
 
@@ -204,7 +191,9 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         return _run_stages(data_root, model, instance, log)
 
 
-def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
+def _flight_ids(data_root: DataRoot, instance, log) -> tuple[list[str], bool]:
+    """The raw folder's flights (simulated demo flights where it holds no logs: ``True``),
+    each registered as a flight partition."""
     raw = data_root.raw_path
     logs = flight.discover_logs(raw) if raw.is_dir() else []
     demo = not logs
@@ -212,49 +201,63 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         raw.mkdir(parents=True, exist_ok=True)
         logs = simulate_demo_flights(raw, log)
     ids = [flight.flight_id_of(p) for p in logs]
-    resources = {"data_root": data_root, "model": model}
-    root = data_root.root_path
-
     new = [f for f in ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)
+    return ids, demo
+
+
+def _decode_stage(instance, resources: dict, ids: list[str], log) -> tuple[list[str], dict[str, str], list[str]]:
+    """1/4: the flights to decode (all with QUADCORE_RECOMPUTE), decoded; returns them, the
+    failures (flight -> reason) and the flights decoded now or before."""
+    data_root = resources["data_root"]
     decode = ids if RECOMPUTE else to_decode(instance, data_root, ids)
     log(f"1/4 decode ({len(decode)} of {len(ids)} flights; the others are up to date)")
     failures = run_flights(instance, resources, decode, DECODE, "decode", log) if decode else {}
     decoded = _materialized(instance, "decoded_flight")
-    good = [f for f in ids if f not in failures and f in decoded]
-    if len(good) < 2:
-        log("fewer than two flights decoded: stopping before the fleet-wide stages")
-        return 1
-    restat = good if RECOMPUTE else to_restat(data_root, model, good, decode)
-    if restat:
-        failures.update(run_flights(instance, resources, restat, STATISTICS, "statistics", log))
+    return decode, failures, [f for f in ids if f not in failures and f in decoded]
+
+
+def _fleet_stage(instance, resources: dict, decode: list[str], log) -> tuple[dict | None, bool]:
+    """2/4: refit and re-diagnose when the fleet is stale; returns the diagnosis (None if the
+    run failed) and whether it was refitted."""
+    root, model = resources["data_root"].root_path, resources["model"]
     refit = RECOMPUTE or fleet_is_stale(root, model, decode)
     if refit:
         log("2/4 fit the model, diagnose, record the error history")
-        diag = run_fleet(instance, resources, log)
-        if diag is None:
-            return 1
-    else:
-        diag = store.read_json(store.diagnosis_path(root))
-        log(f"2/4 fitted model and diagnosis: up to date (no flight changed)\n  {diag['verdict']}")
-    suggested = identify.suggestion(diag)
-    if demo and suggested:
-        # The demo shows the loop's next turn: add the suggested effect, refit, diagnose again.
-        names = [*model.spec().effects, suggested]
-        own = write_demo_model_file(root, model.model_file, names)
-        log(f"2b  demo: adding {suggested!r} to the model, as a user would in model.toml (the demo's own "
-            f"{own}, which later runs use), and diagnosing again")
-        model = ModelConfig(model_file=str(own), vehicle=model.vehicle, thrust_map=model.thrust_map,
-                            holdout=model.holdout, sessions_file=model.sessions_file)
-        resources["model"] = model
-        if run_fleet(instance, resources, log) is None:
-            return 1
-    stale = good if RECOMPUTE else to_recompute(instance, data_root, model, good, decode)
+        return run_fleet(instance, resources, log), refit
+    diag = store.read_json(store.diagnosis_path(root))
+    log(f"2/4 fitted model and diagnosis: up to date (no flight changed)\n  {diag['verdict']}")
+    return diag, refit
+
+
+def _demo_turn(instance, resources: dict, suggested: str, log) -> bool:
+    """2b (the demo): the loop's next turn, the suggested effect added to the model (the demo's
+    own model file, which later runs use; ``resources["model"]`` then names it) and the fleet
+    fitted and diagnosed again; False if that run failed."""
+    root, model = resources["data_root"].root_path, resources["model"]
+    names = [*model.spec().effects, suggested]
+    own = write_demo_model_file(root, model.model_file, names)
+    log(f"2b  demo: adding {suggested!r} to the model, as a user would in model.toml (the demo's own "
+        f"{own}, which later runs use), and diagnosing again")
+    resources["model"] = ModelConfig(model_file=str(own), vehicle=model.vehicle, thrust_map=model.thrust_map,
+                                     holdout=model.holdout, sessions_file=model.sessions_file)
+    return run_fleet(instance, resources, log) is not None
+
+
+def _against_model_stage(instance, resources: dict, good: list[str], decode: list[str], log) -> dict[str, str]:
+    """3/4: residuals, rollouts and MCAP of the flights whose outputs are missing or stale;
+    returns the failures."""
+    stale = good if RECOMPUTE else to_recompute(instance, resources["data_root"], resources["model"], good, decode)
     log(f"3/4 residuals, rollouts and MCAP against the fitted model ({len(stale)} of {len(good)} flights; "
         "the others are up to date)")
-    if stale:
-        failures.update(run_flights(instance, resources, stale, AGAINST_MODEL, "flights", log))
+    return run_flights(instance, resources, stale, AGAINST_MODEL, "flights", log) if stale else {}
+
+
+def _learning_stage(instance, resources: dict, refit: bool, log) -> bool:
+    """4/4: the learned residual models and the C model when learning is stale; else the C
+    model alone after a refit. False if training failed."""
+    root = resources["data_root"].root_path
     why = "recompute requested" if RECOMPUTE else learn.learning_is_stale(root)
     if why:
         log(f"4/4 learned residual models on top of the physics (XGBoost, MLP), with baselines, and the model "
@@ -263,28 +266,23 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         result = materialize([*LEARNING, *EXPORT], resources, instance)
         if not result.success:
             log(f"  FAILED: {_failure_reason(result)}")
-            return 1
+            return False
         log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
-    else:
-        log(f"4/4 learned models: trained on this physics model; new flights are learned by the nightly "
-            f"retraining ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON) or by materialising learning_features")
-        if refit:  # the C model carries the refitted parameters
-            result = materialize(EXPORT, resources, instance)
-            log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
-                + ("" if result.success else f": {_failure_reason(result)}"))
+        return True
+    log(f"4/4 learned models: trained on this physics model; new flights are learned by the nightly "
+        f"retraining ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON) or by materialising learning_features")
+    if refit:  # the C model carries the refitted parameters
+        result = materialize(EXPORT, resources, instance)
+        log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
+            + ("" if result.success else f": {_failure_reason(result)}"))
+    return True
 
-    log("\nOutputs:")
-    log(f"  decoded Parquet    {root / 'decoded'}/<event>/flight=<id>/data.parquet")
-    log(f"  residual tables    {root / 'residuals'}/flight=<id>/data.parquet")
-    log(f"  rollout errors     {root / 'rollouts'}/flight=<id>/data.parquet")
-    log(f"  fitted model       {store.physics_model_path(root)}")
-    log(f"  diagnosis report   {store.diagnosis_path(root).with_suffix('.html')} (and .md, .json)")
-    log(f"  learned models     {store.learned_dir(root)}/<run>/ (model, scaler, features, manifest)")
-    log(f"  learning report    {store.learning_report_path(root).with_suffix('.html')} (and .md, .json)")
-    log(f"  flights as MCAP    {store.mcap_dir(root)}/<flight>.mcap (open in Foxglove)")
-    log(f"  model as C         {store.export_c_dir(root)}/quadcore_model.{{h,c}} (for the flight controller)")
-    log(f"  error history      {root / 'history'}/*.parquet")
-    _print_history(root, log)
+
+def _closing(root: Path, model: ModelConfig, suggested: str | None, demo: bool, failures: dict[str, str],
+             log) -> None:
+    """Where the outputs are, the error history, the next step and the flights that failed."""
+    for line in [*summary.outputs(root), *summary.error_history(root)]:
+        log(line)
     if suggested and not demo:
         log(f"\nNext step: add {suggested!r} to `effects` in {model.model_file or 'model.toml'} and run again.")
     if failures:
@@ -292,6 +290,30 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
         for fid, why in failures.items():
             log(f"  {fid}: {why}")
     log("\nSee it in the UI:  make ui   (Dagster UI on http://127.0.0.1:3000)")
+
+
+def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
+    """The four stages in order, each materialising what is missing or stale; 1 when a stage
+    that the next ones need failed."""
+    ids, demo = _flight_ids(data_root, instance, log)
+    resources: dict[str, Any] = {"data_root": data_root, "model": model}
+    decode, failures, good = _decode_stage(instance, resources, ids, log)
+    if len(good) < 2:
+        log("fewer than two flights decoded: stopping before the fleet-wide stages")
+        return 1
+    restat = good if RECOMPUTE else to_restat(data_root, model, good, decode)
+    if restat:
+        failures.update(run_flights(instance, resources, restat, STATISTICS, "statistics", log))
+    diag, refit = _fleet_stage(instance, resources, decode, log)
+    if diag is None:
+        return 1
+    suggested = identify.suggestion(diag)
+    if demo and suggested and not _demo_turn(instance, resources, suggested, log):
+        return 1
+    failures.update(_against_model_stage(instance, resources, good, decode, log))
+    if not _learning_stage(instance, resources, refit, log):
+        return 1
+    _closing(data_root.root_path, resources["model"], suggested, demo, failures, log)
     return 0
 
 
