@@ -184,3 +184,24 @@ def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(
     other.write_bytes((drag_fleet / "sim001").read_bytes())  # new bytes under the same flight id
     store.write_decoded(root, flight.decode_flight(other))
     assert sufficient.stored(root, spec)("sim000") is None
+
+
+def test_the_statistics_key_follows_the_spec_not_the_plugins_this_process_loaded():
+    """What a flight's stored statistics must hold is decided by the model spec alone: a plugin
+    another code path registered in a long-lived process (the code server keeps every plugin it
+    ever loaded, such as one a model file named before it was edited) must not change the key,
+    or the statistics computed in a fresh run process would look outdated on every tick."""
+    from pathlib import Path
+
+    plugin = Path(__file__).resolve().parent / "plugins" / "hidden_terms.py"
+    spec = model.spec_from(VEHICLE, [])
+    before = sufficient.current_key(spec, "sim000")
+    effects.load_plugin(plugin)
+    try:
+        assert sufficient.current_key(spec, "sim000") == before
+        with_plugin = model.spec_from(VEHICLE, ["hidden_terms"])
+        assert sufficient.current_key(with_plugin, "sim000") != before  # a model that uses it stores it
+        assert "hidden_terms" in sufficient.spec_layout(with_plugin).effects
+        assert "hidden_terms" not in sufficient.spec_layout(spec).effects
+    finally:
+        effects.unregister("hidden_terms")

@@ -37,6 +37,6 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
                 "path": dg.MetadataValue.path(str(written))}
 
     done = for_each_flight(context, work)
-    effects = list(sufficient.library_layout().effects)
+    effects = list(sufficient.spec_layout(spec).effects)
     return dg.MaterializeResult(metadata={"flights_in_run": len(done),
                                           "linear_effects": dg.MetadataValue.json(effects)})

@@ -135,8 +135,19 @@ def layout_of(effects: Iterable[Effect]) -> Layout:
 
 
 def library_layout() -> Layout:
-    """Every linear effect known (built-in, then loaded plugins): what the per-flight asset stores."""
+    """Every linear effect known in this process (built-in, then loaded plugins)."""
     return layout_of(effectlib.registry().values())
+
+
+def spec_layout(spec) -> Layout:
+    """What the per-flight asset stores for a :class:`quadcore.identify.model.ModelSpec`: every
+    built-in linear effect, then the linear plugin effects the spec's model uses. Decided by the
+    spec alone, not by the plugins this process happens to have loaded (a long-lived process
+    keeps every plugin it ever loaded); a plugin candidate outside the model is computed from
+    rows where needed (:func:`for_flights`)."""
+    builtin = effectlib.builtin_names()
+    names = [*builtin, *(n for n in spec.effects if n not in builtin)]
+    return layout_of(effectlib.get(n) for n in names)
 
 
 @dataclass(frozen=True)
@@ -452,14 +463,14 @@ def load(root: Any, flight: str) -> FlightStats:
 
 def current_key(spec, flight: str) -> str:
     """The key a flight's stored statistics must carry for ``spec`` as it is now (the model's
-    vehicle, the flight's session thrust map, every linear effect of the library)."""
-    return stats_key(spec.vehicle, spec.vehicle_for(flight), library_layout())
+    vehicle, the flight's session thrust map, the linear effects of :func:`spec_layout`)."""
+    return stats_key(spec.vehicle, spec.vehicle_for(flight), spec_layout(spec))
 
 
 def compute_current(spec, flight: str, decoded, source: str = "") -> FlightStats:
-    """What the per-flight asset stores: the statistics of every linear effect of the library
-    (``source`` as for :func:`compute`)."""
-    return compute(spec, flight, decoded, library_layout(), source)
+    """What the per-flight asset stores: the statistics of the linear effects of
+    :func:`spec_layout` (``source`` as for :func:`compute`)."""
+    return compute(spec, flight, decoded, spec_layout(spec), source)
 
 
 def decoded_source(root: Any, flight: str) -> str | None:
