@@ -17,7 +17,7 @@ Foxglove renders natively; the others are small ``quadcore.*`` messages built on
 
 Time: the logs count from power-on; ``start_ns`` (ns since the Unix epoch) anchors the first
 sample. The decoder records it once per flight in its provenance (see
-:func:`quadcore.logs.flight.start_time_ns`); it and the flight-relative ``t_s`` are in the file's
+:func:`quadcore.logs.flight.settle_start_time`); it and the flight-relative ``t_s`` are in the file's
 metadata record ``quadcore``.
 """
 
