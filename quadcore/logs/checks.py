@@ -76,12 +76,6 @@ def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
     return problem is None, problem or "usable for the physics", {}
 
 
-def split_usable(tables: dict[str, pl.DataFrame], vehicle) -> tuple[dict[str, pl.DataFrame], dict[str, str]]:
-    """(the flights the physics can use with ``vehicle``, skipped: flight -> reason)."""
-    usable, skipped = usable_flights(tables, vehicle)
-    return {f: tables[f] for f in usable}, skipped
-
-
 def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle) -> tuple[list[str], dict[str, str]]:
     """(ids of the flights the physics can use with ``vehicle``, skipped: flight -> reason),
     looking at one table at a time (``tables`` may read each as it is looked up)."""
