@@ -92,9 +92,10 @@ def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, mon
         )
         assert result.success
         steps = {e.step_key: e.pid for e in result.all_events if e.event_type_value == "STEP_START"}
-        assert set(steps) == {"decoded_flight", "residual_table", "rollout_errors", "flight_mcap"}
-        assert len(set(steps.values())) == 4  # each step in a process of its own
-        for asset in ("decoded_flight", "residual_table", "rollout_errors", "flight_mcap"):
+        per_flight = ("decoded_flight", "flight_statistics", "residual_table", "rollout_errors", "flight_mcap")
+        assert set(steps) == set(per_flight)
+        assert len(set(steps.values())) == len(per_flight)  # each step in a process of its own
+        for asset in per_flight:
             assert set(_materializations(instance, asset)) == {"sim000", "sim001"}, asset
         assert sorted(p.name for p in (root / "mcap").glob("*.mcap")) == ["sim000.mcap", "sim001.mcap"]
 
