@@ -1,5 +1,6 @@
 """The persistent Dagster instance that ``make run`` and ``make ui`` share."""
 
+import hashlib
 import os
 import sqlite3
 from pathlib import Path
@@ -17,11 +18,21 @@ telemetry:
 
 
 def ensure_dagster_home(root: Path) -> Path:
-    """Use ``$DAGSTER_HOME`` or ``<root>/.dagster``; create it with our dagster.yaml if it has none."""
-    home = Path(os.environ.get("DAGSTER_HOME") or root / ".dagster").resolve()
+    """Use ``$DAGSTER_HOME`` or ``<root>/.dagster``; create it with our dagster.yaml if it has none
+    (written by rename: a kill never leaves half of it). The instance stays on this machine: for
+    an object-store root (``s3://...``) the default is ``~/.quadcore/dagster-<digest of the URL>``."""
+    from quadcore.store import store
+
+    if os.environ.get("DAGSTER_HOME"):
+        home = Path(os.environ["DAGSTER_HOME"]).resolve()
+    elif store.is_remote(store.as_root(root)):
+        digest = hashlib.sha256(str(root).encode()).hexdigest()[:16]
+        home = Path.home() / ".quadcore" / f"dagster-{digest}"
+    else:
+        home = (Path(root) / ".dagster").resolve()
     home.mkdir(parents=True, exist_ok=True)
     if not (home / "dagster.yaml").exists():
-        (home / "dagster.yaml").write_text(DAGSTER_YAML)
+        store.write_text(DAGSTER_YAML, home / "dagster.yaml")
     os.environ["DAGSTER_HOME"] = str(home)
     return home
 
