@@ -205,3 +205,22 @@ def test_the_statistics_key_follows_the_spec_not_the_plugins_this_process_loaded
         assert "hidden_terms" not in sufficient.spec_layout(spec).effects
     finally:
         effects.unregister("hidden_terms")
+
+
+def test_statistics_made_by_other_code_are_stale(tmp_path, monkeypatch):
+    """The key names the code that makes the statistics (the state and nominal residual, the
+    smoothing, the usable mask and noise floor, the blocks), not only the effects' classes: a
+    change there makes every stored statistic stale instead of silently mixing old sums with
+    new rows."""
+    assert {"quadcore.physics.dynamics", "quadcore.physics.signals", "quadcore.identify.fitting",
+            "quadcore.identify.sufficient"} <= set(sufficient.CODE_MODULES)
+    (tmp_path / "qc_probe_code.py").write_text("SCALE = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sufficient, "CODE_MODULES", (*sufficient.CODE_MODULES, "qc_probe_code"))
+    spec = model.spec_from(VEHICLE, [])
+    sufficient.code_digest.cache_clear()
+    before = sufficient.current_key(spec, "sim000")
+    (tmp_path / "qc_probe_code.py").write_text("SCALE = 2.0\n")  # the code changed (a new release)
+    sufficient.code_digest.cache_clear()  # a new process
+    assert sufficient.current_key(spec, "sim000") != before
+    sufficient.code_digest.cache_clear()

@@ -40,7 +40,9 @@ not grow with the rows, and a new flight adds its own statistics only. Stored pe
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib.util
 import inspect
 import json
 from collections.abc import Callable, Iterable, Sequence
@@ -357,6 +359,26 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 # Identity and storage
 # ---------------------------------------------------------------------------------------
 
+# The code a flight's statistics come from besides the effects' own classes: the state and the
+# nominal residual (dynamics, residuals, signals), the usable mask, noise floor and voltage
+# (fitting.flight_data), the blocks (evidence.BLOCK_S), the bases' helpers and this module.
+CODE_MODULES = ("quadcore.physics.dynamics", "quadcore.physics.residuals", "quadcore.physics.signals",
+                "quadcore.physics.rotations", "quadcore.identify.fitting", "quadcore.identify.evidence",
+                "quadcore.effects.base", "quadcore.identify.sufficient")
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """A digest of the source of :data:`CODE_MODULES` (once per process): statistics stored by
+    other code are stale."""
+    digest = hashlib.sha256()
+    for name in CODE_MODULES:
+        spec = importlib.util.find_spec(name)
+        origin = spec.origin if spec is not None else None
+        digest.update(name.encode() + (Path(origin).read_bytes() if origin else b"missing"))
+    return digest.hexdigest()[:16]
+
+
 def _source_digest(effect: Effect) -> str:
     try:
         return hashlib.sha256(inspect.getsource(type(effect)).encode()).hexdigest()[:16]
@@ -370,9 +392,10 @@ def _content(vehicle: Vehicle) -> dict:
 
 def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
     """What the statistics were computed for: the model's vehicle (the bases), the flight's own
-    (its session's thrust map: the state and ``y0``), the layout and the source of each effect
-    in it. Stored statistics with another key are stale."""
-    content = {"format": FORMAT, "layout": asdict(layout), "vehicle": _content(vehicle),
+    (its session's thrust map: the state and ``y0``), the layout, the source of each effect
+    in it and the code that computes them (:func:`code_digest`). Stored statistics with another
+    key are stale."""
+    content = {"format": FORMAT, "code": code_digest(), "layout": asdict(layout), "vehicle": _content(vehicle),
                "flight_vehicle": _content(flight_vehicle),
                "effects": {n: _source_digest(effectlib.get(n)) for n in layout.effects}}
     text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
