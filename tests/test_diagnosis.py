@@ -634,6 +634,7 @@ def test_two_sessions_are_found_from_the_data(two_sessions):
     assert [g["flights"] for g in _scale_groups(with_it)] == [g["flights"] for g in groups]
 
 
+@pytest.mark.slow  # a simulated scenario of its own; in the fast tier the pinned drag_fleet JSON has no disagreement
 def test_one_session_no_disagreement(hidden):
     nominal, with_it = hidden("thrust_scale")
     assert nominal["disagreements"] == [] and with_it["disagreements"] == []

@@ -250,6 +250,7 @@ def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
         np.testing.assert_allclose(runs["discover"][key], runs["diagnose"][key], rtol=1e-6)
 
 
+@pytest.mark.slow  # test_cli_discover_and_diagnose_share_a_sessions_file checks the same groups through the CLI
 def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path):
     """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
     per-session effects on those groups, as the diagnosis does: the same starting residual."""

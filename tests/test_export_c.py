@@ -76,7 +76,10 @@ NO_C_FORM: dict[str, str] = {}
 WITH_C_FORM = [n for n in effects.registry() if n not in NO_C_FORM]
 
 
-@pytest.mark.parametrize("name", list(effects.registry()))
+# The fast tier keeps motor_lag (an effect with state); test_all_effects_together_... compares the
+# sum of every effect's C form with Python in the fast tier too, each effect alone runs in the whole suite.
+@pytest.mark.parametrize("name", [n if n == "motor_lag" else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in effects.registry()])
 def test_every_effect_has_a_c_form_that_matches_python(name, decoded, tmp_path):
     pm = _every_effect([name])
     if name in NO_C_FORM:

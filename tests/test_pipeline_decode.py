@@ -132,6 +132,7 @@ def test_missing_raw_file_is_quarantined(instance, tmp_path):
     assert json.loads(store.quarantine_path(tmp_path, "ghost").read_text())["error_type"] == "FileNotFoundError"
 
 
+@pytest.mark.slow  # test_operations' bad-files test decodes a truncated (simulated) log in Dagster in the fast tier
 def test_truncated_raw_file_decodes_with_a_warning(instance, real_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
