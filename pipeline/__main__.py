@@ -19,7 +19,13 @@ FULL_COLLECTION_EVERY = 100
 
 gc.disable()
 try:
-    from pipeline.main import main
+    from pipeline.resources import SettingError
+
+    try:
+        from pipeline.main import main
+    except SettingError as exc:  # a bad QUADCORE_* setting read with the definitions: one line, exit 2
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
 finally:
     gc.enable()
 gc.freeze()

@@ -13,6 +13,7 @@ from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
 from pipeline.assets.statistics import flight_statistics
 from pipeline.resources import (
+    SettingError,
     automation_status,
     data_root_from_env,
     model_config_from_env,
@@ -59,7 +60,7 @@ def executor_from_env():
         return celery_executor
     local = {"": None, "in_process": dg.in_process_executor, "multiprocess": dg.multiprocess_executor}
     if kind not in local:
-        raise ValueError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
+        raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
     return local[kind]
 
 

@@ -13,6 +13,10 @@ from pathlib import Path
 import dagster as dg
 
 
+class SettingError(ValueError):
+    """A ``QUADCORE_*`` environment setting that cannot be used (a user error: one line, exit 2)."""
+
+
 def default_data_root() -> str:
     return os.environ.get("QUADCORE_DATA_ROOT", "data")
 

@@ -1,0 +1,24 @@
+"""A bad ``QUADCORE_*`` setting is a user error: ``python -m pipeline`` says so in one line and
+exits 2, never with a traceback (the setting is read when the definitions are imported)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_a_bad_executor_setting_is_one_line_and_exit_code_2(tmp_path):
+    env = {**os.environ, "QUADCORE_EXECUTOR": "bogus", "QUADCORE_DATA_ROOT": str(tmp_path / "root"),
+           "PYTHONPATH": str(REPO)}
+    env.pop("DAGSTER_HOME", None)
+    done = subprocess.run([sys.executable, "-m", "pipeline"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "error: QUADCORE_EXECUTOR='bogus': use in_process, multiprocess, k8s or celery"]
+    assert not (tmp_path / "root").exists()  # nothing done
