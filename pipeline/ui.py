@@ -125,10 +125,12 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.instance import ensure_dagster_home
     from pipeline.plot_links import PLOTS_FOLDER, PLOTS_URL_ENV
     from pipeline.resources import data_root_from_env
+    from quadcore.store import store
 
     root = data_root_from_env().root_path
     home = ensure_dagster_home(root)
-    plots = serve_plots(root / PLOTS_FOLDER, args.host, plots_port)
+    # an object-store root keeps its plots inline (plot_links): nothing to serve from this disk
+    plots = None if store.is_remote(root) else serve_plots(root / PLOTS_FOLDER, args.host, plots_port)
     try:
         cmd = dev_command(args.host, args.port)
     except FileNotFoundError as exc:
@@ -137,9 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Dagster UI on http://{args.host}:{args.port} (instance {home}); Ctrl-C stops it", flush=True)
     try:
         return serve(cmd, {**os.environ, "DAGSTER_HOME": str(home),
-                           PLOTS_URL_ENV: f"http://{args.host}:{plots_port}"})
+                           **({PLOTS_URL_ENV: f"http://{args.host}:{plots_port}"} if plots else {})})
     finally:
-        plots.shutdown()
+        if plots is not None:
+            plots.shutdown()
 
 
 if __name__ == "__main__":
