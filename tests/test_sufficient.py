@@ -224,3 +224,16 @@ def test_statistics_made_by_other_code_are_stale(tmp_path, monkeypatch):
     sufficient.code_digest.cache_clear()  # a new process
     assert sufficient.current_key(spec, "sim000") != before
     sufficient.code_digest.cache_clear()
+
+
+def test_a_cut_statistics_file_is_refused_when_read_not_midway_through_a_diagnosis(fleet, tmp_path):
+    """A file cut short (a copy interrupted, a disk that filled) fails the check when it is read,
+    so the caller recomputes the flight, instead of the per-block matrices (read lazily) raising
+    in the middle of a held-out test."""
+    _, stats = fleet
+    s = stats[sorted(stats)[0]]
+    path = sufficient.save(s, tmp_path)
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(sufficient.StatsError, match="not a statistics file"):
+        sufficient.load(tmp_path, s.flight)
+    assert sufficient.load_current(tmp_path, s.flight, s.key) is None

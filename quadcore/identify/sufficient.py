@@ -445,6 +445,10 @@ def _decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
     length = int.from_bytes(raw[len(MAGIC): len(MAGIC) + 8], "little")
     start = len(MAGIC) + 8 + length
     header = json.loads(raw[len(MAGIC) + 8: start])
+    for name, spec in header["arrays"].items():  # every array whole, before any is read lazily
+        end = start + spec["offset"] + int(np.prod(spec["shape"])) * np.dtype(spec["dtype"]).itemsize
+        if end > len(raw):
+            raise ValueError(f"cut short: array {name!r} ends at byte {end}, the file has {len(raw)}")
 
     def array(name: str) -> np.ndarray:
         spec = header["arrays"][name]
