@@ -207,3 +207,19 @@ def test_the_cli_and_the_assets_leave_fitting_holdout_and_reports_to_the_workflo
              for i, line in enumerate(path.read_text().splitlines(), 1)
              if any(name in line for name in ORCHESTRATION) and not line.lstrip().startswith("#")]
     assert not found, "orchestration outside quadcore.workflows:\n" + "\n".join(found)
+
+
+def test_residuals_against_an_older_fit_do_not_take_the_new_fits_flights(tmp_path):
+    """The learned models record (and check their holdout against) the flights the physics under
+    them was fitted on: residual tables computed against an earlier fit of the same effects must
+    not be credited with the new fit's flights and spec digest."""
+    spec = model.spec_from(vehicle.load(), ["thrust_scale"])
+    older = model.PhysicsModel(spec.vehicle, [model.EffectTerm("thrust_scale", {"scale": 0.95})])
+    table = pl.DataFrame({"t_s": [0.0, 0.01]})
+    store.write_parquet(table, store.table_path(tmp_path, "residuals", "sim000"), {"model": older.to_dict()})
+    _save_fit(tmp_path, spec, scale=0.9)  # refitted since, on sim000
+    physics = learn.physics_of_residuals(tmp_path)
+    assert physics["effects"][0]["params"] == {"scale": 0.95}
+    assert "trained_on" not in physics and "spec_digest" not in physics
+    _save_fit(tmp_path, spec, scale=0.95)  # the fit the tables were computed against
+    assert learn.physics_of_residuals(tmp_path)["trained_on"] == ["sim000"]

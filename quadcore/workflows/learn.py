@@ -65,7 +65,7 @@ def residual_tables(tables: Mapping[str, pl.DataFrame], physics: PhysicsModel) -
 def physics_of_residuals(root) -> dict:
     """The physics model the data root's residual tables were computed against (their metadata),
     with the flights its effects were fitted on and the digest of the spec it was fitted for when
-    the fitted model file is that model.
+    the fitted model file is that model (the same values: a later refit of the same effects is not).
     :class:`WorkflowError` when the tables were computed against different models (some not
     refreshed after a refit)."""
     from quadcore.store import store
@@ -85,7 +85,7 @@ def physics_of_residuals(root) -> dict:
     fitted = store.physics_model_path(root)
     if fitted.is_file():
         saved = store.read_json(fitted)
-        if [e["name"] for e in saved.get("effects", [])] == [e["name"] for e in physics.get("effects", [])]:
+        if physics and all(saved.get(k) == v for k, v in physics.items()):  # that fit, not a later one
             physics["trained_on"] = saved.get("trained_on")
             physics[SPEC_DIGEST] = saved.get(SPEC_DIGEST)
             if saved.get(PLUGINS):  # a learned model's manifest must name them for export-c
