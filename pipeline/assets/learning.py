@@ -42,7 +42,7 @@ class LearningConfig(dg.Config):
     also leave-one-flight-out; ``flights_csv``: flight kinds (empty: ``flights.csv`` beside or
     above the raw folder); ``stride``: fit on every stride-th sample; ``threads``: XGBoost threads."""
 
-    holdout: str = ""  # empty: the physics model's held-out flight (see ModelConfig.held_out)
+    holdout: str = ""  # empty: the physics model's held-out flight (quadcore.workflows.held_out)
     models: list[str] = ["xgboost", "mlp"]
     xgboost: str = ""
     mlp: str = ""
