@@ -22,3 +22,16 @@ def test_a_bad_executor_setting_is_one_line_and_exit_code_2(tmp_path):
     assert done.stderr.strip().splitlines() == [
         "error: QUADCORE_EXECUTOR='bogus': use in_process, multiprocess, k8s or celery"]
     assert not (tmp_path / "root").exists()  # nothing done
+
+
+def test_a_missing_sessions_file_stops_the_main_job_before_any_work(tmp_path, drag_fleet):
+    """``QUADCORE_SESSIONS`` naming no file: one line and exit code 2 before decoding, as a bad
+    model file is, not a failed fit after every flight was decoded."""
+    env = {**os.environ, "QUADCORE_SESSIONS": str(tmp_path / "nowhere.toml"),
+           "QUADCORE_DATA_ROOT": str(tmp_path / "root"), "QUADCORE_RAW_DIR": str(drag_fleet), "PYTHONPATH": str(REPO)}
+    env.pop("DAGSTER_HOME", None)
+    done = subprocess.run([sys.executable, "-m", "pipeline"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.strip().splitlines() == [f"error: sessions file not found: {tmp_path / 'nowhere.toml'}"]
+    assert not (tmp_path / "root" / "decoded").exists()

@@ -194,8 +194,9 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
     ``QUADCORE_SESSIONS``) joins the spec, so that its digest, and hence the fit's freshness,
     follows the file's content.
 
-    Raises :class:`quadcore.identify.model.ModelFileError`, :class:`quadcore.physics.vehicle.VehicleFileError` or
-    :class:`quadcore.effects.UnknownEffectError` with the reason."""
+    Raises :class:`quadcore.identify.model.ModelFileError`, :class:`quadcore.physics.vehicle.VehicleFileError`,
+    :class:`quadcore.effects.UnknownEffectError` or, for a sessions file that is missing or
+    malformed, :class:`WorkflowError`, with the reason."""
     from quadcore.identify import model
     from quadcore.physics import vehicle
 
@@ -208,6 +209,12 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
     if thrust_map:
         spec.vehicle = spec.vehicle.with_thrust_map(thrust_map)
     if sessions_file:
+        from quadcore.identify import sessions
+
+        try:  # read now, so a missing or malformed file stops a run before any work
+            sessions.read_sessions_file(sessions_file, [])
+        except sessions.SessionsFileError as exc:
+            raise WorkflowError(str(exc)) from None
         spec.sessions_file = str(sessions_file)
     return spec
 
