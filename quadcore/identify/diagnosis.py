@@ -22,7 +22,7 @@ from quadcore.identify import evidence, fitting, sessions as sessionlib, spectru
 from quadcore.identify.evidence import LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
-from quadcore.identify.regimes import flight_table, long_table, regime_table, worst_segments
+from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
 from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse
 from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict
 from quadcore.physics.dynamics import XYZ
@@ -67,13 +67,26 @@ class _Flights:
     def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
         self.decoded, self.spec, self.ids = decoded, spec, ids
         self._rows: dict[str, FlightData] = {}
+        self._rates: dict[str, float] = {}  # each flight's sample rate, kept when its rows go
         self.linear = all(effectlib.get(n).linear for n in spec.effects)
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
             self._rows[f] = fitting.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
+            self._rates[f] = spectrum.sample_rate_hz(self._rows[f].state.t_s)
         return self._rows[f]
+
+    def release(self, f: str) -> None:
+        """Let a flight's rows go (from statistics; from rows the flight is the statistics)."""
+        if self.stats is not None:
+            self._rows.pop(f, None)
+
+    def sample_rate_hz(self, f: str) -> float:
+        if f not in self._rates:
+            self.rows(f)
+            self.release(f)
+        return self._rates[f]
 
     def flight(self, f: str):
         return self.stats[f] if self.stats is not None else self.rows(f)
@@ -174,9 +187,10 @@ class _Problem:
         self.fds = {f: self.fl.flight(f) for f in self.ids}
         self.targets = {f: self.fl.target(f) for f in self.ids}
         self.by_rows = {c.name: self.fl.stats is not None and not c.linear for c in self.cands}
-        # a fold's residual turned into rows once for all nonlinear candidates; each entry keeps
-        # its residual alive, so no later residual can take its id while the entry is here
-        self._row_cache: dict[tuple[int, str], tuple[dict, np.ndarray]] = {}
+        # the latest residual turned into rows once for all nonlinear candidates (a fold's
+        # candidates share it; later fits never come back to an older one), so rows of one
+        # residual are held, not one per fold; the residual is kept so its id cannot be reused
+        self._row_resid_of: tuple[dict, dict[str, np.ndarray]] = ({}, {})
 
     def fit_candidate(self, c, flights: list[str], resid: dict) -> fitting.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``."""
@@ -186,10 +200,16 @@ class _Problem:
         return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle)
 
     def _row_resid(self, f: str, resid: dict) -> np.ndarray:
-        key = (id(resid), f)
-        if key not in self._row_cache:
-            self._row_cache[key] = (resid, self.fl.signal_rows(f, resid[f]))
-        return self._row_cache[key][1]
+        if self._row_resid_of[0] is not resid:
+            self._row_resid_of = (resid, {})
+        rows = self._row_resid_of[1]
+        if f not in rows:
+            rows[f] = self.fl.signal_rows(f, resid[f])
+        return rows[f]
+
+    def forget_row_resid(self) -> None:
+        """Drop the residual rows the nonlinear candidates' fits kept (after the last fit)."""
+        self._row_resid_of = ({}, {})
 
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
@@ -460,9 +480,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
               sensitivity: dict, disagree: list) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
     and in frequency (from their rows) and the verdict."""
-    eval_rows = [p.fl.rows(f) for f in held.ids]
-    resid_rows = {f: p.fl.signal_rows(f, held.resid[f]) for f in held.ids}
-    long = long_table(eval_rows, resid_rows, p.vehicle)
+    long, frequency = _by_flight(p, held)
     text = verdict(rows, held.at_noise, sensitivity)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
@@ -484,8 +502,25 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         regimes=regime_table(long),
         flights=flight_table(long),
         worst_segments=worst_segments(long),
-        frequency=spectrum.frequency_view(eval_rows, resid_rows, p.vehicle),
+        frequency=frequency,
     )
+
+
+def _by_flight(p: _Problem, held: _HeldOut) -> tuple[pl.DataFrame, dict]:
+    """The evaluated flights' long table (:func:`~quadcore.identify.regimes.long_table`) and
+    frequency view, one flight's rows at a time: each flight's rows go once its part of both is
+    taken, so the tables after it do not sit beside every flight's rows."""
+    p.forget_row_resid()
+    for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates
+        p.fl.release(f)
+    sums = spectrum.SpectrumSums(float(np.median([p.fl.sample_rate_hz(f) for f in held.ids])), p.vehicle)
+    frames = []
+    for f in held.ids:
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f])
+        frames.append(long_frame(fd, r, p.vehicle))
+        sums.add(fd, r)
+        p.fl.release(f)
+    return pl.concat(frames), sums.view()
 
 
 def diagnose(

@@ -73,27 +73,28 @@ def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
 
 def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle) -> pl.DataFrame:
     """One row per usable sample of the evaluated flights: regime labels and the residual."""
-    frames = []
-    for fd in flights:
-        r = resid[fd.flight]
-        rc = regime_columns(fd, vehicle)
-        m = fd.mask
-        frame = {
-            "flight": np.full(m.sum(), fd.flight),
-            "t_s": fd.state.t_s[m],
-            "speed": _bin_labels(rc.speed_mps[m], SPEED_BINS, "m/s"),
-            "height": _bin_labels(rc.height_m[m], HEIGHT_BINS, "m"),
-            "thrust_to_weight": _bin_labels(rc.thrust_to_weight[m], THRUST_BINS, ""),
-            "angular_rate": _bin_labels(rc.angular_rate_radps[m], RATE_BINS, "rad/s"),
-            "battery": _bin_labels(rc.vbat_V[m], VBAT_BINS, "V"),
-            "acceleration": _bin_labels(rc.acceleration_mps2[m], ACCEL_BINS, "m/s^2"),
-            "phase": rc.phase[m],
-        }
-        for j, a in enumerate(XYZ):
-            frame[f"f_res_b_{a}_N"] = r[m, j]
-            frame[f"tau_res_b_{a}_Nm"] = r[m, 3 + j]
-        frames.append(pl.DataFrame(frame))
-    return pl.concat(frames)
+    return pl.concat([long_frame(fd, resid[fd.flight], vehicle) for fd in flights])
+
+
+def long_frame(fd: FlightData, r: np.ndarray, vehicle) -> pl.DataFrame:
+    """One flight's part of :func:`long_table` (``r``: its (n, 6) residual)."""
+    rc = regime_columns(fd, vehicle)
+    m = fd.mask
+    frame = {
+        "flight": np.full(m.sum(), fd.flight),
+        "t_s": fd.state.t_s[m],
+        "speed": _bin_labels(rc.speed_mps[m], SPEED_BINS, "m/s"),
+        "height": _bin_labels(rc.height_m[m], HEIGHT_BINS, "m"),
+        "thrust_to_weight": _bin_labels(rc.thrust_to_weight[m], THRUST_BINS, ""),
+        "angular_rate": _bin_labels(rc.angular_rate_radps[m], RATE_BINS, "rad/s"),
+        "battery": _bin_labels(rc.vbat_V[m], VBAT_BINS, "V"),
+        "acceleration": _bin_labels(rc.acceleration_mps2[m], ACCEL_BINS, "m/s^2"),
+        "phase": rc.phase[m],
+    }
+    for j, a in enumerate(XYZ):
+        frame[f"f_res_b_{a}_N"] = r[m, j]
+        frame[f"tau_res_b_{a}_Nm"] = r[m, 3 + j]
+    return pl.DataFrame(frame)
 
 
 REGIMES = ("speed", "height", "thrust_to_weight", "angular_rate", "battery", "acceleration", "phase")

@@ -58,30 +58,58 @@ def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
 
     ``flights`` are :class:`quadcore.identify.fitting.FlightData`, ``resid[flight]`` their (n, 6)
     residual under the evaluated model (force N, torque N m)."""
-    fs = float(np.median([1.0 / np.median(np.diff(fd.state.t_s)) for fd in flights]))
-    grid = np.fft.rfftfreq(SEGMENT, 1.0 / fs)
-    acc = {k: np.zeros((len(grid), 6), dtype=complex if k == "pm" else float) for k in ("pp", "mm", "rr", "pm")}
-    weight = 0.0
-    mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
+    sums = SpectrumSums(float(np.median([sample_rate_hz(fd.state.t_s) for fd in flights])), vehicle)
     for fd in flights:
+        sums.add(fd, resid[fd.flight])
+    return sums.view()
+
+
+def sample_rate_hz(t_s: np.ndarray) -> float:
+    """A flight's sample rate: 1 / the median interval between samples."""
+    return 1.0 / np.median(np.diff(t_s))
+
+
+class SpectrumSums:
+    """:func:`frequency_view` with the flights added one at a time (:meth:`add`), so a caller
+    can let each flight's rows go once they are added; ``fs_hz``: the evaluated flights' median
+    :func:`sample_rate_hz`, the spectra's common frequency grid."""
+
+    def __init__(self, fs_hz: float, vehicle):
+        self.fs, self.vehicle = fs_hz, vehicle
+        self.grid = np.fft.rfftfreq(SEGMENT, 1.0 / fs_hz)
+        self.acc = {k: np.zeros((len(self.grid), 6), dtype=complex if k == "pm" else float)
+                    for k in ("pp", "mm", "rr", "pm")}
+        self.weight = 0.0
+        self.mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
+
+    def add(self, fd, resid: np.ndarray) -> None:
+        """One flight (a FlightData) and its (n, 6) residual."""
         # Welch segments must not straddle a gap in the log: each gap-free stretch is its own signal
         stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * SEGMENT]
         if not stretches:
-            continue  # too short to resolve the slow bands
-        arrays = residuals.residual_arrays(fd.state, vehicle)
+            return  # too short to resolve the slow bands
+        arrays = residuals.residual_arrays(fd.state, self.vehicle)
         meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
-        model = meas - resid[fd.flight]
+        model = meas - resid
         for part in stretches:
-            _, *specs = _spectra(meas[part], model[part], fs)
+            _, *specs = _spectra(meas[part], model[part], self.fs)
             for key, s in zip(("pp", "mm", "rr", "pm"), specs):
-                acc[key] += (part.stop - part.start) * s
+                self.acc[key] += (part.stop - part.start) * s
         n = sum(p.stop - p.start for p in stretches)
-        mean_sq += n * resid[fd.flight][fd.mask].mean(axis=0) ** 2
-        weight += n
+        self.mean_sq += n * resid[fd.mask].mean(axis=0) ** 2
+        self.weight += n
+
+    def view(self) -> dict:
+        """The JSON-ready view of the flights added so far."""
+        return _view(self.fs, self.grid, self.acc, self.weight, self.mean_sq)
+
+
+def _view(fs: float, grid: np.ndarray, acc: dict, weight: float, mean_sq: np.ndarray) -> dict:
+    """The bands, coherence and readings from the sample-weighted sums of the spectra."""
     if weight == 0:
         return {"bands_hz": [list(b) for b in BANDS_HZ], "channels": [], "reading": ["flights too short for spectra"]}
     s = {k: v / weight for k, v in acc.items()}
-    mean_sq /= weight
+    mean_sq = mean_sq / weight
     df = grid[1] - grid[0]
     coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
     rows = []
