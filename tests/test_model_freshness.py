@@ -82,3 +82,22 @@ def test_a_fit_saved_without_a_digest_is_stale(folder):
     assert model.fitted_for(fitted, config.spec())
     del fitted[model.SPEC_DIGEST]
     assert not model.fitted_for(fitted, config.spec())
+
+
+def test_the_model_version_follows_the_vehicles_content():
+    """A vehicle file edited in place (another mass) is another model: the per-flight tables
+    computed with the old mass must be stale (``model_version``), although the vehicle's name,
+    file and the fitted parameters are unchanged (the diagnose JSON keeps its pinned keys:
+    tests/test_json_contracts.py)."""
+    import dataclasses
+
+    from pipeline.freshness import model_version
+    from quadcore.identify import model as modelmod
+    from quadcore.physics import vehicle as vehiclemod
+
+    v = vehiclemod.load()
+    heavier = dataclasses.replace(v, mass_kg=v.mass_kg * 1.2)
+    assert model_version(modelmod.PhysicsModel(v, []).to_dict()) != model_version(
+        modelmod.PhysicsModel(heavier, []).to_dict())
+    assert model_version(modelmod.PhysicsModel(v, []).to_dict()) == model_version(
+        modelmod.PhysicsModel(vehiclemod.load(), []).to_dict())

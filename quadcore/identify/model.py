@@ -70,6 +70,17 @@ class EffectTerm:
         return out
 
 
+VEHICLE_DIGEST = "vehicle_digest"
+
+
+def vehicle_digest(vehicle: Vehicle) -> str:
+    """A hash of a vehicle's content (mass, inertia, geometry, thrust map...), not of where it was
+    read from: part of a model's identity (its version, what per-flight tables were computed with)."""
+    content = {k: v for k, v in dataclasses.asdict(vehicle).items() if k != "source"}
+    text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 @dataclass
 class PhysicsModel:
     """Nominal vehicle + effects. ``label`` reads like ``nominal+rotor_drag``."""
@@ -135,6 +146,7 @@ class PhysicsModel:
             "vehicle": self.vehicle.name,
             "vehicle_source": self.vehicle.source,
             "thrust_map": self.vehicle.thrust_map_kind,
+            VEHICLE_DIGEST: vehicle_digest(self.vehicle),  # a vehicle file edited in place is another model
             "effects": [t.to_dict() for t in self.terms],
             **({"sessions": self.sessions} if self.sessions else {}),
             **({"session_thrust_map": self.session_maps} if self.session_maps else {}),

@@ -9,6 +9,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+from quadcore.identify.model import VEHICLE_DIGEST
+
 if TYPE_CHECKING:
     import polars as pl
 
@@ -146,7 +148,7 @@ class Diagnosis:
         """The JSON document (``quadcore diagnose --json``, ``reports/diagnosis.json``)."""
         return {
             "effects_in_model": list(self.effects_in_model),
-            "model": self.model.to_dict(),
+            "model": {k: v for k, v in self.model.to_dict().items() if k != VEHICLE_DIGEST},  # the pinned contract
             "evaluation": self.evaluation.to_dict(),
             "baseline": self.baseline.to_dict(),
             "noise_floor": self.noise_floor.to_dict(),
