@@ -94,10 +94,16 @@ def long_frame(fd: FlightData, r: np.ndarray, vehicle) -> pl.DataFrame:
     for j, a in enumerate(XYZ):
         frame[f"f_res_b_{a}_N"] = r[m, j]
         frame[f"tau_res_b_{a}_Nm"] = r[m, 3 + j]
-    return pl.DataFrame(frame)
+    # labels as enums: a code per sample, not a string, so a thousand flights' table and the
+    # group-bys over it stay small (the tables below turn them back into text)
+    return pl.DataFrame(frame).with_columns(pl.col(k).cast(pl.Enum(v)) for k, v in LABELS.items())
 
 
 REGIMES = ("speed", "height", "thrust_to_weight", "angular_rate", "battery", "acceleration", "phase")
+PHASES = ("ground", "climb", "descent", "hover", "cruise")
+LABELS = {"speed": bin_labels(SPEED_BINS, "m/s"), "height": bin_labels(HEIGHT_BINS, "m"),
+          "thrust_to_weight": bin_labels(THRUST_BINS, ""), "angular_rate": bin_labels(RATE_BINS, "rad/s"),
+          "battery": bin_labels(VBAT_BINS, "V"), "acceleration": bin_labels(ACCEL_BINS, "m/s^2"), "phase": list(PHASES)}
 
 
 RMSE_EXPRS = [
@@ -110,7 +116,8 @@ def regime_table(long: pl.DataFrame) -> pl.DataFrame:
     """Residual RMSE per axis in every bin of every regime variable, and the share of samples."""
     frames = []
     for regime in REGIMES:
-        g = long.group_by(regime).agg(pl.len().alias("samples"), *RMSE_EXPRS).rename({regime: "bin"})
+        g = (long.group_by(regime).agg(pl.len().alias("samples"), *RMSE_EXPRS).rename({regime: "bin"})
+             .with_columns(pl.col("bin").cast(pl.String)))
         frames.append(g.with_columns(pl.lit(regime).alias("regime")).sort("bin"))
     out = pl.concat(frames).select("regime", "bin", "samples", pl.exclude("regime", "bin", "samples"))
     return out.with_columns((pl.col("samples") / long.height).alias("share"))
@@ -124,7 +131,8 @@ def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> 
     """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS."""
     force_sq = functools.reduce(operator.add, [pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ])
     seg = (
-        long.with_columns((pl.col("t_s") // window_s).alias("segment"), force_sq.alias("f2"))
+        long.select("flight", "t_s", (pl.col("t_s") // window_s).alias("segment"), force_sq.alias("f2"),
+                    pl.col("phase", "speed", "height").cast(pl.String))  # a tied mode picks as on text
         .group_by("flight", "segment")
         .agg(
             pl.col("t_s").min().alias("t_start_s"),
