@@ -292,6 +292,14 @@ def _model_and_flights(args: argparse.Namespace):
     return spec, fleet.fleet_from_logs([str(data)], spec.vehicle, _warn), workflows.parse_names(args.holdout)
 
 
+def _output_folders(*paths: str | None) -> None:
+    """Make the folders the outputs go to now, so that one that cannot be made (a file in the
+    way, no permission) stops the command before the work, not after it (``OSError``: one line)."""
+    for path in paths:
+        if path:
+            Path(path).mkdir(parents=True, exist_ok=True)
+
+
 def _progress(args: argparse.Namespace):
     return (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
 
@@ -300,6 +308,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     from quadcore.identify import verdict
     from quadcore.workflows import identify
 
+    _output_folders(str(Path(args.json).parent), args.report)
     spec, flights, holdout = _model_and_flights(args)
     result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
     out = identify.write_diagnosis_json(result, Path(args.json))
@@ -344,11 +353,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
     from quadcore.identify import discovery
     from quadcore.workflows import identify
 
-    spec, flights, holdout = _model_and_flights(args)
     if args.write_effect:
         target = Path(args.write_effect)
         if target.suffix != ".py" or not discovery.NAME_RE.match(target.stem):
             raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
+    _output_folders(str(Path(args.json).parent), str(Path(args.write_effect).parent) if args.write_effect else None)
+    spec, flights, holdout = _model_and_flights(args)
     result = identify.discover(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
     out = Path(args.json)
     try:
