@@ -7,6 +7,7 @@ are skipped, with the reason, on a machine without the shared data set.
 from __future__ import annotations
 
 import struct
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +17,21 @@ import pytest
 from quadcore.logs import logformat
 
 REAL_LOGS = Path(__file__).resolve().parents[1].parent / "shared" / "crazyflie" / "logs"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def unsynced_dagster_test_instances(tmp_path_factory):
+    """``dg.instance_for_test()`` makes its Dagster home with ``tempfile``: here, in a folder
+    whose SQLite files are written without fsync, as the headless main job's are
+    (:func:`pipeline.instance.unsynced_event_log`). About ten fsyncs per event otherwise: most of
+    a Dagster test's time on a busy disk, for run records thrown away after the test."""
+    from pipeline.instance import unsynced_event_log
+
+    folder = tmp_path_factory.mktemp("dagster_instances")
+    unsynced_event_log(folder)
+    saved, tempfile.tempdir = tempfile.tempdir, str(folder)
+    yield
+    tempfile.tempdir = saved
 
 
 @pytest.fixture(scope="session")
