@@ -23,7 +23,7 @@ flight 42 mod 20: same bytes, its own partition and outputs).
   process, on the residual tables ``--per-flight N`` left.
 
 Each prints a table and, with two N or more, writes a plot of time per flight and peak memory
-against N (``quadcore.plots.scaling``) beside the cache: scale_main.png, scale_per_flight.png,
+against N (``quadcore.report.plots.scaling``) beside the cache: scale_main.png, scale_per_flight.png,
 scale_fleet.png.
 
 Targets (issue 13): time per flight flat from 10 to 1,000 flights (ratio of the largest N's
@@ -156,7 +156,7 @@ def per_flight_child(n: int) -> None:
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import AGAINST_MODEL, DECODE, STATISTICS
+    from pipeline.assets import AGAINST_MODEL, DECODE, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
     raw, root = simulated(n), CACHE / f"root{n}"
@@ -228,7 +228,7 @@ def fleet_child(n: int) -> None:
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import DECODE, FLEET, STATISTICS
+    from pipeline.assets import DECODE, FLEET, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
     root, raw = CACHE / f"fleet{n}", CACHE / f"raw{n + 1}"
@@ -278,7 +278,7 @@ def learning_child(n: int) -> None:
     import dagster as dg
 
     from pipeline import main as job
-    from pipeline.definitions import EXPORT, LEARNING
+    from pipeline.assets import EXPORT, LEARNING
     from pipeline.resources import DataRoot, ModelConfig
 
     resources = {"data_root": DataRoot(root=str(CACHE / f"root{n}"), raw=str(CACHE / f"raw{n}")),

@@ -5,13 +5,7 @@ import warnings
 
 import dagster as dg
 
-from pipeline.assets.decode import decoded_flight
-from pipeline.assets.discovery import term_discovery
-from pipeline.assets.export import exported_model, flight_mcap
-from pipeline.assets.learning import learned_models, learning_features, learning_report
-from pipeline.assets.model import error_history, model_diagnosis, physics_model
-from pipeline.assets.physics import residual_table, rollout_errors
-from pipeline.assets.statistics import flight_statistics
+from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT
 from pipeline.resources import (
     SettingError,
     automation_status,
@@ -19,21 +13,6 @@ from pipeline.resources import (
     model_config_from_env,
 )
 from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
-
-# Computed per flight partition (the sensor's runs and the main job run these): decoding, which
-# needs no model, then the tables computed against the fitted physics model.
-DECODE = [decoded_flight]
-# Each flight's sufficient statistics of the linear effects, which the fleet fit combines.
-STATISTICS = [flight_statistics]
-AGAINST_MODEL = [residual_table, rollout_errors, flight_mcap]
-PER_FLIGHT = [*DECODE, *STATISTICS, *AGAINST_MODEL]
-# Computed over all flights.
-FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
-# Learned residual models on top of the physics model (fan-in over all residual tables).
-LEARNING = [learning_features, learned_models, learning_report]
-# The current model as C for the flight controller.
-EXPORT = [exported_model]
-
 
 # Running them on the code server is "beta" in Dagster 1.13; it is what custom conditions need.
 warnings.filterwarnings("ignore", message="Parameter `use_user_code_server`", category=dg.BetaWarning)

@@ -22,9 +22,9 @@ from dagster._core.storage.tags import (
     ASSET_PARTITION_RANGE_START_TAG,
 )
 
+from pipeline.assets import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
-from pipeline.definitions import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.freshness import model_version
 from pipeline.instance import ensure_dagster_home, unsynced_event_log
 from pipeline.partitions import failed_flights, flights

@@ -6,10 +6,8 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipeline.assets.decode import MAIN_EVENT, decoded_flight
-from pipeline.assets.export import flight_mcap
-from pipeline.assets.physics import residual_table, rollout_errors
-from pipeline.assets.statistics import flight_statistics
+from pipeline.assets import PER_FLIGHT
+from pipeline.assets.decode import MAIN_EVENT
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore.logs import flight, logformat
@@ -94,12 +92,12 @@ def quarantine_report(data_root: DataRoot) -> dg.AssetMaterialization:
     )
 
 
-PER_FLIGHT = dg.AssetSelection.assets(decoded_flight, flight_statistics, residual_table, rollout_errors, flight_mcap)
+PER_FLIGHT_ASSETS = dg.AssetSelection.assets(*PER_FLIGHT)
 
 
 # One flight through every per-flight stage: what the sensor launches (its runs are filed under
 # this job in the UI), and a button in the UI.
-process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT)
+process_flight = dg.define_asset_job("process_flight", selection=PER_FLIGHT_ASSETS)
 
 
 @dg.sensor(job=process_flight, minimum_interval_seconds=30, default_status=automation_status())

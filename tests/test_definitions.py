@@ -57,7 +57,8 @@ def test_the_main_job_stages_follow_the_graph(monkeypatch, tmp_path):
     which the fit combines), and computes the per-flight tables after the fit (AGAINST_MODEL):
     the split is by what each asset depends on, not by list order."""
     monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path))
-    from pipeline.definitions import AGAINST_MODEL, DECODE, PER_FLIGHT, STATISTICS, defs
+    from pipeline.assets import AGAINST_MODEL, DECODE, PER_FLIGHT, STATISTICS
+    from pipeline.definitions import defs
 
     graph = defs.resolve_asset_graph()
     model_key = dg.AssetKey("physics_model")

@@ -8,7 +8,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from pipeline.definitions import PER_FLIGHT
+from pipeline.assets import PER_FLIGHT
 from pipeline.main import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig

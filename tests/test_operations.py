@@ -12,8 +12,9 @@ import duckdb
 import polars as pl
 import pytest
 
+from pipeline.assets import AGAINST_MODEL, FLEET, PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
-from pipeline.definitions import AGAINST_MODEL, FLEET, PER_FLIGHT, defs
+from pipeline.definitions import defs
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.sensors import raw_log_sensor
 from quadcore.logs import logformat
@@ -135,7 +136,7 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
 def settle(instance, resources, cursor, when=None, ticks=12):
     """Act as the daemon: evaluate the automation, run what it requests (fleet assets in one run,
     per-flight assets one run per flight), until it requests nothing. Returns the cursor."""
-    from pipeline.definitions import EXPORT, LEARNING
+    from pipeline.assets import EXPORT, LEARNING
 
     assets = {a.key: a for a in [*PER_FLIGHT, *FLEET, *LEARNING, *EXPORT]}
     keys = list(assets)

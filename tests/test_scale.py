@@ -7,8 +7,9 @@ import dagster as dg
 import pytest
 
 from pipeline import main
+from pipeline.assets import PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
-from pipeline.definitions import PER_FLIGHT, process_flight_job
+from pipeline.definitions import process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.sim import simulation

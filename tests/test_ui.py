@@ -72,8 +72,8 @@ def _populate(base: Path, home: Path, raw: Path, plots_url: str) -> None:
     checked, the model diagnosed nominal, then with rotor_drag added (the error falls)."""
     import dagster as dg
 
+    from pipeline.assets import FLEET
     from pipeline.assets.decode import decoded_flight
-    from pipeline.definitions import FLEET
     from pipeline.resources import DataRoot, ModelConfig
 
     configs = [simulation.SimConfig(kind="random", duration_s=5.0, seed=s) for s in (31, 32, 33)]
