@@ -50,6 +50,7 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_pipeline.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_scale.py --per-flight 10 100 1000
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_scale.py --fleet 10 100 1000
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_diagnosis_memory.py 40 100 300 1000
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_scale.py 10 100
 	$(VENV_PYTHON) benchmarks/bench_decode.py
 	$(VENV_PYTHON) benchmarks/bench_physics.py
