@@ -173,10 +173,11 @@ def to_restat(data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_n
     return [f for f in ids if f in decoded_now or current(f) is None]
 
 
-def fleet_is_stale(root: Path, model: ModelConfig, decoded_now: list[str]) -> bool:
-    """Whether to refit and re-diagnose: flights were (re)decoded, or the fitted model or the
-    diagnosis is missing, or the fit was made for another model spec than the model file's now."""
-    if decoded_now or not store.physics_model_path(root).is_file() or not store.diagnosis_path(root).is_file():
+def fleet_is_stale(root: Path, model: ModelConfig, changed: list[str]) -> bool:
+    """Whether to refit and re-diagnose: flights were (re)decoded or their statistics recomputed
+    (``changed``), or the fitted model or the diagnosis is missing, or the fit was made for another
+    model spec than the model file's now."""
+    if changed or not store.physics_model_path(root).is_file() or not store.diagnosis_path(root).is_file():
         return True
     return identify.fit_is_stale(root, model.spec())
 
@@ -218,11 +219,12 @@ def _decode_stage(instance, resources: dict, ids: list[str], log) -> tuple[list[
     return decode, failures, [f for f in ids if f not in failures and f in decoded]
 
 
-def _fleet_stage(instance, resources: dict, decode: list[str], log) -> tuple[dict | None, bool]:
-    """2/4: refit and re-diagnose when the fleet is stale; returns the diagnosis (None if the
-    run failed) and whether it was refitted."""
+def _fleet_stage(instance, resources: dict, changed: list[str], log) -> tuple[dict | None, bool]:
+    """2/4: refit and re-diagnose when the fleet is stale (``changed``: the flights decoded or
+    whose statistics were recomputed in this job); returns the diagnosis (None if the run failed)
+    and whether it was refitted."""
     root, model = resources["data_root"].root_path, resources["model"]
-    refit = RECOMPUTE or fleet_is_stale(root, model, decode)
+    refit = RECOMPUTE or fleet_is_stale(root, model, changed)
     if refit:
         log("2/4 fit the model, diagnose, record the error history")
         return run_fleet(instance, resources, log), refit
@@ -304,7 +306,8 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     restat = good if RECOMPUTE else to_restat(data_root, model, good, decode)
     if restat:
         failures.update(run_flights(instance, resources, restat, STATISTICS, "statistics", log))
-    diag, refit = _fleet_stage(instance, resources, decode, log)
+    # the fit is made from the statistics: new ones (a new decode, or new code) mean a refit
+    diag, refit = _fleet_stage(instance, resources, sorted({*decode, *restat}), log)
     if diag is None:
         return 1
     suggested = identify.suggestion(diag)

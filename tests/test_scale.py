@@ -12,6 +12,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
+from quadcore.identify import sufficient
 from quadcore.sim import simulation
 from quadcore.store import store
 from quadcore.workflows import learn
@@ -123,3 +124,21 @@ def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path):
         assert main.to_decode(instance, data_root, ids) == ["sim001"]
     assert main.fleet_is_stale(tmp_path / "root", ModelConfig(), []) is True  # not fitted yet
     assert learn.learning_is_stale(tmp_path / "root") == "no learned models yet"
+
+
+def test_new_statistics_refit_the_fleet(sim_logs, tmp_path):
+    """Statistics recomputed without a new decode (here: one removed; after an upgrade: made by
+    other code) are what the fit combines, so the next main job refits instead of calling the
+    old fit up to date."""
+    raw = _raw(tmp_path, sim_logs, bad=False)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    with dg.instance_for_test() as instance:
+        assert main.run_all(data_root, ModelConfig(), instance, log=[].append) == 0
+        again: list[str] = []
+        assert main.run_all(data_root, ModelConfig(), instance, log=again.append) == 0
+        assert any("fitted model and diagnosis: up to date" in line for line in again), again
+        sufficient.stats_path(tmp_path / "root", "sim001").unlink()
+        third: list[str] = []
+        assert main.run_all(data_root, ModelConfig(), instance, log=third.append) == 0
+    assert any(line.startswith("2/4 fit the model") for line in third), third
+    assert sufficient.stats_path(tmp_path / "root", "sim001").is_file()
