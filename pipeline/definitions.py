@@ -1,15 +1,14 @@
 """The Dagster definitions: load with ``dg dev -w workspace.yaml`` (``make ui``)."""
 
-import os
 import warnings
 
 import dagster as dg
 
 from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT
 from pipeline.resources import (
-    SettingError,
     automation_status,
     data_root_from_env,
+    executor_from_env,
     model_config_from_env,
 )
 from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
@@ -23,25 +22,6 @@ automation = dg.AutomationConditionSensorDefinition(
     "retrain_on_new_flights", target=dg.AssetSelection.all(), default_status=automation_status(),
     use_user_code_server=True,
 )
-
-def executor_from_env():
-    """``QUADCORE_EXECUTOR``: empty (Dagster's default: steps in processes on this machine),
-    ``in_process``, ``multiprocess``, or ``k8s`` (each step a Kubernetes Job; needs dagster-k8s,
-    see deploy/kubernetes) or ``celery`` (needs dagster-celery)."""
-    kind = os.environ.get("QUADCORE_EXECUTOR", "").strip().lower()
-    if kind == "k8s":
-        from dagster_k8s import k8s_job_executor  # type: ignore[import-not-found]
-
-        return k8s_job_executor
-    if kind == "celery":
-        from dagster_celery import celery_executor  # type: ignore[import-not-found]
-
-        return celery_executor
-    local = {"": None, "in_process": dg.in_process_executor, "multiprocess": dg.multiprocess_executor}
-    if kind not in local:
-        raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
-    return local[kind]
-
 
 defs = dg.Definitions(
     assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING, *EXPORT],

@@ -31,7 +31,9 @@ from pipeline.partitions import failed_flights, flights
 from pipeline.resources import (
     DataRoot,
     ModelConfig,
+    SettingError,
     data_root_from_env,
+    executor_from_env,
     model_config_from_env,
     retrain_cron,
 )
@@ -321,6 +323,11 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
 
 
 def main() -> int:
+    try:
+        executor_from_env()  # the definitions' executor: a bad QUADCORE_EXECUTOR is refused before any work
+    except SettingError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     data_root = data_root_from_env()
     home = ensure_dagster_home(data_root.root_path)
     unsynced_event_log(home)

@@ -115,3 +115,22 @@ def model_config_from_env() -> ModelConfig:
         holdout=os.environ.get("QUADCORE_HOLDOUT", ""),
         sessions_file=os.environ.get("QUADCORE_SESSIONS", ""),
     )
+
+
+def executor_from_env():
+    """``QUADCORE_EXECUTOR``: empty (Dagster's default: steps in processes on this machine),
+    ``in_process``, ``multiprocess``, or ``k8s`` (each step a Kubernetes Job; needs dagster-k8s,
+    see deploy/kubernetes) or ``celery`` (needs dagster-celery)."""
+    kind = os.environ.get("QUADCORE_EXECUTOR", "").strip().lower()
+    if kind == "k8s":
+        from dagster_k8s import k8s_job_executor  # type: ignore[import-not-found]
+
+        return k8s_job_executor
+    if kind == "celery":
+        from dagster_celery import celery_executor  # type: ignore[import-not-found]
+
+        return celery_executor
+    local = {"": None, "in_process": dg.in_process_executor, "multiprocess": dg.multiprocess_executor}
+    if kind not in local:
+        raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
+    return local[kind]
