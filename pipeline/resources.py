@@ -30,7 +30,12 @@ def automation_status():
 def retrain_cron() -> str:
     """When the learned models retrain on new flights: ``QUADCORE_RETRAIN_CRON`` (cron, UTC),
     nightly at 02:00 by default."""
-    return os.environ.get("QUADCORE_RETRAIN_CRON", "0 2 * * *")
+    cron = os.environ.get("QUADCORE_RETRAIN_CRON", "0 2 * * *")
+    try:
+        dg.AutomationCondition.cron_tick_passed(cron, "UTC")  # Dagster's own check of the string
+    except Exception:  # dagster's check error is not public API
+        raise SettingError(f"QUADCORE_RETRAIN_CRON={cron!r}: not a cron schedule (e.g. '0 2 * * *')") from None
+    return cron
 
 
 def default_raw_dir() -> str:
