@@ -133,3 +133,24 @@ def test_flight_statistics_round_trip_through_s3(s3_url, drag_fleet):
     assert back is not None and back.layout == s.layout and back.n == s.n
     np.testing.assert_array_equal(back.gram, s.gram)
     np.testing.assert_allclose(back.total, s.total, rtol=1e-12)
+
+
+def test_a_data_root_in_an_object_store_has_its_own_model_file(s3_url, monkeypatch):
+    """The data root's own ``model.toml`` (the demo writes one there) is the default model file
+    in a bucket as on a disk; a plugin named by a relative path cannot be read from a bucket
+    and is refused with the file and the reason."""
+    from pipeline.resources import model_config_from_env
+    from quadcore.identify.model import ModelFileError
+    from quadcore.workflows import demo
+
+    url = f"{s3_url}-own-model"
+    demo.write_demo_model_file(url, "", ["rotor_drag", "thrust_scale"])
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", url)
+    monkeypatch.delenv("QUADCORE_MODEL", raising=False)
+    config = model_config_from_env()
+    assert config.model_file == f"{url}/model.toml"
+    spec = config.spec()
+    assert spec.effects == ["rotor_drag", "thrust_scale"] and spec.source == f"{url}/model.toml"
+    store.write_text('effects = []\nplugins = ["my_effect.py"]\n', store.own_model_file(url))
+    with pytest.raises(ModelFileError, match="object store names local files by absolute path only"):
+        model_config_from_env().spec()

@@ -299,7 +299,9 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
     """Read a model file (see module docstring). Every key is checked; an error names the file,
     the key and what was expected. Plugins are Python modules that run when loaded: a model
     file must be trusted like code."""
-    path = Path(path)
+    from quadcore.store import store
+
+    path = store.as_root(path)  # a data root's own model file may sit in an object store
     d = vehiclemod.read_toml(path, ModelFileError, "model file")
     unknown = sorted(set(d) - set(MODEL_FILE_KEYS))
     if unknown:
@@ -307,7 +309,12 @@ def load_model_file(path: str | Path, vehicle_override: str | None = None) -> Mo
     base = path.parent
 
     def resolve(p: str) -> str:
-        return str((base / p).resolve()) if not Path(p).is_absolute() else p
+        if Path(p).is_absolute():
+            return p
+        if store.is_remote(base):  # plugins and vehicle files are read from this machine's disk
+            raise ModelFileError(f"{path}: {p!r}: a model file in an object store names local files by "
+                                 "absolute path only")
+        return str((base / p).resolve())
 
     plugins = _string_list(d, "plugins", path)
     for plugin in plugins:

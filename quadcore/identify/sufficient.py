@@ -379,9 +379,12 @@ def code_digest() -> str:
     return digest.hexdigest()[:16]
 
 
-def _source_digest(effect: Effect) -> str:
+@functools.cache
+def _source_digest(effect_class: type) -> str:
+    """A digest of an effect class's source (once per class and process: reading the source
+    costs milliseconds, and a key is asked for every flight)."""
     try:
-        return hashlib.sha256(inspect.getsource(type(effect)).encode()).hexdigest()[:16]
+        return hashlib.sha256(inspect.getsource(effect_class).encode()).hexdigest()[:16]
     except (OSError, TypeError):
         return "unknown"
 
@@ -397,7 +400,7 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
     key are stale."""
     content = {"format": FORMAT, "code": code_digest(), "layout": asdict(layout), "vehicle": _content(vehicle),
                "flight_vehicle": _content(flight_vehicle),
-               "effects": {n: _source_digest(effectlib.get(n)) for n in layout.effects}}
+               "effects": {n: _source_digest(type(effectlib.get(n))) for n in layout.effects}}
     text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
