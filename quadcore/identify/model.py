@@ -295,13 +295,13 @@ def _session_patterns(d: dict, path: Path) -> dict[str, list[str]]:
     return table
 
 
-def load_model_file(path: str | Path, vehicle_override: str | None = None) -> ModelSpec:
+def load_model_file(model_file: str | Path, vehicle_override: str | None = None) -> ModelSpec:
     """Read a model file (see module docstring). Every key is checked; an error names the file,
     the key and what was expected. Plugins are Python modules that run when loaded: a model
     file must be trusted like code."""
     from quadcore.store import store
 
-    path = store.as_root(path)  # a data root's own model file may sit in an object store
+    path: Path = store.as_root(model_file)  # a data root's own model file may sit in an object store
     d = vehiclemod.read_toml(path, ModelFileError, "model file")
     unknown = sorted(set(d) - set(MODEL_FILE_KEYS))
     if unknown:
