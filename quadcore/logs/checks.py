@@ -8,7 +8,8 @@ skipped by every fleet stage with its reason, and the per-flight stages fail for
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -42,31 +43,84 @@ VBAT_MIN_V = 2.5  # a 1S LiPo is flat at 3.0 V; below 2.5 V the logged voltage i
 MAX_ABS_VALUE = 1e4  # no SI value of a small quadrotor comes near this (PWM <= 1, rates <= 35 rad/s)
 
 
-def physics_problem(df: pl.DataFrame, columns: list[str]) -> str | None:
-    """Why the physics cannot use this flight (``columns``: the ones it reads), or None."""
+@dataclass(frozen=True)
+class PhysicsFacts:
+    """What the physics gate (:func:`physics_problem`) finds in one decoded table, for any
+    columns the physics may read (another vehicle reads other PWM or motor columns): recorded in
+    the decoded main table's footer (:func:`quadcore.store.store.write_decoded`), so that a fleet
+    stage decides which flights it can use without reading their rows."""
+
+    columns: tuple[str, ...]  # every column of the table
+    early: str | None  # too few samples, or time not increasing: refused whatever the columns
+    bad_values: dict[str, int] = field(default_factory=dict)  # per column checked: non-finite or absurd values
+    quaternion: str | None = None
+    vbat_low: int = 0  # samples below VBAT_MIN_V
+    flight_phase: str | None = None  # why there is no flight phase, or None
+
+    def covers(self, columns: list[str]) -> bool:
+        """Whether these facts decide :meth:`problem` for ``columns`` (each value column checked)."""
+        return self.early is not None or all(c in self.bad_values for c in columns if c != "t_s")
+
+    def problem(self, columns: list[str]) -> str | None:
+        """:func:`physics_problem` of the table for ``columns`` (which :meth:`covers` them)."""
+        if self.early is not None:
+            return self.early
+        worst = ", ".join(f"{c} ({self.bad_values[c]} rows)" for c in columns if c != "t_s" and self.bad_values[c])
+        if worst:
+            return f"non-finite or absurd (|x| > {MAX_ABS_VALUE:g}) values in {worst}"
+        if self.quaternion is not None:
+            return self.quaternion
+        if "vbat_V" in columns and self.vbat_low:
+            return f"battery voltage below {VBAT_MIN_V} V in {self.vbat_low} rows: the thrust map cannot use it"
+        return self.flight_phase
+
+    def to_dict(self) -> dict:
+        return {"columns": list(self.columns), "early": self.early, "bad_values": self.bad_values,
+                "quaternion": self.quaternion, "vbat_low": self.vbat_low, "flight_phase": self.flight_phase}
+
+    @classmethod
+    def from_dict(cls, d) -> PhysicsFacts | None:
+        """The facts of a footer's document, or None when it holds none (or not readable ones)."""
+        try:
+            return cls(tuple(d["columns"]), d["early"], {str(k): int(v) for k, v in d["bad_values"].items()},
+                       d["quaternion"], int(d["vbat_low"]), d["flight_phase"])
+        except (KeyError, TypeError, ValueError, AttributeError):
+            return None
+
+
+def physics_facts(df: pl.DataFrame, columns: list[str] | None = None) -> PhysicsFacts:
+    """The :class:`PhysicsFacts` of a table, its values checked on ``columns`` (default: every
+    numeric one)."""
+    if columns is None:
+        columns = [c for c, dt in df.schema.items() if dt.is_numeric()]
     if df.height < MIN_ROWS:
-        return f"{df.height} samples; the physics needs at least {MIN_ROWS}"
+        return PhysicsFacts(tuple(df.columns), f"{df.height} samples; the physics needs at least {MIN_ROWS}")
     t = df["t_s"].to_numpy()
     back = np.flatnonzero(np.diff(t) <= 0)
     if len(back):
-        return f"time does not increase at {len(back)} samples (first at t = {t[back[0]]:.3f} s)"
+        return PhysicsFacts(tuple(df.columns),
+                            f"time does not increase at {len(back)} samples (first at t = {t[back[0]]:.3f} s)")
     value_columns = [c for c in columns if c != "t_s"]
     values = df.select(value_columns).to_numpy().astype(np.float64)
-    bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_VALUE)
-    if bad.any():
-        worst = ", ".join(f"{c} ({n} rows)" for c, n in zip(value_columns, bad.sum(axis=0)) if n)
-        return f"non-finite or absurd (|x| > {MAX_ABS_VALUE:g}) values in {worst}"
+    bad = (~np.isfinite(values) | (np.abs(values) > MAX_ABS_VALUE)).sum(axis=0)
+    quaternion = None
     if {"q_x", "q_y", "q_z", "q_w"} <= set(df.columns):
         norm = np.linalg.norm(df.select("q_x", "q_y", "q_z", "q_w").to_numpy().astype(np.float64), axis=1)
         off = int(np.count_nonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOL))
         if off:
-            return f"{off} attitude quaternions are not unit length (|q| from {norm.min():.3g} to {norm.max():.3g})"
-    if "vbat_V" in columns:
-        low = int((df["vbat_V"] < VBAT_MIN_V).sum())
-        if low:
-            return f"battery voltage below {VBAT_MIN_V} V in {low} rows: the thrust map cannot use it"
+            quaternion = (f"{off} attitude quaternions are not unit length "
+                          f"(|q| from {norm.min():.3g} to {norm.max():.3g})")
+    low = int((df["vbat_V"] < VBAT_MIN_V).sum()) if "vbat_V" in df.columns else 0
     flew, desc, _ = has_flight_phase(df)
-    return None if flew else desc
+    return PhysicsFacts(tuple(df.columns), None, {c: int(n) for c, n in zip(value_columns, bad)}, quaternion, low,
+                        None if flew else desc)
+
+
+def physics_problem(df: pl.DataFrame, columns: list[str]) -> str | None:
+    """Why the physics cannot use this flight (``columns``: the ones it reads), or None: in
+    order, too few samples, time not increasing, non-finite or absurd values, quaternions off
+    unit length, a battery voltage below :data:`VBAT_MIN_V`, no flight phase."""
+    return physics_facts(df, columns).problem(columns)
 
 
 def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
@@ -76,15 +130,23 @@ def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
     return problem is None, problem or "usable for the physics", {}
 
 
-def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle) -> tuple[list[str], dict[str, str]]:
+def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle,
+                   facts: Callable[[str], PhysicsFacts | None] | None = None) -> tuple[list[str], dict[str, str]]:
     """(ids of the flights the physics can use with ``vehicle``, skipped: flight -> reason),
-    looking at one table at a time (``tables`` may read each as it is looked up)."""
+    looking at one table at a time (``tables`` may read each as it is looked up). ``facts``
+    (flight -> its recorded :class:`PhysicsFacts`, or None) decides without reading a table
+    wherever they cover the columns ``vehicle`` needs."""
     need = dynamics.required_columns(vehicle)
     usable, skipped = [], {}
     for fid in tables:
-        df = tables[fid]
-        missing = [c for c in need if c not in df.columns]
-        problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, need)
+        known = facts(fid) if facts is not None else None
+        missing = [c for c in need if c not in (known.columns if known is not None else tables[fid].columns)]
+        if missing:
+            problem = f"missing columns: {', '.join(missing)}"
+        elif known is not None and known.covers(need):
+            problem = known.problem(need)
+        else:
+            problem = physics_problem(tables[fid], need)
         if problem:
             skipped[fid] = problem
         else:

@@ -43,6 +43,7 @@ from quadcore.store.names import (
 from quadcore.store.safewrite import temp_prefix
 
 METADATA_KEY = b"quadcore"
+PHYSICS_FACTS = "physics_facts"  # the key of the physics gate's facts in a decoded main table's metadata
 
 
 def as_root(root: Any) -> Any:
@@ -175,7 +176,13 @@ def atomic_write(path: Any, write) -> Path:
 def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
     """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata, which
     always holds ``units`` (column -> unit): the given ones, else those of a ``columns``
-    description, else read off the column names (:func:`quadcore.logs.units.column_units`)."""
+    description, else read off the column names (:func:`quadcore.logs.units.column_units`).
+    Physics facts in ``metadata`` are dropped: they were found in other rows (metadata copied
+    from another file), and only :func:`write_decoded` records those of the rows it writes."""
+    return _write_parquet(df, path, {k: v for k, v in metadata.items() if k != PHYSICS_FACTS})
+
+
+def _write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
     metadata = {"units": _units(df, metadata), **metadata}
     meta = {METADATA_KEY.decode(): json.dumps(metadata, default=str)}
     return atomic_write(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
@@ -254,12 +261,22 @@ def write_json(obj: dict, path: Path) -> Path:
 
 def write_decoded(root: Path, flight) -> dict[str, Path]:
     """Write every event table of a :class:`quadcore.logs.flight.Flight`; returns event -> path."""
+    from quadcore.logs import checks
+
     paths = {}
     for event, df in flight.tables.items():
         meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event],
                 **flight.provenance.to_dict()}
-        paths[event] = write_parquet(df, decoded_path(root, event, flight.flight_id), meta)
+        if event == MAIN_EVENT:  # the fleet stages decide usability from these, without the rows
+            meta[PHYSICS_FACTS] = checks.physics_facts(df).to_dict()
+        paths[event] = _write_parquet(df, decoded_path(root, event, flight.flight_id), meta)
     return paths
+
+
+def recorded_physics_facts(path: Any) -> dict | None:
+    """The physics facts (:class:`quadcore.logs.checks.PhysicsFacts` as a dict) recorded in a
+    decoded main table's footer by :func:`write_decoded`, or None (decoded by older code)."""
+    return read_metadata(path).get(PHYSICS_FACTS)
 
 
 def recorded_provenance(root: Path, event: str, flight: str) -> Provenance | None:

@@ -99,10 +99,18 @@ def decode_logs(paths: list[str], out: Path | None = None,
 def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[str, str] | None = None,
            warn: Callable[[str], None] = lambda m: None) -> Fleet:
     """The flights the physics can use with ``vehicle``; each other one is skipped with its
-    reason, said through ``warn``."""
+    reason, said through ``warn``. Tables decoded under a data root are judged from the physics
+    facts their footers record (:func:`quadcore.store.store.write_decoded`), without reading their
+    rows; a table without them (decoded by older code, or rewritten) is read."""
     from quadcore.logs import checks
+    from quadcore.store import store
 
-    good, unusable = checks.usable_flights(tables, vehicle)  # one table at a time
+    facts = None
+    if isinstance(tables, store.FlightTables):  # decoded under a data root: their footers say
+        def facts(fid: str) -> checks.PhysicsFacts | None:
+            return checks.PhysicsFacts.from_dict(store.recorded_physics_facts(tables.path(fid)))
+
+    good, unusable = checks.usable_flights(tables, vehicle, facts)  # one table at a time, where read
     skipped = {**(skipped or {}), **unusable}
     for fid, why in unusable.items():
         warn(f"{fid} skipped: {why}")
