@@ -34,6 +34,7 @@ from pipeline.resources import (
     SettingError,
     data_root_from_env,
     executor_from_env,
+    learn_row_budget,
     model_config_from_env,
     retrain_cron,
 )
@@ -325,6 +326,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
 def main() -> int:
     try:
         executor_from_env()  # the definitions' executor: a bad QUADCORE_EXECUTOR is refused before any work
+        learn_row_budget()  # and a bad QUADCORE_LEARN_ROWS before the learning stage would meet it
     except SettingError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -38,6 +38,22 @@ def retrain_cron() -> str:
     return cron
 
 
+def learn_row_budget() -> int:
+    """The learning stage's row budget: ``QUADCORE_LEARN_ROWS``, the most usable rows of its
+    training flights one training run holds (above it, drawn evenly per flight; default
+    :data:`quadcore.learn.learners.DEFAULT_ROW_BUDGET`). :class:`SettingError` for a bad value."""
+    from quadcore.learn import learners
+
+    text = os.environ.get("QUADCORE_LEARN_ROWS", "").strip().replace("_", "")
+    if not text:
+        return learners.DEFAULT_ROW_BUDGET
+    try:
+        return learners.check_row_budget(int(text))
+    except (ValueError, learners.LearningError):
+        raise SettingError(f"QUADCORE_LEARN_ROWS={os.environ['QUADCORE_LEARN_ROWS']!r}: give a whole number of rows, "
+                           f"at least 1000 (default {learners.DEFAULT_ROW_BUDGET})") from None
+
+
 def default_raw_dir() -> str:
     return os.environ.get("QUADCORE_RAW_DIR", "")
 

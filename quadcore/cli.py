@@ -400,7 +400,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     data, names = _data_and_effects(args)
     request = learn.LearningRequest(
         models=tuple(workflows.parse_names(args.models)), options={k: getattr(args, k, "") for k in learners.KINDS},
-        loo=args.loo, compare=not args.no_compare, stride=args.stride, seed=args.seed, threads=args.threads)
+        loo=args.loo, compare=not args.no_compare, stride=args.stride, seed=args.seed, threads=args.threads,
+        max_rows=args.max_rows)
     try:
         spec = workflows.resolve_model(args.model, args.vehicle, args.thrust_map, names)
         sets = feat.parse(args.feature_sets)
@@ -446,6 +447,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from quadcore.learn.learners import DEFAULT_ROW_BUDGET  # a constant (the module imports nothing heavy)
+
     # one flat table of the verbs and their options, read top to bottom: long, not deep (issue #15)
     parser = argparse.ArgumentParser(prog="quadcore",
                                      description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
@@ -553,6 +556,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="flight kinds (flight,kind; default: flights.csv beside or above DATA)")
     p.add_argument("--no-compare", action="store_true", help="skip the training-size and complexity comparisons")
     p.add_argument("--stride", type=int, default=5, metavar="N", help="fit on every N-th sample (default 5)")
+    p.add_argument("--max-rows", type=int, default=DEFAULT_ROW_BUDGET, metavar="N",
+                   help=f"the row budget: the most usable training rows one model holds; above it they are drawn "
+                        f"evenly per flight (default {DEFAULT_ROW_BUDGET})")
     p.add_argument("--seed", type=int, default=0, metavar="N")
     p.add_argument("--threads", type=int, default=1, metavar="N",
                    help="XGBoost threads (default 1, measured faster here)")

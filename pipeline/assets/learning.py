@@ -8,7 +8,7 @@ from pipeline.assets.model import RETRAIN, failing_on_user_errors
 from pipeline.assets.physics import residual_table
 from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.plot_links import plot_md
-from pipeline.resources import DataRoot, ModelConfig, retrain_cron
+from pipeline.resources import DataRoot, ModelConfig, learn_row_budget, retrain_cron
 from quadcore.learn import features as feat, tables
 from quadcore.report import render
 from quadcore.store import store
@@ -40,7 +40,8 @@ class LearningConfig(dg.Config):
     ``models``: model kinds; ``xgboost`` / ``mlp``: options such as ``depth=4,trees=300`` or
     ``hidden=64x64``; ``compare``: also the complexity and training-size comparisons; ``loo``:
     also leave-one-flight-out; ``flights_csv``: flight kinds (empty: ``flights.csv`` beside or
-    above the raw folder); ``stride``: fit on every stride-th sample; ``threads``: XGBoost threads."""
+    above the raw folder); ``stride``: fit on every stride-th sample; ``max_rows``: the row budget of
+    a training run (0: ``QUADCORE_LEARN_ROWS``, else the default); ``threads``: XGBoost threads."""
 
     holdout: str = ""  # empty: the physics model's held-out flight (quadcore.workflows.held_out)
     models: list[str] = ["xgboost", "mlp"]
@@ -50,6 +51,7 @@ class LearningConfig(dg.Config):
     loo: bool = False
     flights_csv: str = ""
     stride: int = 5
+    max_rows: int = 0  # 0: QUADCORE_LEARN_ROWS (pipeline.resources.learn_row_budget)
     seed: int = 0
     threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learn.learners.TrainConfig)
 
@@ -80,7 +82,8 @@ def learned_models(
     predictions under ``<root>/learned/<run>/``."""
     root = data_root.root_path
     request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp}, config.loo,
-                                    config.compare, config.stride, config.seed, config.threads)
+                                    config.compare, config.stride, config.seed, config.threads,
+                                    config.max_rows or learn_row_budget())
     csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     with failing_on_user_errors():
         runs = learn.train_data_root(root, request, config.holdout, model.holdout_flights, csv_path, context.log.info)

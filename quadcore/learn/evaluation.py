@@ -164,9 +164,26 @@ def setup_summary(index, runs, residual_tables, physics, physics_trained_on) -> 
         "runs": len(runs),
         "stride": cfg.get("stride"),
         "seed": cfg.get("seed"),
+        "row_budget": cfg.get("max_rows"),
+        "training_rows": training_rows(runs, holdout, cfg.get("seed")),
         "validation_fraction": cfg.get("val_fraction"),
         "flight_kinds": index.get("flight_kinds", {}),
     }
+
+
+def training_rows(runs: list[dict], holdout: str, seed) -> str:
+    """"trained on N of M rows: the row budget" for the held-out split's runs on all training
+    flights (:func:`quadcore.learn.splits.budget_rows`), or "" for runs that did not record it."""
+    run = next((r for r in runs if r["split"]["name"] == f"holdout-{holdout}" and r["train_group"] == "all"
+                and "rows_held" in r), None)
+    if run is None:
+        return ""
+    held, usable, budget, quota = run["rows_held"], run["rows_usable"], run["row_budget"], run["rows_per_flight"]
+    if quota is None:
+        return (f"trained on all {usable:,} usable rows of the training flights (within the row budget of "
+                f"{budget:,} rows, QUADCORE_LEARN_ROWS)")
+    return (f"trained on {held:,} of {usable:,} usable rows of the training flights: the row budget of {budget:,} "
+            f"rows (QUADCORE_LEARN_ROWS), at most {quota:,} rows of each flight, drawn with seed {seed}")
 
 
 def definitions(physics: dict) -> dict[str, str]:
@@ -180,7 +197,8 @@ def definitions(physics: dict) -> dict[str, str]:
         "learned": "the physics model plus the learned model's predicted residual",
         "scaling": "inputs and targets standardised with statistics of the training flights only",
         "best": "lowest validation loss (validation flights drawn from the training flights), causal feature sets only",
-        "subsampling": "fitting rows: every stride-th sample of the fitting flights; validation and test rows: all",
+        "subsampling": "fitting rows: every stride-th sample of the fitting flights; validation and test rows: all; "
+                       "above the row budget, the training flights' rows are first drawn evenly per flight",
     }
 
 

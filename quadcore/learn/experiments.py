@@ -18,7 +18,7 @@ from quadcore.learn import features as feat
 from quadcore.learn.artefacts import FORMAT, PRED_COLUMNS, LearnedModel
 from quadcore.learn.features import TARGETS, FeatureSet
 from quadcore.learn.learners import KINDS, LearnerSpec, LearningError, TrainConfig, complexity_specs, default_spec
-from quadcore.learn.splits import Split, holdout_split, lofo_splits
+from quadcore.learn.splits import MAX_LOFO_FOLDS, Split, holdout_split, lofo_splits
 from quadcore.learn.trainers import latency_us, time_predict, train
 from quadcore.store import store
 
@@ -58,7 +58,8 @@ def plan(flights: list[str], feature_sets: list[FeatureSet], kinds_of_model: lis
       hidden layers;
     * ``training_size`` (``compare`` and flight kinds known): trained on the random flights
       only, the preplanned flights only, and all of them;
-    * ``lofo`` (``loo``): leave each flight out in turn, primary feature set, default specs.
+    * ``lofo`` (``loo``): leave each flight out in turn (at most ``MAX_LOFO_FOLDS`` of them:
+      :func:`quadcore.learn.splits.lofo_left_out`), primary feature set, default specs.
     """
     if not feature_sets:
         raise LearningError("no feature sets")
@@ -103,6 +104,9 @@ def plan(flights: list[str], feature_sets: list[FeatureSet], kinds_of_model: lis
             notes.append("training-size comparison (random vs preplanned vs all) skipped: no flight kinds "
                          "(no flights.csv with columns flight,kind was found)")
     if loo:
+        if len(flights) > MAX_LOFO_FOLDS:
+            notes.append(f"leave-one-flight-out: {MAX_LOFO_FOLDS} folds (its cap) for {len(flights)} flights: "
+                         f"{MAX_LOFO_FOLDS} flights evenly spread over the sorted ids are left out in turn, not all")
         for sp in lofo_splits(flights):
             for k in kinds_of_model:
                 add(specs[k], primary, sp, "all", "lofo")

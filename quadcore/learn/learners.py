@@ -103,9 +103,26 @@ def complexity_specs(kind: str) -> list[LearnerSpec]:
     return [replace(default_spec(kind), hidden=h) for h in ((), (64,), (64, 64))]
 
 
+# The row budget: the most usable rows of its training flights one training run holds (fitting
+# and validation rows, before the stride). Above it the rows are drawn evenly per flight with the
+# seed (quadcore.learn.splits.budget_rows), so that training time and memory stop growing with
+# the fleet. The 19 real flights' training flights hold 171,373 usable rows (jana02 held out):
+# below it, so nothing changes there.
+DEFAULT_ROW_BUDGET = 250_000
+
+
+def check_row_budget(rows: int) -> int:
+    """``rows`` if it can be a row budget (an integer of at least 1,000), else :class:`LearningError`."""
+    if isinstance(rows, bool) or not isinstance(rows, int) or rows < 1000:
+        raise LearningError(f"row budget {rows!r}: give a whole number of rows, at least 1000 "
+                            f"(default {DEFAULT_ROW_BUDGET})")
+    return rows
+
+
 @dataclass
 class TrainConfig:
     stride: int = 5  # use every stride-th sample of the fitting flights
+    max_rows: int = DEFAULT_ROW_BUDGET  # the row budget (see DEFAULT_ROW_BUDGET)
     val_fraction: float = 0.2
     seed: int = 0
     # Threads for XGBoost and for torch: one each by default, measured on the 2-core machine

@@ -7,6 +7,7 @@ gaps are never used and fitting rows are subsampled (``docs/learning.md`` says w
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -52,12 +53,26 @@ def holdout_split(flights: list[str], holdout: str) -> Split:
     return Split(f"holdout-{holdout}", "holdout", tuple(sorted(f for f in flights if f != holdout)), (holdout,))
 
 
-def lofo_splits(flights: list[str]) -> list[Split]:
-    """Leave one flight out, for every flight."""
+# Leave-one-flight-out trains a fold per left-out flight: beyond this many flights, this many
+# folds (each bounded by the row budget), so that its cost stops growing with the fleet.
+MAX_LOFO_FOLDS = 20
+
+
+def lofo_left_out(flights: list[str], max_folds: int = MAX_LOFO_FOLDS) -> list[str]:
+    """The flights leave-one-flight-out leaves out in turn: every flight, or beyond
+    ``max_folds`` flights, ``max_folds`` of them evenly spread over the sorted ids."""
+    ids = sorted(flights)
+    if len(ids) <= max_folds:
+        return ids
+    return [ids[i * len(ids) // max_folds] for i in range(max_folds)]
+
+
+def lofo_splits(flights: list[str], max_folds: int = MAX_LOFO_FOLDS) -> list[Split]:
+    """Leave one flight out, for every flight (at most ``max_folds`` of them: :func:`lofo_left_out`)."""
     ids = sorted(flights)
     if len(ids) < 2:
         raise LearningError("leave-one-flight-out needs at least two flights")
-    return [Split(f"lofo-{f}", "lofo", tuple(g for g in ids if g != f), (f,)) for f in ids]
+    return [Split(f"lofo-{f}", "lofo", tuple(g for g in ids if g != f), (f,)) for f in lofo_left_out(ids, max_folds)]
 
 
 def validation_flights(train: list[str], fraction: float = 0.2, seed: int = 0,
@@ -81,18 +96,70 @@ def validation_flights(train: list[str], fraction: float = 0.2, seed: int = 0,
     return sorted(order[:n_val])
 
 
-def _rows(tables: Mapping[str, pl.DataFrame], flights, fs: FeatureSet,
-          stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Usable rows (every ``stride``-th) of ``flights``: inputs (n, k) float32, targets (n, 6)."""
+def usable_counts(tables: Mapping[str, pl.DataFrame], flights) -> dict[str, int]:
+    """Usable rows (not near a logging gap) of each flight."""
+    return {f: int(feat.usable(tables[f]).sum()) for f in flights}
+
+
+def budget_quota(counts: Mapping[str, int], budget: int) -> int | None:
+    """Rows each flight may give so that they fit ``budget``: None when all of them fit, else
+    the largest ``q`` with ``sum(min(n_f, q)) <= budget`` (flights shorter than ``q`` give all
+    their rows, the others ``q`` each: even per flight, the budget used up to the last share)."""
+    if sum(counts.values()) <= budget:
+        return None
+    left, flights_left = budget, len(counts)
+    for n in sorted(counts.values()):
+        q = left // flights_left
+        if n > q:
+            return q
+        left, flights_left = left - n, flights_left - 1
+    return left  # unreachable: the counts exceed the budget, so some flight is longer than its share
+
+
+def budget_rows(counts: Mapping[str, int], quota: int | None, seed: int) -> dict[str, np.ndarray] | None:
+    """Which of its usable rows each flight gives a training run: None (all of them) when
+    ``quota`` is None (:func:`budget_quota`: they fit the budget); else ``min(n_f, quota)``
+    rows of each flight, drawn without replacement with a generator seeded by ``(seed,
+    flight)`` and kept in time order: the same seed and flights give the same rows, and a new
+    flight changes the others' rows only through the quota. Indices count usable rows."""
+    if quota is None:
+        return None
+    picks = {}
+    for f, n in counts.items():
+        rng = np.random.default_rng([seed, zlib.crc32(f.encode())])
+        picks[f] = np.arange(n) if n <= quota else np.sort(rng.choice(n, quota, replace=False))
+    return picks
+
+
+def _rows(tables: Mapping[str, pl.DataFrame], flights, fs: FeatureSet, stride: int = 1,
+          picks: Mapping[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Usable rows of ``flights`` (those ``picks`` names, when given, then every ``stride``-th):
+    inputs (n, k) float32, targets (n, 6)."""
     Xs, Ys = [], []
     for f in flights:
         t = tables[f]
-        m = feat.usable(t)
-        Xs.append(feat.matrix(t, fs)[m][::stride])
-        Ys.append(feat.targets(t)[m][::stride])
+        rows = np.flatnonzero(feat.usable(t))
+        rows = (rows if picks is None else rows[picks[f]])[::stride]
+        Xs.append(feat.matrix(t, fs)[rows])
+        Ys.append(feat.targets(t)[rows])
     if not Xs:
         return np.zeros((0, len(fs.columns)), np.float32), np.zeros((0, len(TARGETS)))
     return np.concatenate(Xs), np.concatenate(Ys)
+
+
+@dataclass(frozen=True)
+class RowBudget:
+    """How many usable rows of the training flights a run held: all of them (``quota`` None),
+    or at most ``budget``, ``quota`` of each longer flight."""
+
+    budget: int
+    usable: int
+    held: int
+    quota: int | None
+
+    def to_dict(self) -> dict:
+        return {"row_budget": self.budget, "rows_usable": self.usable, "rows_held": self.held,
+                "rows_per_flight": self.quota}
 
 
 @dataclass
@@ -108,6 +175,7 @@ class TrainingData:
     fit_flights: list[str]
     val_flights: list[str]
     validation: str  # how the validation rows were chosen
+    rows: RowBudget
 
 
 def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: list[str], config: TrainConfig,
@@ -115,7 +183,11 @@ def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: lis
     missing = [f for f in train if f not in tables]
     if missing:
         raise LearningError(f"no table for training flight(s) {', '.join(missing)}")
-    X_all, Y_all = _rows(tables, train, fs)
+    counts = usable_counts(tables, train)
+    quota = budget_quota(counts, config.max_rows)
+    picks = budget_rows(counts, quota, config.seed)
+    X_all, Y_all = _rows(tables, train, fs, picks=picks)
+    budget = RowBudget(config.max_rows, sum(counts.values()), len(X_all), quota)
     if len(X_all) < 10:
         raise LearningError(f"too few usable rows on the training flights ({len(X_all)})")
     xs = Scaler.fit(X_all, list(fs.columns), sorted(train))
@@ -124,8 +196,8 @@ def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: lis
     fit = [f for f in sorted(train) if f not in val]
     stride = max(1, int(config.stride))
     if val:
-        Xf, Yf = _rows(tables, fit, fs, stride)
-        Xv, Yv = _rows(tables, val, fs)
+        Xf, Yf = _rows(tables, fit, fs, stride, picks)
+        Xv, Yv = _rows(tables, val, fs, picks=picks)
         how = f"flights {', '.join(val)}"
     else:  # one training flight: its last 20 % validates
         n = len(X_all)
@@ -133,4 +205,5 @@ def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: lis
         Xf, Yf = X_all[:cut:stride], Y_all[:cut:stride]
         Xv, Yv = X_all[cut:], Y_all[cut:]
         how = f"last {config.val_fraction:.0%} of {train[0]} (a single training flight)"
-    return TrainingData(xs, ys, xs.transform(Xf), ys.transform(Yf), xs.transform(Xv), ys.transform(Yv), fit, val, how)
+    return TrainingData(xs, ys, xs.transform(Xf), ys.transform(Yf), xs.transform(Xv), ys.transform(Yv), fit, val, how,
+                        budget)

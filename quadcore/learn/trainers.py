@@ -106,6 +106,7 @@ def train(spec: LearnerSpec, fs: FeatureSet, tables: Mapping[str, pl.DataFrame],
         "validation": d.validation,
         "rows_fit": int(len(d.X_fit)),
         "rows_validation": int(len(d.X_val)),
+        **d.rows.to_dict(),
         "config": config.to_dict(),
         "train_time_s": t2 - t0,  # data preparation + fit, including early stopping
         "fit_time_s": t2 - t1,

@@ -152,7 +152,8 @@ def sections(report: dict, pngs: dict[str, bytes]) -> list[tuple[str, str, objec
          f"Held out: {s['holdout']} (trained on the other {len(s['flights']) - 1} flights). Physics model: "
          f"{s['physics_model']} on vehicle {s['vehicle']} (thrust map {s['thrust_map']}); {s['physics_fit']}. "
          f"Fitting rows: every {s['stride']}th sample; validation: {s['validation_fraction']:.0%} of the training "
-         f"flights; seed {s['seed']}. {len(report['runs'])} models trained."),
+         f"flights; seed {s['seed']}. {len(report['runs'])} models trained"
+         + (f"; {s['training_rows']}." if s.get("training_rows") else ".")),
         ("Definitions", "list", report["definitions"]),
         (TABLE_TITLES["headline"], "table", frame(report["tables"]["headline"])),
         ("What the study's numbers are", "text",

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.identify.model import PLUGINS, SPEC_DIGEST
+from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out
 
 if TYPE_CHECKING:
@@ -31,7 +32,8 @@ def _quiet(msg: str) -> None:
 @dataclass(frozen=True)
 class LearningRequest:
     """What to train: model kinds, each kind's options (``depth=4,trees=300``, ``hidden=64x64``),
-    the comparisons, and the training settings."""
+    the comparisons, and the training settings (``max_rows``: the row budget, see
+    :data:`quadcore.learn.learners.DEFAULT_ROW_BUDGET`)."""
 
     models: tuple[str, ...] = ("xgboost", "mlp")
     options: dict[str, str] = field(default_factory=dict)  # kind -> options
@@ -40,6 +42,7 @@ class LearningRequest:
     stride: int = 5
     seed: int = 0
     threads: int = 1
+    max_rows: int = DEFAULT_ROW_BUDGET
 
     def learner_specs(self) -> dict[str, LearnerSpec]:
         """Kind -> learner spec (:class:`quadcore.learn.learners.LearningError` for a bad option or kind)."""
@@ -49,12 +52,13 @@ class LearningRequest:
             raise learners.LearningError("no model kind named")
         if self.stride < 1 or self.threads < 1:
             raise learners.LearningError("stride and threads must be at least 1")
+        learners.check_row_budget(self.max_rows)
         return {k: learners.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
 
     def config(self) -> TrainConfig:
         from quadcore.learn import learners
 
-        return learners.TrainConfig(stride=self.stride, seed=self.seed, threads=self.threads)
+        return learners.TrainConfig(stride=self.stride, max_rows=self.max_rows, seed=self.seed, threads=self.threads)
 
 
 def residual_tables(tables: Mapping[str, pl.DataFrame], physics: PhysicsModel) -> dict[str, pl.DataFrame]:
