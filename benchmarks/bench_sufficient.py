@@ -52,7 +52,7 @@ def held_out(stats: list[sufficient.FlightStats], fit: fitting.Fit) -> evidence.
 
 
 def main() -> None:
-    layout = sufficient.library_layout()
+    layout = sufficient.layout_of(e for e in effects.registry().values() if e.linear)  # no profiles: linear fits
     rng = np.random.default_rng(0)
     print(f"columns: {layout.width} (every linear coordinate of the library and y0); {SAMPLE_HZ} samples/s")
     print(f"{'flights':>8} {'s/flight':>9} {'samples':>12} {'read':>10} {'fit':>10} {'per flight':>11} "

@@ -116,11 +116,67 @@ def test_a_file_that_is_not_statistics_is_a_clear_error(tmp_path):
     assert sufficient.load_current(tmp_path, "x", "k") is None
 
 
-def test_a_nonlinear_effect_is_refused(fleet):
+@pytest.fixture(scope="module")
+def lagged_fleet(tmp_path_factory):
+    """Three short random flights with a motor lag of 30 ms hidden: FlightData, and statistics
+    with the profiles of every one-parameter nonlinear effect."""
+    from quadcore.sim import simulation
+
+    folder = tmp_path_factory.mktemp("lagged")
+    configs = [simulation.SimConfig(kind="random", duration_s=4.0, seed=s, speed_min_mps=0.8) for s in (31, 32, 33)]
+    simulation.simulate_set(folder, configs, {"motor_lag": {"tau_s": 0.03}}, VEHICLE)
+    fds = {p.name: fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+           for p in flight.discover_logs(folder)}
+    layout = sufficient.library_layout()
+    return fds, {f: sufficient.flight_stats(fd, VEHICLE, layout) for f, fd in fds.items()}
+
+
+@pytest.mark.parametrize("name", ["motor_lag", "thrust_delay"])
+def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
+    """A one-parameter nonlinear effect fitted from the flights' profiles lands where the row
+    search does, within the search's own tolerance (5e-4 of the span), with the same error.
+    A delay's row objective ripples with the sample period (the delay is linear between
+    samples, so it smooths the thrust most half-way between them): the grid does not resolve
+    that ripple, and the two agree to a twentieth of a sample instead."""
+    fds, stats = lagged_fleet
+    ids = sorted(fds)
+    e = effects.get(name)
+    (p,) = e.parameters
+    rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    combined = fitting.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+    dt_s = float(np.median(np.diff(fds[ids[0]].state.t_s)))
+    tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 20
+    assert abs(rows.params[name][p.name] - combined.params[name][p.name]) <= tolerance
+    assert combined.std[name][p.name] == pytest.approx(rows.std[name][p.name], rel=0.05 if name == "motor_lag" else 0.2)
+    if name == "motor_lag":
+        assert combined.params[name][p.name] == pytest.approx(0.03, rel=0.15)
+
+
+def test_the_profile_is_exact_on_its_grid(lagged_fleet):
+    """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
+    from quadcore.identify import profiles
+
+    fds, stats = lagged_fleet
+    f = sorted(fds)[0]
+    e = effects.get("motor_lag")
+    v = float(profiles.profile_grid(0.0, 0.2)[20])
+    s = profiles.with_predictions(stats[f], {"motor_lag": v})
+    pred = fitting.prediction(e, {"tau_s": v}, fds[f], VEHICLE)
+    y = fitting.targets_of([fds[f]])[0]
+    col = s.layout.unit(s.layout.extra("pred:motor_lag"))
+    target = s.layout.pad(stats[f].layout.target())
+    np.testing.assert_allclose(sufficient.channel_sums(s.total, col, target),
+                               (pred * y)[fds[f].mask].sum(axis=0), rtol=1e-9)
+    np.testing.assert_allclose(sufficient.channel_sums(s.gram, col, col).sum(axis=0),
+                               (pred**2)[fds[f].mask].sum(axis=0), rtol=1e-6)  # per block: float32
+
+
+def test_several_nonlinear_effects_are_refused(fleet):
     _, stats = fleet
     s = list(stats.values())
     with pytest.raises(sufficient.StatsError, match="nonlinear"):
-        fitting.fit_effects([effects.get("motor_lag")], s, [x.layout.target() for x in s], VEHICLE)
+        fitting.fit_effects([effects.get("motor_lag"), effects.get("thrust_delay")], s,
+                            [x.layout.target() for x in s], VEHICLE)
 
 
 def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
@@ -164,6 +220,32 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
     for key in ("force_rmse_N", "torque_rmse_Nm"):
         assert result["baseline"][key] == pytest.approx(again["baseline"][key], rel=1e-9)
 
+
+
+def test_a_hidden_lag_is_diagnosed_from_stored_profiles_without_training_rows(lagged_fleet, tmp_path):
+    """The nonlinear candidates' folds, held-out tests and sensitivity come from the flights'
+    stored profiles: only the held-out flight's rows are read (its regime tables and spectra),
+    and the hidden lag is found at its value."""
+    from quadcore.identify import diagnosis
+
+    fds, stats = lagged_fleet
+    for s in stats.values():
+        sufficient.save(s, tmp_path)
+    loaded = {f: sufficient.load(tmp_path, f) for f in stats}
+    assert all(set(s.profiles.by_effect) == {"motor_lag", "thrust_delay"} for s in loaded.values())
+    tables = {f: "rows" for f in fds}
+    held = sorted(tables)[-1]
+    read = []
+    spec = model.spec_from(VEHICLE, [])
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
+        result = diagnosis.diagnose(tables, spec, [held], ["motor_lag", "thrust_delay", "thrust_scale"],
+                                    stats=loaded.get).to_dict()
+    assert set(read) == {held}
+    top = result["candidates"][0]
+    assert top["effect"] == "motor_lag" and top["found"], result["verdict"]
+    assert top["parameters"]["tau_s"] == pytest.approx(0.03, rel=0.15)
+    assert result["sensitivity"]["motor_lag"]["tau_s"] is not None
 
 
 def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(drag_fleet, tmp_path):

@@ -37,6 +37,7 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
                 "path": dg.MetadataValue.path(str(written))}
 
     done = for_each_flight(context, work)
-    effects = list(sufficient.spec_layout(spec).effects)
+    layout = sufficient.spec_layout(spec)
     return dg.MaterializeResult(metadata={"flights_in_run": len(done),
-                                          "linear_effects": dg.MetadataValue.json(effects)})
+                                          "linear_effects": dg.MetadataValue.json(list(layout.effects)),
+                                          "profiled_effects": dg.MetadataValue.json(list(layout.profiled))})

@@ -18,7 +18,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fitting, sessions as sessionlib, spectrum, sufficient
+from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
 from quadcore.identify.evidence import LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
@@ -61,8 +61,10 @@ class _Flights:
     (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
     every residual and linear prediction a signal vector); a model with a nonlinear effect
     from rows (``flight(f)`` a :class:`~quadcore.identify.fitting.FlightData`, signals (n, 6) arrays).
-    Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): nonlinear candidates
-    on their training flights, and the evaluated flights' tables and spectra."""
+    Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): the evaluated
+    flights' tables and spectra, and candidates with several nonlinear parameters (a
+    one-parameter nonlinear candidate comes from the flights' profiles,
+    :mod:`quadcore.identify.profiles`)."""
 
     def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
         self.decoded, self.spec, self.ids = decoded, spec, ids
@@ -120,35 +122,45 @@ def _weights(flights: list, signals: list[np.ndarray]) -> np.ndarray:
     return fitting.channel_weights([y[fd.mask] for fd, y in zip(flights, signals)])
 
 
-def _evaluated(fl: _Flights, eval_ids: list[str], cands, cand_pred: dict, eval_resid: dict, by_rows: dict) -> list:
+def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
     """The evaluated flights as the scores take them. From statistics, a nonlinear candidate's
-    held-out prediction (and its unit wrenches, :func:`detection_limits`) are extra columns
-    of the evaluated flights' statistics (``pred:``, ``unit:``, ``ref:`` + its name; their rows
-    read once), and the signals of ``cand_pred`` and ``eval_resid`` are moved into that layout."""
+    held-out prediction is an extra column ``pred:`` + its name of the evaluated flights'
+    statistics: from its profile at the fitted value (:func:`quadcore.identify.profiles.with_predictions`,
+    no rows read), or, for a candidate without one (several nonlinear parameters), from the
+    flight's rows with its unit wrenches (:func:`detection_limits`; ``unit:``, ``ref:``); the
+    signals of ``cand_pred`` and ``eval_resid`` are moved into that layout."""
+    fl, cand_pred, eval_resid = p.fl, folds.cand_pred, folds.eval_resid
     if fl.stats is None:
         return [fl.rows(f) for f in eval_ids]
-    nonlinear = [c for c in cands if by_rows[c.name]]
-    if not nonlinear:
+    by_rows = [c for c in p.cands if p.by_rows[c.name]]
+    if not by_rows and not folds.values:
         return [fl.stats[f] for f in eval_ids]
-    vehicle, out = fl.spec.vehicle, []
+    out = []
     for f in eval_ids:
-        fd, base = fl.rows(f), fl.stats[f]
-        extras = {}
-        for c in nonlinear:
-            extras[f"pred:{c.name}"] = cand_pred[c.name][f]
-            extras.update({f"unit:{c.name}:{p.name}": evidence.unit_wrench(c, p, fd, vehicle) for p in c.parameters})
-            if c.sensitivity_reference:
-                ref = {**c.defaults(), **c.sensitivity_reference}
-                extras[f"ref:{c.name}"] = fitting.prediction(c, ref, fd, vehicle)
-        layout = base.layout.with_extras(list(extras))
-        s = sufficient.flight_stats(fd, vehicle, layout, base.key, extras)
-        fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
-        eval_resid[f] = layout.pad(eval_resid[f])
-        for c in cands:
-            cand_pred[c.name][f] = (layout.unit(layout.extra(f"pred:{c.name}")) if by_rows[c.name]
-                                    else layout.pad(cand_pred[c.name][f]))
+        s = _with_row_predictions(fl, f, by_rows, cand_pred) if by_rows else fl.stats[f]
+        if folds.values:
+            s = profiles.with_predictions(s, {c: values[f] for c, values in folds.values.items()})
+        eval_resid[f] = s.layout.pad(eval_resid[f])
+        for c in p.cands:
+            cand_pred[c.name][f] = (s.layout.unit(s.layout.extra(f"pred:{c.name}")) if not c.linear
+                                    else s.layout.pad(cand_pred[c.name][f]))
         out.append(s)
     return out
+
+
+def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> sufficient.FlightStats:
+    """A flight's statistics with the held-out predictions of ``cands`` (no profile) and their
+    unit wrenches as extra columns, from its rows (read once)."""
+    vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.stats[f]
+    extras = {}
+    for c in cands:
+        extras[f"pred:{c.name}"] = cand_pred[c.name][f]
+        extras.update({f"unit:{c.name}:{p.name}": evidence.unit_wrench(c, p, fd, vehicle) for p in c.parameters})
+        if c.sensitivity_reference:
+            extras[f"ref:{c.name}"] = fitting.prediction(c, {**c.defaults(), **c.sensitivity_reference}, fd, vehicle)
+    s = sufficient.flight_stats(fd, vehicle, base.layout.with_extras(list(extras)), base.key, extras)
+    fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
+    return s
 
 
 def _unit(c, p, fd, vehicle) -> np.ndarray:
@@ -186,7 +198,10 @@ class _Problem:
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
         self.fds = {f: self.fl.flight(f) for f in self.ids}
         self.targets = {f: self.fl.target(f) for f in self.ids}
-        self.by_rows = {c.name: self.fl.stats is not None and not c.linear for c in self.cands}
+        # from statistics, a nonlinear candidate is fitted and predicted from its profiles
+        # (quadcore.identify.profiles); one with several nonlinear parameters from rows
+        self.by_rows = {c.name: self.fl.stats is not None and not c.linear and not profiles.profiled(c)
+                        for c in self.cands}
         # the latest residual turned into rows once for all nonlinear candidates (a fold's
         # candidates share it; later fits never come back to an older one), so rows of one
         # residual are held, not one per fold; the residual is kept so its id cannot be reused
@@ -210,6 +225,10 @@ class _Problem:
     def forget_row_resid(self) -> None:
         """Drop the residual rows the nonlinear candidates' fits kept (after the last fit)."""
         self._row_resid_of = ({}, {})
+
+    def from_profile(self, c) -> bool:
+        """Whether ``c`` is fitted and predicted from the flights' profiles."""
+        return self.fl.stats is not None and profiles.profiled(c)
 
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
@@ -244,11 +263,14 @@ def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, l
 @dataclass(frozen=True)
 class _Folds:
     """What the folds leave: each test flight's model residual and every candidate's prediction
-    there (fitted without it), each candidate's parameters per fold (the flight-to-flight
-    spread), and the last fold's fits of the model and of each candidate."""
+    there (fitted without it; for a candidate fitted from its profiles, ``values``: its
+    parameter's value there, the prediction made by :func:`_evaluated`), each candidate's
+    parameters per fold (the flight-to-flight spread), and the last fold's fits of the model and
+    of each candidate."""
 
     eval_resid: dict[str, np.ndarray]
     cand_pred: dict[str, dict[str, np.ndarray]]
+    values: dict[str, dict[str, float]]
     params: dict[str, list[dict]]
     fits: dict[str, fitting.Fit]
     model_fit: Any
@@ -261,6 +283,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
     fold_fits: dict[str, fitting.Fit] = {}
     fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    values: dict[str, dict[str, float]] = {}
     model_fit = None
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
@@ -269,10 +292,13 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
             fit_c = fold_fits[c.name] = p.fit_candidate(c, train, resid)
             fold_params[c.name].append(fit_c.params[c.name])
             for f in test:
-                cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
+                if p.from_profile(c):
+                    values.setdefault(c.name, {})[f] = fit_c.params[c.name][c.parameters[0].name]
+                else:
+                    cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
             eval_resid[f] = resid[f]
-    return _Folds(eval_resid, cand_pred, fold_params, fold_fits, model_fit)
+    return _Folds(eval_resid, cand_pred, values, fold_params, fold_fits, model_fit)
 
 
 def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, dict]:
@@ -324,7 +350,7 @@ class _HeldOut:
 
 def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
     eval_ids = sorted(folds.eval_resid)
-    eval_fds = _evaluated(p.fl, eval_ids, p.cands, folds.cand_pred, folds.eval_resid, p.by_rows)
+    eval_fds = _evaluated(p, eval_ids, folds)
     before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
     # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
@@ -466,9 +492,11 @@ def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _P
 
 def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list:
     """Parameters that differ between sessions: the model's effects, and the best candidate
-    beside them (fitted on each flight's rows when one of them is nonlinear)."""
+    beside them (from the flights' statistics when they are linear, or the best alone with a
+    profile; otherwise fitted on each flight's rows)."""
     best = [p.effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
-    if all(e.linear for e in p.model_effects + best):
+    effects = p.model_effects + best
+    if all(e.linear for e in effects) or (len(effects) == 1 and p.from_profile(effects[0])):
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
                                         log)
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
@@ -539,8 +567,9 @@ def diagnose(
 
     With a model of linear effects, fits, folds and held-out tests combine the flights'
     sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
-    decoded table); nonlinear candidates read their training flights' rows, and the evaluated
-    flights' rows give the regime tables and spectra."""
+    decoded table), one-parameter nonlinear candidates from the flights' profiles
+    (:mod:`quadcore.identify.profiles`; a candidate with several nonlinear parameters reads its
+    training flights' rows), and the evaluated flights' rows give the regime tables and spectra."""
     p = _Problem(decoded, spec, candidates, stats)
     splits, train_all, mode = _splits(p.ids, holdout, n_folds)
     folds = _cross_fit(p, splits, sessions, log)

@@ -34,7 +34,7 @@ smoother.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -370,11 +370,10 @@ def _objective(nonlin, lin, flights, ys, w, vehicle, x, keys=None) -> tuple[floa
 
 
 def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
-    """One nonlinear parameter: a geometric grid over its bounds, then Brent's method
-    between the grid neighbours of the best point. Variance from the curvature of J
-    (a one-sided second difference when the optimum sits on a bound)."""
+    """One nonlinear parameter, from rows: :func:`scalar_minimum` of the objective on every
+    flight's rows (a flight's statistics with a profile of the effect give the same search
+    without them: :func:`quadcore.identify.profiles.fit_effect`)."""
     (p,) = [q for e in nonlin for q in e.parameters]
-    span = p.upper - p.lower
     memo: dict[float, tuple[float, int]] = {}
     keys = None if lin else [hashlib.blake2b(np.ascontiguousarray(y).tobytes(), digest_size=16).hexdigest()
                              for y in ys]
@@ -385,7 +384,23 @@ def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
             memo[v] = _objective(nonlin, lin, flights, ys, w, vehicle, np.array([v]), keys)
         return memo[v][0]
 
-    grid = np.unique(np.concatenate([[p.lower], p.lower + span * np.geomspace(1e-3, 1.0, 16)]))
+    J(p.lower)  # the grid's first point; n is the same at every value
+    n = memo[float(p.lower)][1]
+    best, var = scalar_minimum(J, n, p.lower, p.upper)
+    return np.array([best]), np.array([[var]])
+
+
+def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: float) -> tuple[float, float]:
+    """The minimum of ``J`` (a weighted sum of squares over ``n`` values) over ``[lower, upper]``
+    and the variance of its position: ``J`` on the geometric grid
+    (:func:`quadcore.identify.profiles.search_grid`), then Brent's method between the grid
+    neighbours of the best point (``xatol`` 5e-4 of the span); the variance from the curvature
+    of ``J`` (a one-sided second difference when the optimum sits on a bound),
+    ``2 J/(n - 1) / J'' × SAMPLES_PER_INDEPENDENT``."""
+    from quadcore.identify.profiles import search_grid
+
+    span = upper - lower
+    grid = search_grid(lower, upper)
     costs = [J(g) for g in grid]
     i = int(np.argmin(costs))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
@@ -394,17 +409,17 @@ def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
         res = minimize_scalar(J, bounds=(lo, hi), method="bounded", options={"xatol": 5e-4 * span})
         if res.fun <= costs[i]:
             best = float(res.x)
-    j0, n = J(best), memo[float(min(max(best, p.lower), p.upper))][1]
+    j0 = J(best)
     h = max(1e-3 * span, 0.01 * abs(best))
-    if best + h > p.upper:  # on the upper bound: one-sided, inwards
+    if best + h > upper:  # on the upper bound: one-sided, inwards
         curvature = (J(best - 2 * h) - 2 * J(best - h) + j0) / h**2
-    elif best - h < p.lower:
+    elif best - h < lower:
         curvature = (J(best + 2 * h) - 2 * J(best + h) + j0) / h**2
     else:
         curvature = (J(best + h) - 2 * j0 + J(best - h)) / h**2
     s2 = j0 / max(n - 1, 1)
     var = 2 * s2 / curvature * SAMPLES_PER_INDEPENDENT if curvature > 0 else np.inf
-    return np.array([best]), np.array([[var]])
+    return best, float(var)
 
 
 def _vector_search(nonlin, lin, flights, ys, w, vehicle):

@@ -9,7 +9,10 @@ held-out test needs from a flight, without its rows.
 ``X_ick`` the smoothed wrench per unit of linear coordinate ``k`` of every linear effect of
 the :class:`Layout` (:meth:`quadcore.effects.Effect.basis`, as :meth:`FlightData.basis`),
 ``y0`` the nominal residual (measured minus the nominal model, with the flight's own thrust
-map), and ``e`` optional extra signals (a nonlinear effect's prediction on a held-out flight).
+map), and ``e`` extra signals: the unit wrench (and sensitivity reference) of each one-parameter
+nonlinear effect of the layout, then any added for a held-out flight (a nonlinear effect's
+prediction there). Those effects' fits and predictions come from their per-flight profiles
+(:mod:`quadcore.identify.profiles`), stored beside the Gram matrices.
 Per block ``b`` of :data:`quadcore.identify.evidence.BLOCK_S` seconds (the clusters of the held-out
 test), per channel, the statistics are the Gram matrix and the sample count
 
@@ -55,6 +58,7 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
+from quadcore.identify import profiles
 from quadcore.physics.vehicle import Vehicle
 from quadcore.store import store
 from quadcore.store.names import check_component
@@ -64,7 +68,7 @@ if TYPE_CHECKING:
 
     from quadcore.identify.fitting import FlightData
 
-FORMAT = 1  # bump when what the statistics mean changes: stored ones become stale
+FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
 GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis._SpanOverlap)
 
@@ -77,11 +81,13 @@ class StatsError(ValueError):
 @dataclass(frozen=True)
 class Layout:
     """Which column is which: the linear coordinates of each effect (in order), then ``y0``,
-    then named extra signals."""
+    then named extra signals; ``profiled``: the one-parameter nonlinear effects whose profiles
+    the statistics hold (:mod:`quadcore.identify.profiles`)."""
 
     effects: tuple[str, ...]
     sizes: tuple[int, ...]
     extras: tuple[str, ...] = ()
+    profiled: tuple[str, ...] = ()
 
     @property
     def y0(self) -> int:
@@ -103,7 +109,8 @@ class Layout:
         return self.y0 + 1 + self.extras.index(name)
 
     def with_extras(self, names: Sequence[str]) -> Layout:
-        return Layout(self.effects, self.sizes, tuple(names))
+        """This layout with more extra columns after its own."""
+        return Layout(self.effects, self.sizes, self.extras + tuple(names), self.profiled)
 
     def unit(self, index: int) -> np.ndarray:
         v = np.zeros(self.width)
@@ -131,19 +138,24 @@ class Layout:
 
 
 def layout_of(effects: Iterable[Effect]) -> Layout:
-    """The layout of the linear ones of ``effects``, in the order given."""
+    """The layout of the linear ones of ``effects`` and of the one-parameter nonlinear ones
+    (profiled, with their fixed extra columns), in the order given."""
+    effects = list(effects)
     lin = [e for e in effects if e.linear]
-    return Layout(tuple(e.name for e in lin), tuple(len(e.parameters) for e in lin))
+    prof = [e for e in effects if profiles.profiled(e)]
+    return Layout(tuple(e.name for e in lin), tuple(len(e.parameters) for e in lin),
+                  tuple(c for e in prof for c in profiles.fixed_columns(e)), tuple(e.name for e in prof))
 
 
 def library_layout() -> Layout:
-    """Every linear effect known in this process (built-in, then loaded plugins)."""
+    """Every linear and one-parameter nonlinear effect known in this process (built-in, then loaded plugins)."""
     return layout_of(effectlib.registry().values())
 
 
 def spec_layout(spec) -> Layout:
     """What the per-flight asset stores for a :class:`quadcore.identify.model.ModelSpec`: every
-    built-in linear effect, then the linear plugin effects the spec's model uses. Decided by the
+    built-in linear effect, then the linear plugin effects the spec's model uses, and the
+    profiles of the one-parameter nonlinear ones of both (:mod:`quadcore.identify.profiles`). Decided by the
     spec alone, not by the plugins this process happens to have loaded (a long-lived process
     keeps every plugin it ever loaded); a plugin candidate outside the model is computed from
     rows where needed (:func:`for_flights`)."""
@@ -171,6 +183,7 @@ class FlightStats:
     vbat_median_V: float
     blocks_source: Callable[[], np.ndarray]
     source: str = ""  # the SHA-256 of the log the decoded table came from (stale once it is re-decoded)
+    profiles: profiles.Profiles | None = None  # of the layout's profiled effects
 
     @cached_property
     def gram(self) -> np.ndarray:
@@ -224,7 +237,9 @@ def block_index(t_s: np.ndarray) -> np.ndarray:
 
 def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
                  extras: dict[str, np.ndarray] | None = None) -> FlightStats:
-    """The statistics of a :class:`quadcore.identify.fitting.FlightData` (its rows read once)."""
+    """The statistics of a :class:`quadcore.identify.fitting.FlightData` (its rows read once),
+    with the profiles of the layout's profiled effects (their fixed columns computed here)."""
+    extras = {**profiles.fixed_signals(layout.profiled, fd, vehicle), **(extras or {})}
     Z = design_rows(fd, vehicle, layout, extras)[fd.mask]
     blocks = block_index(fd.state.t_s[fd.mask])
     B = int(blocks.max()) + 1 if len(blocks) else 0
@@ -232,8 +247,11 @@ def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
     gram = np.stack([np.einsum("nci,ncj->cij", Z[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) \
         if B else np.zeros((0, 6, layout.width, layout.width))
     thin = Z[::GRAM_STRIDE]
-    return from_blocks(fd.flight, layout, key, gram, np.diff(starts), np.einsum("nci,ncj->cij", thin, thin),
-                       np.asarray(fd.noise, dtype=float), fd.vbat_std_V, fd.vbat_median_V)
+    s = from_blocks(fd.flight, layout, key, gram, np.diff(starts), np.einsum("nci,ncj->cij", thin, thin),
+                    np.asarray(fd.noise, dtype=float), fd.vbat_std_V, fd.vbat_median_V)
+    if not layout.profiled:
+        return s
+    return replace(s, profiles=profiles.compute(layout.profiled, fd, vehicle, Z, starts, GRAM_STRIDE))
 
 
 # ---------------------------------------------------------------------------------------
@@ -275,8 +293,11 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
 
     fixed = fixed or {}
     nonlinear = [e.name for e in effects if not e.linear]
+    if len(effects) == 1 and not fixed and profiles.covers(effects[0], stats):
+        return profiles.fit_effect(effects[0], stats, targets)
     if nonlinear:
-        raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics")
+        raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics "
+                         "(one alone with a profile in every flight's statistics excepted)")
     vs = [np.asarray(v, dtype=float) for v in targets]
     w = channel_weights(stats, vs)
     params, std = fitting.fixed_values(effects, fixed)
@@ -344,12 +365,14 @@ def compute(spec, flight: str, decoded, layout: Layout, source: str = "") -> Fli
 
 def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
                 stored: Callable[[str], FlightStats | None] | None = None) -> dict[str, FlightStats]:
-    """Statistics of ``flights`` holding ``layout``'s effects: the stored ones (``stored(flight)``,
-    None when missing or stale), else computed from the decoded table (its rows read once)."""
+    """Statistics of ``flights`` holding ``layout``'s effects and profiles: the stored ones
+    (``stored(flight)``, None when missing or stale), else computed from the decoded table (its
+    rows read once)."""
     out = {}
     for f in flights:
         s = stored(f) if stored else None
-        if s is None or not set(layout.effects) <= set(s.layout.effects):
+        if s is None or not (set(layout.effects) <= set(s.layout.effects)
+                             and set(layout.profiled) <= set(s.layout.profiled)):
             s = compute(spec, f, decoded[f], layout)
         out[f] = s
     return out
@@ -364,7 +387,7 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 # (fitting.flight_data), the blocks (evidence.BLOCK_S), the bases' helpers and this module.
 CODE_MODULES = ("quadcore.physics.dynamics", "quadcore.physics.residuals", "quadcore.physics.signals",
                 "quadcore.physics.rotations", "quadcore.identify.fitting", "quadcore.identify.evidence",
-                "quadcore.effects.base", "quadcore.identify.sufficient")
+                "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles")
 
 
 @functools.lru_cache(maxsize=1)
@@ -400,7 +423,7 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
     key are stale."""
     content = {"format": FORMAT, "code": code_digest(), "layout": asdict(layout), "vehicle": _content(vehicle),
                "flight_vehicle": _content(flight_vehicle),
-               "effects": {n: _source_digest(type(effectlib.get(n))) for n in layout.effects}}
+               "effects": {n: _source_digest(type(effectlib.get(n))) for n in (*layout.effects, *layout.profiled)}}
     text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -467,7 +490,7 @@ def save(s: FlightStats, root: Any) -> Any:
     header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
               "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V, "source": s.source}
     data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
-                            "noise": s.noise, "gram": _packed(s.gram)})
+                            "noise": s.noise, "gram": _packed(s.gram), **profiles.arrays(s.profiles)})
     return store.atomic_write(stats_path(root, s.flight), lambda tmp: Path(tmp).write_bytes(data))
 
 
@@ -481,12 +504,12 @@ def load(root: Any, flight: str) -> FlightStats:
         if header.get("format") != FORMAT:
             raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
         lay = header["layout"]
-        layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]))
+        layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]), tuple(lay["profiled"]))
         width = layout.width
         return FlightStats(header["flight"], layout, header["key"], _unpacked(array("total"), width), array("rows"),
                            _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
                            float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width),
-                           str(header.get("source", "")))
+                           str(header.get("source", "")), profiles.from_arrays(layout, array))
     except (ValueError, KeyError, TypeError) as exc:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
 

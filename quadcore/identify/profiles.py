@@ -1,0 +1,309 @@
+"""Per-flight profiles of the one-parameter nonlinear effects: their search and held-out test
+from a flight's statistics, without its rows.
+
+A nonlinear effect ``e`` with one parameter ``v`` (``motor_lag``'s τ, ``thrust_delay``'s t_d, a
+plugin's) predicts ``p_ic(v)`` (smoothed force and torque, body frame, as
+:func:`quadcore.identify.fitting.prediction`). Every sum its fit and its held-out test take of
+``p`` against a signal ``s = z·u`` of the flight's statistics (:mod:`quadcore.identify.sufficient`)
+is ``Σ_i p_ic(v) z_ic·u`` or ``Σ_i p_ic(v)²``. So, per flight, on a fixed grid ``v_g`` of the
+parameter (:func:`profile_grid`: the search's 17 points, :func:`search_grid`, and
+``GRID_DENSITY - 1`` geometric points between each two), the profile holds per channel ``c``
+
+    P_gc = [Σ_i p_ic(v_g) z_ic  |  Σ_i p_ic(v_g)²]          (W + 1 numbers)
+
+per 1 s block (float32: the held-out test's clusters), over the flight (float64: the fits), and
+over every ``GRAM_STRIDE``-th sample (the signature comparison); and between two profiled
+effects ``a``, ``b`` the cross sums ``Σ_i p_a(v_g)·p_b(v_h)`` per channel over those strided
+samples (float32), all the signature comparison asks of two predictions. The columns ``z``
+include, per profiled effect, its unit wrench (:func:`quadcore.identify.evidence.unit_wrench`,
+``unit:<effect>:<parameter>``) and its prediction at the sensitivity reference (``ref:<effect>``)
+when it has one: fixed signals, so the detection limits take them as any other column.
+
+**Between grid points** a sum is interpolated linearly in its grid values (:func:`weights`): a
+not-a-knot cubic spline in ``log(v - lower)`` over the grid's points above the lower bound,
+linear in ``v`` between the lower bound and the first point above it (``motor_lag`` jumps there:
+any τ > 0 delays the thrust by a whole sample). So, with weights ``ω(v)``, the fit's objective
+(:func:`quadcore.identify.fitting.fit_effects`, weights ``w_c``, residual ``r_f = z·u_f``) is
+
+    J(v) = Σ_f Σ_c w_c [u_fᵀ G_fc u_f - 2 ω(v)·(P_f·c[:W] u_f) + ω(v)·P_f·c[W]],
+
+exact on the grid (the search's grid stage finds the row search's grid point), a smooth
+interpolant between (the bounded Brent refinement and the curvature's second difference
+run on it). A held-out prediction at the fitted ``v`` is an extra column whose sums with every
+other column are ``ω(v)·P`` per block. A cross between two profiled effects' predictions is
+known on the strided samples only: over the flight it is taken as that times the samples'
+ratio, per block shared out in proportion to ``sqrt(aa_b bb_b)``; no score reads those two
+(the comparison of two predictions cancels their cross exactly).
+
+**Accuracy** (``benchmarks/bench_profiles.py``, all flights fitted at once): for ``motor_lag``
+the profile search lands within 0.02 of the row search's own tolerance (``xatol``, 5e-4 of the
+span) of where it does, with the same standard error. A delay's row objective ripples with the
+sample period (``thrust_delay`` is linear between samples, so it smooths the thrust most
+half-way between them; on the 19 real flights the ripple is a third of the objective's rise
+over ±5 ms): the grid does not resolve it, and the profile search finds the minimum of the
+smooth curve through the exact grid values, up to 0.6 sample from the row search's trough
+(0.05 sample on simulated flights), with the smooth curve's larger standard error.
+
+Measured on the 19 real flights and simulated ones with a hidden ``motor_lag`` against the row
+search (``benchmarks/bench_profiles.py``): see the README.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from functools import cached_property, lru_cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from quadcore import effects as effectlib
+from quadcore.effects import Effect
+from quadcore.physics.vehicle import Vehicle
+
+if TYPE_CHECKING:
+    from quadcore.identify.fitting import Fit, FlightData
+    from quadcore.identify.sufficient import FlightStats, Layout
+
+GRID_DENSITY = 2  # intervals of the profile's grid per interval of the search's grid
+
+
+def profiled(effect: Effect) -> bool:
+    """Whether an effect's fit and held-out test can come from profiles: nonlinear, one parameter."""
+    return not effect.linear and len(effect.parameters) == 1
+
+
+def search_grid(lower: float, upper: float) -> np.ndarray:
+    """The row search's grid: the lower bound and 16 geometric points up to the upper one."""
+    span = upper - lower
+    return np.unique(np.concatenate([[lower], lower + span * np.geomspace(1e-3, 1.0, 16)]))
+
+
+@lru_cache(maxsize=64)
+def profile_grid(lower: float, upper: float) -> np.ndarray:
+    """The search's grid with ``GRID_DENSITY - 1`` geometric points between each two above the
+    lower bound (the search's points kept bit for bit)."""
+    base = search_grid(lower, upper)
+    between = [lower + (a - lower) * ((b - lower) / (a - lower)) ** (np.arange(1, GRID_DENSITY) / GRID_DENSITY)
+               for a, b in zip(base[1:-1], base[2:])]
+    return np.unique(np.concatenate([base, *between]))
+
+
+@lru_cache(maxsize=64)
+def _spline(lower: float, upper: float) -> CubicSpline:
+    grid = profile_grid(lower, upper)
+    return CubicSpline(np.log(grid[1:] - lower), np.eye(len(grid) - 1), axis=0)
+
+
+def weights(lower: float, upper: float, v: float) -> np.ndarray:
+    """(G,) interpolation weights of the profile's grid at ``v`` (see the module): any sum at
+    ``v`` is ``weights · (its grid values)``; on a grid point, that point's unit vector."""
+    grid = profile_grid(lower, upper)
+    v = float(min(max(v, lower), upper))
+    out = np.zeros(len(grid))
+    hit = np.flatnonzero(grid == v)
+    if len(hit):
+        out[hit[0]] = 1.0
+    elif v < grid[1]:
+        t = (v - grid[0]) / (grid[1] - grid[0])
+        out[0], out[1] = 1.0 - t, t
+    else:
+        out[1:] = _spline(lower, upper)(np.log(v - lower))
+    return out
+
+
+def fixed_columns(effect: Effect) -> list[str]:
+    """The extra columns a profiled effect adds to its flights' statistics."""
+    names = [f"unit:{effect.name}:{p.name}" for p in effect.parameters]
+    return names + ([f"ref:{effect.name}"] if effect.sensitivity_reference else [])
+
+
+def fixed_signals(names: Sequence[str], fd: FlightData, vehicle: Vehicle) -> dict[str, np.ndarray]:
+    """(n, 6) the fixed columns of the profiled effects ``names`` on a flight."""
+    from quadcore.identify import evidence, fitting
+
+    out = {}
+    for name in names:
+        e = effectlib.get(name)
+        out.update({f"unit:{name}:{p.name}": evidence.unit_wrench(e, p, fd, vehicle) for p in e.parameters})
+        if e.sensitivity_reference:
+            out[f"ref:{name}"] = fitting.prediction(e, {**e.defaults(), **e.sensitivity_reference}, fd, vehicle)
+    return out
+
+
+@dataclass(frozen=True)
+class Profile:
+    """One effect's profile on one flight (see the module): ``total`` and ``strided``
+    (G, 6, W + 1), the per-block ones (B, G, 6, W + 1) :attr:`blocks` read when first asked for."""
+
+    effect: str
+    total: np.ndarray
+    strided: np.ndarray
+    blocks_source: Callable[[], np.ndarray]
+
+    @cached_property
+    def blocks(self) -> np.ndarray:
+        return self.blocks_source()
+
+    @property
+    def parameter(self):
+        return effectlib.get(self.effect).parameters[0]
+
+    def at(self, v: float) -> np.ndarray:
+        """(G,) the interpolation weights at ``v``."""
+        p = self.parameter
+        return weights(p.lower, p.upper, v)
+
+
+@dataclass(frozen=True)
+class Profiles:
+    """A flight's profiles, by effect, and the strided cross sums of each pair of them, by
+    ``(a, b)`` in the layout's order: (Ga, Gb, 6); ``thinning``: the usable samples over the
+    strided ones."""
+
+    by_effect: Mapping[str, Profile]
+    cross: Mapping[tuple[str, str], np.ndarray]
+    thinning: float
+
+
+def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarray, starts: np.ndarray,
+            stride: int) -> Profiles:
+    """The profiles of ``names`` on a flight: ``Z`` (m, 6, W) its augmented design on the usable
+    samples, ``starts`` (B + 1,) where each block starts in them."""
+    from quadcore.identify import fitting
+
+    preds, by_effect = {}, {}
+    for name in names:
+        e = effectlib.get(name)
+        (p,) = e.parameters
+        P = np.stack([fitting.prediction(e, {**e.defaults(), p.name: float(v)}, fd, vehicle)[fd.mask]
+                      for v in profile_grid(p.lower, p.upper)], axis=2)  # (m, 6, G)
+        preds[name] = P
+        blocks = np.stack([_sums(P[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) if len(starts) > 1 \
+            else np.zeros((0, P.shape[2], 6, Z.shape[2] + 1))
+        stored = blocks.astype(np.float32)  # as the file holds them
+        by_effect[name] = Profile(name, blocks.sum(axis=0), _sums(P[::stride], Z[::stride]),
+                                  lambda stored=stored: stored)
+    cross = {(a, b): np.einsum("ncg,nch->ghc", preds[a][::stride], preds[b][::stride]).astype(np.float32)
+             for i, a in enumerate(names) for b in names[i + 1:]}
+    return Profiles(by_effect, cross, len(Z) / max(len(Z[::stride]), 1))
+
+
+def _sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """(G, 6, W + 1): ``Σ p·z`` per column and ``Σ p·p``, per grid point and channel."""
+    return np.concatenate([np.einsum("ncg,ncw->gcw", P, Z), np.einsum("ncg,ncg->gc", P, P)[:, :, None]], axis=2)
+
+
+# ---------------------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------------------
+
+def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
+    """Whether every flight's statistics hold a profile of ``effect``."""
+    return profiled(effect) and all(s.profiles is not None and effect.name in s.profiles.by_effect for s in stats)
+
+
+def fit_effect(effect: Effect, stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> Fit:
+    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect alone to the targets
+    ``z·u_f`` from the flights' profiles: the same grid, Brent refinement and curvature as the
+    row search (:func:`quadcore.identify.fitting.scalar_minimum`), on ``J(v)`` of the module."""
+    from quadcore.identify import fitting, sufficient
+
+    (p,) = effect.parameters
+    us = [np.asarray(u, dtype=float) for u in targets]
+    w = sufficient.channel_weights(stats, us)
+    const, S, Q, n = 0.0, 0.0, 0.0, 0
+    for s, u in zip(stats, us):
+        prof = s.profiles.by_effect[effect.name].total
+        width = len(u)
+        const += float(w @ sufficient.channel_sums(s.total, u, u))
+        S = S + np.einsum("gcw,w,c->g", prof[:, :, :width], u, w)
+        Q = Q + prof[:, :, -1] @ w
+        n += 6 * s.n
+
+    def J(v: float) -> float:
+        om = weights(p.lower, p.upper, v)
+        return max(const - 2 * float(om @ S) + float(om @ Q), 0.0)
+
+    best, var = fitting.scalar_minimum(J, n, p.lower, p.upper)
+    return fitting.Fit({effect.name: {p.name: best}}, {effect.name: {p.name: float(np.sqrt(max(var, 0.0)))}}, w)
+
+
+# ---------------------------------------------------------------------------------------
+# Held-out predictions as extra columns
+# ---------------------------------------------------------------------------------------
+
+def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats:
+    """A flight's statistics with, per profiled effect in ``values`` (name -> its parameter's
+    value), its prediction there as an extra column ``pred:<effect>`` (see the module)."""
+    names = list(values)
+    base = s.layout.width
+    layout = s.layout.with_extras([f"pred:{n}" for n in names])
+    prof = s.profiles
+    om = {n: prof.by_effect[n].at(values[n]) for n in names}
+    pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+
+    def grown(G: np.ndarray, part: Callable[[str], np.ndarray], cross_scale: float) -> np.ndarray:
+        """``G`` with the predictions' rows and columns (their crosses times ``cross_scale``)."""
+        out = np.zeros((*G.shape[:-2], layout.width, layout.width))
+        out[..., :base, :base] = G
+        for i, n in enumerate(names):
+            row = np.einsum("g,...gcw->...cw", om[n], part(n))
+            out[..., base + i, :base] = out[..., :base, base + i] = row[..., :base]
+            out[..., base + i, base + i] = row[..., base]
+        for i, j in pairs:
+            cross = cross_scale * _cross(prof.cross, names[i], names[j], om)
+            out[..., base + i, base + j] = out[..., base + j, base + i] = cross
+        return out
+
+    total = grown(s.total, lambda n: prof.by_effect[n].total, prof.thinning)
+    strided = grown(s.strided, lambda n: prof.by_effect[n].strided, 1.0)
+
+    def gram() -> np.ndarray:
+        blocks = grown(s.gram, lambda n: prof.by_effect[n].blocks.astype(float), 0.0)
+        for i, j in pairs:  # the flight's cross shared out over its blocks
+            a, b = base + i, base + j
+            share = np.sqrt(np.abs(blocks[:, :, a, a] * blocks[:, :, b, b]))
+            share = share / np.where(share.sum(axis=0) > 0, share.sum(axis=0), 1.0)
+            blocks[:, :, a, b] = blocks[:, :, b, a] = share * total[:, a, b]
+        return blocks
+
+    return replace(s, layout=layout, total=total, strided=strided, blocks_source=gram, profiles=None)
+
+
+def _cross(cross: Mapping, a: str, b: str, om: Mapping) -> np.ndarray:
+    """(6,) the strided ``Σ p_a(v_a)·p_b(v_b)`` per channel."""
+    C = cross[a, b] if (a, b) in cross else np.swapaxes(cross[b, a], 0, 1)
+    return np.einsum("g,ghc,h->c", om[a], C.astype(float), om[b])
+
+
+# ---------------------------------------------------------------------------------------
+# Storage (in the flight's statistics file)
+# ---------------------------------------------------------------------------------------
+
+def arrays(profiles: Profiles | None) -> dict[str, np.ndarray]:
+    """The arrays a flight's statistics file holds for its profiles."""
+    if profiles is None:
+        return {}
+    out = {}
+    for name, prof in profiles.by_effect.items():
+        out[f"profile:{name}:total"] = prof.total
+        out[f"profile:{name}:strided"] = prof.strided
+        out[f"profile:{name}:blocks"] = prof.blocks
+    for (a, b), C in profiles.cross.items():
+        out[f"cross:{a}:{b}"] = C
+    out["profile_thinning"] = np.array([profiles.thinning])
+    return out
+
+
+def from_arrays(layout: Layout, array: Callable[[str], np.ndarray]) -> Profiles | None:
+    """The profiles of a statistics file (``array(name)`` reads one of its arrays)."""
+    names = list(layout.profiled)
+    if not names:
+        return None
+    by_effect = {n: Profile(n, array(f"profile:{n}:total"), array(f"profile:{n}:strided"),
+                            lambda n=n: array(f"profile:{n}:blocks")) for n in names}
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    return Profiles(by_effect, {k: array(f"cross:{k[0]}:{k[1]}") for k in pairs},
+                    float(array("profile_thinning")[0]))
