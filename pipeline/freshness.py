@@ -143,7 +143,7 @@ ALL_FLIGHTS_FRESH = ~dg.AutomationCondition.any_deps_match(
 class StatisticsOutdated(dg.AutomationCondition):
     """True for the flight partitions whose statistics were computed for another vehicle,
     session thrust map or effect library than the model file gives now (metadata
-    ``stats_version`` against :func:`quadcore.identify.sufficient.current_key`). Not the
+    ``stats_version`` against :func:`quadcore.identify.library_stats.version`). Not the
     fitted model's version: the fit is made from the statistics, so that would be a cycle."""
 
     @property
@@ -155,7 +155,7 @@ class StatisticsOutdated(dg.AutomationCondition):
         return "computed for another vehicle, thrust map or effect library"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
-        from quadcore.identify import sufficient
+        from quadcore.identify import library_stats
 
         candidates = context.candidate_subset.expensively_compute_partition_keys()
         if not candidates or context.partitions_def is None:
@@ -166,7 +166,7 @@ class StatisticsOutdated(dg.AutomationCondition):
             context.log.warning(f"cannot read the model file: {exc}")
             return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())
         subset, _, stale = _recorded_otherwise(context, context.partitions_def, candidates, STATS_VERSION,
-                                               lambda p: sufficient.current_key(spec, p))
+                                               lambda p: library_stats.version(spec, p))
         return dg.AutomationResult(context=context, true_subset=subset, metadata={"stale_flights": len(stale)})
 
 

@@ -38,7 +38,7 @@ from pipeline.resources import (
     model_config_from_env,
     retrain_cron,
 )
-from quadcore.identify import sufficient
+from quadcore.identify import library_stats, sufficient
 from quadcore.logs import flight
 from quadcore.store import safewrite, store
 from quadcore.workflows import identify, learn, summary
@@ -170,10 +170,11 @@ def to_recompute(
 
 
 def to_restat(data_root: DataRoot, model: ModelConfig, ids: list[str], decoded_now: list[str]) -> list[str]:
-    """Flights whose sufficient statistics are missing, or older than their decode, or made for
+    """Flights whose sufficient or discovery statistics are missing, or older than their decode, or made for
     another vehicle, thrust map or effect library than the model file gives now."""
-    current = sufficient.stored(data_root.root_path, model.spec())
-    return [f for f in ids if f in decoded_now or current(f) is None]
+    spec = model.spec()
+    current, library = sufficient.stored(data_root.root_path, spec), library_stats.stored(data_root.root_path, spec)
+    return [f for f in ids if f in decoded_now or current(f) is None or library(f) is None]
 
 
 def fleet_is_stale(root: Path, model: ModelConfig, changed: list[str]) -> bool:

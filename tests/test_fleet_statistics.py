@@ -69,3 +69,79 @@ def test_facts_answer_for_another_vehicles_columns(decoded_root):
     df = store.read_parquet(path)
     for columns in (["t_s", "vbat_V"], [c for c in df.columns if c.startswith("pwm_")] + ["t_s"]):
         assert facts.covers(columns) and facts.problem(columns) == checks.physics_problem(df, columns)
+
+
+# ---------------------------------------------------------------------------------------
+# Term discovery from the flights' stored library statistics
+# ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def stats_root(drag_fleet, tmp_path_factory):
+    """drag_fleet decoded, with every flight's sufficient and discovery statistics stored (what
+    the flight_statistics asset writes)."""
+    from quadcore.identify import library_stats, model, sufficient
+
+    root = tmp_path_factory.mktemp("stats_root")
+    fleet.decode_logs([str(drag_fleet)], out=root)
+    for spec in (model.spec_from(vehicle.load(), []), model.spec_from(vehicle.load(), ["rotor_drag"])):
+        for fid in store.decoded_flights(root, MAIN_EVENT):
+            df, source = store.read_decoded(root, MAIN_EVENT, fid), sufficient.decoded_source(root, fid)
+            sufficient.save(sufficient.compute_current(spec, fid, df, source), root)
+            library_stats.save(library_stats.compute(spec, fid, df, source), root)
+    return root
+
+
+def _discoveries(root, effects, holdout, monkeypatch) -> tuple[dict, dict, list]:
+    """(from rows, from the stored statistics, the decoded tables read for the second)."""
+    from quadcore.identify import model
+    from quadcore.workflows import identify
+
+    spec = model.spec_from(vehicle.load(), effects)
+    rows = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, default_held=False)
+    reads = _counting_reads(monkeypatch)
+    stored = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, default_held=False,
+                               root=root)
+    return rows.to_dict(), stored.to_dict(), reads
+
+
+@pytest.mark.parametrize("holdout", [["sim003"], []])
+def test_discovery_from_stored_statistics_is_discovery_from_rows(stats_root, monkeypatch, holdout):
+    rows, stored, reads = _discoveries(stats_root, [], holdout, monkeypatch)
+    assert reads == []  # neither usability nor discovery read a decoded table
+    assert rows["terms"], "drag_fleet hides rotor drag: discovery finds terms"
+    after_rows, after_stored = rows.pop("after"), stored.pop("after")
+    assert stored == rows  # terms, coefficients, errors, shares, baseline RMSE: the same sums in the same order
+    # the RMSE after the terms is a quadratic form of the Gram matrices instead of a sum over rows
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        assert after_stored[key] == pytest.approx(after_rows[key], rel=1e-10)
+
+
+def test_discovery_under_a_linear_model_subtracts_its_fit_from_the_stored_sums(stats_root, monkeypatch):
+    """Under rotor_drag (fitted from the sufficient statistics), the residual's Gram matrix is
+    TᵀGT: the same discovery as from the rows' residual, to rounding."""
+    rows, stored, reads = _discoveries(stats_root, ["rotor_drag"], ["sim003"], monkeypatch)
+    assert reads == []
+    assert [t["expression"] for t in stored["terms"]] == [t["expression"] for t in rows["terms"]]
+    for key in ("baseline", "after"):
+        for unit in ("force_rmse_N", "torque_rmse_Nm"):
+            assert stored[key][unit] == pytest.approx(rows[key][unit], rel=1e-9)
+    assert stored["axes"] == rows["axes"] and stored["noise_floor"] == rows["noise_floor"]
+
+
+def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, monkeypatch):
+    """A flight decoded again from other bytes (another SHA-256 in its footer) or whose file is
+    cut short is not trusted: its rows are read, and the result is unchanged."""
+    import shutil
+
+    from quadcore.identify import library_stats, model
+
+    root = tmp_path / "root"
+    shutil.copytree(stats_root, root)
+    path = library_stats.library_path(root, "sim001")
+    path.write_bytes(path.read_bytes()[:-100])
+    spec = model.spec_from(vehicle.load(), [])
+    assert library_stats.stored(root, spec)("sim001") is not None  # the header is whole: caught when read
+    rows, stored, reads = _discoveries(root, [], ["sim003"], monkeypatch)
+    assert [p.parent.name for p in reads] == ["flight=sim001"]
+    rows.pop("after"), stored.pop("after")
+    assert stored == rows

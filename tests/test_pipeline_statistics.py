@@ -1,6 +1,6 @@
 """The per-flight statistics asset, materialised for real: it writes each flight's statistics,
-the fleet fit combines them (no training rows read), and a model file naming another thrust map
-marks them stale."""
+the fleet fit and term discovery combine them (no decoded table read), and a model file naming
+another thrust map marks them stale."""
 
 from __future__ import annotations
 
@@ -9,12 +9,13 @@ import pytest
 
 from pipeline import main as job
 from pipeline.assets.decode import decoded_flight
+from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import physics_model
 from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import STATS_VERSION, versions_used
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import effects
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import fitting, library_stats, sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.store import store
@@ -37,15 +38,19 @@ def test_statistics_asset_feeds_the_fleet_fit(drag_fleet, tmp_path, monkeypatch)
         assert job.run_flights(instance, resources, FLIGHTS, [decoded_flight, flight_statistics], "decode",
                                log=lambda msg: None) == {}
         recorded = versions_used(instance, flight_statistics.key, set(FLIGHTS), STATS_VERSION)
-        assert recorded == {f: sufficient.current_key(spec, f) for f in FLIGHTS}
+        assert recorded == {f: library_stats.version(spec, f) for f in FLIGHTS}
         assert all(sufficient.load_current(root, f, sufficient.current_key(spec, f)) for f in FLIGHTS)
+        assert all(library_stats.stored(root, spec)(f) is not None for f in FLIGHTS)
 
         def no_rows(*args, **kwargs):
-            raise AssertionError("the fit read a flight's rows although its statistics were stored")
+            raise AssertionError("a fleet asset read a flight's rows although its statistics were stored")
 
         with monkeypatch.context() as m:
             m.setattr(sufficient, "compute", no_rows)
-            _run([physics_model], resources, instance)
+            m.setattr(library_stats, "compute", no_rows)
+            m.setattr(store, "read_parquet", no_rows)
+            _run([physics_model, term_discovery], resources, instance)
+        assert store.read_json(store.discovery_path(root))["effects_in_model"] == ["rotor_drag"]
         fitted = store.read_json(store.physics_model_path(root))
         train = fitted["trained_on"]
         veh = vehicle.load()

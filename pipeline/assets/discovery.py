@@ -28,7 +28,8 @@ def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model
     flights = load_fleet(data_root, spec.vehicle, context.log)
     with failing_on_user_errors():  # a bad QUADCORE_HOLDOUT fails here, as in physics_model
         try:
-            result = identify.discover(flights, spec, model.holdout_flights, context.log.info)
+            result = identify.discover(flights, spec, model.holdout_flights, context.log.info,
+                                       root=data_root.root_path)
         except identify.TooFewFlights as exc:  # a young fleet: the diagnosis still runs, discovery waits
             why = f"skipped: {exc}; {len(flights.tables)} usable decoded"
             context.log.warning(why)

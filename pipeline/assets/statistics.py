@@ -8,7 +8,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import STATS_REFRESH, STATS_VERSION
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.identify import sufficient
+from quadcore.identify import library_stats, sufficient
 from quadcore.physics import dynamics
 from quadcore.store import store
 from quadcore.workflows.fleet import MAIN_EVENT
@@ -20,7 +20,9 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
                       model: ModelConfig) -> dg.MaterializeResult:
     """Per 1 s block of the flight, the Gram matrix of [every linear effect's basis | the nominal
     residual] per channel, with the sensor-noise floor and sample counts: what the fleet fit,
-    its folds and the held-out tests need of this flight (``stats/flight=<id>/stats.bin``)."""
+    its folds and the held-out tests need of this flight (``stats/flight=<id>/stats.bin``); and
+    the Gram matrices of term discovery's candidate library (``library.bin``,
+    :mod:`quadcore.identify.library_stats`)."""
     spec = model.spec()
 
     def work(fid):
@@ -29,11 +31,15 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
             raise dg.Failure(description=f"{fid}: the log has no {MAIN_EVENT!r} records", allow_retries=False)
         try:
             source = sufficient.decoded_source(data_root.root_path, fid) or ""
-            s = sufficient.compute_current(spec, fid, store.read_parquet(path), source)
+            decoded = store.read_parquet(path)
+            s = sufficient.compute_current(spec, fid, decoded, source)
+            library = library_stats.compute(spec, fid, decoded, source)
         except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         written = sufficient.save(s, data_root.root_path)
-        return {STATS_VERSION: s.key, "blocks": s.blocks, "samples": s.n, "columns": s.layout.width,
+        library_stats.save(library, data_root.root_path)
+        return {STATS_VERSION: library_stats.version(spec, fid), "blocks": s.blocks, "samples": s.n,
+                "columns": s.layout.width, "discovery_columns": len(library.labels),
                 "path": dg.MetadataValue.path(str(written))}
 
     done = for_each_flight(context, work)

@@ -73,7 +73,7 @@ from sklearn.linear_model import orthogonal_mp_gram
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect, Parameter
-from quadcore.identify import evidence, fitting, sessions as sessionlib
+from quadcore.identify import evidence, fitting, library_stats, sessions as sessionlib, sufficient
 from quadcore.identify.model import ModelSpec
 from quadcore.physics import dynamics, signals
 from quadcore.physics.dynamics import XYZ, FlightState
@@ -393,6 +393,15 @@ class _Columns:
     def model0(self) -> int:
         return self.target0 + 6
 
+    def labels(self) -> tuple[str, ...]:
+        """A name per Gram column: ``force:<term>``, ``torque:<term>``, ``y:<axis>`` (the
+        residual), ``model:<axis>``, ``<effect>:<axis>:<parameter>``."""
+        out = [f"force:{self.terms[k].expression}" for k in self.force]
+        out += [f"torque:{self.terms[k].expression}" for k in self.torque]
+        out += [f"y:{a}" for a in range(6)] + [f"model:{a}" for a in range(6)]
+        out += [f"{name}:{axis}:{p}" for (name, axis), cs in self.effect_cols.items() for p in range(len(cs))]
+        return tuple(out)
+
 
 def _effect_basis(effect: Effect, state: FlightState, vehicle: Vehicle) -> list[tuple[np.ndarray, np.ndarray]]:
     """Its basis (linear effects) or its linearisation about 'no effect' (others)."""
@@ -408,28 +417,45 @@ def _effect_basis(effect: Effect, state: FlightState, vehicle: Vehicle) -> list[
     return out
 
 
-def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle, stride: int):
-    """Gram matrix of one flight's filtered terms, residual targets, modelled sides and the
-    effects' bases, on every ``stride``-th usable sample."""
+def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle) -> list:
+    """The Gram columns of one flight on all its samples, in blocks: filtered terms (force,
+    torque), residual targets, modelled sides, the effects' bases per axis."""
     s = fd.state
-    rows = np.flatnonzero(fd.mask)[::stride]
     raw = evaluate([t.expression for t in cols.terms], s, vehicle)
-    F = signals.smooth(raw[:, cols.force])[rows]
-    Tq = signals.matched_to_derivative(raw[:, cols.torque], s.t_s)[rows]
+    F = signals.smooth(raw[:, cols.force])
+    Tq = signals.matched_to_derivative(raw[:, cols.torque], s.t_s)
     T_N, tau_rotor = dynamics.wrench_from_thrusts(vehicle, s.f_rotor_N)
     f_model = np.zeros((s.n, 3))
     f_model[:, 2] = T_N
-    model = fitting.smoothed_wrench(f_model, tau_rotor, s.t_s)[rows]
-    blocks = [F, Tq, resid[rows], model]
+    model = fitting.smoothed_wrench(f_model, tau_rotor, s.t_s)
+    blocks = [F, Tq, resid, model]
     for e in fx_effects:
         try:
-            basis = [fitting.smoothed_wrench(f, t, s.t_s)[rows] for f, t in _effect_basis(e, s, vehicle)]
+            basis = [fitting.smoothed_wrench(f, t, s.t_s) for f, t in _effect_basis(e, s, vehicle)]
         # a user's effect failing here: not matched
         except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):
-            basis = [np.zeros((len(rows), 6)) for _ in e.parameters]
+            basis = [np.zeros((s.n, 6)) for _ in e.parameters]
         blocks += [np.stack([b[:, axis] for b in basis], axis=1) for axis in range(6)]
-    Z = np.concatenate(blocks, axis=1)
+    return blocks
+
+
+def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
+    Z = np.concatenate([b[rows] for b in blocks], axis=1)
     return Z.T @ Z
+
+
+def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle, stride: int):
+    """Gram matrix of one flight's filtered terms, residual targets, modelled sides and the
+    effects' bases, on every ``stride``-th usable sample."""
+    return _gram(_flight_blocks(fd, resid, cols, fx_effects, vehicle), np.flatnonzero(fd.mask)[::stride])
+
+
+def flight_grams(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle,
+                 stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix
+    on every usable sample: the held-out RMSE's) of one flight (see :mod:`quadcore.identify.library_stats`)."""
+    blocks = _flight_blocks(fd, resid, cols, fx_effects, vehicle)
+    return _gram(blocks, np.flatnonzero(fd.mask)[::stride]), _gram(blocks, np.flatnonzero(fd.mask))
 
 
 def _sse(G: np.ndarray, cols: list[int], y: int, beta: np.ndarray) -> float:
@@ -514,6 +540,8 @@ class _Library:
     sums: _GramSums
     samples: dict[str, int]
     noise_of: dict[str, np.ndarray]
+    full: _GramSums | None = None  # from statistics: the same sums on every usable sample
+    y0_squares: dict[str, np.ndarray] | None = None  # from statistics, a model without effects: Σ y0² per flight
 
 
 def _accumulate(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
@@ -533,12 +561,120 @@ def _accumulate(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spe
             if not motors:
                 vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
             terms = library(vars_)
-            cols = _columns(terms, fx_effects)
+            cols = library_columns(terms, fx_effects)
             log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
                 f"accumulating on {len(ids)} flights")
         sums.add(f, _flight_gram(fd, r, cols, fx_effects, vehicle, stride))
         samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
     return _Library(terms, cols, sums, samples, noise_of)
+
+
+def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Term]:
+    """The candidate library from a flight's recorded variables (as :func:`_accumulate` builds it
+    from its rows)."""
+    vars_ = {name: Variable(np.empty(0), unit, sources, channel) for name, unit, sources, channel in first.variables}
+    if not motors:
+        vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
+    return library(vars_)
+
+
+def _residual_transform(cols: _Columns, model, vehicle: Vehicle) -> np.ndarray:
+    """``T`` with ``z T`` the design whose residual columns are ``y0 - Σ θ B`` (the fitted
+    model's linear effects ``model`` subtracted; see :mod:`quadcore.identify.library_stats`)."""
+    T = np.eye(cols.n_total)
+    for term in model.terms:
+        e = effectlib.get(term.name)
+        theta = np.asarray(e.to_linear({**e.defaults(), **term.params}, vehicle), dtype=float)
+        for axis in range(6):
+            T[cols.effect_cols[(e.name, axis)], cols.target0 + axis] -= theta
+    return T
+
+
+def _combined(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, fx_effects: list[Effect],
+              folds: list[list[str]], holdout: list[str], train: list[str], stored, stats, sessions, log) -> _Library:
+    """:func:`_accumulate` from the flights' discovery statistics (:mod:`quadcore.identify.library_stats`):
+    the stored ones, else computed from the flight's rows; a model's linear effects fitted from
+    the sufficient statistics (``stats``) and subtracted from the sums (:func:`_residual_transform`)."""
+    found = {f: stored(f) for f in ids}
+    motors = all(found[f].logs_motors if found[f] is not None else _logs_motors(decoded[f], spec.vehicle_for(f))
+                 for f in ids)
+    first = found[ids[0]] or library_stats.compute(spec, ids[0], decoded[ids[0]])
+    terms = _library_terms(first, motors)
+    cols = library_columns(terms, fx_effects)
+    labels = cols.labels()
+    missing = [f for f in ids if found[f] is None]
+    log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; combining "
+        f"{len(ids) - len(missing)} flights' stored statistics" + (f", computing {len(missing)}" if missing else ""))
+    sums, full = _GramSums(folds, holdout), _GramSums(folds, holdout)
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    y0_squares: dict[str, np.ndarray] = {}
+    for f in ids:
+        G, H, lib = _flight_statistics(f, found[f] if f != ids[0] else first, labels, spec, decoded, cols, fx_effects)
+        sums.add(f, G)
+        full.add(f, H)
+        samples[f], noise_of[f], y0_squares[f] = lib.samples, lib.noise, lib.y0_squares
+    if spec.effects:
+        model = fitting.fit_model(spec, decoded, train, sessions, log, stats)
+        T = _residual_transform(cols, model, spec.vehicle)
+        sums.transformed(T)
+        full.transformed(T)
+    return _Library(terms, cols, sums, samples, noise_of, full, None if spec.effects else y0_squares)
+
+
+def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, decoded, cols: _Columns,
+                       fx_effects) -> tuple[np.ndarray, np.ndarray, library_stats.FlightLibrary]:
+    """(G, H, the statistics) of one flight in the columns ``labels``: the stored ones (``lib``),
+    else computed from its rows; from its rows with ``cols`` when they lack a column (an effect
+    loaded since)."""
+    if lib is not None and set(labels) <= set(lib.labels):
+        try:
+            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
+        except sufficient.StatsError:  # cut short since its header was read
+            lib = None
+    if lib is None:
+        lib = library_stats.compute(spec, f, decoded[f])
+        if set(labels) <= set(lib.labels):
+            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
+    fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))
+    G, H = flight_grams(fd, fitting.targets_of([fd])[0], cols, fx_effects, spec.vehicle, library_stats.STRIDE)
+    return G, H, lib
+
+
+def _picked(M: np.ndarray, have: tuple[str, ...], want: tuple[str, ...]) -> np.ndarray:
+    """The rows and columns ``want`` of a matrix over the columns ``have`` (by name)."""
+    if have == want:
+        return M
+    at = {name: i for i, name in enumerate(have)}
+    idx = np.array([at[name] for name in want])
+    return M[np.ix_(idx, idx)]
+
+
+def _rmse_from_sums(lib: _Library, coefs: dict, pairs: list[tuple[np.ndarray, np.ndarray]],
+                    eval_ids: list[str]) -> tuple[dict, dict]:
+    """:func:`_held_out_rmse` from statistics: per pair (the Gram matrix the terms are fitted on,
+    the sum of ``H`` of the flights scored with them), the residual's sum of squares after the
+    terms, ``Σ r² - 2 βᵀXᵀr + βᵀXᵀXβ`` (:func:`_sse`); before them, ``Σ r²`` (a model without
+    effects: the flights' own sums of ``y0²``, as the rows give them)."""
+    cols = lib.cols
+    if lib.y0_squares is not None:
+        before = np.zeros(6)
+        for f in eval_ids:
+            before += lib.y0_squares[f]
+    else:
+        before = np.array([sum(float(H[y, y]) for _, H in pairs) for y in range(cols.target0, cols.target0 + 6)])
+    after = before.copy()
+    for axis, (chosen, _) in coefs.items():
+        if chosen:
+            y = cols.target0 + axis
+            after[axis] = max(sum(_sse(H, chosen, y, _ols(G, chosen, y)) for G, H in pairs), 0.0)
+    n = sum(lib.samples[f] for f in eval_ids)
+    return _rmse(before, n), _rmse(after, n)
+
+
+def _rmse(ss: np.ndarray, n: int) -> dict:
+    rms = np.sqrt(ss / max(n, 1))
+    return {"force_rmse_N": [float(v) for v in rms[:3]], "torque_rmse_Nm": [float(v) for v in rms[3:]]}
 
 
 def _discover_axis(axis: int, target: str, lib: _Library, fold_grams, G_train: np.ndarray, noise: np.ndarray,
@@ -584,36 +720,51 @@ def discover(
     spec: ModelSpec,
     holdout: list[str] | None = None,
     n_folds: int = 5,
-    stride: int = 4,
+    stride: int = library_stats.STRIDE,
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
+    stored: Callable[[str], library_stats.FlightLibrary | None] | None = None,
+    stats: Callable[[str], sufficient.FlightStats | None] | None = None,
 ) -> Discovery:
     """Find the terms the model lacks (see the module docstring). ``sessions`` (name ->
     flights, from a sessions file) group the flights of per-session effects, as in
     :func:`quadcore.identify.diagnosis.diagnose`; None: the model file's, else the groups the data show.
 
-    Flight by flight: each flight's rows become its Gram matrix (the statistics the selection,
-    the folds and the coefficients combine) and are dropped; the evaluated flights are read again
-    for the held-out RMSE. ``decoded`` may read each table as it is looked up
+    From rows, flight by flight: each flight's rows become its Gram matrix (the statistics the
+    selection, the folds and the coefficients combine) and are dropped; the evaluated flights are
+    read again for the held-out RMSE. ``decoded`` may read each table as it is looked up
     (:class:`quadcore.store.store.FlightTables`). Fitting the model's own effects reads the training
-    flights' rows together (and every flight's for per-session effects)."""
+    flights' rows together (and every flight's for per-session effects).
+
+    From statistics, with ``stored`` (flight -> its stored discovery statistics or None:
+    :func:`quadcore.identify.library_stats.stored`) for a model without effects or of linear effects
+    fitted fleet-wide, at the default ``stride``: no flight with stored statistics is read; the
+    model's effects are fitted from the sufficient statistics (``stats``:
+    :func:`quadcore.identify.sufficient.stored`). The same sums in the same order as from rows, so
+    the same terms and coefficients; the held-out RMSE after the terms is a quadratic form of the
+    flights' Gram matrices (equal to the rows' to rounding)."""
     vehicle = spec.vehicle
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
     train = [f for f in ids if f not in holdout]
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
-    predict = _model_fit(spec, decoded, ids, train, sessions, log)
-
-    def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
-        """One flight's rows and its residual under the model."""
-        fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
-        target = fitting.targets_of([fd])[0]
-        return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
-
     fx_effects = list(effectlib.registry().values())
     folds = fitting.folds(train, n_folds)
-    lib = _accumulate(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
+    combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
+                  and all(effectlib.get(n).linear for n in spec.effects))
+    if combinable:
+        lib = _combined(ids, decoded, spec, fx_effects, folds, holdout, train, stored, stats, sessions, log)
+    else:
+        predict = _model_fit(spec, decoded, ids, train, sessions, log)
+
+        def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
+            """One flight's rows and its residual under the model."""
+            fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
+            target = fitting.targets_of([fd])[0]
+            return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
+
+        lib = _accumulate(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
     fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
     noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
 
@@ -628,10 +779,15 @@ def discover(
         if coef is not None:
             coefs[axis] = coef
     eval_ids = holdout or ids
-    train_gram = {f: G_train for f in eval_ids} if holdout else {
-        f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
-    base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms, coefs,
-                                 vehicle)
+    if lib.full is not None:  # each flight scored with its fold's training sum (the holdout: all training flights')
+        pairs = [(G_train, lib.full.held_out())] if holdout else [
+            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.inside)]
+        base, after = _rmse_from_sums(lib, coefs, pairs, eval_ids)
+    else:
+        train_gram = {f: G_train for f in eval_ids} if holdout else {
+            f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
+        base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms,
+                                     coefs, vehicle)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
@@ -647,7 +803,9 @@ def _usable(cols: _Columns, axis: int, terms: list[Term]) -> list[Term]:
     return [terms[k] for k in idx]
 
 
-def _columns(terms: list[Term], fx_effects: list[Effect]) -> _Columns:
+def library_columns(terms: list[Term], fx_effects: list[Effect]) -> _Columns:
+    """Where each of the Gram matrices' columns is: the terms usable in force, in torque, the
+    six residual axes, the six modelled sides, then each effect's basis per axis."""
     force = [k for k, t in enumerate(terms) if t.channel in ("both", "force")]
     torque = [k for k, t in enumerate(terms) if t.channel in ("both", "torque")]
     i = len(force) + len(torque) + 12
@@ -737,6 +895,16 @@ class _GramSums:
     def held_out(self) -> np.ndarray:
         return sum(self.held[f] for f in self.holdout)  # type: ignore[return-value]
 
+    def transformed(self, T: np.ndarray) -> None:
+        """Every sum ``G`` becomes ``Tᵀ G T`` (the Gram matrix of the columns ``Z T``)."""
+        def tr(G):
+            return None if G is None else T.T @ G @ T
+
+        self.train = tr(self.train)
+        self.outside = [tr(G) for G in self.outside]
+        self.inside = [tr(G) for G in self.inside]
+        self.held = {f: tr(G) for f, G in self.held.items()}
+
 
 def _sequential_shares(pairs, chosen, y) -> list[float]:
     """Held-out variance each term adds, in the order of selection (they sum to the total):
@@ -811,11 +979,7 @@ def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
         after += ((r - pred)[m] ** 2).sum(axis=0)
         n += int(m.sum())
 
-    def pack(ss):
-        rms = np.sqrt(ss / max(n, 1))
-        return {"force_rmse_N": [float(v) for v in rms[:3]], "torque_rmse_Nm": [float(v) for v in rms[3:]]}
-
-    return pack(before), pack(after)
+    return _rmse(before, n), _rmse(after, n)
 
 
 # --- the generated effect ---------------------------------------------------------------------

@@ -357,6 +357,9 @@ class FlightTables(Mapping[str, pl.DataFrame]):
     def __len__(self) -> int:
         return len(self._paths)
 
+    def __contains__(self, flight: object) -> bool:
+        return flight in self._paths  # Mapping's own would read the table
+
     def path(self, flight: str) -> Any:
         return self._paths[flight]
 

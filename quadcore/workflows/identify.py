@@ -170,8 +170,9 @@ MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
 
 
 def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
-             where: str = "the decoded flights") -> Discovery:
-    """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`).
+             where: str = "the decoded flights", root=None) -> Discovery:
+    """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`);
+    with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.library_stats`).
     Raises :class:`TooFewFlights` with fewer than two training flights."""
     from quadcore.identify import discovery
 
@@ -179,7 +180,13 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
     if len(seen.tables) - len(holdout or []) < MIN_DISCOVERY_TRAINING:
         raise TooFewFlights("discovery needs at least two training flights besides the held-out ones (its folds "
                             "are grouped by flight)")
-    return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids))
+    stored = stats = None
+    if root is not None:
+        from quadcore.identify import library_stats, sufficient
+
+        stored, stats = library_stats.stored(root, spec), sufficient.stored(root, spec)
+    return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
+                              stored=stored, stats=stats)
 
 
 def write_discovery(result: Discovery, path) -> Path:

@@ -1,0 +1,188 @@
+"""Per-flight statistics of term discovery's candidate library: what
+:func:`quadcore.identify.discovery.discover` needs of a flight, without its rows.
+
+**The columns.** On a flight's samples the discovery design row is (:func:`quadcore.identify.discovery.flight_grams`)
+
+    z_i = [F_i | Tq_i | y0_i | m_i | B_i]
+
+``F`` the candidate terms through the force smoother, ``Tq`` through the gyro derivative's
+filter, ``y0`` (6) the nominal residual (force N, torque N m, body frame), ``m`` (6) the
+modelled thrust and rotor torque, ``B`` every effect's basis per axis (built in, and the
+model file's plugins). Per flight we store
+
+    G = Σ_{i ∈ every STRIDE-th usable sample} z_i z_iᵀ,     H = Σ_{i ∈ usable} z_i z_iᵀ,
+
+the usable samples ``n``, the sensor-noise floor (6,), ``Σ_{i ∈ usable} y0_i²`` (6,) exactly as
+the rows give it, and the variables the library is built from (names, units, sources).
+
+**A model with linear effects.** Discovery works on the residual the model leaves,
+``r_a = y0_a - Σ_k θ_k B_{a,k}`` on axis ``a`` (``θ`` the effects' linear coordinates,
+:meth:`quadcore.effects.Effect.to_linear`, fitted on the training flights). That is ``r = z T``
+with ``T`` the identity but for the residual's columns, ``T[B_{a,k}, y_a] = -θ_k``, so
+
+    G_r = Tᵀ G T,       H_r = Tᵀ H T
+
+exactly (in exact arithmetic): the stored matrices serve every fit of linear effects. A model
+with a nonlinear effect, or effects fitted per session, is read from rows.
+
+Stored under ``<root>/stats/flight=<id>/library.bin`` (the format of
+:mod:`quadcore.identify.sufficient`, upper triangles in float64) with the :func:`library_key` they were
+computed for and the SHA-256 of the log the decoded table came from.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quadcore import effects as effectlib
+from quadcore.identify import sufficient
+from quadcore.store import store
+
+FORMAT = 1  # bump when what the statistics mean changes: stored ones become stale
+STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
+_MODULES = ("quadcore.identify.discovery", "quadcore.identify.library_stats")
+
+
+@dataclass(frozen=True)
+class FlightLibrary:
+    """One flight's discovery statistics (see the module); the two Gram matrices are read when
+    :meth:`grams` is called (a stored file is read again each time: a thousand flights' matrices
+    are never all in memory)."""
+
+    flight: str
+    key: str
+    source: str  # SHA-256 of the log the decoded table came from
+    variables: tuple[tuple[str, tuple[int, ...], tuple[str, ...], str], ...]  # name, unit, sources, channel
+    labels: tuple[str, ...]  # a name per Gram column (discovery._Columns.labels)
+    samples: int
+    noise: np.ndarray  # (6,)
+    y0_squares: np.ndarray  # (6,) Σ over usable samples of y0²
+    grams_source: Callable[[], tuple[np.ndarray, np.ndarray]]
+
+    def grams(self) -> tuple[np.ndarray, np.ndarray]:
+        """(G, H): every ``STRIDE``-th usable sample's, every usable sample's."""
+        return self.grams_source()
+
+    @property
+    def logs_motors(self) -> bool:
+        return any(name.startswith("motor_") for name, *_ in self.variables)
+
+
+def fx_effects(spec) -> list:
+    """The effects whose bases the statistics hold: the built-in ones, then the model file's
+    plugins (the order of :func:`quadcore.effects.registry`)."""
+    builtin = effectlib.builtin_names()
+    return [effectlib.get(n) for n in [*builtin, *sorted(n for n in spec.effects if n not in builtin)]]
+
+
+def _code_digest() -> str:
+    import importlib.util
+
+    digest = hashlib.sha256(sufficient.code_digest().encode())
+    for name in _MODULES:
+        found = importlib.util.find_spec(name)
+        digest.update(Path(found.origin).read_bytes() if found is not None and found.origin else b"missing")
+    return digest.hexdigest()[:16]
+
+
+def library_key(spec, flight: str) -> str:
+    """What a flight's statistics were computed for: the model's vehicle and the flight's own,
+    the stride, the effects' names and sources, the code (stored ones with another are stale)."""
+    content = {"format": FORMAT, "stride": STRIDE, "code": _code_digest(),
+               "vehicle": sufficient.stats_key(spec.vehicle, spec.vehicle_for(flight), sufficient.Layout((), ())),
+               "effects": {e.name: sufficient._source_digest(e) for e in fx_effects(spec)}}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def version(spec, flight: str) -> str:
+    """The version of everything the statistics asset stores for a flight: its sufficient
+    statistics' key and this key."""
+    return f"{sufficient.current_key(spec, flight)}+{library_key(spec, flight)}"
+
+
+def compute(spec, flight: str, decoded, source: str = "") -> FlightLibrary:
+    """A flight's statistics from its decoded table (its rows read once)."""
+    from quadcore.identify import discovery, fitting
+
+    fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    vars_ = discovery.variables(fd.state, spec.vehicle)
+    effects = fx_effects(spec)
+    cols = discovery.library_columns(discovery.library(vars_), effects)
+    y0 = fitting.targets_of([fd])[0]
+    G, H = discovery.flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE)
+    described = tuple((name, tuple(v.unit), tuple(v.sources), v.channel) for name, v in vars_.items())
+    return FlightLibrary(flight, library_key(spec, flight), source, described, cols.labels(), fd.n,
+                         np.asarray(fd.noise, dtype=float), (y0[fd.mask] ** 2).sum(axis=0), lambda: (G, H))
+
+
+def library_path(root: Any, flight: str) -> Any:
+    return sufficient.stats_path(root, flight).parent / "library.bin"
+
+
+def save(lib: FlightLibrary, root: Any) -> Any:
+    """Write a flight's statistics under the data root (atomically); the Gram matrices as their
+    upper triangles."""
+    G, H = lib.grams()
+    header = {"format": FORMAT, "flight": lib.flight, "key": lib.key, "source": lib.source,
+              "variables": [list(v) for v in lib.variables], "labels": list(lib.labels), "samples": lib.samples,
+              "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist()}  # floats round-trip exactly
+    data = sufficient._encode(header, {"G": sufficient._packed(G), "H": sufficient._packed(H)})
+    return store.atomic_write(library_path(root, lib.flight), lambda tmp: Path(tmp).write_bytes(data))
+
+
+def _read(path: Any, header_only: bool) -> bytes:
+    with path.open("rb") as fh:
+        if not header_only:
+            return fh.read()
+        head = fh.read(len(sufficient.MAGIC) + 8)
+        return head + fh.read(int.from_bytes(head[len(sufficient.MAGIC):], "little"))
+
+
+def load(root: Any, flight: str) -> FlightLibrary:
+    """A flight's stored statistics (the header read now, the matrices when asked for);
+    :class:`quadcore.identify.sufficient.StatsError` when the file is not one (from :meth:`FlightLibrary.grams`:
+    when its matrices are cut short)."""
+    path = library_path(root, flight)
+    try:
+        raw = _read(path, header_only=True)
+        header = json.loads(raw[len(sufficient.MAGIC) + 8:])
+        if header.get("format") != FORMAT:
+            raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
+        width = len(header["labels"])
+
+        def grams() -> tuple[np.ndarray, np.ndarray]:
+            try:
+                _, array = sufficient._decode(_read(path, header_only=False))
+                return sufficient._unpacked(array("G"), width), sufficient._unpacked(array("H"), width)
+            except (ValueError, KeyError) as exc:
+                raise sufficient.StatsError(f"{path}: {exc}") from None
+
+        variables = tuple((str(n), tuple(u), tuple(s), str(c)) for n, u, s, c in header["variables"])
+        return FlightLibrary(header["flight"], header["key"], header["source"], variables, tuple(header["labels"]),
+                             int(header["samples"]), np.array(header["noise"], dtype=float),
+                             np.array(header["y0_squares"], dtype=float), grams)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise sufficient.StatsError(f"{path}: not a discovery statistics file ({exc})") from None
+
+
+def stored(root: Any, spec) -> Callable[[str], FlightLibrary | None]:
+    """``flight -> FlightLibrary | None``: a flight's stored statistics if current for ``spec``
+    (:func:`library_key`) and made from its decoded table as it is now; None when missing or stale."""
+    def current(flight: str) -> FlightLibrary | None:
+        if not library_path(root, flight).exists():
+            return None
+        try:
+            lib = load(root, flight)
+        except sufficient.StatsError:
+            return None
+        fresh = lib.key == library_key(spec, flight) and lib.source == sufficient.decoded_source(root, flight)
+        return lib if fresh else None
+
+    return current
