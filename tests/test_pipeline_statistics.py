@@ -39,7 +39,8 @@ def test_statistics_asset_feeds_the_fleet_fit(drag_fleet, tmp_path, monkeypatch)
                                log=lambda msg: None) == {}
         recorded = versions_used(instance, flight_statistics.key, set(FLIGHTS), STATS_VERSION)
         assert recorded == {f: library_stats.version(spec, f) for f in FLIGHTS}
-        assert all(sufficient.load_current(root, f, sufficient.current_key(spec, f)) for f in FLIGHTS)
+        stored = [sufficient.load_current(root, f, sufficient.current_key(spec, f)) for f in FLIGHTS]
+        assert all(stored) and all(s.summary() is not None for s in stored)  # the diagnosis's tables' sums too
         assert all(library_stats.stored(root, spec)(f) is not None for f in FLIGHTS)
 
         def no_rows(*args, **kwargs):

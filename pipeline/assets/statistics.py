@@ -22,7 +22,9 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
     residual] per channel, with the sensor-noise floor and sample counts: what the fleet fit,
     its folds and the held-out tests need of this flight (``stats/flight=<id>/stats.bin``); and
     the Gram matrices of term discovery's candidate library (``library.bin``,
-    :mod:`quadcore.identify.library_stats`)."""
+    :mod:`quadcore.identify.library_stats`); and its summary (``summary.bin``,
+    :mod:`quadcore.identify.summaries`): what the diagnosis's regime, flight, segment and
+    frequency tables need of it as an evaluated flight."""
     spec = model.spec()
 
     def work(fid):

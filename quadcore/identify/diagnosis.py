@@ -18,7 +18,7 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
+from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient, summaries
 from quadcore.identify.evidence import LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
@@ -508,7 +508,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
               sensitivity: dict, disagree: list) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
     and in frequency (from their rows) and the verdict."""
-    long, frequency = _by_flight(p, held)
+    described = _by_flight(p, held)
     text = verdict(rows, held.at_noise, sensitivity)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
@@ -527,20 +527,24 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         sensitivity_basis=sensitivity_basis(p.cands),
         verdict=text,
         disagreements=tuple(disagree),
-        regimes=regime_table(long),
-        flights=flight_table(long),
-        worst_segments=worst_segments(long),
-        frequency=frequency,
+        regimes=described.regimes,
+        flights=described.flights,
+        worst_segments=described.worst_segments,
+        frequency=described.frequency,
     )
 
 
-def _by_flight(p: _Problem, held: _HeldOut) -> tuple[pl.DataFrame, dict]:
-    """The evaluated flights' long table (:func:`~quadcore.identify.regimes.long_table`) and
-    frequency view, one flight's rows at a time: each flight's rows go once its part of both is
-    taken, so the tables after it do not sit beside every flight's rows."""
+def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
+    """The evaluated flights' residual by regime, by flight, in time and in frequency: from their
+    stored summaries where they have them (:func:`_from_summaries`), else from their long table
+    (:func:`~quadcore.identify.regimes.long_table`) and spectra, one flight's rows at a time:
+    each flight's rows go once its part of both is taken, so the tables after it do not sit
+    beside every flight's rows."""
     p.forget_row_resid()
     for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates
         p.fl.release(f)
+    if p.fl.stats is not None and any(p.fl.stats[f].summary_source is not None for f in held.ids):
+        return _from_summaries(p, held)
     sums = spectrum.SpectrumSums(float(np.median([p.fl.sample_rate_hz(f) for f in held.ids])), p.vehicle)
     frames = []
     for f in held.ids:
@@ -548,7 +552,25 @@ def _by_flight(p: _Problem, held: _HeldOut) -> tuple[pl.DataFrame, dict]:
         frames.append(long_frame(fd, r, p.vehicle))
         sums.add(fd, r)
         p.fl.release(f)
-    return pl.concat(frames), sums.view()
+    long = pl.concat(frames)
+    return summaries.Tables(regime_table(long), flight_table(long), worst_segments(long), sums.view())
+
+
+def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
+    """The same tables from the evaluated flights' summaries (:mod:`quadcore.identify.summaries`):
+    the residual, a signal vector, summed as quadratic forms of each flight's summary; a flight
+    without one (missing or stale) from its rows, one at a time."""
+    def from_rows(f: str) -> summaries.ResidualSums:
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f])
+        out = summaries.of_rows(fd, r, p.vehicle).residual(np.ones(1))
+        p.fl.release(f)
+        return out
+
+    sums = []
+    for f in held.ids:
+        summary, v = p.fl.stats[f].summary(), held.resid[f]
+        sums.append(summary.residual(v) if summary is not None and summary.describes(v) else from_rows(f))
+    return summaries.tables(sums, from_rows, p.vehicle)
 
 
 def diagnose(

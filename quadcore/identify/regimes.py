@@ -65,10 +65,26 @@ def bin_labels(edges: list[float], unit: str = "") -> list[str]:
     return [label.strip() for label in labels]
 
 
+def _bin_codes(x: np.ndarray, edges: list[float]) -> np.ndarray:
+    """Each value's bin, as its index in :func:`bin_labels`."""
+    return np.searchsorted(np.asarray(edges[1:]), x, side="right")
+
+
 def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
     """Label each value with its bin (see :func:`bin_labels`)."""
-    idx = np.searchsorted(np.asarray(edges[1:]), x, side="right")
-    return np.asarray(bin_labels(edges, unit))[idx]
+    return np.asarray(bin_labels(edges, unit))[_bin_codes(x, edges)]
+
+
+def regime_codes(rc: RegimeColumns) -> dict[str, np.ndarray]:
+    """Each sample's bin of every regime in :data:`REGIMES`, as its index in that regime's
+    :data:`LABELS` (the codes of :func:`long_frame`'s enums)."""
+    names, inverse = np.unique(rc.phase, return_inverse=True)
+    codes = {"speed": _bin_codes(rc.speed_mps, SPEED_BINS), "height": _bin_codes(rc.height_m, HEIGHT_BINS),
+             "thrust_to_weight": _bin_codes(rc.thrust_to_weight, THRUST_BINS),
+             "angular_rate": _bin_codes(rc.angular_rate_radps, RATE_BINS), "battery": _bin_codes(rc.vbat_V, VBAT_BINS),
+             "acceleration": _bin_codes(rc.acceleration_mps2, ACCEL_BINS),
+             "phase": np.array([PHASES.index(str(n)) for n in names], dtype=int)[inverse.reshape(-1)]}
+    return {r: codes[r] for r in REGIMES}
 
 
 def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle) -> pl.DataFrame:
@@ -106,10 +122,11 @@ LABELS = {"speed": bin_labels(SPEED_BINS, "m/s"), "height": bin_labels(HEIGHT_BI
           "battery": bin_labels(VBAT_BINS, "V"), "acceleration": bin_labels(ACCEL_BINS, "m/s^2"), "phase": list(PHASES)}
 
 
-RMSE_EXPRS = [
-    *[(pl.col(f"f_res_b_{a}_N") ** 2).mean().sqrt().alias(f"force_rmse_{a}_N") for a in XYZ],
-    *[(pl.col(f"tau_res_b_{a}_Nm") ** 2).mean().sqrt().alias(f"torque_rmse_{a}_Nm") for a in XYZ],
-]
+RESIDUAL_COLUMNS = [f"f_res_b_{a}_N" for a in XYZ] + [f"tau_res_b_{a}_Nm" for a in XYZ]
+RMSE_COLUMNS = [f"force_rmse_{a}_N" for a in XYZ] + [f"torque_rmse_{a}_Nm" for a in XYZ]
+RMSE_EXPRS = [(pl.col(r) ** 2).mean().sqrt().alias(name) for r, name in zip(RESIDUAL_COLUMNS, RMSE_COLUMNS)]
+WINDOW_S = 0.5  # the worst segments' windows
+TOP_SEGMENTS = 10
 
 
 def regime_table(long: pl.DataFrame) -> pl.DataFrame:
@@ -127,7 +144,7 @@ def flight_table(long: pl.DataFrame) -> pl.DataFrame:
     return long.group_by("flight").agg(pl.len().alias("samples"), *RMSE_EXPRS).sort("flight")
 
 
-def worst_segments(long: pl.DataFrame, window_s: float = 0.5, top: int = 10) -> pl.DataFrame:
+def worst_segments(long: pl.DataFrame, window_s: float = WINDOW_S, top: int = TOP_SEGMENTS) -> pl.DataFrame:
     """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS."""
     force_sq = functools.reduce(operator.add, [pl.col(f"f_res_b_{a}_N") ** 2 for a in XYZ])
     seg = (

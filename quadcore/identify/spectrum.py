@@ -81,6 +81,7 @@ class SpectrumSums:
                     for k in ("pp", "mm", "rr", "pm")}
         self.weight = 0.0
         self.mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
+        self.rr_above = np.zeros(6)  # residual power of bins added as a sum (add_spectra), not bin by bin
 
     def add(self, fd, resid: np.ndarray) -> None:
         """One flight (a FlightData) and its (n, 6) residual."""
@@ -99,24 +100,38 @@ class SpectrumSums:
         self.mean_sq += n * resid[fd.mask].mean(axis=0) ** 2
         self.weight += n
 
+    def add_spectra(self, spectra: dict[str, np.ndarray], rr_above: np.ndarray, weight: float,
+                    mean_sq: np.ndarray) -> None:
+        """One flight's sums as :meth:`add` takes them, from elsewhere (a flight's stored summary,
+        :mod:`quadcore.identify.summaries`): ``spectra[key]`` (K, 6) its stretches' spectra at
+        bins 1..K, weighted by their samples, with a unit sample rate (divided by ``fs_hz`` here);
+        ``rr_above`` (6,) the residual's above bin K summed; ``weight`` its stretches' samples;
+        ``mean_sq`` (6,) ``weight`` × its mean residual squared."""
+        for key, s in spectra.items():
+            self.acc[key][1: 1 + len(s)] += s / self.fs
+        self.rr_above += rr_above / self.fs
+        self.mean_sq += mean_sq
+        self.weight += weight
+
     def view(self) -> dict:
         """The JSON-ready view of the flights added so far."""
-        return _view(self.fs, self.grid, self.acc, self.weight, self.mean_sq)
+        return _view(self.fs, self.grid, self.acc, self.weight, self.mean_sq, self.rr_above)
 
 
-def _view(fs: float, grid: np.ndarray, acc: dict, weight: float, mean_sq: np.ndarray) -> dict:
+def _view(fs: float, grid: np.ndarray, acc: dict, weight: float, mean_sq: np.ndarray, rr_above: np.ndarray) -> dict:
     """The bands, coherence and readings from the sample-weighted sums of the spectra."""
     if weight == 0:
         return {"bands_hz": [list(b) for b in BANDS_HZ], "channels": [], "reading": ["flights too short for spectra"]}
     s = {k: v / weight for k, v in acc.items()}
     mean_sq = mean_sq / weight
+    rr_above = rr_above / weight
     df = grid[1] - grid[0]
     coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
     rows = []
     for c, name in enumerate(CHANNELS):
         row: dict[str, Any] = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
                "modelled_rms": [], "coherence": [], "gain": [], "phase_deg": []}
-        total = float(s["rr"][1:, c].sum() * df + mean_sq[c])
+        total = float((s["rr"][1:, c].sum() + rr_above[c]) * df + mean_sq[c])
         shares = []
         for lo, hi in BANDS_HZ:
             b = (grid >= lo) & (grid < hi) & (grid > 0)

@@ -68,7 +68,7 @@ if TYPE_CHECKING:
 
     from quadcore.identify.fitting import FlightData
 
-FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
+FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
 GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis._SpanOverlap)
 
@@ -184,6 +184,13 @@ class FlightStats:
     blocks_source: Callable[[], np.ndarray]
     source: str = ""  # the SHA-256 of the log the decoded table came from (stale once it is re-decoded)
     profiles: profiles.Profiles | None = None  # of the layout's profiled effects
+    # the flight's FlightSummary (quadcore.identify.summaries) when there is one to ask for: the
+    # stored ones are read when asked (None when missing or stale), not held
+    summary_source: Callable[[], Any] | None = None
+
+    def summary(self):
+        """The flight's :class:`quadcore.identify.summaries.FlightSummary`, or None."""
+        return self.summary_source() if self.summary_source is not None else None
 
     @cached_property
     def gram(self) -> np.ndarray:
@@ -352,15 +359,21 @@ def signal_rows(fd, vehicle: Vehicle, layout: Layout, v: np.ndarray,
     return out
 
 
-def compute(spec, flight: str, decoded, layout: Layout, source: str = "") -> FlightStats:
+def compute(spec, flight: str, decoded, layout: Layout, source: str = "", summarize: bool = False) -> FlightStats:
     """A flight's statistics from its decoded table, for a :class:`quadcore.identify.model.ModelSpec`:
     the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle.
-    ``source``: the SHA-256 of the log the table was decoded from (its provenance)."""
-    from quadcore.identify import fitting
+    ``source``: the SHA-256 of the log the table was decoded from (its provenance); ``summarize``:
+    with the flight's :class:`quadcore.identify.summaries.FlightSummary` (what the diagnosis
+    describes the evaluated flights from)."""
+    from quadcore.identify import fitting, summaries
 
     fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
     s = flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
-    return replace(s, source=source)
+    if not summarize:
+        return replace(s, source=source)
+    # the columns of a linear model's residual: the effects' coordinates and y0, not the extras
+    summary = summaries.summarize(fd, spec.vehicle, design_rows(fd, spec.vehicle, Layout(layout.effects, layout.sizes)))
+    return replace(s, source=source, summary_source=lambda: summary)
 
 
 def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
@@ -384,10 +397,12 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 
 # The code a flight's statistics come from besides the effects' own classes: the state and the
 # nominal residual (dynamics, residuals, signals), the usable mask, noise floor and voltage
-# (fitting.flight_data), the blocks (evidence.BLOCK_S), the bases' helpers and this module.
+# (fitting.flight_data), the blocks (evidence.BLOCK_S), the bases' helpers, this module and the
+# summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
 CODE_MODULES = ("quadcore.physics.dynamics", "quadcore.physics.residuals", "quadcore.physics.signals",
                 "quadcore.physics.rotations", "quadcore.identify.fitting", "quadcore.identify.evidence",
-                "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles")
+                "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles",
+                "quadcore.identify.summaries", "quadcore.identify.regimes", "quadcore.identify.spectrum")
 
 
 @functools.lru_cache(maxsize=1)
@@ -485,8 +500,14 @@ def _decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
 
 
 def save(s: FlightStats, root: Any) -> Any:
-    """Write a flight's statistics under the data root (atomically; an object store too). The
-    symmetric matrices are stored as their upper triangles."""
+    """Write a flight's statistics under the data root (atomically; an object store too), its
+    summary first (:func:`quadcore.identify.summaries.save`, when it has one). The symmetric
+    matrices are stored as their upper triangles."""
+    from quadcore.identify import summaries
+
+    summary = s.summary()
+    if summary is not None:
+        summaries.save(summary, root, s.key, s.source)
     header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
               "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V, "source": s.source}
     data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
@@ -497,6 +518,8 @@ def save(s: FlightStats, root: Any) -> Any:
 def load(root: Any, flight: str) -> FlightStats:
     """A flight's stored statistics (the per-block matrices unpacked when first asked for);
     :class:`StatsError` when the file is not one."""
+    from quadcore.identify import summaries
+
     path = stats_path(root, flight)
     raw = path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
     try:
@@ -506,10 +529,11 @@ def load(root: Any, flight: str) -> FlightStats:
         lay = header["layout"]
         layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]), tuple(lay["profiled"]))
         width = layout.width
-        return FlightStats(header["flight"], layout, header["key"], _unpacked(array("total"), width), array("rows"),
+        key, source = header["key"], str(header.get("source", ""))
+        return FlightStats(header["flight"], layout, key, _unpacked(array("total"), width), array("rows"),
                            _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
-                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width),
-                           str(header.get("source", "")), profiles.from_arrays(layout, array))
+                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width), source,
+                           profiles.from_arrays(layout, array), lambda: summaries.load(root, flight, key, source))
     except (ValueError, KeyError, TypeError) as exc:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
 
@@ -522,8 +546,8 @@ def current_key(spec, flight: str) -> str:
 
 def compute_current(spec, flight: str, decoded, source: str = "") -> FlightStats:
     """What the per-flight asset stores: the statistics of the linear effects of
-    :func:`spec_layout` (``source`` as for :func:`compute`)."""
-    return compute(spec, flight, decoded, spec_layout(spec), source)
+    :func:`spec_layout`, with the flight's summary (``source`` as for :func:`compute`)."""
+    return compute(spec, flight, decoded, spec_layout(spec), source, summarize=True)
 
 
 def decoded_source(root: Any, flight: str) -> str | None:

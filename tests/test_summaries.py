@@ -1,0 +1,163 @@
+"""Per-flight summaries of the diagnosis's descriptive part: the regime table, the flight table,
+the worst segments and the frequency view from a flight's stored summary equal those from its
+rows (the same sums in another order), on simulated and real flights; and a diagnosis of a
+model of linear effects on stored statistics reads no evaluated flight's rows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import polars as pl
+import pytest
+
+from quadcore import effects
+from quadcore.identify import diagnosis, fitting, model, regimes, spectrum, sufficient, summaries
+from quadcore.logs import flight
+from quadcore.physics import vehicle
+
+VEHICLE = vehicle.load()
+REL = 1e-9
+LINEAR = [n for n, e in effects.registry().items() if e.linear]
+
+
+def _close(a, b, where: str = "") -> None:
+    """JSON-like values equal: text, counts and structure exactly, floats to ``REL``."""
+    if isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            _close(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _close(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) and not isinstance(b, bool):
+        # a phase is an angle: near 0° (a real transfer) it is rounding, in degrees, not relative
+        tiny = 1e-9 if "phase_deg" in where else 1e-300
+        assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, rel=REL, abs=tiny), f"{where}: {a} vs {b}"
+    else:
+        assert a == b, f"{where}: {a!r} vs {b!r}"
+
+
+def _same_frame(a: pl.DataFrame, b: pl.DataFrame) -> None:
+    assert a.schema == b.schema
+    _close(a.to_dicts(), b.to_dicts())
+
+
+def _layout() -> sufficient.Layout:
+    """Every linear effect's columns and y0 (what a summary holds), without the profiles' extras."""
+    lib = sufficient.library_layout()
+    return sufficient.Layout(lib.effects, lib.sizes)
+
+
+def _residual(layout: sufficient.Layout) -> np.ndarray:
+    """A residual after a model of three linear effects, as a signal vector."""
+    v = layout.target()
+    v[layout.cols("rotor_drag")] = [-0.1, -0.12]
+    v[layout.cols("thrust_scale")] = [-0.05]
+    v[layout.cols("com_offset")] = [1e-3, -2e-3]
+    return v
+
+
+def _compare(tables: dict) -> None:
+    """The tables of each flight's summary against the rows' on ``tables`` (flight -> decoded table)."""
+    layout = _layout()
+    fds = {f: fitting.flight_data(f, t, VEHICLE) for f, t in tables.items()}
+    for v in (layout.target(), _residual(layout)):  # the nominal residual, and one after a fit
+        rows = {f: sufficient.signal_rows(fd, VEHICLE, layout, v) for f, fd in fds.items()}
+        long = regimes.long_table(list(fds.values()), rows, VEHICLE)
+        sums = [summaries.summarize(fd, VEHICLE, sufficient.design_rows(fd, VEHICLE, layout)).residual(v)
+                for fd in fds.values()]
+
+        def never(f):
+            raise AssertionError(f"{f}'s summary keeps too few spectral bins")
+
+        got = summaries.tables(sums, never, VEHICLE)
+        _same_frame(got.regimes, regimes.regime_table(long))
+        _same_frame(got.flights, regimes.flight_table(long))
+        _same_frame(got.worst_segments, regimes.worst_segments(long))
+        _close(got.frequency, spectrum.frequency_view(list(fds.values()), rows, VEHICLE))
+
+
+def test_tables_from_summaries_equal_the_rows_on_simulated_flights(drag_fleet):
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
+    _compare(tables)
+
+
+def test_tables_from_summaries_equal_the_rows_on_real_flights(real_logs):
+    tables = {name: flight.decode_flight(real_logs / name).tables["fixedFrequency"]
+              for name in ("jana02", "jana05", "jana20")}  # two sessions, one with a stuck voltage log
+    _compare(tables)
+
+
+def test_a_residual_given_as_rows_summarises_alike(drag_fleet):
+    """A residual that is no combination of columns (a nonlinear model's) as its own column."""
+    p = flight.discover_logs(drag_fleet)[0]
+    fd = fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    r = sufficient.signal_rows(fd, VEHICLE, _layout(), _residual(_layout()))
+    got = summaries.tables([summaries.of_rows(fd, r, VEHICLE).residual(np.ones(1))], None, VEHICLE)
+    long = regimes.long_table([fd], {fd.flight: r}, VEHICLE)
+    _same_frame(got.regimes, regimes.regime_table(long))
+    _close(got.frequency, spectrum.frequency_view([fd], {fd.flight: r}, VEHICLE))
+
+
+@pytest.fixture(scope="module")
+def stored_root(drag_fleet, tmp_path_factory):
+    """The shared fleet's statistics as the per-flight asset stores them, for a model of rotor drag."""
+    root = tmp_path_factory.mktemp("summaries_root")
+    spec = model.spec_from(VEHICLE, ["rotor_drag"])
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
+    for f, t in tables.items():
+        sufficient.save(sufficient.compute_current(spec, f, t, source=f"log-of-{f}"), root)
+    return root, spec, tables
+
+
+def test_summaries_are_stored_beside_the_statistics_and_follow_them(stored_root):
+    root, spec, tables = stored_root
+    f = sorted(tables)[0]
+    s = sufficient.load(root, f)
+    summary = s.summary()
+    assert summaries.path(root, f).is_file() and summary is not None
+    made = sufficient.compute_current(spec, f, tables[f], source=f"log-of-{f}").summary()
+    for name, a in made.arrays().items():
+        np.testing.assert_array_equal(getattr(summary, name), a, err_msg=name)
+    # another key or another log: stale, so the flight is described from its rows
+    assert summaries.load(root, f, "another-key", s.source) is None
+    assert summaries.load(root, f, s.key, "another-log") is None
+    # a summary file cut short is no summary, not a crash
+    cut = summaries.path(root, "cut")
+    cut.parent.mkdir(parents=True)
+    cut.write_bytes(summaries.path(root, f).read_bytes()[:5000])
+    assert summaries.load(root, "cut", s.key, s.source) is None
+
+
+class _NoRows(dict):
+    """Decoded tables whose rows may not be read."""
+
+    def __init__(self, tables: dict):
+        super().__init__({f: None for f in tables})
+
+    def __getitem__(self, f):
+        raise AssertionError(f"{f}'s rows were read")
+
+
+@pytest.mark.parametrize("holdout", [None, ["sim003"]])
+def test_a_diagnosis_on_stored_statistics_reads_no_rows_and_equals_the_rows(stored_root, holdout):
+    """Cross-validation (every flight evaluated) and a held-out flight: model, candidates, tests,
+    and the regime, flight, segment and frequency tables from the stored statistics and
+    summaries, not one row read; the same document as from the rows."""
+    root, spec, tables = stored_root
+    linear = [n for n in LINEAR if n not in spec.effects]
+    stored = diagnosis.diagnose(_NoRows(tables), spec, holdout, linear, stats=lambda f: sufficient.load(root, f))
+    from_rows = diagnosis.diagnose(tables, spec, holdout, linear)
+    _close(stored.to_dict(), from_rows.to_dict())
+
+
+def test_with_every_candidate_the_evaluated_flights_tables_read_no_rows(stored_root):
+    """The library's candidates, the one-parameter nonlinear ones too (from their profiles): the
+    evaluated flights' tables and spectra still come from their summaries, equal to the rows'."""
+    root, spec, tables = stored_root
+    stored = diagnosis.diagnose(_NoRows(tables), spec, stats=lambda f: sufficient.load(root, f)).to_dict()
+    from_rows = diagnosis.diagnose(tables, spec).to_dict()
+    for key in ("regimes", "flights", "worst_segments", "frequency", "baseline"):
+        _close(stored[key], from_rows[key], key)
