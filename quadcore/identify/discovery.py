@@ -453,9 +453,31 @@ def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_e
 def flight_grams(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle,
                  stride: int) -> tuple[np.ndarray, np.ndarray]:
     """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix
-    on every usable sample: the held-out RMSE's) of one flight (see :mod:`quadcore.identify.library_stats`)."""
+    on every usable sample: the held-out RMSE's) of one flight (see :mod:`quadcore.identify.library_stats`).
+    The second holds only the products within the force columns and within the torque columns
+    (:func:`channel_groups`; zero between them): a force axis' RMSE never takes a torque term."""
     blocks = _flight_blocks(fd, resid, cols, fx_effects, vehicle)
-    return _gram(blocks, np.flatnonzero(fd.mask)[::stride]), _gram(blocks, np.flatnonzero(fd.mask))
+    rows = np.flatnonzero(fd.mask)
+    Z = np.concatenate([b[rows] for b in blocks], axis=1)
+    H = np.zeros((cols.n_total, cols.n_total))
+    for group in channel_groups(cols.labels()):
+        Zg = Z[:, group]
+        H[np.ix_(group, group)] = Zg.T @ Zg
+    return _gram(blocks, rows[::stride]), H
+
+
+def channel_groups(labels: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the columns of the force axes (force terms, residual, modelled side and
+    effects' bases on x, y, z of the force) and of the torque axes, from their names
+    (:meth:`_Columns.labels`)."""
+    def axis(label: str) -> int:
+        kind, _, rest = label.partition(":")
+        if kind in ("force", "torque"):
+            return 0 if kind == "force" else 3
+        return int(rest if kind in ("y", "model") else rest.split(":")[0])
+
+    axes = np.array([axis(label) for label in labels])
+    return np.flatnonzero(axes < 3), np.flatnonzero(axes >= 3)
 
 
 def _sse(G: np.ndarray, cols: list[int], y: int, beta: np.ndarray) -> float:

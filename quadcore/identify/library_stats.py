@@ -12,8 +12,11 @@ model file's plugins). Per flight we store
 
     G = Σ_{i ∈ every STRIDE-th usable sample} z_i z_iᵀ,     H = Σ_{i ∈ usable} z_i z_iᵀ,
 
-the usable samples ``n``, the sensor-noise floor (6,), ``Σ_{i ∈ usable} y0_i²`` (6,) exactly as
-the rows give it, and the variables the library is built from (names, units, sources).
+(``H`` only within the force axes' columns and within the torque axes': the held-out RMSE of a
+force axis never takes a torque column; half the products), the usable samples ``n``, the
+sensor-noise floor (6,), ``Σ_{i ∈ usable} y0_i²`` (6,) exactly as the rows give it, and the
+variables the library is built from (names, units, sources). About 0.6 MB per flight (313
+columns with the built-in effects: ``benchmarks/bench_discover_stats.py``).
 
 **A model with linear effects.** Discovery works on the residual the model leaves,
 ``r_a = y0_a - Σ_k θ_k B_{a,k}`` on axis ``a`` (``θ`` the effects' linear coordinates,
@@ -22,7 +25,8 @@ with ``T`` the identity but for the residual's columns, ``T[B_{a,k}, y_a] = -θ_
 
     G_r = Tᵀ G T,       H_r = Tᵀ H T
 
-exactly (in exact arithmetic): the stored matrices serve every fit of linear effects. A model
+exactly (in exact arithmetic; ``T`` mixes columns of one axis only, so ``H``'s two blocks stay
+whole): the stored matrices serve every fit of linear effects. A model
 with a nonlinear effect, or effects fitted per session, is read from rows.
 
 Stored under ``<root>/stats/flight=<id>/library.bin`` (the format of
@@ -45,7 +49,7 @@ from quadcore import effects as effectlib
 from quadcore.identify import sufficient
 from quadcore.store import store
 
-FORMAT = 1  # bump when what the statistics mean changes: stored ones become stale
+FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
 _MODULES = ("quadcore.identify.discovery", "quadcore.identify.library_stats")
 
@@ -128,12 +132,17 @@ def library_path(root: Any, flight: str) -> Any:
 
 def save(lib: FlightLibrary, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically); the Gram matrices as their
-    upper triangles."""
+    upper triangles (``H``: its force and its torque block)."""
+    from quadcore.identify import discovery
+
     G, H = lib.grams()
     header = {"format": FORMAT, "flight": lib.flight, "key": lib.key, "source": lib.source,
               "variables": [list(v) for v in lib.variables], "labels": list(lib.labels), "samples": lib.samples,
               "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist()}  # floats round-trip exactly
-    data = sufficient._encode(header, {"G": sufficient._packed(G), "H": sufficient._packed(H)})
+    force, torque = discovery.channel_groups(lib.labels)
+    data = sufficient._encode(header, {"G": sufficient._packed(G),
+                                       "H_force": sufficient._packed(H[np.ix_(force, force)]),
+                                       "H_torque": sufficient._packed(H[np.ix_(torque, torque)])})
     return store.atomic_write(library_path(root, lib.flight), lambda tmp: Path(tmp).write_bytes(data))
 
 
@@ -149,23 +158,29 @@ def load(root: Any, flight: str) -> FlightLibrary:
     """A flight's stored statistics (the header read now, the matrices when asked for);
     :class:`quadcore.identify.sufficient.StatsError` when the file is not one (from :meth:`FlightLibrary.grams`:
     when its matrices are cut short)."""
+    from quadcore.identify import discovery
+
     path = library_path(root, flight)
     try:
         raw = _read(path, header_only=True)
         header = json.loads(raw[len(sufficient.MAGIC) + 8:])
         if header.get("format") != FORMAT:
             raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
-        width = len(header["labels"])
+        labels = tuple(header["labels"])
+        width = len(labels)
 
         def grams() -> tuple[np.ndarray, np.ndarray]:
             try:
                 _, array = sufficient._decode(_read(path, header_only=False))
-                return sufficient._unpacked(array("G"), width), sufficient._unpacked(array("H"), width)
+                H = np.zeros((width, width))
+                for group, name in zip(discovery.channel_groups(labels), ("H_force", "H_torque")):
+                    H[np.ix_(group, group)] = sufficient._unpacked(array(name), len(group))
+                return sufficient._unpacked(array("G"), width), H
             except (ValueError, KeyError) as exc:
                 raise sufficient.StatsError(f"{path}: {exc}") from None
 
         variables = tuple((str(n), tuple(u), tuple(s), str(c)) for n, u, s, c in header["variables"])
-        return FlightLibrary(header["flight"], header["key"], header["source"], variables, tuple(header["labels"]),
+        return FlightLibrary(header["flight"], header["key"], header["source"], variables, labels,
                              int(header["samples"]), np.array(header["noise"], dtype=float),
                              np.array(header["y0_squares"], dtype=float), grams)
     except (ValueError, KeyError, TypeError) as exc:
