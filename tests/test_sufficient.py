@@ -152,6 +152,23 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
         assert combined.params[name][p.name] == pytest.approx(0.03, rel=0.15)
 
 
+def test_a_profiled_effect_beside_linear_ones_is_fitted_as_the_rows_fit_it(lagged_fleet):
+    """Variable projection from statistics: the lag's search with a thrust scale solved inside
+    (and a fixed CoM offset subtracted), then the scale on what the lag leaves, as on rows."""
+    fds, stats = lagged_fleet
+    ids = sorted(fds)
+    es = [effects.get("thrust_scale"), effects.get("motor_lag"), effects.get("com_offset")]
+    fixed = {"com_offset": {"x_c_m": 0.001, "y_c_m": 0.0}}
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
+    combined = fitting.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
+                                   fixed)
+    assert abs(rows.params["motor_lag"]["tau_s"] - combined.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
+    assert combined.std["motor_lag"]["tau_s"] == pytest.approx(rows.std["motor_lag"]["tau_s"], rel=0.05)
+    assert combined.params["thrust_scale"]["scale"] == pytest.approx(rows.params["thrust_scale"]["scale"], rel=1e-6)
+    assert combined.std["thrust_scale"]["scale"] == pytest.approx(rows.std["thrust_scale"]["scale"], rel=1e-3)
+    assert combined.params["com_offset"] == fixed["com_offset"]
+
+
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
     from quadcore.identify import profiles

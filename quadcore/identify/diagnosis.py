@@ -492,11 +492,10 @@ def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _P
 
 def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list:
     """Parameters that differ between sessions: the model's effects, and the best candidate
-    beside them (from the flights' statistics when they are linear, or the best alone with a
-    profile; otherwise fitted on each flight's rows)."""
+    beside them (from the flights' statistics when they are linear, the best one perhaps
+    profiled; otherwise fitted on each flight's rows)."""
     best = [p.effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
-    effects = p.model_effects + best
-    if all(e.linear for e in effects) or (len(effects) == 1 and p.from_profile(effects[0])):
+    if all(e.linear for e in p.model_effects) and (not best or best[0].linear or p.from_profile(best[0])):
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
                                         log)
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},

@@ -372,7 +372,7 @@ def _objective(nonlin, lin, flights, ys, w, vehicle, x, keys=None) -> tuple[floa
 def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
     """One nonlinear parameter, from rows: :func:`scalar_minimum` of the objective on every
     flight's rows (a flight's statistics with a profile of the effect give the same search
-    without them: :func:`quadcore.identify.profiles.fit_effect`)."""
+    without them: :func:`quadcore.identify.profiles.fit_effects`)."""
     (p,) = [q for e in nonlin for q in e.parameters]
     memo: dict[float, tuple[float, int]] = {}
     keys = None if lin else [hashlib.blake2b(np.ascontiguousarray(y).tobytes(), digest_size=16).hexdigest()

@@ -204,30 +204,82 @@ def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
     return profiled(effect) and all(s.profiles is not None and effect.name in s.profiles.by_effect for s in stats)
 
 
-def fit_effect(effect: Effect, stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> Fit:
-    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect alone to the targets
-    ``z·u_f`` from the flights' profiles: the same grid, Brent refinement and curvature as the
-    row search (:func:`quadcore.identify.fitting.scalar_minimum`), on ``J(v)`` of the module."""
+def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None) -> Fit:
+    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
+    targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
+    effect's parameter by the row search's grid, Brent refinement and curvature
+    (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
+    effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
+    ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
+    the linear effects on what it leaves at the optimum. Those named in ``fixed`` (linear) are
+    subtracted first."""
     from quadcore.identify import fitting, sufficient
 
-    (p,) = effect.parameters
+    fixed = fixed or {}
+    (nonlinear,) = [e for e in effects if not e.linear]
+    (p,) = nonlinear.parameters
+    params, std = fitting.fixed_values(effects, fixed)
     us = [np.asarray(u, dtype=float) for u in targets]
     w = sufficient.channel_weights(stats, us)
-    const, S, Q, n = 0.0, 0.0, 0.0, 0
-    for s, u in zip(stats, us):
-        prof = s.profiles.by_effect[effect.name].total
-        width = len(u)
-        const += float(w @ sufficient.channel_sums(s.total, u, u))
-        S = S + np.einsum("gcw,w,c->g", prof[:, :, :width], u, w)
-        Q = Q + prof[:, :, -1] @ w
-        n += 6 * s.n
+    for e in effects:
+        if e.name in fixed:
+            us = [u - s.layout.coefficients(e, params[e.name], vehicle) for s, u in zip(stats, us)]
+    lin = [e for e in effects if e.linear and e.name not in fixed]
+    sums = _Sums.of(nonlinear.name, lin, stats, us, w)
 
     def J(v: float) -> float:
-        om = weights(p.lower, p.upper, v)
-        return max(const - 2 * float(om @ S) + float(om @ Q), 0.0)
+        return sums.rss(weights(p.lower, p.upper, v))[0]
 
-    best, var = fitting.scalar_minimum(J, n, p.lower, p.upper)
-    return fitting.Fit({effect.name: {p.name: best}}, {effect.name: {p.name: float(np.sqrt(max(var, 0.0)))}}, w)
+    best, var = fitting.scalar_minimum(J, sums.n, p.lower, p.upper)
+    params[nonlinear.name] = {p.name: best}
+    std[nonlinear.name] = {p.name: float(np.sqrt(max(var, 0.0)))}
+    if lin:
+        rss, theta = sums.rss(weights(p.lower, p.upper, best))
+        fitting.linear_parameters(lin, theta, sums.A, rss, sums.n, vehicle, params, std)
+    return fitting.Fit(params, std, w)
+
+
+@dataclass(frozen=True)
+class _Sums:
+    """The combined sums of a variable-projection fit (see :func:`fit_effects`): ``yy(v) = const
+    - 2 ω·S + ω·Q``, ``b(v) = b0 - B ω``, over ``n`` values."""
+
+    const: float
+    S: np.ndarray
+    Q: np.ndarray
+    A: np.ndarray
+    b0: np.ndarray
+    B: np.ndarray
+    n: int
+
+    @classmethod
+    def of(cls, name: str, lin: list[Effect], stats: Sequence[FlightStats], us: list[np.ndarray],
+           w: np.ndarray) -> _Sums:
+        k = sum(len(e.parameters) for e in lin)
+        const, S, Q, A, b0, B, n = 0.0, 0.0, 0.0, np.zeros((k, k)), np.zeros(k), 0.0, 0
+        for s, u in zip(stats, us):
+            cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
+            Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
+            prof = s.profiles.by_effect[name].total
+            Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
+            const += float(u @ Gw @ u)
+            S = S + Pw @ u
+            Q = Q + prof[:, :, -1] @ w
+            A += Gw[np.ix_(cols, cols)]
+            b0 += Gw[cols] @ u
+            B = B + Pw[:, cols].T
+            n += 6 * s.n
+        return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
+
+    def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
+        """The residual sum of squares at weights ``om`` and the linear coordinates there."""
+        yy = self.const - 2 * float(om @ self.S) + float(om @ self.Q)
+        if not len(self.b0):
+            return max(yy, 0.0), np.zeros(0)
+        b = self.b0 - self.B @ om
+        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
+        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
 
 
 # ---------------------------------------------------------------------------------------

@@ -299,12 +299,12 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     from quadcore.identify import fitting
 
     fixed = fixed or {}
-    nonlinear = [e.name for e in effects if not e.linear]
-    if len(effects) == 1 and not fixed and profiles.covers(effects[0], stats):
-        return profiles.fit_effect(effects[0], stats, targets)
+    nonlinear = [e for e in effects if not e.linear]
+    if len(nonlinear) == 1 and nonlinear[0].name not in fixed and profiles.covers(nonlinear[0], stats):
+        return profiles.fit_effects(effects, stats, targets, vehicle, fixed)
     if nonlinear:
-        raise StatsError(f"nonlinear effect(s) {', '.join(nonlinear)}: fitted from rows, not statistics "
-                         "(one alone with a profile in every flight's statistics excepted)")
+        raise StatsError(f"nonlinear effect(s) {', '.join(e.name for e in nonlinear)}: fitted from rows, not "
+                         "statistics (but one with a profile in every flight's statistics)")
     vs = [np.asarray(v, dtype=float) for v in targets]
     w = channel_weights(stats, vs)
     params, std = fitting.fixed_values(effects, fixed)
