@@ -81,11 +81,11 @@ def learned_models(
     flights but the holdout with early stopping on validation flights; artefacts and held-out
     predictions under ``<root>/learned/<run>/``."""
     root = data_root.root_path
-    request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp}, config.loo,
-                                    config.compare, config.stride, config.seed, config.threads,
-                                    config.max_rows or learn_row_budget())
     csv_path = config.flights_csv or feat.find_flights_csv(data_root.raw_path, root)
     with failing_on_user_errors():
+        request = learn.LearningRequest(tuple(config.models), {"xgboost": config.xgboost, "mlp": config.mlp},
+                                        config.loo, config.compare, config.stride, config.seed, config.threads,
+                                        config.max_rows or learn_row_budget())
         runs = learn.train_data_root(root, request, config.holdout, model.holdout_flights, csv_path, context.log.info)
     for note in runs.notes:
         context.log.warning(note)
@@ -94,7 +94,8 @@ def learned_models(
         "models": len(runs.records),
         "runs": dg.MetadataValue.md(render.markdown_table(pl.DataFrame([
             {"run": r.name, "train s": r.train_time_s, "val loss": r.val_loss, "rows": r.rows_fit,
-             "µs/sample": r.latency_us} for r in runs.records]))),
+             "rows held": r.manifest["rows_held"], "µs/sample": r.latency_us} for r in runs.records]))),
+        "row_budget": request.max_rows,
         "notes": dg.MetadataValue.md("\n".join(f"- {n}" for n in runs.notes) or "none"),
         "folder": dg.MetadataValue.path(str(store.learned_dir(root))),
     })

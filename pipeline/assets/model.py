@@ -11,7 +11,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
-from pipeline.resources import DataRoot, ModelConfig
+from pipeline.resources import DataRoot, ModelConfig, SettingError
 from quadcore import workflows
 from quadcore.identify import history, sessions, sufficient, verdict
 from quadcore.learn import learners
@@ -34,12 +34,12 @@ RETRAIN = (
 @contextlib.contextmanager
 def failing_on_user_errors():
     """A request the workflows refuse (a bad ``QUADCORE_HOLDOUT`` or sessions file, too few
-    flights, a learning option) fails the run with its reason, in one line."""
+    flights, a learning option, a bad ``QUADCORE_*`` setting) fails the run with its reason, in one line."""
     try:
         yield
     except workflows.HoldoutError as exc:
         raise dg.Failure(description=f"QUADCORE_HOLDOUT: {exc}") from None
-    except (workflows.WorkflowError, learners.LearningError) as exc:
+    except (workflows.WorkflowError, learners.LearningError, SettingError) as exc:
         raise dg.Failure(description=str(exc)) from None
 
 
