@@ -56,7 +56,6 @@ from functools import cached_property, lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
@@ -91,7 +90,10 @@ def profile_grid(lower: float, upper: float) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _spline(lower: float, upper: float) -> CubicSpline:
+def _spline(lower: float, upper: float):
+    """The not-a-knot cubic spline of each grid point's unit vector in ``log(v - lower)``."""
+    from scipy.interpolate import CubicSpline  # imported when first needed: 0.4 s at start-up otherwise
+
     grid = profile_grid(lower, upper)
     return CubicSpline(np.log(grid[1:] - lower), np.eye(len(grid) - 1), axis=0)
 
