@@ -147,8 +147,8 @@ def _cross_spectra(U: np.ndarray, stretches: list[slice]) -> np.ndarray:
         starts = np.arange((len(x) - half) // half) * half
         seg = x[starts[:, None] + np.arange(n)]  # (segments, n, k)
         seg = (seg - seg.mean(axis=1, keepdims=True)) * window[None, :, None]
-        F = np.fft.rfft(seg, axis=1)
-        S = np.einsum("sfk,sfl->fkl", F.conj(), F) / (len(starts) * (window ** 2).sum())
+        F = np.fft.rfft(seg, axis=1).transpose(1, 0, 2)  # (bins, segments, k)
+        S = (F.conj().transpose(0, 2, 1) @ F) / (len(starts) * (window ** 2).sum())
         S[1:-1] *= 2  # one-sided: every bin but DC and Nyquist (SEGMENT is even)
         C += (part.stop - part.start) * S
     return C
