@@ -55,6 +55,7 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_decode.py
 	$(VENV_PYTHON) benchmarks/bench_physics.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_sufficient.py
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_summaries.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_profiles.py
 	$(VENV_PYTHON) benchmarks/bench_learning.py
 	$(VENV_PYTHON) benchmarks/bench_discover.py
