@@ -169,6 +169,45 @@ def test_a_profiled_effect_beside_linear_ones_is_fitted_as_the_rows_fit_it(lagge
     assert combined.params["com_offset"] == fixed["com_offset"]
 
 
+SLOW_THRUST = """
+from quadcore.effects.base import Effect, Parameter, rotor_wrench
+
+
+class SlowThrust(Effect):
+    name = "slow_thrust"
+    target = "both"
+    parameters = (Parameter("k", "1", 0.0, 0.0, 0.5, "share of the thrust that comes late"),)
+
+    def wrench(self, state, vehicle, params):
+        late = state.f_rotor_N.copy()
+        late[1:] = state.f_rotor_N[:-1]
+        return rotor_wrench(vehicle, params["k"] ** 2 * (late - state.f_rotor_N))
+
+
+EFFECT = SlowThrust()
+"""
+
+
+def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_path):
+    """A user's nonlinear effect of one parameter named in the model file gets its profile in
+    the stored statistics, and is fitted from it as from rows."""
+    path = tmp_path / "slow_thrust.py"
+    path.write_text(SLOW_THRUST)
+    e = effects.load_plugin(path)
+    try:
+        assert "slow_thrust" in sufficient.spec_layout(model.spec_from(VEHICLE, ["slow_thrust"])).profiled
+        fds, _ = lagged_fleet
+        ids = sorted(fds)
+        layout = sufficient.layout_of([e])
+        stats = [sufficient.flight_stats(fds[f], VEHICLE, layout) for f in ids]
+        rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+        combined = fitting.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
+        assert abs(rows.params["slow_thrust"]["k"] - combined.params["slow_thrust"]["k"]) <= 5e-4 * 0.5
+        assert combined.params["slow_thrust"]["k"] > 0.1  # a lag is found as late thrust
+    finally:
+        effects.unregister("slow_thrust")
+
+
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
     from quadcore.identify import profiles
