@@ -783,7 +783,7 @@ def discover(
     train = [f for f in ids if f not in holdout]
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
-    fx_effects = list(effectlib.registry().values())
+    fx_effects = library_stats.fx_effects(spec)  # the effects the stored statistics hold
     folds = fitting.folds(train, n_folds)
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects))

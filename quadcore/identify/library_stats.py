@@ -79,7 +79,7 @@ class FlightLibrary:
         return any(name.startswith("motor_") for name, *_ in self.variables)
 
 
-def fx_effects(spec) -> list:
+def fx_effects(spec) -> list[effectlib.Effect]:
     """The effects whose bases the statistics hold: the built-in ones, then the model file's
     plugins (the order of :func:`quadcore.effects.registry`)."""
     builtin = effectlib.builtin_names()
@@ -101,7 +101,7 @@ def library_key(spec, flight: str) -> str:
     the stride, the effects' names and sources, the code (stored ones with another are stale)."""
     content = {"format": FORMAT, "stride": STRIDE, "code": _code_digest(),
                "vehicle": sufficient.stats_key(spec.vehicle, spec.vehicle_for(flight), sufficient.Layout((), ())),
-               "effects": {e.name: sufficient._source_digest(e) for e in fx_effects(spec)}}
+               "effects": {e.name: sufficient.source_digest(type(e)) for e in fx_effects(spec)}}
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
 
 

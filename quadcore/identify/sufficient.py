@@ -418,7 +418,7 @@ def code_digest() -> str:
 
 
 @functools.cache
-def _source_digest(effect_class: type) -> str:
+def source_digest(effect_class: type) -> str:
     """A digest of an effect class's source (once per class and process: reading the source
     costs milliseconds, and a key is asked for every flight)."""
     try:
@@ -438,7 +438,7 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
     key are stale."""
     content = {"format": FORMAT, "code": code_digest(), "layout": asdict(layout), "vehicle": _content(vehicle),
                "flight_vehicle": _content(flight_vehicle),
-               "effects": {n: _source_digest(type(effectlib.get(n))) for n in (*layout.effects, *layout.profiled)}}
+               "effects": {n: source_digest(type(effectlib.get(n))) for n in (*layout.effects, *layout.profiled)}}
     text = json.dumps(content, sort_keys=True, default=lambda a: np.asarray(a).tolist())
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
