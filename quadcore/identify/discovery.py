@@ -639,7 +639,7 @@ def _combined(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: ModelSp
     missing = [f for f in ids if found[f] is None]
     log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; combining "
         f"{len(ids) - len(missing)} flights' stored statistics" + (f", computing {len(missing)}" if missing else ""))
-    sums, full = _GramSums(folds, holdout), _GramSums(folds, holdout)
+    sums, full = _GramSums(folds, holdout), _GramSums(folds, holdout, scored_only=True)
     samples: dict[str, int] = {}
     noise_of: dict[str, np.ndarray] = {}
     y0_squares: dict[str, np.ndarray] = {}
@@ -892,9 +892,12 @@ class _GramSums:
     a few sums, not one matrix per flight: the training total; per fold, the training flights
     outside it and the flights in it; and the held-out flights' own matrices (a few)."""
 
-    def __init__(self, folds: list[list[str]], holdout: list[str]):
+    def __init__(self, folds: list[list[str]], holdout: list[str], scored_only: bool = False):
+        """``scored_only``: only each fold's own flights' sums and the held-out flights' (the
+        matrices a flight is scored with, not fitted on)."""
         self.fold_of = {f: i for i, fold in enumerate(folds) for f in fold}
         self.holdout = holdout
+        self.scored_only = scored_only
         self.train: np.ndarray | None = None
         self.outside: list[np.ndarray | None] = [None] * len(folds)
         self.inside: list[np.ndarray | None] = [None] * len(folds)
@@ -908,8 +911,11 @@ class _GramSums:
         if flight in self.holdout:
             self.held[flight] = G
             return
-        self.train = self._plus(self.train, G)
         k = self.fold_of[flight]
+        if self.scored_only:
+            self.inside[k] = self._plus(self.inside[k], G)
+            return
+        self.train = self._plus(self.train, G)
         for i in range(len(self.outside)):
             if i == k:
                 self.inside[i] = self._plus(self.inside[i], G)

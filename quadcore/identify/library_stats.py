@@ -36,6 +36,7 @@ computed for and the SHA-256 of the log the decoded table came from.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from collections.abc import Callable
@@ -158,26 +159,24 @@ def load(root: Any, flight: str) -> FlightLibrary:
     """A flight's stored statistics (the header read now, the matrices when asked for);
     :class:`quadcore.identify.sufficient.StatsError` when the file is not one (from :meth:`FlightLibrary.grams`:
     when its matrices are cut short)."""
-    from quadcore.identify import discovery
-
     path = library_path(root, flight)
     try:
         raw = _read(path, header_only=True)
+        if not raw.startswith(sufficient.MAGIC):
+            raise ValueError("no statistics header")
         header = json.loads(raw[len(sufficient.MAGIC) + 8:])
         if header.get("format") != FORMAT:
             raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
         labels = tuple(header["labels"])
-        width = len(labels)
+        arrays, start = header["arrays"], len(raw)
 
         def grams() -> tuple[np.ndarray, np.ndarray]:
+            data = _read(path, header_only=False)
             try:
-                _, array = sufficient._decode(_read(path, header_only=False))
-                H = np.zeros((width, width))
-                for group, name in zip(discovery.channel_groups(labels), ("H_force", "H_torque")):
-                    H[np.ix_(group, group)] = sufficient._unpacked(array(name), len(group))
-                return sufficient._unpacked(array("G"), width), H
+                G, H_force, H_torque = (_array(data, start, arrays[name]) for name in ("G", "H_force", "H_torque"))
             except (ValueError, KeyError) as exc:
                 raise sufficient.StatsError(f"{path}: {exc}") from None
+            return _unpacked(labels, G), _unpacked(labels, H_force, H_torque)
 
         variables = tuple((str(n), tuple(u), tuple(s), str(c)) for n, u, s, c in header["variables"])
         return FlightLibrary(header["flight"], header["key"], header["source"], variables, labels,
@@ -185,6 +184,45 @@ def load(root: Any, flight: str) -> FlightLibrary:
                              np.array(header["y0_squares"], dtype=float), grams)
     except (ValueError, KeyError, TypeError) as exc:
         raise sufficient.StatsError(f"{path}: not a discovery statistics file ({exc})") from None
+
+
+def _array(data: bytes, start: int, spec: dict) -> np.ndarray:
+    """One array of a file (:func:`quadcore.identify.sufficient._encode`'s layout) from its header entry."""
+    count = int(np.prod(spec["shape"]))
+    end = start + spec["offset"] + count * np.dtype(spec["dtype"]).itemsize
+    if end > len(data):
+        raise ValueError(f"cut short: an array ends at byte {end}, the file has {len(data)}")
+    return np.frombuffer(data, np.dtype(spec["dtype"]), count, start + spec["offset"])
+
+
+@functools.lru_cache(maxsize=4)
+def _flat_indices(labels: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    """Where the packed upper triangles go in a flattened (W, W) matrix: ``G``'s, then ``H``'s
+    force block and torque block (computed once per layout; a block's columns are in order, so
+    its upper triangle lies in the matrix's)."""
+    from quadcore.identify import discovery
+
+    width = len(labels)
+    out = []
+    for idx in (np.arange(width), *discovery.channel_groups(labels)):
+        i, j = np.triu_indices(len(idx))
+        out.append(idx[i] * width + idx[j])
+    return tuple(out)
+
+
+def _unpacked(labels: tuple[str, ...], *packed: np.ndarray) -> np.ndarray:
+    """The symmetric (W, W) matrix of ``G``'s packed triangle, or of ``H``'s two blocks' (zero
+    between the blocks): the upper triangle placed, then mirrored (``U + Uᵀ``, the diagonal
+    halved back: exact)."""
+    width = len(labels)
+    where = _flat_indices(labels)
+    U = np.zeros(width * width)
+    for P, upper in zip(packed, where[:1] if len(packed) == 1 else where[1:]):
+        U[upper] = P
+    U = U.reshape(width, width)
+    M = U + U.T
+    M[np.diag_indices(width)] *= 0.5
+    return M
 
 
 def stored(root: Any, spec) -> Callable[[str], FlightLibrary | None]:
