@@ -101,6 +101,26 @@ def test_a_residual_given_as_rows_summarises_alike(drag_fleet):
     _close(got.frequency, spectrum.frequency_view([fd], {fd.flight: r}, VEHICLE))
 
 
+def test_a_summary_with_too_few_spectral_bins_for_the_fleet_takes_its_rows(drag_fleet):
+    """A flight whose summary stops below the bins the fleet's sample rate needs (a fast log among
+    slow ones) is described from its rows, to the same view."""
+    p = flight.discover_logs(drag_fleet)[0]
+    fd = fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    layout = _layout()
+    v = _residual(layout)
+    short = summaries.summarize(fd, VEHICLE, sufficient.design_rows(fd, VEHICLE, layout), top_bin=40).residual(v)
+    redone = []
+
+    def from_rows(f):
+        redone.append(f)
+        return summaries.of_rows(fd, sufficient.signal_rows(fd, VEHICLE, layout, v), VEHICLE).residual(np.ones(1))
+
+    got = summaries.tables([short], from_rows, VEHICLE)
+    assert redone == [fd.flight]
+    _close(got.frequency, spectrum.frequency_view([fd], {fd.flight: sufficient.signal_rows(fd, VEHICLE, layout, v)},
+                                                  VEHICLE))
+
+
 @pytest.fixture(scope="module")
 def stored_root(drag_fleet, tmp_path_factory):
     """The shared fleet's statistics as the per-flight asset stores them, for a model of rotor drag."""

@@ -124,16 +124,11 @@ def _modes(windows: np.ndarray, n_windows: int, codes: np.ndarray, n_labels: int
     return counts.reshape(n_windows, n_labels).argmax(axis=1)
 
 
-def _top_bin(fs_hz: float) -> int:
-    """The last frequency bin below ``MARGIN`` × the top band edge at the sample rate ``fs_hz``."""
+def _last_bin_below(hz: float, fs_hz: float) -> int:
+    """The last Welch frequency bin below ``hz`` at the sample rate ``fs_hz``: with ``hz`` the top
+    band edge, the last one the view reads bin by bin."""
     grid = np.fft.rfftfreq(spectrum.SEGMENT, 1.0 / fs_hz)
-    return int(np.flatnonzero(grid < MARGIN * spectrum.BANDS_HZ[-1][1])[-1])
-
-
-def _needed_bin(fs_hz: float) -> int:
-    """The last bin the view reads bin by bin at the fleet's rate ``fs_hz`` (below the top band edge)."""
-    grid = np.fft.rfftfreq(spectrum.SEGMENT, 1.0 / fs_hz)
-    return int(np.flatnonzero(grid < spectrum.BANDS_HZ[-1][1])[-1])
+    return int(np.flatnonzero(grid < hz)[-1])
 
 
 def _cross_spectra(U: np.ndarray, stretches: list[slice]) -> np.ndarray:
@@ -245,7 +240,7 @@ class ResidualSums:
 
     def covers(self, fs_hz: float) -> bool:
         """Whether the bins kept one by one are every bin the view reads at the fleet's rate ``fs_hz``."""
-        return not self.spectrum_rows or len(self.spectra["rr"]) >= _needed_bin(fs_hz)
+        return not self.spectrum_rows or len(self.spectra["rr"]) >= _last_bin_below(spectrum.BANDS_HZ[-1][1], fs_hz)
 
     @property
     def ss(self) -> np.ndarray:
@@ -279,7 +274,8 @@ def summarize(fd, vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightS
     meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
     C = [_cross_spectra(np.concatenate([Z[:, c, packing.cols[c]], meas[:, c:c + 1]], axis=1), stretches)
          for c in range(6)]
-    K = min(_top_bin(fs_hz) if top_bin is None else top_bin, spectrum.SEGMENT // 2)
+    K = min(_last_bin_below(MARGIN * spectrum.BANDS_HZ[-1][1], fs_hz) if top_bin is None else top_bin,
+            spectrum.SEGMENT // 2)
     spectral = Packing(packing.cols, 1)
     re = [np.concatenate([c.real[1: K + 1], c.real[K + 1:].sum(axis=0, keepdims=True)]) for c in C]
     return FlightSummary(
