@@ -450,9 +450,15 @@ def _one_blas_thread():
     thread's sum either way), and with the two cores shared by other work, OpenBLAS's second
     thread waiting for a core made a 6,000-sample product ten times slower (0.38 s against
     0.03 s at load average 5)."""
-    from threadpoolctl import threadpool_limits
+    return _blas_controller().limit(limits=1, user_api="blas")
 
-    return threadpool_limits(1, user_api="blas")
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The process's thread pools, found once (finding them costs about 10 ms a time)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle, stride: int):

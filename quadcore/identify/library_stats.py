@@ -87,7 +87,10 @@ def fx_effects(spec) -> list[effectlib.Effect]:
     return [effectlib.get(n) for n in [*builtin, *sorted(n for n in spec.effects if n not in builtin)]]
 
 
+@functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
+    """The sufficient statistics' code digest and the source of this module and discovery's
+    (once per process, as :func:`quadcore.identify.sufficient.code_digest`)."""
     import importlib.util
 
     digest = hashlib.sha256(sufficient.code_digest().encode())
