@@ -308,6 +308,12 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
     return {fs.name: [feature_path(root, fs.name, f) for f in residual_tables] for fs in sets}
 
 
+# Each feature set's tables keep at most this many bytes of recently read flights: a training run
+# reads its flights twice (usable rows, then the rows it holds), and the five sets' caches
+# together stay small whatever the fleet (the 19 real flights' tables fit in it: each is read once).
+FEATURE_CACHE_BYTES = 64 << 20
+
+
 def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping[str, pl.DataFrame]]]:
     """Every feature set under ``<root>/features`` (its definition from the files' metadata)
     and its tables, each read when it is looked up: (sets, {set name: {flight: table}})."""
@@ -322,7 +328,7 @@ def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping
             continue
         meta = store.read_metadata(files[0])
         sets.append(FeatureSet.from_dict(meta["feature_set"]))
-        tables[folder.name] = store.flight_tables(folder)
+        tables[folder.name] = store.flight_tables(folder, FEATURE_CACHE_BYTES)
     return sets, tables
 
 

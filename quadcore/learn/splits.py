@@ -131,20 +131,25 @@ def budget_rows(counts: Mapping[str, int], quota: int | None, seed: int) -> dict
     return picks
 
 
-def _rows(tables: Mapping[str, pl.DataFrame], flights, fs: FeatureSet, stride: int = 1,
-          picks: Mapping[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Usable rows of ``flights`` (those ``picks`` names, when given, then every ``stride``-th):
-    inputs (n, k) float32, targets (n, 6)."""
-    Xs, Ys = [], []
+def _rows(tables: Mapping[str, pl.DataFrame], flights, fs: FeatureSet,
+          picks: Mapping[str, np.ndarray] | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each flight's usable rows (those ``picks`` names, when given): inputs (n, k) float32,
+    targets (n, 6); every table is read once."""
+    out = {}
     for f in flights:
         t = tables[f]
         rows = np.flatnonzero(feat.usable(t))
-        rows = (rows if picks is None else rows[picks[f]])[::stride]
-        Xs.append(feat.matrix(t, fs)[rows])
-        Ys.append(feat.targets(t)[rows])
-    if not Xs:
+        rows = rows if picks is None else rows[picks[f]]
+        out[f] = feat.matrix(t, fs)[rows], feat.targets(t)[rows]
+    return out
+
+
+def _stack(parts, fs: FeatureSet, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The (X, Y) pairs of ``parts`` one under the other, every ``stride``-th row of each."""
+    parts = list(parts)
+    if not parts:
         return np.zeros((0, len(fs.columns)), np.float32), np.zeros((0, len(TARGETS)))
-    return np.concatenate(Xs), np.concatenate(Ys)
+    return np.concatenate([X[::stride] for X, _ in parts]), np.concatenate([Y[::stride] for _, Y in parts])
 
 
 @dataclass(frozen=True)
@@ -186,7 +191,8 @@ def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: lis
     counts = usable_counts(tables, train)
     quota = budget_quota(counts, config.max_rows)
     picks = budget_rows(counts, quota, config.seed)
-    X_all, Y_all = _rows(tables, train, fs, picks=picks)
+    by_flight = _rows(tables, train, fs, picks)
+    X_all, Y_all = _stack(by_flight.values(), fs)
     budget = RowBudget(config.max_rows, sum(counts.values()), len(X_all), quota)
     if len(X_all) < 10:
         raise LearningError(f"too few usable rows on the training flights ({len(X_all)})")
@@ -196,8 +202,8 @@ def training_data(tables: Mapping[str, pl.DataFrame], fs: FeatureSet, train: lis
     fit = [f for f in sorted(train) if f not in val]
     stride = max(1, int(config.stride))
     if val:
-        Xf, Yf = _rows(tables, fit, fs, stride, picks)
-        Xv, Yv = _rows(tables, val, fs, picks=picks)
+        Xf, Yf = _stack((by_flight[f] for f in fit), fs, stride)
+        Xv, Yv = _stack((by_flight[f] for f in val), fs)
         how = f"flights {', '.join(val)}"
     else:  # one training flight: its last 20 % validates
         n = len(X_all)

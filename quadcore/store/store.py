@@ -378,10 +378,10 @@ def _nbytes(df: pl.DataFrame) -> int:
     return int(df.estimated_size())
 
 
-def flight_tables(folder: Any) -> FlightTables:
+def flight_tables(folder: Any, cache_bytes: int = TABLE_CACHE_BYTES) -> FlightTables:
     """Every ``<folder>/flight=<id>/data.parquet`` as :class:`FlightTables`, by flight id, sorted."""
     files = sorted(as_root(folder).glob("flight=*/data.parquet"))
-    return FlightTables({check_component(p.parent.name.split("=", 1)[1], "flight id"): p for p in files})
+    return FlightTables({check_component(p.parent.name.split("=", 1)[1], "flight id"): p for p in files}, cache_bytes)
 
 
 def read_all_decoded(root: Path, event: str, flights: list[str] | None = None) -> FlightTables:
