@@ -411,6 +411,7 @@ def test_cli_train(tmp_path, sim_dir):
     (["--effects", "warp_drive"], "warp_drive"),
     (["--xgboost", "depth=deep"], "bad value"),
     (["--stride", "0"], "at least 1"),
+    (["--max-rows", "5"], "row budget 5: give a whole number of rows, at least 1000"),
     (["--thrust-map", "bogus"], "unknown thrust map 'bogus'"),
     (["--model", "no_such_model.toml"], "no_such_model.toml"),
 ])
