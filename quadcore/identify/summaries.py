@@ -42,6 +42,7 @@ rounding (~1e-12 relative).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,6 +64,12 @@ BIN_OFFSETS = np.cumsum([0] + [len(LABELS[r]) for r in REGIMES])  # each regime'
 SEGMENT_LABELS = ("phase", "speed", "height")  # the worst segments' modal labels
 
 
+@functools.lru_cache(maxsize=64)
+def _upper(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The upper triangle's indices of a k × k matrix (cached: every flight asks for the same few)."""
+    return np.triu_indices(k)
+
+
 @dataclass(frozen=True)
 class Packing:
     """Which columns each channel keeps (``cols[c]``, indices into the flight's columns), and
@@ -80,7 +87,7 @@ class Packing:
 
     def pack(self, G: Sequence[np.ndarray]) -> np.ndarray:
         """``G[c]`` (..., k_c, k_c) per channel -> (..., Σ sizes)."""
-        return np.concatenate([g[(..., *np.triu_indices(g.shape[-1]))] for g in G], axis=-1)
+        return np.concatenate([g[(..., *_upper(g.shape[-1]))] for g in G], axis=-1)
 
     def weights(self, a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
         """(Σ sizes, channels) such that ``packed @ W`` is ``a_cᵀ G_c b_c`` per channel (``a[c]``,
@@ -89,7 +96,7 @@ class Packing:
         W = np.zeros((sum(self.sizes()[: len(a)]), len(a)))
         start = 0
         for c, (x, y) in enumerate(zip(a, b)):
-            i, j = np.triu_indices(len(x))
+            i, j = _upper(len(x))
             W[start: start + len(i), c] = np.where(i == j, x[i] * y[j], x[i] * y[j] + x[j] * y[i])
             start += len(i)
         return W
