@@ -3,6 +3,11 @@ statistics' size and compute time per real flight, and discovery's combine time 
 at 19 / 100 / 1,000 flights against discovery from rows.
 
     TMPDIR=/tmp/x nice -n 10 python benchmarks/bench_discover_stats.py [LOGS_FOLDER] [--flights 19,100,1000]
+    python benchmarks/bench_discover_stats.py --root DATA_ROOT [--rows]
+
+The second form is what ``term_discovery`` does on a data root the main job filled (the usable
+flights, then discovery from their stored statistics, or with ``--rows`` from their rows), once,
+for ``farm-bench``: prints its seconds in process.
 
 The fleets past the real flights repeat the real flights' statistics under new ids (the combine's
 cost depends on the number of flights and columns, not on what the matrices hold). Target (issue
@@ -27,11 +32,27 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def once(root: str, rows: bool) -> None:
+    """term_discovery's work on a data root: the usable flights, then discovery (nominal model,
+    cross-validated without the default held-out flight, as the asset does)."""
+    from quadcore.workflows import fleet, identify
+
+    spec = model.spec_from(vehicle.load(), [])
+    t0 = time.perf_counter()
+    result = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, [], root=None if rows else root)
+    print(f"{'rows' if rows else 'stored statistics'}: {time.perf_counter() - t0:.2f} s, {len(result.terms)} terms")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("logs", nargs="?", default=str(REAL_LOGS))
     parser.add_argument("--flights", default="19,100,1000")
+    parser.add_argument("--root", help="a data root the main job filled: time term_discovery's work there, once")
+    parser.add_argument("--rows", action="store_true", help="with --root: discovery from the rows")
     args = parser.parse_args()
+    if args.root:
+        once(args.root, args.rows)
+        return
     if not Path(args.logs).is_dir():
         print(f"real Crazyflie logs not found at {args.logs}: pass a folder of logs as the first argument")
         sys.exit(0)
