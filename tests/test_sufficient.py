@@ -208,6 +208,52 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
         effects.unregister("slow_thrust")
 
 
+SCALED_LAG = """
+from quadcore.effects.base import Effect, Parameter, rotor_wrench
+from quadcore.effects.motor_lag import first_order_lag
+
+
+class ScaledLag(Effect):
+    name = "scaled_lag"
+    target = "both"
+    parameters = (Parameter("tau_s", "s", 0.0, 0.0, 0.2, "time constant"),
+                  Parameter("share", "1", 0.0, 0.0, 2.0, "share of the thrust that lags"))
+
+    def wrench(self, state, vehicle, params):
+        lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
+        return rotor_wrench(vehicle, params["share"] * (lagged - state.f_rotor_N))
+
+
+EFFECT = ScaledLag()
+"""
+
+
+def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_profiled_ones(lagged_fleet, tmp_path):
+    """A candidate without a profile (two nonlinear parameters) is fitted on its training flights'
+    rows and its held-out prediction is a column from the evaluated flight's rows, beside the
+    profiled candidates' columns: all of them scored on the same flights."""
+    from quadcore.identify import diagnosis
+
+    path = tmp_path / "scaled_lag.py"
+    path.write_text(SCALED_LAG)
+    effects.load_plugin(path)
+    try:
+        fds, stats = lagged_fleet
+        held = sorted(fds)[-1]
+        read = []
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
+            result = diagnosis.diagnose({f: "rows" for f in fds}, model.spec_from(VEHICLE, []), [held],
+                                        ["motor_lag", "scaled_lag"], stats=stats.get).to_dict()
+        assert set(read) == set(fds)  # the two-parameter candidate's training rows, the held-out flight's
+        rows = {r["effect"]: r for r in result["candidates"]}
+        assert rows["motor_lag"]["found"] and rows["scaled_lag"]["found"], result["verdict"]
+        assert rows["scaled_lag"]["parameters"]["tau_s"] == pytest.approx(0.03, rel=0.2)
+        assert rows["motor_lag"]["parameters"]["tau_s"] == pytest.approx(0.03, rel=0.15)
+    finally:
+        effects.unregister("scaled_lag")
+
+
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
     from quadcore.identify import profiles
