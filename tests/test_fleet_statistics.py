@@ -131,6 +131,7 @@ def test_discovery_under_a_linear_model_subtracts_its_fit_from_the_stored_sums(s
 def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, monkeypatch):
     """A flight decoded again from other bytes (another SHA-256 in its footer) or whose file is
     cut short is not trusted: its rows are read, and the result is unchanged."""
+    import dataclasses
     import shutil
 
     from quadcore.identify import library_stats, model
@@ -141,7 +142,10 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
     path.write_bytes(path.read_bytes()[:-100])
     spec = model.spec_from(vehicle.load(), [])
     assert library_stats.stored(root, spec)("sim001") is not None  # the header is whole: caught when read
+    other_log = dataclasses.replace(library_stats.load(root, "sim002"), source="0" * 64)
+    library_stats.save(other_log, root)
+    assert library_stats.stored(root, spec)("sim002") is None
     rows, stored, reads = _discoveries(root, [], ["sim003"], monkeypatch)
-    assert [p.parent.name for p in reads] == ["flight=sim001"]
+    assert sorted(p.parent.name for p in reads) == ["flight=sim001", "flight=sim002"]
     rows.pop("after"), stored.pop("after")
     assert stored == rows
