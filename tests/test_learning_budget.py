@@ -15,7 +15,7 @@ import polars as pl
 import pytest
 
 from quadcore.identify import model
-from quadcore.learn import evaluation, experiments, features as feat, learners, splits, trainers
+from quadcore.learn import evaluation, experiments, features as feat, learners, metrics, splits, trainers
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -160,3 +160,9 @@ def test_leave_one_flight_out_is_capped_and_the_plan_says_so():
     assert any(f"{splits.MAX_LOFO_FOLDS} folds (its cap) for 50 flights" in n for n in plan.notes)
     few = [f"f{i:03d}" for i in range(splits.MAX_LOFO_FOLDS)]
     assert splits.lofo_left_out(few) == few  # the 19 real flights: every one, as before
+
+
+def test_the_training_mean_baseline_is_summed_flight_by_flight_to_the_bit(residuals):
+    train = [f for f in residuals if f != HOLDOUT]
+    stacked = np.concatenate([feat.targets(residuals[f])[feat.usable(residuals[f])] for f in train])
+    np.testing.assert_array_equal(metrics.training_mean(residuals, train), stacked.mean(axis=0))
