@@ -27,7 +27,7 @@ class CompiledForest:
         self.base = np.asarray(base, dtype=np.float64).reshape(-1)
         if self.base.size == 1 and n_targets > 1:
             self.base = np.full(n_targets, self.base[0])
-        left, right, fidx, thr, dleft, value, roots, depth = [], [], [], [], [], [], [], 1
+        left, right, fidx, thr, dleft, value, roots = [], [], [], [], [], [], []
         offset = 0
         for tree in model["trees"]:
             lc = np.asarray(tree["left_children"], np.int64)
@@ -42,24 +42,27 @@ class CompiledForest:
             dleft.append(np.asarray(tree["default_left"], bool) | leaf)
             value.append(np.where(leaf, cond.astype(np.float64), 0.0))
             roots.append(offset)
-            depth = max(depth, self._depth(lc, rc))
             offset += len(lc)
         self.left, self.right = np.concatenate(left), np.concatenate(right)
         self.feature, self.threshold = np.concatenate(fidx), np.concatenate(thr)
         self.default_left, self.value = np.concatenate(dleft), np.concatenate(value)
         self.roots = np.asarray(roots, np.int64)
         self.group = np.asarray(model["tree_info"], np.int64)
-        self.depth = depth
+        self.depth = self._depth(self.left, self.right, self.roots)
         self.n_targets = len(self.base)
 
     @staticmethod
-    def _depth(lc: np.ndarray, rc: np.ndarray) -> int:
-        depth, frontier = 0, [0]
-        while frontier:
-            nxt = [c for i in frontier for c in (lc[i], rc[i]) if c >= 0]
-            depth += 1 if nxt else 0
-            frontier = nxt
-        return max(depth, 1)
+    def _depth(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> int:
+        """The deepest tree's depth (at least 1): every tree walked one level at a time at once
+        (a leaf is its own child in these arrays)."""
+        depth, frontier = 0, roots
+        is_leaf = left == np.arange(len(left))
+        while True:
+            inner = frontier[~is_leaf[frontier]]
+            if not len(inner):
+                return max(depth, 1)
+            depth += 1
+            frontier = np.concatenate([left[inner], right[inner]])
 
     def predict_one(self, x: np.ndarray) -> np.ndarray:
         """(k,) float32 -> (n_targets,)."""
