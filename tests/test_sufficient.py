@@ -292,6 +292,18 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     _close({t.name: t.params for t in fitted.terms}, rows.params, rel=1e-7)
 
 
+def test_a_model_with_a_lag_is_fitted_from_stored_profiles_without_reading_rows(lagged_fleet):
+    fds, stats = lagged_fleet
+    ids = sorted(fds)
+    spec = model.spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    fitted = fitting.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
+    es = [effects.get(n) for n in spec.effects]
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    got = {t.name: t.params for t in fitted.terms}
+    assert abs(got["motor_lag"]["tau_s"] - rows.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
+    assert got["thrust_scale"]["scale"] == pytest.approx(rows.params["thrust_scale"]["scale"], rel=1e-6)
+
+
 class _OnlyThese(dict):
     """Decoded tables where only the named flights' rows may be read."""
 

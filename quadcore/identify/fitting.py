@@ -455,14 +455,25 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     return [ids[i::k] for i in range(k)]
 
 
+def _from_statistics(spec, effects: list[Effect]) -> bool:
+    """Whether :func:`fit_model` fits ``effects`` from the flights' statistics."""
+    from quadcore.identify import profiles
+
+    nonlinear = [e for e in effects if not e.linear]
+    return not nonlinear or (len(nonlinear) == 1 and profiles.profiled(nonlinear[0]) and not spec.per_session
+                             and nonlinear[0].name not in spec.fixed)
+
+
 def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None, log=None,
               stats=None):
     """Fit the effects a :class:`quadcore.identify.model.ModelSpec` names on the ``train`` flights (its
     ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`).
 
-    A model of linear effects only is fitted from the flights' sufficient statistics
-    (:mod:`quadcore.identify.sufficient`): ``stats(flight)`` gives a flight's stored ones (None: computed
-    from its decoded table); a model with a nonlinear effect reads every training flight's rows."""
+    A model of linear effects, and one effect with a single nonlinear parameter (not fixed) beside
+    them, is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`, the
+    nonlinear one from its profiles: :func:`quadcore.identify.profiles.fit_effects`): ``stats(flight)``
+    gives a flight's stored ones (None: computed from its decoded table); any other model (per-session
+    effects beside a nonlinear one included) reads every training flight's rows."""
     from quadcore.effects import get
     from quadcore.identify import sufficient
     from quadcore.identify.model import EffectTerm, PhysicsModel
@@ -474,7 +485,7 @@ def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list
         return PhysicsModel(spec.vehicle, [], *maps)
     by_id: Mapping[str, FlightData] | Mapping[str, FlightStats]
     flights: Flights
-    if all(e.linear for e in effect_list):
+    if _from_statistics(spec, effect_list):
         by_id = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
         flights = [by_id[f] for f in train]
         targets = {f: s.layout.target() for f, s in by_id.items()}
