@@ -261,37 +261,47 @@ def summarize(fd, vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightS
     measured signal). ``top_bin``: the last spectral bin kept one by one (default: from
     ``MARGIN`` at the flight's rate)."""
     packing = Packing(_channel_columns(Z))
-    mask, t_s = fd.mask, fd.state.t_s
-    Zm = Z[mask]
-    codes = regimes.regime_codes(regimes.regime_columns(fd, vehicle))
-    bins = [_grams(Zm, packing, codes[r][mask], len(LABELS[r]), range(6)) for r in REGIMES]
-    rows = np.concatenate([np.bincount(codes[r][mask], minlength=len(LABELS[r])) for r in REGIMES])
-    segment = t_s[mask] // regimes.WINDOW_S  # as regimes.worst_segments groups the rows
-    starts, window = np.unique(segment, return_inverse=True)
+    Zm = Z[fd.mask]
+    codes = {k: c[fd.mask] for k, c in regimes.regime_codes(regimes.regime_columns(fd, vehicle)).items()}
+    fs_hz = float(spectrum.sample_rate_hz(fd.state.t_s))
+    K = min(_last_bin_below(MARGIN * spectrum.BANDS_HZ[-1][1], fs_hz) if top_bin is None else top_bin,
+            spectrum.SEGMENT // 2)
+    return FlightSummary(fd.flight, fs_hz, len(Zm), Z.shape[2], packing, *_regime_sums(Zm, packing, codes),
+                         *_window_sums(Zm, packing, codes, fd.state.t_s[fd.mask]),
+                         np.concatenate([Zm[:, c, packing.cols[c]].sum(axis=0) for c in range(6)]),
+                         *_spectral_sums(fd, vehicle, Z, packing, K))
+
+
+def _regime_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per bin of every regime (usable samples ``Zm``, their bins ``codes``): samples, packed Gram."""
+    rows = np.concatenate([np.bincount(codes[r], minlength=len(LABELS[r])) for r in REGIMES])
+    return rows, np.concatenate([_grams(Zm, packing, codes[r], len(LABELS[r]), range(6)) for r in REGIMES])
+
+
+def _window_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray], t_s: np.ndarray) -> tuple:
+    """Per window (usable samples at ``t_s``, grouped as :func:`quadcore.identify.regimes.worst_segments`
+    groups the rows): first and last time, samples, modal labels, the force channels' packed Gram."""
+    _, window = np.unique(t_s // regimes.WINDOW_S, return_inverse=True)
     window = window.reshape(-1)
-    n_w = len(starts)
-    t_first = np.full(n_w, np.inf)
-    t_last = np.full(n_w, -np.inf)
-    np.minimum.at(t_first, window, t_s[mask])
-    np.maximum.at(t_last, window, t_s[mask])
-    labels = np.stack([_modes(window, n_w, codes[k][mask], len(LABELS[k])) for k in SEGMENT_LABELS], axis=1)
-    fs_hz = float(spectrum.sample_rate_hz(t_s))
-    stretches = [p for p in signals.segments(t_s) if p.stop - p.start >= 2 * spectrum.SEGMENT]
+    n_w = int(window.max()) + 1 if len(window) else 0
+    t_first, t_last = np.full(n_w, np.inf), np.full(n_w, -np.inf)
+    np.minimum.at(t_first, window, t_s)
+    np.maximum.at(t_last, window, t_s)
+    labels = np.stack([_modes(window, n_w, codes[k], len(LABELS[k])) for k in SEGMENT_LABELS], axis=1)
+    return (np.stack([t_first, t_last], axis=1), np.bincount(window, minlength=n_w), labels,
+            _grams(Zm, packing, window, n_w, range(3)))
+
+
+def _spectral_sums(fd, vehicle, Z: np.ndarray, packing: Packing, K: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """The stretches' samples, ``Re C`` packed at bins 1..K and summed above K, and ``Im C[:, m]`` at bins 1..K."""
+    stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * spectrum.SEGMENT]
     arrays = residuals.residual_arrays(fd.state, vehicle)
     meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
     C = [_cross_spectra(np.concatenate([Z[:, c, packing.cols[c]], meas[:, c:c + 1]], axis=1), stretches)
          for c in range(6)]
-    K = min(_last_bin_below(MARGIN * spectrum.BANDS_HZ[-1][1], fs_hz) if top_bin is None else top_bin,
-            spectrum.SEGMENT // 2)
-    spectral = Packing(packing.cols, 1)
     re = [np.concatenate([c.real[1: K + 1], c.real[K + 1:].sum(axis=0, keepdims=True)]) for c in C]
-    return FlightSummary(
-        fd.flight, fs_hz, int(mask.sum()), Z.shape[2], packing, rows, np.concatenate(bins),
-        np.stack([t_first, t_last], axis=1),
-        np.bincount(window, minlength=n_w), labels, _grams(Zm, packing, window, n_w, range(3)),
-        np.concatenate([Zm[:, c, packing.cols[c]].sum(axis=0) for c in range(6)]),
-        float(sum(p.stop - p.start for p in stretches)), spectral.pack(re),
-        np.concatenate([c.imag[1: K + 1, :-1, -1] for c in C], axis=1))
+    return (float(sum(p.stop - p.start for p in stretches)), Packing(packing.cols, 1).pack(re),
+            np.concatenate([c.imag[1: K + 1, :-1, -1] for c in C], axis=1))
 
 
 def of_rows(fd, residual_rows: np.ndarray, vehicle) -> FlightSummary:
