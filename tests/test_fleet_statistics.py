@@ -31,7 +31,12 @@ def decoded_root(drag_fleet, tmp_path_factory):
 def _counting_reads(monkeypatch) -> list:
     reads: list = []
     real = store.read_parquet
-    monkeypatch.setattr(store, "read_parquet", lambda path: reads.append(path) or real(path))
+
+    def counted(path):
+        reads.append(path)
+        return real(path)
+
+    monkeypatch.setattr(store, "read_parquet", counted)
     return reads
 
 

@@ -90,6 +90,12 @@ class _Flights:
             self.release(f)
         return self._rates[f]
 
+    def statistics(self, f: str) -> sufficient.FlightStats:
+        """A flight's statistics (only a model of linear effects is scored from them)."""
+        if self.stats is None:
+            raise sufficient.StatsError(f"{f}: a model with a nonlinear effect is scored from rows, not statistics")
+        return self.stats[f]
+
     def flight(self, f: str):
         return self.stats[f] if self.stats is not None else self.rows(f)
 
@@ -151,7 +157,7 @@ def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
 def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> sufficient.FlightStats:
     """A flight's statistics with the held-out predictions of ``cands`` (no profile) and their
     unit wrenches as extra columns, from its rows (read once)."""
-    vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.stats[f]
+    vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.statistics(f)
     extras = {}
     for c in cands:
         extras[f"pred:{c.name}"] = cand_pred[c.name][f]
@@ -567,7 +573,7 @@ def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
 
     sums = []
     for f in held.ids:
-        summary, v = p.fl.stats[f].summary(), held.resid[f]
+        summary, v = p.fl.statistics(f).summary(), held.resid[f]
         sums.append(summary.residual(v) if summary is not None and summary.describes(v) else from_rows(f))
     return summaries.tables(sums, from_rows, p.vehicle)
 

@@ -821,7 +821,7 @@ def discover(
     eval_ids = holdout or ids
     if lib.full is not None:  # each flight scored with its fold's training sum (the holdout: all training flights')
         pairs = [(G_train, lib.full.held_out())] if holdout else [
-            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.inside)]
+            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.own_sums())]
         base, after = _rmse_from_sums(lib, coefs, pairs, eval_ids)
     else:
         train_gram = {f: G_train for f in eval_ids} if holdout else {
@@ -937,6 +937,12 @@ class _GramSums:
     def fold_grams(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per fold (its training flights' sum, its own flights' sum)."""
         return list(zip(self.outside, self.inside))  # type: ignore[arg-type]
+
+    def own_sums(self) -> list[np.ndarray]:
+        """Per fold, its own flights' sum (every fold holds a flight)."""
+        if any(G is None for G in self.inside):
+            raise ValueError("a fold without flights")
+        return [G for G in self.inside if G is not None]
 
     def held_out(self) -> np.ndarray:
         return sum(self.held[f] for f in self.holdout)  # type: ignore[return-value]

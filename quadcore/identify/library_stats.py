@@ -219,10 +219,10 @@ def _unpacked(labels: tuple[str, ...], *packed: np.ndarray) -> np.ndarray:
     halved back: exact)."""
     width = len(labels)
     where = _flat_indices(labels)
-    U = np.zeros(width * width)
+    flat = np.zeros(width * width)
     for P, upper in zip(packed, where[:1] if len(packed) == 1 else where[1:]):
-        U[upper] = P
-    U = U.reshape(width, width)
+        flat[upper] = P
+    U = flat.reshape(width, width)
     M = U + U.T
     M[np.diag_indices(width)] *= 0.5
     return M

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from functools import cached_property, lru_cache
+from functools import cached_property, lru_cache, partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -189,11 +189,15 @@ def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarra
         blocks = np.stack([_sums(P[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) if len(starts) > 1 \
             else np.zeros((0, P.shape[2], 6, Z.shape[2] + 1))
         stored = blocks.astype(np.float32)  # as the file holds them
-        by_effect[name] = Profile(name, blocks.sum(axis=0), _sums(P[::stride], Z[::stride]),
-                                  lambda stored=stored: stored)
+        by_effect[name] = Profile(name, blocks.sum(axis=0), _sums(P[::stride], Z[::stride]), _given(stored))
     cross = {(a, b): np.einsum("ncg,nch->ghc", preds[a][::stride], preds[b][::stride]).astype(np.float32)
              for i, a in enumerate(names) for b in names[i + 1:]}
     return Profiles(by_effect, cross, len(Z) / max(len(Z[::stride]), 1))
+
+
+def _given(a: np.ndarray) -> Callable[[], np.ndarray]:
+    """A source of blocks that are already in memory."""
+    return lambda: a
 
 
 def _sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
@@ -204,6 +208,15 @@ def _sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # The fit
 # ---------------------------------------------------------------------------------------
+
+def of_flight(s: FlightStats) -> Profiles:
+    """A flight's profiles; a :class:`quadcore.identify.sufficient.StatsError` if its statistics hold none
+    (:func:`covers` says whether they do)."""
+    if s.profiles is None:
+        from quadcore.identify.sufficient import StatsError
+        raise StatsError("these statistics hold no profiles (their layout profiles no effect)")
+    return s.profiles
+
 
 def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
     """Whether every flight's statistics hold a profile of ``effect``."""
@@ -267,7 +280,7 @@ class _Sums:
         for s, u in zip(stats, us):
             cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
             Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
-            prof = s.profiles.by_effect[name].total
+            prof = of_flight(s).by_effect[name].total
             Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
             const += float(u @ Gw @ u)
             S = S + Pw @ u
@@ -298,7 +311,7 @@ def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats
     names = list(values)
     base = s.layout.width
     layout = s.layout.with_extras([f"pred:{n}" for n in names])
-    prof = s.profiles
+    prof = of_flight(s)
     om = {n: prof.by_effect[n].at(values[n]) for n in names}
     pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
 
@@ -361,7 +374,7 @@ def from_arrays(layout: Layout, array: Callable[[str], np.ndarray]) -> Profiles 
     if not names:
         return None
     by_effect = {n: Profile(n, array(f"profile:{n}:total"), array(f"profile:{n}:strided"),
-                            lambda n=n: array(f"profile:{n}:blocks")) for n in names}
+                            partial(array, f"profile:{n}:blocks")) for n in names}
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
     return Profiles(by_effect, {k: array(f"cross:{k[0]}:{k[1]}") for k in pairs},
                     float(array("profile_thinning")[0]))

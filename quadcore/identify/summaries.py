@@ -266,10 +266,13 @@ def summarize(fd, vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightS
     fs_hz = float(spectrum.sample_rate_hz(fd.state.t_s))
     K = min(_last_bin_below(MARGIN * spectrum.BANDS_HZ[-1][1], fs_hz) if top_bin is None else top_bin,
             spectrum.SEGMENT // 2)
-    return FlightSummary(fd.flight, fs_hz, len(Zm), Z.shape[2], packing, *_regime_sums(Zm, packing, codes),
-                         *_window_sums(Zm, packing, codes, fd.state.t_s[fd.mask]),
+    regime_rows, regime_gram = _regime_sums(Zm, packing, codes)
+    window_t_s, window_rows, window_labels, window_gram = _window_sums(Zm, packing, codes, fd.state.t_s[fd.mask])
+    spectrum_rows, spectrum_re, spectrum_im = _spectral_sums(fd, vehicle, Z, packing, K)
+    return FlightSummary(fd.flight, fs_hz, len(Zm), Z.shape[2], packing, regime_rows, regime_gram,
+                         window_t_s, window_rows, window_labels, window_gram,
                          np.concatenate([Zm[:, c, packing.cols[c]].sum(axis=0) for c in range(6)]),
-                         *_spectral_sums(fd, vehicle, Z, packing, K))
+                         spectrum_rows, spectrum_re, spectrum_im)
 
 
 def _regime_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -278,7 +281,8 @@ def _regime_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray])
     return rows, np.concatenate([_grams(Zm, packing, codes[r], len(LABELS[r]), range(6)) for r in REGIMES])
 
 
-def _window_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray], t_s: np.ndarray) -> tuple:
+def _window_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray],
+                 t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per window (usable samples at ``t_s``, grouped as :func:`quadcore.identify.regimes.worst_segments`
     groups the rows): first and last time, samples, modal labels, the force channels' packed Gram."""
     _, window = np.unique(t_s // regimes.WINDOW_S, return_inverse=True)

@@ -141,6 +141,7 @@ def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle,
     for fid in tables:
         known = facts(fid) if facts is not None else None
         missing = [c for c in need if c not in (known.columns if known is not None else tables[fid].columns)]
+        problem: str | None
         if missing:
             problem = f"missing columns: {', '.join(missing)}"
         elif known is not None and known.covers(need):
