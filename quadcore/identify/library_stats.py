@@ -48,7 +48,6 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.identify import sufficient
-from quadcore.store import store
 
 FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
@@ -144,18 +143,9 @@ def save(lib: FlightLibrary, root: Any) -> Any:
               "variables": [list(v) for v in lib.variables], "labels": list(lib.labels), "samples": lib.samples,
               "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist()}  # floats round-trip exactly
     force, torque = discovery.channel_groups(lib.labels)
-    data = sufficient._encode(header, {"G": sufficient._packed(G),
-                                       "H_force": sufficient._packed(H[np.ix_(force, force)]),
-                                       "H_torque": sufficient._packed(H[np.ix_(torque, torque)])})
-    return store.atomic_write(library_path(root, lib.flight), lambda tmp: Path(tmp).write_bytes(data))
-
-
-def _read(path: Any, header_only: bool) -> bytes:
-    with path.open("rb") as fh:
-        if not header_only:
-            return fh.read()
-        head = fh.read(len(sufficient.MAGIC) + 8)
-        return head + fh.read(int.from_bytes(head[len(sufficient.MAGIC):], "little"))
+    return sufficient.write_file(library_path(root, lib.flight), header,
+                                 {"G": sufficient.packed(G), "H_force": sufficient.packed(H[np.ix_(force, force)]),
+                                  "H_torque": sufficient.packed(H[np.ix_(torque, torque)])})
 
 
 def load(root: Any, flight: str) -> FlightLibrary:
@@ -164,19 +154,16 @@ def load(root: Any, flight: str) -> FlightLibrary:
     when its matrices are cut short)."""
     path = library_path(root, flight)
     try:
-        raw = _read(path, header_only=True)
-        if not raw.startswith(sufficient.MAGIC):
-            raise ValueError("no statistics header")
-        header = json.loads(raw[len(sufficient.MAGIC) + 8:])
-        if header.get("format") != FORMAT:
-            raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
+        header, start = sufficient.decode_header(sufficient.read_file(path, header_only=True))
+        sufficient.require_format(header, FORMAT)
         labels = tuple(header["labels"])
-        arrays, start = header["arrays"], len(raw)
+        arrays = header["arrays"]
 
         def grams() -> tuple[np.ndarray, np.ndarray]:
-            data = _read(path, header_only=False)
+            data = sufficient.read_file(path)
             try:
-                G, H_force, H_torque = (_array(data, start, arrays[name]) for name in ("G", "H_force", "H_torque"))
+                G, H_force, H_torque = (sufficient.read_array(data, start, name, arrays[name])
+                                        for name in ("G", "H_force", "H_torque"))
             except (ValueError, KeyError) as exc:
                 raise sufficient.StatsError(f"{path}: {exc}") from None
             return _unpacked(labels, G), _unpacked(labels, H_force, H_torque)
@@ -187,15 +174,6 @@ def load(root: Any, flight: str) -> FlightLibrary:
                              np.array(header["y0_squares"], dtype=float), grams)
     except (ValueError, KeyError, TypeError) as exc:
         raise sufficient.StatsError(f"{path}: not a discovery statistics file ({exc})") from None
-
-
-def _array(data: bytes, start: int, spec: dict) -> np.ndarray:
-    """One array of a file (:func:`quadcore.identify.sufficient._encode`'s layout) from its header entry."""
-    count = int(np.prod(spec["shape"]))
-    end = start + spec["offset"] + count * np.dtype(spec["dtype"]).itemsize
-    if end > len(data):
-        raise ValueError(f"cut short: an array ends at byte {end}, the file has {len(data)}")
-    return np.frombuffer(data, np.dtype(spec["dtype"]), count, start + spec["offset"])
 
 
 @functools.lru_cache(maxsize=4)

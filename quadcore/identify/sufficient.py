@@ -451,7 +451,7 @@ def _upper(width: int) -> tuple[np.ndarray, np.ndarray]:
     return np.triu_indices(width)
 
 
-def _packed(G: np.ndarray) -> np.ndarray:
+def packed(G: np.ndarray) -> np.ndarray:
     """The upper triangles of symmetric (..., W, W) matrices, (..., W (W + 1) / 2)."""
     return G[(..., *_upper(G.shape[-1]))]
 
@@ -465,9 +465,13 @@ def _unpacked(P: np.ndarray, width: int) -> np.ndarray:
 
 
 MAGIC = b"QCSTATS\n"
+_HEAD = len(MAGIC) + 8  # the magic, then the JSON header's length
 
 
-def _encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+# The one file format of the per-flight records (stats.bin here, library.bin of
+# :mod:`quadcore.identify.library_stats`, summary.bin of :mod:`quadcore.identify.summaries`).
+
+def encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
     """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each
     array's dtype, shape and offset), then the arrays' bytes: read back without a parser."""
     offset, parts, index = 0, [], {}
@@ -480,23 +484,57 @@ def _encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
     return MAGIC + len(text).to_bytes(8, "little") + text + b"".join(parts)
 
 
-def _decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
+def decode_header(raw: bytes) -> tuple[dict, int]:
+    """The header of an :func:`encode` file and the byte where its arrays start (``raw``: the
+    file, or its first bytes up to the arrays, :func:`read_file`'s ``header_only``)."""
     if not raw.startswith(MAGIC):
         raise ValueError("no statistics header")
-    length = int.from_bytes(raw[len(MAGIC): len(MAGIC) + 8], "little")
-    start = len(MAGIC) + 8 + length
-    header = json.loads(raw[len(MAGIC) + 8: start])
-    for name, spec in header["arrays"].items():  # every array whole, before any is read lazily
-        end = start + spec["offset"] + int(np.prod(spec["shape"])) * np.dtype(spec["dtype"]).itemsize
-        if end > len(raw):
-            raise ValueError(f"cut short: array {name!r} ends at byte {end}, the file has {len(raw)}")
+    start = _HEAD + int.from_bytes(raw[len(MAGIC): _HEAD], "little")
+    return json.loads(raw[_HEAD: start]), start
+
+
+def read_array(raw: bytes, start: int, name: str, spec: dict) -> np.ndarray:
+    """The array ``name`` of an :func:`encode` file (``spec``: its header entry, ``start``: where
+    the arrays start), a view of ``raw``; a ValueError when the file is cut short of it."""
+    count = int(np.prod(spec["shape"]))
+    end = start + spec["offset"] + count * np.dtype(spec["dtype"]).itemsize
+    if end > len(raw):
+        raise ValueError(f"cut short: array {name!r} ends at byte {end}, the file has {len(raw)}")
+    return np.frombuffer(raw, np.dtype(spec["dtype"]), count, start + spec["offset"]).reshape(spec["shape"])
+
+
+def decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
+    """The header of an :func:`encode` file and ``array(name)``, after checking every array is
+    whole (before any is read lazily)."""
+    header, start = decode_header(raw)
+    for name, spec in header["arrays"].items():
+        read_array(raw, start, name, spec)
 
     def array(name: str) -> np.ndarray:
-        spec = header["arrays"][name]
-        count = int(np.prod(spec["shape"]))
-        return np.frombuffer(raw, np.dtype(spec["dtype"]), count, start + spec["offset"]).reshape(spec["shape"])
+        return read_array(raw, start, name, header["arrays"][name])
 
     return header, array
+
+
+def require_format(header: dict, fmt: int) -> None:
+    """A ValueError unless the header is of the format ``fmt`` this code reads."""
+    if header.get("format") != fmt:
+        raise ValueError(f"format {header.get('format')}, this code reads {fmt}")
+
+
+def write_file(path: Any, header: dict, arrays: dict[str, np.ndarray]) -> Any:
+    """:func:`encode` written to ``path`` atomically (an object store too)."""
+    data = encode(header, arrays)
+    return store.atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+
+
+def read_file(path: Any, header_only: bool = False) -> bytes:
+    """An :func:`encode` file's bytes (an object store's too); ``header_only``: up to its arrays."""
+    if not header_only:
+        return path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
+    with path.open("rb") as fh:
+        head = fh.read(_HEAD)
+        return head + fh.read(int.from_bytes(head[len(MAGIC):], "little"))
 
 
 def save(s: FlightStats, root: Any) -> Any:
@@ -510,9 +548,9 @@ def save(s: FlightStats, root: Any) -> Any:
         summaries.save(summary, root, s.key, s.source)
     header = {"flight": s.flight, "key": s.key, "layout": asdict(s.layout), "format": FORMAT,
               "vbat_std_V": s.vbat_std_V, "vbat_median_V": s.vbat_median_V, "source": s.source}
-    data = _encode(header, {"total": _packed(s.total), "rows": s.rows, "strided": _packed(s.strided),
-                            "noise": s.noise, "gram": _packed(s.gram), **profiles.arrays(s.profiles)})
-    return store.atomic_write(stats_path(root, s.flight), lambda tmp: Path(tmp).write_bytes(data))
+    return write_file(stats_path(root, s.flight), header,
+                      {"total": packed(s.total), "rows": s.rows, "strided": packed(s.strided),
+                       "noise": s.noise, "gram": packed(s.gram), **profiles.arrays(s.profiles)})
 
 
 def load(root: Any, flight: str) -> FlightStats:
@@ -521,11 +559,10 @@ def load(root: Any, flight: str) -> FlightStats:
     from quadcore.identify import summaries
 
     path = stats_path(root, flight)
-    raw = path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
+    raw = read_file(path)
     try:
-        header, array = _decode(raw)
-        if header.get("format") != FORMAT:
-            raise ValueError(f"format {header.get('format')}, this code reads {FORMAT}")
+        header, array = decode(raw)
+        require_format(header, FORMAT)
         lay = header["layout"]
         layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]), tuple(lay["profiled"]))
         width = layout.width

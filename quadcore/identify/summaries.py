@@ -45,7 +45,6 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,7 +54,6 @@ from scipy import signal
 from quadcore.identify import regimes, spectrum, sufficient
 from quadcore.identify.regimes import LABELS, REGIMES, RMSE_COLUMNS
 from quadcore.physics import residuals, signals
-from quadcore.store import store
 
 FORMAT = 1
 FILE_NAME = "summary.bin"
@@ -398,8 +396,7 @@ def save(summary: FlightSummary, root: Any, key: str, source: str) -> Any:
     header = {"flight": summary.flight, "key": key, "source": source, "format": FORMAT, "fs_hz": summary.fs_hz,
               "n": summary.n, "width": summary.width, "cols": [c.tolist() for c in summary.packing.cols],
               "spectrum_rows": summary.spectrum_rows}
-    data = sufficient._encode(header, summary.arrays())
-    return store.atomic_write(path(root, summary.flight), lambda tmp: Path(tmp).write_bytes(data))
+    return sufficient.write_file(path(root, summary.flight), header, summary.arrays())
 
 
 def load(root: Any, flight: str, key: str, source: str) -> FlightSummary | None:
@@ -408,9 +405,9 @@ def load(root: Any, flight: str, key: str, source: str) -> FlightSummary | None:
     p = path(root, flight)
     if not p.exists():
         return None
-    raw = p.read_bytes() if store.is_remote(p) else Path(p).read_bytes()
+    raw = sufficient.read_file(p)
     try:
-        header, array = sufficient._decode(raw)
+        header, array = sufficient.decode(raw)
         if (header.get("format"), header.get("key"), header.get("source")) != (FORMAT, key, source):
             return None
         packing = Packing(tuple(np.asarray(c, dtype=int) for c in header["cols"]))
