@@ -596,7 +596,9 @@ def diagnose(
     sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
     decoded table), one-parameter nonlinear candidates from the flights' profiles
     (:mod:`quadcore.identify.profiles`; a candidate with several nonlinear parameters reads its
-    training flights' rows), and the evaluated flights' rows give the regime tables and spectra."""
+    training flights' rows), and the evaluated flights' stored summaries
+    (:mod:`quadcore.identify.summaries`) give the regime tables and spectra (their rows where a
+    flight has no current summary, and for every flight of a model with a nonlinear effect)."""
     p = _Problem(decoded, spec, candidates, stats)
     splits, train_all, mode = _splits(p.ids, holdout, n_folds)
     folds = _cross_fit(p, splits, sessions, log)

@@ -67,6 +67,7 @@ if TYPE_CHECKING:
     from typing_extensions import TypeIs  # typing's own from Python 3.13
 
     from quadcore.identify.fitting import FlightData
+    from quadcore.identify.summaries import FlightSummary
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
@@ -186,9 +187,9 @@ class FlightStats:
     profiles: profiles.Profiles | None = None  # of the layout's profiled effects
     # the flight's FlightSummary (quadcore.identify.summaries) when there is one to ask for: the
     # stored ones are read when asked (None when missing or stale), not held
-    summary_source: Callable[[], Any] | None = None
+    summary_source: Callable[[], FlightSummary | None] | None = None
 
-    def summary(self):
+    def summary(self) -> FlightSummary | None:
         """The flight's :class:`quadcore.identify.summaries.FlightSummary`, or None."""
         return self.summary_source() if self.summary_source is not None else None
 
@@ -447,17 +448,20 @@ def stats_path(root: Any, flight: str) -> Any:
     return store.as_root(root) / "stats" / f"flight={check_component(flight, 'flight id')}" / "stats.bin"
 
 
-def _upper(width: int) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=64)
+def upper_indices(width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The upper triangle's indices of a width × width matrix (cached: every flight asks for the
+    same few; read only)."""
     return np.triu_indices(width)
 
 
 def packed(G: np.ndarray) -> np.ndarray:
     """The upper triangles of symmetric (..., W, W) matrices, (..., W (W + 1) / 2)."""
-    return G[(..., *_upper(G.shape[-1]))]
+    return G[(..., *upper_indices(G.shape[-1]))]
 
 
 def _unpacked(P: np.ndarray, width: int) -> np.ndarray:
-    i, j = _upper(width)
+    i, j = upper_indices(width)
     G = np.zeros((*P.shape[:-1], width, width))
     G[..., i, j] = P
     G[..., j, i] = P

@@ -42,10 +42,9 @@ rounding (~1e-12 relative).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import polars as pl
@@ -54,18 +53,16 @@ from scipy import signal
 from quadcore.identify import regimes, spectrum, sufficient
 from quadcore.identify.regimes import LABELS, REGIMES, RMSE_COLUMNS
 from quadcore.physics import residuals, signals
+from quadcore.physics.vehicle import Vehicle
+
+if TYPE_CHECKING:
+    from quadcore.identify.fitting import FlightData
 
 FORMAT = 1
 FILE_NAME = "summary.bin"
 MARGIN = 1.25  # spectral bins kept bin by bin: up to MARGIN × the top band edge at the flight's own rate
 BIN_OFFSETS = np.cumsum([0] + [len(LABELS[r]) for r in REGIMES])  # each regime's first bin in the flat list
 SEGMENT_LABELS = ("phase", "speed", "height")  # the worst segments' modal labels
-
-
-@functools.lru_cache(maxsize=64)
-def _upper(k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The upper triangle's indices of a k × k matrix (cached: every flight asks for the same few)."""
-    return np.triu_indices(k)
 
 
 @dataclass(frozen=True)
@@ -85,7 +82,7 @@ class Packing:
 
     def pack(self, G: Sequence[np.ndarray]) -> np.ndarray:
         """``G[c]`` (..., k_c, k_c) per channel -> (..., Σ sizes)."""
-        return np.concatenate([g[(..., *_upper(g.shape[-1]))] for g in G], axis=-1)
+        return np.concatenate([sufficient.packed(g) for g in G], axis=-1)
 
     def weights(self, a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
         """(Σ sizes, channels) such that ``packed @ W`` is ``a_cᵀ G_c b_c`` per channel (``a[c]``,
@@ -94,7 +91,7 @@ class Packing:
         W = np.zeros((sum(self.sizes()[: len(a)]), len(a)))
         start = 0
         for c, (x, y) in enumerate(zip(a, b)):
-            i, j = _upper(len(x))
+            i, j = sufficient.upper_indices(len(x))
             W[start: start + len(i), c] = np.where(i == j, x[i] * y[j], x[i] * y[j] + x[j] * y[i])
             start += len(i)
         return W
@@ -253,7 +250,7 @@ class ResidualSums:
         return self.bin_ss[: BIN_OFFSETS[1]].sum(axis=0)
 
 
-def summarize(fd, vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightSummary:
+def summarize(fd: FlightData, vehicle: Vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightSummary:
     """A flight's summary from its rows: ``fd`` a :class:`quadcore.identify.fitting.FlightData`,
     ``Z`` (n, 6, W) its columns on every sample, ``vehicle`` the model's (thrust-to-weight, the
     measured signal). ``top_bin``: the last spectral bin kept one by one (default: from
@@ -294,7 +291,8 @@ def _window_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray],
             _grams(Zm, packing, window, n_w, range(3)))
 
 
-def _spectral_sums(fd, vehicle, Z: np.ndarray, packing: Packing, K: int) -> tuple[float, np.ndarray, np.ndarray]:
+def _spectral_sums(fd: FlightData, vehicle: Vehicle, Z: np.ndarray, packing: Packing,
+                   K: int) -> tuple[float, np.ndarray, np.ndarray]:
     """The stretches' samples, ``Re C`` packed at bins 1..K and summed above K, and ``Im C[:, m]`` at bins 1..K."""
     stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * spectrum.SEGMENT]
     arrays = residuals.residual_arrays(fd.state, vehicle)
@@ -306,7 +304,7 @@ def _spectral_sums(fd, vehicle, Z: np.ndarray, packing: Packing, K: int) -> tupl
             np.concatenate([c.imag[1: K + 1, :-1, -1] for c in C], axis=1))
 
 
-def of_rows(fd, residual_rows: np.ndarray, vehicle) -> FlightSummary:
+def of_rows(fd: FlightData, residual_rows: np.ndarray, vehicle: Vehicle) -> FlightSummary:
     """The summary of one residual given as rows (n, 6): its only column, every spectral bin kept."""
     return summarize(fd, vehicle, residual_rows[:, :, None], top_bin=spectrum.SEGMENT // 2)
 
@@ -354,7 +352,7 @@ def worst_segments(sums: Sequence[ResidualSums], top: int = regimes.TOP_SEGMENTS
     return pl.DataFrame(frame).sort("force_rms_N", descending=True).head(top)
 
 
-def frequency_view(sums: Sequence[ResidualSums], fs_hz: float, vehicle) -> dict:
+def frequency_view(sums: Sequence[ResidualSums], fs_hz: float, vehicle: Vehicle) -> dict:
     """:func:`quadcore.identify.spectrum.frequency_view` of the flights' sums (at the fleet's rate ``fs_hz``)."""
     acc = spectrum.SpectrumSums(fs_hz, vehicle)
     for s in sums:
@@ -373,7 +371,7 @@ class Tables:
     frequency: dict
 
 
-def tables(sums: list[ResidualSums], redo: Callable[[str], ResidualSums], vehicle) -> Tables:
+def tables(sums: list[ResidualSums], redo: Callable[[str], ResidualSums], vehicle: Vehicle) -> Tables:
     """The tables of the flights' sums, the spectra at the fleet's median sample rate;
     ``redo(flight)``: a flight's sums with every spectral bin (from its rows), for one whose
     summary keeps too few bins for that rate."""
