@@ -181,3 +181,30 @@ def test_with_every_candidate_the_evaluated_flights_tables_read_no_rows(stored_r
     from_rows = diagnosis.diagnose(tables, spec).to_dict()
     for key in ("regimes", "flights", "worst_segments", "frequency", "baseline"):
         _close(stored[key], from_rows[key], key)
+
+
+def test_one_flight_data_for_all_three_stores_the_same_bytes(stored_root, tmp_path):
+    """The statistics asset builds a flight's FlightData once and passes it to the sufficient
+    statistics, the summary and the library statistics (the bases cached by the first reused by
+    the others): the stored files are byte for byte those of each computed on its own, the
+    summary that of the design built afresh (the previous code's way)."""
+    from quadcore.identify import library_stats
+
+    _, spec, tables = stored_root
+    f = sorted(tables)[0]
+    shared = fitting.flight_data(f, tables[f], spec.vehicle_for(f))
+    apart, together = tmp_path / "apart", tmp_path / "together"
+    sufficient.save(sufficient.compute_current(spec, f, tables[f], "log"), apart)
+    library_stats.save(library_stats.compute(spec, f, tables[f], "log"), apart)
+    sufficient.save(sufficient.compute_current(spec, f, tables[f], "log", shared), together)
+    library_stats.save(library_stats.compute(spec, f, tables[f], "log", shared), together)
+    for name in ("stats.bin", "library.bin", summaries.FILE_NAME):
+        a, b = (sufficient.stats_path(root, f).parent / name for root in (apart, together))
+        assert a.read_bytes() == b.read_bytes(), name
+    layout = sufficient.spec_layout(spec)
+    own = fitting.flight_data(f, tables[f], spec.vehicle_for(f))
+    rows = sufficient.design_rows(own, spec.vehicle, sufficient.Layout(layout.effects, layout.sizes))
+    afresh = summaries.summarize(own, spec.vehicle, rows)
+    stored = sufficient.load(together, f).summary()
+    for name, arr in afresh.arrays().items():
+        np.testing.assert_array_equal(getattr(stored, name), arr, err_msg=name)

@@ -8,7 +8,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import STATS_REFRESH, STATS_VERSION
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.identify import library_stats, sufficient
+from quadcore.identify import fitting, library_stats, sufficient
 from quadcore.physics import dynamics
 from quadcore.store import store
 from quadcore.workflows.fleet import MAIN_EVENT
@@ -34,8 +34,9 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
         try:
             source = sufficient.decoded_source(data_root.root_path, fid) or ""
             decoded = store.read_parquet(path)
-            s = sufficient.compute_current(spec, fid, decoded, source)
-            library = library_stats.compute(spec, fid, decoded, source)
+            fd = fitting.flight_data(fid, decoded, spec.vehicle_for(fid))  # once for both (and its cached bases)
+            s = sufficient.compute_current(spec, fid, decoded, source, fd)
+            library = library_stats.compute(spec, fid, decoded, source, fd)
         except dynamics.UnusableFlightError as exc:
             raise dg.Failure(description=f"{fid}: {exc}") from None
         written = sufficient.save(s, data_root.root_path)

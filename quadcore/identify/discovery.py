@@ -430,6 +430,10 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx
     model = fitting.smoothed_wrench(f_model, tau_rotor, s.t_s)
     blocks = [F, Tq, resid, model]
     for e in fx_effects:
+        cached = fd.basis_if_cached(e) if e.linear else None  # the same columns: smoothed_wrench of e.basis
+        if cached is not None:
+            blocks += [cached[:, axis, :] for axis in range(6)]
+            continue
         try:
             basis = [fitting.smoothed_wrench(f, t, s.t_s) for f, t in _effect_basis(e, s, vehicle)]
         # a user's effect failing here: not matched

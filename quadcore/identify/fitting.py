@@ -94,6 +94,11 @@ class FlightData:
             self._basis[effect.name] = np.stack(cols, axis=2)
         return self._basis[effect.name]
 
+    def basis_if_cached(self, effect: Effect) -> np.ndarray | None:
+        """The effect's smoothed basis if :meth:`basis` computed it for this flight, else None
+        (without caching one: a caller over many flights holds no bases it did not ask for)."""
+        return self._basis.get(effect.name)
+
     def design(self, lin: list[Effect], vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray]:
         """Masked stacked basis (m, 6, k) of linear effects and its Gram matrix per channel
         (6, k, k), cached: the weights change between fits, the basis does not."""

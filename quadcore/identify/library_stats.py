@@ -42,12 +42,15 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.identify import sufficient
+
+if TYPE_CHECKING:
+    from quadcore.identify.fitting import FlightData
 
 FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
@@ -114,11 +117,13 @@ def version(spec, flight: str) -> str:
     return f"{sufficient.current_key(spec, flight)}+{library_key(spec, flight)}"
 
 
-def compute(spec, flight: str, decoded, source: str = "") -> FlightLibrary:
-    """A flight's statistics from its decoded table (its rows read once)."""
+def compute(spec, flight: str, decoded, source: str = "", fd: FlightData | None = None) -> FlightLibrary:
+    """A flight's statistics from its decoded table (its rows read once); ``fd``: the table's
+    :func:`quadcore.identify.fitting.flight_data` when the caller has it (the effects' bases
+    cached there are not computed again)."""
     from quadcore.identify import discovery, fitting
 
-    fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
     vars_ = discovery.variables(fd.state, spec.vehicle)
     effects = fx_effects(spec)
     cols = discovery.library_columns(discovery.library(vars_), effects)

@@ -248,7 +248,12 @@ def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
     """The statistics of a :class:`quadcore.identify.fitting.FlightData` (its rows read once),
     with the profiles of the layout's profiled effects (their fixed columns computed here)."""
     extras = {**profiles.fixed_signals(layout.profiled, fd, vehicle), **(extras or {})}
-    Z = design_rows(fd, vehicle, layout, extras)[fd.mask]
+    return _stats_of_rows(fd, vehicle, layout, key, design_rows(fd, vehicle, layout, extras))
+
+
+def _stats_of_rows(fd, vehicle: Vehicle, layout: Layout, key: str, rows: np.ndarray) -> FlightStats:
+    """:func:`flight_stats` from the flight's augmented design ``rows`` (n, 6, W) on every sample."""
+    Z = rows[fd.mask]
     blocks = block_index(fd.state.t_s[fd.mask])
     B = int(blocks.max()) + 1 if len(blocks) else 0
     starts = np.searchsorted(blocks, np.arange(B + 1))  # blocks are runs of consecutive samples
@@ -360,20 +365,24 @@ def signal_rows(fd, vehicle: Vehicle, layout: Layout, v: np.ndarray,
     return out
 
 
-def compute(spec, flight: str, decoded, layout: Layout, source: str = "", summarize: bool = False) -> FlightStats:
+def compute(spec, flight: str, decoded, layout: Layout, source: str = "", summarize: bool = False,
+            fd: FlightData | None = None) -> FlightStats:
     """A flight's statistics from its decoded table, for a :class:`quadcore.identify.model.ModelSpec`:
     the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle.
     ``source``: the SHA-256 of the log the table was decoded from (its provenance); ``summarize``:
     with the flight's :class:`quadcore.identify.summaries.FlightSummary` (what the diagnosis
-    describes the evaluated flights from)."""
+    describes the evaluated flights from); ``fd``: the table's
+    :func:`quadcore.identify.fitting.flight_data` when the caller has it (its bases are cached there)."""
     from quadcore.identify import fitting, summaries
 
-    fd = fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
-    s = flight_stats(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout))
+    fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    extras = profiles.fixed_signals(layout.profiled, fd, spec.vehicle)
+    rows = design_rows(fd, spec.vehicle, layout, extras)
+    s = _stats_of_rows(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout), rows)
     if not summarize:
         return replace(s, source=source)
     # the columns of a linear model's residual: the effects' coordinates and y0, not the extras
-    summary = summaries.summarize(fd, spec.vehicle, design_rows(fd, spec.vehicle, Layout(layout.effects, layout.sizes)))
+    summary = summaries.summarize(fd, spec.vehicle, rows[:, :, : layout.y0 + 1])
     return replace(s, source=source, summary_source=lambda: summary)
 
 
@@ -585,10 +594,10 @@ def current_key(spec, flight: str) -> str:
     return stats_key(spec.vehicle, spec.vehicle_for(flight), spec_layout(spec))
 
 
-def compute_current(spec, flight: str, decoded, source: str = "") -> FlightStats:
+def compute_current(spec, flight: str, decoded, source: str = "", fd: FlightData | None = None) -> FlightStats:
     """What the per-flight asset stores: the statistics of the linear effects of
-    :func:`spec_layout`, with the flight's summary (``source`` as for :func:`compute`)."""
-    return compute(spec, flight, decoded, spec_layout(spec), source, summarize=True)
+    :func:`spec_layout`, with the flight's summary (``source`` and ``fd`` as for :func:`compute`)."""
+    return compute(spec, flight, decoded, spec_layout(spec), source, summarize=True, fd=fd)
 
 
 def decoded_source(root: Any, flight: str) -> str | None:

@@ -295,8 +295,7 @@ def _spectral_sums(fd: FlightData, vehicle: Vehicle, Z: np.ndarray, packing: Pac
                    K: int) -> tuple[float, np.ndarray, np.ndarray]:
     """The stretches' samples, ``Re C`` packed at bins 1..K and summed above K, and ``Im C[:, m]`` at bins 1..K."""
     stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * spectrum.SEGMENT]
-    arrays = residuals.residual_arrays(fd.state, vehicle)
-    meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
+    meas = np.concatenate(residuals.measured_wrench(fd.state, vehicle), axis=1)
     C = [_cross_spectra(np.concatenate([Z[:, c, packing.cols[c]], meas[:, c:c + 1]], axis=1), stretches)
          for c in range(6)]
     re = [np.concatenate([c.real[1: K + 1], c.real[K + 1:].sum(axis=0, keepdims=True)]) for c in C]

@@ -50,11 +50,9 @@ def residual_arrays(
     if extra_tau_b_Nm is not None:
         tau_model_b += extra_tau_b_Nm
 
-    omega_s = signals.smooth(state.omega_b_radps, t_s=state.t_s)
     omega_dot = signals.derivative(state.omega_b_radps, state.t_s)
-    f_meas_b = vehicle.mass_kg * signals.smooth(state.sf_b_mps2, t_s=state.t_s)
+    f_meas_b, tau_meas_b = measured_wrench(state, vehicle, omega_dot)
     f_model_b = signals.smooth(f_model_b, t_s=state.t_s)
-    tau_meas_b = dynamics.torque_for_angular_acceleration(vehicle, omega_s, omega_dot)
     tau_model_b = signals.matched_to_derivative(tau_model_b, state.t_s)
     f_res_b = f_meas_b - f_model_b
     tau_res_b = tau_meas_b - tau_model_b
@@ -73,6 +71,17 @@ def residual_arrays(
         "a_meas_w": dynamics.linear_acceleration_w(vehicle, R, f_meas_b),
         "a_model_w": dynamics.linear_acceleration_w(vehicle, R, f_model_b),
     }
+
+
+def measured_wrench(state: FlightState, vehicle: Vehicle,
+                    omega_dot_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The measured side of the residuals, (n, 3) each, body frame: force ``m · smooth(sf_b)`` (N)
+    and torque ``J ω̇ + ω × J ω`` (N m) on the smoothed rate and its smoothed derivative
+    ``omega_dot_b`` (computed here when not given)."""
+    omega_s = signals.smooth(state.omega_b_radps, t_s=state.t_s)
+    omega_dot = signals.derivative(state.omega_b_radps, state.t_s) if omega_dot_b is None else omega_dot_b
+    f_meas_b = vehicle.mass_kg * signals.smooth(state.sf_b_mps2, t_s=state.t_s)
+    return f_meas_b, dynamics.torque_for_angular_acceleration(vehicle, omega_s, omega_dot)
 
 
 def residual_table(
