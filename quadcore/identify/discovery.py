@@ -601,10 +601,7 @@ def _accumulate(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spe
     for f in ids:
         fd, r = flight(f)
         if f == ids[0]:
-            vars_ = variables(fd.state, vehicle)
-            if not motors:
-                vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
-            terms = library(vars_)
+            terms = _library_of(variables(fd.state, vehicle), motors)
             cols = library_columns(terms, fx_effects)
             log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
                 f"accumulating on {len(ids)} flights")
@@ -613,13 +610,19 @@ def _accumulate(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spe
     return _Library(terms, cols, sums, samples, noise_of)
 
 
-def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Term]:
-    """The candidate library from a flight's recorded variables (as :func:`_accumulate` builds it
-    from its rows)."""
-    vars_ = {name: Variable(np.empty(0), unit, sources, channel) for name, unit, sources, channel in first.variables}
+def _library_of(vars_: dict[str, Variable], motors: bool) -> list[Term]:
+    """The candidate library of a flight's variables; without those read off the motors unless
+    every flight logs them (``motors``)."""
     if not motors:
         vars_ = {k: v for k, v in vars_.items() if not any(s.startswith("motor_") for s in v.sources)}
     return library(vars_)
+
+
+def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Term]:
+    """The candidate library from a flight's recorded variables (as :func:`_accumulate` builds it
+    from its rows)."""
+    return _library_of({name: Variable(np.empty(0), unit, sources, channel)
+                        for name, unit, sources, channel in first.variables}, motors)
 
 
 def _residual_transform(cols: _Columns, model, vehicle: Vehicle) -> np.ndarray:
@@ -717,7 +720,12 @@ def _rmse_from_sums(lib: _Library, coefs: dict, pairs: list[tuple[np.ndarray, np
 
 
 def _rmse(ss: np.ndarray, n: int) -> dict:
-    rms = np.sqrt(ss / max(n, 1))
+    """The RMSE per axis of the sums of squares ``ss`` (6,) over ``n`` samples (:func:`_by_axis`)."""
+    return _by_axis(np.sqrt(ss / max(n, 1)))
+
+
+def _by_axis(rms: np.ndarray) -> dict:
+    """(6,) RMS values (force x, y, z in N, torque x, y, z in N m, body frame) as the JSON document lists them."""
     return {"force_rmse_N": [float(v) for v in rms[:3]], "torque_rmse_Nm": [float(v) for v in rms[3:]]}
 
 
@@ -834,7 +842,7 @@ def discover(
                                      coefs, vehicle)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
-        {"force_rmse_N": [float(v) for v in noise[:3]], "torque_rmse_Nm": [float(v) for v in noise[3:]]},
+        _by_axis(noise),
         {"mode": "holdout" if holdout else "cross-validation", "train_flights": train, "eval_flights": eval_ids,
          "folds": len(folds), "stride": stride,
          # with a holdout the model's effects never see it; without one they are fitted on all flights
