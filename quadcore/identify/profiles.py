@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.effects import Effect
+from quadcore.effects import Effect, Parameter
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
@@ -153,7 +153,8 @@ class Profile:
         return self.blocks_source()
 
     @property
-    def parameter(self):
+    def parameter(self) -> Parameter:
+        """The effect's one parameter (the profile's grid spans its bounds)."""
         return effectlib.get(self.effect).parameters[0]
 
     def at(self, v: float) -> np.ndarray:
