@@ -215,11 +215,8 @@ def stored(root: Any, spec) -> Callable[[str], FlightLibrary | None]:
     """``flight -> FlightLibrary | None``: a flight's stored statistics if current for ``spec``
     (:func:`library_key`) and made from its decoded table as it is now; None when missing or stale."""
     def current(flight: str) -> FlightLibrary | None:
-        if not library_path(root, flight).exists():
-            return None
-        try:
-            lib = load(root, flight)
-        except sufficient.StatsError:
+        lib = sufficient.read_if_present(library_path(root, flight), lambda: load(root, flight))
+        if lib is None:
             return None
         fresh = lib.key == library_key(spec, flight) and lib.source == sufficient.decoded_source(root, flight)
         return lib if fresh else None

@@ -52,7 +52,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeAlias
+from typing import TYPE_CHECKING, Any, TypeAlias, TypeVar
 
 import numpy as np
 
@@ -68,6 +68,8 @@ if TYPE_CHECKING:
 
     from quadcore.identify.fitting import FlightData
     from quadcore.identify.summaries import FlightSummary
+
+Record = TypeVar("Record")  # what a per-flight record file is read as
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
@@ -618,13 +620,18 @@ def stored(root: Any, spec) -> Callable[[str], FlightStats | None]:
     return current
 
 
-def load_current(root: Any, flight: str, key: str) -> FlightStats | None:
-    """A flight's stored statistics if they were computed for ``key``, else None."""
-    path = stats_path(root, flight)
+def read_if_present(path: Any, read: Callable[[], Record]) -> Record | None:
+    """``read()`` of the record file at ``path``, or None when it is missing or not one
+    (:class:`StatsError`)."""
     if not path.exists():
         return None
     try:
-        s = load(root, flight)
+        return read()
     except StatsError:
         return None
-    return s if s.key == key else None
+
+
+def load_current(root: Any, flight: str, key: str) -> FlightStats | None:
+    """A flight's stored statistics if they were computed for ``key``, else None."""
+    s = read_if_present(stats_path(root, flight), lambda: load(root, flight))
+    return s if s is not None and s.key == key else None
