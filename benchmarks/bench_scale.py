@@ -200,12 +200,15 @@ def per_flight_main(sizes: list[int]) -> None:
 # -- fleet stages --------------------------------------------------------------------------------
 
 def decoded_pool() -> Path:
-    """The pool's flights decoded once (their tables are linked under every id that uses them)."""
+    """The pool's flights decoded once (their tables are linked under every id that uses them);
+    again when decoded by older code (no physics facts in the main table's footer: the fleet
+    stages would then read every table to judge it)."""
     from quadcore.logs import flight
 
     root = CACHE / "decoded_pool"
     for i in range(POOL):
-        if not store.decoded_path(root, EVENTS[0], fid(i)).is_file():
+        main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
+        if not main.is_file() or store.recorded_physics_facts(main) is None:
             store.write_decoded(root, flight.decode_flight(pool_log(i)))
     return root
 

@@ -100,20 +100,27 @@ def _blocks(fd: FlightData) -> np.ndarray:
     return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
 
 
-def block_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray],
-               weights: np.ndarray) -> np.ndarray:
-    """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples. On flights'
-    :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the same from their Gram
-    matrices (:func:`quadcore.identify.sufficient.block_sums`)."""
+def block_channel_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> np.ndarray:
+    """(blocks of every flight, 6): ``Σ_i a_ic b_ic`` per block and channel over its usable
+    samples. On flights' :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the
+    same from their Gram matrices (:func:`quadcore.identify.sufficient.block_channel_sums`)."""
     from quadcore.identify import sufficient
 
     if sufficient.are_stats(flights):
-        return sufficient.block_sums(flights, a, b, weights)
+        return sufficient.block_channel_sums(flights, a, b)
     out = []
     for fd in flights:
-        prod = (a[fd.flight][fd.mask] * b[fd.flight][fd.mask]) @ weights
-        out.append(np.bincount(_blocks(fd), weights=prod))
-    return np.concatenate(out) if out else np.zeros(0)
+        prod, blocks = a[fd.flight][fd.mask] * b[fd.flight][fd.mask], _blocks(fd)
+        out.append(np.stack([np.bincount(blocks, weights=prod[:, c], minlength=blocks.max(initial=-1) + 1)
+                             for c in range(6)], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 6))
+
+
+def block_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray],
+               weights: np.ndarray) -> np.ndarray:
+    """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples
+    (:func:`block_channel_sums` weighted)."""
+    return block_channel_sums(flights, a, b) @ weights
 
 
 def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
@@ -184,15 +191,18 @@ def detection_limit(flights: Flights, resid: dict[str, np.ndarray], unit: dict[s
     z_power = float(stats.norm.isf(1 - POWER))
     n = sum(fd.n for fd in flights)
     best = np.inf
+    # per block and channel once; each channel's sums are these weighted by its mask
+    ur_c, uu_c = block_channel_sums(flights, unit, resid), block_channel_sums(flights, unit, unit)
+    rr_c = block_channel_sums(flights, resid, resid)
     for ch in CHANNELS:
         w = channel_mask([ch])
-        ur, uu = block_sums(flights, unit, resid, w), block_sums(flights, unit, unit, w)
+        ur, uu = ur_c @ w, uu_c @ w
         S = float(uu.sum())
         if S <= 0 or len(ur) < 3:
             continue
         # the effect may already be in the residual: its own share is no noise to it
         beta = float(ur.sum()) / S
-        R = float(block_sums(flights, resid, resid, w).sum())
+        R = float((rr_c @ w).sum())
         F = float(floor_ss[CHANNELS[ch]].sum())
         Q = len(ur) / (len(ur) - 1) * float(np.sum((ur - beta * uu) ** 2))
         v_test = (critical_t(len(ur), n_candidates) + z_power) * np.sqrt(Q) / S

