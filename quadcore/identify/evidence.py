@@ -44,6 +44,7 @@ much shorter than a sample cannot be fitted).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -54,7 +55,7 @@ from quadcore.identify import fitting
 from quadcore.identify.fitting import FlightData
 
 if TYPE_CHECKING:
-    from quadcore.identify.sufficient import Flights
+    from quadcore.identify.sufficient import Flights, Signals
 
 ALPHA = 0.01  # one-sided false-alarm probability of the held-out test, per candidate
 POWER = 0.9  # detection probability the sensitivity is stated at
@@ -100,14 +101,20 @@ def _blocks(fd: FlightData) -> np.ndarray:
     return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
 
 
-def block_channel_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> np.ndarray:
-    """(blocks of every flight, 6): ``Σ_i a_ic b_ic`` per block and channel over its usable
-    samples. On flights' :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the
-    same from their Gram matrices (:func:`quadcore.identify.sufficient.block_channel_sums`)."""
+def block_channel_sums(flights: Flights, pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:
+    """Per pair ``(a, b)`` of signals (flight -> (n, 6)): (blocks of every flight, 6) ``Σ_i a_ic b_ic``
+    per block and channel over its usable samples. On flights'
+    :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the same from their Gram
+    matrices (:func:`quadcore.identify.sufficient.block_channel_sums`: pairs with the same ``b``
+    read them once)."""
     from quadcore.identify import sufficient
 
     if sufficient.are_stats(flights):
-        return sufficient.block_channel_sums(flights, a, b)
+        return sufficient.block_channel_sums(flights, pairs)
+    return [_row_block_sums(flights, a, b) for a, b in pairs]
+
+
+def _row_block_sums(flights: Sequence[FlightData], a: Signals, b: Signals) -> np.ndarray:
     out = []
     for fd in flights:
         prod, blocks = a[fd.flight][fd.mask] * b[fd.flight][fd.mask], _blocks(fd)
@@ -116,11 +123,10 @@ def block_channel_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, 
     return np.concatenate(out) if out else np.zeros((0, 6))
 
 
-def block_sums(flights: Flights, a: dict[str, np.ndarray], b: dict[str, np.ndarray],
-               weights: np.ndarray) -> np.ndarray:
+def block_sums(flights: Flights, a: Signals, b: Signals, weights: np.ndarray) -> np.ndarray:
     """Per block of every flight: ``Σ_i Σ_c w_c a_ic b_ic`` over its usable samples
     (:func:`block_channel_sums` weighted)."""
-    return block_channel_sums(flights, a, b) @ weights
+    return block_channel_sums(flights, [(a, b)])[0] @ weights
 
 
 def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
@@ -136,8 +142,7 @@ def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
 def held_out_test(flights: Flights, resid: dict[str, np.ndarray], pred: dict[str, np.ndarray],
                   weights: np.ndarray) -> HeldOutTest:
     """Is ``pred`` (n, 6 per flight) confirmed by ``resid`` on these flights? (see the module)"""
-    pr = block_sums(flights, pred, resid, weights)
-    pp = block_sums(flights, pred, pred, weights)
+    pr, pp = (sums @ weights for sums in block_channel_sums(flights, [(resid, pred), (pred, pred)]))
     den = float(pp.sum())
     if den <= 0:
         return NO_TEST
@@ -192,8 +197,7 @@ def detection_limit(flights: Flights, resid: dict[str, np.ndarray], unit: dict[s
     n = sum(fd.n for fd in flights)
     best = np.inf
     # per block and channel once; each channel's sums are these weighted by its mask
-    ur_c, uu_c = block_channel_sums(flights, unit, resid), block_channel_sums(flights, unit, unit)
-    rr_c = block_channel_sums(flights, resid, resid)
+    ur_c, uu_c, rr_c = block_channel_sums(flights, [(unit, resid), (unit, unit), (resid, resid)])
     for ch in CHANNELS:
         w = channel_mask([ch])
         ur, uu = ur_c @ w, uu_c @ w

@@ -281,12 +281,27 @@ def channel_sums(G: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (np.ascontiguousarray(G).reshape(-1, width) @ v).reshape(G.shape[:-1]) @ u
 
 
-def block_channel_sums(stats: Sequence[FlightStats], a: dict[str, np.ndarray],
-                       b: dict[str, np.ndarray]) -> np.ndarray:
-    """(blocks of every flight, 6): ``a_fᵀ G_bc b_f`` per block and channel (as
-    :func:`quadcore.identify.evidence.block_channel_sums`)."""
-    out = [channel_sums(s.gram, a[s.flight], b[s.flight]) for s in stats]
-    return np.concatenate(out) if out else np.zeros((0, 6))
+Signals: TypeAlias = "dict[str, np.ndarray]"  # flight -> its signal's (W,) vector
+
+
+def block_channel_sums(stats: Sequence[FlightStats],
+                       pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:
+    """Per pair ``(a, b)``: (blocks of every flight, 6) ``a_fᵀ G_bc b_f`` per block and channel (as
+    :func:`quadcore.identify.evidence.block_channel_sums`). Each flight's Gram matrices are read
+    once for all the pairs: ``G [b, b', ...]`` (one BLAS product with a column per distinct
+    right-hand signal), then the dots with the left-hand ones. Reading ``G`` is what costs (a
+    thousand flights' blocks are ~230 MB), so pairs sharing ``b`` cost one pass."""
+    rights = list({id(b): b for _, b in pairs}.values())
+    column = {id(b): k for k, b in enumerate(rights)}
+    out: list[list[np.ndarray]] = [[] for _ in pairs]
+    for s in stats:
+        G = np.ascontiguousarray(s.gram)
+        width = G.shape[-1]
+        V = np.stack([b[s.flight] for b in rights], axis=1)
+        GV = (G.reshape(-1, width) @ V).reshape(*G.shape[:-1], len(rights))
+        for sums, (a, b) in zip(out, pairs):
+            sums.append(GV[..., column[id(b)]] @ a[s.flight])
+    return [np.concatenate(sums) if sums else np.zeros((0, 6)) for sums in out]
 
 
 def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
