@@ -57,6 +57,12 @@ def unsynced_event_log(home: Path) -> None:
         event.listen(Engine, "connect", _unsynced_if_in_home)
 
 
+def unsynced_homes() -> set[str]:
+    """The homes :func:`unsynced_event_log` was called for in this process (a second process of
+    the main job writes the same way)."""
+    return set(_UNSYNCED_HOMES)
+
+
 def _unsynced_if_in_home(dbapi_connection, _record) -> None:
     if not isinstance(dbapi_connection, sqlite3.Connection):
         return

@@ -17,17 +17,15 @@ from pathlib import Path
 from typing import Any
 
 import dagster as dg
-from dagster._core.storage.tags import (
-    ASSET_PARTITION_RANGE_END_TAG,
-    ASSET_PARTITION_RANGE_START_TAG,
-)
 
+from pipeline import parallel
 from pipeline.assets import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.freshness import model_version
 from pipeline.instance import ensure_dagster_home, unsynced_event_log
-from pipeline.partitions import failed_flights, flights
+from pipeline.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
+from pipeline.partitions import flights
 from pipeline.resources import (
     DataRoot,
     ModelConfig,
@@ -47,25 +45,6 @@ from quadcore.workflows.demo import simulate_demo_flights, write_demo_model_file
 # QUADCORE_RECOMPUTE=1: every stage for every flight, even where its outputs are up to date.
 RECOMPUTE = os.environ.get("QUADCORE_RECOMPUTE", "").lower() in ("1", "true", "yes", "on")
 
-# Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
-QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
-
-
-def _failure_reason(result) -> str:
-    """The failures' own messages, once each (without Dagster's exception class prefix)."""
-    reasons = [
-        e.step_failure_data.error.message.strip().splitlines()[0].split("Failure: ", 1)[-1]
-        for e in result.all_events
-        if e.is_step_failure and e.step_failure_data and e.step_failure_data.error
-    ]
-    return "; ".join(dict.fromkeys(reasons)) or "failed"
-
-
-def materialize(assets, resources, instance, partition_key=None, tags=None):
-    return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
-                          run_config=QUIET, raise_on_error=False, tags=tags)
-
-
 def flight_ranges(registered: list[str], wanted: list[str]) -> list[list[str]]:
     """``wanted`` flights as runs of consecutive partitions (in the instance's order): a run
     covers one range of partitions, so a flight not wanted splits the range."""
@@ -79,15 +58,14 @@ def flight_ranges(registered: list[str], wanted: list[str]) -> list[list[str]]:
     return ranges + ([current] if current else [])
 
 
-def range_tags(keys: list[str]) -> dict[str, str]:
-    return {ASSET_PARTITION_RANGE_START_TAG: keys[0], ASSET_PARTITION_RANGE_END_TAG: keys[-1]}
-
-
-def run_flights(instance, resources: dict, flight_ids: list[str], assets, label: str, log=print) -> dict[str, str]:
+def run_flights(instance, resources: dict, flight_ids: list[str], assets, label: str, log=print,
+                split_at: int | None = None) -> dict[str, str]:
     """Materialise per-flight ``assets`` for the flights, in as few runs as possible: one run per
-    range of consecutive flight partitions (one run in all for a fresh data root). A flight
-    that fails is retried alone, so that it fails in a run of its own and the others' runs
-    succeed. Returns flight -> failure reason."""
+    range of consecutive flight partitions (one run in all for a fresh data root), a long range
+    as two runs at once, one per core (:func:`pipeline.parallel.halves`, from ``split_at``
+    flights). A flight that fails
+    is retried alone, so that it fails in a run of its own and the others' runs succeed.
+    Returns flight -> failure reason."""
     new = [f for f in flight_ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)
@@ -96,23 +74,23 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
     pending = flight_ranges(registered, flight_ids)
     while pending:
         keys = pending.pop(0)
-        t0 = time.perf_counter()
-        result = materialize(assets, resources, instance, tags=range_tags(keys))
-        if result.success:
-            log(f"  {label} {keys[0]}..{keys[-1]}: {len(keys)} flight(s) in one run ({time.perf_counter() - t0:.1f} s)"
-                if len(keys) > 1 else f"  {label} {keys[0]}: ok ({time.perf_counter() - t0:.1f} s)")
-            continue
-        failed = failed_flights(result) if len(keys) > 1 else {keys[0]: _failure_reason(result)}
-        if not failed:  # a failure not tied to a flight: retry each flight alone to find it
-            pending = [[k] for k in keys] + pending
-            continue
-        for fid, why in failed.items():
-            if len(keys) > 1:
-                pending.insert(0, [fid])  # its own failed run, with its reason, in the UI
-            else:
-                failures[fid] = why
-                log(f"  {label} {fid}: FAILED: {why}")
-        pending = flight_ranges(registered, [k for k in keys if k not in failed]) + pending
+        batch = halves(keys, log_sizes(resources["data_root"], keys), split_at)
+        for keys, outcome in zip(batch, materialize_ranges(assets, resources, instance, batch)):
+            if outcome.success:
+                log(f"  {label} {keys[0]}..{keys[-1]}: {len(keys)} flight(s) in one run ({outcome.seconds:.1f} s)"
+                    if len(keys) > 1 else f"  {label} {keys[0]}: ok ({outcome.seconds:.1f} s)")
+                continue
+            failed = outcome.failed if len(keys) > 1 else {keys[0]: outcome.reason}
+            if not failed:  # a failure not tied to a flight: retry each flight alone to find it
+                pending = [[k] for k in keys] + pending
+                continue
+            for fid, why in failed.items():
+                if len(keys) > 1:
+                    pending.insert(0, [fid])  # its own failed run, with its reason, in the UI
+                else:
+                    failures[fid] = why
+                    log(f"  {label} {fid}: FAILED: {why}")
+            pending = flight_ranges(registered, [k for k in keys if k not in failed]) + pending
     return failures
 
 
@@ -121,7 +99,7 @@ def run_fleet(instance, resources: dict, log) -> dict | None:
     t0 = time.perf_counter()
     result = materialize(FLEET, resources, instance)
     if not result.success:
-        log(f"  FAILED: {_failure_reason(result)}")
+        log(f"  FAILED: {failure_reason(result)}")
         return None
     root = resources["data_root"].root_path
     diag = store.read_json(store.diagnosis_path(root))
@@ -193,7 +171,10 @@ def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int
         swept = safewrite.sweep_stale(data_root.root_path)
         if swept:
             log(f"removed {len(swept)} temp file(s) or staging folder(s) left by killed runs")
-        return _run_stages(data_root, model, instance, log)
+        try:
+            return _run_stages(data_root, model, instance, log)
+        finally:
+            parallel.shutdown()
 
 
 def _flight_ids(data_root: DataRoot, instance, log) -> tuple[list[str], bool]:
@@ -218,7 +199,8 @@ def _decode_stage(instance, resources: dict, ids: list[str], log) -> tuple[list[
     data_root = resources["data_root"]
     decode = ids if RECOMPUTE else to_decode(instance, data_root, ids)
     log(f"1/4 decode ({len(decode)} of {len(ids)} flights; the others are up to date)")
-    failures = run_flights(instance, resources, decode, DECODE, "decode", log) if decode else {}
+    failures = run_flights(instance, resources, decode, DECODE, "decode", log, parallel.DECODE_SPLIT_AT) \
+        if decode else {}
     decoded = _materialized(instance, "decoded_flight")
     return decode, failures, [f for f in ids if f not in failures and f in decoded]
 
@@ -271,7 +253,7 @@ def _learning_stage(instance, resources: dict, refit: bool, log) -> bool:
         t0 = time.perf_counter()
         result = materialize([*LEARNING, *EXPORT], resources, instance)
         if not result.success:
-            log(f"  FAILED: {_failure_reason(result)}")
+            log(f"  FAILED: {failure_reason(result)}")
             return False
         log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
         return True
@@ -280,7 +262,7 @@ def _learning_stage(instance, resources: dict, refit: bool, log) -> bool:
     if refit:  # the C model carries the refitted parameters
         result = materialize(EXPORT, resources, instance)
         log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
-            + ("" if result.success else f": {_failure_reason(result)}"))
+            + ("" if result.success else f": {failure_reason(result)}"))
     return True
 
 

@@ -3,10 +3,12 @@ one bad flight isolated, and the multiprocess executor. Real Dagster instances, 
 
 from __future__ import annotations
 
+import os
+
 import dagster as dg
 import pytest
 
-from pipeline import main
+from pipeline import main, parallel
 from pipeline.assets import PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import process_flight_job
@@ -19,7 +21,7 @@ from quadcore.workflows import learn
 
 pytestmark = pytest.mark.slow  # whole per-flight runs, one with the multiprocess executor
 
-QUIET = main.QUIET
+QUIET = parallel.QUIET
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +79,47 @@ def test_a_bad_flight_fails_alone_and_the_others_succeed(sim_logs, tmp_path):
         assert [r["flight"] for r in store.quarantined(tmp_path / "root")] == ["sim001b"]
 
 
+def test_a_split_range_runs_on_both_cores_and_a_bad_flight_still_fails_alone(sim_logs, tmp_path, monkeypatch):
+    """A range of four flights split in two runs at once (the second half in a second process,
+    on the same instance): every good flight materialised once, the bad one (in the second
+    half) retried alone and reported alone."""
+    monkeypatch.setattr(parallel, "SPLIT_AT_FLIGHTS", 2)
+    monkeypatch.delenv("QUADCORE_EXECUTOR", raising=False)
+    raw = _raw(tmp_path, sim_logs, bad=True)
+    resources = {"data_root": DataRoot(root=str(tmp_path / "root"), raw=str(raw)), "model": ModelConfig()}
+    ids = ["sim000", "sim001", "sim001b", "sim002"]
+    lines: list[str] = []
+    with dg.instance_for_test() as instance:
+        try:
+            failures = main.run_flights(instance, resources, ids, [decoded_flight], "decode", log=lines.append)
+        finally:
+            parallel.shutdown()
+        assert list(failures) == ["sim001b"] and "quarantined" in failures["sim001b"]
+        records = instance.fetch_materializations(dg.AssetKey("decoded_flight"), limit=100).records
+        assert sorted(r.partition_key for r in records) == ["sim000", "sim001", "sim002"]  # each once
+        # the two halves, then the bad flight alone and the flight after it
+        runs = instance.get_runs()
+        assert len(runs) == 4
+        pids = set()
+        for run in runs:
+            starts = [e for e in instance.all_logs(run.run_id) if e.dagster_event and e.dagster_event.is_step_start]
+            pids.update(e.dagster_event.pid for e in starts)
+        assert os.getpid() in pids and len(pids) == 2  # this process and the second one
+    assert [line.split(":")[0] for line in lines] == ["  decode sim000..sim001", "  decode sim002", "  decode sim001b"]
+    assert "quarantined" in lines[2]
+
+
+def test_in_process_executor_keeps_one_process(monkeypatch):
+    keys = [f"f{i:02d}" for i in range(parallel.SPLIT_AT_FLIGHTS)]
+    half = len(keys) // 2
+    assert parallel.halves(keys) == [keys[:half], keys[half:]]
+    sizes = [len(keys) - 1.0] + [1.0] * (len(keys) - 1)  # a long flight first: as much work as the rest
+    assert parallel.halves(keys, sizes) == [keys[:1], keys[1:]]
+    assert parallel.halves(keys[:-1]) == [keys[:-1]]  # too few to repay a second process
+    monkeypatch.setenv("QUADCORE_EXECUTOR", "in_process")
+    assert parallel.halves(keys) == [keys]
+
+
 def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, monkeypatch):
     """process_flight over two flights in one run, its steps in separate processes, as a cluster
     executor would run them (they load the definitions and the data root from the environment)."""
@@ -90,7 +133,7 @@ def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, mon
         result = dg.execute_job(
             dg.reconstructable(process_flight_job), instance=instance,
             run_config={"execution": {"config": {"multiprocess": {"max_concurrent": 2}}}, **QUIET},
-            tags=main.range_tags(["sim000", "sim001"]),
+            tags=parallel.range_tags(["sim000", "sim001"]),
         )
         assert result.success
         steps = {e.step_key: e.pid for e in result.all_events if e.event_type_value == "STEP_START"}
