@@ -33,12 +33,13 @@ from pipeline.partitions import failed_flights
 # Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
 QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
 
-# Split a range in two from this many flights: below it the second process's start-up (importing
-# the definitions, then each asset's libraries on its first flight: ~4 s under load here) costs
-# more than half the range saves (benchmarks: the main job's stage lines; see the README).
-SPLIT_AT_FLIGHTS = 8
-# Decoding costs 0.05-0.25 s a flight here: on 19 flights the split took 4.0-4.5 s against 1.0-4.9 s
-# in one process; from this many flights half of it outweighs the start-up.
+# Split a range in two from this many flights. The second process's start-up (the definitions,
+# then each asset's libraries on its first flight: 4-5 s under load here) takes what half a short
+# range saves: on the 19 real flights at load average ~3 the split took as long as one process
+# (statistics 8.2 / 7.9 s against 8.2 / 7.8 s; residuals, rollouts and MCAP 10.1 / 8.8 s against
+# 10.1 / 8.4 s). benchmarks/bench_scale.py --per-flight 20 100 measures both sides of it.
+SPLIT_AT_FLIGHTS = 40
+# Decoding costs 0.05-0.25 s a flight: the split pays only on many more flights.
 DECODE_SPLIT_AT = 100
 
 
@@ -121,7 +122,8 @@ def materialize_ranges(assets, resources: dict, instance, ranges: list[list[str]
     configs = {name: (type(r), r.model_dump()) for name, r in resources.items()}
     t0 = time.perf_counter()
     other = second_process().submit(_materialize_in_child, ref, sorted(unsynced_homes()), configs, names, second)
-    here = materialize_range(assets, resources, instance, first)
+    with one_blas_thread():
+        here = materialize_range(assets, resources, instance, first)
     try:  # the second half's time with the second process's start-up, if it started now
         return [here, replace(other.result(), seconds=time.perf_counter() - t0)]
     except BrokenProcessPool:
@@ -158,5 +160,13 @@ def _materialize_in_child(ref: str, homes: list[str], configs: dict, names: list
     for home in homes:
         unsynced_event_log(Path(home))
     assets = [a for a in PER_FLIGHT if a.key.to_user_string() in names]
-    with dg.DagsterInstance.from_ref(deserialize_value(ref, InstanceRef)) as instance:
+    with dg.DagsterInstance.from_ref(deserialize_value(ref, InstanceRef)) as instance, one_blas_thread():
         return materialize_range(assets, resources, instance, keys)
+
+
+def one_blas_thread():
+    """One BLAS thread in each of the two processes while both work: two of OpenBLAS's threads
+    per process on two cores wait for each other (see :func:`quadcore.identify.discovery._one_blas_thread`)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
