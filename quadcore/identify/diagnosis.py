@@ -675,27 +675,35 @@ def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
 def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.ndarray], noise_ss: np.ndarray,
                      vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
     """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
-    would detect (:func:`quadcore.identify.evidence.detection_limit`); None when no value within the
+    would detect (:func:`quadcore.identify.evidence.detection_limits`); None when no value within the
     parameter's range would be. A parameter stated at a reference point of the others (a
     wind, at a rotor drag) must also lift the score by ``2 TIE_MARGIN`` above the simpler
     effect it then resembles (a wind above rotor drag), or the two are a tie."""
-    out: dict[str, dict[str, float | None]] = {}
-    for c in cands:
-        out[c.name] = {}
-        reference = c.sensitivity_reference
-        base_ss = 0.0
-        if reference:
-            base_ss = sum(_reference_ss(c, fd, vehicle) for fd in flights)
-        for p in c.parameters:
-            unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
-            conditional = bool(reference) and p.name not in reference
-            v = evidence.detection_limit(flights, resid, unit, noise_ss, MIN_SIGMA, n_candidates,
-                                         min_share=2 * TIE_MARGIN if conditional else 0.0,
-                                         base_ss=base_ss if conditional else 0.0)
+    jobs = [(c, p) for c in cands for p in c.parameters]
+    base_ss = {c.name: sum(_reference_ss(c, fd, vehicle) for fd in flights) for c in cands if c.sensitivity_reference}
+    # statistics: every parameter's sums from one read of the Gram matrices; rows: one unit
+    # wrench (a signal per flight) in memory at a time
+    batch = max(len(jobs), 1) if sufficient.are_stats(flights) else 1
+    out: dict[str, dict[str, float | None]] = {c.name: {} for c in cands}
+    for start in range(0, len(jobs), batch):
+        part = jobs[start: start + batch]
+        asks = [_limit_ask(c, p, flights, vehicle, base_ss.get(c.name, 0.0)) for c, p in part]
+        limits = evidence.detection_limits(flights, resid, asks, noise_ss, MIN_SIGMA, n_candidates)
+        for (c, p), v in zip(part, limits):
             if not c.linear:  # the unit wrench is a secant: nothing is known below its step
                 v = max(v, evidence.SECANT * (p.upper - p.lower))
             out[c.name][p.name] = float(v) if v <= max(p.upper - p.default, p.default - p.lower) else None
     return out
+
+
+def _limit_ask(c, p, flights: sufficient.Flights, vehicle, base_ss: float) -> evidence.LimitAsk:
+    """A parameter's detection limit to find: stated at a reference point of the others (a wind,
+    at a rotor drag), it must also lift the score by ``2 TIE_MARGIN`` above the effect it then
+    resembles."""
+    unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
+    if c.sensitivity_reference and p.name not in c.sensitivity_reference:
+        return evidence.LimitAsk(unit, 2 * TIE_MARGIN, base_ss)
+    return evidence.LimitAsk(unit)
 
 
 def sensitivity_basis(cands) -> dict:

@@ -186,18 +186,35 @@ def alpha_each(n_candidates: int) -> float:
     return ALPHA / max(n_candidates, 1)
 
 
-def detection_limit(flights: Flights, resid: dict[str, np.ndarray], unit: dict[str, np.ndarray],
-                    floor_ss: np.ndarray, min_sigma: float, n_candidates: int = 1,
-                    min_share: float = 0.0, base_ss: float = 0.0) -> float:
-    """Smallest |deviation| of a parameter with unit wrench ``unit`` that the test, the fit's
-    significance and the noise floor all let through (see the module); inf if none. With
-    ``min_share``, the injected part must also be that share of the channel's residual plus
-    ``base_ss`` (the energy of a reference effect it rides on)."""
-    z_power = float(stats.norm.isf(1 - POWER))
+@dataclass(frozen=True)
+class LimitAsk:
+    """One parameter's detection limit to find: its unit wrench (flight -> (n, 6), or signal
+    vectors on statistics) and the share of the channel's residual plus ``base_ss`` (the energy
+    of a reference effect it rides on) the injected part must also reach."""
+
+    unit: Signals
+    min_share: float = 0.0
+    base_ss: float = 0.0
+
+
+def detection_limits(flights: Flights, resid: Signals, asks: Sequence[LimitAsk], floor_ss: np.ndarray,
+                     min_sigma: float, n_candidates: int = 1) -> list[float]:
+    """Per ask: the smallest |deviation| of a parameter with its unit wrench that the test, the
+    fit's significance and the noise floor all let through (see the module); inf if none. On
+    statistics, every ask's sums come from one read of each flight's Gram matrices."""
+    pairs = [pair for a in asks for pair in ((a.unit, resid), (a.unit, a.unit))]
+    *sums, rr_c = block_channel_sums(flights, [*pairs, (resid, resid)])
     n = sum(fd.n for fd in flights)
+    return [_limit(sums[2 * k], sums[2 * k + 1], rr_c, n, floor_ss, min_sigma, n_candidates, a)
+            for k, a in enumerate(asks)]
+
+
+def _limit(ur_c: np.ndarray, uu_c: np.ndarray, rr_c: np.ndarray, n: int, floor_ss: np.ndarray,
+           min_sigma: float, n_candidates: int, ask: LimitAsk) -> float:
+    """:func:`detection_limits` of one ask from its per-block, per-channel sums (unit·residual,
+    unit·unit, residual·residual); each channel's sums are these weighted by its mask."""
+    z_power = float(stats.norm.isf(1 - POWER))
     best = np.inf
-    # per block and channel once; each channel's sums are these weighted by its mask
-    ur_c, uu_c, rr_c = block_channel_sums(flights, [(unit, resid), (unit, unit), (resid, resid)])
     for ch in CHANNELS:
         w = channel_mask([ch])
         ur, uu = ur_c @ w, uu_c @ w
@@ -213,7 +230,7 @@ def detection_limit(flights: Flights, resid: dict[str, np.ndarray], unit: dict[s
         ms = max(R - beta**2 * S, 0.0) / (3 * n)
         v_sigma = (min_sigma + z_power) * np.sqrt(ms * fitting.SAMPLES_PER_INDEPENDENT / S)
         v_floor = np.sqrt(max(0.0, (1 + NOISE_MARGIN) ** 2 * F - R) / S)
-        v_share = np.sqrt(min_share * (R + base_ss) / S)
+        v_share = np.sqrt(ask.min_share * (R + ask.base_ss) / S)
         best = min(best, max(v_test, v_sigma, v_floor, v_share))
     return float(best)
 
