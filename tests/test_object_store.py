@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from pipeline.assets import PER_FLIGHT
-from pipeline.main import range_tags
+from pipeline.parallel import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.sim import simulation
