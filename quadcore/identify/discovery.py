@@ -445,24 +445,8 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx
 
 def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
     Z = np.concatenate([b[rows] for b in blocks], axis=1)
-    with _one_blas_thread():
+    with sufficient.one_blas_thread():
         return Z.T @ Z
-
-
-def _one_blas_thread():
-    """One BLAS thread for a flight's Gram products: the same numbers (each product is one
-    thread's sum either way), and with the two cores shared by other work, OpenBLAS's second
-    thread waiting for a core made a 6,000-sample product ten times slower (0.38 s against
-    0.03 s at load average 5)."""
-    return _blas_controller().limit(limits=1, user_api="blas")
-
-
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """The process's thread pools, found once (finding them costs about 10 ms a time)."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
 
 
 def _flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_effects, vehicle, stride: int):
@@ -483,7 +467,7 @@ def flight_grams(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx_e
     H = np.zeros((cols.n_total, cols.n_total))
     for group in channel_groups(cols.labels()):
         Zg = Z[:, group]
-        with _one_blas_thread():
+        with sufficient.one_blas_thread():
             H[np.ix_(group, group)] = Zg.T @ Zg
     return _gram(blocks, rows[::stride]), H
 
