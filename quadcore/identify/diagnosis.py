@@ -388,10 +388,12 @@ def _parameter_notes(outside: list[str], at_bound: list[str], sigma: float) -> l
     return notes
 
 
-def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict]) -> dict[str, Any]:
+def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict],
+           test_sums: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
     channel it explains, its parameters (``fit_c``: on all training flights) with their
-    uncertainty (``fold_params``: per fold, for the spread) and checks, and the held-out test."""
+    uncertainty (``fold_params``: per fold, for the spread) and checks, and the held-out test
+    (``test_sums``: its :func:`quadcore.identify.evidence.held_out_sums`)."""
     before, at_noise = held.before, held.at_noise
     after = _total(_ss(held.resid[f] - held.cand_pred[c.name][f], fd) for f, fd in zip(held.ids, held.flights))
     raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
@@ -427,8 +429,7 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict]) -> di
         "significance_sigma": sigma,
         "significant": sigma >= MIN_SIGMA,
         "notes": _parameter_notes(outside, at_bound, sigma),
-        **_held_out_evidence(evidence.held_out_test(held.flights, held.resid, held.cand_pred[c.name],
-                                                    evidence.channel_mask([target])),
+        **_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
                              before, after, held.noise_ss, target),
     }
 
@@ -610,9 +611,11 @@ def diagnose(
 
     held = _held_out(p, folds)
     rows: list[dict[str, Any]] = []
-    for c in p.cands:
+    # every candidate's held-out sums at once (on statistics: one read of the Gram matrices)
+    tests = evidence.held_out_sums(held.flights, held.resid, [held.cand_pred[c.name] for c in p.cands])
+    for c, test_sums in zip(p.cands, tests):
         fit_c = folds.fits[c.name] if reuse else p.fit_candidate(c, train_all, resid_train)
-        rows.append(_score(c, held, fit_c, fold_params[c.name]))
+        rows.append(_score(c, held, fit_c, fold_params[c.name], test_sums))
     for r in rows:
         _decide(r, held.at_noise, len(rows))
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)

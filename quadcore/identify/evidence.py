@@ -142,7 +142,19 @@ def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
 def held_out_test(flights: Flights, resid: dict[str, np.ndarray], pred: dict[str, np.ndarray],
                   weights: np.ndarray) -> HeldOutTest:
     """Is ``pred`` (n, 6 per flight) confirmed by ``resid`` on these flights? (see the module)"""
-    pr, pp = (sums @ weights for sums in block_channel_sums(flights, [(resid, pred), (pred, pred)]))
+    return held_out_test_of(held_out_sums(flights, resid, [pred])[0], weights)
+
+
+def held_out_sums(flights: Flights, resid: Signals, preds: Sequence[Signals]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per prediction: (residual·prediction, prediction·prediction) per block and channel
+    (:func:`block_channel_sums`; on statistics one read of the Gram matrices for all of them)."""
+    sums = block_channel_sums(flights, [pair for pred in preds for pair in ((resid, pred), (pred, pred))])
+    return [(sums[2 * k], sums[2 * k + 1]) for k in range(len(preds))]
+
+
+def held_out_test_of(sums: tuple[np.ndarray, np.ndarray], weights: np.ndarray) -> HeldOutTest:
+    """:func:`held_out_test` from a prediction's :func:`held_out_sums`, weighted per channel."""
+    pr, pp = (s @ weights for s in sums)
     den = float(pp.sum())
     if den <= 0:
         return NO_TEST
