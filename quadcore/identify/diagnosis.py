@@ -159,11 +159,9 @@ def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> suffi
     unit wrenches as extra columns, from its rows (read once)."""
     vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.statistics(f)
     extras = {}
-    for c in cands:
+    for c in cands:  # its prediction, then its unit wrenches and reference as a profiled effect has them
         extras[f"pred:{c.name}"] = cand_pred[c.name][f]
-        extras.update({f"unit:{c.name}:{p.name}": evidence.unit_wrench(c, p, fd, vehicle) for p in c.parameters})
-        if c.sensitivity_reference:
-            extras[f"ref:{c.name}"] = fitting.prediction(c, {**c.defaults(), **c.sensitivity_reference}, fd, vehicle)
+        extras.update(profiles.fixed_signals([c.name], fd, vehicle))
     s = sufficient.flight_stats(fd, vehicle, base.layout.with_extras(list(extras)), base.key, extras)
     fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
     return s
