@@ -62,8 +62,8 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_export_c.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_power.py
 
-# The fuzz harness (tests/fuzz): 2,000 mutants of the real logs (simulated ones where absent),
-# 100 writers and 8 main jobs killed at random moments. Prints the counts the README's
+# The fuzz harness (tests/fuzz): 2,000 mutants of the real logs (simulated ones where absent), the
+# structure-aware cases of tests/fuzz/structure.py, 100 writers and 8 main jobs killed at random moments. Prints the counts the README's
 # Reliability section quotes.
 fuzz: $(STAMP)
 	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.harness --mutants 2000 --kills 100 --pipeline-kills 8

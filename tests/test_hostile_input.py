@@ -188,14 +188,14 @@ def test_unreadable_file_is_quarantined_and_the_others_go_on(tmp_path, make_synt
     raw.mkdir()
     for name in ("good1", "locked", "good2"):
         (raw / name).write_bytes(make_synthetic_log(name=f"src_{name}").data)
-    real_read = Path.read_bytes
+    real_read = logformat.read_log
 
-    def read_bytes(self):  # root reads chmod-000 files, so deny the read itself
-        if self.name == "locked":
-            raise PermissionError(13, "Permission denied", str(self))
-        return real_read(self)
+    def read_log(path):  # root reads chmod-000 files, so deny the read itself
+        if Path(path).name == "locked":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_read(path)
 
-    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    monkeypatch.setattr(logformat, "read_log", read_log)
     code, stdout, _ = _run_cli("decode", str(raw), "--out", str(out))
     assert code == 0
     assert "locked: QUARANTINED (PermissionError" in stdout

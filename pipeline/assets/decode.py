@@ -8,8 +8,9 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number
 from pipeline.resources import DataRoot
 from quadcore.learn.features import find_flights_csv
-from quadcore.logs import checks, flight, logformat
+from quadcore.logs import checks, flight
 from quadcore.store import store
+from quadcore.workflows.fleet import quarantine_reason
 
 MAIN_EVENT = store.MAIN_EVENT
 CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
@@ -19,14 +20,15 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
     """Decode and write one flight; returns (its metadata, check name -> (passed, description, metrics)).
     Its start time is the user's (``given_starts``), else the one recorded at its first decode."""
     path = data_root.raw_path / fid
-    try:
+    try:  # any failure is this file's alone (quadcore.workflows.fleet.decode_logs does the same)
         path = data_root.raw_log(fid)
-        fl = flight.decode_flight(path)
-    except (logformat.LogFormatError, OSError) as exc:
-        store.write_quarantine(data_root.root_path, fid, str(path), str(exc), type(exc).__name__)
+        fl = flight.decode_flight(path, fid)
+    except Exception as exc:  # noqa: BLE001 (per-file isolation: quarantined with its reason)
+        reason = quarantine_reason(exc)
+        store.write_quarantine(data_root.root_path, fid, str(path), reason, type(exc).__name__)
         raise dg.Failure(
-            description=f"{fid} quarantined: {type(exc).__name__}: {exc}",
-            metadata={"source_file": str(path), "reason": str(exc)},
+            description=f"{fid} quarantined: {reason}",
+            metadata={"source_file": str(path), "reason": reason},
             allow_retries=False,
         ) from None
     recorded = store.recorded_provenance(data_root.root_path, MAIN_EVENT, fid)

@@ -108,12 +108,14 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "
     return Flight(flight_id, tables, columns, provenance)
 
 
-def decode_flight(path: str | Path) -> Flight:
-    """Decode a raw uSD log file into SI tables. Raises ``LogFormatError`` if unrecoverable."""
+def decode_flight(path: str | Path, flight_id: str | None = None) -> Flight:
+    """Decode a raw uSD log file (at most ``logformat.MAX_LOG_BYTES``) into SI tables, as flight
+    ``flight_id`` (default: :func:`flight_id_of` the path). Raises ``LogFormatError`` if
+    unrecoverable."""
     path = Path(path)
-    buf = path.read_bytes()
+    buf = logformat.read_log(path)
     log = logformat.decode_bytes(buf)
-    return from_decoded(flight_id_of(path), log, str(path.resolve()), hashlib.sha256(buf).hexdigest(),
+    return from_decoded(flight_id or flight_id_of(path), log, str(path.resolve()), hashlib.sha256(buf).hexdigest(),
                         path.stat().st_mtime_ns)
 
 

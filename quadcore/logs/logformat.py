@@ -32,7 +32,17 @@ After bytes that break the chain (a corrupt record), decoding resynchronises: it
 resumes at the next offset from which ``RESYNC_RECORDS`` records chain without a
 break, and reports each skipped stretch (bytes and time range) in ``DecodedLog.skipped``.
 Only a file with nothing to recover (empty, wrong magic byte, unknown version,
-unreadable header, a header beyond the limits below) raises a :class:`LogFormatError`.
+unreadable header, a header beyond the limits below, a file above ``MAX_LOG_BYTES``)
+raises a :class:`LogFormatError`.
+
+A record is never invented: a record whose end starts no record is kept only when it can be
+what its id says (its timestamp fits its own event stream, and the chain does not resume
+exactly where a record of another declared type would end: an id corrupted into the other
+valid id); an event type most of whose records break the chain has a header layout that does
+not fit the body, and none of its records is kept; a CRC trailer that validates the bytes
+before it ends the data even after a short last record; a second copy of the header (two files
+joined) ends this log. The records the bytes allow are kept: the single intact record after a
+corruption near the end is taken back when its timestamp fits its stream.
 
 Event names become path components under the data root, so the decoder hands out
 safe, unique names (:mod:`quadcore.store.names`); a renamed or repeated event is a warning.
@@ -40,6 +50,7 @@ safe, unique names (:mod:`quadcore.store.names`); a renamed or repeated event is
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from dataclasses import dataclass, field, replace
@@ -58,6 +69,12 @@ TIMESTAMP_TO_US = {1: 1000, 2: 1}
 MAX_EVENT_TYPES = 256
 MAX_VARIABLES = 1024  # per event type
 MAX_NAME_CHARS = 255
+MAX_LOG_BYTES = 256 * 2**20
+"""The largest file decoded (256 MiB): 95 minutes of the reference deck's 500 Hz records (47 kB/s),
+more than ten times a Crazyflie's flight on one battery. Decoding a file into SI tables holds about
+3.5 times its size at the peak (335 MB for a 102 MB log: docs/reliability.md), so one file never
+needs more than ~1 GB; a larger file is refused with the reason (:class:`LogTooLargeError`)
+before any of it is read."""
 RESERVED_VARIABLES = ("event_id", "timestamp")  # the record's own fields
 RESYNC_RECORDS = 8  # records that must chain without a break where decoding resumes
 TYPE_CHARS = {
@@ -90,6 +107,10 @@ class UnsupportedVersionError(LogFormatError):
 
 class CorruptHeaderError(LogFormatError):
     """The header cannot be parsed (truncated, bad type character, duplicate ids)."""
+
+
+class LogTooLargeError(LogFormatError):
+    """The file is larger than :data:`MAX_LOG_BYTES`: refused before it is read."""
 
 
 @dataclass(frozen=True)
@@ -237,6 +258,7 @@ class _Walk:
     stop: int
     skips: np.ndarray  # (k, 2) region byte ranges
     skip_neighbours: np.ndarray  # (k, 2) region offsets of the records kept before / after (-1: none)
+    misfit: tuple[int, ...] = ()  # event ids whose declared layout does not fit the body (none kept)
 
 
 def _empty_walk(reason: str) -> _Walk:
@@ -251,6 +273,8 @@ def _candidates(region: np.ndarray, size_lut: np.ndarray) -> np.ndarray:
     """Offsets whose u16 is a declared event id, sorted. Linear in the region's size: a
     compare per id for a few ids, else one lookup of the u16 at every offset."""
     ids = np.flatnonzero(size_lut).tolist()  # Python ints: a uint8 compare stays uint8
+    if not ids or len(region) < 2:  # a header that declares no event type: no record can start
+        return np.empty(0, np.int64)
     if len(ids) <= FEW_IDS:
         lo, hi = region[:-1], region[1:]
         hits = [np.flatnonzero((lo == (e & 0xFF)) & (hi == (e >> 8))) for e in ids]
@@ -262,14 +286,19 @@ def _candidates(region: np.ndarray, size_lut: np.ndarray) -> np.ndarray:
     return np.flatnonzero((size_lut > 0)[words])
 
 
-def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
+def _walk(region: np.ndarray, size_lut: np.ndarray, ts_dtype: np.dtype = TIMESTAMP_DTYPE[2]) -> _Walk:
     """Follow the record chain over ``region``, resynchronising after bytes that break it.
 
     Candidates are offsets whose u16 is a declared event id; ``nxt`` links a candidate to the
     candidate where its record ends (or to the sinks END / BREAK). Where the chain breaks, it
     resumes at the first later candidate from which ``RESYNC_RECORDS`` records chain (or which
-    starts at least two records that end the region exactly); a broken record that overlaps
-    the resumed chain was no record and is dropped.
+    starts at least two records that end the region exactly). A broken record (the bytes at its
+    end start no record) is kept only when it can be the record its id says
+    (:func:`_doubtful`): one that overlaps the resumed chain was no record, one whose resumed
+    chain starts exactly where a record of another declared type would end had its id
+    corrupted, and one whose timestamp does not fit its own event stream is not kept either.
+    After a last break, a single record ending the region exactly is taken back when its
+    timestamp fits its stream (:func:`_tail_record`).
 
     One function on purpose (issue #15): each step reads the arrays of the steps before
     (``cand``, ``nxt``, ``resumed``, ``dropped``, ``sync``), so parts would pass most of them.
@@ -305,7 +334,25 @@ def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
         return _empty_walk("garbage")
     order = _chain(resumed, first)
     sink, nodes = order[-1], order[:-1]
+    garbage_end = sink == BREAK and nxt_offset[nodes[-1]] <= n  # not a partial last record
+    if garbage_end:  # a lone last record that ends the region may follow
+        tail = _tail_record(region, cand, cand_ids, nxt, nodes, dropped, ts_dtype)
+        if tail >= 0:
+            x = nodes[-1]
+            resumed[x], sink, garbage_end = tail, END, False
+            dropped[x] = cand[tail] < nxt_offset[x]
+            nodes = np.r_[nodes, tail]
     jumps = nodes[(nxt[nodes] == BREAK) & (resumed[nodes] != BREAK)]
+    resume_at = np.r_[cand, n, -1]  # where the chain goes on after each node (END: the region's end)
+    dropped[jumps] |= _doubtful(region, cand, cand_ids, size_lut, nodes, jumps, resume_at[resumed[jumps]], dropped,
+                                ts_dtype)
+    if garbage_end:
+        last = nodes[-1:]
+        dropped[last] |= _doubtful(region, cand, cand_ids, size_lut, nodes, last, np.array([n]), dropped, ts_dtype)
+    misfit = _misfit_ids(cand_ids[nodes], nxt[nodes] == BREAK)
+    if len(misfit):  # the header's layout of these types does not fit the body: none of them is kept
+        dropped[nodes[np.isin(cand_ids[nodes], misfit)]] = True
+        jumps = np.union1d(jumps, nodes[np.isin(cand_ids[nodes], misfit) & (resumed[nodes] != BREAK)])
     kept = nodes[~dropped[nodes]]
 
     skip_from = np.where(dropped[jumps], cand[jumps], nxt_offset[jumps])
@@ -319,13 +366,93 @@ def _walk(region: np.ndarray, size_lut: np.ndarray) -> _Walk:
     skips = np.stack([skip_from, skip_to], axis=1).astype(np.int64)
     neighbours = np.stack([before, cand[after]], axis=1).astype(np.int64)
 
-    starts, ids = cand[kept], cand_ids[kept]
+    starts, ids, bad = cand[kept], cand_ids[kept], tuple(int(e) for e in misfit)
     if sink == END:
-        return _Walk(starts, ids, "end", n, skips, neighbours)
+        return _Walk(starts, ids, "end", n, skips, neighbours, bad)
     last = nodes[-1]
     if nxt_offset[last] > n:  # the final record runs past the end: a partial last record
-        return _Walk(starts[:-1], ids[:-1], "partial", int(cand[last]), skips, neighbours)
-    return _Walk(starts, ids, "garbage", int(nxt_offset[last]), skips, neighbours)
+        keep = slice(None, -1) if not dropped[last] else slice(None)
+        return _Walk(starts[keep], ids[keep], "partial", int(cand[last]), skips, neighbours, bad)
+    stop = int(nxt_offset[last]) if not dropped[last] else int(cand[last])
+    return _Walk(starts, ids, "garbage", stop, skips, neighbours, bad)
+
+
+def _misfit_ids(ids: np.ndarray, broken: np.ndarray) -> np.ndarray:
+    """The event ids most of whose records (more than half, at least two) end where no record
+    starts: the header declares a record size the body does not have (a field list or type
+    edited), so every record of that id would be read with the wrong layout."""
+    if not broken.any():
+        return np.zeros(0, ids.dtype)
+    u, total = np.unique(ids, return_counts=True)
+    bad = np.bincount(np.searchsorted(u, ids[broken]), minlength=len(u))
+    return u[(bad >= 2) & (2 * bad > total)]
+
+
+RESYNC_MAX_GAP_US = 1_000_000
+"""How far (us) a record taken back at a break may lie after the previous record of its own event
+stream. The streams of a uSD log run at 10 to 1000 Hz, and the real logs' longest gap is ~0.12 s;
+a random 8-byte (v2, us) or 4-byte (v1, ms) timestamp lands in a 1 s window with probability
+5e-14 or 2e-7, on top of the 2**-16 of a random u16 being a declared id."""
+
+
+def _stream_fits(ids: np.ndarray, at: np.ndarray, ts_of) -> np.ndarray:
+    """Whether each record ``at`` (positions in ``ids``: the kept chain in file order;
+    ``ts_of(positions)`` gives their raw timestamps) fits its own event stream: it has another
+    record of its id to fit, is not before the previous one nor after the next one, and at most
+    :data:`RESYNC_MAX_GAP_US` after the previous one (in the raw unit: a v1 timestamp in ms passes
+    a wider window, which only makes it more lenient)."""
+    ok = np.ones(len(at), dtype=bool)
+    for eid in np.unique(ids[at]):
+        sel = np.flatnonzero(ids[at] == eid)
+        mine = np.flatnonzero(ids == eid)
+        q = np.searchsorted(mine, at[sel])
+        last = len(mine) - 1
+        t, prev_t, next_t = (ts_of(mine[np.clip(q + d, 0, last)]) for d in (0, -1, 1))
+        ok[sel] = (last > 0) & (t >= prev_t) & (t <= next_t) & ((q == 0) | (t - prev_t <= RESYNC_MAX_GAP_US))
+    return ok
+
+
+def _doubtful(region: np.ndarray, cand: np.ndarray, cand_ids: np.ndarray, size_lut: np.ndarray,
+              nodes: np.ndarray, broken: np.ndarray, resume_at: np.ndarray, dropped: np.ndarray,
+              ts_dtype: np.dtype) -> np.ndarray:
+    """Which of the ``broken`` chain nodes (records whose end starts no record) cannot be kept as
+    the record their id says: the chain resumes (``resume_at``: region offsets, the region's
+    end for a last record) exactly where a record of another declared type starting there would
+    end (the id was corrupted into a valid one: an estPose read from a fixedFrequency record's
+    first floats), or the timestamp does not fit its own stream (:func:`_stream_fits`)."""
+    if len(broken) == 0:
+        return np.zeros(0, dtype=bool)
+    gap = resume_at - cand[broken]
+    own = size_lut[cand_ids[broken]]
+    sizes = np.unique(size_lut[size_lut > 0])
+    other = (gap != own) & np.isin(gap, sizes)
+    live_mask = ~dropped[nodes]
+    live_mask[np.searchsorted(nodes, broken)] = True  # the chain runs in file order: nodes ascend
+    live = nodes[live_mask]
+    fits = _stream_fits(cand_ids[live], np.searchsorted(live, broken),
+                        lambda i: _timestamps_at(region, cand[live[i]], ts_dtype))
+    return other | ~fits
+
+
+def _tail_record(region: np.ndarray, cand: np.ndarray, cand_ids: np.ndarray, nxt: np.ndarray,
+                 nodes: np.ndarray, dropped: np.ndarray, ts_dtype: np.dtype) -> int:
+    """The candidate after the chain's last node whose record ends the region exactly and whose
+    timestamp fits its stream (see :func:`_stream_fits`), or -1: the intact last record after
+    a corruption too near the end for ``RESYNC_RECORDS`` records to follow it."""
+    m = len(cand)
+    if len(nodes) == 0:
+        return -1
+    ends = np.flatnonzero(nxt[:m] == m)
+    ends = ends[cand[ends] > cand[nodes[-1]]]
+    if len(ends) == 0:
+        return -1
+    live = nodes[~dropped[nodes]]
+    for c in ends[::-1]:  # at most one per declared record size
+        chain = np.r_[live, c]
+        if _stream_fits(cand_ids[chain], np.array([len(chain) - 1]),
+                        lambda i, chain=chain: _timestamps_at(region, cand[chain[i]], ts_dtype))[0]:
+            return int(c)
+    return -1
 
 
 def _timestamps_at(region: np.ndarray, offsets: np.ndarray, ts_dtype: np.dtype) -> np.ndarray:
@@ -364,7 +491,7 @@ def _safe_event_types(types_by_id: dict[int, EventType]) -> tuple[dict[int, Even
     return renamed, [f"event type: {w}" for w in warnings]
 
 
-def _record_chain(buf: bytes, version: int, types_by_id: dict[int, EventType], data_start: int,
+def _record_chain(buf: bytes | memoryview, version: int, types_by_id: dict[int, EventType], data_start: int,
                   warnings: list[str]) -> tuple[_Walk, int, bool | None]:
     """Walk the records from ``data_start`` to the CRC trailer (or to the end of a file without
     one, or whichever reading recovers more). Returns (the walk, where the data ends, CRC ok:
@@ -382,14 +509,17 @@ def _record_chain(buf: bytes, version: int, types_by_id: dict[int, EventType], d
         size_lut[eid] = 2 + ts_dtype.itemsize + et.payload_dtype().itemsize
 
     def walk(end: int) -> _Walk:
-        return _walk(np.frombuffer(buf, dtype=np.uint8, count=max(end - data_start, 0), offset=data_start), size_lut)
+        region = np.frombuffer(buf, dtype=np.uint8, count=max(end - data_start, 0), offset=data_start)
+        return _walk(region, size_lut, ts_dtype)
 
     if crc_ok is None:
         warnings.append("no CRC trailer: file is truncated; decoded what was there")
         w, end_used = walk(n_total), n_total
     else:
         w, end_used = walk(data_end), data_end
-        if w.reason != "end" or len(w.skips):
+        # A trailer that validates the bytes before it is the file's end, whatever those bytes
+        # end with (a short last record included): a random 4-byte tail matches with p = 2**-32.
+        if not crc_ok and (w.reason != "end" or len(w.skips)):
             # Either the trailer is missing (a truncated file) or the data is damaged. A file
             # whose records end cleanly or mid-record at its very end, read without a trailer,
             # was truncated; otherwise keep whichever reading recovers more.
@@ -431,18 +561,33 @@ def _tables(region: np.ndarray, w: _Walk, types_by_id: dict[int, EventType],
     return tables, timestamps
 
 
+def _second_log_at(buf, data_start: int) -> int:
+    """Where a second log begins (this log's header again, as when two files are joined), or
+    the buffer's length. The header holds the magic byte, the version and every declared name:
+    records do not repeat it by chance."""
+    header = bytes(buf[:data_start])
+    find = buf.find if hasattr(buf, "find") else bytes(buf).find
+    at = find(header, data_start)
+    return len(buf) if at < 0 else at
+
+
 def decode_bytes(buf: bytes) -> DecodedLog:
     """Decode a whole uSD log held in memory. See the module docstring."""
     version, types_by_id, data_start = parse_header(buf)
     types_by_id, warnings = _safe_event_types(types_by_id)
     n_total = len(buf)
-    w, end_used, crc_ok = _record_chain(buf, version, types_by_id, data_start, warnings)
+    own_end = _second_log_at(buf, data_start)
+    if own_end < n_total:
+        warnings.append(f"a second log starts at byte {own_end} (this log's header again: files joined): decoded "
+                        f"the first only, dropped {n_total - own_end} bytes; split the file to decode the other")
+    body = buf if own_end == n_total else memoryview(buf)[:own_end]
+    w, end_used, crc_ok = _record_chain(body, version, types_by_id, data_start, warnings)
 
     region_len = end_used - data_start
     region = np.frombuffer(buf, dtype=np.uint8, count=region_len, offset=data_start)
     skipped = _skipped_stretches(w, region, data_start, version)
     bytes_skipped = int(sum(s.byte_end - s.byte_start for s in skipped))
-    bytes_dropped = (region_len - w.stop if w.reason != "end" else 0) + bytes_skipped
+    bytes_dropped = (region_len - w.stop if w.reason != "end" else 0) + bytes_skipped + n_total - own_end
     if w.reason == "partial":
         warnings.append(f"partial last record: dropped {region_len - w.stop} bytes at the end")
     elif w.reason == "garbage":
@@ -451,6 +596,10 @@ def decode_bytes(buf: bytes) -> DecodedLog:
             f"dropped {region_len - w.stop} bytes"
         )
 
+    for eid in w.misfit:
+        et = types_by_id[eid]
+        warnings.append(f"event type {et.name!r}: its records do not fit the header's layout "
+                        f"({et.record_dtype(version).itemsize} bytes a record): none kept")
     tables, timestamps = _tables(region, w, types_by_id, version)
     if skipped:
         firsts = [int(ts[0]) for ts in timestamps.values() if len(ts)]
@@ -468,9 +617,24 @@ def decode_bytes(buf: bytes) -> DecodedLog:
     )
 
 
+def read_log(path: str | Path) -> bytes:
+    """A log file's bytes, at most :data:`MAX_LOG_BYTES` of them: a larger file (or one that grew
+    past it while read) is a :class:`LogTooLargeError`, raised before it is read whole."""
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size > MAX_LOG_BYTES:
+            raise LogTooLargeError(f"file is {size / 2**20:.0f} MiB; logs above {MAX_LOG_BYTES // 2**20} MiB are "
+                                   "refused (95 min of 500 Hz records): split it")
+        data = fh.read(MAX_LOG_BYTES + 1)
+    if len(data) > MAX_LOG_BYTES:
+        raise LogTooLargeError(f"file grew past {MAX_LOG_BYTES // 2**20} MiB while it was read: refused")
+    return data
+
+
 def decode_file(path: str | Path) -> DecodedLog:
-    """Decode a uSD log file. Raises :class:`LogFormatError` when nothing is recoverable."""
-    return decode_bytes(Path(path).read_bytes())
+    """Decode a uSD log file (:func:`read_log`). Raises :class:`LogFormatError` when nothing is
+    recoverable."""
+    return decode_bytes(read_log(path))
 
 
 def encode(

@@ -62,11 +62,23 @@ def parse_names(text: str | None) -> list[str]:
     return [n.strip() for n in (text or "").split(",") if n.strip()]
 
 
+def quarantine_reason(exc: BaseException) -> str:
+    """The one-line reason a file is quarantined for: the error's type and message (a decoder's
+    own :class:`~quadcore.logs.logformat.LogFormatError` as it says; any other error marked as an
+    unexpected one, so that it is reported as a defect, not as the file's fault alone)."""
+    from quadcore.logs import logformat
+
+    text = str(exc).splitlines()[0][:300] if str(exc) else ""
+    if isinstance(exc, (logformat.LogFormatError, OSError)):
+        return f"{type(exc).__name__}: {text}"
+    return f"unexpected {type(exc).__name__} while decoding (a defect: please report it): {text}"
+
+
 def decode_logs(paths: list[str], out: Path | None = None,
                 log: Callable[[str], None] = lambda m: None) -> tuple[list[flightmod.Flight], dict[str, str]]:
     """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
     there. Returns (flights, quarantined: id -> reason); one unreadable log never stops the others."""
-    from quadcore.logs import flight as flightmod, logformat
+    from quadcore.logs import flight as flightmod
     from quadcore.store import store
 
     try:
@@ -78,17 +90,18 @@ def decode_logs(paths: list[str], out: Path | None = None,
     flights, quarantined = [], {}
     for i, path in enumerate(logs, 1):
         fid = flightmod.flight_id_of(path)
-        try:
+        try:  # any failure is this file's alone: it is quarantined with its reason, the others go on
             fl = flightmod.decode_flight(path)
-        except (logformat.LogFormatError, OSError) as exc:
-            reason = f"{type(exc).__name__}: {exc}"
             if out is not None:
-                store.write_quarantine(out, fid, str(path), str(exc), type(exc).__name__)
+                store.write_decoded(out, fl)
+        except Exception as exc:  # noqa: BLE001 (per-file isolation: the reason is recorded and reported)
+            reason = quarantine_reason(exc)
+            if out is not None:
+                store.write_quarantine(out, fid, str(path), reason, type(exc).__name__)
             quarantined[fid] = reason
             log(f"[{i}/{len(logs)}] {fid}: QUARANTINED ({reason})")
             continue
         if out is not None:
-            store.write_decoded(out, fl)
             store.clear_quarantine(out, fid)
         flights.append(fl)
         warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""

@@ -1,7 +1,7 @@
 """The fuzz harness: decode mutants of good logs, write what they hold under a data root, and
 count what the issue's bar asks for.
 
-    python -m tests.fuzz.harness [--mutants 2000] [--kills 100] [--logs DIR]     (make fuzz)
+    python -m tests.fuzz.harness [--mutants 2000] [--structure 200] [--kills 100] [--logs DIR]     (make fuzz)
 
 Good logs: the real Crazyflie logs (``../shared/crazyflie/logs``, the three smallest), or
 simulated ones where they are absent. For every mutant: the decoder either returns or raises
@@ -9,6 +9,9 @@ a ``LogFormatError`` (anything else is an untyped exception), within ``MAX_SECON
 returns is written with :func:`store.write_decoded` under one data root, and no file may
 appear outside it; every whole record before the corrupted bytes is kept; after a corruption
 in the body, the share of the records after it that is recovered is measured (median >= 90 %).
+Then the structure-aware cases of :mod:`.structure` (field-boundary cuts, edited headers, hostile
+names, timestamp jumps, records with another valid id, late corruptions, joined logs): 0
+tracebacks, 0 hangs, 0 phantom records, 0 intact records lost where the bytes allow recovery.
 """
 
 from __future__ import annotations
@@ -216,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--kills", type=int, default=100)
     parser.add_argument("--pipeline-kills", type=int, default=0,
                         help="also kill `python -m pipeline` this many times on 4 simulated flights")
+    parser.add_argument("--structure", type=int, default=200,
+                        help="structure-aware cases per drawn family and log (tests/fuzz/structure.py; 0: none)")
     parser.add_argument("--logs", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -230,6 +235,19 @@ def main(argv: list[str] | None = None) -> int:
         for e in summary.untyped_errors[:10]:
             print(f"  untyped: {e}")
         ok = summary.ok()
+    if args.structure:
+        from . import structure
+
+        print(f"\nstructure-aware cases of {what}")
+        t1 = time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="quadcore-fuzz-structure-") as tmp:
+            tally = structure.run(logs, args.structure, args.seed, write_root=Path(tmp) / "root")
+            outside = _files_outside(Path(tmp), Path(tmp) / "root")
+        print("\n".join(tally.lines()) + f"\nfiles written outside the data root: {len(outside)}"
+              f"\n({time.perf_counter() - t1:.0f} s)")
+        for e in tally.tracebacks[:10]:
+            print(f"  traceback: {e}")
+        ok = ok and tally.ok() and not outside
     if args.kills:
         from . import kills
 
