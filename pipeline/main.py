@@ -186,7 +186,10 @@ def _flight_ids(data_root: DataRoot, instance, log) -> tuple[list[str], bool]:
     if demo:
         raw.mkdir(parents=True, exist_ok=True)
         logs = simulate_demo_flights(raw, log)
-    ids = [flight.flight_id_of(p) for p in logs]
+    by_id, collisions = flight.flight_ids(logs)
+    for note in collisions:
+        log(f"flight id collision: {note}")
+    ids = list(by_id)
     new = [f for f in ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)

@@ -18,7 +18,7 @@ def raw_logs(data_root: DataRoot) -> dict[str, Path]:
     """Flight id -> path of every candidate log in the raw folder."""
     if not data_root.raw_path.is_dir():
         return {}
-    return {flight.flight_id_of(p): p for p in flight.discover_logs(data_root.raw_path)}
+    return flight.flight_ids(flight.discover_logs(data_root.raw_path))[0]
 
 
 def fingerprint(path: Path) -> str:

@@ -7,6 +7,7 @@ any event type in the file, so all tables of a flight share one clock.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from datetime import UTC
 from pathlib import Path
@@ -77,14 +78,42 @@ def flight_id_of(path: str | Path) -> str:
     return names.safe_component(Path(path).name)
 
 
+def flight_ids(paths: Iterable[str | Path]) -> tuple[dict[str, Path], list[str]]:
+    """(flight id -> log, one line per collision resolved) for the logs ``paths``: unique ids,
+    the same whatever order the paths are listed in.
+
+    A file keeps :func:`flight_id_of` its name where no other file claims that id. Where two do
+    (a file named exactly another file's safe stand-in, ``a b`` and ``a_b-c8687a08``; or two
+    folders holding the same name), the files are taken in a fixed order: names that are their
+    own id first, then by name and folder; the first keeps the id, each later one gets the id
+    plus ``+`` and a digest of its name (of its folder and name if the name is the same), and
+    the collision is reported."""
+    order = sorted({Path(p) for p in paths}, key=lambda p: (not names.is_safe(p.name), p.name, str(p.parent)))
+    out: dict[str, Path] = {}
+    notes: list[str] = []
+    for p in order:
+        fid = flight_id_of(p)
+        if fid in out:
+            first, attempt = out[fid], 0
+            while fid in out:
+                key = p.name if attempt == 0 and first.name != p.name else f"{attempt}\0{p.parent}\0{p.name}"
+                digest = hashlib.sha256(key.encode("utf-8", "surrogateescape")).hexdigest()[:12]
+                fid, attempt = f"{flight_id_of(p)[:names.MAX_COMPONENT_CHARS - 13]}+{digest}", attempt + 1
+            notes.append(f"{str(p)!r:.200} would have the flight id of {str(first)!r:.200} "
+                         f"({flight_id_of(p)!r}): it is flight {fid!r}")
+        out[fid] = p
+    return dict(sorted(out.items())), notes
+
+
 def find_log(folder: str | Path, flight_id: str) -> Path:
-    """The log in ``folder`` whose flight id is ``flight_id`` (``FileNotFoundError`` if none)."""
+    """The log in ``folder`` whose flight id is ``flight_id`` (:func:`flight_ids`;
+    ``FileNotFoundError`` if none)."""
     if names.is_safe(flight_id) and (Path(folder) / flight_id).is_file():
-        return Path(folder) / flight_id
-    for path in discover_logs(folder) if Path(folder).is_dir() else []:
-        if flight_id_of(path) == flight_id:
-            return path
-    raise FileNotFoundError(f"no log with flight id {flight_id!r:.120} in {folder}")
+        return Path(folder) / flight_id  # a file named as its id always has it
+    found = flight_ids(discover_logs(folder))[0].get(flight_id) if Path(folder).is_dir() else None
+    if found is None:
+        raise FileNotFoundError(f"no log with flight id {flight_id!r:.120} in {folder}")
+    return found
 
 
 def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "", source_sha256: str = "",

@@ -87,11 +87,13 @@ def decode_logs(paths: list[str], out: Path | None = None,
         raise NoFlightsError(str(exc)) from None
     if not logs:
         raise NoFlightsError(f"no log files found in {', '.join(map(str, paths))}")
+    ids, collisions = flightmod.flight_ids(logs)
+    for note in collisions:
+        log(f"flight id collision: {note}")
     flights, quarantined = [], {}
-    for i, path in enumerate(logs, 1):
-        fid = flightmod.flight_id_of(path)
+    for i, (fid, path) in enumerate(ids.items(), 1):
         try:  # any failure is this file's alone: it is quarantined with its reason, the others go on
-            fl = flightmod.decode_flight(path)
+            fl = flightmod.decode_flight(path, fid)
             if out is not None:
                 store.write_decoded(out, fl)
         except Exception as exc:  # noqa: BLE001 (per-file isolation: the reason is recorded and reported)
@@ -109,22 +111,55 @@ def decode_logs(paths: list[str], out: Path | None = None,
     return flights, quarantined
 
 
+def duplicates(flights: Iterable[str], digest: Callable[[str], str | None]) -> dict[str, str]:
+    """The flights that repeat another one's log bytes (same SHA-256, ``digest``; None or "":
+    unknown, never a duplicate), each with the reason: of every group of copies the first id in
+    sorted order is kept (whatever the listing order), so that a flight is fitted, trained on
+    and scored once, and never trains a model scored on a copy of itself (a held-out jana02
+    dropped in again as jana99)."""
+    first: dict[str, str] = {}
+    out = {}
+    for fid in sorted(flights):
+        sha = digest(fid)
+        if not sha:
+            continue
+        if sha in first:
+            out[fid] = f"duplicate of {first[sha]}: the same log bytes (SHA-256 {sha[:12]}...); a flight is used once"
+        else:
+            first[sha] = fid
+    return out
+
+
 def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[str, str] | None = None,
-           warn: Callable[[str], None] = lambda m: None) -> Fleet:
-    """The flights the physics can use with ``vehicle``; each other one is skipped with its
-    reason, said through ``warn``. Tables decoded under a data root are judged from the physics
-    facts their footers record (:func:`quadcore.store.store.write_decoded`), without reading their
-    rows; a table without them (decoded by older code, or rewritten) is read."""
+           warn: Callable[[str], None] = lambda m: None,
+           digest: Callable[[str], str | None] | None = None) -> Fleet:
+    """The flights the physics can use with ``vehicle``, each log once (:func:`duplicates` by
+    ``digest``: flight -> the SHA-256 of its log); each other one is skipped with its reason,
+    said through ``warn``. Tables decoded under a data root are judged from the physics facts and
+    the digest their footers record (:func:`quadcore.store.store.write_decoded`), without reading
+    their rows; a table without facts (decoded by older code, or rewritten) is read."""
     from quadcore.logs import checks
     from quadcore.store import store
 
     facts = None
     if isinstance(tables, store.FlightTables):  # decoded under a data root: their footers say
-        def facts(fid: str) -> checks.PhysicsFacts | None:
-            return checks.PhysicsFacts.from_dict(store.recorded_physics_facts(tables.path(fid)))
+        footers: dict[str, dict] = {}
 
-    good, unusable = checks.usable_flights(tables, vehicle, facts)  # one table at a time, where read
-    skipped = {**(skipped or {}), **unusable}
+        def footer(fid: str) -> dict:
+            if fid not in footers:
+                footers[fid] = store.read_metadata(tables.path(fid))
+            return footers[fid]
+
+        def facts(fid: str) -> checks.PhysicsFacts | None:
+            return checks.PhysicsFacts.from_dict(footer(fid).get(store.PHYSICS_FACTS))
+
+        digest = digest or (lambda fid: footer(fid).get("source_sha256"))
+
+    copies = duplicates(tables, digest) if digest is not None else {}
+    for fid, why in copies.items():
+        warn(f"{fid} skipped: {why}")
+    good, unusable = checks.usable_flights(_subset(tables, [f for f in tables if f not in copies]), vehicle, facts)
+    skipped = {**(skipped or {}), **copies, **unusable}
     for fid, why in unusable.items():
         warn(f"{fid} skipped: {why}")
     return Fleet(_subset(tables, good), skipped)
@@ -142,7 +177,8 @@ def main_tables(flights: list[flightmod.Flight], vehicle: Vehicle, quarantined: 
     for fid, why in no_main.items():
         warn(f"{fid} skipped: {why}")
     skipped = {**{f: f"quarantined: {w}" for f, w in (quarantined or {}).items()}, **no_main}
-    fleet = usable(tables, vehicle, skipped, warn)
+    digests = {f.flight_id: f.provenance.source_sha256 for f in flights}
+    fleet = usable(tables, vehicle, skipped, warn, digests.get)
     if not fleet.tables:
         raise NoFlightsError(f"no flight the physics can use ({len(flights)} decoded; each needs usable "
                              f"{MAIN_EVENT!r} records)")

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING
 
 from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
-from quadcore.workflows.fleet import Fleet, WorkflowError, held_out
+from quadcore.store.names import MAIN_EVENT
+from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
 
 if TYPE_CHECKING:
     import polars as pl
@@ -97,14 +98,26 @@ def physics_of_residuals(root) -> dict:
     return physics
 
 
+def _recorded_digest(root, fid: str) -> str | None:
+    """The SHA-256 of the log a flight was decoded from, as its decoded main table records it."""
+    from quadcore.store import store
+
+    recorded = store.recorded_provenance(root, MAIN_EVENT, fid)
+    return recorded.source_sha256 if recorded is not None else None
+
+
 def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int]:
     """Every feature set's table per flight from the data root's residual tables (swapped in
-    whole under ``features/``). Returns (the sets, the number of flights)."""
+    whole under ``features/``), each log once (a copy of another flight's log is left out, as
+    :func:`quadcore.workflows.fleet.usable` leaves it out of the fit). Returns (the sets, the
+    number of flights)."""
     from quadcore.learn import features as feat
     from quadcore.store import store
 
     physics = physics_of_residuals(root)  # every residual table against one physics model
     res = feat.read_residual_tables(root)
+    copies = duplicates(res, lambda fid: _recorded_digest(root, fid))  # as the fleet stages skip them
+    res = _subset(res, [fid for fid in res if fid not in copies])
     if not res:
         raise WorkflowError(f"no residual tables in {store.as_root(root) / 'residuals'}: materialise residual_table "
                             "first")
