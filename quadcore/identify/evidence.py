@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import stats
 
-from quadcore.identify import fitting
+from quadcore.identify import fitting, ranges
 from quadcore.identify.fitting import FlightData
 
 if TYPE_CHECKING:
@@ -78,6 +78,11 @@ class HeldOutTest:
     t: float
     p_value: float
     blocks: int
+
+    def __post_init__(self) -> None:
+        ranges.finite(self.beta, "the held-out slope")
+        ranges.finite(self.t, "the held-out t statistic")
+        ranges.probability(self.p_value, "the held-out p-value")
 
 
 NO_TEST = HeldOutTest(0.0, 0.0, 1.0, 0)

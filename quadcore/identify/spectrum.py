@@ -33,13 +33,16 @@ from typing import Any
 import numpy as np
 from scipy import signal
 
+from quadcore.identify import ranges
 from quadcore.physics import residuals, signals
 from quadcore.physics.dynamics import XYZ
 
 BANDS_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
 SEGMENT = 1024  # samples per Welch segment (about 2 s at 500 Hz: 0.5 Hz resolution)
+RESOLVED = 1e-9  # a band's (a bin's) power below this share of its model + measured + residual power is 0
 COHERENT = 0.7  # band coherence above which the residual there is the model's own signal, mis-scaled or late
 CHANNELS = tuple([f"force_{a}" for a in XYZ] + [f"torque_{a}" for a in XYZ])
+BAND_KEYS = ("residual_rms", "measured_rms", "modelled_rms", "coherence", "gain", "phase_deg")  # a list per channel
 
 
 def _spectra(meas: np.ndarray, model: np.ndarray, fs: float):
@@ -126,7 +129,6 @@ def _view(fs: float, grid: np.ndarray, acc: dict, weight: float, mean_sq: np.nda
     mean_sq = mean_sq / weight
     rr_above = rr_above / weight
     df = grid[1] - grid[0]
-    coh = np.abs(s["pm"]) ** 2 / np.maximum(s["pp"] * s["mm"], 1e-300)
     rows = []
     for c, name in enumerate(CHANNELS):
         row: dict[str, Any] = {"channel": name, "unit": "N" if c < 3 else "N m", "residual_rms": [], "measured_rms": [],
@@ -134,21 +136,47 @@ def _view(fs: float, grid: np.ndarray, acc: dict, weight: float, mean_sq: np.nda
         total = float((s["rr"][1:, c].sum() + rr_above[c]) * df + mean_sq[c])
         shares = []
         for lo, hi in BANDS_HZ:
-            b = (grid >= lo) & (grid < hi) & (grid > 0)
-            h = s["pm"][b, c].sum() / max(s["pp"][b, c].sum(), 1e-300)
-            row["residual_rms"].append(float(np.sqrt(s["rr"][b, c].sum() * df)))
-            row["measured_rms"].append(float(np.sqrt(s["mm"][b, c].sum() * df)))
-            row["modelled_rms"].append(float(np.sqrt(s["pp"][b, c].sum() * df)))
-            row["coherence"].append(float(coh[b, c].mean()) if b.any() else float("nan"))
-            row["gain"].append(float(np.abs(h)))
-            row["phase_deg"].append(float(np.degrees(np.angle(h))))
-            shares.append(float(s["rr"][b, c].sum() * df / total) if total > 0 else 0.0)
+            band = _band_view(s, (grid >= lo) & (grid < hi) & (grid > 0), c, df, f"{name} at {lo:g}-{hi:g} Hz")
+            for key in BAND_KEYS:
+                row[key].append(band[key])
+            shares.append(band["residual_power"] / total if total > 0 else 0.0)
         row["residual_share"] = shares
         row["residual_mean_rms"] = float(np.sqrt(mean_sq[c]))
         row["mean_share"] = float(mean_sq[c] / total) if total > 0 else 0.0
         rows.append(row)
     return {"bands_hz": [list(b) for b in BANDS_HZ], "sample_rate_hz": fs, "segment_samples": SEGMENT,
             "channels": rows, "reading": [reading(r) for r in rows]}
+
+
+def _resolved(power: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """``power`` where it exceeds ``RESOLVED`` × ``total``, else 0 (zero within the sums' rounding)."""
+    return np.where(power > RESOLVED * total, power, 0.0)
+
+
+def _band_view(s: dict, b: np.ndarray, c: int, df: float, where: str) -> dict[str, Any]:
+    """One band (bins ``b``, ``df`` apart) of channel ``c``: the RMS of the residual, the
+    measurement and the model, the residual's power, the coherence (the mean over the bins where
+    both model and measurement have power) and the transfer from model to measurement. A band
+    with no bins (above the Nyquist frequency) has nothing defined (None); a band where the model
+    or the measurement has no power has no coherence, gain or phase (None): 0 / 0 there."""
+    if not b.any():
+        return dict.fromkeys(BAND_KEYS) | {"residual_power": 0.0}
+    pp, mm, rr, pm = (s[k][b, c] for k in ("pp", "mm", "rr", "pm"))
+    bin_total = pp + mm + rr
+    pp, mm, rr = (_resolved(x, bin_total) for x in (pp, mm, rr))
+    band_pp, band_mm, band_rr = (float(_resolved(x.sum(), bin_total.sum())) for x in (pp, mm, rr))
+    out: dict[str, Any] = {"residual_rms": float(np.sqrt(band_rr * df)), "measured_rms": float(np.sqrt(band_mm * df)),
+                           "modelled_rms": float(np.sqrt(band_pp * df)), "residual_power": band_rr * df,
+                           "coherence": None, "gain": None, "phase_deg": None}
+    both = (pp > 0) & (mm > 0)
+    if band_pp > 0 and band_mm > 0 and both.any():
+        per_bin = np.abs(pm[both]) ** 2 / (pp[both] * mm[both])
+        ranges.unit_fraction(float(per_bin.max()), f"the coherence of {where} (its largest bin)")
+        out["coherence"] = ranges.unit_fraction(float(per_bin.mean()), f"the coherence of {where}")
+        h = pm.sum() / band_pp
+        out["gain"] = ranges.finite(np.abs(h), f"the gain of {where}")
+        out["phase_deg"] = ranges.finite(np.degrees(np.angle(h)), f"the phase of {where}")
+    return out
 
 
 def _mismatched(row: dict, i: int) -> bool:
@@ -165,7 +193,8 @@ def reading(row: dict) -> str:
     """One sentence per channel: where its residual lies and what that band says."""
     shares = np.asarray(row["residual_share"])
     top = int(np.argmax(shares))
-    coherent = [i for i, c in enumerate(row["coherence"]) if c >= COHERENT and shares[i] >= 0.1 and _mismatched(row, i)]
+    coherent = [i for i, c in enumerate(row["coherence"])
+                if c is not None and c >= COHERENT and shares[i] >= 0.1 and _mismatched(row, i)]
     if row["mean_share"] >= shares[top]:
         text = (f"{row['channel']}: {row['mean_share']:.0%} of the residual power is a constant offset per flight "
                 f"(RMS of the flights' means {row['residual_mean_rms']:.3g} {row['unit']}): a trim or bias that "
@@ -178,9 +207,11 @@ def reading(row: dict) -> str:
         return text + "."
     text = f"{row['channel']}: {shares[top]:.0%} of the residual power is at {_band(top)}"
     c = row["coherence"][top]
-    if max(row["modelled_rms"]) <= 1e-9 * max(max(row["measured_rms"]), 1e-300):
+    if not any(row["modelled_rms"]):  # None (no bins) or 0 (no power) in every band
         return text + ": the model predicts nothing on this axis, so the residual is the measurement itself."
-    if c >= COHERENT and not _mismatched(row, top):
+    if c is None:
+        text += ": the model predicts nothing in this band, so the residual there is the measurement itself"
+    elif c >= COHERENT and not _mismatched(row, top):
         text += (f", where model and measurement are coherent ({c:.2f}) and agree (gain {row['gain'][top]:.2f}, "
                  f"{row['phase_deg'][top]:+.0f}°): what is left there is the incoherent part (noise, or what the "
                  "inputs do not carry)")

@@ -313,6 +313,7 @@ def of_rows(fd: FlightData, residual_rows: np.ndarray, vehicle: Vehicle) -> Flig
 # ---------------------------------------------------------------------------------------
 
 def _rmse_columns(ss: np.ndarray, rows: np.ndarray) -> dict[str, np.ndarray]:
+    ss = np.maximum(ss, 0.0)  # a quadratic form of the summaries: >= 0 but for rounding
     return {name: np.sqrt(ss[:, j] / rows) for j, name in enumerate(RMSE_COLUMNS)}
 
 

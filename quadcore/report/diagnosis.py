@@ -122,10 +122,11 @@ def frequency_plot(freq: dict) -> bytes:
             r = rows.get(f"{kind}_{a}")
             if r is None:
                 continue
-            rms = np.asarray([r.get("residual_mean_rms", np.nan), *r["residual_rms"]]) * scale
+            rms = np.asarray([r.get("residual_mean_rms", np.nan), *r["residual_rms"]], dtype=float) * scale
             axes[0, col].bar(x + (j - 1) * 0.27, rms, 0.27, label=f"{kind} {a}")
-            line = axes[1, col].plot(x[1:], r["coherence"], "o-", label=f"coherence {a}")[0]
-            axes[1, col].plot(x[1:], r["gain"], "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
+            coherence, gain = (np.array(r[k], dtype=float) for k in ("coherence", "gain"))  # None (n/a): a gap
+            line = axes[1, col].plot(x[1:], coherence, "o-", label=f"coherence {a}")[0]
+            axes[1, col].plot(x[1:], gain, "s--", color=line.get_color(), alpha=0.6, label=f"gain {a}")
         axes[0, col].set_ylabel(f"residual RMS [{unit}]")
         axes[0, col].legend(fontsize=7)
         axes[1, col].set_ylabel("model vs measured")
@@ -140,14 +141,15 @@ def frequency_plot(freq: dict) -> bytes:
 
 
 def frequency_table(freq: dict) -> pl.DataFrame:
-    """One row per channel and band: residual RMS, its share, coherence, gain, phase."""
+    """One row per channel and band: residual RMS, its share, coherence, gain, phase (None where not
+    defined: shown as n/a)."""
     return pl.DataFrame([
         {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}", "residual_rms": r["residual_rms"][i],
          "share": r["residual_share"][i], "coherence": r["coherence"][i], "gain": r["gain"][i],
          "phase_deg": r["phase_deg"][i]}
         for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])]
         + [{"channel": r["channel"], "band_hz": "mean per flight", "residual_rms": r["residual_mean_rms"],
-            "share": r["mean_share"], "coherence": float("nan"), "gain": float("nan"), "phase_deg": float("nan")}
+            "share": r["mean_share"], "coherence": None, "gain": None, "phase_deg": None}
            for r in freq["channels"]])
 
 

@@ -3,13 +3,14 @@ plots inline, so both say the same thing.
 
 A section is ``(title, kind, content)``: kind ``text`` (a string), ``list`` (a dict shown as
 "key: value" items), ``table`` (a polars DataFrame; floats rounded to 3 significant digits, a missing
-value shows as '-') or ``image`` (PNG bytes).
+or undefined value (null, NaN) shows as 'n/a') or ``image`` (PNG bytes).
 """
 
 from __future__ import annotations
 
 import base64
 import html
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -26,14 +27,17 @@ def markdown_image(png: bytes, alt: str = "plot") -> str:
     return f"![{alt}](data:image/png;base64,{base64.b64encode(png).decode()})"
 
 
-def _cell(v, digits: int) -> str:
-    if v is None:
-        return "-"
-    return f"{v:.{digits}g}" if isinstance(v, float) else str(v)
+NOT_AVAILABLE = "n/a"  # a table cell whose value is missing or not defined (null, NaN)
+
+
+def _cell(v, digits: int | None = None) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return NOT_AVAILABLE
+    return f"{v:.{digits}g}" if isinstance(v, float) and digits is not None else str(v)
 
 
 def markdown_table(df: pl.DataFrame, digits: int = 4) -> str:
-    """A polars table as a Markdown table (floats to ``digits`` significant digits, missing as '-')."""
+    """A polars table as a Markdown table (floats to ``digits`` significant digits, missing as n/a)."""
     lines = ["| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
     lines += ["| " + " | ".join(_cell(v, digits) for v in row) + " |" for row in df.iter_rows()]
     return "\n".join(lines)
@@ -78,7 +82,7 @@ def to_html(title: str, secs: Sequence[Section]) -> str:
         elif kind == "table":
             t = _rounded(content)
             head = "".join(f"<th>{esc(c)}</th>" for c in t.columns)
-            body = "".join("<tr>" + "".join(f"<td>{esc('-' if v is None else str(v))}</td>" for v in row) + "</tr>"
+            body = "".join("<tr>" + "".join(f"<td>{esc(_cell(v))}</td>" for v in row) + "</tr>"
                            for row in t.iter_rows())
             parts.append(f"<table><tr>{head}</tr>{body}</table>")
         else:
