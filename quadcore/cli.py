@@ -9,6 +9,9 @@
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--sessions F]
                       [--write-effect DIR/NAME.py]
+    quadcore plan DATA --json OUT.json --trajectory OUT.csv [--model F] [--vehicle F]
+                  [--between A,B | --parameter EFFECT.NAME] [--arena XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX]
+                  [--duration S] [--max-speed MPS] [--max-tilt DEG]
     quadcore simulate --out DIR [--kind KIND|default-set] [--duration S] [--flights N]
                       [--effect NAME:param=value,...] [--seed N] [--vehicle FILE]
 
@@ -390,6 +393,60 @@ def cmd_discover(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plan(args: argparse.Namespace) -> int:
+    """The flight that separates what the diagnosis cannot tell apart (``docs/flight-planning.md``)."""
+    from quadcore.workflows import identify, plan as planflow
+
+    request = _plan_request(args)
+    _output_folders(str(Path(args.json).parent), str(Path(args.trajectory).parent))
+    spec, flights, holdout = _model_and_flights(args)
+    diag = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
+    from quadcore.plan import limits, question
+
+    try:
+        result = planflow.plan(flights, spec, diag, request, _progress(args))
+    except (question.QuestionError, limits.LimitsError) as exc:
+        raise UserError(str(exc)) from None
+    written = planflow.write(result, Path(args.json), Path(args.trajectory))
+    if not result.planned:
+        print(f"nothing to plan: {result.question.why}\nwrote {written.json}")
+        return 0
+    pred = result.predicted()
+    print(f"question: {result.question.why}")
+    print(f"manoeuvre: {result.manoeuvre.describe() if result.manoeuvre else ''} ({result.duration_s:g} s, "
+          f"{len(result.trajectory.durations) if result.trajectory is not None else 0} pieces)")
+    for k, v in pred.items():
+        print(f"  {k}: {'n/a' if v is None else f'{v:.3g}'}")
+    for f in result.proof:
+        print(f"  flown with {f.truth} true: diagnosis ranks {f.top} first"
+              + (f", tied with {', '.join(f.tied_with)}" if f.tied_with else ", no tie")
+              + (f"; separation {f.sigma:.1f} σ" if f.sigma is not None else ""))
+    print(f"wrote {written.trajectory}, {written.plot} and {written.json}")
+    return 0
+
+
+def _plan_request(args: argparse.Namespace):
+    """The plan's question, limits and flight time from the command line (``UserError`` if bad)."""
+    from quadcore.plan import limits, planner
+
+    between = None
+    if args.between:
+        names = [n.strip() for n in args.between.split(",") if n.strip()]
+        if len(names) != 2:
+            raise UserError(f"--between needs two effects A,B, got {args.between!r}")
+        between = (names[0], names[1])
+    if args.parameter and "." not in args.parameter:
+        raise UserError(f"--parameter needs EFFECT.NAME, got {args.parameter!r}")
+    try:
+        arena = tuple(float(v) for v in args.arena.split(",")) if args.arena else limits.DEFAULT_ARENA
+        lim = limits.Limits(args.max_speed, args.max_tilt, None, arena)  # type: ignore[arg-type]
+    except ValueError as exc:
+        raise UserError(f"bad limits: {exc}") from None
+    if not 2.0 <= args.duration <= 120.0:
+        raise UserError("--duration must be between 2 and 120 s")
+    return planner.PlanRequest(between, args.parameter or None, lim, args.duration, not args.no_proof, args.seed)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
     from quadcore import workflows
@@ -535,6 +592,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     vehicle_args(p)
     p.set_defaults(func=cmd_discover)
+
+    p = sub.add_parser("plan", help="the next flight: a trajectory that separates what the data cannot tell apart")
+    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
+    p.add_argument("--json", required=True, metavar="OUT.json", help="the plan (and OUT.png, its picture)")
+    p.add_argument("--trajectory", required=True, metavar="OUT.csv", help="the trajectory in the lab's format")
+    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file (vehicle, effects, plugins)")
+    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (instead of the file's)")
+    p.add_argument("--between", default="", metavar="A,B", help="separate these two candidates")
+    p.add_argument("--parameter", default="", metavar="EFFECT.NAME", help="pin down this parameter")
+    p.add_argument("--arena", default="", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+                   help="the room the flight must stay in, m (default -1,-1,0.2,1,1,1.5)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="manoeuvre time, s (default 20)")
+    p.add_argument("--max-speed", type=float, default=1.5, metavar="MPS", help="default 1.5 m/s")
+    p.add_argument("--max-tilt", type=float, default=25.0, metavar="DEG", help="default 25 degrees")
+    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="as in diagnose")
+    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="as in diagnose")
+    p.add_argument("--no-proof", action="store_true", help="skip flying the plan in the simulator")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="the proof's simulator seed")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    vehicle_args(p)
+    p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("train", help="learn the residual the physics model leaves (XGBoost, MLP) and report")
     p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")

@@ -7,6 +7,7 @@ from pipeline.assets.export import exported_model, flight_mcap
 from pipeline.assets.learning import learned_models, learning_features, learning_report
 from pipeline.assets.model import error_history, model_diagnosis, physics_model
 from pipeline.assets.physics import residual_table, rollout_errors
+from pipeline.assets.plan import flight_plan
 from pipeline.assets.statistics import flight_statistics
 
 # Computed per flight partition (the sensor's runs and the main job run these): decoding, which
@@ -17,7 +18,7 @@ STATISTICS = [flight_statistics]
 AGAINST_MODEL = [residual_table, rollout_errors, flight_mcap]
 PER_FLIGHT = [*DECODE, *STATISTICS, *AGAINST_MODEL]
 # Computed over all flights.
-FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
+FLEET = [physics_model, term_discovery, model_diagnosis, error_history, flight_plan]
 # Learned residual models on top of the physics model (fan-in over all residual tables).
 LEARNING = [learning_features, learned_models, learning_report]
 # The current model as C for the flight controller.

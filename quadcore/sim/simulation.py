@@ -70,7 +70,7 @@ from quadcore.sim import trajectories, usdlog
 from quadcore.sim.controller import Controller, Gains
 from quadcore.store import store
 
-KINDS = ("figure8", "circle0", "yaw0", "random", "hover", "low_pass")
+KINDS = ("figure8", "circle0", "yaw0", "random", "hover", "low_pass", "plan")
 TRUTH_SUFFIX = ".truth.json"
 TRUTH_FORMAT = "quadcore-sim-truth/1"
 
@@ -128,7 +128,8 @@ class SimConfig:
     ``kind``: figure8 / circle0 / yaw0 (the polynomial plans: take-off, hover, plan at
     ``timescale`` and ``height_m``, end hover), random (go-to flights to random points in
     ``box_min_m``..``box_max_m`` at peak speeds in ``speed_min_mps``..``speed_max_mps``), hover,
-    low_pass (repeated passes at ``low_pass_height_m``, drawn in 0.03-0.08 m when None).
+    low_pass (repeated passes at ``low_pass_height_m``, drawn in 0.03-0.08 m when None), plan (the
+    lab-format trajectory CSV ``plan_file``, flown as the built-in plans are).
     ``duration_s``: None = the plan's natural length (plans) or 10 s; otherwise the flight is
     cut or its end hover extended to this length.
     """
@@ -162,6 +163,7 @@ class SimConfig:
     physics_substeps: int = 2
     gains: Gains = field(default_factory=Gains)
     name: str = ""
+    plan_file: str = ""  # kind "plan": a trajectory CSV in the lab's format
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -182,6 +184,8 @@ class SimConfig:
     def validate(self) -> None:
         if self.kind not in KINDS:
             raise SimulationError(f"unknown kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+        if self.kind == "plan" and not self.plan_file:
+            raise SimulationError("kind 'plan' needs a plan_file (a trajectory CSV)")
         if self.duration_s is not None and self.duration_s <= 0:
             raise SimulationError("duration_s must be positive")
         if self.timescale <= 0:
@@ -347,11 +351,19 @@ def _qmul_exp(q, wx, wy, wz, h):
 # References
 # ---------------------------------------------------------------------------------------
 
+def _plan_of(config: SimConfig) -> trajectories.PolyTrajectory:
+    """A plan kind's polynomial plan: built in, or (kind "plan") from ``plan_file``."""
+    try:
+        return trajectories.load_plan(config.plan_file if config.kind == "plan" else config.kind)
+    except (OSError, ValueError) as exc:
+        raise SimulationError(f"plan {config.plan_file or config.kind}: {exc}") from None
+
+
 def flight_duration(config: SimConfig) -> float:
     if config.duration_s is not None:
         return float(config.duration_s)
-    if config.kind in trajectories.BUILTIN_PLANS:
-        plan = trajectories.load_plan(config.kind)
+    if config.kind in (*trajectories.BUILTIN_PLANS, "plan"):
+        plan = _plan_of(config)
         return trajectories.plan_flight_duration(plan, config.timescale, config.takeoff_s, config.hover_s,
                                                  config.end_hover_s)
     return 10.0
@@ -359,8 +371,8 @@ def flight_duration(config: SimConfig) -> float:
 
 def build_reference(config: SimConfig, t_s: np.ndarray, rng: np.random.Generator) -> trajectories.Reference:
     c = config
-    if c.kind in trajectories.BUILTIN_PLANS:
-        return trajectories.plan_reference(t_s, trajectories.load_plan(c.kind), c.height_m, c.timescale,
+    if c.kind in (*trajectories.BUILTIN_PLANS, "plan"):
+        return trajectories.plan_reference(t_s, _plan_of(c), c.height_m, c.timescale,
                                            c.start_height_m, c.takeoff_s, c.hover_s)
     if c.kind == "hover":
         return trajectories.hover_reference(t_s, c.height_m, c.start_height_m, c.takeoff_s)

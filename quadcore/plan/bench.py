@@ -1,0 +1,141 @@
+"""The planner's test bench: simulated fleets on which two explanations are confused, and the
+question whether one more flight -- the planned one, or one of the lab's existing trajectory
+files flown for the same time -- makes the diagnosis rank the hidden truth first, untied.
+
+Scenarios (:data:`SCENARIOS`; the truth alternates between the two sides with the seed, so a
+plan that merely favours one side fails half the seeds):
+
+* ``drag``: rotor drag against parasitic drag, on three flights of the lab's ``circle0`` at one
+  timescale (one speed, ~0.6 m/s): at one speed ``k T v`` and ``c v²`` are the same force.
+* ``mass``: thrust scale against added mass, on three hover flights: the rotors' torques are
+  trims below the gyro noise, and the force of a weak thrust map is a payload's.
+* ``lag``: motor lag against thrust delay, on three hover flights: the controller's small thrust
+  corrections are too slow to tell a first-order lag from a pure delay.
+
+Used by ``benchmarks/bench_plan.py`` (all seeds) and ``tests/test_plan.py`` (a few).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from quadcore.identify import diagnosis as diagnosislib
+from quadcore.identify.model import spec_from
+from quadcore.identify.results import Diagnosis
+from quadcore.logs import flight as flightlib
+from quadcore.physics import vehicle as vehiclelib
+from quadcore.plan import planner, signatures
+from quadcore.plan.limits import Limits
+from quadcore.sim import simulation
+from quadcore.sim.simulation import SimConfig
+
+FILES = ("figure8", "circle0", "yaw0")  # the lab's trajectory files (the simulator's built-in plans)
+PLAN_S = 10.0  # the planned manoeuvre; flown with 2 s take-off, 1 s hover before and 1 s after
+
+
+@dataclass(frozen=True)
+class Scenario:
+    pair: tuple[str, str]
+    truths: tuple[dict[str, float], dict[str, float]]  # parameters of pair[0], pair[1]
+    old: Callable[[int], list[SimConfig]]
+
+
+def _circles(seed: int) -> list[SimConfig]:
+    return [SimConfig(kind="circle0", timescale=2.0, duration_s=10.0, seed=seed * 10 + k) for k in range(3)]
+
+
+def _hover(seed: int) -> list[SimConfig]:
+    return [SimConfig(kind="hover", duration_s=8.0, seed=seed * 10 + k) for k in range(3)]
+
+
+SCENARIOS = {
+    "drag": Scenario(("rotor_drag", "parasitic_drag"),
+                     ({"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}, {"c_xy_kg_per_m": 0.01, "c_z_kg_per_m": 0.01}),
+                     _circles),
+    "mass": Scenario(("thrust_scale", "added_mass"), ({"scale": 0.92}, {"m_p_kg": 0.003}), _hover),
+    "lag": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.01}, {"t_d_s": 0.01}), _hover),
+}
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What the diagnosis says about the truth: ranked first, and tied (or alike) with the rival."""
+
+    top: str
+    first: bool
+    tied: bool
+    alike: bool
+
+    @property
+    def decided(self) -> bool:
+        """The truth ranked first and no longer tied with the rival."""
+        return self.first and not self.tied
+
+    def describe(self) -> str:
+        return f"top {self.top}" + (", tied" if self.tied else "") + (", alike" if self.alike and not self.tied else "")
+
+
+def outcome(diag: Diagnosis, truth: str, rival: str) -> Outcome:
+    row = next(c for c in diag.candidates if c.effect == truth)
+    top = diag.candidates[0].effect
+    return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from)
+
+
+def _decode(folder: Path) -> dict:
+    return {p.name: flightlib.decode_flight(p).tables["fixedFrequency"] for p in flightlib.discover_logs(folder)}
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One seed of a scenario: the truth, the diagnosis before, with the planned flight, and
+    with each trajectory file flown for the same time; the plan's description and prediction."""
+
+    scenario: str
+    seed: int
+    truth: str
+    before: Outcome
+    planned: Outcome
+    files: dict[str, Outcome]
+    manoeuvre: str
+    predicted_sigma: float
+
+
+def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str], None] = lambda m: None) -> Trial:
+    """One trial (see the module): simulate the old flights with the truth, diagnose, plan
+    (``--between`` the pair, no proof), fly the plan and each file with the truth, diagnose again."""
+    sc = SCENARIOS[name]
+    k = seed % 2
+    truth, rival = sc.pair[k], sc.pair[1 - k]
+    effects = {truth: sc.truths[k]}
+    veh = vehiclelib.load()
+    spec = spec_from(veh, [])
+    with tempfile.TemporaryDirectory(prefix="quadcore-plan-bench-") as tmp:
+        root = Path(tmp)
+        simulation.simulate_set(root / "old", sc.old(seed), effects, veh)
+        old = _decode(root / "old")
+        before = diagnosislib.diagnose(old, spec)
+        plan = planner.plan(old, spec, before, planner.PlanRequest(sc.pair, None, Limits(), PLAN_S, prove=False,
+                                                                   seed=seed))
+        assert plan.trajectory is not None and plan.manoeuvre is not None
+        log(f"{name} seed {seed}: truth {truth}; plan {plan.manoeuvre.describe()}")
+        flown = {}
+        csv = root / "plan.csv"
+        from quadcore.plan import pieces
+
+        pieces.write_csv(plan.trajectory, csv)
+        start = plan.trajectory.evaluate(np.zeros(1))[0]
+        total = plan.trajectory.duration_s + 4.0  # take-off 2 s, hover 1 s, end hover 1 s
+        configs = {"planned": SimConfig(kind="plan", plan_file=str(csv), height_m=float(start[2]),
+                                        seed=1000 + seed, name=signatures.PLANNED)}
+        configs.update({f: SimConfig(kind=f, duration_s=total, seed=1000 + seed, name=f) for f in files})
+        for label, cfg in configs.items():
+            simulation.write_flight(simulation.simulate(cfg, veh, effects), root / "new" / label / label)
+            tables = {**old, label: _decode(root / "new" / label)[label]}
+            flown[label] = outcome(diagnosislib.diagnose(tables, spec), truth, rival)
+    return Trial(name, seed, truth, outcome(before, truth, rival), flown.pop("planned"), flown,
+                 plan.manoeuvre.describe(), float(plan.design["after"]["sigma"]))

@@ -1,0 +1,207 @@
+"""How well a planned flight, added to the logged ones, separates two explanations, or pins a
+parameter down: the quantity the search maximises.
+
+**Separation** (a T-optimal criterion, Atkinson and Fedorov 1975). Suppose explanation A is
+true: every flight's residual is A's prediction ``y = η_A`` plus noise. The rival B is refitted
+to that on all flights, old and planned: ``θ_B* = argmin Σ_i Σ_c w_c (y_ic - η_B(θ)_ic)²`` with
+``w_c = 1 / σ_c²``, and what it cannot reproduce, ``λ_A = Σ w_c (y - η_B(θ_B*))²``, is the
+evidence against B. The diagnosis's comparison of two candidates
+(:func:`quadcore.identify.evidence.compare`) sums ``2 (a - b)·(r - (a + b)/2)`` over the
+held-out samples: with ``r = a + e`` its mean is ``λ / 2`` and its variance ``λ W`` (``W``
+samples per independent one, :data:`quadcore.identify.fitting.SAMPLES_PER_INDEPENDENT`), so
+the expected separation is ``σ_A = ½ sqrt(λ_A / W)`` standard errors. The same with B true
+gives ``σ_B``; the design must work whichever is true: its separation is ``min(σ_A, σ_B)``.
+
+The diagnosis also needs the two scores (shares of the residual explained) to differ by
+``TIE_MARGIN``: the score gap is the unexplained mismatch as a share of the residual energy,
+``½ Σ_channel mismatch / energy`` (force and torque averaged, as the score is). The search
+maximises ``min over truths of min(σ / SIGMA_GOAL, gap / GAP_GOAL)``: one number that is
+above 1 when both of the diagnosis's tie conditions are broken with margin.
+
+``σ_c`` per axis is the held-out residual the diagnosis leaves after the better of the two
+explanations, never below the sensor-noise floor the logs show: on simulated flights that is
+the floor; on real flights whatever else is unmodelled counts as noise too.
+
+**Information on a parameter.** With ``u`` the prediction's change per unit of the parameter
+(:func:`quadcore.plan.signatures.unit_wrench`), a flight adds ``I = Σ w_c u_c² / W`` to the
+information, so the standard error becomes ``(1 / s_before² + I)^(-1/2)``; each parameter is
+treated alone (its correlation with the others ignored, stated in the docs).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from quadcore.identify import evidence, fitting
+from quadcore.physics.vehicle import Vehicle
+from quadcore.plan.signatures import Explanation, predict, unit_wrench
+
+W = fitting.SAMPLES_PER_INDEPENDENT
+SIGMA_GOAL = 3.0  # beyond the comparison's two-sided critical value (~2.6 at ALPHA = 0.01)
+GAP_GOAL = 2 * evidence.TIE_MARGIN
+GRID_POINTS = 25  # values of a one-parameter nonlinear rival tried when it is refitted
+CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
+
+
+def _grid(expl: Explanation) -> np.ndarray:
+    """Values of a one-parameter nonlinear rival to refit over: around its fitted value (a
+    quarter to four times its distance from 'no effect') and across its range."""
+    p = expl.effect.parameters[0]
+    fitted = float(expl.params[p.name])
+    dev = fitted - p.default
+    around = p.default + dev * np.geomspace(0.25, 4.0, GRID_POINTS) if dev != 0 else np.zeros(0)
+    values = np.concatenate([around, np.linspace(p.lower, p.upper, GRID_POINTS), [fitted]])
+    return np.unique(np.clip(values, p.lower, p.upper))
+
+
+def blocks(fd: fitting.FlightData) -> np.ndarray:
+    """Block index (blocks of :data:`quadcore.identify.evidence.BLOCK_S`) of each usable sample."""
+    t = fd.state.t_s[fd.mask]
+    return ((t - t[0]) // evidence.BLOCK_S).astype(int) if len(t) else np.zeros(0, dtype=int)
+
+
+def _per_block(values: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sum ``values`` (n, ...) over the samples of each block -> (blocks, ...)."""
+    out = np.zeros((int(b.max(initial=-1)) + 1, *values.shape[1:]))
+    np.add.at(out, b, values)
+    return out
+
+
+class Direction:
+    """One truth and its rival (see the module), in the held-out view of the diagnosis's folds:
+    the planned flight is scored with the rival fitted on the old flights, the old flights with
+    the rival fitted on old and planned flights together. Each flight's part is kept per 1 s
+    block and channel (the comparison's clusters), the old flights' computed once."""
+
+    def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle):
+        self.truth, self.rival, self.vehicle = truth, rival, vehicle
+        e = rival.effect
+        self.kind = "linear" if e.linear else ("grid" if len(e.parameters) == 1 else "fixed")
+        self.values = _grid(rival) if self.kind == "grid" else None
+        parts = [self.sums(fd) for fd in old]
+        self.old = (tuple(np.concatenate(x) for x in zip(*parts)) if self.kind == "linear"
+                    else np.concatenate(parts, axis=1))
+
+    def sums(self, fd: fitting.FlightData):
+        """One flight's part per block and channel: the Gram sums of the rival's basis and the
+        truth's prediction (linear rival), or the squared mismatch at each grid value
+        ((values, blocks, 6))."""
+        y = predict(self.truth, fd, self.vehicle)[fd.mask]
+        b = blocks(fd)
+        if self.kind == "linear":
+            X = fd.basis(self.rival.effect, self.vehicle)[fd.mask]
+            return (_per_block(np.einsum("nci,ncj->ncij", X, X), b), _per_block(np.einsum("nci,nc->nci", X, y), b),
+                    _per_block(y**2, b))
+        if self.kind == "fixed":
+            return _per_block((y - predict(self.rival, fd, self.vehicle)[fd.mask]) ** 2, b)[None]
+        name = self.rival.effect.parameters[0].name
+        out = []
+        for v in self.values if self.values is not None else ():
+            pred = fitting.prediction(self.rival.effect, {**self.rival.params, name: float(v)}, fd, self.vehicle)
+            out.append(_per_block((y - pred[fd.mask]) ** 2, b))
+        return np.stack(out)
+
+    def _fit(self, parts: list, w: np.ndarray):
+        """The rival's best fit (linear coordinates, or a grid index) to the truth over ``parts``."""
+        if self.kind != "linear":
+            return int(np.argmin(sum((p.sum(axis=1) @ w) for p in parts)))
+        G = sum(p[0].sum(axis=0) for p in parts)
+        g = sum(p[1].sum(axis=0) for p in parts)
+        return np.linalg.lstsq(np.tensordot(w, G, axes=1), w @ g, rcond=None)[0]
+
+    def _mismatch(self, part, fit) -> np.ndarray:
+        """(blocks, 6) what the rival at ``fit`` leaves of the truth, per block and channel."""
+        if self.kind != "linear":
+            return part[fit]
+        G, g, yy = part
+        return np.maximum(yy - 2 * g @ fit + np.einsum("i,bcij,j->bc", fit, G, fit), 0.0)
+
+    def held_out(self, w: np.ndarray, new=None) -> np.ndarray:
+        """(blocks, 6) the mismatch per block and channel (weights ``w`` for the fits): the old
+        flights alone (the rival fitted on them), or with a planned flight's ``sums`` (see the class)."""
+        on_old = self._fit([self.old], w)
+        if new is None:
+            return self._mismatch(self.old, on_old)
+        joint = self._fit([self.old, new], w)
+        return np.concatenate([self._mismatch(self.old, joint), self._mismatch(new, on_old)])
+
+
+def t_statistic(mu: np.ndarray) -> float:
+    """The comparison's expected t from per-block expected scores ``mu`` = ½ Σ w d² (see the
+    module): the blocks' spread and the noise (variance ``2 W mu`` per block) both count."""
+    n = len(mu)
+    if n < 3 or mu.sum() <= 0:
+        return 0.0
+    spread = n / (n - 1) * float(((mu - mu.mean()) ** 2).sum())
+    return float(mu.sum() / np.sqrt(spread + 2 * W * mu.sum()))
+
+
+@dataclass(frozen=True)
+class Separation:
+    """Expected separation of two explanations (see the module): per truth, the held-out
+    comparison's σ and the score gap; ``value`` the search's objective."""
+
+    sigma: float
+    score_gap: float
+    value: float
+    by_truth: dict[str, tuple[float, float]]
+
+    def to_dict(self) -> dict:
+        return {"sigma": self.sigma, "score_gap": self.score_gap, "value": self.value,
+                "by_truth": {k: {"sigma": s, "score_gap": g} for k, (s, g) in self.by_truth.items()}}
+
+
+class SeparationObjective:
+    """The separation of ``a`` and ``b`` given the old flights, their residual energy per axis
+    (``old_energy``, (6,) sums of squares of the model's residual) and the noise ``sigma`` (6,)."""
+
+    def __init__(self, a: Explanation, b: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
+                 sigma: np.ndarray, old_energy: np.ndarray):
+        self.a, self.b, self.vehicle = a, b, vehicle
+        self.sigma = np.maximum(np.asarray(sigma, float), 1e-12)
+        self.w = 1.0 / self.sigma**2
+        self.old_energy = np.asarray(old_energy, float)
+        self.directions = [Direction(a, b, old, vehicle), Direction(b, a, old, vehicle)]
+
+    def evaluate(self, new: fitting.FlightData | None = None) -> Separation:
+        by_truth = {}
+        for d in self.directions:
+            per_block = d.held_out(self.w, d.sums(new) if new is not None else None)
+            energy = self.old_energy.copy()
+            if new is not None:
+                y = predict(d.truth, new, self.vehicle)[new.mask]
+                energy += (y**2).sum(axis=0) + new.n * self.sigma**2
+            sigma = t_statistic(0.5 * per_block @ self.w)
+            mis = per_block.sum(axis=0)
+            gap = 0.5 * sum(float(mis[sl].sum() / energy[sl].sum()) for sl in CHANNELS.values() if energy[sl].sum() > 0)
+            by_truth[d.truth.name] = (sigma, gap)
+        sigma = min(s for s, _ in by_truth.values())
+        gap = min(g for _, g in by_truth.values())
+        value = min(min(s / SIGMA_GOAL, g / GAP_GOAL) for s, g in by_truth.values())
+        return Separation(sigma, gap, value, by_truth)
+
+    def value(self, new: fitting.FlightData) -> float:
+        return self.evaluate(new).value
+
+
+class InformationObjective:
+    """The standard error of one parameter after a planned flight (see the module); the search
+    maximises ``std_before / std_after``."""
+
+    def __init__(self, expl: Explanation, parameter: str, std_before: float, vehicle: Vehicle, sigma: np.ndarray):
+        self.expl, self.parameter, self.vehicle = expl, parameter, vehicle
+        self.std_before = float(std_before)
+        self.w = 1.0 / np.maximum(np.asarray(sigma, float), 1e-12) ** 2
+
+    def std_after(self, new: fitting.FlightData) -> float:
+        u = unit_wrench(self.expl, self.parameter, new, self.vehicle)[new.mask]
+        info = float((u**2).sum(axis=0) @ self.w) / W
+        prior = 1.0 / self.std_before**2 if self.std_before > 0 and np.isfinite(self.std_before) else 0.0
+        return float(1.0 / np.sqrt(prior + info)) if prior + info > 0 else float("inf")
+
+    def value(self, new: fitting.FlightData) -> float:
+        after = self.std_after(new)
+        return self.std_before / after if np.isfinite(after) and after > 0 and np.isfinite(self.std_before) else 0.0

@@ -1,0 +1,221 @@
+"""The planner: from a diagnosis of the logged flights to the flight that answers its open
+question, with the prediction and the proof (:func:`plan`, the typed :class:`FlightPlan`).
+
+Steps: the question (:mod:`quadcore.plan.question`); the noise the comparison fights and the
+old flights' part of the objective (:mod:`quadcore.plan.objective`); the search over the
+family (:mod:`quadcore.plan.search`); the separation measured on the old flights
+(:mod:`quadcore.plan.separation`) and the proof in the simulator (:mod:`quadcore.plan.proof`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from quadcore.identify import fitting
+from quadcore.identify.model import ModelSpec
+from quadcore.identify.results import Diagnosis
+from quadcore.physics.vehicle import Vehicle
+from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, signatures
+from quadcore.plan.limits import LimitCheck, Limits, check
+from quadcore.plan.question import Question
+from quadcore.plan.signatures import Explanation
+from quadcore.sim.trajectories import PolyTrajectory
+
+DEFAULT_DURATION_S = 20.0
+MIN_PROBE_SIGMA = 1.0  # a rival no probe flight separates by this much is nested in the top candidate
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """What the user asks: the question (or None: from the diagnosis), limits, flight time,
+    whether to prove the plan in the simulator, and the simulator's seed."""
+
+    between: tuple[str, str] | None = None
+    parameter: str | None = None
+    limits: Limits = field(default_factory=Limits)
+    duration_s: float = DEFAULT_DURATION_S
+    prove: bool = True
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    """The plan: the question, and (unless there is nothing to plan) the manoeuvre, its pieces,
+    the limits checked on them, the objective's prediction before and after, the separation
+    measured on the logged flights, and the proof (each explanation flown)."""
+
+    question: Question
+    limits: Limits
+    duration_s: float
+    manoeuvre: family.Manoeuvre | None = None
+    trajectory: PolyTrajectory | None = None
+    checked: LimitCheck | None = None
+    design: dict[str, Any] = field(default_factory=dict)
+    measured_before: float | None = None
+    gap_before: float | None = None  # |score difference| of the two candidates in the diagnosis
+    proof: tuple[proof.Flown, ...] = ()
+    differ: np.ndarray | None = None  # per sample of the planned path: how much the explanations differ
+    path: flatness.FlatPath | None = None
+
+    @property
+    def planned(self) -> bool:
+        return self.trajectory is not None
+
+    def predicted(self) -> dict[str, float | None]:
+        """The contract's ``predicted``: measured before, proven (else designed) after."""
+        q = self.question
+        if q.kind == "separate":
+            after = (min(f.sigma for f in self.proof if f.sigma is not None) if self.proof
+                     else self.design.get("after", {}).get("sigma"))
+            gap = (min(f.score_gap for f in self.proof if f.score_gap is not None) if self.proof
+                   else self.design.get("after", {}).get("score_gap"))
+            return {"separation_sigma_before": self.measured_before, "separation_sigma_after": after,
+                    "score_gap_before": self.gap_before, "score_gap_after": gap}
+        if q.kind == "parameter":
+            name = q.parameter.partition(".")[2]
+            after = (self.proof[0].parameter_std.get(name) if self.proof else self.design.get("std_after"))
+            return {"parameter_std_before": self.design.get("std_before"), "parameter_std_after": after}
+        return {}
+
+    def to_dict(self, trajectory_path: str | None) -> dict[str, Any]:
+        doc: dict[str, Any] = {
+            "question": self.question.to_dict(),
+            "trajectory": trajectory_path if self.planned else None,
+            "duration_s": self.duration_s if self.planned else 0.0,
+            "limits": self.limits.to_dict(),
+            "predicted": self.predicted(),
+            "why": self.question.why,
+        }
+        if self.planned and self.manoeuvre is not None and self.checked is not None:
+            doc["manoeuvre"] = {**self.manoeuvre.to_dict(), "description": self.manoeuvre.describe(),
+                                "pieces": len(self.trajectory.durations) if self.trajectory is not None else 0}
+            doc["checked"] = self.checked.to_dict()
+            doc["design"] = self.design
+            doc["proof"] = [f.to_dict() for f in self.proof]
+        return doc
+
+
+def noise_sigma(diag: Diagnosis, names: list[str]) -> np.ndarray:
+    """(6,) per axis: the held-out residual the diagnosis leaves after the best of ``names`` (the
+    model's residual for an effect of the model), never below the sensor-noise floor."""
+    floor = np.array([*diag.noise_floor.force_rmse_N, *diag.noise_floor.torque_rmse_Nm])
+    left = [np.array([*c.force_rmse_N, *c.torque_rmse_Nm]) for c in diag.candidates if c.effect in names]
+    base = np.array([*diag.baseline.force_rmse_N, *diag.baseline.torque_rmse_Nm])
+    return np.maximum(floor, np.min(left, axis=0) if left else base)
+
+
+def old_energy(diag: Diagnosis) -> np.ndarray:
+    """(6,) the model's held-out residual energy on the logged flights (sum of squares per axis)."""
+    base = np.array([*diag.baseline.force_rmse_N, *diag.baseline.torque_rmse_Nm])
+    return base**2 * diag.evaluation.samples
+
+
+def _differ_separate(a: Explanation, b: Explanation, fd: fitting.FlightData, vehicle: Vehicle,
+                     sigma: np.ndarray) -> np.ndarray:
+    d = signatures.predict(a, fd, vehicle) - signatures.predict(b, fd, vehicle)
+    return (d**2) @ (1.0 / sigma**2)
+
+
+def plan(tables: Mapping, spec: ModelSpec, diag: Diagnosis, request: PlanRequest,
+         sessions: dict[str, list[str]] | None = None, log: Callable[[str], None] = lambda m: None) -> FlightPlan:
+    """The flight that answers the diagnosis's open question (or the one asked); see the module."""
+    q = questionlib.ask(diag, request.between, request.parameter)
+    limits, duration = request.limits, float(request.duration_s)
+    if q.kind == "none":
+        return FlightPlan(q, limits, duration)
+    log(f"plan: {q.why}")
+    if q.kind == "separate":
+        return _separate(q, tables, spec, diag, request, sessions, log)
+    return _parameter(q, tables, spec, diag, request, spec.vehicle, sessions, log)
+
+
+def fitting_flights(tables: Mapping, spec: ModelSpec) -> dict[str, fitting.FlightData]:
+    from quadcore.plan import separation
+
+    return separation.flights_of(tables, spec)
+
+
+def _probe(limits: Limits, duration_s: float, vehicle: Vehicle, loop: np.ndarray) -> fitting.FlightData | None:
+    """A middle member of the family, to tell a rival a flight can separate from one it cannot."""
+    half = limits.half_extent_m
+    m = family.Manoeuvre("figure8", 0.3, 2.0, float(min(half[0], half[1])), 0.6 * half[2], limits.centre_m,
+                         duration_s)
+    unit = family.trajectory(m)
+    from quadcore.plan import limits as limitlib
+
+    s = limitlib.largest_scale(unit, m.centre_m, vehicle, limits)
+    return signatures.planned_flight(family.scaled_trajectory(unit, m.centre_m, s), vehicle, loop) if s > 0 else None
+
+
+def _choose_rival(q: Question, diag: Diagnosis, old, vehicle, limits: Limits, duration_s: float, log) -> Question:
+    """For the default question: the first rival of the top candidate that a flight can separate
+    from it (a wind with zero air speed *is* rotor drag: no flight tells them apart)."""
+    probe = _probe(limits, duration_s, vehicle, signatures.activity(old))
+    top = questionlib.explanation(diag, q.candidates[0])
+    for rival in q.alternatives:
+        b = questionlib.explanation(diag, rival)
+        sigma = noise_sigma(diag, [top.name, rival])
+        sep = objective.SeparationObjective(top, b, old, vehicle, sigma, old_energy(diag)).evaluate(probe)
+        if sep.sigma >= MIN_PROBE_SIGMA:
+            return q.with_rival(rival, f"{q.why.rsplit(' ', 1)[0]} {rival}" if rival != q.candidates[1] else q.why)
+        log(f"plan: no flight separates {top.name} from {rival} (a flight of the family gives {sep.sigma:.2f} σ): "
+            "skipped")
+    return Question("none", why=f"{q.why}, but no flight of the family separates {top.name} from "
+                                f"{', '.join(q.alternatives)}: the one contains the other (a wind with zero air speed "
+                                "is rotor drag); knowledge of the vehicle or the room must decide")
+
+
+def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, sessions,
+              log) -> FlightPlan:
+    vehicle, limits = spec.vehicle, request.limits
+    old = list(fitting_flights(tables, spec).values())
+    if request.between is None:
+        q = _choose_rival(q, diag, old, vehicle, limits, request.duration_s, log)
+        if q.kind == "none":
+            return FlightPlan(q, limits, request.duration_s)
+    a, b = (questionlib.explanation(diag, n) for n in q.candidates)
+    sigma = noise_sigma(diag, list(q.candidates))
+    obj = objective.SeparationObjective(a, b, old, vehicle, sigma, old_energy(diag))
+    loop = signatures.activity(old)
+    best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,
+                         request.duration_s, log)
+    fd = signatures.planned_flight(best.trajectory, vehicle, loop)
+    design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": obj.evaluate(fd).to_dict(),
+              "noise_per_axis": [float(v) for v in sigma]}
+    measured = proof.before(tables, spec, diag.model, (a.name, b.name))
+    log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
+        f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
+    flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
+                       sessions) if request.prove else [])
+    return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
+                      check(best.trajectory, vehicle, limits), design, abs(measured.t),
+                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), tuple(flown),
+                      _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
+                      flatness.flat_path(best.trajectory, vehicle))
+
+
+def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, vehicle: Vehicle,
+               sessions, log) -> FlightPlan:
+    effect, _, name = q.parameter.partition(".")
+    expl = questionlib.explanation(diag, effect)
+    std_before = float(expl.std.get(name, float("nan")))
+    sigma = noise_sigma(diag, [effect])
+    obj = objective.InformationObjective(expl, name, std_before, vehicle, sigma)
+    loop = signatures.activity(list(fitting_flights({f: tables[f] for f in sorted(tables)[:3]}, spec).values()))
+    best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle,
+                         request.limits, request.duration_s, log)
+    fd = signatures.planned_flight(best.trajectory, vehicle, loop)
+    design: dict[str, Any] = {"std_before": std_before, "std_after": obj.std_after(fd),
+                              "noise_per_axis": [float(v) for v in sigma]}
+    log(f"plan: {best.manoeuvre.describe()}; predicted std of {q.parameter} {std_before:.3g} -> "
+        f"{design['std_after']:.3g}")
+    flown = (proof.fly(best.trajectory, tables, spec, diag.model, [expl], None, request.seed, log, sessions)
+             if request.prove else [])
+    u = signatures.unit_wrench(expl, name, fd, vehicle)
+    return FlightPlan(q, request.limits, request.duration_s, best.manoeuvre, best.trajectory,
+                      check(best.trajectory, vehicle, request.limits), design, None, None, tuple(flown),
+                      (u**2) @ (1.0 / sigma**2), flatness.flat_path(best.trajectory, vehicle))

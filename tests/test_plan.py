@@ -1,0 +1,168 @@
+"""``quadcore plan``: the planned trajectory is in the lab's format, loads in the project's reader,
+starts and ends at hover and respects the limits (checked by evaluating its polynomials); the
+JSON contract; nothing planned when nothing needs separating; and (slow) the planned flight,
+flown with the hidden truth, makes the diagnosis decide ties that the logged flights leave open."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quadcore import cli
+from quadcore.physics import vehicle
+from quadcore.plan import bench, family, flatness, limits, pieces
+from quadcore.sim import simulation, trajectories
+from quadcore.sim.simulation import SimConfig
+
+VEHICLE = vehicle.load()
+LIMITS = limits.Limits()
+
+
+def _run(argv: list[str]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def _manoeuvre(shape: str = "figure8", f0: float = 0.3, chirp: float = 2.0, bob: float = 0.3) -> family.Manoeuvre:
+    return family.Manoeuvre(shape, f0, chirp, 0.9, bob, LIMITS.centre_m, 12.0)
+
+
+@pytest.mark.parametrize("shape", list(family.SHAPES))
+def test_pieces_follow_the_path_start_and_end_at_hover_and_load_in_the_reader(shape, tmp_path):
+    m = _manoeuvre(shape)
+    traj = family.trajectory(m)
+    assert len(traj.durations) <= pieces.MAX_PIECES
+    # the knots: position and its derivatives as the analytic path has them
+    knots = family.knots(m.duration_s)
+    for k in range(4):
+        want = family._derivatives(m, knots)[:, :, k]
+        got = traj.evaluate(np.clip(knots, 0, m.duration_s - 1e-12), k)
+        assert np.allclose(got, want, atol=1e-4 * max(1.0, float(np.abs(want).max()))), k
+    # starts and ends at rest at the hover point (the arena's centre)
+    ends = np.array([0.0, m.duration_s])
+    assert np.allclose(traj.evaluate(ends)[:, :3], [m.centre_m, m.centre_m], atol=1e-9)
+    for k in (1, 2, 3):
+        assert np.allclose(traj.evaluate(ends, k)[:, :3], 0.0, atol=1e-9), k
+    # the CSV round trip through the project's reader, as a file
+    path = pieces.write_csv(traj, tmp_path / "plan.csv")
+    back = trajectories.load_plan(path)
+    assert np.allclose(back.durations, traj.durations) and np.allclose(back.coeffs, traj.coeffs, rtol=1e-8, atol=1e-9)
+    t = np.linspace(0, m.duration_s, 997)
+    assert np.allclose(back.evaluate(t), traj.evaluate(t), atol=1e-7)
+    assert path.read_text().splitlines()[0] == pieces.HEADER  # the lab's header (figure8.csv's)
+
+
+def test_hermite_piece_matches_both_ends():
+    start, end, h = np.array([0.1, -0.5, 2.0, 3.0]), np.array([0.7, 1.5, -1.0, 0.5]), 0.4
+    c = pieces.hermite_piece(start, end, h)
+    poly = np.polynomial.Polynomial(c)
+    for k in range(4):
+        d = poly.deriv(k) if k else poly
+        assert d(0.0) == pytest.approx(start[k], abs=1e-9) and d(h) == pytest.approx(end[k], rel=1e-9, abs=1e-9)
+
+
+def test_the_largest_scale_respects_every_limit_and_more_does_not():
+    m = _manoeuvre("figure8", 0.6, 2.0, 0.3)
+    unit = family.trajectory(m)
+    s = limits.largest_scale(unit, m.centre_m, VEHICLE, LIMITS)
+    assert 0 < s < 1
+    ok = limits.check(family.scaled_trajectory(unit, m.centre_m, 0.98 * s), VEHICLE, LIMITS)
+    assert ok.ok and ok.max_tilt_deg <= LIMITS.max_tilt_deg and ok.max_speed_mps <= LIMITS.max_speed_mps
+    assert ok.max_acc_mps2 <= LIMITS.acc_mps2 and ok.in_arena
+    too_much = limits.check(family.scaled_trajectory(unit, m.centre_m, 1.3 * s), VEHICLE, LIMITS)
+    assert not too_much.ok
+
+
+def test_flatness_gives_hover_thrust_at_rest_and_tilt_from_acceleration():
+    traj = family.trajectory(_manoeuvre("line", 0.3, 1.0, 0.0))
+    path = flatness.flat_path(traj, VEHICLE)
+    assert path.thrust_N[0] == pytest.approx(VEHICLE.weight_N, rel=1e-9)
+    assert np.allclose(path.f_rotor_N[0], VEHICLE.weight_N / 4, rtol=1e-9)
+    horizontal = np.linalg.norm(path.a_w_mps2[:, :2], axis=1)
+    want = np.degrees(np.arctan2(horizontal, 9.80665 + path.a_w_mps2[:, 2]))
+    assert np.allclose(np.degrees(path.tilt_rad), want, atol=1e-6)
+
+
+@pytest.mark.parametrize("arena, message", [("0,0,0,0.1,0.1,0.1", "too small"), ("1,2,3", "six numbers")])
+def test_bad_limits_are_a_message(arena, message, tmp_path):
+    code, _, err = _run(["plan", str(tmp_path), "--json", str(tmp_path / "p.json"), "--trajectory",
+                         str(tmp_path / "p.csv"), "--arena", arena])
+    assert code == 2 and message in err and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def hover_tie(tmp_path_factory) -> Path:
+    """Three hover flights with a weak thrust map: thrust scale and added mass tie."""
+    folder = tmp_path_factory.mktemp("hover_tie")
+    configs = [SimConfig(kind="hover", duration_s=6.0, seed=s) for s in (1, 2, 3)]
+    simulation.simulate_set(folder, configs, {"thrust_scale": {"scale": 0.92}}, VEHICLE)
+    return folder
+
+
+CONTRACT_KEYS = ["question", "trajectory", "duration_s", "limits", "predicted"]
+
+
+def test_cli_plan_writes_the_contract_a_loadable_trajectory_within_limits_and_its_picture(hover_tie, tmp_path):
+    out = tmp_path / "out"
+    code, stdout, err = _run(["plan", str(hover_tie), "--json", str(out / "plan.json"), "--trajectory",
+                              str(out / "plan.csv"), "--duration", "5", "--max-speed", "1.0", "--max-tilt", "20",
+                              "--no-proof", "--quiet"])
+    assert code == 0, err
+    doc = json.loads((out / "plan.json").read_text())
+    assert list(doc)[:5] == CONTRACT_KEYS
+    assert doc["question"]["kind"] == "separate"
+    assert sorted(doc["question"]["candidates"]) == ["added_mass", "thrust_scale"]
+    assert doc["trajectory"] == str(out / "plan.csv") and doc["duration_s"] == 5.0
+    lim = doc["limits"]
+    assert lim["max_speed_mps"] == 1.0 and lim["max_tilt_deg"] == 20.0 and len(lim["arena"]) == 6
+    assert lim["max_acc_mps2"] == pytest.approx(9.80665 * math.tan(math.radians(20)))
+    assert set(doc["predicted"]) >= {"separation_sigma_before", "separation_sigma_after"}
+    assert all(isinstance(doc["predicted"][k], float) for k in ("separation_sigma_before", "separation_sigma_after"))
+    # the trajectory: the project's reader loads it; the limits hold on its polynomials
+    traj = trajectories.load_plan(out / "plan.csv")
+    assert traj.duration_s == pytest.approx(5.0)
+    checked = limits.check(traj, VEHICLE, limits.Limits(1.0, 20.0))
+    assert checked.ok and checked.max_speed_mps <= 1.0 and checked.max_tilt_deg <= 20.0
+    t = np.linspace(0, traj.duration_s, 2001)
+    speed = np.linalg.norm(traj.evaluate(t, 1)[:, :3], axis=1)
+    assert speed.max() <= 1.0 + 1e-9 and speed[0] < 1e-6 and speed[-1] < 1e-6  # from and to hover
+    assert (out / "plan.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "thrust_scale" in stdout and "wrote" in stdout
+
+
+def test_cli_plan_asks_what_it_is_told_and_refuses_unknown_candidates(hover_tie, tmp_path):
+    code, _, err = _run(["plan", str(hover_tie), "--json", str(tmp_path / "p.json"), "--trajectory",
+                         str(tmp_path / "p.csv"), "--between", "thrust_scale,no_such_effect", "--quiet"])
+    assert code == 2 and "no_such_effect" in err and "Traceback" not in err
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_nothing_to_separate_plans_nothing(tmp_path):
+    folder = tmp_path / "still"
+    simulation.simulate_set(folder, [SimConfig(kind="hover", duration_s=6.0, seed=s) for s in (4, 5)], {}, VEHICLE)
+    code, stdout, err = _run(["plan", str(folder), "--json", str(tmp_path / "p.json"), "--trajectory",
+                              str(tmp_path / "p.csv"), "--quiet"])
+    assert code == 0, err
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["question"] == {"kind": "none"} and doc["trajectory"] is None and doc["predicted"] == {}
+    assert not (tmp_path / "p.csv").exists()
+    assert "nothing to plan" in stdout
+
+
+# The full benchmark (benchmarks/bench_plan.py) runs 10 seeds per scenario and the lab's files
+# beside the plan; CI runs the first two seeds (one per truth) of each, without the files.
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", list(bench.SCENARIOS))
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_planned_flight_decides_what_the_logged_flights_leave_open(scenario, seed):
+    trial = bench.run(scenario, seed, files=())
+    assert not trial.before.decided or trial.before.alike, trial.before  # the question is open before
+    assert trial.planned.decided, (trial.manoeuvre, trial.planned)
