@@ -1,19 +1,23 @@
 """How well a planned flight, added to the logged ones, separates two explanations, or pins a
 parameter down: the quantity the search maximises.
 
-**Separation** (a T-optimal criterion, Atkinson and Fedorov 1975). Suppose explanation A is
-true: every flight's residual is A's prediction ``y = η_A`` plus noise. The rival B is refitted
-to that on all flights, old and planned: ``θ_B* = argmin Σ_i Σ_c w_c (y_ic - η_B(θ)_ic)²`` with
-``w_c = 1 / σ_c²``, and what it cannot reproduce, ``λ_A = Σ w_c (y - η_B(θ_B*))²``, is the
-evidence against B. The diagnosis's comparison of two candidates
-(:func:`quadcore.identify.evidence.compare`) sums ``2 (a - b)·(r - (a + b)/2)`` over the
-held-out samples: with ``r = a + e`` its mean is ``λ / 2`` and its variance ``λ W`` (``W``
-samples per independent one, :data:`quadcore.identify.fitting.SAMPLES_PER_INDEPENDENT`), so
-the expected separation is ``σ_A = ½ sqrt(λ_A / W)`` standard errors. The same with B true
-gives ``σ_B``; the design must work whichever is true: its separation is ``min(σ_A, σ_B)``.
+**Separation** (a T-optimal criterion, Atkinson and Fedorov 1975, in the held-out view of the
+diagnosis's folds). Suppose explanation A is true: every flight's residual is A's prediction
+``y = η_A`` plus noise. The diagnosis scores the planned flight with the rival B fitted on the
+logged flights, and the logged flights with B fitted on the others and the planned one: so B
+fitted on the old flights predicts the planned one, and B refitted on old and planned together
+(``θ_B* = argmin Σ_i Σ_c w_c (y_ic - η_B(θ)_ic)²``, ``w_c = 1 / σ_c²``) scores the old ones. What B
+cannot reproduce, ``d = y - η_B``, per 1 s block ``b`` gives the expected score of the
+diagnosis's comparison of the two (:func:`quadcore.identify.evidence.compare`: ``2 (a - b)·(r -
+(a + b)/2)`` summed per block, t-tested over the blocks): mean ``μ_b = ½ Σ_{i∈b} w_c d²``, noise
+variance ``2 W μ_b`` (``W`` samples per independent one,
+:data:`quadcore.identify.fitting.SAMPLES_PER_INDEPENDENT`), and its expected t is
+``Σ μ_b / sqrt(n/(n-1) Σ (μ_b - μ̄)² + 2 W Σ μ_b)`` (:func:`t_statistic`): the blocks' spread
+counts, so a difference confined to a few blocks separates less than its energy suggests. The
+same with B true; the design must work whichever is true: its separation is the smaller.
 
 The diagnosis also needs the two scores (shares of the residual explained) to differ by
-``TIE_MARGIN``: the score gap is the unexplained mismatch as a share of the residual energy,
+``TIE_MARGIN``: the score gap is the mismatch as a share of the pooled residual energy,
 ``½ Σ_channel mismatch / energy`` (force and torque averaged, as the score is). The search
 maximises ``min over truths of min(σ / SIGMA_GOAL, gap / GAP_GOAL)``: one number that is
 above 1 when both of the diagnosis's tie conditions are broken with margin.
@@ -43,6 +47,7 @@ W = fitting.SAMPLES_PER_INDEPENDENT
 SIGMA_GOAL = 3.0  # beyond the comparison's two-sided critical value (~2.6 at ALPHA = 0.01)
 GAP_GOAL = 2 * evidence.TIE_MARGIN
 GRID_POINTS = 25  # values of a one-parameter nonlinear rival tried when it is refitted
+NEAR = 3  # with a planned flight, the joint refit tries the grid values this close to the old flights' fit
 CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
 
 
@@ -76,7 +81,8 @@ class Direction:
     the rival fitted on old and planned flights together. Each flight's part is kept per 1 s
     block and channel (the comparison's clusters), the old flights' computed once."""
 
-    def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle):
+    def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
+                 w: np.ndarray):
         self.truth, self.rival, self.vehicle = truth, rival, vehicle
         e = rival.effect
         self.kind = "linear" if e.linear else ("grid" if len(e.parameters) == 1 else "fixed")
@@ -84,6 +90,14 @@ class Direction:
         parts = [self.sums(fd) for fd in old]
         self.old = (tuple(np.concatenate(x) for x in zip(*parts)) if self.kind == "linear"
                     else np.concatenate(parts, axis=1))
+        self.near = np.zeros(1, dtype=int)
+        if self.values is not None and isinstance(self.old, np.ndarray):
+            # a planned flight moves the joint fit only near the old flights' own
+            best = int(np.argmin(self.old.sum(axis=1) @ w))
+            self.near = np.arange(max(0, best - NEAR), min(len(self.values), best + NEAR + 1))
+            self.values = self.values[self.near]
+            self.old = self.old[self.near]
+            self.on_old = best - int(self.near[0])
 
     def sums(self, fd: fitting.FlightData):
         """One flight's part per block and channel: the Gram sums of the rival's basis and the
@@ -107,7 +121,7 @@ class Direction:
     def _fit(self, parts: list, w: np.ndarray):
         """The rival's best fit (linear coordinates, or a grid index) to the truth over ``parts``."""
         if self.kind != "linear":
-            return int(np.argmin(sum((p.sum(axis=1) @ w) for p in parts)))
+            return int(np.argmin(sum((p.sum(axis=1) @ w) for p in parts)))  # (the old flights' own: on_old)
         G = sum(p[0].sum(axis=0) for p in parts)
         g = sum(p[1].sum(axis=0) for p in parts)
         return np.linalg.lstsq(np.tensordot(w, G, axes=1), w @ g, rcond=None)[0]
@@ -122,7 +136,7 @@ class Direction:
     def held_out(self, w: np.ndarray, new=None) -> np.ndarray:
         """(blocks, 6) the mismatch per block and channel (weights ``w`` for the fits): the old
         flights alone (the rival fitted on them), or with a planned flight's ``sums`` (see the class)."""
-        on_old = self._fit([self.old], w)
+        on_old = self._fit([self.old], w) if self.kind == "linear" else getattr(self, "on_old", 0)
         if new is None:
             return self._mismatch(self.old, on_old)
         joint = self._fit([self.old, new], w)
@@ -164,7 +178,7 @@ class SeparationObjective:
         self.sigma = np.maximum(np.asarray(sigma, float), 1e-12)
         self.w = 1.0 / self.sigma**2
         self.old_energy = np.asarray(old_energy, float)
-        self.directions = [Direction(a, b, old, vehicle), Direction(b, a, old, vehicle)]
+        self.directions = [Direction(a, b, old, vehicle, self.w), Direction(b, a, old, vehicle, self.w)]
 
     def evaluate(self, new: fitting.FlightData | None = None) -> Separation:
         by_truth = {}

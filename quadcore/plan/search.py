@@ -6,9 +6,9 @@ Every candidate is scaled to the largest excursion the limits allow
 best flight of a shape and frequency uses all the room and all the speed it may), turned into
 the lab's polynomial pieces, flown in prediction (:mod:`quadcore.plan.flatness`) and scored by
 the objective (:mod:`quadcore.plan.objective`) on those pieces: what is scored is what is
-written and flown. The grid spans the shapes, base frequencies 0.15-1 Hz, chirp ratios 1-4 (the path's
+written and flown. The grid spans the shapes, base frequencies 0.15 and 0.5 Hz, chirp ratios 1 and 3 (the path's
 frequencies below what the pieces carry, :func:`quadcore.plan.family.max_hz`), vertical bob or
-none, and no yaw wobble, a large one at half that frequency or a smaller one at it, over the
+none, and no yaw wobble or one at that frequency, over the
 whole flight time or a shorter manoeuvre followed by hover; refinement moves one coordinate at a
 time (frequency and chirp by
 factors, the bob by steps) while it improves, from the best ``REFINE_FROM`` grid points.
@@ -28,7 +28,7 @@ from quadcore.plan import family, limits as limitlib
 from quadcore.plan.limits import Limits
 from quadcore.sim.trajectories import PolyTrajectory
 
-GRID_F0_HZ = (0.15, 0.4, 1.0)
+GRID_F0_HZ = (0.15, 0.5)
 GRID_CHIRP = (1.0, 3.0)
 GRID_BOB = (0.0, 0.6)  # vertical half-amplitude as a share of the arena's half height
 # the manoeuvre's share of the flight time (the rest hovers): a shorter one carries higher
@@ -37,9 +37,9 @@ GRID_ACTIVE = (1.0, 0.4)
 MIN_ACTIVE_S = 3.0
 BASE_TOP_HZ = 3.1  # what the pieces carry over 10 s: the grid's frequencies are for this
 # yaw wobble: amplitude (rad, before the scale) and frequency as a share of what the pieces carry
-GRID_YAW = ((0.0, 0.5), (0.3, 0.5), (0.15, 1.0))
-REFINE_FROM = 3
-REFINE_ROUNDS = 3
+GRID_YAW = ((0.0, 0.5), (0.15, 1.0))
+REFINE_FROM = 2
+REFINE_ROUNDS = 2
 F0_MIN_HZ = 0.05
 CHIRP_RANGE = (1.0, 6.0)
 YAW_MAX_RAD = 1.0
