@@ -37,10 +37,15 @@ def synthetic_flight(n: int, omega_b: np.ndarray, omega_dot_b: np.ndarray, f_inj
     q[0] = [0, 0, 0, 1]
     for k in range(n - 1):  # test fixture, not a hot path
         q[k + 1] = rotations.integrate_body_rate(q[k: k + 1], omega_b[k: k + 1], np.array([1 / RATE_HZ]))[0]
+    # the state estimate consistent with the attitude and the accelerometer (the physics gate checks it)
+    a_w = rotations.body_to_world(rotations.rotation_matrix(q), sf) + dynamics.GRAVITY_W_MPS2
+    v_w = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (a_w[1:] + a_w[:-1]) / RATE_HZ, axis=0)])
+    p_w = np.array([0.0, 0.0, 1.0]) + np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (v_w[1:] + v_w[:-1]) / RATE_HZ,
+                                                                             axis=0)])
     cols = {"t_s": t, "timestamp_us": (t * 1e6).astype(np.int64)}
     for i, a in enumerate("xyz"):
-        cols[f"p_w_{a}_m"] = np.zeros(n) + (1.0 if a == "z" else 0.0)
-        cols[f"v_w_{a}_mps"] = np.zeros(n)
+        cols[f"p_w_{a}_m"] = p_w[:, i]
+        cols[f"v_w_{a}_mps"] = v_w[:, i]
         cols[f"omega_b_{a}_radps"] = omega_b[:, i]
         cols[f"sf_b_{a}_mps2"] = sf[:, i]
     for i, a in enumerate("xyzw"):
