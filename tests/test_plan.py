@@ -166,3 +166,35 @@ def test_the_planned_flight_decides_what_the_logged_flights_leave_open(scenario,
     trial = bench.run(scenario, seed, files=())
     assert not trial.before.decided or trial.before.alike, trial.before  # the question is open before
     assert trial.planned.decided, (trial.manoeuvre, trial.planned)
+
+
+def test_a_data_roots_plan_is_made_from_its_stored_diagnosis_beside_it(hover_tie, tmp_path):
+    """What the flight_plan asset does: the typed diagnosis rebuilt from reports/diagnosis.json,
+    the plan written as reports/flight_plan.{json,csv,png}; a plan that plans nothing removes
+    an earlier plan's trajectory and picture."""
+    from quadcore.identify import model
+    from quadcore.plan.planner import PlanRequest
+    from quadcore.store import store
+    from quadcore.workflows import fleet as fleetlib, identify, plan as planflow
+
+    spec = model.spec_from(VEHICLE, [])
+    flights = fleetlib.fleet_from_logs([str(hover_tie)], VEHICLE, lambda m: None)
+    diag = identify.diagnose(flights, spec, [], default_held=False)
+    identify.write_diagnosis_json(diag, store.diagnosis_path(tmp_path))
+    result, written = planflow.plan_data_root(tmp_path, flights, spec, PlanRequest(duration_s=4.0, prove=False))
+    reports = store.reports_dir(tmp_path)
+    assert result.planned and written.trajectory == reports / planflow.PLAN_CSV
+    assert written.plot == reports / planflow.PLAN_PNG
+    doc = json.loads(written.json.read_text())
+    assert sorted(doc["question"]["candidates"]) == ["added_mass", "thrust_scale"]
+    assert trajectories.load_plan(written.trajectory).duration_s == pytest.approx(4.0)
+    # a diagnosis with nothing tied and nothing found: nothing to plan, and the old plan's files go
+    nothing = PlanRequest(between=None, parameter=None, duration_s=4.0, prove=False)
+    doc_none = store.read_json(store.diagnosis_path(tmp_path))
+    for c in doc_none["candidates"]:
+        c["tied_with"], c["indistinguishable_from"], c["found"] = [], [], False
+    store.write_json(doc_none, store.diagnosis_path(tmp_path))
+    result, written = planflow.plan_data_root(tmp_path, flights, spec, nothing)
+    assert not result.planned and written.trajectory is None
+    assert not (reports / planflow.PLAN_CSV).exists() and not (reports / planflow.PLAN_PNG).exists()
+    assert json.loads(written.json.read_text())["question"] == {"kind": "none"}

@@ -41,7 +41,8 @@ def write_json(doc: dict[str, Any], path: str | Path) -> Path:
     return store.write_text(document_json(doc), Path(path))
 
 
-def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None, arena: tuple, title: str) -> bytes:
+def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None, arena: tuple, title: str,
+             differ_label: str = "where they differ most") -> bytes:
     """PNG bytes of the planned path (``p_w_m`` (n, 3), ``speed_mps`` (n,)), with ``differ`` (n,)
     (how much the explanations differ there, any scale; None for a parameter question: how
     much the parameter shows) marking its largest ``DIFFER_SHARE`` of samples."""
@@ -56,7 +57,7 @@ def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None
         sc = ax.scatter(p_w_m[:, i], p_w_m[:, j], c=speed_mps, s=3, cmap="viridis", vmin=0)
         if mark is not None:
             ax.scatter(p_w_m[mark, i], p_w_m[mark, j], s=18, facecolors="none", edgecolors="crimson", lw=0.6,
-                       label="where they differ most")
+                       label=differ_label)
         ax.plot(p_w_m[0, i], p_w_m[0, j], "k^", ms=8, label="start / end (hover)")
         ax.set_xlabel(names[0])
         ax.set_ylabel(names[1])
@@ -64,9 +65,9 @@ def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None
         pad = 0.1
         ax.set_xlim(a[i] - pad, a[i + 3] + pad)
         ax.set_ylim(a[j] - pad, a[j + 3] + pad)
-    axes[0].set_title("from above")
-    axes[1].set_title("from the side")
-    axes[1].legend(loc="upper right", fontsize=8)
+    axes[0].set_title("from above", pad=28)
+    axes[1].set_title("from the side", pad=28)
+    axes[1].legend(loc="lower center", bbox_to_anchor=(0.5, 1.08), fontsize=8, ncol=2)
     assert sc is not None
     fig.colorbar(sc, ax=axes, label="speed [m/s]", shrink=0.8)
     fig.suptitle(title, fontsize=10)

@@ -72,13 +72,13 @@ def ask(diag: Diagnosis, between: tuple[str, str] | None = None, parameter: str 
         if a == b:
             raise QuestionError("--between needs two different effects")
         _candidate(diag, a), _candidate(diag, b)
-        return Question("separate", (a, b), why="asked")
+        return Question("separate", (a, b), why=f"asked: separate {a} from {b}")
     if parameter is not None:
         effect, _, name = parameter.partition(".")
         expl = explanation(diag, effect)
         if name not in expl.params:
             raise QuestionError(f"{effect} has no parameter {name!r}; its parameters: {', '.join(expl.params)}")
-        return Question("parameter", parameter=parameter, why="asked")
+        return Question("parameter", parameter=parameter, why=f"asked: pin down {parameter}")
     return _default(diag)
 
 

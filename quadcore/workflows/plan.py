@@ -55,7 +55,8 @@ def plot_png(result: FlightPlan) -> bytes | None:
              else f"pin down {q.parameter}")
     if result.manoeuvre is not None:
         title += f": {result.manoeuvre.describe()}"
-    return output.plot_png(path.p_w_m, speed, result.differ, result.limits.arena, title)
+    label = "where they differ most" if q.kind == "separate" else "where the parameter shows most"
+    return output.plot_png(path.p_w_m, speed, result.differ, result.limits.arena, title, label)
 
 
 def write(result: FlightPlan, json_path: Path, trajectory_path: Path | None, plot_path: Path | None = None) -> Written:
