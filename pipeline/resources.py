@@ -121,15 +121,31 @@ class ModelConfig(dg.ConfigurableResource):
         return workflows.parse_names(self.holdout)
 
 
-def model_config_from_env() -> ModelConfig:
-    """The model from the environment; its file is ``QUADCORE_MODEL``, else the data root's own
-    ``model.toml`` (the demo writes one, so that later runs continue its story), else ./model.toml."""
+def model_file_from_env() -> tuple[str, str]:
+    """(the model file a run uses, where that choice came from, in words): ``QUADCORE_MODEL``,
+    else the data root's own ``model.toml`` (the demo writes one, so that later runs continue its
+    story; it then takes precedence over ./model.toml), else ./model.toml, else none (the nominal
+    vehicle). The path is absolute, so that a hint naming it is the file to edit."""
     from quadcore.store import store
 
-    own = store.own_model_file(data_root_from_env().root_path)
-    default_file = str(own) if own.is_file() else "model.toml" if Path("model.toml").is_file() else ""
+    given = os.environ.get("QUADCORE_MODEL", "")
+    if given:
+        return str(Path(given).resolve()), "QUADCORE_MODEL"
+    root = data_root_from_env().root_path
+    own = store.own_model_file(root)
+    if own.is_file():
+        repo = " (the data root's own model file; ./model.toml is not read while it exists)" \
+            if Path("model.toml").is_file() else ""
+        return str(own), f"the data root's model.toml{repo}"
+    if Path("model.toml").is_file():
+        return str(Path("model.toml").resolve()), "./model.toml (the data root has no model.toml of its own)"
+    return "", "no model file: the nominal vehicle, no effects"
+
+
+def model_config_from_env() -> ModelConfig:
+    """The model from the environment; its file is :func:`model_file_from_env`'s."""
     return ModelConfig(
-        model_file=os.environ.get("QUADCORE_MODEL", default_file),
+        model_file=model_file_from_env()[0],
         vehicle=os.environ.get("QUADCORE_VEHICLE", ""),
         thrust_map=os.environ.get("QUADCORE_THRUST_MAP", ""),
         effects=os.environ.get("QUADCORE_EFFECTS", ""),
