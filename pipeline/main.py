@@ -34,6 +34,7 @@ from pipeline.resources import (
     executor_from_env,
     learn_row_budget,
     model_config_from_env,
+    model_file_from_env,
     retrain_cron,
 )
 from quadcore.identify import library_stats, sufficient
@@ -258,15 +259,29 @@ def _learning_stage(instance, resources: dict, refit: bool, log) -> bool:
         if not result.success:
             log(f"  FAILED: {failure_reason(result)}")
             return False
+        _left_out_of_c(result, log)
         log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
         return True
-    log(f"4/4 learned models: trained on this physics model; new flights are learned by the nightly "
-        f"retraining ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON) or by materialising learning_features")
+    log(f"4/4 learned models: trained on this physics model; new flights are learned by the schedule "
+        f"nightly_retrain_learned_models ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON; make ui runs it) or by "
+        "materialising learning_features")
     if refit:  # the C model carries the refitted parameters
         result = materialize(EXPORT, resources, instance)
         log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
             + ("" if result.success else f": {failure_reason(result)}"))
+        if result.success:
+            _left_out_of_c(result, log)
     return True
+
+
+def _left_out_of_c(result, log) -> None:
+    """The effects the C model leaves out (no C form), with why, from ``exported_model``'s metadata."""
+    for mat in result.asset_materializations_for_node("exported_model"):
+        entry = mat.metadata.get("left_out")
+        text = str(entry.value) if entry is not None else ""
+        for line in text.splitlines():
+            if line.startswith("- "):
+                log(f"  left out of the C model: {line[2:].replace('**', '')}")
 
 
 def _closing(root: Path, model: ModelConfig, suggested: str | None, demo: bool, failures: dict[str, str],
@@ -275,7 +290,7 @@ def _closing(root: Path, model: ModelConfig, suggested: str | None, demo: bool, 
     for line in [*summary.outputs(root), *summary.error_history(root)]:
         log(line)
     if suggested and not demo:
-        log(f"\nNext step: add {suggested!r} to `effects` in {model.model_file or 'model.toml'} and run again.")
+        log(f"\nNext step: {identify.next_step(suggested, model.model_file)}")
     if failures:
         log(f"\n{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
         for fid, why in failures.items():
@@ -319,13 +334,15 @@ def main() -> int:
     data_root = data_root_from_env()
     home = ensure_dagster_home(data_root.root_path)
     unsynced_event_log(home)
-    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}\n")
+    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}")
     try:
         model = model_config_from_env()
         model.spec()  # a bad model file is a user error: say so before any work
     except (ValueError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    path, origin = model_file_from_env()
+    print(f"Model:     {path or '(none)'}\n           from {origin}\n")
     return run_all(data_root, model, dg.DagsterInstance.get())
 
 

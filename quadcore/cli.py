@@ -1,6 +1,8 @@
 """The ``quadcore`` command: one command, one verb per stage.
 
     quadcore decode LOG_OR_FOLDER... --out DIR
+    quadcore vehicle new NAME [--out FILE]     (a vehicle file of your own, every number commented)
+    quadcore vehicle check FILE
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
     quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
@@ -338,7 +340,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             print(f"  note: {note}")
     print(f"\n{result.verdict}\n\nwrote {out}")
     if args.report:
-        md, page = identify.write_diagnosis_report(result, Path(args.report))
+        md, page = identify.write_diagnosis_report(result, Path(args.report), model_file=spec.source)
         with_discovery = identify.discovery_for(args.report, spec.effects) is not None
         print(f"wrote {md} and {page}" + ("" if with_discovery else
               f" (no discovery section: run `quadcore discover ... --json {Path(args.report) / 'discovery.json'}` "
@@ -386,10 +388,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
     print(f"\nwrote {out}")
     if args.write_effect:
         try:
-            path = discovery.write_effect(result, Path(args.write_effect))
+            written = discovery.write_effect(result, Path(args.write_effect), spec.vehicle)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        print(f"wrote {path}: add it to the model file's plugins and its name ({path.stem}) to effects")
+        for term, why in written.left_out.items():
+            print(f"left out of {written.path.name}: {term}: {why}")
+        print(f"wrote {written.path}: add it to the model file's plugins and its name ({written.path.stem}) to effects")
     return 0
 
 
@@ -503,6 +507,25 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_vehicle(args: argparse.Namespace) -> int:
+    """``quadcore vehicle new NAME [--out FILE]``: a vehicle file from the commented template;
+    ``quadcore vehicle check FILE``: load it as the pipeline would and print what it holds."""
+    from quadcore.physics import vehicle
+
+    if args.action == "new":
+        out = Path(args.out or f"{args.name}.toml")
+        v = vehicle.write_template(args.name, out)
+        print(f"wrote {out}: vehicle {v.name!r} with the Crazyflie 2.1's numbers; replace each with yours (every "
+              f"line says its meaning and unit), then check it with `quadcore vehicle check {out}`")
+        return 0
+    v = vehicle.load(Path(args.name))
+    print(f"{args.name}: vehicle {v.name!r}, {v.mass_kg * 1e3:.4g} g, {v.n_rotors} rotors, thrust map "
+          f"{v.thrust_map_kind}, hover thrust per rotor {v.weight_N / v.n_rotors * 1e3:.4g} mN")
+    print("it is valid; use it with vehicle = \"" + args.name + "\" in the model file, --vehicle (CLI) or "
+          "QUADCORE_VEHICLE (pipeline)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from quadcore.learn.learners import DEFAULT_ROW_BUDGET  # a constant (the module imports nothing heavy)
 
@@ -519,6 +542,13 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--vehicle", default=None, metavar="FILE", help="vehicle TOML (default: built-in Crazyflie 2.1)")
         p.add_argument("--thrust-map", default=None, metavar="KIND",
                        help="override the vehicle file's thrust map (pwm_vbat or motor_speed)")
+
+    p = sub.add_parser("vehicle", help="a vehicle file of your own: write one from the commented template, or "
+                       "check one")
+    p.add_argument("action", choices=["new", "check"], help="new: write a template; check: load and summarise FILE")
+    p.add_argument("name", metavar="NAME_OR_FILE", help="new: the vehicle's name; check: the vehicle file")
+    p.add_argument("--out", default=None, metavar="FILE", help="new: where to write it (default NAME.toml)")
+    p.set_defaults(func=cmd_vehicle)
 
     p = sub.add_parser("residuals", help="residual force and torque statistics per flight")
     p.add_argument("paths", nargs="+", metavar="LOG_OR_FOLDER")

@@ -342,3 +342,85 @@ def test_a_per_session_model_exports_its_fleet_values_and_says_so(tmp_path):
     with contextlib.redirect_stderr(err):
         assert cli.main(["export-c", str(tmp_path / "physics_model.json"), "--out", str(tmp_path / "cli")]) == 0
     assert err.getvalue().startswith("warning: export-c: per-session parameters (thrust_scale) at their fleet values")
+
+
+def test_an_effect_without_c_form_is_left_out_by_name_when_asked(tmp_path, decoded):
+    """What the pipeline's exported_model asks for: the export leaves the effect out, says which
+    and why (in the files and the result), and the C gives the other effects' wrench."""
+    plugin = tmp_path / "no_c_form2.py"
+    plugin.write_text(
+        "import numpy as np\n"
+        "from quadcore.effects import Effect, Parameter\n"
+        "class Tether(Effect):\n"
+        "    name = 'tether_left_out'\n"
+        "    parameters = (Parameter('F_z_N', 'N', 0.0, -1.0, 1.0, 'pull'),)\n"
+        "    def wrench(self, state, vehicle, params):\n"
+        "        f = np.zeros((state.n, 3)); f[:, 2] = params['F_z_N']\n"
+        "        return f, np.zeros((state.n, 3))\n"
+        "EFFECT = Tether()\n")
+    effects.load_plugin(plugin)
+    try:
+        drag = EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1})
+        pm = PhysicsModel(VEHICLE, [drag, EffectTerm("tether_left_out", {"F_z_N": 0.1})])
+        exported = export_c.export_models(pm, None, tmp_path / "out", "test", leave_out=True)
+        (effect, why), = exported.generated.left_out
+        assert effect == "tether_left_out" and "has no C form" in why
+        assert "LEFT OUT: effect 'tether_left_out' has no C form" in exported.source.read_text()
+        assert "LEFT OUT" in exported.header.read_text()
+        out = _run_c(exported, decoded[HOLDOUT], tmp_path / "build")
+        f_py, tau_py = PhysicsModel(VEHICLE, [drag]).extra_wrench(dynamics.flight_state(decoded[HOLDOUT], VEHICLE))
+        _assert_close(out["f_b_N"], out["tau_b_Nm"], f_py, tau_py, "rotor drag without the tether")
+    finally:
+        effects.unregister("tether_left_out")
+
+
+def test_write_effect_keeps_only_terms_with_a_c_form_and_says_which_it_left_out(tmp_path):
+    """``discover --write-effect`` writes the terms with an on-board form; a zero-phase derivative
+    is left out and named with why, in the module and the result."""
+    from quadcore.identify import discovery
+
+    kept = [("tau_res_b_y_Nm", "v_b_x_mps"), ("f_res_b_x_N", "omega_dot_b_y_radps2")]
+    terms = tuple(discovery.DiscoveredTerm(target=t, expression=e, variables=(e,), coefficient=1e-4, std=1e-5,
+                                           unit="kg m/s", term_unit="m/s", explained_variance=0.5, stability=1.0,
+                                           folds_selected=5, folds=5) for t, e in kept)
+    result = discovery.Discovery(terms=terms, axes=(), baseline={}, after={}, noise_floor={},
+                                 evaluation={"mode": "holdout", "eval_flights": ["jana02"]},
+                                 effects_in_model=("thrust_scale",))
+    written = discovery.write_effect(result, tmp_path / "found_terms.py", VEHICLE)
+    assert list(written.left_out) == ["omega_dot_b_y_radps2"]
+    assert "zero-phase smoothed time derivative" in written.left_out["omega_dot_b_y_radps2"]
+    text = written.path.read_text()
+    assert "left out here, as they have no C form" in text and "'omega_dot_b_y_radps2'" not in text
+    effects.load_plugin(written.path)
+    try:
+        assert [p.name for p in effects.get("found_terms").parameters] == [
+            discovery.parameter_name("tau_res_b_y_Nm", "v_b_x_mps", "kg m/s")]
+        assert effects.get("found_terms").c_code(VEHICLE, {p.name: 1e-4 for p in effects.get(
+            "found_terms").parameters}) is not None
+    finally:
+        effects.unregister("found_terms")
+
+
+@pytest.mark.slow  # decodes and fits the 19 real flights
+def test_the_committed_real_flights_model_exports_whole_and_its_c_matches_python(real_logs, tmp_path):
+    """examples/real-flights/model.toml (thrust scale per session, rotor drag, motor lag, and the
+    terms `discover --write-effect` wrote) fitted on the real flights exports with every effect,
+    discovered terms included, compiles with the strict flags, and gives on jana02 what the
+    Python model gives (fleet values: C has one set of constants, and says so)."""
+    from quadcore.workflows import fleet, identify, resolve_model
+
+    spec = resolve_model(str(Path(__file__).resolve().parents[1] / "examples" / "real-flights" / "model.toml"))
+    flights = fleet.fleet_from_logs([str(real_logs)], spec.vehicle)
+    fitted = identify.fit(flights, spec, ["jana02"])
+    path = identify.save_fit(tmp_path / "root", fitted)
+    with pytest.warns(UserWarning, match="per-session parameters"):
+        exported = export_c.export(path, tmp_path / "c", "none", leave_out=True)
+    assert exported.generated.left_out == ()
+    assert exported.generated.label == "nominal+thrust_scale+rotor_drag+motor_lag+discovered_terms"
+    assert exported.footprint is not None  # compiled here (and checked with the strict flags)
+    table = flights.tables["jana02"]
+    out = _run_c(exported, table, tmp_path / "build")
+    f_py, tau_py = fitted.model.extra_wrench(dynamics.flight_state(table, spec.vehicle))
+    assert np.abs(tau_py).max() > 1e-5  # the discovered torque terms act on this flight
+    # float32 inputs and derived quantities: agreement to float precision of the wrench's scale
+    assert np.abs(out["f_b_N"] - f_py).max() < 1e-4 and np.abs(out["tau_b_Nm"] - tau_py).max() < 1e-6

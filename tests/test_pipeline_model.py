@@ -146,7 +146,7 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
         before = metadata(res, "model_diagnosis")["force_rmse_x_N"]
         decoded = store.read_all_decoded(root, "fixedFrequency")
         found = discovery.discover(decoded, model.spec_from(vehicle.load(), []))
-        module = discovery.write_effect(found, tmp_path / "fx" / "found_drag.py")
+        module = discovery.write_effect(found, tmp_path / "fx" / "found_drag.py").path
         model_file = tmp_path / "fx" / "model.toml"
         model_file.write_text('effects = ["found_drag"]\nplugins = ["found_drag.py"]\n')
         try:

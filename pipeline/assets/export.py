@@ -47,17 +47,24 @@ class ExportCConfig(dg.Config):
 
 
 @dg.asset(group_name="export", deps=[physics_model, learned_models], kinds={"c"}, automation_condition=RETRAIN)
-def exported_model(config: ExportCConfig, data_root: DataRoot) -> dg.MaterializeResult:
+def exported_model(context: dg.AssetExecutionContext, config: ExportCConfig,
+                   data_root: DataRoot) -> dg.MaterializeResult:
     """`<root>/export_c/quadcore_model.{h,c}`: the physics model's effects plus the best learned
     residual as self-contained C99 for the flight controller (see the README, "On the vehicle"),
-    checked with the strict C99 flags; the flash and RAM footprint in the metadata."""
+    checked with the strict C99 flags; the flash and RAM footprint in the metadata. An effect
+    with no C form is left out, named with why (metadata ``left_out``, a warning, and the top of
+    both files), rather than failing the run."""
     root = data_root.root_path
     try:
-        exported = export_c.export(root, store.export_c_dir(root), config.learned)
+        exported = export_c.export(root, store.export_c_dir(root), config.learned, leave_out=True)
     except (export_c.ExportError, learners.LearningError) as exc:
         raise dg.Failure(description=str(exc)) from None
+    left_out = exported.generated.left_out
+    for _effect, why in left_out:
+        context.log.warning(f"left out of the C model: {why}")
     metadata: dict[str, dg.RawMetadataValue] = {
         "model": exported.generated.label,
+        "left_out": dg.MetadataValue.md("\n".join(f"- **{e}**: {why}" for e, why in left_out) or "none: every effect"),
         "header": dg.MetadataValue.path(str(exported.header)),
         "source": dg.MetadataValue.path(str(exported.source)),
         "inputs": dg.MetadataValue.json({f.name: f.logged_as() for f in exported.fields}),

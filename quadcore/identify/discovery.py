@@ -1131,8 +1131,32 @@ def parameter_name(target: str, expression: str, unit: str) -> str:
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-def write_effect(result: Discovery, path: str | Path) -> Path:
-    """Write the kept terms as a linear effect plugin module named after the file's stem."""
+@dataclass(frozen=True)
+class WrittenEffect:
+    """What :func:`write_effect` wrote: the module, and the kept terms it left out (term ->
+    why: a term with no on-board C form would make the effect impossible to export)."""
+
+    path: Path
+    left_out: dict[str, str]
+
+
+def c_form_problem(expression: str, vehicle: Vehicle) -> str | None:
+    """Why a term has no C form (:func:`c_term`), or None when it has one."""
+    if c_term(expression, vehicle) is not None:
+        return None
+    if "dot" in expression or "/dt" in expression:
+        return ("a zero-phase smoothed time derivative (it needs samples after the present one): "
+                "a flight controller cannot compute it")
+    return "built from a signal the exported model does not compute on board (the residual's own sensor)"
+
+
+def write_effect(result: Discovery, path: str | Path, vehicle: Vehicle | None = None) -> WrittenEffect:
+    """Write the kept terms as a linear effect plugin module named after the file's stem. Only
+    terms with a C form (:func:`c_term`: built from logged variables, computable on board) go
+    in, so the effect exports to C like the library's; the others are left out and named, with
+    why, in the module's docstring and the result. ``vehicle``: the model's (default Crazyflie 2.1)."""
+    from quadcore.physics import vehicle as vehicles
+
     path = Path(path)
     name = path.stem
     if path.suffix != ".py" or not NAME_RE.match(name):
@@ -1141,14 +1165,24 @@ def write_effect(result: Discovery, path: str | Path) -> Path:
         raise ValueError(f"{name!r} is a built-in effect; choose another name")
     if not result.terms:
         raise ValueError("no term was kept: there is no effect to write")
+    vehicle = vehicle or vehicles.load()
+    left_out = {t.expression: why for t in result.terms if (why := c_form_problem(t.expression, vehicle))}
+    terms = [t for t in result.terms if t.expression not in left_out]
+    if not terms:
+        raise ValueError("no kept term has a C form (" + "; ".join(f"{e}: {w}" for e, w in left_out.items())
+                         + "): there is no exportable effect to write")
     rows = []
-    for t in result.terms:
+    for t in terms:
         bound = max(100 * abs(t.coefficient), 100 * t.std, 1e-12)
         rows.append((t.target, t.expression, parameter_name(t.target, t.expression, t.unit), t.unit, bound))
     wrap = functools.partial(textwrap.fill, width=100, initial_indent="    ", subsequent_indent="        ")
-    formulas = "\n".join(wrap(t.formula) for t in result.terms)
-    literature = "\n".join(wrap(f"{t.expression}: {t.literature}") for t in result.terms if t.literature)
+    formulas = "\n".join(wrap(t.formula) for t in terms)
+    literature = "\n".join(wrap(f"{t.expression}: {t.literature}") for t in terms if t.literature)
+    dropped = "\n".join(wrap(f"{t.formula}: {left_out[t.expression]}") for t in result.terms
+                         if t.expression in left_out)
     terms_src = "\n".join("    (\n" + "".join(f"        {v!r},\n" for v in row) + "    )," for row in rows)
+    left_note = ("" if not dropped else "Kept by discover but left out here, as they have no C form for the flight "
+                 f"controller:\n{dropped}\n\n")
     evaluation = textwrap.fill(f"Discovered on top of the model {'+'.join(['nominal', *result.effects_in_model])} "
                                f"({result.evaluation['mode']}; evaluated on "
                                f"{', '.join(result.evaluation['eval_flights'])}):", width=100)
@@ -1159,8 +1193,8 @@ def write_effect(result: Discovery, path: str | Path) -> Path:
 
 {formulas}
 {("" if not literature else chr(10) + "Literature:" + chr(10) + literature + chr(10))}
-Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.identify.discovery.evaluate.
+{left_note}Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
+The terms are evaluated by quadcore.identify.discovery.evaluate; every one has a C form (quadcore export-c).
 """
 
 from quadcore.identify.discovery import DiscoveredEffect
@@ -1172,4 +1206,4 @@ TERMS = [
 
 EFFECT = DiscoveredEffect({name!r}, TERMS, __doc__)
 '''
-    return store.write_text(text, path)
+    return WrittenEffect(store.write_text(text, path), left_out)

@@ -244,6 +244,26 @@ def load(path_or_name: str | Path | None = None) -> Vehicle:
     return from_dict(read_toml(path, VehicleFileError, "vehicle file"), source=str(path))
 
 
+def write_template(name: str, path: str | Path) -> Vehicle:
+    """``quadcore vehicle new``: a vehicle file for ``name`` at ``path`` from the commented
+    template (``vehicles/template.toml``: every number with its meaning and unit, starting at the
+    Crazyflie 2.1's values), checked by :func:`load` before it is written. Refuses to overwrite
+    a file; a name that is not a plain identifier is a :class:`VehicleFileError`."""
+    import re
+
+    from quadcore.store import store
+
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
+        raise VehicleFileError(f"vehicle name {name!r}: use letters, digits, '_' or '-' (starting with a letter)")
+    path = Path(path)
+    if path.exists():
+        raise VehicleFileError(f"{path} exists already: choose another --out (nothing was written)")
+    text = resources.files("quadcore").joinpath("vehicles/template.toml").read_text().replace("NAME", name)
+    vehicle = from_dict(tomllib.loads(text), source=str(path))  # the template is a valid vehicle
+    store.write_text(text, path)
+    return vehicle
+
+
 def read_toml(path: Path, error: type[Exception], what: str) -> dict:
     """A TOML file as a dict; a missing or malformed file raises ``error`` saying which."""
     if not path.is_file():

@@ -132,16 +132,17 @@ def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
 
 
-def write_diagnosis_report(result: Diagnosis, reports_dir, root=None) -> tuple[Path, Path]:
+def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file: str = "") -> tuple[Path, Path]:
     """The diagnosis report (Markdown and HTML, with the plots) in ``reports_dir``, with the
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
-    history. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
+    history; ``model_file``: the file its next step tells to edit. The one report path of
+    ``quadcore diagnose --report`` and ``model_diagnosis``."""
     from quadcore.identify import history
     from quadcore.report import diagnosis as diagnosis_report
 
     hist = history.read(root) if root is not None else None
     return diagnosis_report.write(result.to_dict(), reports_dir, hist,
-                                  discovery_for(reports_dir, list(result.effects_in_model)))
+                                  discovery_for(reports_dir, list(result.effects_in_model)), model_file)
 
 
 def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Path]:
@@ -154,7 +155,7 @@ def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Pa
     b, ev = result.baseline, result.evaluation
     history.record(root, "diagnosis", result.model.label, list(b.force_rmse_N), list(b.torque_rmse_Nm),
                    spec.effects, {t.name: t.params for t in result.model.terms}, ev.mode, list(ev.eval_flights))
-    return write_diagnosis_report(result, store.reports_dir(root), root)
+    return write_diagnosis_report(result, store.reports_dir(root), root, spec.source)
 
 
 def suggestion(result: dict) -> str | None:
@@ -162,6 +163,15 @@ def suggestion(result: dict) -> str | None:
     (explains something, significantly)."""
     useful = [r for r in result["candidates"] if r["useful"]]
     return useful[0]["effect"] if useful else None
+
+
+def next_step(effect: str, model_file: str) -> str:
+    """The hint that follows a diagnosis suggesting ``effect``, naming the model file to edit
+    (the one the run used: see ``pipeline.resources.model_file_from_env``)."""
+    if model_file:
+        return f"add {effect!r} to `effects` in {model_file} and run again."
+    return (f"write a model file with effects = [\"{effect}\"] (copy the repository's model.toml) and name it with "
+            "QUADCORE_MODEL=FILE (or --model FILE), then run again.")
 
 
 # --- discovery -----------------------------------------------------------------------------

@@ -11,7 +11,9 @@ body frame that the nominal model (thrust map and rigid body) misses:
 Single precision, no heap, nothing but ``math.h``; the flash and RAM footprint, measured by
 compiling it, is written in a comment at the top of both files. Every effect gives its own C
 form through ``Effect.c_code`` (:mod:`quadcore.export.ccode`); an effect without one stops the export
-with :class:`NoCFormError` naming it.
+with :class:`NoCFormError` naming it, or (``leave_out``, what the pipeline's ``exported_model``
+asks for, so that one plugin cannot fail the user's job) is left out and named at the top of the
+files and in ``Generated.left_out``.
 
 What to export (:func:`load_source`): a learned model's folder (its manifest names the physics
 model it sits on), a fitted physics model's JSON file (``models/physics_model.json``), or a data
@@ -121,9 +123,11 @@ def load_source(path: str | Path, learned_kind: str = "xgboost"
 
 
 def export_models(physics: PhysicsModel, learned: artefacts.LearnedModel | None, out_dir: str | Path,
-                  provenance: str = "") -> Exported:
+                  provenance: str = "", leave_out: bool = False) -> Exported:
     """Generate, check with the strict C99 flags when a compiler is present, measure the
-    footprint, and write ``quadcore_model.{h,c}`` under ``out_dir`` (each atomically)."""
+    footprint, and write ``quadcore_model.{h,c}`` under ``out_dir`` (each atomically). An effect
+    with no C form stops it (:class:`NoCFormError`), or with ``leave_out`` is left out and named
+    in the files and ``generated.left_out``."""
     split = [t.name for t in physics.terms if t.per_session]
     if split or physics.session_maps:  # C has one set of constants: say which
         note = (f"per-session parameters ({', '.join(split)}) at their fleet values" if split else "") + (
@@ -133,10 +137,10 @@ def export_models(physics: PhysicsModel, learned: artefacts.LearnedModel | None,
         warnings.warn(f"export-c: {note}: export a model fitted on one session for that session's values",
                       stacklevel=2)
         provenance = f"{provenance} ({note})"
-    first = generate(physics, learned, provenance)
+    first = generate(physics, learned, provenance, leave_out=leave_out)
     footprint = measure_footprint(first)
     gen = generate(physics, learned, provenance, footprint.comment() if footprint else
-                   "Footprint: not measured (no C compiler where this was exported).")
+                   "Footprint: not measured (no C compiler where this was exported).", leave_out)
     if footprint is not None:  # a compiler is here: refuse code that does not pass the strict flags
         check_strict(gen)
     out = store.as_root(out_dir)
@@ -145,10 +149,10 @@ def export_models(physics: PhysicsModel, learned: artefacts.LearnedModel | None,
     return Exported(header, source, gen, footprint)
 
 
-def export(path: str | Path, out_dir: str | Path, learned_kind: str = "xgboost") -> Exported:
+def export(path: str | Path, out_dir: str | Path, learned_kind: str = "xgboost", leave_out: bool = False) -> Exported:
     """``quadcore export-c``: :func:`load_source`, then :func:`export_models`."""
     physics, learned, provenance = load_source(path, learned_kind)
-    return export_models(physics, learned, out_dir, provenance)
+    return export_models(physics, learned, out_dir, provenance, leave_out)
 
 
 def input_rows(table: pl.DataFrame, fields: tuple[Field, ...]) -> np.ndarray:
