@@ -10,7 +10,7 @@ from pipeline.assets import PER_FLIGHT
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
-from quadcore.logs import flight, logformat
+from quadcore.logs import flight, logformat, required
 from quadcore.store import store
 
 
@@ -31,11 +31,13 @@ def fingerprint(path: Path) -> str:
 
 
 def header_problem(path) -> str | None:
-    """The reason a file cannot be a log (checked on its header only; an unreadable file is
-    one), or None."""
+    """The reason a file cannot be a log, or a log the physics cannot use (checked on its header
+    only: the format, and every variable :mod:`quadcore.logs.required` names, in one message; an
+    unreadable file is one), or None."""
     try:
         with open(path, "rb") as f:
-            logformat.parse_header(f.read(64 * 1024))
+            _, types, _ = logformat.parse_header(f.read(64 * 1024))
+        required.check({t.name: t.variables for t in types.values()})
     except (logformat.LogFormatError, OSError) as exc:
         return f"{type(exc).__name__}: {exc}"
     return None

@@ -143,11 +143,21 @@ def test_truncated_raw_file_decodes_with_a_warning(instance, real_logs, tmp_path
     assert _metadata(result)["warning_count"] >= 1
 
 
+def _hover_log(path, seed: int) -> None:
+    """A short simulated flight with every variable the physics needs, at ``path``."""
+    from quadcore.sim import simulation
+
+    folder = path.parent / f".sim{seed}"
+    simulation.simulate_set(folder, [simulation.SimConfig(kind="hover", duration_s=1.0, seed=seed)], {})
+    path.write_bytes((folder / "sim000").read_bytes())
+
+
 def test_raw_log_sensor(instance, tmp_path, make_synthetic_log):
     raw = tmp_path / "raw"
     raw.mkdir()
-    make_synthetic_log(version=1, name="raw/flight_v1")
-    make_synthetic_log(version=2, name="raw/flight_v2", seed=1)
+    _hover_log(raw / "flight_v1", 1)
+    _hover_log(raw / "flight_v2", 2)
+    make_synthetic_log(version=2, name="raw/generic", seed=1)  # a readable log without fixedFrequency
     (raw / "foreign.bin").write_bytes(b"hello")
     (raw / "notes.txt").write_text("a sidecar: neither a run nor a quarantine")
     root = tmp_path / "root"
@@ -161,8 +171,11 @@ def test_raw_log_sensor(instance, tmp_path, make_synthetic_log):
     assert add.partitions_def_name == "flights" and sorted(add.partition_keys) == ["flight_v1", "flight_v2"]
     quarantined = json.loads(store.quarantine_path(root, "foreign.bin").read_text())
     assert "BadMagicError" in quarantined["reason"]
+    generic = json.loads(store.quarantine_path(root, "generic").read_text())  # refused at the door, one message
+    assert generic["reason"].startswith("MissingVariablesError: not usable for the physics: it has no "
+                                        "'fixedFrequency' event (it has fast, slow)"), generic["reason"]
     assert not store.quarantine_path(root, "notes.txt").exists()
-    assert set(json.loads(result.cursor)) == {"flight_v1", "flight_v2", "foreign.bin"}
+    assert set(json.loads(result.cursor)) == {"flight_v1", "flight_v2", "foreign.bin", "generic"}
 
     # nothing changed since the cursor: skip
     again = raw_log_sensor(
@@ -172,7 +185,7 @@ def test_raw_log_sensor(instance, tmp_path, make_synthetic_log):
 
     # a changed log is requested again; its partition is known by now, so no new partition
     instance.add_dynamic_partitions("flights", list(add.partition_keys))
-    make_synthetic_log(version=2, name="raw/flight_v2", seed=2, n_fast=41)
+    _hover_log(raw / "flight_v2", 3)
     third = raw_log_sensor(
         dg.build_sensor_context(instance=instance, resources={"data_root": data_root}, cursor=result.cursor)
     )
@@ -180,14 +193,17 @@ def test_raw_log_sensor(instance, tmp_path, make_synthetic_log):
     assert third.dynamic_partitions_requests == []
 
 
-def test_log_without_fixed_frequency_keeps_its_metadata(instance, tmp_path, make_synthetic_log):
+def test_log_without_fixed_frequency_is_quarantined_with_one_message(instance, tmp_path, make_synthetic_log):
+    """A readable log the physics cannot use (events "fast" and "slow" only) is quarantined when the
+    pipeline decodes it, with every missing variable in one message; `quadcore decode` still decodes it."""
     (tmp_path / "raw").mkdir()
     make_synthetic_log(version=1, name="raw/flight_v1")  # events "fast" and "slow" only
-    run = _materialize(instance, DataRoot(root=str(tmp_path / "root"), raw=str(tmp_path / "raw")), "flight_v1")
-    assert run.success
-    assert store.decoded_path(tmp_path / "root", "fast", "flight_v1").is_file()
-    meta = _metadata(run)
-    assert meta["rows_fast"] == 40 and meta["rows_slow"] == 17 and meta["format_version"] == 1
+    run = _materialize(instance, DataRoot(root=str(tmp_path / "root"), raw=str(tmp_path / "raw")), "flight_v1",
+                       raise_on_error=False)
+    assert not run.success
+    (record,) = store.quarantined(tmp_path / "root")
+    assert record["error_type"] == "MissingVariablesError" and "must hold the 21 variables" in record["reason"]
+    assert not store.decoded_path(tmp_path / "root", "fast", "flight_v1").exists()
 
 
 def test_definitions_load():

@@ -8,12 +8,13 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number
 from pipeline.resources import DataRoot
 from quadcore.learn.features import find_flights_csv
-from quadcore.logs import checks, flight
+from quadcore.logs import checks, flight, required
 from quadcore.store import store
 from quadcore.workflows.fleet import quarantine_reason
 
 MAIN_EVENT = store.MAIN_EVENT
-CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight") for name in checks.ALL_CHECKS]
+CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight", description=checks.DESCRIPTIONS[name])
+          for name in checks.ALL_CHECKS]
 
 
 def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log) -> tuple[dict, dict]:
@@ -23,6 +24,8 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
     try:  # any failure is this file's alone (quadcore.workflows.fleet.decode_logs does the same)
         path = data_root.raw_log(fid)
         fl = flight.decode_flight(path, fid)
+        # every variable the physics needs that the log lacks, in one message (quarantined like a bad file)
+        required.check({event: [c["source"] for c in cols.values()] for event, cols in fl.columns.items()})
     except Exception as exc:  # noqa: BLE001 (per-file isolation: quarantined with its reason)
         reason = quarantine_reason(exc)
         store.write_quarantine(data_root.root_path, fid, str(path), reason, type(exc).__name__)
@@ -73,34 +76,53 @@ def _keep_outcomes(data_root: DataRoot, fid: str, outcomes: dict) -> None:
                      check_outcomes_path(data_root, fid))
 
 
-def _flights_table(data_root: DataRoot, name: str) -> str:
-    """Every flight's latest outcome of check ``name`` as a Markdown table (failing flights first)."""
-    rows = []
-    for path in sorted(store.checks_dir(data_root.root_path).glob("*.json")):
+def latest_outcomes(data_root: DataRoot, name: str) -> dict[str, tuple[bool, str]]:
+    """Every decoded flight's latest outcome of check ``name``: flight -> (passed, reason)
+    (flights whose decoded table is gone are left out)."""
+    root = data_root.root_path
+    out = {}
+    for path in sorted(store.checks_dir(root).glob("*.json")):
         outcome = store.read_json(path).get(name)
-        if outcome is not None:
-            rows.append((outcome["passed"], path.stem, outcome["reason"]))
-    lines = [f"| {fid} | {'pass' if ok else 'WARN'} | {reason} |" for ok, fid, reason in sorted(rows)]
+        if outcome is not None and store.decoded_path(root, MAIN_EVENT, path.stem).is_file():
+            out[path.stem] = (bool(outcome["passed"]), str(outcome["reason"]))
+    return out
+
+
+def _flights_table(outcomes: dict[str, tuple[bool, str]]) -> str:
+    """Flights' outcomes of one check as a Markdown table (failing flights first)."""
+    rows = sorted((ok, fid, reason) for fid, (ok, reason) in outcomes.items())
+    lines = [f"| {fid} | {'pass' if ok else 'WARN'} | {reason} |" for ok, fid, reason in rows]
     return "| flight | outcome | reason |\n|---|---|---|\n" + "\n".join(lines)
 
 
+def check_summary(outcomes: dict[str, tuple[bool, str]], limit: int = 6) -> str:
+    """One line for a check over every flight it speaks for: how many fail, which and why."""
+    failing = [(fid, reason) for fid, (ok, reason) in sorted(outcomes.items()) if not ok]
+    if not failing:
+        return f"all {len(outcomes)} flights pass"
+    named = "; ".join(f"{fid}: {reason}" for fid, reason in failing[:limit])
+    more = f"; and {len(failing) - limit} more (see the flights table)" if len(failing) > limit else ""
+    return f"{len(failing)} of {len(outcomes)} flights fail: {named}{more}"
+
+
 def _check_results(outcomes: dict[str, dict], data_root: DataRoot) -> list[dg.AssetCheckResult]:
-    """One result per check for the run's flights, naming them: passed when every flight of the
-    run passes, the failing flights and reasons named; with every flight's latest outcome as a
-    table (metadata ``flights``), so that no flight's result hides another's."""
+    """One result per check, over every decoded flight (this run's outcomes and the latest of the
+    others, kept under ``checks/``): it passes only when every flight passes, with severity WARN
+    (a warning, never a failed run) and the counts in the result itself, so that one good new
+    flight cannot turn a check green while other flights fail it."""
     results = []
     for name in checks.ALL_CHECKS:
-        per_flight = {fid: o[name] for fid, o in outcomes.items()}
-        failing = {fid: d for fid, (ok, d, _) in per_flight.items() if not ok}
-        desc = "; ".join(f"{fid}: {d}" for fid, d in failing.items()) or (
-            f"{', '.join(per_flight)}: {next(iter(per_flight.values()))[1]}" if len(per_flight) == 1
-            else f"all {len(per_flight)} flights pass ({', '.join(per_flight)})")
+        every = latest_outcomes(data_root, name)
+        every.update({fid: (ok, d) for fid, o in outcomes.items() for ok, d, _ in [o[name]]})
+        failing = sorted(fid for fid, (ok, _) in every.items() if not ok)
         metrics = {k: number(v) if isinstance(v, float) else v
-                   for k, v in (next(iter(per_flight.values()))[2] if len(per_flight) == 1 else {}).items()}
+                   for k, v in (next(iter(outcomes.values()))[name][2] if len(outcomes) == 1 else {}).items()}
         results.append(dg.AssetCheckResult(
-            check_name=name, passed=not failing, severity=dg.AssetCheckSeverity.WARN, description=desc,
-            metadata={**metrics, "flights_in_run": ", ".join(per_flight), "flights_failing": len(failing),
-                      "flights": dg.MetadataValue.md(_flights_table(data_root, name))}))
+            check_name=name, passed=not failing, severity=dg.AssetCheckSeverity.WARN,
+            description=check_summary(every),
+            metadata={**metrics, "flights_checked": len(every), "flights_failing": len(failing),
+                      "failing": ", ".join(failing) or "none", "flights_in_run": ", ".join(outcomes),
+                      "flights": dg.MetadataValue.md(_flights_table(every))}))
     return results
 
 

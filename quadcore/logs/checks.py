@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import polars as pl
 
+from quadcore.logs.required import logged_as
 from quadcore.physics import dynamics
 
 # Physically plausible ranges for a small quadrotor (SI). Values outside are flagged, not dropped.
@@ -195,7 +196,7 @@ def physics_problem(df: pl.DataFrame, columns: list[str]) -> str | None:
 def usable_for_physics(df: pl.DataFrame) -> tuple[bool, str, dict]:
     """The physics gate as a check, on the columns the nominal quadrotor model reads."""
     missing = [c for c in dynamics.NOMINAL_COLUMNS if c not in df.columns]
-    problem = f"missing columns: {', '.join(missing)}" if missing else physics_problem(df, dynamics.NOMINAL_COLUMNS)
+    problem = f"missing columns: {logged_as(missing)}" if missing else physics_problem(df, dynamics.NOMINAL_COLUMNS)
     return problem is None, problem or "usable for the physics", {}
 
 
@@ -212,7 +213,7 @@ def usable_flights(tables: Mapping[str, pl.DataFrame], vehicle,
         missing = [c for c in need if c not in (known.columns if known is not None else tables[fid].columns)]
         problem: str | None
         if missing:
-            problem = f"missing columns: {', '.join(missing)}"
+            problem = f"missing columns: {logged_as(missing)}"
         elif known is not None and known.covers(need):
             problem = known.problem(need)
         else:
@@ -292,4 +293,20 @@ ALL_CHECKS = {
     "stuck_sensors": stuck_sensors,
     "has_flight_phase": has_flight_phase,
     "usable_for_physics": usable_for_physics,
+}
+
+# What each check looks for, for the UI (every check is a warning: a flight that fails one is
+# still decoded; the physics skips only the flights usable_for_physics refuses).
+DESCRIPTIONS = {
+    "monotonic_time": "Timestamps always increase (a log whose clock runs backwards is broken).",
+    "sample_gaps": f"No gap between samples longer than {GAP_WARN_S * 1e3:.0f} ms (the deck logs at 500 Hz; "
+                   "long gaps blur derivatives, and rows near them are left out of fits).",
+    "value_ranges": "Every SI value within what a small quadrotor can do (position, velocity, rates, "
+                    "accelerometer full scale, battery 2.5-4.5 V, PWM 0-1).",
+    "no_nans": "No NaN in any column.",
+    "stuck_sensors": "No sensor constant over the whole flight (e.g. a battery voltage stuck at 3.70 V, "
+                     "which makes the PWM/voltage thrust map see the wrong voltage).",
+    "has_flight_phase": "The log holds flight: motors driven and the vehicle moving or off the ground.",
+    "usable_for_physics": "The physics can use the flight: the columns it needs, enough samples, finite "
+                          "values, unit quaternions, a plausible battery voltage and a flight phase.",
 }

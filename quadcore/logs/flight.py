@@ -139,7 +139,8 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "
 
 def decode_flight(path: str | Path, flight_id: str | None = None) -> Flight:
     """Decode a raw uSD log file (at most ``logformat.MAX_LOG_BYTES``) into SI tables, as flight
-    ``flight_id`` (default: :func:`flight_id_of` the path). Raises ``LogFormatError`` if
+    ``flight_id`` (default: :func:`flight_id_of` the path). Any event types: whether the physics
+    can use them is :func:`quadcore.logs.required.check`'s to say. Raises ``LogFormatError`` if
     unrecoverable."""
     path = Path(path)
     buf = logformat.read_log(path)
