@@ -7,9 +7,6 @@ VENV_PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DATA ?= data
 PORT ?= 3000
-# `make ui` serves the plots here; materialisations link to them so the asset pages show them.
-PLOTS_PORT ?= $(shell echo $$(($(PORT) + 1)))
-run ui: export QUADCORE_PLOTS_URL ?= http://127.0.0.1:$(PLOTS_PORT)
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
 
@@ -41,9 +38,9 @@ lint: $(STAMP)
 	$(VENV_PYTHON) -m ruff check .
 	$(VENV_PYTHON) -m mypy
 
-# Dagster's UI and daemon (`dg dev`) until Ctrl-C / SIGTERM; PORT=3001 make ui for another port.
+# Dagster's UI and daemon until Ctrl-C / SIGTERM (plots served on the same port); PORT=3300 make ui for another port.
 ui: $(STAMP)
-	$(VENV_PYTHON) -m pipeline.ui --port $(PORT) --plots-port $(PLOTS_PORT)
+	$(VENV_PYTHON) -m pipeline.ui --port $(PORT)
 
 bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_export.py

@@ -11,6 +11,7 @@ from pipeline.resources import (
     executor_from_env,
     model_config_from_env,
 )
+from pipeline.schedules import nightly_retrain_learned_models, retrain_learned_models
 from pipeline.sensors import QUARANTINE, process_flight, raw_log_sensor
 
 # Running them on the code server is "beta" in Dagster 1.13; it is what custom conditions need.
@@ -25,8 +26,9 @@ automation = dg.AutomationConditionSensorDefinition(
 
 defs = dg.Definitions(
     assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING, *EXPORT],
-    jobs=[process_flight],
+    jobs=[process_flight, retrain_learned_models],
     sensors=[raw_log_sensor, automation],
+    schedules=[nightly_retrain_learned_models],
     resources={"data_root": data_root_from_env(), "model": model_config_from_env()},
     executor=executor_from_env(),
 )

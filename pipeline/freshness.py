@@ -123,21 +123,18 @@ class ModelFileChanged(dg.AutomationCondition):
         return dg.AutomationResult(context=context, true_subset=subset)
 
 
-# Recompute a flight's table when it is missing or its inputs changed (eager), and also whenever
-# it was computed against an older model than the current one (state, so a run that overlapped a
-# refit is caught too); never while a run for it is going on, and not again after a failure.
+# Recompute a flight's table when it is missing or its own inputs changed (eager, its decoded
+# table: a refit of physics_model alone is not a reason, as a new flight refits it without
+# changing the model), and whenever it was computed against an older model than the current one
+# (state, so a refit that moved a parameter, or a run that overlapped a refit, is caught); never
+# while a run for it is going on, and not again after a failure.
 REFRESH = (
-    dg.AutomationCondition.eager()
+    dg.AutomationCondition.eager().ignore(dg.AssetSelection.assets("physics_model"))
     | (ComputedAgainstOlderModel()
        & ~dg.AutomationCondition.in_progress()
        & ~dg.AutomationCondition.any_deps_in_progress()
        & ~dg.AutomationCondition.execution_failed())
-).with_label("recompute when missing, when inputs change, or when computed against an older model")
-
-# Fan-in stages wait while any flight is stale or being refreshed, instead of failing on a mix.
-ALL_FLIGHTS_FRESH = ~dg.AutomationCondition.any_deps_match(
-    ComputedAgainstOlderModel() | dg.AutomationCondition.in_progress()
-).with_label("every flight computed against the current model")
+).with_label("recompute when missing, when its decoded table changes, or when computed against an older model")
 
 
 class StatisticsOutdated(dg.AutomationCondition):

@@ -52,13 +52,31 @@ def materialization_count(instance, asset: str, key: str) -> int:
 
 
 @pytest.mark.slow  # the sensor and every stage, twice
-def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_path):
+def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_path, monkeypatch):
+    """A new flight is decoded and computed alone; the refit it causes leaves the model as it was
+    (the nominal model: nothing to fit), so no other flight's tables are recomputed; the learned
+    models wait for the schedule nightly_retrain_learned_models, which skips a tick when no
+    residual table changed since they trained."""
+    from pipeline.assets.learning import learning_features
+    from pipeline.schedules import nightly_retrain_learned_models
+
     raw = tmp_path / "raw"
     raw.mkdir()
     for name in ("sim000", "sim001"):
         (raw / name).symlink_to(sim_logs / name)
+    model_file = tmp_path / "model.toml"
+    model_file.write_text("effects = []\n")
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))  # what the automation and schedule read
+    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
+    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
+    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
-    resources = {"data_root": data_root, "model": ModelConfig()}
+    resources = {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))}
+
+    def tick_at(when):
+        return nightly_retrain_learned_models.evaluate_tick(
+            dg.build_schedule_context(instance=instance, scheduled_execution_time=when))
+
     with dg.instance_for_test() as instance:
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance)  # the daemon's first tick
         assert auto.total_requested == 0
@@ -66,24 +84,18 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert sorted(r.partition_key for r in first.run_requests) == ["sim000", "sim001"]
         for r in first.run_requests:
             run(PER_FLIGHT, resources, instance, r.partition_key)
-        # the automation retrains once flights are there ...
+        # the automation refits once flights are there ...
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1
-        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0  # learning waits for the night
+        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0  # learning waits for the schedule
         fleet = run(FLEET, resources, instance)
         # two flights, one held out: discovery cannot fold by flight and waits, without stopping the diagnosis
         disc = fleet.asset_materializations_for_node("term_discovery")[0].metadata["summary"].value
         assert disc.startswith("skipped: discovery needs at least two training flights")
-        # the refit makes every flight's residual table stale: they are recomputed ...
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
-        assert auto.get_requested_partitions(dg.AssetKey("residual_table")) == {"sim000", "sim001"}
-        for key in ("sim000", "sim001"):
-            run(AGAINST_MODEL, resources, instance, key)
-        # ... the learned models follow the fresh residuals, and then nothing runs while nothing changes
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
-        assert auto.get_num_requested(dg.AssetKey("physics_model")) == 0
-        assert auto.get_num_requested(dg.AssetKey("residual_table")) == 0
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        # ... a refit that leaves the model as it was recomputes no flight's tables, and then nothing runs
+        for _ in range(2):
+            auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+            assert auto.get_num_requested(dg.AssetKey("residual_table")) == 0
         assert auto.total_requested == 0
         assert isinstance(sensor_tick(instance, data_root, first.cursor), dg.SkipReason)
 
@@ -91,19 +103,26 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         second = sensor_tick(instance, data_root, first.cursor)
         assert [r.partition_key for r in second.run_requests] == ["sim002"]
         run(PER_FLIGHT, resources, instance, "sim002")
-        assert materialization_count(instance, "residual_table", "sim000") == 2  # first run + the refresh
-        assert materialization_count(instance, "residual_table", "sim002") == 1
         auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
         assert auto.get_num_requested(dg.AssetKey("physics_model")) == 1  # a new flight: refit at once
         assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
-        # the nightly tick (QUADCORE_RETRAIN_CRON, 02:00 UTC by default) retrains once, then waits again
-        night = datetime.now(UTC).replace(hour=2, minute=30) + timedelta(days=1)
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor,
-                                                 evaluation_time=night)
-        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor,
-                                                 evaluation_time=night + timedelta(minutes=1))
-        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 0
+        run(FLEET, resources, instance)
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+        for asset in ("residual_table", "rollout_errors", "flight_mcap"):
+            assert auto.get_num_requested(dg.AssetKey(asset)) == 0, asset  # the model did not change
+            for fid in ("sim000", "sim001", "sim002"):
+                assert materialization_count(instance, asset, fid) == 1, (asset, fid)
+
+        # the schedule: no learned models yet, so its tick runs them; then it skips until a residual table changes
+        night = datetime.now(UTC).replace(hour=2, minute=0, second=0, microsecond=0) + timedelta(days=1)
+        data = tick_at(night)
+        assert len(data.run_requests) == 1 and data.run_requests[0].tags["quadcore/trigger"] == "no learned models yet"
+        assert nightly_retrain_learned_models.job_name == "retrain_learned_models"
+        run([learning_features], resources, instance)
+        assert tick_at(night + timedelta(days=1)).skip_message == (
+            "no residual table changed since the learned models last trained")
+        run(AGAINST_MODEL, resources, instance, "sim001")
+        assert len(tick_at(night + timedelta(days=2)).run_requests) == 1
 
 
 @pytest.mark.slow  # the main job, then the sensor
@@ -199,6 +218,10 @@ def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_p
         flights_now = {"sim000", "sim001", "sim002"}
         stale = versions_used(instance, dg.AssetKey("residual_table"), flights_now)
         assert stale["sim002"] == before  # computed against the old model, materialised last
+        from pipeline.schedules import learning_due
+
+        due, why = learning_due(instance)  # the schedule's tick would wait for the refresh, not mix two models
+        assert not due and why.startswith("waiting: 1 flight(s) computed against an older physics model (sim002)")
 
         cursor = settle(instance, resources, cursor)
         current = current_model_version()
@@ -217,12 +240,10 @@ def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_p
         models = {store.read_metadata(store.table_path(data_root.root_path, "residuals", f))["model"]["label"]
                   for f in flights_now}
         assert models == {"nominal+rotor_drag+thrust_scale"}
-        # the nightly learning runs now that every flight is fresh, and succeeds on one model
-        night = datetime.now(UTC).replace(hour=2, minute=30) + timedelta(days=1)
-        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=cursor, evaluation_time=night)
-        assert auto.get_num_requested(dg.AssetKey("learning_features")) == 1
+        # the nightly schedule's tick runs the learning now that every flight is fresh, and it succeeds on one model
         from pipeline.assets.learning import learning_features
 
+        assert learning_due(instance) == (True, "no learned models yet")
         run([learning_features], resources, instance)
 
 

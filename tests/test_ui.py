@@ -33,13 +33,13 @@ def webserver(tmp_path_factory):
     home = base / "dagster_home"
     home.mkdir()
     (home / "dagster.yaml").write_text("telemetry:\n  enabled: false\n")
-    port, plots_port = free_port(), free_port()
-    _populate(base, home, raw.parent / "drag", f"http://127.0.0.1:{plots_port}")
+    port = free_port()
+    _populate(base, home, raw.parent / "drag")
     env = {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(base / "root"),
            "QUADCORE_RAW_DIR": str(raw), "QUADCORE_AUTOMATION": "off"}  # only the run the test launches
     log = open(base / "dagster_dev.log", "w")
     # `make ui`'s launcher; its own session too, so that a failed test can still end everything
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port), "--plots-port", str(plots_port)],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
                             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + 180
@@ -53,6 +53,7 @@ def webserver(tmp_path_factory):
                 pytest.fail(f"make ui did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
             time.sleep(1)
     yield url, port, base
+    sys.__stderr__.write(f"\nUI screenshots (PNG) kept in {base}\n")  # the test artefacts, for people to look at
     # SIGTERM to the launcher alone (as a service manager would send it) stops every service
     proc.send_signal(signal.SIGTERM)
     try:
@@ -67,12 +68,12 @@ def webserver(tmp_path_factory):
     assert port_problem("127.0.0.1", port) is None
 
 
-def _populate(base: Path, home: Path, raw: Path, plots_url: str) -> None:
+def _populate(base: Path, home: Path, raw: Path) -> None:
     """What a lab has before opening the UI: three flights with rotor drag hidden, decoded and
     checked, the model diagnosed nominal, then with rotor_drag added (the error falls)."""
     import dagster as dg
 
-    from pipeline.assets import FLEET
+    from pipeline.assets import AGAINST_MODEL, FLEET
     from pipeline.assets.decode import decoded_flight
     from pipeline.resources import DataRoot, ModelConfig
 
@@ -80,24 +81,19 @@ def _populate(base: Path, home: Path, raw: Path, plots_url: str) -> None:
     simulation.simulate_set(raw, configs, {"rotor_drag": {"k_x_s_per_m": 0.15, "k_y_s_per_m": 0.15}})
     data_root = DataRoot(root=str(base / "root"), raw=str(raw))
     quiet = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
-    before = os.environ.get("QUADCORE_PLOTS_URL")
-    os.environ["QUADCORE_PLOTS_URL"] = plots_url  # as `make run` does: plots linked, served by `make ui`
-    try:
-        instance = dg.DagsterInstance.from_config(str(home))
-        keys = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
-        instance.add_dynamic_partitions("flights", keys)
-        for key in keys:
-            assert dg.materialize([decoded_flight], partition_key=key, instance=instance, run_config=quiet,
-                                  resources={"data_root": data_root}).success
-        for effects in ("", "rotor_drag"):
-            assert dg.materialize(FLEET, instance=instance, run_config=quiet,
-                                  resources={"data_root": data_root, "model": ModelConfig(effects=effects)}).success
-        instance.dispose()
-    finally:
-        if before is None:
-            os.environ.pop("QUADCORE_PLOTS_URL", None)
-        else:
-            os.environ["QUADCORE_PLOTS_URL"] = before
+    # plots are linked as /quadcore-plots/<file>, served by `make ui` on whatever port it runs
+    instance = dg.DagsterInstance.from_config(str(home))
+    keys = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
+    instance.add_dynamic_partitions("flights", keys)
+    for key in keys:
+        assert dg.materialize([decoded_flight], partition_key=key, instance=instance, run_config=quiet,
+                              resources={"data_root": data_root}).success
+    for effects in ("", "rotor_drag"):
+        assert dg.materialize(FLEET, instance=instance, run_config=quiet,
+                              resources={"data_root": data_root, "model": ModelConfig(effects=effects)}).success
+    assert dg.materialize(AGAINST_MODEL, partition_key=keys[0], instance=instance, run_config=quiet,
+                          resources={"data_root": data_root, "model": ModelConfig(effects="rotor_drag")}).success
+    instance.dispose()
 
 
 def _kill_everything_of(home: Path) -> list[str]:
@@ -132,7 +128,7 @@ def test_a_taken_port_is_one_clear_line(tmp_path):
 def test_materialise_through_graphql_and_read_metadata(webserver):
     from dagster_graphql import DagsterGraphQLClient
 
-    _, port, _ = webserver
+    url, port, _ = webserver
     client = DagsterGraphQLClient("127.0.0.1", port_number=port)
     repo = {"repositoryLocationName": LOCATION, "repositoryName": "__repository__"}
     added = client._execute(
@@ -157,10 +153,11 @@ def test_materialise_through_graphql_and_read_metadata(webserver):
     assert mats and mats[0]["partition"] == "sim001"
     entries = {e["label"]: e for e in mats[0]["metadataEntries"]}
     assert 0 < entries["force_rmse_x_N"]["floatValue"] < 0.01  # a hover without effects: noise level
-    # a short link (under the 1,000 characters the asset page renders inline) to the served PNG
+    # a short link (under the 1,000 characters the asset page renders inline) with no host or port,
+    # served by the UI on its own origin
     link = entries["model_vs_measured"]["mdStr"]
-    assert len(link) < 1000 and link.startswith("![model vs measured](http://127.0.0.1:"), link
-    with urllib.request.urlopen(link[link.index("(") + 1:-1], timeout=10) as response:
+    assert len(link) < 1000 and link.startswith("![model vs measured](/quadcore-plots/"), link
+    with urllib.request.urlopen(url + link[link.index("(") + 1:-1], timeout=10) as response:
         assert response.read(8) == b"\x89PNG\r\n\x1a\n"
 
 
@@ -236,10 +233,32 @@ def _image_shown(alt: str) -> str:
 
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
 def test_diagnosis_page_shows_its_plot(webserver):
+    """On a port that is not the default one: the plots are linked without host or port and
+    served by the UI itself."""
+    url, port, _ = webserver
+    assert port != 3000
     text, shot = _page(webserver, "/assets/model_diagnosis", _image_shown("candidates"), "diagnosis",
                        _scroll_to_image("candidates"))
     assert "verdict" in text.lower() and "nominal+rotor_drag" in text
+    assert "headline" in text and "next_step" in text
     assert _colours(shot) > 200  # a real plot on the page, not a blank frame
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_a_flight_page_shows_its_plot(webserver):
+    text, shot = _page(webserver, "/assets/residual_table?view=partitions&partition=sim000",
+                       _image_shown("model vs measured"), "flight_residual_table",
+                       _scroll_to_image("model vs measured"))
+    assert "sim000" in text
+    assert _colours(shot) > 200
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_the_retraining_schedule_is_listed_with_its_cron(webserver):
+    text, _ = _page(webserver, "/automation",
+                    "document.body && document.body.innerText.includes('nightly_retrain_learned_models')",
+                    "schedule")
+    assert "nightly_retrain_learned_models" in text and "raw_log_sensor" in text
 
 
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")
@@ -267,6 +286,7 @@ def test_check_table_names_the_flights(webserver):
                     open_table, "document.body.innerText.includes('sim002')")
     for name in ("stuck_sensors", "sample_gaps"):
         assert name in text
+    assert "all 3 flights pass" in text  # the check speaks for every flight, with the count
     table = text[text.rindex("flight\toutcome\treason"):]
     assert all(f"{fid}\tpass" in table for fid in ("sim000", "sim001", "sim002")), table
 

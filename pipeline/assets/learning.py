@@ -4,9 +4,8 @@ flights: feature sets -> trained models (XGBoost, MLP) -> report with baselines 
 import dagster as dg
 import polars as pl
 
-from pipeline.assets.model import RETRAIN, failing_on_user_errors
+from pipeline.assets.model import failing_on_user_errors
 from pipeline.assets.physics import residual_table
-from pipeline.freshness import ALL_FLIGHTS_FRESH
 from pipeline.plot_links import plot_md
 from pipeline.resources import DataRoot, ModelConfig, learn_row_budget, retrain_cron
 from quadcore.learn import features as feat, tables
@@ -16,17 +15,11 @@ from quadcore.workflows import learn
 
 ALL_RESIDUALS = [dg.AssetDep(residual_table, partition_mapping=dg.AllPartitionMapping())]
 
-# Learning costs tens of seconds on the whole fleet: it waits for the nightly tick (configurable),
-# and then runs only if a residual table changed since it last ran; the models and the report
-# follow the features eagerly. The fleet fit and the diagnosis stay eager (they are cheap).
-_TICK: dg.AutomationCondition = dg.AutomationCondition.cron_tick_passed(retrain_cron(), "UTC")
-NIGHTLY = (
-    _TICK.since_last_handled()
-    & dg.AutomationCondition.any_deps_updated().since_last_handled()
-    & ~dg.AutomationCondition.any_deps_in_progress()
-    & ~dg.AutomationCondition.in_progress()
-    & ALL_FLIGHTS_FRESH
-).with_label(f"retrain at {retrain_cron()} UTC when flights changed, once every flight is fresh")
+# Learning costs tens of seconds on the whole fleet: the schedule nightly_retrain_learned_models
+# (pipeline/schedules.py) runs it, or a manual materialisation; the models and the report follow
+# the features, and say so in their automation label.
+AFTER_FEATURES = dg.AutomationCondition.eager().with_label(
+    f"after learning_features: the nightly_retrain_learned_models schedule ({retrain_cron()} UTC) or a manual run")
 
 
 class FeatureConfig(dg.Config):
@@ -56,10 +49,11 @@ class LearningConfig(dg.Config):
     threads: int = 1  # XGBoost threads (one is faster on the 2-core machine; see quadcore.learn.learners.TrainConfig)
 
 
-@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"}, automation_condition=NIGHTLY)
+@dg.asset(group_name="learning", deps=ALL_RESIDUALS, kinds={"parquet"})
 def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.MaterializeResult:
     """Named feature sets with their targets (residual force and torque, body frame) per flight:
-    ``<root>/features/<set>/flight=<id>/data.parquet``."""
+    ``<root>/features/<set>/flight=<id>/data.parquet``. Retrained by the schedule
+    ``nightly_retrain_learned_models`` when residual tables changed, or materialise it now."""
     root = data_root.root_path
     with failing_on_user_errors():
         sets, n_flights = learn.build_features(root, config.feature_sets)
@@ -73,7 +67,8 @@ def learning_features(config: FeatureConfig, data_root: DataRoot) -> dg.Material
     })
 
 
-@dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"}, automation_condition=RETRAIN)
+@dg.asset(group_name="learning", deps=[learning_features], kinds={"xgboost", "pytorch"},
+          automation_condition=AFTER_FEATURES)
 def learned_models(
     context: dg.AssetExecutionContext, config: LearningConfig, data_root: DataRoot, model: ModelConfig
 ) -> dg.MaterializeResult:
@@ -101,7 +96,7 @@ def learned_models(
     })
 
 
-@dg.asset(group_name="learning", deps=[learned_models], kinds={"html"}, automation_condition=RETRAIN)
+@dg.asset(group_name="learning", deps=[learned_models], kinds={"html"}, automation_condition=AFTER_FEATURES)
 def learning_report(data_root: DataRoot) -> dg.MaterializeResult:
     """Held-out MAE / RMSE / R² per axis beside the baselines (physics-only, zero, training mean)
     and the study's figures; comparison tables and plots. Writes reports/learning.{md,html,json}

@@ -72,6 +72,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
     held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
     learned models are scored on."""
     spec = model.spec()
+    context.log.info(f"model file: {spec.source or '(none: the nominal vehicle)'}")
     flights = load_fleet(data_root, spec.vehicle, context.log)
     with failing_on_user_errors():
         fitted = identify.fit(flights, spec, model.holdout_flights, context.log.info,
@@ -106,13 +107,20 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     md, page = identify.record_diagnosis(data_root.root_path, result, spec)
     b, doc = result.baseline, result.to_dict()  # the plots draw the JSON document
     disagreements = [d.to_dict() for d in result.disagreements]
+    per_session = diagnosis_report.session_values(doc)
     return dg.MaterializeResult(metadata={
+        "headline": dg.MetadataValue.md(diagnosis_report.headline(doc)),
+        "next_step": dg.MetadataValue.md(diagnosis_report.next_step(doc, spec.source)),
+        "evidence": dg.MetadataValue.md(render.markdown_table(diagnosis_report.evidence_table(doc, 5))),
         "verdict": dg.MetadataValue.md(result.verdict),
         "model": result.model.label,
+        "model_file": spec.source or "(none: nominal)",
         **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b.force_rmse_N)},
-        **{f"torque_rmse_{a}_Nm": number(v) for a, v in zip("xyz", b.torque_rmse_Nm)},
+        **{f"torque_rmse_{a}_mNm": number(v * 1e3) for a, v in zip("xyz", b.torque_rmse_Nm)},
         "candidates": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             verdict.candidate_summary(result.candidates[:5])))),
+        "values_per_session": dg.MetadataValue.md(render.markdown_table(per_session) if per_session is not None
+                                                  else "none: one value per parameter for every flight"),
         "sensitivity": dg.MetadataValue.md(render.markdown_table(pl.DataFrame(
             verdict.sensitivity_rows(result.sensitivity, result.sensitivity_basis)))),
         "sensitivity_json": dg.MetadataValue.json(doc["sensitivity"]),
@@ -121,7 +129,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "disagreements_json": dg.MetadataValue.json(disagreements),
         "candidates_plot": plot_md(data_root, diagnosis_report.candidates_plot(doc), "candidates"),
         "regimes_plot": plot_md(data_root, diagnosis_report.regimes_plot(doc), "regimes"),
-        "worst_segments": dg.MetadataValue.md(render.markdown_table(result.worst_segments)),
+        "worst_segments": dg.MetadataValue.md(render.markdown_table(diagnosis_report.in_mNm(result.worst_segments))),
         **_frequency_metadata(data_root, doc["frequency"]),
         "report": dg.MetadataValue.path(str(page)),
         **skipped_metadata(flights.skipped),
@@ -146,7 +154,8 @@ def error_history(data_root: DataRoot) -> dg.MaterializeResult:
     return dg.MaterializeResult(metadata={
         "evaluations": hist.height,
         "latest_model": last["model_label"],
-        **{c: number(last[c]) for c in history.RMSE_COLUMNS},
+        **{c.replace("_Nm", "_mNm") if c.endswith("_Nm") else c: number(last[c] * (1e3 if c.endswith("_Nm") else 1))
+           for c in history.RMSE_COLUMNS},
         "history_plot": plot_md(data_root, diagnosis_report.history_plot(hist), "history"),
         "folder": dg.MetadataValue.path(str(history.history_dir(data_root.root_path))),
     })

@@ -141,14 +141,17 @@ def frequency_plot(freq: dict) -> bytes:
 
 
 def frequency_table(freq: dict) -> pl.DataFrame:
-    """One row per channel and band: residual RMS, its share, coherence, gain, phase (None where not
-    defined: shown as n/a)."""
+    """One row per channel and band: residual RMS (force in N, torque in mN m), its share,
+    coherence, gain, phase (None where not defined: shown as n/a)."""
+    scale = {r["channel"]: 1e3 if r["channel"].startswith("torque") else 1.0 for r in freq["channels"]}
     return pl.DataFrame([
-        {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}", "residual_rms": r["residual_rms"][i],
+        {"channel": r["channel"], "band_hz": f"{lo:g}-{hi:g}",
+         "residual_rms": r["residual_rms"][i] * scale[r["channel"]],
          "share": r["residual_share"][i], "coherence": r["coherence"][i], "gain": r["gain"][i],
          "phase_deg": r["phase_deg"][i]}
         for r in freq["channels"] for i, (lo, hi) in enumerate(freq["bands_hz"])]
-        + [{"channel": r["channel"], "band_hz": "mean per flight", "residual_rms": r["residual_mean_rms"],
+        + [{"channel": r["channel"], "band_hz": "mean per flight",
+            "residual_rms": r["residual_mean_rms"] * scale[r["channel"]],
             "share": r["mean_share"], "coherence": None, "gain": None, "phase_deg": None}
            for r in freq["channels"]])
 
@@ -198,11 +201,12 @@ HISTORY_PLOT_SETS = 3
 
 @_drawn_once(_frame_bytes)
 def history_plot(hist: pl.DataFrame) -> bytes:
-    """The falling-error plot: one row of panels per evaluation set (like with like), force [N]
-    and torque [mN m] per axis as steps from one model to the next."""
+    """The falling-error plot: per evaluation set (like with like), force [N] above torque
+    [mN m], per axis, as steps from one model to the next."""
     sets = list(history.series(hist).items())[:HISTORY_PLOT_SETS]
-    fig, axes = plt.subplots(len(sets), 2, figsize=(12, 3.4 * len(sets)), layout="constrained", squeeze=False)
-    for (name, rows), (ax_f, ax_t) in zip(sets, axes):
+    # force above torque, 8 inches wide: narrow enough for the asset page's metadata column
+    fig, axes = plt.subplots(2 * len(sets), 1, figsize=(8, 3.2 * 2 * len(sets)), layout="constrained", squeeze=False)
+    for (name, rows), ax_f, ax_t in zip(sets, axes[0::2, 0], axes[1::2, 0]):
         x = np.arange(rows.height)
         labels = [f"{i}: {lab}" for i, lab in enumerate(rows["model_label"].to_list())]
         for ax, kind, unit, scale in ((ax_f, "force", "N", 1.0), (ax_t, "torque", "mN m", 1e3)):
@@ -228,15 +232,117 @@ def history_table(hist: pl.DataFrame) -> pl.DataFrame:
           if c.endswith("_Nm")])
 
 
-def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None) -> list[tuple[str, str, object]]:
-    """(title, kind, content) with kind in text / table / image."""
+def headline(d: dict) -> str:
+    """The verdict in one sentence: the effect most likely missing, how much it removes and how
+    sure; or that none is found (the first sentence of the verdict, which says why)."""
+    found = [r for r in d["candidates"] if r.get("found", r.get("useful", False))]
+    if not found:
+        first = d["verdict"].split(": ", 1)[0] if d["verdict"].startswith("No effect") else d["verdict"]
+        return first.split(". ")[0].rstrip(".") + "."
+    top = found[0]
+    tied = top.get("tied_with", [])
+    return (f"Most likely missing: {top['effect']}, which removes {_percent(top['explained_variance'])} of the "
+            f"held-out {top['target']} residual (p = {_p(top['held_out_p_value'])})"
+            + (f"; these flights cannot tell it apart from {', '.join(tied)}" if tied else "") + ".")
+
+
+def _percent(x: float) -> str:
+    return f"{max(float(x), 0.0) * 100:.0f} %"
+
+
+def _p(p: float) -> str:
+    """A p-value for people: two digits, and no smaller than what double precision can tell."""
+    return "< 1e-15" if p < 1e-15 else f"{p:.2g}"
+
+
+def evidence_table(d: dict, limit: int = 6) -> pl.DataFrame:
+    """The candidates best first, one row each: status, what each removes of the held-out force
+    and torque residual, the test, the fitted parameters with their standard errors, and why."""
+    return pl.DataFrame([{
+        "effect": r["effect"], "status": r.get("status", "found" if r.get("useful") else "not found"),
+        "force removed": _percent(r["explained_variance_force"]),
+        "torque removed": _percent(r["explained_variance_torque"]),
+        "held-out p": _p(r["held_out_p_value"]),
+        "parameters ± σ": ", ".join(f"{k} = {v:.4g} ± {r['parameter_std'].get(k, float('nan')):.2g}"
+                                    for k, v in r["parameters"].items()),
+        "why it ranks here": r.get("reason", ""),
+    } for r in d["candidates"][:limit]], schema={c: pl.String for c in (
+        "effect", "status", "force removed", "torque removed", "held-out p", "parameters ± σ", "why it ranks here")})
+
+
+def next_step(d: dict, model_file: str = "") -> str:
+    """What to do next, naming the file to edit."""
+    found = [r for r in d["candidates"] if r.get("found", r.get("useful", False))]
+    where = model_file or "the model file (model.toml)"
+    notes = _unique(n for dis in d.get("disagreements", []) for n in dis.get("notes", []))
+    if found:
+        text = (f"Add '{found[0]['effect']}' to `effects` in {where}, then run again (`make run`, or let the UI "
+                "refit: it follows the model file).")
+    else:
+        text = ("Nothing in the library to add. Look at where the model fails (regimes, frequency, worst segments "
+                "below), or search for terms the library lacks with `quadcore discover ... --write-effect "
+                f"DIR/NAME.py` and list the module under `plugins` and its name under `effects` in {where}.")
+    if notes:
+        text += f" Parameters also differ between groups of flights: see that section (sessions go in {where})."
+    return text
+
+
+def _unique(items) -> list[str]:
+    """Each text once, in first-seen order (the same note comes with every parameter it concerns)."""
+    return list(dict.fromkeys(items))
+
+
+def session_values(d: dict) -> pl.DataFrame | None:
+    """The values the model uses per session (``[per_session]`` in the model file), beside the
+    fleet value a flight of no session gets; None when nothing is fitted per session."""
+    rows = []
+    for e in d["model"]["effects"]:
+        for s, values in e.get("per_session", {}).items():
+            flights = d["model"].get("sessions", {}).get(s, [])
+            for k, v in values.items():
+                rows.append({"effect": e["name"], "parameter": k, "session": s, "value": v,
+                             "std": e.get("per_session_std", {}).get(s, {}).get(k, float("nan")),
+                             "flights": f"{len(flights)}: {_flight_list(flights)}" if flights else "-"})
+        if e.get("per_session"):
+            for k, v in e["params"].items():
+                rows.append({"effect": e["name"], "parameter": k, "session": "fleet (flights of no session)",
+                             "value": v, "std": e["std"].get(k, float("nan")), "flights": "-"})
+    return pl.DataFrame(rows) if rows else None
+
+
+def _flight_list(flights: list[str], limit: int = 8) -> str:
+    return ", ".join(flights[:limit]) + (" ..." if len(flights) > limit else "")
+
+
+def in_mNm(df: pl.DataFrame) -> pl.DataFrame:
+    """A table's torque columns (``*_Nm``, SI) in mN m (``*_mNm``), the unit of every torque shown to people."""
+    return df.with_columns(*[(pl.col(c) * 1e3).alias(c[:-3] + "_mNm") for c in df.columns if c.endswith("_Nm")]
+                           ).drop([c for c in df.columns if c.endswith("_Nm")])
+
+
+def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None,
+             model_file: str = "") -> list[tuple[str, str, object]]:
+    """(title, kind, content) with kind in text / table / captioned / image: the headline, the
+    evidence, the next step (naming ``model_file``), the sensitivity, then the details."""
     b = d["baseline"]
     ev = d["evaluation"]
+    basis = d.get("sensitivity_basis", {})
+    sens = verdict.sensitivity_rows(d.get("sensitivity", {}), basis)
+    per_session = session_values(d)
+    notes = _unique(n for dis in d.get("disagreements", []) for n in dis.get("notes", []))
     out: list[tuple[str, str, object] | None] = [
-        ("Verdict", "text", d["verdict"]),
+        ("Verdict", "text", headline(d)),
+        ("Evidence: the candidate effects, best first", "table", evidence_table(d)) if d["candidates"] else None,
+        ("Next step", "text", next_step(d, model_file)),
+        ("Sensitivity: the smallest effect these flights would detect", "captioned", (
+            f"Each parameter alone, detected {basis.get('detection_probability', 0.9):.0%} of the time at "
+            f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
+            "values an effect would go unnoticed on these flights.", pl.DataFrame(sens))) if sens else None,
+        ("The full reading", "text", d["verdict"]),
         ("Model", "text", f"{d['model']['label']} on vehicle {d['model']['vehicle']} "
                           f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
-                          f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)."),
+                          f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)"
+                          + (f"; model file {model_file}" if model_file else "") + "."),
         ("Baseline residual (held-out) and sensor-noise floor", "table", pl.DataFrame({
             "quantity": ["force RMSE [N]", "torque RMSE [mN m]"]
             + (["force noise floor [N]", "torque noise floor [mN m]"] if "noise_floor" in d else []),
@@ -247,39 +353,31 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
         })),
     ]
     if d["model"]["effects"]:
-        out.append(("Effects in the model", "table", pl.DataFrame([
+        out.append(("Effects in the model (fleet values)", "table", pl.DataFrame([
             {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan"))}
             for e in d["model"]["effects"] for k, v in e["params"].items()
         ])))
+    if per_session is not None:
+        out.append(("Values per session, as the model uses them", "table", per_session))
     cands = (pl.DataFrame(verdict.candidate_summary(CandidateScore.from_dict(r) for r in d["candidates"]))
              if d["candidates"] else pl.DataFrame())
-    sens = verdict.sensitivity_rows(d.get("sensitivity", {}), d.get("sensitivity_basis", {}))
-    basis = d.get("sensitivity_basis", {})
     out += [
-        ("Candidate effects, best first, and why each is ranked there", "table", cands),
-        ("Sensitivity: the smallest effect these flights would detect", "text",
-         (f"Each parameter alone, detected {basis.get('detection_probability', 0.9):.0%} of the time at "
-          f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
-          "values an effect would go unnoticed on these flights.")) if sens else None,
-        ("Sensitivity", "table", pl.DataFrame(sens)) if sens else None,
-        ("Parameters that differ between groups of flights", "table",
-         pl.DataFrame(sessions.table_rows(d["disagreements"]))) if d.get("disagreements") else None,
-        ("Parameters that differ between groups of flights: notes", "text",
-         " ".join(n for dis in d["disagreements"] for n in dis["notes"]))
-        if any(dis["notes"] for dis in d.get("disagreements", [])) else None,
+        ("All candidate effects, and why each is ranked there", "table", cands) if d["candidates"] else None,
+        ("Parameters that differ between groups of flights", "captioned",
+         (" ".join(notes), pl.DataFrame(sessions.table_rows(d["disagreements"])))) if d.get("disagreements") else None,
         (("Fraction of held-out residual each candidate removes", "image", candidates_plot(d))
          if d["candidates"] else None),
         ("Where it fails: residual by regime", "image", regimes_plot(d)),
-        ("Residual by regime", "table", pl.DataFrame(d["regimes"])),
-        ("Residual by flight", "table", pl.DataFrame(d["flights"])),
-        ("Worst segments", "table", pl.DataFrame(d["worst_segments"])),
+        ("Residual by regime (torque in mN m)", "table", in_mNm(pl.DataFrame(d["regimes"]))),
+        ("Residual by flight (torque in mN m)", "table", in_mNm(pl.DataFrame(d["flights"]))),
+        ("Worst segments (torque in mN m)", "table", in_mNm(pl.DataFrame(d["worst_segments"]))),
     ]
     freq = d.get("frequency")
     if freq and freq.get("channels"):
         out += [
             ("Where it fails, in frequency", "text", " ".join(freq["reading"])),
             ("Residual by frequency band; coherence and gain of modelled vs measured", "image", frequency_plot(freq)),
-            ("Frequency bands", "table", frequency_table(freq)),
+            ("Frequency bands (residual RMS: force in N, torque in mN m)", "table", frequency_table(freq)),
         ]
     if disc is not None:
         out += discovery_sections(disc)
@@ -289,13 +387,14 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     return [s for s in out if s is not None]
 
 
-def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None) -> tuple[Path, Path]:
+def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None,
+          model_file: str = "") -> tuple[Path, Path]:
     """Write the report (with a discovery's section when ``disc`` is given), kept for good in
     ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
     beside the .md), and as the latest in ``out_dir/diagnosis.{md,html}`` (its .md links the kept
     PNGs). The .html is self-contained. Returns the latest (md, html)."""
     out_dir = store.as_root(out_dir)  # a folder here or in an object store
-    secs = sections(d, hist, disc)
+    secs = sections(d, hist, disc, model_file)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     kept = out_dir / "diagnosis" / f"{stamp}-{_slug(d['model']['label'])}"
     pngs = {title: f"{i:02d}-{_slug(title)}.png" for i, (title, kind, _) in enumerate(secs) if kind == "image"}

@@ -2,8 +2,10 @@
 plots inline, so both say the same thing.
 
 A section is ``(title, kind, content)``: kind ``text`` (a string), ``list`` (a dict shown as
-"key: value" items), ``table`` (a polars DataFrame; floats rounded to 3 significant digits, a missing
-or undefined value (null, NaN) shows as 'n/a') or ``image`` (PNG bytes).
+"key: value" items), ``table`` (a polars DataFrame; floats to 3 significant digits, written for
+people: ``1.2e-84``, never ``1.1999999999999999e-84``; a missing or undefined value (null, NaN)
+shows as 'n/a'), ``captioned`` (a ``(text, DataFrame)`` pair: one heading, the text above its
+table) or ``image`` (PNG bytes).
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import polars as pl
 Section = tuple[str, str, Any]
 
 STYLE = ("<style>body{font-family:sans-serif;max-width:1400px;margin:2em auto}table{border-collapse:collapse;"
-         "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}img{max-width:100%}</style>")
+         "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right;vertical-align:top}"
+         "img{max-width:100%}</style>")
 
 
 def markdown_image(png: bytes, alt: str = "plot") -> str:
@@ -28,9 +31,11 @@ def markdown_image(png: bytes, alt: str = "plot") -> str:
 
 
 NOT_AVAILABLE = "n/a"  # a table cell whose value is missing or not defined (null, NaN)
+TABLE_DIGITS = 3  # significant digits of the floats in report tables
 
 
 def _cell(v, digits: int | None = None) -> str:
+    """A table cell for people: floats to ``digits`` significant digits, missing or undefined as n/a."""
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return NOT_AVAILABLE
     return f"{v:.{digits}g}" if isinstance(v, float) and digits is not None else str(v)
@@ -43,8 +48,9 @@ def markdown_table(df: pl.DataFrame, digits: int = 4) -> str:
     return "\n".join(lines)
 
 
-def _rounded(df: pl.DataFrame) -> pl.DataFrame:
-    return df.with_columns(pl.col(pl.Float64).round_sig_figs(3))
+def _table_of(kind: str, content) -> tuple[str, pl.DataFrame]:
+    """(caption, table) of a ``table`` or ``captioned`` section."""
+    return content if kind == "captioned" else ("", content)
 
 
 def to_markdown(title: str, secs: Sequence[Section], images: dict[str, str] | None = None) -> str:
@@ -57,8 +63,11 @@ def to_markdown(title: str, secs: Sequence[Section], images: dict[str, str] | No
             lines.append(str(content))
         elif kind == "list":
             lines += [f"- **{k}**: {v}" for k, v in content.items()]
-        elif kind == "table":
-            lines.append(markdown_table(_rounded(content)) if content.height else "(none)")
+        elif kind in ("table", "captioned"):
+            caption, table = _table_of(kind, content)
+            if caption:
+                lines += [caption, ""]
+            lines.append(markdown_table(table, TABLE_DIGITS) if table.height else "(none)")
         elif images and name in images:
             lines.append(f"![{name}]({images[name]})")
         else:
@@ -79,10 +88,12 @@ def to_html(title: str, secs: Sequence[Section]) -> str:
         elif kind == "list":
             parts.append("<ul>" + "".join(f"<li><b>{esc(k)}</b>: {esc(str(v))}</li>" for k, v in content.items())
                          + "</ul>")
-        elif kind == "table":
-            t = _rounded(content)
+        elif kind in ("table", "captioned"):
+            caption, t = _table_of(kind, content)
+            if caption:
+                parts.append(f"<p>{esc(caption)}</p>")
             head = "".join(f"<th>{esc(c)}</th>" for c in t.columns)
-            body = "".join("<tr>" + "".join(f"<td>{esc(_cell(v))}</td>" for v in row) + "</tr>"
+            body = "".join("<tr>" + "".join(f"<td>{esc(_cell(v, TABLE_DIGITS))}</td>" for v in row) + "</tr>"
                            for row in t.iter_rows())
             parts.append(f"<table><tr>{head}</tr>{body}</table>")
         else:
