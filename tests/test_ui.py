@@ -295,3 +295,4 @@ def _colours(shot: Path) -> int:
     from PIL import Image
 
     return len(Image.open(shot).convert("RGB").getcolors(1 << 20) or [])
+

@@ -42,7 +42,9 @@ def residual_table(context: dg.AssetExecutionContext, data_root: DataRoot, model
         )
         png = plots.model_vs_measured(table, f"{fid}: model vs measured (body frame)")
         return {
-            **{k: number(v) for k, v in residuals.summary(table).items()},
+            # torques in mN m, as everywhere people read them (the Parquet columns stay SI)
+            **{k[:-3] + "_mNm" if k.endswith("_Nm") else k: number(v * 1e3 if k.endswith("_Nm") else v)
+               for k, v in residuals.summary(table).items()},
             "rows": table.height,
             "model_vs_measured": plot_md(data_root, png, "model vs measured"),
             "parquet": dg.MetadataValue.path(str(path)),

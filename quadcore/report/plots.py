@@ -70,8 +70,8 @@ def _model_vs_measured_figure() -> tuple[Figure, list]:
     grid = fig.subplots(3, 2, sharex=True)
     fig.subplots_adjust(left=0.09, right=0.98, top=0.92, bottom=0.09, wspace=0.3, hspace=0.15)
     for row, axis in enumerate(XYZ):
-        for col, (kind, unit) in enumerate((("f", "N"), ("tau", "Nm"))):
-            grid[row, col].set_ylabel(f"{'F' if kind == 'f' else 'τ'}_{axis} body [{unit.replace('Nm', 'N m')}]")
+        for col, (symbol, unit) in enumerate((("F", "N"), ("τ", "mN m"))):
+            grid[row, col].set_ylabel(f"{symbol}_{axis} body [{unit}]")
             grid[row, col].grid(alpha=0.3)
     grid[-1, 0].set_xlabel("t [s]")
     grid[-1, 1].set_xlabel("t [s]")
@@ -79,17 +79,18 @@ def _model_vs_measured_figure() -> tuple[Figure, list]:
 
 
 def model_vs_measured(res: pl.DataFrame, title: str = "", max_points: int = THUMB_POINTS) -> bytes:
-    """Measured and modelled body force and torque over time, with the residual, per axis."""
+    """Measured and modelled body force (N) and torque (mN m, the unit of every torque shown to
+    people) over time, with the residual, per axis."""
     step = max(1, res.height // max_points)
     d = res.gather_every(step)
     t = d["t_s"].to_numpy()
     fig, axes = _reused("model_vs_measured", _model_vs_measured_figure)
-    panels = [(axis, kind, unit) for axis in XYZ for kind, unit in (("f", "N"), ("tau", "Nm"))]
-    for ax, (axis, kind, unit) in zip(axes, panels):
+    panels = [(axis, kind, unit, scale) for axis in XYZ for kind, unit, scale in (("f", "N", 1.0), ("tau", "Nm", 1e3))]
+    for ax, (axis, kind, unit, scale) in zip(axes, panels):
         ax.set_prop_cycle(None)  # each flight's lines in the same colours
-        ax.plot(t, d[f"{kind}_meas_b_{axis}_{unit}"], lw=0.8, label="measured", **THUMB_LINE)
-        ax.plot(t, d[f"{kind}_model_b_{axis}_{unit}"], lw=0.8, label="model", **THUMB_LINE)
-        ax.plot(t, d[f"{kind}_res_b_{axis}_{unit}"], lw=0.6, color="tab:red", alpha=0.7, label="residual",
+        ax.plot(t, d[f"{kind}_meas_b_{axis}_{unit}"] * scale, lw=0.8, label="measured", **THUMB_LINE)
+        ax.plot(t, d[f"{kind}_model_b_{axis}_{unit}"] * scale, lw=0.8, label="model", **THUMB_LINE)
+        ax.plot(t, d[f"{kind}_res_b_{axis}_{unit}"] * scale, lw=0.6, color="tab:red", alpha=0.7, label="residual",
                 **THUMB_LINE)
     axes[0].legend(loc="upper right", fontsize=8)
     fig.suptitle(title or "model vs measurement")
