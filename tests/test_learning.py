@@ -465,7 +465,7 @@ def test_dagster_assets(tmp_path, residual_tables):
     assert (tmp_path / "features" / "physics" / f"flight={HOLDOUT}" / "data.parquet").is_file()
     (mat,) = result.asset_materializations_for_node("learning_report")
     meta = {k: v.value for k, v in mat.metadata.items()}
-    assert "data:image/png;base64" in meta["timeseries_plot"] and "study" in meta["headline"]
+    assert meta["timeseries_plot"].startswith("![timeseries](/quadcore-plots/") and "study" in meta["headline"]
     assert (tmp_path / "reports" / "learning.json").is_file()
     assert history.read(tmp_path).filter(pl.col("source") == "learned").height == 3  # physics-only + 2 best
 

@@ -49,7 +49,9 @@ def test_the_loop_in_dagster(raw, tmp_path):
             res = materialize(PER_FLIGHT, nominal, instance, key)
         meta = metadata(res, "residual_table")
         assert meta["model"] == "nominal"
-        assert "data:image/png;base64," in meta["model_vs_measured"]
+        link = meta["model_vs_measured"]  # a link the UI serves from this data root, on any port
+        assert link.startswith("![model vs measured](/quadcore-plots/") and len(link) < 1000
+        assert (root / "plots" / link[link.rindex("/") + 1:-1]).is_file()
         assert meta["force_rmse_x_N"] > 0.0015  # the hidden drag is there (noise alone: ~0.0005 N)
         table = pl.read_parquet(store.table_path(root, "residuals", "sim002"))
         assert {"f_res_b_x_N", "f_res_w_x_N", "tau_res_b_z_Nm", "f_model_b_z_N", "f_meas_b_z_N"} <= set(table.columns)
@@ -71,7 +73,7 @@ def test_the_loop_in_dagster(raw, tmp_path):
         assert (root / "reports" / "diagnosis.html").stat().st_size > 10_000
         # beside the library's candidates: the terms discovery finds, and where it fails in frequency
         found = metadata(res, "term_discovery")
-        assert "v_b_x_mps" in found["terms"] and "data:image/png;base64," in found["discovery_plot"]
+        assert "v_b_x_mps" in found["terms"] and found["discovery_plot"].startswith("![")
         disc = json.loads((root / "reports" / "discovery.json").read_text())
         # discovery sees what the diagnosis sees: the flight the learned models are scored on is left out
         assert disc["evaluation"]["train_flights"] == report["evaluation"]["train_flights"] == ["sim000", "sim001",
@@ -80,7 +82,7 @@ def test_the_loop_in_dagster(raw, tmp_path):
         assert any(t["target"] == "f_res_b_x_N" and "v_b_x_mps" in t["variables"] for t in disc["terms"])
         md = (root / "reports" / "diagnosis.md").read_text()
         assert "Terms the library lacks" in md and "Where it fails, in frequency" in md
-        assert "data:image/png;base64," in diag["frequency_plot"] and "force_x" in diag["frequency"]
+        assert diag["frequency_plot"].startswith("![frequency](/quadcore-plots/") and "force_x" in diag["frequency"]
 
         # the user adds it: the model is refitted, the error falls, the history shows both
         with_drag = {"data_root": data_root, "model": ModelConfig(effects="rotor_drag")}

@@ -242,6 +242,9 @@ def test_diagnosis_page_shows_its_plot(webserver):
     assert "verdict" in text.lower() and "nominal+rotor_drag" in text
     assert "headline" in text and "next_step" in text
     assert _colours(shot) > 200  # a real plot on the page, not a blank frame
+    top, _ = _page(webserver, "/assets/model_diagnosis",
+                   "document.body && document.body.innerText.includes('next_step')", "diagnosis_top")
+    assert "Add 'rotor_drag' to `effects` in" in top or "Nothing in the library to add" in top
 
 
 @pytest.mark.skipif(chromium_path() is None, reason="Debian's chromium is not installed (.ci/run installs it)")

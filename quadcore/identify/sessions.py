@@ -229,7 +229,7 @@ def disagreements(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehi
 def table_rows(disagreements: list[dict]) -> list[dict]:
     """One row per group of each disagreement (the JSON form), for the report and the UI."""
     return [{"parameter": f"{d['effect']}.{d['parameter']}", "group": g.get("session") or str(i + 1),
-             "value": round(g["value"], 6), "std": float(f"{g['std']:.3g}"), "flights": ", ".join(g["flights"]),
+             "value": float(f"{g['value']:.4g}"), "std": float(f"{g['std']:.3g}"), "flights": ", ".join(g["flights"]),
              "found from": d["source"]}
             for d in disagreements for i, g in enumerate(d["groups"])]
 

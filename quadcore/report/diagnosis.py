@@ -259,7 +259,7 @@ def evidence_table(d: dict, limit: int = 6) -> pl.DataFrame:
     """The candidates best first, one row each: status, what each removes of the held-out force
     and torque residual, the test, the fitted parameters with their standard errors, and why."""
     return pl.DataFrame([{
-        "effect": r["effect"], "status": r.get("status", "found" if r.get("useful") else "not found"),
+        "effect": r["effect"], "status": r.get("status", "found" if r.get("useful") else "not found").replace("_", " "),
         "force removed": _percent(r["explained_variance_force"]),
         "torque removed": _percent(r["explained_variance_torque"]),
         "held-out p": _p(r["held_out_p_value"]),
