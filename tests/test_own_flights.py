@@ -33,13 +33,14 @@ def _without(good: bytes, drop: set[str]) -> bytes:
     log = logformat.decode_bytes(good)
     rec = _records(log)
     ts, v = rec[required.MAIN_EVENT]
-    keep = [n for n in v.dtype.names if n not in drop]
+    keep = [n for n in v.dtype.names or () if n not in drop]
     rec[required.MAIN_EVENT] = (ts, np.ascontiguousarray(v[keep]))
     types = []
     for name, (_, values) in rec.items():
         old = log.event_types[name]
-        chars = tuple(old.type_chars[old.variables.index(n)] for n in values.dtype.names)
-        types.append(logformat.EventType(old.event_id, name, tuple(values.dtype.names), chars))
+        names = tuple(values.dtype.names or ())
+        chars = tuple(old.type_chars[old.variables.index(n)] for n in names)
+        types.append(logformat.EventType(old.event_id, name, names, chars))
     return logformat.encode(types, [(n, t, x) for n, (t, x) in rec.items()], version=log.version)
 
 
