@@ -50,6 +50,8 @@ CASES = {
     # real logs: k = 0.036-0.04 s/m; anisotropic here to check both axes are recovered
     "rotor_drag": ({"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.10}, STANDARD,
                    ["k_x_s_per_m", "k_y_s_per_m"], [("force", (0, 1))]),
+    # rotorpy's Crazyflie: 0.0054 kg/s at hover (k_z = 0.018 s/m); larger here, the flights climb less
+    "rotor_drag_z": ({"k_z_s_per_m": 0.1}, STANDARD, ["k_z_s_per_m"], [("force", (2,))]),
     # ½ρC_dA of a ~0.01 m² frame with C_d ~ 1.5: ~0.01 kg/m
     "parasitic_drag": ({"c_xy_kg_per_m": 0.01, "c_z_kg_per_m": 0.015}, STANDARD,
                        ["c_xy_kg_per_m", "c_z_kg_per_m"], [("force", (0, 1, 2))]),

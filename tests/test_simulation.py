@@ -208,6 +208,8 @@ EFFECT_CASES = {
     "thrust_scale": (_random(5), {"scale": 0.9}, [("force", (2,))]),
     "added_mass": (_random(6), {"m_p_kg": 0.005}, [("force", (2,))]),
     "wind": (_random(7), {"k_s_per_m": 0.5, "w_x_mps": 1.0, "w_y_mps": -0.5}, [("force", (0, 1))]),
+    # rotorpy's Crazyflie: 0.0054 kg/s at hover thrust (0.29 N), i.e. k_z = 0.018 s/m; 10x here
+    "rotor_drag_z": (_random(17, speed_min_mps=0.8), {"k_z_s_per_m": 0.2}, [("force", (2,))]),
     "rotor_imbalance": (_random(13), {"d_1": 0.05, "d_2": -0.03, "d_3": 0.02}, [("torque", (0, 1, 2))]),
     "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.03}, [("force", (2,)), ("torque", (0, 1, 2))]),
     "inertia_scale": (_random(16, speed_min_mps=0.8), {"s_x": 1.3, "s_y": 0.8, "s_z": 1.3},
