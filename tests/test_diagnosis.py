@@ -165,6 +165,32 @@ def test_hidden_effect_is_found_recovered_and_removes_the_residual(hidden, name)
 
 
 @pytest.mark.slow  # a simulated scenario of its own
+def test_with_rotor_drag_in_the_model_its_vertical_part_is_found_not_vetoed_by_noise(sim_sets):
+    """An independent simulator's case (rotorpy's Crazyflie: vertical rotor drag 0.0054 kg/s at
+    hover, k_z = 0.02 s/m) on this one: horizontal and vertical rotor drag hidden, rotor_drag in
+    the model. What is left is the vertical part: rotor_drag_z is found with its truth within
+    3 σ, no thrust scale is invented, and a candidate whose parameter leaves its bound by less
+    than its noise (parasitic drag's c_xy) is judged with the bound active, not vetoed."""
+    hidden = {"rotor_drag": {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}, "rotor_drag_z": {"k_z_s_per_m": 0.02}}
+    _, tables = sim_sets("drag_xyz", STANDARD, hidden)
+    d = _diagnose(tables, ["rotor_drag"])
+    top = d["candidates"][0]
+    assert top["effect"] == "rotor_drag_z" and top["found"], d["verdict"]
+    assert abs(top["parameters"]["k_z_s_per_m"] - 0.02) <= 3 * top["parameter_std"]["k_z_s_per_m"], top
+    by = {r["effect"]: r for r in d["candidates"]}
+    assert not by["thrust_scale"]["found"] and not by["added_mass"]["found"]
+    assert by["parasitic_drag"]["physical"], by["parasitic_drag"]["notes"]
+    for r in d["candidates"]:
+        p = {q.name: q for q in effects.get(r["effect"]).parameters}
+        assert all(p[k].lower <= v <= p[k].upper for k, v in r["parameters"].items()), r  # every fit within bounds
+        for k, v in r["active_bounds"].items():
+            assert v in (p[k].lower, p[k].upper) and r["parameters"][k] == v
+            assert any(f"{k} held at its bound" in n for n in r["notes"]), r["notes"]
+        if not r["physical"]:
+            assert any("by more than 3 standard errors" in n for n in r["notes"]), r["notes"]
+
+
+@pytest.mark.slow  # a simulated scenario of its own
 def test_thrust_scale_and_added_mass_are_alike_in_force_and_the_torque_decides(hidden):
     """Less thrust than mapped and more mass than assumed give the SAME force residual,
     ``-c T`` along body z: in force alone they cannot be told apart, and the diagnosis says so.

@@ -433,3 +433,45 @@ def test_a_cut_statistics_file_is_refused_when_read_not_midway_through_a_diagnos
     with pytest.raises(sufficient.StatsError, match="not a statistics file"):
         sufficient.load(tmp_path, s.flight)
     assert sufficient.load_current(tmp_path, s.flight, s.key) is None
+
+
+@pytest.mark.parametrize("name, shift", [("parasitic_drag", [-1e-3, 0.0]), ("added_mass", [-0.01])])
+def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name, shift):
+    """A target pushed so that one parameter's free fit leaves its physical range (a negative
+    c_xy, a negative payload): the bounded fit holds it at the bound and fits the others to
+    what is left, from rows and from statistics alike; for a drag, the others are the least
+    squares of their own columns (the oracle, by hand)."""
+    fds, stats = fleet
+    ids, e = sorted(fds), effects.get(name)
+    free = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    # the free fit is linear in the target: add the first column to move its first coordinate
+    delta = shift[0] - e.to_linear(free.params[name], VEHICLE)[0]
+    ys = [y + delta * fds[f].basis(e, VEHICLE)[:, :, 0] for f, y in zip(ids, fitting.targets_of([fds[f] for f in ids]))]
+    rows = fitting.fit_effects([e], [fds[f] for f in ids], ys, VEHICLE, bounded=True)
+    first = e.parameters[0]
+    assert rows.free is not None and rows.free.params[name][first.name] < first.lower
+    assert rows.active == {name: {first.name: first.lower}}
+    assert rows.params[name][first.name] == first.lower
+    assert all(p.lower <= rows.params[name][p.name] <= p.upper for p in e.parameters)
+    targets = [stats[f].layout.target() + delta * stats[f].layout.unit(stats[f].layout.cols(name)[0]) for f in ids]
+    combined = fitting.fit_effects([e], [stats[f] for f in ids], targets, VEHICLE, bounded=True)
+    assert combined.active == rows.active
+    _close(rows.params, combined.params, rel=1e-6)
+    _close(rows.std, combined.std, rel=1e-6)
+    if name == "parasitic_drag":  # c_z alone on what c_xy = 0 leaves
+        w = rows.weights
+        num = sum(float(np.einsum("nc,nc,c->", fds[f].basis(e, VEHICLE)[fds[f].mask, :, 1], y[fds[f].mask], w))
+                  for f, y in zip(ids, ys))
+        den = sum(float(np.einsum("nc,nc,c->", fds[f].basis(e, VEHICLE)[fds[f].mask, :, 1],
+                                  fds[f].basis(e, VEHICLE)[fds[f].mask, :, 1], w)) for f in ids)
+        assert rows.params[name]["c_z_kg_per_m"] == pytest.approx(num / den, rel=1e-9)
+
+
+def test_a_fit_inside_its_bounds_is_the_free_fit(fleet):
+    fds, stats = fleet
+    ids, e = sorted(fds), effects.get("rotor_drag")
+    free = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    bounded = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE,
+                                  bounded=True)
+    assert bounded.free is None and bounded.active == {}
+    assert bounded.params == free.params and bounded.std == free.std

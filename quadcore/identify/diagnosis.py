@@ -19,7 +19,7 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient, summaries
-from quadcore.identify.evidence import LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
+from quadcore.identify.evidence import BOUND_SIGMA, LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
@@ -212,11 +212,13 @@ class _Problem:
         self._row_resid_of: tuple[dict, dict[str, np.ndarray]] = ({}, {})
 
     def fit_candidate(self, c, flights: list[str], resid: dict) -> fitting.Fit:
-        """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``."""
+        """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
+        parameters' physical bounds (the free fit, when it left them, kept as ``free``)."""
         if self.by_rows[c.name]:
             return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
-                                       [self._row_resid(f, resid) for f in flights], self.vehicle)
-        return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle)
+                                       [self._row_resid(f, resid) for f in flights], self.vehicle, bounded=True)
+        return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle,
+                                   bounded=True)
 
     def _row_resid(self, f: str, resid: dict) -> np.ndarray:
         if self._row_resid_of[0] is not resid:
@@ -269,13 +271,14 @@ class _Folds:
     """What the folds leave: each test flight's model residual and every candidate's prediction
     there (fitted without it; for a candidate fitted from its profiles, ``values``: its
     parameter's value there, the prediction made by :func:`_evaluated`), each candidate's
-    parameters per fold (the flight-to-flight spread), and the last fold's fits of the model and
-    of each candidate."""
+    parameters per fold (the flight-to-flight spread; ``free_params``: of its fits without the
+    physical bounds), and the last fold's fits of the model and of each candidate."""
 
     eval_resid: dict[str, np.ndarray]
     cand_pred: dict[str, dict[str, np.ndarray]]
     values: dict[str, dict[str, float]]
     params: dict[str, list[dict]]
+    free_params: dict[str, list[dict]]
     fits: dict[str, fitting.Fit]
     model_fit: Any
 
@@ -287,6 +290,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
     fold_fits: dict[str, fitting.Fit] = {}
     fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     values: dict[str, dict[str, float]] = {}
     model_fit = None
     for k, (train, test) in enumerate(splits, 1):
@@ -295,6 +299,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
         for c in p.cands:
             fit_c = fold_fits[c.name] = p.fit_candidate(c, train, resid)
             fold_params[c.name].append(fit_c.params[c.name])
+            free_params[c.name].append((fit_c.free or fit_c).params[c.name])
             for f in test:
                 if p.from_profile(c):
                     values.setdefault(c.name, {})[f] = fit_c.params[c.name][c.parameters[0].name]
@@ -302,7 +307,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
                     cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
             eval_resid[f] = resid[f]
-    return _Folds(eval_resid, cand_pred, values, fold_params, fold_fits, model_fit)
+    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit)
 
 
 def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, dict]:
@@ -322,16 +327,20 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
     return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
 
 
-def _group_spread(p: _Problem, fold_params: dict[str, list[dict]], train_all: list[str], resid_train: dict,
-                  n_folds: int) -> dict[str, list[dict]]:
+def _group_spread(p: _Problem, train_all: list[str], resid_train: dict, n_folds: int
+                  ) -> tuple[dict[str, list[dict]], dict[str, list[dict]]]:
     """One split only: each candidate refitted leaving out groups of training flights, for the
-    spread, in place of its fit on all of them."""
-    fold_params = {k: list(v) for k, v in fold_params.items()}
+    spread, in place of its fit on all of them: its parameters per group, within the bounds and
+    free."""
+    fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     for group in fitting.folds(train_all, n_folds):
         sub = [f for f in train_all if f not in group]
         for c in p.cands:
-            fold_params[c.name].append(p.fit_candidate(c, sub, resid_train).params[c.name])
-    return {k: v[1:] for k, v in fold_params.items()}  # drop the all-training fit
+            fit = p.fit_candidate(c, sub, resid_train)
+            fold_params[c.name].append(fit.params[c.name])
+            free_params[c.name].append((fit.free or fit).params[c.name])
+    return fold_params, free_params
 
 
 @dataclass(frozen=True)
@@ -365,44 +374,90 @@ def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
     return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
 
 
-def _out_of_range(c, params: dict[str, float]) -> tuple[list[str], list[str]]:
-    """The parameters fitted outside their physical bounds, and those at a bound (and moved from
-    'no effect')."""
+def _at_bound(c, params: dict[str, float], held: dict[str, float]) -> list[str]:
+    """The parameters a search left at a bound of their range (and moved from 'no effect'), but
+    those the bounded fit holds there (``held``)."""
     bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
-    outside = [k for k, v in params.items() if not bounds[k][0] <= v <= bounds[k][1]]
-    at_bound = [k for k, v in params.items()
-                if k not in outside
-                and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
-                and v != c.defaults()[k]]
-    return outside, at_bound
+    return [k for k, v in params.items()
+            if k not in held
+            and min(abs(v - bounds[k][0]), abs(v - bounds[k][1])) < 1e-6 * (bounds[k][1] - bounds[k][0])
+            and v != c.defaults()[k]]
 
 
-def _parameter_notes(outside: list[str], at_bound: list[str], sigma: float) -> list[str]:
-    notes = ([f"fitted {', '.join(outside)} outside the physical bounds: not a physical explanation"]
-             if outside else [])
+@dataclass(frozen=True)
+class _Bounds:
+    """How a candidate's free fit (without bounds, on all training flights) stands to its
+    parameters' physical bounds: per parameter outside them, its free value, standard error,
+    the bound and how many standard errors beyond it (``beyond``)."""
+
+    outside: dict[str, tuple[float, float, float, float]]
+
+    @property
+    def beyond(self) -> float:
+        return max((z for *_, z in self.outside.values()), default=0.0)
+
+    @property
+    def unphysical(self) -> bool:
+        """Beyond a bound by clearly more than its noise: the data ask for values the effect
+        cannot have (``BOUND_SIGMA`` standard errors)."""
+        return self.beyond > BOUND_SIGMA
+
+
+def _bounds(c, fit_c: fitting.Fit, free_spread: dict[str, float]) -> _Bounds:
+    free = fit_c.free or fit_c
+    values, std = free.params[c.name], free.std[c.name]
+    out = {}
+    for p in c.parameters:
+        v = values[p.name]
+        if p.lower <= v <= p.upper:
+            continue
+        bound = p.lower if v < p.lower else p.upper
+        s = max(std.get(p.name, 0.0), free_spread.get(p.name, 0.0))
+        out[p.name] = (v, s, bound, abs(v - bound) / s if s > 0 else np.inf)
+    return _Bounds(out)
+
+
+def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[str], sigma: float) -> list[str]:
+    def free(k: str) -> str:
+        v, s, bound, z = bounds.outside[k]
+        return f"{k} = {v:.3g} ± {s:.2g}, {z:.2g} σ beyond its bound {bound:g}"
+
+    if bounds.unphysical:
+        notes = [f"fitted outside the physical bounds by more than {BOUND_SIGMA:g} standard errors ("
+                 + "; ".join(free(k) for k in bounds.outside) + "): not a physical explanation"]
+    elif active:
+        beyond = [free(k) for k in active if k in bounds.outside]
+        notes = [", ".join(f"{k} held at its bound {v:g}" for k, v in active.items())
+                 + (f" (fitted free: {'; '.join(beyond)}, within noise of it)" if beyond else "")]
+    else:
+        notes = []
     notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
     if sigma < MIN_SIGMA:
         notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
     return notes
 
 
-def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict],
+def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict], list[dict]],
            test_sums: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
-    channel it explains, its parameters (``fit_c``: on all training flights) with their
-    uncertainty (``fold_params``: per fold, for the spread) and checks, and the held-out test
-    (``test_sums``: its :func:`quadcore.identify.evidence.held_out_sums`)."""
+    channel it explains, its parameters (``fit_c``: on all training flights, within the physical
+    bounds) with their uncertainty (``fold_params``: per fold, for the spread, bounded and free)
+    and checks, and the held-out test (``test_sums``: its
+    :func:`quadcore.identify.evidence.held_out_sums`). A free fit beyond a bound by more than
+    ``BOUND_SIGMA`` standard errors is unphysical; one within noise of it is judged as fitted
+    with the bound active (``active_bounds``)."""
     before, at_noise = held.before, held.at_noise
     after = _total(_ss(held.resid[f] - held.cand_pred[c.name][f], fd) for f, fd in zip(held.ids, held.flights))
     raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
     ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
     target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
     params = fit_c.params[c.name]
-    spread = _jackknife_std(fold_params)
+    spread = _jackknife_std(fold_params[0])
     # the larger of the sample-based error and the spread between groups of flights: flights
     # differ (battery, propellers, a stuck log variable) more than samples within a flight do
     std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
-    outside, at_bound = _out_of_range(c, params)
+    bounds = _bounds(c, fit_c, _jackknife_std(fold_params[1]))
+    active = fit_c.active.get(c.name, {})
     sigma = _significance(c, params, std)
     return {
         "effect": c.name,
@@ -423,10 +478,11 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: list[dict],
             f"{q}_{a}": float(1 - after[i] / before[i]) if before[i] > 0 else 0.0
             for i, (q, a) in enumerate([("force", a) for a in XYZ] + [("torque", a) for a in XYZ])
         },
-        "physical": not outside,
+        "physical": not bounds.unphysical,
+        "active_bounds": dict(active),
         "significance_sigma": sigma,
         "significant": sigma >= MIN_SIGMA,
-        "notes": _parameter_notes(outside, at_bound, sigma),
+        "notes": _parameter_notes(bounds, active, _at_bound(c, params, active), sigma),
         **_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
                              before, after, held.noise_ss, target),
     }
@@ -604,8 +660,8 @@ def diagnose(
     # With a single split on all training flights (holdout), its fits are the final ones.
     reuse = len(splits) == 1 and splits[0][0] == train_all
     model, resid_train = _training_model(p, folds.model_fit if reuse else None, train_all, sessions, log)
-    fold_params = (_group_spread(p, folds.params, train_all, resid_train, n_folds) if reuse and len(train_all) >= 3
-                   else folds.params)
+    fold_params, free_params = (_group_spread(p, train_all, resid_train, n_folds) if reuse and len(train_all) >= 3
+                                else (folds.params, folds.free_params))
 
     held = _held_out(p, folds)
     rows: list[dict[str, Any]] = []
@@ -613,7 +669,7 @@ def diagnose(
     tests = evidence.held_out_sums(held.flights, held.resid, [held.cand_pred[c.name] for c in p.cands])
     for c, test_sums in zip(p.cands, tests):
         fit_c = folds.fits[c.name] if reuse else p.fit_candidate(c, train_all, resid_train)
-        rows.append(_score(c, held, fit_c, fold_params[c.name], test_sums))
+        rows.append(_score(c, held, fit_c, (fold_params[c.name], free_params[c.name]), test_sums))
     for r in rows:
         _decide(r, held.at_noise, len(rows))
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)

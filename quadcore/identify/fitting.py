@@ -196,11 +196,16 @@ def prediction(effect: Effect, params: dict, fd: FlightData, vehicle: Vehicle) -
 
 @dataclass
 class Fit:
-    """Fitted parameters per effect (SI), standard errors, and the weights used."""
+    """Fitted parameters per effect (SI), standard errors, and the weights used. A fit kept
+    within the parameters' physical bounds (``fit_effects(..., bounded=True)``) whose free fit
+    left them has ``active``: per effect, the parameters held at a bound and that bound, and
+    ``free``: the fit without bounds (what the data ask for)."""
 
     params: dict[str, dict[str, float]]
     std: dict[str, dict[str, float]]
     weights: np.ndarray  # (6,) per channel: 1/σ_f² ×3, 1/σ_τ² ×3
+    active: dict[str, dict[str, float]] = field(default_factory=dict)
+    free: Fit | None = None
 
     def predict(self, effects: list[Effect], fd, vehicle: Vehicle) -> np.ndarray:
         """(n, 6) the effects' summed prediction on a :class:`FlightData`; on a flight's
@@ -228,9 +233,9 @@ def weights_from_sums(ss: np.ndarray, n: int) -> np.ndarray:
     return np.array([1 / (ms_f or 1.0)] * 3 + [1 / (ms_t or 1.0)] * 3)
 
 
-def _linear_solve(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
-                  vehicle: Vehicle):
-    """Weighted least squares for the stacked linear coordinates: (θ, A, rss, n_rows)."""
+def _row_normal_equations(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
+                          vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """``(A, b, yy, n_rows)`` of the weighted least squares for the stacked linear coordinates."""
     k = sum(len(e.parameters) for e in lin)
     A, b, yy, n = np.zeros((k, k)), np.zeros(k), 0.0, 0
     for fd, y in zip(flights, ys):
@@ -241,7 +246,14 @@ def _linear_solve(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.
             X, gram = fd.design(lin, vehicle)
             A += np.tensordot(w, gram, axes=1)
             b += np.einsum("nck,nc->k", X, ym * w)
-    theta = np.linalg.lstsq(A, b, rcond=None)[0] if k else np.zeros(0)
+    return A, b, yy, n
+
+
+def _linear_solve(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
+                  vehicle: Vehicle):
+    """Weighted least squares for the stacked linear coordinates: (θ, A, rss, n_rows)."""
+    A, b, yy, n = _row_normal_equations(lin, flights, ys, w, vehicle)
+    theta = np.linalg.lstsq(A, b, rcond=None)[0] if len(b) else np.zeros(0)
     rss = yy - 2 * theta @ b + theta @ A @ theta
     return theta, A, max(rss, 0.0), n
 
@@ -275,17 +287,20 @@ def fit_effects(
     targets: Sequence[np.ndarray],
     vehicle: Vehicle,
     fixed: dict[str, dict[str, float]] | None = None,
+    bounded: bool = False,
 ) -> Fit:
     """Jointly fit ``effects`` to ``targets`` ((n, 6) residual per flight) on ``flights``.
 
     Effects named in ``fixed`` keep the given parameters and are subtracted first. On
     :class:`quadcore.identify.sufficient.FlightStats` with signal-vector targets (linear effects only),
     the same fit from the flights' statistics (:func:`quadcore.identify.sufficient.fit_effects`).
+    ``bounded``: the linear effects' parameters are kept within their physical bounds
+    (:func:`bounded_linear_parameters`; nonlinear ones are searched within them anyway).
     """
     from quadcore.identify import sufficient
 
     if sufficient.are_stats(flights):
-        return sufficient.fit_effects(effects, flights, targets, vehicle, fixed)
+        return sufficient.fit_effects(effects, flights, targets, vehicle, fixed, bounded)
     fixed = fixed or {}
     w = channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
     ys = [y.copy() for y in targets]
@@ -309,10 +324,110 @@ def fit_effects(
         if lin:  # the linear effects are solved on what the nonlinear ones leave
             ys = _after(nonlin, nl, flights, ys, vehicle)
 
-    if lin:
-        theta, A, rss, n = _linear_solve(lin, flights, ys, w, vehicle)
-        linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
-    return Fit(params, std, w)
+    if not lin:
+        return Fit(params, std, w)
+    A, b, yy, n = _row_normal_equations(lin, flights, ys, w, vehicle)
+    return solved_linear(lin, A, b, yy, n, vehicle, params, std, w, bounded)
+
+
+def solved_linear(lin: list[Effect], A: np.ndarray, b: np.ndarray, yy: float, n: int, vehicle: Vehicle,
+                  params: dict, std: dict, w: np.ndarray, bounded: bool = False) -> Fit:
+    """The fit of the linear effects ``lin`` from their normal equations ``A θ = b`` (``yy`` the
+    target's weighted sum of squares over ``n`` values), beside ``params``/``std`` of the others:
+    least squares, and with ``bounded`` and parameters outside their bounds, the least squares
+    within them (:func:`bounded_linear_parameters`, the free fit kept as ``free``)."""
+    theta = np.linalg.lstsq(A, b, rcond=None)[0]
+    rss = max(float(yy - 2 * theta @ b + theta @ A @ theta), 0.0)
+    free_params, free_std = dict(params), dict(std)
+    linear_parameters(lin, theta, A, rss, n, vehicle, free_params, free_std)
+    free = Fit(free_params, free_std, w)
+    if not bounded or not any(outside_bounds(e, free_params[e.name]) for e in lin):
+        return free
+    params, std = dict(params), dict(std)
+    start = np.array([free_params[e.name][p.name] for e in lin for p in e.parameters])
+    active = bounded_linear_parameters(lin, A, b, yy, n, vehicle, start, params, std)
+    for e in lin:  # a parameter held at a bound: how well the data pin it is its free fit's error
+        std[e.name] = {k: free_std[e.name][k] if k in active.get(e.name, {}) else v for k, v in std[e.name].items()}
+    return Fit(params, std, w, active, free)
+
+
+def outside_bounds(effect: Effect, params: dict[str, float]) -> list[str]:
+    """The parameters of ``effect`` outside their physical bounds."""
+    return [p.name for p in effect.parameters if not p.lower <= params[p.name] <= p.upper]
+
+
+def _coordinates_at(lin: list[Effect], x: np.ndarray, vehicle: Vehicle) -> np.ndarray:
+    """The stacked linear coordinates of the effects at parameter values ``x`` (stacked)."""
+    out, i = [], 0
+    for e in lin:
+        k = len(e.parameters)
+        out += e.to_linear({p.name: float(v) for p, v in zip(e.parameters, x[i: i + k])}, vehicle)
+        i += k
+    return np.asarray(out, dtype=float)
+
+
+def bounded_linear_parameters(lin: list[Effect], A: np.ndarray, b: np.ndarray, yy: float, n: int, vehicle: Vehicle,
+                              start: np.ndarray, params: dict, std: dict) -> dict[str, dict[str, float]]:
+    """The least squares ``J = yy - 2 θ·b + θᵀAθ`` with every parameter within its bounds (into
+    ``params``, ``std``), and the parameters it holds at a bound (returned, per effect).
+
+    Effects linear in their parameters (``p = default + θ``, the base class's mapping): the
+    bounds are a box on ``θ``, solved exactly (bounded-variable least squares on ``A = MᵀM``,
+    ``b = Mᵀy``). Effects with another mapping (``added_mass``, ``inertia_scale``, ``wind``): the
+    parameters themselves, bounded quasi-Newton (L-BFGS-B) from ``start`` (the free fit's
+    parameters, stacked) clipped to the bounds. Standard errors of the others as
+    :func:`linear_parameters`, with the held ones fixed: ``cov = A_ff⁻¹ rss / (n - k_f) ×
+    SAMPLES_PER_INDEPENDENT``."""
+    from scipy.optimize import lsq_linear, minimize
+
+    ps = [p for e in lin for p in e.parameters]
+    lo, hi = np.array([p.lower for p in ps]), np.array([p.upper for p in ps])
+    if all(type(e).from_linear is Effect.from_linear for e in lin):
+        default = np.array([p.default for p in ps])
+        lam, V = np.linalg.eigh(A)
+        keep = lam > lam.max(initial=0.0) * 1e-12
+        M = np.sqrt(lam[keep])[:, None] * V[:, keep].T
+        y = (V[:, keep].T @ b) / np.sqrt(lam[keep])
+        x = default + lsq_linear(M, y, bounds=(lo - default, hi - default), method="bvls").x
+    else:
+        span = hi - lo
+
+        def J(z: np.ndarray) -> float:
+            c = _coordinates_at(lin, lo + z * span, vehicle)
+            return float(yy - 2 * c @ b + c @ A @ c)
+
+        z = minimize(J, np.clip((start - lo) / span, 0.0, 1.0), method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(ps),
+                     options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 500}).x
+        x = lo + z * span
+    x = np.clip(x, lo, hi)
+    held = (x <= lo) | (x >= hi)
+    c = _coordinates_at(lin, x, vehicle)
+    rss = max(float(yy - 2 * c @ b + c @ A @ c), 0.0)
+    cov = np.zeros((len(c), len(c)))
+    f = ~held  # coordinates of a held parameter are fixed (each effect maps its parameters one to one)
+    if f.any():
+        try:
+            cov[np.ix_(f, f)] = (np.linalg.inv(A[np.ix_(f, f)]) * rss / max(n - int(f.sum()), 1)
+                                 * SAMPLES_PER_INDEPENDENT)
+        except np.linalg.LinAlgError:
+            cov[np.ix_(f, f)] = np.inf
+    active: dict[str, dict[str, float]] = {}
+    for i, e in _offsets(lin):
+        k = len(e.parameters)
+        params[e.name], std[e.name] = _params_with_std(e, c[i: i + k], cov[i: i + k, i: i + k], vehicle)
+        params[e.name] = {p.name: float(v) for p, v in zip(e.parameters, x[i: i + k])}
+        if held[i: i + k].any():
+            active[e.name] = {p.name: float(v) for p, v, h in zip(e.parameters, x[i: i + k], held[i: i + k]) if h}
+    return active
+
+
+def _offsets(lin: list[Effect]) -> list[tuple[int, Effect]]:
+    """(first stacked index, effect) of each linear effect."""
+    out, i = [], 0
+    for e in lin:
+        out.append((i, e))
+        i += len(e.parameters)
+    return out
 
 
 def fixed_values(effects: list[Effect], fixed: dict[str, dict[str, float]]) -> tuple[dict, dict]:

@@ -42,6 +42,7 @@ class CandidateScore:
     n_parameters: int
     explained_variance_per_axis: Mapping[str, float]
     physical: bool
+    active_bounds: Mapping[str, float]  # parameters held at a physical bound (their free fit within noise of it)
     significance_sigma: float
     significant: bool
     notes: tuple[str, ...]
@@ -70,7 +71,8 @@ class CandidateScore:
     @classmethod
     def from_dict(cls, row: Mapping[str, Any]) -> CandidateScore:
         """From a candidate row as the diagnosis builds it (or as the JSON holds it)."""
-        values = {name: row[name] for name in cls.__dataclass_fields__}
+        values = {name: row[name] for name in cls.__dataclass_fields__ if name != "active_bounds"}
+        values["active_bounds"] = row.get("active_bounds", {})  # absent from documents written before it
         for name in ("force_rmse_N", "torque_rmse_Nm", "notes", "indistinguishable_from", "tied_with"):
             values[name] = tuple(values[name])
         return cls(**values)

@@ -370,10 +370,11 @@ def normal_equations(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]
 
 
 def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None):
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False):
     """:func:`quadcore.identify.fitting.fit_effects` from statistics: jointly fit linear ``effects`` to
     the targets ``z·v_f`` (normal equations, see the module); those named in ``fixed`` keep
-    their values and are subtracted first. Returns a :class:`quadcore.identify.fitting.Fit`."""
+    their values and are subtracted first; ``bounded``: within the parameters' physical bounds
+    (:func:`quadcore.identify.fitting.solved_linear`). Returns a :class:`quadcore.identify.fitting.Fit`."""
     from quadcore.identify import fitting
 
     fixed = fixed or {}
@@ -392,10 +393,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     lin = [e for e in effects if e.name not in fixed]
     if lin:
         A, b, yy = normal_equations(stats, vs, w, lambda lay: np.concatenate([lay.cols(e.name) for e in lin]))
-        n = 6 * sum(s.n for s in stats)
-        theta = np.linalg.lstsq(A, b, rcond=None)[0]
-        rss = max(float(yy - 2 * theta @ b + theta @ A @ theta), 0.0)
-        fitting.linear_parameters(lin, theta, A, rss, n, vehicle, params, std)
+        return fitting.solved_linear(lin, A, b, yy, 6 * sum(s.n for s in stats), vehicle, params, std, w, bounded)
     return fitting.Fit(params, std, w)
 
 
