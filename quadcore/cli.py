@@ -309,13 +309,26 @@ def _progress(args: argparse.Namespace):
     return (lambda m: print(m, file=sys.stderr)) if not args.quiet else (lambda m: None)
 
 
+def _discover_command(args: argparse.Namespace) -> str:
+    """The ``quadcore discover`` command on the same flights and model as this ``diagnose``."""
+    import shlex
+
+    parts = ["quadcore", "discover", args.data, "--json", "discovery.json"]
+    for flag, value in (("--model", args.model), ("--effects", args.effects), ("--vehicle", args.vehicle),
+                        ("--thrust-map", args.thrust_map), ("--holdout", args.holdout), ("--sessions", args.sessions)):
+        if value:
+            parts += [flag, value]
+    return shlex.join(parts)
+
+
 def cmd_diagnose(args: argparse.Namespace) -> int:
     from quadcore.identify import verdict
     from quadcore.workflows import identify
 
     _output_folders(str(Path(args.json).parent), args.report)
     spec, flights, holdout = _model_and_flights(args)
-    result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
+    result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data,
+                               discover_command=_discover_command(args))
     out = identify.write_diagnosis_json(result, Path(args.json))
     b = result.baseline
     print(f"model: {result.model.label}  ({result.evaluation.mode}, {len(result.evaluation.eval_flights)} flights "

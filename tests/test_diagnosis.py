@@ -412,7 +412,7 @@ def _check_evidence(d: dict) -> None:
     sensitivity of these flights, for every candidate and parameter."""
     for r in d["candidates"]:
         assert r["status"] in ("found", "tied", "alternative", "unphysical", "noise_level", "no_gain",
-                               "not_significant"), r["status"]
+                               "not_significant", "partial"), r["status"]
         assert isinstance(r["reason"], str) and r["reason"]
         assert 0.0 <= r["held_out_p_value"] <= 1.0 and 0.0 <= r["explained_above_noise"] <= 1.0
         if r["found"]:
@@ -447,7 +447,7 @@ def test_cli_diagnose_writes_the_json_contract(cli_folder, tmp_path):
     assert d["effects_in_model"] == [] and d["evaluation"]["mode"] == "cross-validation"
     # the key structure, pinned: a refactor that renames or drops a key fails here
     by_name = ("parameters", "parameter_std", "parameter_spread_between_flights", "separated_by", "sensitivity",
-               "conditions")  # maps keyed by effect or parameter names (data, not the contract)
+               "conditions", "active_bounds")  # maps keyed by effect or parameter names (data, not the contract)
     shape = snapshot.json_shape(d, data_maps=by_name)
     snapshot.assert_matches(shape, "diagnose_json_keys.txt", "the JSON of `quadcore diagnose`",
                             "tests/test_diagnosis.py -k json_contract")

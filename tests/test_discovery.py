@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from quadcore import cli, effects
-from quadcore.identify import discovery
+from quadcore.identify import discovery, evidence
 from quadcore.physics import dynamics, vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
@@ -298,3 +298,22 @@ def test_a_session_that_names_no_flight_is_said(hidden_flights, tmp_path):
     assert code == 0, err
     assert "warning: session(s) tuesday have no training flight: thrust_scale at the fleet value there" in err
     assert "monday: 2 flights" in err
+
+
+def test_diagnose_says_the_remainder_is_outside_the_library_and_points_to_discover(hidden_flights, tmp_path):
+    """On flights whose missing physics no effect of the library has, a candidate that removes a
+    small part of what lies above the noise floor (a thrust delay, a sliver of the flapping moment) is
+    not called missing: the verdict says the remainder is outside the library and gives the
+    ``quadcore discover`` command for the same flights and model."""
+    out = tmp_path / "d.json"
+    code, stdout, err = _run(["diagnose", str(hidden_flights), "--json", str(out), "--holdout", HOLDOUT, "--quiet"])
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    assert d["verdict"].startswith("Mostly outside the library"), d["verdict"]
+    assert not any(c["found"] for c in d["candidates"]), [(c["effect"], c["status"]) for c in d["candidates"]]
+    outside = d["outside_library"]
+    assert outside is not None and outside["channels"]
+    assert all(p["explained_above_noise"] < evidence.LIBRARY_SHARE for p in outside["channels"])
+    command = f"quadcore discover {hidden_flights} --json discovery.json --holdout {HOLDOUT}"
+    assert outside["command"] == command and f"`{command}`" in d["verdict"]
+    assert any(c["status"] == "partial" for c in d["candidates"])

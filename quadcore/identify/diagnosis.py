@@ -19,7 +19,15 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient, summaries
-from quadcore.identify.evidence import BOUND_SIGMA, LARGE_SNR, MIN_EXPLAINED, MIN_SIGMA, SAME_SIGNATURE, TIE_MARGIN
+from quadcore.identify.evidence import (
+    BOUND_SIGMA,
+    LARGE_SNR,
+    LIBRARY_SHARE,
+    MIN_EXPLAINED,
+    MIN_SIGMA,
+    SAME_SIGNATURE,
+    TIE_MARGIN,
+)
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
@@ -551,6 +559,51 @@ def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _P
     return sensitivity
 
 
+def _discover_placeholder(spec: ModelSpec) -> str:
+    model_arg = f"--model {spec.source}" if spec.source else (
+        f"--effects {','.join(spec.effects)}" if spec.effects else "--model MODEL.toml")
+    return f"quadcore discover LOGS {model_arg} --json discovery.json"
+
+
+def _outside_library(rows: list[dict], held: _HeldOut, command: str) -> dict[str, Any] | None:
+    """Whether what the library finds is only a small part of what is left, per channel: the
+    share of the held-out residual *above the sensor-noise floor* that the found candidates of
+    that channel remove -- the best of them alone (held out), and in the best candidate's channel
+    plus what the others also missing there remove on top of it (``explained_after_top``, as a
+    share above the floor) -- is below ``LIBRARY_SHARE``. Then those candidates are ``partial``
+    (not found: an effect may be real and still not be what is missing) and the verdict says that
+    the rest is outside the library and how to search for it (``command``). Returns
+    ``{"channels": [{channel, best, explained_above_noise, residual_to_noise_after,
+    held_out_p_value}, ...], "command"}``; None when the library explains most of what is
+    above the floor (or there is nothing above it), ``{"channels": [], "command"}`` when nothing
+    is found in a channel above the floor."""
+    found = [r for r in rows if r["found"]]
+    if not found:
+        return {"channels": [], "command": command} if not all(held.at_noise.values()) else None
+    top, out = found[0], []
+    for ch, sl in TARGET_CHANNELS.items():
+        mine = [r for r in found if r["target"] == ch]
+        before, floor = float(held.before[sl].sum()), float(held.noise_ss[sl].sum())
+        if not mine or before <= floor:
+            continue
+        best = mine[0]
+        share = best["explained_above_noise"] + (sum(r["explained_after_top"] * before / (before - floor)
+                                                     for r in mine[1:] if r["status"] == "found")
+                                                 if best is top else 0.0)
+        if share >= LIBRARY_SHARE:
+            continue
+        for r in mine:
+            r["found"] = r["useful"] = False
+            r["status"] = "partial"
+            r["reason"] = (f"the library's findings remove only {min(share, 1.0):.0%} of what lies above the noise "
+                           f"floor of the held-out {ch} residual: most of it is outside the library; " + r["reason"])
+        left = before * (1.0 - best["explained_variance"])
+        out.append({"channel": ch, "best": best["effect"], "explained_above_noise": float(min(share, 1.0)),
+                    "residual_to_noise_after": float(np.sqrt(max(left, 0.0) / floor)) if floor > 0 else None,
+                    "held_out_p_value": best["held_out_p_value"]})
+    return {"channels": out, "command": command} if out else None
+
+
 def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list:
     """Parameters that differ between sessions: the model's effects, and the best candidate
     beside them (from the flights' statistics when they are linear, the best one perhaps
@@ -565,11 +618,11 @@ def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list
 
 
 def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[dict],
-              sensitivity: dict, disagree: list) -> Diagnosis:
+              sensitivity: dict, disagree: list, outside: dict[str, Any] | None) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
     and in frequency (from their rows) and the verdict."""
     described = _by_flight(p, held)
-    text = verdict(rows, held.at_noise, sensitivity)
+    text = verdict(rows, held.at_noise, sensitivity, outside)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
     before, noise_ss = held.before, held.noise_ss
@@ -591,6 +644,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         flights=described.flights,
         worst_segments=described.worst_segments,
         frequency=described.frequency,
+        outside_library=outside if outside is not None and outside["channels"] else None,
     )
 
 
@@ -642,6 +696,7 @@ def diagnose(
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
     stats=None,
+    discover_command: str | None = None,
 ) -> Diagnosis:
     """Fit the model, score it on held-out flights, rank the missing effects, and find the
     parameters that differ between groups of flights (``sessions``: name -> flights, from a
@@ -653,7 +708,9 @@ def diagnose(
     (:mod:`quadcore.identify.profiles`; a candidate with several nonlinear parameters reads its
     training flights' rows), and the evaluated flights' stored summaries
     (:mod:`quadcore.identify.summaries`) give the regime tables and spectra (their rows where a
-    flight has no current summary, and for every flight of a model with a nonlinear effect)."""
+    flight has no current summary, and for every flight of a model with a nonlinear effect).
+    ``discover_command``: the ``quadcore discover`` command the verdict points to when what is
+    left is outside the library (None: one with placeholders for the logs and the model file)."""
     p = _Problem(decoded, spec, candidates, stats)
     splits, train_all, mode = _splits(p.ids, holdout, n_folds)
     folds = _cross_fit(p, splits, sessions, log)
@@ -676,9 +733,10 @@ def diagnose(
     _mark_alike(rows, span, held, p)
     rows = _rank(rows)
     sensitivity = _beyond_the_best(rows, span, held, p)
+    outside = _outside_library(rows, held, discover_command or _discover_placeholder(spec))
     disagree = _session_disagreements(p, rows, sessions, log)
     evaluation = Evaluation(mode, len(splits), tuple(train_all), tuple(held.ids), held.n)
-    return _assemble(p, held, model, evaluation, rows, sensitivity, disagree)
+    return _assemble(p, held, model, evaluation, rows, sensitivity, disagree, outside)
 
 
 def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:

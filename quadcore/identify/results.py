@@ -138,6 +138,9 @@ class Diagnosis:
     worst_segments: pl.DataFrame
     frequency: Mapping[str, Any]
     skipped_flights: Mapping[str, str] | None = None  # flight -> why, where the caller skipped some
+    # when what the library finds removes less than evidence.LIBRARY_SHARE of the above-noise
+    # residual: the channel, that share, the residual left in noise floors (RMS), the command to run
+    outside_library: Mapping[str, Any] | None = None
 
     def with_skipped(self, skipped: Mapping[str, str]) -> Diagnosis:
         return replace(self, skipped_flights=dict(skipped))
@@ -160,6 +163,7 @@ class Diagnosis:
             "sensitivity": {k: dict(v) for k, v in self.sensitivity.items()},
             "sensitivity_basis": dict(self.sensitivity_basis),
             "verdict": self.verdict,
+            "outside_library": dict(self.outside_library) if self.outside_library is not None else None,
             "disagreements": [d.to_dict() for d in self.disagreements],
             "regimes": self.regimes.to_dicts(),
             "flights": self.flights.to_dicts(),

@@ -101,7 +101,34 @@ def _pct(x: float) -> str:
     return f"{max(x, 0.0):.0%}"
 
 
-def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str) -> str:
+def _search_with(outside: dict | None) -> str:
+    return (f" Search for its form with `{outside['command']}` (sparse regression over a library of terms, "
+            "held out)." if outside else "")
+
+
+def _outside_library(rows: list[dict], part: dict, headline: bool) -> str:
+    """What the library finds in a channel is a small part of what is left there (see
+    :func:`quadcore.identify.diagnosis._outside_library`)."""
+    best = next(r for r in rows if r["effect"] == part["best"])
+    ch, left = part["channel"], part.get("residual_to_noise_after")
+    return (("Mostly outside the library: the best candidate, " if headline
+             else f" The {ch} residual is mostly outside the library: its best candidate, ")
+            + f"{best['effect']} (confirmed on held-out flights, p = {best['held_out_p_value']:.2g}; {_params(best)}), "
+            f"removes only {best['explained_above_noise']:.0%} of what lies above the sensor-noise floor of the "
+            f"held-out {ch} residual"
+            + (f" ({part['explained_above_noise']:.0%} with the library's other findings)"
+               if part["explained_above_noise"] > best["explained_above_noise"] + 0.005 else "")
+            + (f", and the {ch} residual stays {left:.1f} times the noise floor (RMS) after it" if left else "")
+            + ": what is missing there is mostly a physical effect the library does not have"
+            + (", and a candidate that explains a small part of it is not called missing." if headline else "."))
+
+
+def _params(r: dict) -> str:
+    std = r["parameter_std"]
+    return ", ".join(f"{k} = {v:.4g} ± {std.get(k, float('nan')):.2g}" for k, v in r["parameters"].items())
+
+
+def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str, outside: dict | None = None) -> str:
     if at_noise and all(at_noise.values()):
         return ("No effect of the library explains the residual on held-out flights: none improves it "
                 f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
@@ -110,7 +137,7 @@ def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: s
     tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
     return ("No effect of the library explains the residual on held-out flights" + tail +
             ": what is left is a physical effect outside the library, or one below what these flights can "
-            "detect." + missed)
+            "detect." + _search_with(outside) + missed)
 
 
 def _most_likely(top: dict) -> str:
@@ -118,9 +145,7 @@ def _most_likely(top: dict) -> str:
     grade = top.get("grade", "clear")
     size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
         grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
-    params = ", ".join(
-        f"{k} = {v:.4g} ± {top['parameter_std'].get(k, float('nan')):.2g}" for k, v in top["parameters"].items()
-    )
+    params = _params(top)
     ch, other = top["target"], _other(top["target"])
     text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
             f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
@@ -184,19 +209,25 @@ def _beyond_the_best(top: dict, found: list[dict]) -> str:
     return text
 
 
-def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None) -> str:
-    """One paragraph a person reads first: what is missing and how sure, or why nothing is,
-    and how small an effect these flights could have missed."""
+def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None,
+            outside: dict | None = None) -> str:
+    """One paragraph a person reads first: what is missing and how sure, or why nothing is (or
+    why what the library finds is not what is missing: ``outside``, with the command that
+    searches outside the library), and how small an effect these flights could have missed."""
     found = [r for r in rows if r.get("found", r.get("useful", False))]
     unseen = [r["effect"] for r in rows if r not in found[:1]]
     missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
               f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
               if sensitivity else "")
+    parts = outside["channels"] if outside else []
+    outside_text = "".join(_outside_library(rows, part, i == 0 and not found) for i, part in enumerate(parts))
+    if parts:
+        outside_text += _search_with(outside)
     if not found:
-        return _nothing_found(rows, at_noise, missed)
+        return outside_text.lstrip() + missed if parts else _nothing_found(rows, at_noise, missed, outside)
     top = found[0]
     by_name = {r["effect"]: r for r in rows}
-    return _most_likely(top) + _alike(top, by_name) + _beyond_the_best(top, found) + missed
+    return _most_likely(top) + _alike(top, by_name) + _beyond_the_best(top, found) + outside_text + missed
 
 
 def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:

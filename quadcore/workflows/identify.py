@@ -98,16 +98,33 @@ def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
 
 
 def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
-             where: str = "the decoded flights", stats=None) -> Diagnosis:
+             where: str = "the decoded flights", stats=None, discover_command: str | None = None) -> Diagnosis:
     """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
-    with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`."""
+    with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`;
+    ``discover_command``: the command the verdict points to when what is left is outside the library."""
     from quadcore.identify import diagnosis
 
     seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
-                                stats=stats)
+                                stats=stats, discover_command=discover_command)
     return result.with_skipped(fleet.skipped)
+
+
+def discover_command(data, spec: ModelSpec, holdout: list[str]) -> str:
+    """The ``quadcore discover`` command on the logs in ``data`` with the model ``spec`` (its
+    file, or its effects) and ``holdout``: what a diagnosis points to when what is left is
+    outside the library."""
+    import shlex
+
+    parts = ["quadcore", "discover", str(data), "--json", "discovery.json"]
+    if spec.source:
+        parts += ["--model", spec.source]
+    elif spec.effects:
+        parts += ["--effects", ",".join(spec.effects)]
+    if holdout:
+        parts += ["--holdout", ",".join(holdout)]
+    return shlex.join(parts)
 
 
 def diagnosis_json(result: Diagnosis) -> str:
