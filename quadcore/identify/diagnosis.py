@@ -464,8 +464,11 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict],
     # the larger of the sample-based error and the spread between groups of flights: flights
     # differ (battery, propellers, a stuck log variable) more than samples within a flight do
     std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
-    bounds = _bounds(c, fit_c, _jackknife_std(fold_params[1]))
+    free_spread = _jackknife_std(fold_params[1])
+    bounds = _bounds(c, fit_c, free_spread)
     active = fit_c.active.get(c.name, {})
+    # a parameter held at its bound: how well the data pin it is its free fit's error and spread
+    std.update({k: max(std[k], free_spread.get(k, 0.0)) for k in active})
     sigma = _significance(c, params, std)
     return {
         "effect": c.name,
