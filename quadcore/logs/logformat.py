@@ -383,9 +383,9 @@ def _misfit_ids(ids: np.ndarray, broken: np.ndarray) -> np.ndarray:
     edited), so every record of that id would be read with the wrong layout."""
     if not broken.any():
         return np.zeros(0, ids.dtype)
-    u, total = np.unique(ids, return_counts=True)
-    bad = np.bincount(np.searchsorted(u, ids[broken]), minlength=len(u))
-    return u[(bad >= 2) & (2 * bad > total)]
+    total = np.bincount(ids, minlength=65536)
+    bad = np.bincount(ids[broken], minlength=65536)
+    return np.flatnonzero((bad >= 2) & (2 * bad > total)).astype(ids.dtype)
 
 
 RESYNC_MAX_GAP_US = 1_000_000
