@@ -91,3 +91,22 @@ def test_the_data_root_skips_the_copy_too(with_copy, tmp_path):
     fl = fleet.fleet_from_store(tmp_path, vehicle.load(None))
     assert fl.ids == ["jana02", "jana03", "jana11"] and "jana99" in fl.skipped
     assert len(flights) == 4  # decoded (and reported), just not used twice
+
+
+def test_the_learning_stage_leaves_the_copy_out_of_its_feature_tables(with_copy, tmp_path):
+    """The main job computes every flight's residual table, the copy's too; the learning stage
+    builds its training tables from them (today jana99, a copy of the held-out jana02, was one)."""
+    from quadcore.learn import features as feat
+    from quadcore.physics import residuals
+    from quadcore.workflows import learn
+
+    flights, _ = fleet.decode_logs([str(with_copy)], tmp_path)
+    veh = vehicle.load(None)
+    for fl in flights:
+        store.write_parquet(residuals.residual_table(fl.tables["fixedFrequency"], veh),
+                            store.table_path(tmp_path, "residuals", fl.flight_id),
+                            {"flight": fl.flight_id, "model": {"label": "nominal"}})
+    sets, n = learn.build_features(tmp_path, ["vel_rate"])
+    assert n == 3
+    _, tables = feat.read_feature_tables(tmp_path)
+    assert sorted(tables["vel_rate"]) == ["jana02", "jana03", "jana11"]
