@@ -114,8 +114,8 @@ class ModelConfig(dg.ConfigurableResource):
 
     @property
     def holdout_flights(self) -> list[str]:
-        """The flights named in ``holdout`` (empty: the project's default, see
-        :func:`quadcore.workflows.held_out`)."""
+        """The flights named in ``holdout`` (empty: none held out; the diagnosis cross-validates,
+        see :func:`quadcore.workflows.held_out`)."""
         from quadcore import workflows
 
         return workflows.parse_names(self.holdout)

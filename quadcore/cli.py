@@ -327,12 +327,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
 
     _output_folders(str(Path(args.json).parent), args.report)
     spec, flights, holdout = _model_and_flights(args)
-    result = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data,
+    result = identify.diagnose(flights, spec, holdout, _progress(args), where=args.data,
                                discover_command=_discover_command(args))
     out = identify.write_diagnosis_json(result, Path(args.json))
     b = result.baseline
-    print(f"model: {result.model.label}  ({result.evaluation.mode}, {len(result.evaluation.eval_flights)} flights "
-          "evaluated)")
+    print(f"model: {result.model.label}  (evaluated by {result.evaluation.protocol})")
     print("baseline residual RMSE  force [N]: " + " ".join(f"{v:.4f}" for v in b.force_rmse_N)
           + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b.torque_rmse_Nm))
     print()
@@ -351,7 +350,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             print(f"  {g.value:.4g} ± {g.std:.2g}: {', '.join(g.flights)}")
         for note in d.notes:
             print(f"  note: {note}")
-    print(f"\n{result.verdict}\n\nwrote {out}")
+    print(f"\n{result.verdict}\n\nstability: {result.stability.sentence()}\nwrote {out}")
     if args.report:
         md, page = identify.write_diagnosis_report(result, Path(args.report), model_file=spec.source)
         with_discovery = identify.discovery_for(args.report, spec.effects) is not None
@@ -377,7 +376,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
             raise UserError(f"--write-effect needs DIR/NAME.py with NAME a Python identifier, got {target}")
     _output_folders(str(Path(args.json).parent), str(Path(args.write_effect).parent) if args.write_effect else None)
     spec, flights, holdout = _model_and_flights(args)
-    result = identify.discover(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
+    result = identify.discover(flights, spec, holdout, _progress(args), where=args.data)
     out = Path(args.json)
     try:
         identify.write_discovery(result, out)

@@ -42,9 +42,9 @@ def json_differences(got, expected, path: str = "", rel: float = REL, abs_: floa
         return isinstance(v, int | float) and not isinstance(v, bool)
 
     if isinstance(expected, dict) and isinstance(got, dict):
-        if list(got) != list(expected):
-            return [f"{path or '.'}: keys {list(got)} != {list(expected)}"]
-        return [d for k in expected for d in json_differences(got[k], expected[k], f"{path}.{k}", rel, abs_)]
+        keys = [] if list(got) == list(expected) else [f"{path or '.'}: keys {list(got)} != {list(expected)}"]
+        return keys + [d for k in expected if k in got
+                       for d in json_differences(got[k], expected[k], f"{path}.{k}", rel, abs_)]
     if isinstance(expected, list) and isinstance(got, list):
         if len(got) != len(expected):
             return [f"{path}: {len(got)} items != {len(expected)}"]

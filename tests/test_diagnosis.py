@@ -447,7 +447,8 @@ def test_cli_diagnose_writes_the_json_contract(cli_folder, tmp_path):
     assert d["effects_in_model"] == [] and d["evaluation"]["mode"] == "cross-validation"
     # the key structure, pinned: a refactor that renames or drops a key fails here
     by_name = ("parameters", "parameter_std", "parameter_spread_between_flights", "separated_by", "sensitivity",
-               "conditions", "active_bounds")  # maps keyed by effect or parameter names (data, not the contract)
+               "conditions", "active_bounds", "votes")  # maps keyed by effect or parameter names (data, not the
+    # contract)
     shape = snapshot.json_shape(d, data_maps=by_name)
     snapshot.assert_matches(shape, "diagnose_json_keys.txt", "the JSON of `quadcore diagnose`",
                             "tests/test_diagnosis.py -k json_contract")
@@ -772,3 +773,24 @@ def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):
     t = fd.state.t_s[fd.mask]
     assert len(sums) == len(np.unique((t - t[0]) // evidence.BLOCK_S)) and np.all(sums > 0)
     assert evidence.held_out_test([fd], resid, resid, np.ones(6)).blocks == len(sums)
+
+
+def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_folds():
+    """Every fold's answer counted against the top one and what the data cannot tell from it:
+    a flip to another candidate in any fold is 'undecided between A and B'; a single held-out
+    flight cannot measure it."""
+    from quadcore.identify.results import NOTHING, Stability
+
+    stable = Stability("rotor_drag", ("rotor_drag", "wind"), "fold", {"rotor_drag": 3, "wind": 2}, 5)
+    assert stable.agree == 5 and stable.undecided_between == ()
+    assert stable.sentence().startswith("Stable: rotor_drag (or wind, which the data cannot tell from it) comes "
+                                        "first in 5 of 5 folds")
+    flips = Stability("com_offset", ("com_offset",), "fold", {"com_offset": 3, "ground_effect": 2}, 5)
+    assert flips.agree == 3 and flips.undecided_between == ("com_offset", "ground_effect")
+    assert flips.sentence().startswith("Undecided between com_offset and ground_effect: the answer depends on which "
+                                       "flights are held out (first in each of 5 folds: com_offset in 3, "
+                                       "ground_effect in 2)")
+    nothing = Stability(NOTHING, (NOTHING,), "fold", {NOTHING: 4, "wind": 1}, 5)
+    assert "Undecided between no effect of the library and wind" in nothing.sentence()
+    one = Stability("rotor_drag", ("rotor_drag",), "held-out flight", {"rotor_drag": 1}, 1)
+    assert one.sentence().startswith("Stability not measured") and one.to_dict()["agree"] == 1

@@ -102,10 +102,9 @@ def _discoveries(root, effects, holdout, monkeypatch) -> tuple[dict, dict, list]
     from quadcore.workflows import identify
 
     spec = model.spec_from(vehicle.load(), effects)
-    rows = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, default_held=False)
+    rows = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout)
     reads = _counting_reads(monkeypatch)
-    stored = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, default_held=False,
-                               root=root)
+    stored = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, root=root)
     return rows.to_dict(), stored.to_dict(), reads
 
 

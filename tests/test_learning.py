@@ -444,7 +444,9 @@ def test_dagster_assets(tmp_path, residual_tables):
         resources = {"data_root": DataRoot(root=str(tmp_path)), "model": ModelConfig()}
         assets = [learning_features, learned_models, learning_report]
         result = dg.materialize(assets, instance=instance, resources=resources, run_config=run_config)
-        # a physics model fitted on the held-out flight would leak it: refused with the reason
+        # a named holdout (here the learning config's) that the physics model was fitted on would leak
+        # it: refused with the reason. With nothing named, the physics is fitted on every flight and
+        # the report says so (test_a_physics_fit_on_every_flight_is_said_in_the_setup)
         store.write_json({**physics, "trained_on": sorted(residual_tables)}, tmp_path / "models" / "physics_model.json")
         leaky = dg.materialize(assets, instance=instance, resources=resources, run_config=run_config,
                                raise_on_error=False)
@@ -517,3 +519,16 @@ def test_share_of_the_learned_gain_the_physics_captures():
     assert share["force"] == pytest.approx(2 / 3) and share["torque"] == pytest.approx(2.0)
     assert "captures 67% in force" in learn_tables.verdict(best, base, None)
     assert learn_tables.captured_share(best, {**base, "zero": m(0.5)}) == {}  # no effects: nothing to compare
+
+
+def test_a_physics_fit_on_every_flight_is_said_in_the_setup():
+    """Without a named holdout the physics model is fitted on every flight (the default): the
+    learning report's Setup says that its test flight was in the physics fit, and how to keep it out."""
+    physics = model.PhysicsModel(VEHICLE, [model.EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1,
+                                                                           "k_y_s_per_m": 0.1})]).to_dict()
+    flights = {f: None for f in ("sim000", "sim001", HOLDOUT)}
+    index = {"holdout": HOLDOUT, "config": {}}
+    every = evaluation.setup_summary(index, [], flights, physics, sorted(flights))["physics_fit"]
+    assert "every flight" in every and f"QUADCORE_HOLDOUT={HOLDOUT}" in every and "never saw" in every
+    clean = evaluation.setup_summary(index, [], flights, physics, ["sim000", "sim001"])["physics_fit"]
+    assert clean == f"the physics model's effects were fitted without {HOLDOUT}"

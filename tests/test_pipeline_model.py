@@ -75,10 +75,12 @@ def test_the_loop_in_dagster(raw, tmp_path):
         found = metadata(res, "term_discovery")
         assert "v_b_x_mps" in found["terms"] and found["discovery_plot"].startswith("![")
         disc = json.loads((root / "reports" / "discovery.json").read_text())
-        # discovery sees what the diagnosis sees: the flight the learned models are scored on is left out
-        assert disc["evaluation"]["train_flights"] == report["evaluation"]["train_flights"] == ["sim000", "sim001",
-                                                                                                "sim002"]
-        assert found["flights"] == 3
+        # discovery sees what the diagnosis sees: every flight, nothing held out (no QUADCORE_HOLDOUT)
+        assert disc["evaluation"]["train_flights"] == report["evaluation"]["train_flights"] == [
+            "sim000", "sim001", "sim002", "sim003"]
+        assert report["evaluation"]["protocol"].startswith("4-fold cross-validation over 4 flights")
+        assert report["stability"]["total"] == 4 and report["stability"]["sentence"] in diag["verdict"]
+        assert found["flights"] == 4
         assert any(t["target"] == "f_res_b_x_N" and "v_b_x_mps" in t["variables"] for t in disc["terms"])
         md = (root / "reports" / "diagnosis.md").read_text()
         assert "Terms the library lacks" in md and "Where it fails, in frequency" in md

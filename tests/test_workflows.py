@@ -36,7 +36,7 @@ def _held_out(config: ModelConfig, fleet: Fleet):
 def diagnosis_flights(config: ModelConfig, fleet: Fleet):
     """The flights model_diagnosis and term_discovery see, failing as they fail."""
     with failing_on_user_errors():
-        return identify.diagnosis_flights(fleet, config.holdout_flights, default_held=True)
+        return identify.diagnosis_flights(fleet, config.holdout_flights)
 
 
 def test_named_holdout_is_checked_not_filtered():
@@ -60,17 +60,23 @@ def test_an_unknown_or_quarantined_holdout_fails_the_model_assets_with_its_reaso
             resolve(config, _decoded())
 
 
-def test_without_a_holdout_the_diagnosis_never_sees_the_learned_models_test_flight():
-    config = ModelConfig()
-    held, _ = workflows.held_out([], FLIGHTS)
-    seen, holdout = diagnosis_flights(config, _decoded())
-    assert held == ["sim002"] and holdout is None  # cross-validation ...
-    assert seen.ids == ["sim000", "sim001"]  # ... over the flights the model is fitted on
-    with_jana = _decoded(["jana00", "jana02", "jana03"])
-    seen, _ = diagnosis_flights(config, with_jana)
-    assert seen.ids == ["jana00", "jana03"]  # the project's default test flight
-    seen, holdout = identify.diagnosis_flights(_decoded(), [], default_held=False)  # the CLI: every flight
-    assert seen.ids == FLIGHTS and holdout is None
+def test_without_a_holdout_nothing_is_held_out_and_the_diagnosis_cross_validates_over_every_flight():
+    """The README's default: no QUADCORE_HOLDOUT / --holdout, nothing held out, the same for the
+    assets and the CLI (one function): a fleet never silently loses a flight (before, jana02 or
+    the last flight was left out of the fit and of the diagnosis's cross-validation)."""
+    assert workflows.held_out([], FLIGHTS) == []
+    for fleet_ in (_decoded(), _decoded(["jana00", "jana02", "jana03"])):
+        seen, holdout = diagnosis_flights(ModelConfig(), fleet_)
+        assert seen.ids == fleet_.ids and holdout is None
+
+
+def test_the_learned_models_pick_their_own_test_flight_and_say_why():
+    """A learned model needs a flight it never saw: the named holdout, else jana02, else the last
+    flight; the note says so and that the physics uses every flight."""
+    assert learn.learning_holdout("", ["jana00", "jana02", "jana03"])[0] == "jana02"
+    flight, note = learn.learning_holdout("", FLIGHTS)
+    assert flight == "sim002" and "never see" in note and "every flight" in note
+    assert learn.learning_holdout("", FLIGHTS, ["sim000"]) == ("sim000", "")
 
 
 def test_a_named_holdout_is_scored_on_with_every_flight_seen():

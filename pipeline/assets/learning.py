@@ -29,14 +29,15 @@ class FeatureConfig(dg.Config):
 
 
 class LearningConfig(dg.Config):
-    """What to train. ``holdout``: the held-out flight (empty: the one the physics model left out);
+    """What to train. ``holdout``: the flight the learned models are scored on (empty: the one
+    ``QUADCORE_HOLDOUT`` names, else jana02, else the last flight: :func:`quadcore.workflows.learn.learning_holdout`);
     ``models``: model kinds; ``xgboost`` / ``mlp``: options such as ``depth=4,trees=300`` or
     ``hidden=64x64``; ``compare``: also the complexity and training-size comparisons; ``loo``:
     also leave-one-flight-out; ``flights_csv``: flight kinds (empty: ``flights.csv`` beside or
     above the raw folder); ``stride``: fit on every stride-th sample; ``max_rows``: the row budget of
     a training run (0: ``QUADCORE_LEARN_ROWS``, else the default); ``threads``: XGBoost threads."""
 
-    holdout: str = ""  # empty: the physics model's held-out flight (quadcore.workflows.held_out)
+    holdout: str = ""  # empty: quadcore.workflows.learn.learning_holdout's default
     models: list[str] = ["xgboost", "mlp"]
     xgboost: str = ""
     mlp: str = ""

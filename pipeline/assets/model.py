@@ -68,9 +68,8 @@ REFIT = (RETRAIN | (ModelFileChanged() & ~dg.AutomationCondition.in_progress()
 
 @dg.asset(group_name="model", deps=[*ALL_FLIGHTS, *ALL_STATISTICS], kinds={"json"}, automation_condition=REFIT)
 def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
-    """The model file's effects, fitted on the training flights: every decoded flight but the
-    held-out one(s) (``QUADCORE_HOLDOUT``, else jana02, else the last flight), which the
-    learned models are scored on."""
+    """The model file's effects, fitted on every decoded flight but the held-out one(s) that
+    ``QUADCORE_HOLDOUT`` names (by default none)."""
     spec = model.spec()
     context.log.info(f"model file: {spec.source or '(none: the nominal vehicle)'}")
     flights = load_fleet(data_root, spec.vehicle, context.log)
@@ -86,7 +85,7 @@ def physics_model(context: dg.AssetExecutionContext, data_root: DataRoot, model:
         "parameters": dg.MetadataValue.md(
             render.markdown_table(pl.DataFrame(params)) if params else "nominal model: no effects"),
         "trained_on": len(fitted.trained_on),
-        "held_out": ", ".join(fitted.held_out),
+        "held_out": ", ".join(fitted.held_out) or "none (QUADCORE_HOLDOUT not set)",
         "model_file": spec.source or "(none: nominal)",
         "path": dg.MetadataValue.path(str(path)),
         **skipped_metadata(flights.skipped),
@@ -115,6 +114,8 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
         "next_step": dg.MetadataValue.md(diagnosis_report.next_step(doc, spec.source)),
         "evidence": dg.MetadataValue.md(render.markdown_table(diagnosis_report.evidence_table(doc, 5))),
         "verdict": dg.MetadataValue.md(result.verdict),
+        "protocol": result.evaluation.protocol,
+        "stability": result.stability.sentence(),
         "model": result.model.label,
         "model_file": spec.source or "(none: nominal)",
         **{f"force_rmse_{a}_N": number(v) for a, v in zip("xyz", b.force_rmse_N)},

@@ -10,6 +10,7 @@ the thresholds in :mod:`quadcore.identify.evidence`.
 from __future__ import annotations
 
 import functools
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -31,7 +32,7 @@ from quadcore.identify.evidence import (
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
-from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse
+from quadcore.identify.results import NOTHING, CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict
 from quadcore.physics.dynamics import XYZ
 
@@ -553,6 +554,9 @@ def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _P
     for r in rows:
         r["explained_after_top"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
                                     else span.left_after(r["effect"], rows[0]["effect"], r["target"]))
+        # what it removes alone by the same screen (not its held-out share): the verdict compares the two
+        r["explained_alone_screen"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
+                                       else span.left_after(r["effect"], None, r["target"]))
     rank_reasons(rows, held.at_noise)
     left = ({f: held.resid[f] - held.cand_pred[rows[0]["effect"]][f] for f in held.ids}
             if rows and rows[0]["found"] else held.resid)
@@ -620,14 +624,55 @@ def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list
                                     sessions, log)
 
 
+def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str]) -> str:
+    """The answer of one fold (its test ``flights``): the physical candidate whose held-out
+    prediction (fitted without them) removes the largest share of their residual, scored as the
+    ranking scores (force and torque averaged, channels at the noise floor clipped), or
+    :data:`NOTHING` when none removes ``MIN_EXPLAINED`` of its channel."""
+    index = {f: i for i, f in enumerate(held.ids)}
+    fds = [held.flights[index[f]] for f in flights]
+    before = _total(_ss(held.resid[f], fd) for f, fd in zip(flights, fds))
+    best, best_score, best_ev = NOTHING, 0.0, 0.0
+    for r in rows:
+        if not r["physical"]:
+            continue
+        pred = held.cand_pred[r["effect"]]
+        after = _total(_ss(held.resid[f] - pred[f], fd) for f, fd in zip(flights, fds))
+        ev = [min(x, 0.0) if held.at_noise[ch] else x
+              for ch, x in ((ch, _ev(before, after, sl)) for ch, sl in TARGET_CHANNELS.items())]
+        if 0.5 * sum(ev) > best_score:
+            best, best_score, best_ev = r["effect"], 0.5 * sum(ev), max(ev)
+    return best if best_ev >= MIN_EXPLAINED else NOTHING
+
+
+def _stability(rows: list[dict], splits: list[tuple[list[str], list[str]]], held: _HeldOut) -> Stability:
+    """How many folds agree on the top answer (:class:`quadcore.identify.results.Stability`): the
+    cross-validation's folds, or with one split each held-out flight. From the held-out
+    predictions the scores already hold: no refit."""
+    top = rows[0] if rows and rows[0]["found"] else None
+    answer = top["effect"] if top else NOTHING
+    group = (answer, *top["tied_with"]) if top else (NOTHING,)
+    units, unit = (([test for _, test in splits], "fold") if len(splits) > 1
+                   else ([[f] for f in held.ids], "held-out flight"))
+    votes = Counter(_fold_answer(rows, held, flights) for flights in units)
+    return Stability(answer, tuple(group), unit, dict(votes.most_common()), len(units))
+
+
 def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[dict],
-              sensitivity: dict, disagree: list, outside: dict[str, Any] | None) -> Diagnosis:
+              sensitivity: dict, disagree: list, outside: dict[str, Any] | None,
+              stability: Stability) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
-    and in frequency (from their rows) and the verdict."""
+    and in frequency (from their rows) and the verdict: how stable its answer is leads it when
+    the answer flips between folds, and closes it otherwise, with the protocol."""
     described = _by_flight(p, held)
     text = verdict(rows, held.at_noise, sensitivity, outside)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
+    if stability.undecided_between:
+        text = stability.sentence() + " " + text
+    else:
+        text += " " + stability.sentence()
+    text += f" Evaluated by {evaluation.protocol}."
     before, noise_ss = held.before, held.noise_ss
     return Diagnosis(
         effects_in_model=tuple(p.spec.effects),
@@ -642,6 +687,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         sensitivity=sensitivity,
         sensitivity_basis=sensitivity_basis(p.cands),
         verdict=text,
+        stability=stability,
         disagreements=tuple(disagree),
         regimes=described.regimes,
         flights=described.flights,
@@ -739,7 +785,8 @@ def diagnose(
     outside = _outside_library(rows, held, discover_command or _discover_placeholder(spec))
     disagree = _session_disagreements(p, rows, sessions, log)
     evaluation = Evaluation(mode, len(splits), tuple(train_all), tuple(held.ids), held.n)
-    return _assemble(p, held, model, evaluation, rows, sensitivity, disagree, outside)
+    return _assemble(p, held, model, evaluation, rows, sensitivity, disagree, outside,
+                     _stability(rows, splits, held))
 
 
 def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
@@ -926,12 +973,14 @@ class _SpanOverlap:
         gain, beta = self._fit(G, y, b)
         return float(np.clip(gain / yy, 0.0, 1.0)), beta
 
-    def left_after(self, b: str, top: str, channel: str) -> float:
+    def left_after(self, b: str, top: str | None, channel: str) -> float:
         """Share of the baseline ``channel`` residual that ``b`` removes from what ``top``
-        leaves."""
+        leaves (from the whole residual: ``top`` None; the same screen, to compare with)."""
         G = self._G(channel)
         y = np.zeros(len(G))
-        y[0], y[1 + self.names.index(top)] = 1.0, -1.0
+        y[0] = 1.0
+        if top is not None:
+            y[1 + self.names.index(top)] = -1.0
         base = G[0, 0]
         return float(np.clip(self._gain(G, y, b) / base, 0.0, 1.0)) if base > 0 else 0.0
 

@@ -101,9 +101,72 @@ class Evaluation:
     eval_flights: tuple[str, ...]
     samples: int
 
+    @property
+    def protocol(self) -> str:
+        """The protocol in words, as the verdict, the report and the JSON state it."""
+        if self.mode == "holdout":
+            return (f"holdout on {', '.join(self.eval_flights)} (held out: every number fitted on the other "
+                    f"{len(self.train_flights)} flights)")
+        if self.mode == "cross-validation":
+            return (f"{self.folds}-fold cross-validation over {len(self.eval_flights)} flights (folds grouped by "
+                    "flight: each flight scored by fits that never saw it; nothing held out)")
+        return f"{self.mode}: scored on the flight it was fitted on"
+
     def to_dict(self) -> dict:
-        return {"mode": self.mode, "folds": self.folds, "train_flights": list(self.train_flights),
-                "eval_flights": list(self.eval_flights), "samples": self.samples}
+        return {"mode": self.mode, "protocol": self.protocol, "folds": self.folds,
+                "train_flights": list(self.train_flights), "eval_flights": list(self.eval_flights),
+                "samples": self.samples}
+
+
+NOTHING = "nothing"  # a fold's (or the diagnosis's) answer when no candidate of the library is found
+
+
+@dataclass(frozen=True)
+class Stability:
+    """How stable the top answer is: the answer of each fold (``unit``: the cross-validation's
+    folds, or each held-out flight), the candidate that removes the largest share of the residual
+    of its flights (or :data:`NOTHING`), counted against the diagnosis's answer and the
+    candidates the data cannot tell from it (``group``). ``undecided_between`` lists the answers
+    when another one comes first in some fold: the top answer flips with the flights held out."""
+
+    answer: str
+    group: tuple[str, ...]
+    unit: str  # "fold" or "held-out flight"
+    votes: Mapping[str, int]  # answer -> in how many units it comes first, most first
+    total: int
+
+    @property
+    def agree(self) -> int:
+        return sum(n for a, n in self.votes.items() if a in self.group)
+
+    @property
+    def undecided_between(self) -> tuple[str, ...]:
+        others = [a for a in self.votes if a not in self.group]
+        return (self.answer, *others) if others else ()
+
+    def sentence(self) -> str:
+        """``Stable: ... first in 5 of 5 folds`` or ``Undecided between A and B: ...``."""
+        def name(a: str) -> str:
+            return "no effect of the library" if a == NOTHING else a
+
+        units = f"{self.unit}{'s' if self.total != 1 else ''}"
+        if self.total < 2:
+            return (f"Stability not measured: a single {self.unit} (cross-validation, the default without a holdout, "
+                    "measures it).")
+        counts = ", ".join(f"{name(a)} in {n}" for a, n in self.votes.items())
+        if self.undecided_between:
+            return (f"Undecided between {' and '.join(name(a) for a in self.undecided_between)}: the answer "
+                    f"depends on which flights are held out (first in each of {self.total} {units}: {counts}).")
+        alike = [a for a in self.group if a != self.answer]
+        return (f"Stable: {name(self.answer)}" + (f" (or {', '.join(alike)}, which the data cannot tell from it)"
+                                                   if alike else "")
+                + f" comes first in {self.agree} of {self.total} {units}" + (f" ({counts})." if len(self.votes) > 1
+                                                                              else "."))
+
+    def to_dict(self) -> dict:
+        return {"answer": self.answer, "group": list(self.group), "unit": self.unit, "votes": dict(self.votes),
+                "agree": self.agree, "total": self.total, "undecided_between": list(self.undecided_between),
+                "sentence": self.sentence()}
 
 
 @dataclass(frozen=True)
@@ -132,6 +195,7 @@ class Diagnosis:
     sensitivity: Mapping[str, Mapping[str, float | None]]
     sensitivity_basis: Mapping[str, Any]
     verdict: str
+    stability: Stability
     disagreements: tuple[Disagreement, ...]
     regimes: pl.DataFrame
     flights: pl.DataFrame
@@ -164,6 +228,7 @@ class Diagnosis:
             "sensitivity_basis": dict(self.sensitivity_basis),
             "verdict": self.verdict,
             "outside_library": dict(self.outside_library) if self.outside_library is not None else None,
+            "stability": self.stability.to_dict(),
             "disagreements": [d.to_dict() for d in self.disagreements],
             "regimes": self.regimes.to_dicts(),
             "flights": self.flights.to_dicts(),

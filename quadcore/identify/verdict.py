@@ -195,10 +195,10 @@ def _beyond_the_best(top: dict, found: list[dict]) -> str:
     others = [r for r in found[1:] if r["effect"] not in alike]
     independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
     overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
-    if independent:
-        text += (" Also missing, beyond it: "
+    if independent:  # both shares from the same screen (least squares on the evaluated flights), not held-out
+        text += (" Also missing, beyond it (a least-squares screen on the evaluated flights): "
                  + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
-                             f"on top of {top['effect']}, {r['explained_variance']:.0%} alone"
+                             f"on top of {top['effect']}, {r.get('explained_alone_screen', 0.0):.0%} alone"
                              + (f"; indistinguishable from {', '.join(r['tied_with'])}" if r.get("tied_with") else "")
                              + ")" for r in independent[:3]) + ".")
     if overlapping:

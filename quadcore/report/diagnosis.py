@@ -234,14 +234,18 @@ def history_table(hist: pl.DataFrame) -> pl.DataFrame:
 
 def headline(d: dict) -> str:
     """The verdict in one sentence: the effect most likely missing, how much it removes and how
-    sure; or that none is found (the first sentence of the verdict, which says why)."""
+    sure; or that none is found (the first sentence of the verdict, which says why); led by
+    "Undecided between A and B" when the answer flips between folds (``stability``)."""
+    stability = d.get("stability") or {}
+    lead = stability["sentence"] + " " if stability.get("undecided_between") else ""
     found = [r for r in d["candidates"] if r.get("found", r.get("useful", False))]
     if not found:
-        first = d["verdict"].split(": ", 1)[0] if d["verdict"].startswith("No effect") else d["verdict"]
-        return first.split(". ")[0].rstrip(".") + "."
+        text = d["verdict"].removeprefix(lead)
+        first = text.split(": ", 1)[0] if text.startswith("No effect") else text
+        return lead + first.split(". ")[0].rstrip(".") + "."
     top = found[0]
     tied = top.get("tied_with", [])
-    return (f"Most likely missing: {top['effect']}, which removes {_percent(top['explained_variance'])} of the "
+    return lead + (f"Most likely missing: {top['effect']}, which removes {_percent(top['explained_variance'])} of the "
             f"held-out {top['target']} residual (p = {_p(top['held_out_p_value'])})"
             + (f"; these flights cannot tell it apart from {', '.join(tied)}" if tied else "") + ".")
 
@@ -332,6 +336,7 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
     notes = _unique(n for dis in d.get("disagreements", []) for n in dis.get("notes", []))
     out: list[tuple[str, str, object] | None] = [
         ("Verdict", "text", headline(d)),
+        ("How stable the answer is", "text", d["stability"]["sentence"]) if "stability" in d else None,
         ("Evidence: the candidate effects, best first", "table", evidence_table(d)) if d["candidates"] else None,
         ("Next step", "text", next_step(d, model_file)),
         ("Sensitivity: the smallest effect these flights would detect", "captioned", (
@@ -340,8 +345,8 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
             "values an effect would go unnoticed on these flights.", pl.DataFrame(sens))) if sens else None,
         ("The full reading", "text", d["verdict"]),
         ("Model", "text", f"{d['model']['label']} on vehicle {d['model']['vehicle']} "
-                          f"(thrust map {d['model']['thrust_map']}); evaluated by {ev['mode']} over "
-                          f"{len(ev['eval_flights'])} flights ({ev['samples']} samples)"
+                          f"(thrust map {d['model']['thrust_map']}); evaluated by "
+                          f"{ev.get('protocol', ev['mode'])} ({ev['samples']} samples)"
                           + (f"; model file {model_file}" if model_file else "") + "."),
         ("Baseline residual (held-out) and sensor-noise floor", "table", pl.DataFrame({
             "quantity": ["force RMSE [N]", "torque RMSE [mN m]"]

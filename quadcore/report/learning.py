@@ -149,7 +149,8 @@ def sections(report: dict, pngs: dict[str, bytes]) -> list[tuple[str, str, objec
     secs: list[tuple[str, str, object]] = [
         ("Verdict", "text", report["verdict"]),
         ("Setup", "text",
-         f"Held out: {s['holdout']} (trained on the other {len(s['flights']) - 1} flights). Physics model: "
+         f"Held out: {s['holdout']} (trained on the other {len(s['flights']) - 1} flights: a learned model needs a "
+         "flight it never saw to be scored). Physics model: "
          f"{s['physics_model']} on vehicle {s['vehicle']} (thrust map {s['thrust_map']}); {s['physics_fit']}. "
          f"Fitting rows: every {s['stride']}th sample; validation: {s['validation_fraction']:.0%} of the training "
          f"flights; seed {s['seed']}. {len(report['runs'])} models trained"

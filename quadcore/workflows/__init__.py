@@ -17,8 +17,7 @@ from quadcore.workflows.fleet import (
     named_holdout,
     parse_names,
     resolve_model,
-    scored_flights,
 )
 
 __all__ = ["Fleet", "HoldoutError", "NoFlightsError", "WorkflowError", "held_out", "named_holdout", "parse_names",
-           "resolve_model", "scored_flights"]
+           "resolve_model"]

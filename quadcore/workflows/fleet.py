@@ -1,6 +1,6 @@
 """The decisions every workflow takes first, the same way for the command line and the assets:
 which flights (decoded, usable by the physics), which model (file, effects override) and which
-flights are held out."""
+flights are held out (only those named: by default none, and the diagnosis cross-validates)."""
 
 from __future__ import annotations
 
@@ -215,31 +215,13 @@ def named_holdout(requested: list[str], flights: Iterable[str], where: str = "th
     return list(requested)
 
 
-def held_out(requested: list[str], flights: list[str], where: str = "the decoded flights") -> tuple[list[str], str]:
-    """(flights never fitted on, note): the named holdout (checked: :func:`named_holdout`), or
-    else the project's default held-out flight (jana02, or the last flight where there is no
-    jana02). The physics model, its diagnosis and the learned models all leave these out, so
-    none is scored on (or chosen with) a flight it has seen."""
-    from quadcore.learn import splits
-
-    named = named_holdout(requested, flights, where)
-    if named:
-        return named, ""
-    flight, note = splits.resolve_holdout(splits.DEFAULT_HOLDOUT, flights)
-    return [flight], note
-
-
-def scored_flights(flights: Iterable[str], named: list[str], held_out: list[str]) -> tuple[list[str], list[str]]:
-    """(the flights a diagnosis or discovery sees, the flights it scores on; empty: it
-    cross-validates over the ones it sees).
-
-    With a named holdout, every flight, scored on the named ones. Without, cross-validation
-    over the flights the physics model is fitted on: ``held_out`` (the flight the learned
-    models are scored on) is left out, so that no effect or term is chosen with it."""
-    flights = list(flights)
-    if named:
-        return flights, list(named)
-    return [f for f in flights if f not in held_out], []
+def held_out(requested: list[str], flights: list[str], where: str = "the decoded flights") -> list[str]:
+    """The flights never fitted on: the named holdout (checked: :func:`named_holdout`), and
+    nothing else. Nothing is held out unless asked for (``--holdout``, ``QUADCORE_HOLDOUT``): the
+    physics model is fitted on every flight and the diagnosis cross-validates over all of them
+    (:func:`quadcore.workflows.identify.diagnosis_flights`). The learned models, which need a flight
+    they never saw to be scored, pick their own (:func:`quadcore.workflows.learn.learning_holdout`)."""
+    return named_holdout(requested, flights, where)
 
 
 def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrust_map: str | None = None,

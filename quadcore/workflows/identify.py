@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, scored_flights, sessions_of
+from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
 if TYPE_CHECKING:
     from quadcore.identify.discovery import Discovery
@@ -24,20 +24,19 @@ def _quiet(msg: str) -> None:
 
 
 def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, stats=None) -> FittedModel:
-    """The spec's effects fitted on every flight of the fleet but the held-out ones
-    (:func:`quadcore.workflows.fleet.held_out` of ``holdout``: the named ones, else the
-    project's default), per session where the spec asks (sessions from its sessions file, its
-    model file, or the data). ``stats``: the flights' stored sufficient statistics
-    (:func:`quadcore.identify.sufficient.stored`), combined for linear effects instead of reading rows."""
+    """The spec's effects fitted on every flight of the fleet but the named held-out ones
+    (:func:`quadcore.workflows.fleet.held_out`: by default none), per session where the spec asks
+    (sessions from its sessions file, its model file, or the data). ``stats``: the flights' stored
+    sufficient statistics (:func:`quadcore.identify.sufficient.stored`), combined for linear
+    effects instead of reading rows."""
     from quadcore.identify import fitting, model
 
-    if len(fleet.tables) < 2:
-        raise WorkflowError("fitting needs at least two usable decoded flights (one is held out)")
-    held, note = held_out(holdout, fleet.ids)
-    if note:
-        log(note)
+    if not fleet.tables:
+        raise WorkflowError("fitting needs at least one usable decoded flight")
+    held = held_out(holdout, fleet.ids)
     train = [f for f in fleet.tables if f not in held]
-    log(f"fitting {spec.effects or 'no effects'} on {len(train)} flights")
+    log(f"fitting {spec.effects or 'no effects'} on {len(train)} flights"
+        + (f" (held out: {', '.join(held)})" if held else " (every flight: nothing held out)"))
     fitted = fitting.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log, stats)
     return model.FittedModel.of(fitted, spec, train, held)
 
@@ -84,27 +83,23 @@ class TooFewFlights(WorkflowError):
     """Too few flights for the diagnosis or the discovery (a young fleet)."""
 
 
-def diagnosis_flights(fleet: Fleet, named: list[str], default_held: bool,
-                      where: str = "the decoded flights") -> tuple[Fleet, list[str] | None]:
-    """(the flights a diagnosis or discovery sees, its holdout or None for cross-validation).
-    ``named``: the requested holdout (checked). Without one and with ``default_held`` (the data
-    root's fleet, where the learned models hold a flight out) that flight is left out of the
-    cross-validation; the CLI cross-validates over every flight it is given."""
-    if default_held and len(fleet.tables) < 2:
-        raise TooFewFlights("the diagnosis needs at least two usable decoded flights (one to fit, one to score)")
-    held, _ = held_out(named, fleet.ids, where) if named or default_held else ([], "")
-    seen, holdout = scored_flights(fleet.ids, named, held)
-    return fleet.only(seen), holdout or None
+def diagnosis_flights(fleet: Fleet, named: list[str], where: str = "the decoded flights"
+                      ) -> tuple[Fleet, list[str] | None]:
+    """(the flights a diagnosis or discovery sees, its holdout or None for cross-validation):
+    every flight; scored on the named holdout (checked) when there is one, else cross-validated
+    over them all. The one protocol of ``quadcore diagnose`` / ``discover`` and the assets."""
+    holdout = held_out(named, fleet.ids, where)
+    return fleet, holdout or None
 
 
-def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
+def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
              where: str = "the decoded flights", stats=None, discover_command: str | None = None) -> Diagnosis:
     """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
     with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`;
     ``discover_command``: the command the verdict points to when what is left is outside the library."""
     from quadcore.identify import diagnosis
 
-    seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
+    seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
                                 stats=stats, discover_command=discover_command)
@@ -196,14 +191,14 @@ def next_step(effect: str, model_file: str) -> str:
 MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
 
 
-def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet, default_held: bool = True,
+def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
              where: str = "the decoded flights", root=None) -> Discovery:
     """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`);
     with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.library_stats`).
     Raises :class:`TooFewFlights` with fewer than two training flights."""
     from quadcore.identify import discovery
 
-    seen, holdout = diagnosis_flights(fleet, named_holdout, default_held, where)
+    seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     if len(seen.tables) - len(holdout or []) < MIN_DISCOVERY_TRAINING:
         raise TooFewFlights("discovery needs at least two training flights besides the held-out ones (its folds "
                             "are grouped by flight)")

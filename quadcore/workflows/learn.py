@@ -131,15 +131,24 @@ def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int
 
 def learning_holdout(requested: str | None, flights: list[str], named_model_holdout: list[str] | None = None,
                      explicit: bool = False) -> tuple[str, str]:
-    """(the flight the learned models are scored on, note): ``requested`` (with ``explicit``, it
-    must exist), else the physics model's held-out flight (:func:`held_out` of its named
-    holdout: the same default everywhere)."""
+    """(the flight the learned models are scored on, note). A learned model needs a flight it
+    never saw to be scored: ``requested`` (with ``explicit``, it must exist), else the physics
+    model's named held-out flight (``QUADCORE_HOLDOUT``: the first), else the learning's own
+    default, :data:`quadcore.learn.splits.DEFAULT_HOLDOUT` (jana02, the reference data set's)
+    where there is one, else the last flight in sorted order. The choice never changes the
+    physics fit or the diagnosis: without a named holdout both use every flight."""
     from quadcore.learn import splits
 
     if requested:
         return splits.resolve_holdout(requested, flights, explicit=explicit)
-    (holdout, *_), note = held_out(list(named_model_holdout or []), flights)
-    return holdout, note
+    named = held_out(list(named_model_holdout or []), flights)
+    if named:
+        return named[0], ""
+    flight, _ = splits.resolve_holdout(splits.DEFAULT_HOLDOUT, flights)
+    return flight, (f"the learned models are scored on {flight}, which they never see in training (the learning's "
+                    f"default test flight: {splits.DEFAULT_HOLDOUT} where there is one, else the last flight); no "
+                    "holdout is named (QUADCORE_HOLDOUT), so the physics model under them is fitted on every "
+                    f"flight, {flight} included")
 
 
 @dataclass(frozen=True)
@@ -153,17 +162,21 @@ class TrainedRuns:
 
 
 def train(tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], sets: list[FeatureSet], holdout: str, physics: dict,
-          request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet) -> TrainedRuns:
+          request: LearningRequest, flight_kinds: dict[str, str], out_dir, log: Log = _quiet,
+          named: bool = True) -> TrainedRuns:
     """Plan the experiments (:func:`quadcore.learn.experiments.plan`) and run them into ``out_dir``.
-    Refuses a holdout the physics model's effects were fitted on: the learned models would be
-    scored on a flight the physics under them has seen."""
+    Refuses a ``named`` holdout (asked for, by the learning or ``QUADCORE_HOLDOUT``) that the
+    physics model's effects were fitted on: the learned models would be scored on a flight the
+    physics under them has seen although the user held it out. The default test flight
+    (:func:`learning_holdout`, nothing named) sits on a physics model fitted on every flight:
+    allowed, and the learning report says so."""
     from quadcore.learn import experiments, learners
 
-    if holdout in (physics.get("trained_on") or []):
+    flights = sorted(next(iter(tables_by_set.values())))
+    if named and holdout in (physics.get("trained_on") or []):
         raise learners.LearningError(
             f"the physics model's effects were fitted on {holdout}, the flight the learned models are scored "
             f"on: re-materialise physics_model with the same holdout, then residual_table")
-    flights = sorted(next(iter(tables_by_set.values())))
     plan: Plan = experiments.plan(flights, sets, list(request.models), holdout, flight_kinds, request.loo,
                                request.compare, request.learner_specs())
     log(f"training {len(plan.experiments)} models, holdout {holdout} -> {out_dir}")
@@ -185,7 +198,7 @@ def train_data_root(root, request: LearningRequest, requested_holdout: str, mode
     physics = physics_of_residuals(root)
     holdout, note = learning_holdout(requested_holdout, sorted(next(iter(tables.values()))), model_holdout)
     runs = train(tables, sets, holdout, physics, request, feat.read_flight_kinds(flights_csv),
-                 store.learned_dir(root), log)
+                 store.learned_dir(root), log, named=bool(requested_holdout or model_holdout))
     return replace(runs, notes=(note, *runs.notes)) if note else runs
 
 
