@@ -416,7 +416,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     request = _plan_request(args)
     _output_folders(str(Path(args.json).parent), str(Path(args.trajectory).parent))
     spec, flights, holdout = _model_and_flights(args)
-    diag = identify.diagnose(flights, spec, holdout, _progress(args), default_held=False, where=args.data)
+    diag = identify.diagnose(flights, spec, holdout, _progress(args), where=args.data)
     from quadcore.plan import limits, question
 
     try:

@@ -179,7 +179,7 @@ def test_a_data_roots_plan_is_made_from_its_stored_diagnosis_beside_it(hover_tie
 
     spec = model.spec_from(VEHICLE, [])
     flights = fleetlib.fleet_from_logs([str(hover_tie)], VEHICLE, lambda m: None)
-    diag = identify.diagnose(flights, spec, [], default_held=False)
+    diag = identify.diagnose(flights, spec, [])
     identify.write_diagnosis_json(diag, store.diagnosis_path(tmp_path))
     result, written = planflow.plan_data_root(tmp_path, flights, spec, PlanRequest(duration_s=4.0, prove=False))
     reports = store.reports_dir(tmp_path)

@@ -163,6 +163,13 @@ class Stability:
                 + f" comes first in {self.agree} of {self.total} {units}" + (f" ({counts})." if len(self.votes) > 1
                                                                               else "."))
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> Stability:
+        """From its JSON object (a document written before it existed: not measured)."""
+        if not d:
+            return cls(NOTHING, (NOTHING,), "fold", {}, 0)
+        return cls(d["answer"], tuple(d["group"]), d["unit"], dict(d["votes"]), d["total"])
+
     def to_dict(self) -> dict:
         return {"answer": self.answer, "group": list(self.group), "unit": self.unit, "votes": dict(self.votes),
                 "agree": self.agree, "total": self.total, "undecided_between": list(self.undecided_between),

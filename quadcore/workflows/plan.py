@@ -87,7 +87,7 @@ def diagnosis_from_document(doc: dict, spec: ModelSpec) -> Diagnosis:
     import polars as pl
 
     from quadcore.identify.model import PhysicsModel
-    from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse
+    from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 
     def rmse(d: dict) -> ResidualRmse:
         return ResidualRmse(tuple(d["force_rmse_N"]), tuple(d["torque_rmse_Nm"]))
@@ -100,7 +100,8 @@ def diagnosis_from_document(doc: dict, spec: ModelSpec) -> Diagnosis:
         baseline=rmse(doc["baseline"]), noise_floor=rmse(doc["noise_floor"]), at_noise_level=doc["at_noise_level"],
         residual_to_noise=doc["residual_to_noise"],
         candidates=tuple(CandidateScore.from_dict(c) for c in doc["candidates"]), sensitivity=doc["sensitivity"],
-        sensitivity_basis=doc["sensitivity_basis"], verdict=doc["verdict"], disagreements=(),
+        sensitivity_basis=doc["sensitivity_basis"], verdict=doc["verdict"],
+        stability=Stability.from_dict(doc.get("stability")), disagreements=(),
         regimes=pl.DataFrame(), flights=pl.DataFrame(), worst_segments=pl.DataFrame(), frequency={})
 
 
