@@ -13,6 +13,7 @@ def test_a_sample_of_mutants_meets_the_bar(tmp_path):
     assert summary.over_time == 0 and summary.files_outside_root == 0
     assert summary.prefix_checked > 0 and summary.prefix_lost == 0
     assert summary.body_corruptions > 0 and summary.recovered_median >= 0.9
+    assert summary.phantom_checked > 0 and summary.phantoms == 0
 
 
 def test_a_sample_of_the_structure_aware_cases_meets_the_bar(tmp_path):

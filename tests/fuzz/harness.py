@@ -29,6 +29,7 @@ import numpy as np
 from quadcore.logs import flight, logformat
 from quadcore.store import store
 
+from . import structure
 from .mutants import ESCAPE_MARK, Layout, Mutant, layout, mutants
 
 MAX_SECONDS = 2.0
@@ -44,6 +45,7 @@ class Outcome:
     untyped_error: str | None = None
     prefix_kept: bool | None = None  # None: no corrupted range to check against
     recovered: float | None = None  # share of the records after a body corruption that came back
+    phantoms: int | None = None  # records not in the log beyond the damaged ones (None: not judged)
 
 
 @dataclass(frozen=True)
@@ -54,12 +56,29 @@ class Clean:
     log: logformat.DecodedLog
     lay: Layout
     ids: np.ndarray  # event id of each record, in file order
+    src: structure.Source  # its records' bytes, to judge phantoms (tests/fuzz/structure.py)
 
     @classmethod
     def of(cls, data: bytes) -> Clean:
         lay = layout(data)
         ids = np.array([int.from_bytes(data[s:s + 2], "little") for s in lay.record_starts])
-        return cls(data, logformat.decode_bytes(data), lay, ids)
+        return cls(data, logformat.decode_bytes(data), lay, ids, structure.Source.of(data))
+
+
+# Mutants whose records' bytes are the log's own, except in the corrupted range: a decoded record
+# that is none of the log's records, beyond those the range overlaps, is a phantom.
+PHANTOM_KINDS = (*BODY_KINDS, "truncate", "hostile_event_name")
+
+
+def _phantoms(m: Mutant, clean: Clean, log: logformat.DecodedLog) -> int:
+    starts, sizes = clean.lay.record_starts, clean.lay.record_sizes
+    damaged: dict[int, int] = {}
+    if m.corrupt_from is not None and m.corrupt_to is not None:
+        a, b = m.corrupt_from, (m.corrupt_from + 1 if m.kind == "insert" else m.corrupt_to)
+        hit = clean.ids[(starts < b) & (starts + sizes > a)]
+        damaged = {int(e): int(np.count_nonzero(hit == e)) for e in np.unique(hit)}
+    every = clean.src.keys(range(len(clean.ids)))
+    return structure.judge(structure.Case(m.kind, m.data, {}, every, damaged, check_lost=False), log).phantoms
 
 
 def _prefix_kept(log: logformat.DecodedLog, clean: Clean, before: int) -> bool:
@@ -106,7 +125,8 @@ def check(m: Mutant, clean: Clean, root: Path, flight_id: str) -> Outcome:
     cut = len(m.data) if m.kind == "truncate" else m.corrupt_from
     kept = _prefix_kept(log, clean, cut) if cut is not None else None
     recovered = _recovered(log, clean, m.corrupt_from) if m.kind in BODY_KINDS and m.corrupt_from is not None else None
-    return Outcome(m.kind, seconds, prefix_kept=kept, recovered=recovered)
+    phantoms = _phantoms(m, clean, log) if m.kind in PHANTOM_KINDS else None
+    return Outcome(m.kind, seconds, prefix_kept=kept, recovered=recovered, phantoms=phantoms)
 
 
 def _short(exc: Exception) -> str:
@@ -133,10 +153,12 @@ class Summary:
     body_corruptions: int
     recovered_median: float
     recovered_p10: float
+    phantom_checked: int = 0
+    phantoms: int = 0
 
     def ok(self) -> bool:
         return (not self.untyped_errors and self.over_time == 0 and self.files_outside_root == 0
-                and self.prefix_lost == 0 and self.recovered_median >= 0.9)
+                and self.prefix_lost == 0 and self.recovered_median >= 0.9 and self.phantoms == 0)
 
     def lines(self) -> list[str]:
         return [
@@ -148,6 +170,8 @@ class Summary:
             f"whole records before the first corruption lost: {self.prefix_lost} of {self.prefix_checked} mutants",
             f"records after a body corruption recovered: median {self.recovered_median:.1%}, "
             f"10th percentile {self.recovered_p10:.1%} ({self.body_corruptions} mutants)",
+            f"phantom records (not in the log, beyond the damaged ones): {self.phantoms} "
+            f"({self.phantom_checked} mutants judged)",
         ]
 
 
@@ -178,6 +202,8 @@ def run(logs: list[bytes], n: int, sandbox: Path, seed: int = 0, log=print) -> S
         body_corruptions=len(rec),
         recovered_median=float(np.median(rec)) if len(rec) else 1.0,
         recovered_p10=float(np.percentile(rec, 10)) if len(rec) else 1.0,
+        phantom_checked=sum(o.phantoms is not None for o in outcomes),
+        phantoms=sum(o.phantoms or 0 for o in outcomes),
     )
 
 
@@ -236,8 +262,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  untyped: {e}")
         ok = summary.ok()
     if args.structure:
-        from . import structure
-
         print(f"\nstructure-aware cases of {what}")
         t1 = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="quadcore-fuzz-structure-") as tmp:
