@@ -350,7 +350,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             print(f"  {g.value:.4g} ± {g.std:.2g}: {', '.join(g.flights)}")
         for note in d.notes:
             print(f"  note: {note}")
-    print(f"\n{result.verdict}\n\nstability: {result.stability.sentence()}\nwrote {out}")
+    print(f"\n{result.verdict}\n\nwrote {out}")  # the verdict says how stable its answer is, and the protocol
     if args.report:
         md, page = identify.write_diagnosis_report(result, Path(args.report), model_file=spec.source)
         with_discovery = identify.discovery_for(args.report, spec.effects) is not None
