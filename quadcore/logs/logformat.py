@@ -352,7 +352,7 @@ def _walk(region: np.ndarray, size_lut: np.ndarray, ts_dtype: np.dtype = TIMESTA
     misfit = _misfit_ids(cand_ids[nodes], nxt[nodes] == BREAK)
     if len(misfit):  # the header's layout of these types does not fit the body: none of them is kept
         dropped[nodes[np.isin(cand_ids[nodes], misfit)]] = True
-        jumps = np.union1d(jumps, nodes[np.isin(cand_ids[nodes], misfit) & (resumed[nodes] != BREAK)])
+        jumps = np.union1d(jumps, nodes[np.isin(cand_ids[nodes], misfit) & (resumed[nodes] < m)])
     kept = nodes[~dropped[nodes]]
 
     skip_from = np.where(dropped[jumps], cand[jumps], nxt_offset[jumps])
