@@ -40,6 +40,7 @@ from quadcore.physics.dynamics import XYZ
 BANDS_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
 SEGMENT = 1024  # samples per Welch segment (about 2 s at 500 Hz: 0.5 Hz resolution)
 RESOLVED = 1e-9  # a band's (a bin's) power below this share of its model + measured + residual power is 0
+CHECKED = 1e-6  # a bin's coherence is range-checked where model and measured power exceed this share of its total
 COHERENT = 0.7  # band coherence above which the residual there is the model's own signal, mis-scaled or late
 CHANNELS = tuple([f"force_{a}" for a in XYZ] + [f"torque_{a}" for a in XYZ])
 BAND_KEYS = ("residual_rms", "measured_rms", "modelled_rms", "coherence", "gain", "phase_deg")  # a list per channel
@@ -171,7 +172,10 @@ def _band_view(s: dict, b: np.ndarray, c: int, df: float, where: str) -> dict[st
     both = (pp > 0) & (mm > 0)
     if band_pp > 0 and band_mm > 0 and both.any():
         per_bin = np.abs(pm[both]) ** 2 / (pp[both] * mm[both])
-        ranges.unit_fraction(float(per_bin.max()), f"the coherence of {where} (its largest bin)")
+        sure = np.minimum(pp[both], mm[both]) > CHECKED * bin_total[both]
+        if sure.any():  # where both powers are well above the sums' rounding, above 1 is a defect
+            ranges.unit_fraction(float(per_bin[sure].max()), f"the coherence of {where} (its largest bin)")
+        per_bin = np.clip(per_bin, 0.0, 1.0)  # elsewhere rounding of a power near RESOLVED may carry it past 1
         out["coherence"] = ranges.unit_fraction(float(per_bin.mean()), f"the coherence of {where}")
         h = pm.sum() / band_pp
         out["gain"] = ranges.finite(np.abs(h), f"the gain of {where}")
