@@ -81,13 +81,15 @@ def test_a_copy_of_the_held_out_flight_is_not_a_training_flight(with_copy):
     assert flights.ids == ["jana02", "jana03", "jana11"]
     assert flights.skipped["jana99"].startswith("duplicate of jana02")
     assert any(w.startswith("jana99 skipped: duplicate of jana02") for w in warned)
-    fitted = identify.fit(flights, model.spec_from(veh, []), [])
-    assert "jana99" not in fitted.trained_on and "jana02" not in fitted.trained_on
+    fitted = identify.fit(flights, model.spec_from(veh, []), ["jana02"])  # jana02 held out, as the issue's
+    assert fitted.trained_on == ("jana03", "jana11")
 
 
 def test_the_data_root_skips_the_copy_too(with_copy, tmp_path):
     """The assets' path: decoded tables under a data root, judged from their footers."""
-    flights, _ = fleet.decode_logs([str(with_copy)], tmp_path)
+    said: list[str] = []
+    flights, _ = fleet.decode_logs([str(with_copy)], tmp_path, said.append)
+    assert any(m.startswith("jana99: duplicate of jana02") for m in said)  # reported when decoded
     fl = fleet.fleet_from_store(tmp_path, vehicle.load(None))
     assert fl.ids == ["jana02", "jana03", "jana11"] and "jana99" in fl.skipped
     assert len(flights) == 4  # decoded (and reported), just not used twice

@@ -108,6 +108,9 @@ def decode_logs(paths: list[str], out: Path | None = None,
         flights.append(fl)
         warn = f"  warnings: {'; '.join(fl.warnings)}" if fl.warnings else ""
         log(f"[{i}/{len(logs)}] {fid}: {fl.provenance.rows}{warn}")
+    digests = {f.flight_id: f.provenance.source_sha256 for f in flights}
+    for fid, why in duplicates(digests, digests.get).items():
+        log(f"{fid}: {why} (decoded; the fleet stages skip it)")
     return flights, quarantined
 
 
