@@ -73,7 +73,7 @@ def _compare(df, sim):
     ok = ~table["near_gap"].to_numpy()
     ok[:50] = ok[-50:] = False  # filter edges
     return (table.select(F_COLS).to_numpy()[ok], table.select(TAU_COLS).to_numpy()[ok],
-            signals.smooth(f_eff)[ok], signals.matched_to_derivative(tau_eff, state.t_s)[ok])
+            signals.smooth(f_eff)[ok], signals.matched_to_derivative(tau_eff, state.t_s, state.thrust_hold_s)[ok])
 
 
 def _assert_matches(res: np.ndarray, eff: np.ndarray, label: str, min_corr: float = 0.9, max_rel: float = 0.2):

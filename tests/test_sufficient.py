@@ -137,7 +137,9 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
     search does, within the search's own tolerance (5e-4 of the span), with the same error.
     A delay's row objective ripples with the sample period (the delay is linear between
     samples, so it smooths the thrust most half-way between them): the grid does not resolve
-    that ripple, and the two agree to a twentieth of a sample instead."""
+    that ripple, and the two agree to a tenth of a sample instead (0.08 of a sample on these
+    flights since the simulator integrates a lagged thrust's mean over each physics step; 0.05
+    before, when it held the step's start value)."""
     fds, stats = lagged_fleet
     ids = sorted(fds)
     e = effects.get(name)
@@ -145,7 +147,7 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
     rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
     combined = fitting.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     dt_s = float(np.median(np.diff(fds[ids[0]].state.t_s)))
-    tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 20
+    tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 10
     assert abs(rows.params[name][p.name] - combined.params[name][p.name]) <= tolerance
     assert combined.std[name][p.name] == pytest.approx(rows.std[name][p.name], rel=0.05 if name == "motor_lag" else 0.2)
     if name == "motor_lag":

@@ -59,7 +59,8 @@ class Parameter:
 class SimContext:
     """What a simulator hook may know about the flight it is part of.
 
-    ``t_s`` (n,) are the control/log instants, ``dt_s`` their spacing, ``h_s`` the physics
+    ``t_s`` (n,) are the controller's instants (the log keeps every one, or every n-th at a
+    lower log rate), ``dt_s`` their spacing, ``h_s`` the physics
     step (``dt_s / substeps``); ``vehicle`` is the NOMINAL vehicle (what the controller
     believes); ``config`` the :class:`quadcore.sim.simulation.SimConfig`; ``rng`` a random
     stream reserved for effects (deterministic given the flight's seed).
@@ -99,8 +100,16 @@ class SimHook:
 
     def rotor_thrusts(self, f_N: list[float], k: int, j: int) -> list[float]:
         """The rotor thrusts (N, one per rotor) acting during physics step (k, j), given
-        those of the previous stage of the chain (the thrust map's at the start)."""
+        those of the previous stage of the chain (the thrust map's at the start): their mean
+        over the step, which is what the rigid body integrates."""
         return f_N
+
+    def thrusts_now(self, f_N: list[float]) -> list[float] | None:
+        """The instantaneous rotor thrusts at the start of the coming step, given the previous
+        stage's instantaneous ones, or None when they equal the step's mean (a thrust constant
+        over the step). The sensors sample these: the accelerometer and the logged motor speed
+        at a log instant. Called before :meth:`rotor_thrusts` of the same step."""
+        return None
 
     def wrench(self, state: FlightState, k: int, j: int) -> tuple[list[float], list[float]] | None:
         """Extra body force (N) and torque (N m) during physics step (k, j), from the
@@ -116,6 +125,9 @@ class ScaleRotorThrusts(SimHook):
         self.gains = [float(g) for g in gains]
 
     def rotor_thrusts(self, f_N, k, j):
+        return [g * f for g, f in zip(self.gains, f_N)]
+
+    def thrusts_now(self, f_N):
         return [g * f for g, f in zip(self.gains, f_N)]
 
 

@@ -4,7 +4,10 @@
 
 The extra wrench is what the lag takes away: ``A (f - f_cmd)``, force along body z and
 torque about all three axes. Nonlinear in the time constant τ_m (s); evaluated with an
-exact discretisation at the median sample period.
+exact discretisation at the median sample period. The force is the lag's value at each
+sample (what the accelerometer sees); the torque its mean over the interval that follows,
+``f_cmd + (f - f_cmd)(1 - a) τ_m / dt`` (what the gyro's derivative integrates, with the
+command held over the interval: docs/timing.md).
 """
 
 import math
@@ -31,18 +34,36 @@ def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
     return y
 
 
+def interval_mean_share(t_s: np.ndarray, tau_s: float) -> float:
+    """``(1 - a) τ / dt``: the mean over a sample interval of a lag's distance to a held input,
+    per its distance at the interval's start (1 without a lag)."""
+    if tau_s <= 0 or len(t_s) < 2:
+        return 1.0
+    dt = float(np.median(np.diff(t_s)))
+    return float(-np.expm1(-dt / tau_s) * tau_s / dt)
+
+
 class LagHook(SimHook):
     """Each rotor's thrust relaxes toward its input, integrated exactly per physics step
-    (the input is held over the step); starts at steady state on the first input."""
+    (the input ``x`` is held over the step); starts at steady state on the first input.
+
+    From ``y_0`` at the step's start, ``y(h) = x + (y_0 - x) a`` with ``a = exp(-h / τ)``; the
+    body integrates the step's mean ``x + (y_0 - x) (1 - a) τ / h``, and the sensors see
+    ``y_0`` at the log instant. (Holding ``y_0`` over the step instead would delay the thrust
+    the body feels by ``h / 2`` behind the logged rotor speed.)"""
 
     def __init__(self, tau_s: float, h_s: float):
         self.a = math.exp(-h_s / tau_s) if tau_s > 0 else 0.0
+        self.mean = (1.0 - self.a) * tau_s / h_s if tau_s > 0 else 0.0
         self.f_N: list[float] | None = None
 
+    def thrusts_now(self, f_N):
+        return list(self.f_N) if self.f_N is not None else list(f_N)
+
     def rotor_thrusts(self, f_N, k, j):
-        out = self.f_N if self.f_N is not None else list(f_N)
-        self.f_N = [x + (y - x) * self.a for y, x in zip(out, f_N)]
-        return out
+        start = self.f_N if self.f_N is not None else list(f_N)
+        self.f_N = [x + (y - x) * self.a for y, x in zip(start, f_N)]
+        return [x + (y - x) * self.mean for y, x in zip(start, f_N)]
 
 
 class MotorLag(Effect):
@@ -53,7 +74,10 @@ class MotorLag(Effect):
     doc = __doc__
 
     def wrench(self, state, vehicle, params):
-        return rotor_wrench(vehicle, first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"]) - state.f_rotor_N)
+        missing = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"]) - state.f_rotor_N
+        f, _ = rotor_wrench(vehicle, missing)
+        _, tau = rotor_wrench(vehicle, missing * interval_mean_share(state.t_s, params["tau_s"]))
+        return f, tau
 
     def check(self, params):
         if params["tau_s"] < 0:
@@ -66,17 +90,19 @@ class MotorLag(Effect):
         if params["tau_s"] <= 0:  # as in first_order_lag: no lag, no wrench
             return CCode("/* tau_s <= 0: no lag */")
         # y[k+1] = a y[k] + (1 - a) x[k], a = exp(-dt / tau), steady state at the first call;
-        # the wrench of this call uses y[k], then y advances
+        # the wrench of this call uses y[k] (force) and its interval mean (torque), then y advances
         return CCode(
             "int r;\n"
             "qc_real missing[QC_N_ROTORS];\n"
             "const qc_real a = qc_exp(-dt_s / tau_s);\n"
+            "const qc_real share = (1.0f - a) * tau_s / dt_s;\n"
             "for (r = 0; r < QC_N_ROTORS; ++r) {\n"
             "    if (first_call) lagged_f_rotor_N[r] = f_rotor_N[r];\n"
             "    missing[r] = lagged_f_rotor_N[r] - f_rotor_N[r];\n"
             "    lagged_f_rotor_N[r] = a * lagged_f_rotor_N[r] + (1.0f - a) * f_rotor_N[r];\n"
             "}\n"
-            "qc_add_rotor_wrench(missing, 1.0f, f_b_N, tau_b_Nm);",
+            "qc_add_rotor_wrench(missing, share, f_b_N, tau_b_Nm);\n"
+            "for (r = 0; r < QC_N_ROTORS; ++r) f_b_N[2] += (1.0f - share) * missing[r];  /* force: y[k] itself */",
             memory=(("lagged_f_rotor_N", vehicle.n_rotors),))
 
 

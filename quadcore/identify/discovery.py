@@ -423,11 +423,11 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx
     s = fd.state
     raw = evaluate([t.expression for t in cols.terms], s, vehicle)
     F = signals.smooth(raw[:, cols.force])
-    Tq = signals.matched_to_derivative(raw[:, cols.torque], s.t_s)
+    Tq = signals.matched_to_derivative(raw[:, cols.torque], s.t_s, s.thrust_hold_s)
     T_N, tau_rotor = dynamics.wrench_from_thrusts(vehicle, s.f_rotor_N)
     f_model = np.zeros((s.n, 3))
     f_model[:, 2] = T_N
-    model = fitting.smoothed_wrench(f_model, tau_rotor, s.t_s)
+    model = fitting.smoothed_wrench(f_model, tau_rotor, s)
     blocks = [F, Tq, resid, model]
     for e in fx_effects:
         cached = fd.basis_if_cached(e) if e.linear else None  # the same columns: smoothed_wrench of e.basis
@@ -435,7 +435,7 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: _Columns, fx
             blocks += [cached[:, axis, :] for axis in range(6)]
             continue
         try:
-            basis = [fitting.smoothed_wrench(f, t, s.t_s) for f, t in _effect_basis(e, s, vehicle)]
+            basis = [fitting.smoothed_wrench(f, t, s) for f, t in _effect_basis(e, s, vehicle)]
         # a user's effect failing here: not matched
         except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):
             basis = [np.zeros((s.n, 6)) for _ in e.parameters]
@@ -1020,7 +1020,8 @@ def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
             col_term = {cols.term_col(k, axis): t.expression for k, t in enumerate(terms)
                         if k in (cols.force if axis < 3 else cols.torque)}
             raw = evaluate([col_term[c] for c in chosen], fd.state, vehicle)
-            filt = signals.smooth(raw) if axis < 3 else signals.matched_to_derivative(raw, fd.state.t_s)
+            filt = signals.smooth(raw) if axis < 3 else \
+                signals.matched_to_derivative(raw, fd.state.t_s, fd.state.thrust_hold_s)
             pred[:, axis] = filt @ beta
         m = fd.mask
         before += (r[m] ** 2).sum(axis=0)

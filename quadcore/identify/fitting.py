@@ -24,11 +24,11 @@ Comparing it with a *smoothed* model torque therefore leaves a residual of a few
 of the rotor torque in every flight (on simulated flights without any effect it is six
 times the gyro noise) -- a signature a thrust scale or a motor lag would happily "explain".
 Here every model torque (the rotors' and each effect's) goes through exactly the
-measurement's filter instead: integrated in time (zero-order hold: the command of sample
-``k`` acts over ``[t_k, t_k+1)``, as the firmware and the simulator apply it) and then
-differentiated with the same derivative as the gyro (:func:`quadcore.physics.signals.matched_to_derivative`). The
-force side needs nothing of the kind: measured and modelled force go through the same
-smoother.
+measurement's filter instead: integrated in time (each sample held as the flight's thrust
+source holds it: a PWM command for the command period, a measured motor speed for no time)
+and then differentiated with the same derivative as the gyro
+(:func:`quadcore.physics.signals.matched_to_derivative`; docs/timing.md). The force side needs
+nothing of the kind: measured and modelled force go through the same smoother.
 """
 
 from __future__ import annotations
@@ -52,10 +52,13 @@ if TYPE_CHECKING:
 SAMPLES_PER_INDEPENDENT = signals.WINDOW
 
 
-def smoothed_wrench(f: np.ndarray, tau: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-    """(n, 6) force through the smoother and torque through the gyro's filter, side by side:
-    the way a wrench appears in the residuals."""
-    return np.concatenate([signals.smooth(f, t_s=t_s), signals.matched_to_derivative(tau, t_s)], axis=1)
+def smoothed_wrench(f: np.ndarray, tau: np.ndarray, state: FlightState) -> np.ndarray:
+    """(n, 6) force through the smoother and torque through the gyro's filter (its samples
+    held as the flight's thrust source holds), side by side: the way a wrench appears in the
+    residuals."""
+    t_s = state.t_s
+    return np.concatenate([signals.smooth(f, t_s=t_s),
+                           signals.matched_to_derivative(tau, t_s, state.thrust_hold_s)], axis=1)
 
 
 @dataclass
@@ -90,7 +93,7 @@ class FlightData:
     def basis(self, effect: Effect, vehicle: Vehicle) -> np.ndarray:
         """(n, 6, k) smoothed basis of a linear effect (cached per flight)."""
         if effect.name not in self._basis:
-            cols = [smoothed_wrench(f, t, self.state.t_s) for f, t in effect.basis(self.state, vehicle)]
+            cols = [smoothed_wrench(f, t, self.state) for f, t in effect.basis(self.state, vehicle)]
             self._basis[effect.name] = np.stack(cols, axis=2)
         return self._basis[effect.name]
 
@@ -191,7 +194,7 @@ def sensor_noise_floor(state: FlightState, vehicle: Vehicle, mask: np.ndarray | 
 def prediction(effect: Effect, params: dict, fd: FlightData, vehicle: Vehicle) -> np.ndarray:
     """(n, 6) smoothed force and torque of an effect on a flight."""
     f, t = effect.wrench(fd.state, vehicle, params)
-    return smoothed_wrench(f, t, fd.state.t_s)
+    return smoothed_wrench(f, t, fd.state)
 
 
 @dataclass

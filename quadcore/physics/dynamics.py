@@ -53,6 +53,7 @@ class FlightState:
     R_wb: np.ndarray  # (n, 3, 3)
     v_b_mps: np.ndarray  # (n, 3) velocity in the body frame
     f_rotor_N: np.ndarray  # (n, rotors) nominal rotor thrusts from the thrust map
+    thrust_hold_s: float = 0.0  # how long a sample of the thrust map's input holds (Vehicle.thrust_hold_s)
 
     @property
     def n(self) -> int:
@@ -126,6 +127,7 @@ def flight_state(df: pl.DataFrame, vehicle: Vehicle) -> FlightState:
         R_wb=R,
         v_b_mps=rotations.world_to_body(R, v_w),
         f_rotor_N=vehicle.rotor_thrusts_N(pwm, vbat, motor),
+        thrust_hold_s=vehicle.thrust_hold_s,
     )
 
 

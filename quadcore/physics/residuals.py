@@ -12,11 +12,14 @@ For each sample of a flight (body frame ``b``, world frame ``w``; see :mod:`quad
 and the same residuals rotated to the world frame (``f_res_w = R f_res_b``).
 
 Measured and modelled forces pass through the same zero-phase smoother
-(:mod:`quadcore.physics.signals`); ``dω/dt`` is the smoother's derivative, and the modelled torque
-passes through that same derivative filter (integrated, then differentiated:
-:func:`quadcore.physics.signals.matched_to_derivative`), so each pair has the same bandwidth and
-no relative delay. Samples whose filter window spans a logging gap are flagged in
-``near_gap``.
+(:mod:`quadcore.physics.signals`): the accelerometer samples the force at ``t_k``, the model is
+its value there. ``dω/dt`` is the smoother's derivative, a weighting of the torque's integrals
+over the sample intervals, so the modelled torque is integrated over the same intervals (each
+sample held as its thrust source holds it: ``Vehicle.thrust_hold_s``, the command period for
+PWM, none for measured motor speeds) and differentiated the same way
+(:func:`quadcore.physics.signals.matched_to_derivative`). So each pair has the same bandwidth
+and no relative delay (the derivation: docs/timing.md). Samples whose filter window spans a
+logging gap are flagged in ``near_gap``.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ def residual_arrays(
     omega_dot = signals.derivative(state.omega_b_radps, state.t_s)
     f_meas_b, tau_meas_b = measured_wrench(state, vehicle, omega_dot)
     f_model_b = signals.smooth(f_model_b, t_s=state.t_s)
-    tau_model_b = signals.matched_to_derivative(tau_model_b, state.t_s)
+    tau_model_b = signals.matched_to_derivative(tau_model_b, state.t_s, state.thrust_hold_s)
     f_res_b = f_meas_b - f_model_b
     tau_res_b = tau_meas_b - tau_model_b
     R = state.R_wb

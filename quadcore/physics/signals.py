@@ -112,17 +112,49 @@ def near_gap(t_s: np.ndarray, window: int = WINDOW, gap_s: float = GAP_S) -> np.
     return np.cumsum(marks[:-1]) > 0
 
 
-def matched_to_derivative(x: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+def interval_integrals(x: np.ndarray, t_s: np.ndarray, hold_s: float) -> np.ndarray:
+    """``∫ x̂ dt`` over each sample interval ``[t_i, t_i+1]`` (n - 1 rows) of the signal ``x̂``
+    whose samples ``x_i = x̂(t_i)`` hold for ``hold_s`` each::
+
+        ∫_{t_i}^{t_i+1} x̂ dt = Δ_i ((1 - a_i) x_i + a_i x_i+1),   a_i = max(0, (1 - hold_s / Δ_i) / 2)
+
+    A command set at ``t_i`` and held for ``h = hold_s``, followed by commands the log did not
+    record (``Δ_i / h`` of them in the interval, each held ``h``, approximated by the line from
+    ``x_i`` to ``x_i+1``), integrates to exactly this. ``h = 0`` is a sample of a continuous
+    signal (the trapezoid, ``a = 1/2``); ``h >= Δ_i`` the command held until the next sample
+    (``a = 0``). On a linear signal it is the integral of ``x̂(t - min(h, Δ_i) / 2)``: a held
+    command acts, on average, half its hold after it is set."""
+    dt = np.diff(t_s)
+    a = np.maximum(0.0, 0.5 * (1.0 - hold_s / np.where(dt > 0, dt, np.inf)))
+    if x.ndim == 2:
+        dt, a = dt[:, None], a[:, None]
+    return dt * ((1.0 - a) * x[:-1] + a * x[1:])
+
+
+def matched_to_derivative(x: np.ndarray, t_s: np.ndarray, hold_s: float) -> np.ndarray:
     """``x`` through the filter that :func:`derivative` applies to a signal's rate of change.
 
-    A measured torque is ``J dω/dt`` with the derivative taken by :func:`derivative`, which
-    attenuates more than :func:`smooth` does. To compare a modelled torque with it at the
-    same bandwidth and timing, integrate the model (zero-order hold: sample ``k`` acts over
-    ``[t_k, t_k+1)``) and differentiate it the same way: ``d/dt ∫ x dt``.
+    A measured torque is ``J dω/dt`` with the derivative taken by :func:`derivative`. To
+    compare a modelled torque with it at the same bandwidth and timing, integrate the model
+    over each sample interval (:func:`interval_integrals`, its samples held ``hold_s``) and
+    differentiate the running integral the same way: ``d/dt ∫ x dt``.
+
+    **Why this is exact.** The derivative is a linear filter ``D[ω]_k = Σ_j d_j ω_k-j`` whose
+    weights sum to zero (the derivative of a constant), so ``d_j = c_j - c_j-1`` with
+    ``c_j = Σ_{i<=j} d_i``, and::
+
+        D[ω]_k = Σ_j c_j (ω(t_k-j) - ω(t_k-j-1)) = Σ_j c_j ∫_{t_k-j-1}^{t_k-j} dω/dt dt
+
+    The gyro samples ``ω`` at ``t_k``: the measured torque is a fixed weighting of the true
+    torque's integrals over the sample intervals, whatever the torque does inside them. The
+    modelled torque ``D[Σ interval integrals]`` is the same weighting of the model's
+    integrals. The only modelling choice is what the model does inside an interval: that is
+    ``hold_s`` (``Vehicle.thrust_hold_s``: the command period for PWM, 0 for measured motor
+    speeds). The Savitzky-Golay weights are symmetric, so the filter itself delays nothing;
+    a delay comes only from the hold, ``hold / 2`` at most one sample interval long.
     """
     x = np.asarray(x, dtype=float)
     if len(x) < 2:
         return x.copy()
-    dt = np.diff(t_s)[:, None] if x.ndim == 2 else np.diff(t_s)
-    integral = np.concatenate([np.zeros_like(x[:1]), np.cumsum(x[:-1] * dt, axis=0)])
+    integral = np.concatenate([np.zeros_like(x[:1]), np.cumsum(interval_integrals(x, t_s, hold_s), axis=0)])
     return derivative(integral, t_s)

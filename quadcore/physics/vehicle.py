@@ -35,7 +35,11 @@ class VehicleFileError(ValueError):
 @dataclass(frozen=True)
 class PwmVbatThrustMap:
     """Per-rotor thrust in grams from normalised PWM p and battery ratio b = vbat/vbat_ref:
-    ``f_g = c0 + cp p + cb b + cpp p^2 + cpb p b`` (clipped at zero)."""
+    ``f_g = c0 + cp p + cb b + cpp p^2 + cpb p b`` (clipped at zero).
+
+    ``command_period_s``: the firmware sets the motor PWM every ``command_period_s`` and holds
+    it in between (the Crazyflie's rate controller runs at 500 Hz: 0.002 s, whatever the log
+    rate). How the residuals time a held command: :mod:`quadcore.physics.signals`."""
 
     c0: float
     cp: float
@@ -43,6 +47,7 @@ class PwmVbatThrustMap:
     cpp: float
     cpb: float
     vbat_ref_V: float
+    command_period_s: float = 0.002
 
     def thrust_N(self, pwm: np.ndarray, vbat_V: np.ndarray | float) -> np.ndarray:
         """``pwm`` in 0..1 (any shape, rotors last), ``vbat_V`` broadcastable to it."""
@@ -114,6 +119,13 @@ class Vehicle:
             return self.motor_speed.thrust_N(motor_radps)
         return self.pwm_vbat.thrust_N(pwm, np.asarray(vbat_V)[..., None])
 
+    @property
+    def thrust_hold_s(self) -> float:
+        """How long a logged sample of the thrust map's input holds (s): a PWM command holds
+        for the command period; a measured motor speed is a sample of a continuous state (the
+        rotor's inertia), held for no time. See :func:`quadcore.physics.signals.matched_to_derivative`."""
+        return 0.0 if self.thrust_map_kind == "motor_speed" else self.pwm_vbat.command_period_s
+
     def with_thrust_map(self, kind: str) -> Vehicle:
         if kind not in THRUST_MAP_KINDS:
             raise VehicleFileError(f"unknown thrust map {kind!r}; choose one of {', '.join(THRUST_MAP_KINDS)}")
@@ -124,7 +136,7 @@ KNOWN_KEYS = {
     "": {"name", "mass_kg", "inertia_kgm2", "torque_to_thrust_m", "rotor_radius_m", "rotors", "thrust_map"},
     "rotors": {"arm_m", "angle_deg", "yaw_sign"},
     "thrust_map": {"kind", "pwm_vbat", "motor_speed"},
-    "thrust_map.pwm_vbat": {"c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V"},
+    "thrust_map.pwm_vbat": {"c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V", "command_period_s"},
     "thrust_map.motor_speed": {"k_F_N_per_radps2"},
 }
 
@@ -201,7 +213,9 @@ def from_dict(d: dict, source: str = "") -> Vehicle:
         torque_to_thrust_m=_number(d, "torque_to_thrust_m", where, 0.0),
         rotor_radius_m=_number(d, "rotor_radius_m", where, 0.0),
         thrust_map_kind=kind,
-        pwm_vbat=PwmVbatThrustMap(**coeffs, vbat_ref_V=_number(pv, "vbat_ref_V", pv_where, 0.0)),
+        pwm_vbat=PwmVbatThrustMap(**coeffs, vbat_ref_V=_number(pv, "vbat_ref_V", pv_where, 0.0),
+                                  command_period_s=_number(pv, "command_period_s", pv_where, 0.0,
+                                                           default=PwmVbatThrustMap.command_period_s)),
         motor_speed=MotorSpeedThrustMap(_number(ms, "k_F_N_per_radps2", f"{where}: [thrust_map.motor_speed]",
                                                 0.0, strict=False, default=0.0)),
         source=source,

@@ -8,10 +8,11 @@ same log format, header, rates and roughly the same noise as the real Crazyflie 
 
 * Rigid body: mass, full inertia and X rotor layout of the :class:`~quadcore.physics.vehicle.Vehicle`.
   Newton-Euler as in :mod:`quadcore.physics.dynamics`.
-* Closed loop at the log rate (500 Hz): :mod:`quadcore.sim.controller` (position PID with
-  acceleration feed-forward, geometric attitude control on SO(3)), using the NOMINAL vehicle
-  and the noisy sensor readings, -> rotor thrust commands ``A^-1 [T, tau]`` clipped to
-  ``[0, f(pwm=1, vbat)]``.
+* Closed loop at the vehicle's command rate (``[thrust_map.pwm_vbat] command_period_s``, 500 Hz
+  for the Crazyflie, whatever the log rate; the log keeps every n-th step):
+  :mod:`quadcore.sim.controller` (position PID with acceleration feed-forward, geometric
+  attitude control on SO(3)), using the NOMINAL vehicle and the noisy sensor readings, -> rotor
+  thrust commands ``A^-1 [T, tau]`` clipped to ``[0, f(pwm=1, vbat)]``.
 * Actuation through the real chain: command -> PWM with ``pwm_vbat.pwm_for_thrust`` at the
   battery voltage *as logged* -> integer PWM (as logged) -> the map thrust
   ``pwm_vbat.thrust_N(pwm, vbat)``. So the logged PWM and vbat reproduce the rotor thrust
@@ -41,13 +42,14 @@ same log format, header, rates and roughly the same noise as the real Crazyflie 
   ``mocap_rate_hz`` with packet loss, timing jitter and noise. Noise levels are measured on
   the real logs (:class:`SensorNoise`). Random dropped log samples (gaps), as on the deck.
 
-**Integration**: the controller, the PWM and the sensors run at the log rate (500 Hz,
-zero-order hold of the rotor commands, as the firmware's 500 Hz stabiliser loop); the rigid
+**Integration**: the controller, the PWM and the sensors run at the command rate (500 Hz,
+zero-order hold of the rotor commands, as the firmware's 500 Hz rate loop), and the log keeps
+every ``500 / log_rate_hz``-th step (every step at 500 Hz, every fifth at 100 Hz); the rigid
 body is integrated with semi-implicit Euler (``v += a h; p += v h; w += dw/dt h;
-q = q (x) exp(w h)``) at ``log_rate_hz * physics_substeps`` = 1 kHz by default. A log
+q = q (x) exp(w h)``) at the command rate times ``physics_substeps`` = 1 kHz by default. A log
 sample ``k`` holds the state at ``t_k`` and the accelerometer reading of the forces acting
 just after the PWM of sample ``k`` is applied, so sample ``k``'s PWM and acceleration belong
-together (the residual contract).
+together (the residual contract; docs/timing.md).
 
 Deterministic given ``SimConfig.seed`` (``numpy.random.SeedSequence``, one child stream per
 purpose). A 30 s flight takes about a second or two.
@@ -436,6 +438,9 @@ class _Noise:
     rpm: np.ndarray
     vbat: np.ndarray
 
+    def sampled(self, rows: slice) -> _Noise:
+        return _Noise(*(getattr(self, f.name)[rows] for f in fields(self)))
+
 
 def _draw_noise(rng: np.random.Generator, noise: SensorNoise, n: int) -> _Noise:
     return _Noise(
@@ -463,6 +468,9 @@ class _Record:
     F_ACT: np.ndarray
     PWM: np.ndarray
     VBAT_MV: np.ndarray
+
+    def sampled(self, rows: slice) -> _Record:
+        return _Record(*(getattr(self, f.name)[rows] for f in fields(self)))
 
     @classmethod
     def empty(cls, n: int) -> _Record:
@@ -537,7 +545,7 @@ def _fly(config: SimConfig, veh: vehicle_mod.Vehicle, ref: trajectories.Referenc
          noise: _Noise, t: np.ndarray) -> _Record:
     """The closed loop: at each log sample the battery, the sensors, the controller and the
     PWM; then ``physics_substeps`` physics steps with the rotor commands held."""
-    n, dt, S = len(t), 1.0 / float(config.log_rate_hz), int(config.physics_substeps)
+    n, dt, S = len(t), float(t[1] - t[0]), int(config.physics_substeps)
     h = dt / S
     sag_per_N = config.battery.r_internal_ohm * config.battery.current_per_thrust_A_per_N
     p, v, w = [float(x) for x in ref.p_w_m[0]], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
@@ -575,16 +583,20 @@ def _fly(config: SimConfig, veh: vehicle_mod.Vehicle, ref: trajectories.Referenc
         pwm_si = (pwm_raw / PWM_FULL_SCALE).tolist()
 
         for j in range(S):
-            fa = f_map
+            fa = now = f_map
             for hook in body.chain:
+                if j == 0:
+                    now = hook.thrusts_now(now)
                 fa = hook.rotor_thrusts(fa, k, j)
+                now = fa if now is None else now
             R = _rot(q)
             T, Fb, tau = _body_wrench(body, veh, k_F, A, fa, (tk + j * h, p, v, q, w, pwm_si, vbat, f_map), R,
                                       airl[k], k, j)
             sf = (Fb[0] / body.mass_kg, Fb[1] / body.mass_kg, Fb[2] / body.mass_kg)
-            if j == 0:
-                rec.P[k], rec.V[k], rec.Q[k], rec.W[k], rec.SF[k] = p, v, q, w, sf
-                rec.F_ACT[k] = fa
+            if j == 0:  # the sensors: the state and the rotors' thrusts at t_k (the body integrates their mean)
+                sf_now = sf[2] + (sum(now) - T) / body.mass_kg
+                rec.P[k], rec.V[k], rec.Q[k], rec.W[k], rec.SF[k] = p, v, q, w, (sf[0], sf[1], sf_now)
+                rec.F_ACT[k] = now
                 T_prev = T
             p, v, q, w = _integrate(p, v, q, w, R, sf, tau, Jt, Ji, h)
     return rec
@@ -601,9 +613,10 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(6)]
     ref_rng, noise_rng, drop_rng, gust_rng, mocap_rng, clock_rng = streams
 
-    rate = float(config.log_rate_hz)
+    every = steps_per_log_sample(config, veh)
+    rate = float(config.log_rate_hz) * every  # the controller's rate
     dt = 1.0 / rate
-    n = max(int(round(flight_duration(config) * rate)), 2)
+    n = max(int(round(flight_duration(config) * float(config.log_rate_hz))), 2) * every
     t = np.arange(n) * dt
     ref = build_reference(config, t, ref_rng)
     context = effects_mod.SimContext(t_s=t, dt_s=dt, h_s=dt / int(config.physics_substeps), vehicle=veh,
@@ -611,6 +624,8 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     body = _true_body(veh, eff, context, n)
     noise = _draw_noise(noise_rng, config.noise, n)
     rec = _fly(config, veh, ref, body, noise, t)
+    logged = slice(None, None, every)  # the log samples the controller's steps
+    t, rec, noise = t[logged], rec.sampled(logged), noise.sampled(logged)
 
     data, kept = usdlog.encode(config, t, rec.P, rec.V, rec.Q, rec.W, rec.SF, rec.F_ACT, rec.PWM, rec.VBAT_MV,
                          veh.motor_speed, noise.pos, noise.vel, noise.att, noise.gyro, noise.acc, noise.rpm,
@@ -619,8 +634,24 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
         config=config, vehicle_name=veh.name, effects=eff, true_mass_kg=body.mass_kg,
         nominal_mass_kg=float(veh.mass_kg), data=data, t_s=t, kept=kept, p_true=rec.P, v_true=rec.V,
         q_true=rec.Q, omega_true=rec.W, sf_true=rec.SF, f_map_N=rec.F_MAP, f_actual_N=rec.F_ACT,
-        pwm_raw=rec.PWM, vbat_V=rec.VBAT_MV * 1e-3, wind_w_mps=body.air_w_mps, reference=ref,
+        pwm_raw=rec.PWM, vbat_V=rec.VBAT_MV * 1e-3, wind_w_mps=body.air_w_mps[logged],
+        reference=trajectories.Reference(*(np.asarray(getattr(ref, f.name))[logged] for f in fields(ref))),
     )
+
+
+def steps_per_log_sample(config: SimConfig, veh: vehicle_mod.Vehicle) -> int:
+    """Controller steps per log sample: the controller runs at the vehicle's command rate
+    (``[thrust_map.pwm_vbat] command_period_s``, as the firmware does) and the log keeps every
+    this many of its steps. Raises :class:`SimulationError` when the log period is not a whole
+    number of command periods."""
+    ratio = veh.pwm_vbat.command_period_s * float(config.log_rate_hz)
+    every = int(round(1.0 / ratio))
+    if every < 1 or abs(every * ratio - 1.0) > 1e-9:
+        raise SimulationError(
+            f"log rate {config.log_rate_hz:g} Hz: the simulator logs every n-th step of the controller, which runs "
+            f"at the vehicle's command rate {1.0 / veh.pwm_vbat.command_period_s:g} Hz; choose a log rate that "
+            "divides it")
+    return every
 
 
 # ---------------------------------------------------------------------------------------
