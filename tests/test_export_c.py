@@ -183,19 +183,24 @@ def test_every_feature_set_the_exporter_can_compute(data_root, decoded, tmp_path
         _assert_close(out["f_learned_b_N"], out["tau_learned_b_Nm"], f_py, tau_py, r["feature_set"]["name"])
 
 
-def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
-    plugin = tmp_path / "no_c_form.py"
+def _tether_plugin(tmp_path: Path, name: str) -> None:
+    """Load a plugin effect ``name`` (a constant vertical pull) that has no C form."""
+    plugin = tmp_path / f"{name}.py"
     plugin.write_text(
         "import numpy as np\n"
         "from quadcore.effects import Effect, Parameter\n"
         "class Tether(Effect):\n"
-        "    name = 'tether_no_c'\n"
+        f"    name = {name!r}\n"
         "    parameters = (Parameter('F_z_N', 'N', 0.0, -1.0, 1.0, 'pull'),)\n"
         "    def wrench(self, state, vehicle, params):\n"
         "        f = np.zeros((state.n, 3)); f[:, 2] = params['F_z_N']\n"
         "        return f, np.zeros((state.n, 3))\n"
         "EFFECT = Tether()\n")
     effects.load_plugin(plugin)
+
+
+def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
+    _tether_plugin(tmp_path, "tether_no_c")
     try:
         pm = PhysicsModel(VEHICLE, [EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}),
                                     EffectTerm("tether_no_c", {"F_z_N": 0.1})])
@@ -347,18 +352,7 @@ def test_a_per_session_model_exports_its_fleet_values_and_says_so(tmp_path):
 def test_an_effect_without_c_form_is_left_out_by_name_when_asked(tmp_path, decoded):
     """What the pipeline's exported_model asks for: the export leaves the effect out, says which
     and why (in the files and the result), and the C gives the other effects' wrench."""
-    plugin = tmp_path / "no_c_form2.py"
-    plugin.write_text(
-        "import numpy as np\n"
-        "from quadcore.effects import Effect, Parameter\n"
-        "class Tether(Effect):\n"
-        "    name = 'tether_left_out'\n"
-        "    parameters = (Parameter('F_z_N', 'N', 0.0, -1.0, 1.0, 'pull'),)\n"
-        "    def wrench(self, state, vehicle, params):\n"
-        "        f = np.zeros((state.n, 3)); f[:, 2] = params['F_z_N']\n"
-        "        return f, np.zeros((state.n, 3))\n"
-        "EFFECT = Tether()\n")
-    effects.load_plugin(plugin)
+    _tether_plugin(tmp_path, "tether_left_out")
     try:
         drag = EffectTerm("rotor_drag", {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1})
         pm = PhysicsModel(VEHICLE, [drag, EffectTerm("tether_left_out", {"F_z_N": 0.1})])

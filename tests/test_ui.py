@@ -37,21 +37,8 @@ def webserver(tmp_path_factory):
     _populate(base, home, raw.parent / "drag")
     env = {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(base / "root"),
            "QUADCORE_RAW_DIR": str(raw), "QUADCORE_AUTOMATION": "off"}  # only the run the test launches
-    log = open(base / "dagster_dev.log", "w")
-    # `make ui`'s launcher; its own session too, so that a failed test can still end everything
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
-                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc, log = start_ui(base, home, port, env)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.time() + 180
-    while True:
-        try:
-            urllib.request.urlopen(f"{url}/server_info", timeout=2)
-            break
-        except Exception:
-            if proc.poll() is not None or time.time() > deadline:
-                _kill_everything_of(home)
-                pytest.fail(f"make ui did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
-            time.sleep(1)
     yield url, port, base
     sys.__stderr__.write(f"\nUI screenshots (PNG) kept in {base}\n")  # the test artefacts, for people to look at
     # SIGTERM to the launcher alone (as a service manager would send it) stops every service
@@ -66,6 +53,24 @@ def webserver(tmp_path_factory):
     from pipeline.ui import port_problem
 
     assert port_problem("127.0.0.1", port) is None
+
+
+def start_ui(base: Path, home: Path, port: int, env: dict[str, str]):
+    """`make ui`'s launcher on ``port``, its output in ``base/dagster_dev.log``, in a session of
+    its own (so that a failed test can still end everything); (process, log file) once it answers."""
+    log = open(base / "dagster_dev.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
+                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    deadline = time.time() + 180
+    while True:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/server_info", timeout=2)
+            return proc, log
+        except Exception:
+            if proc.poll() is not None or time.time() > deadline:
+                _kill_everything_of(home)
+                pytest.fail(f"make ui did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
+            time.sleep(1)
 
 
 def _populate(base: Path, home: Path, raw: Path) -> None:

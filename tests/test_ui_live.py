@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,7 @@ from quadcore.sim import simulation
 
 sys.path.insert(0, str(Path(__file__).parent))
 from cdp import free_port  # noqa: E402
-from test_ui import REPO, _kill_everything_of  # noqa: E402
+from test_ui import _kill_everything_of, start_ui  # noqa: E402
 
 pytestmark = pytest.mark.slow  # dagster dev in a subprocess, sensors and automation ticks in real time
 
@@ -58,20 +57,7 @@ def live_ui(tmp_path_factory):
                               resources=resources).success
     assert dg.materialize(FLEET, instance=instance, run_config=quiet, resources=resources).success
     instance.dispose()
-    port = free_port()
-    log = open(base / "dagster_dev.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)], cwd=REPO, env=env,
-                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    deadline = time.time() + 180
-    while True:
-        try:
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/server_info", timeout=2)
-            break
-        except Exception:
-            if proc.poll() is not None or time.time() > deadline:
-                _kill_everything_of(home)
-                pytest.fail(f"make ui did not start: {(base / 'dagster_dev.log').read_text()[-2000:]}")
-            time.sleep(1)
+    proc, log = start_ui(base, home, free_port(), env)
     yield base, logs, raw, home
     proc.send_signal(signal.SIGTERM)
     try:
