@@ -76,15 +76,17 @@ def _keep_outcomes(data_root: DataRoot, fid: str, outcomes: dict) -> None:
                      check_outcomes_path(data_root, fid))
 
 
-def latest_outcomes(data_root: DataRoot, name: str) -> dict[str, tuple[bool, str]]:
-    """Every decoded flight's latest outcome of check ``name``: flight -> (passed, reason)
-    (flights whose decoded table is gone are left out)."""
+def latest_outcomes(data_root: DataRoot) -> dict[str, dict[str, tuple[bool, str]]]:
+    """Every decoded flight's latest check outcomes, read once: check -> flight -> (passed,
+    reason) (flights whose decoded table is gone are left out)."""
     root = data_root.root_path
-    out = {}
+    out: dict[str, dict[str, tuple[bool, str]]] = {name: {} for name in checks.ALL_CHECKS}
     for path in sorted(store.checks_dir(root).glob("*.json")):
-        outcome = store.read_json(path).get(name)
-        if outcome is not None and store.decoded_path(root, MAIN_EVENT, path.stem).is_file():
-            out[path.stem] = (bool(outcome["passed"]), str(outcome["reason"]))
+        if not store.decoded_path(root, MAIN_EVENT, path.stem).is_file():
+            continue
+        for name, outcome in store.read_json(path).items():
+            if name in out:
+                out[name][path.stem] = (bool(outcome["passed"]), str(outcome["reason"]))
     return out
 
 
@@ -111,8 +113,9 @@ def _check_results(outcomes: dict[str, dict], data_root: DataRoot) -> list[dg.As
     (a warning, never a failed run) and the counts in the result itself, so that one good new
     flight cannot turn a check green while other flights fail it."""
     results = []
+    latest = latest_outcomes(data_root)
     for name in checks.ALL_CHECKS:
-        every = latest_outcomes(data_root, name)
+        every = latest[name]
         every.update({fid: (ok, d) for fid, o in outcomes.items() for ok, d, _ in [o[name]]})
         failing = sorted(fid for fid, (ok, _) in every.items() if not ok)
         metrics = {k: number(v) if isinstance(v, float) else v
