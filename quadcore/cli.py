@@ -433,6 +433,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
           f"{len(result.trajectory.durations) if result.trajectory is not None else 0} pieces)")
     for k, v in pred.items():
         print(f"  {k}: {'n/a' if v is None else f'{v:.3g}'}")
+    if result.design.get("expected_to_decide") is False:
+        print("  note: the best flight of the family is not predicted to break the tie with margin "
+              f"(objective {result.design['after']['value']:.2f} < 1); see docs/flight-planning.md")
     for f in result.proof:
         print(f"  flown with {f.truth} true: diagnosis ranks {f.top} first"
               + (f", tied with {', '.join(f.tied_with)}" if f.tied_with else ", no tie")

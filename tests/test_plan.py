@@ -158,9 +158,11 @@ def test_nothing_to_separate_plans_nothing(tmp_path):
 
 
 # The full benchmark (benchmarks/bench_plan.py) runs 10 seeds per scenario and the lab's files
-# beside the plan; CI runs the first two seeds (one per truth) of each, without the files.
+# beside the plan; CI runs the first two seeds (one per truth) of the two scenarios the planner
+# decides, without the files. The third, a 10 ms motor lag against a thrust delay in hover, it
+# does not decide (docs/flight-planning.md says why): no test pretends otherwise.
 @pytest.mark.slow
-@pytest.mark.parametrize("scenario", list(bench.SCENARIOS))
+@pytest.mark.parametrize("scenario", ["drag", "mass"])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_planned_flight_decides_what_the_logged_flights_leave_open(scenario, seed):
     trial = bench.run(scenario, seed, files=())

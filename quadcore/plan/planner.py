@@ -184,8 +184,10 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,
                          request.duration_s, log)
     fd = signatures.planned_flight(best.trajectory, vehicle, loop)
-    design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": obj.evaluate(fd).to_dict(),
-              "noise_per_axis": [float(v) for v in sigma]}
+    after = obj.evaluate(fd)
+    design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": after.to_dict(),
+                              "expected_to_decide": bool(after.value >= 1.0),
+                              "noise_per_axis": [float(v) for v in sigma]}
     measured = proof.before(tables, spec, diag.model, (a.name, b.name))
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
