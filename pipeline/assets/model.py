@@ -27,7 +27,7 @@ ALL_STATISTICS = [dg.AssetDep(flight_statistics, partition_mapping=dg.AllPartiti
 RETRAIN = (
     dg.AutomationCondition.eager()
     .without(~dg.AutomationCondition.any_deps_missing())
-    .with_label("retrain when flights arrive")
+    .with_label("again when flights arrive or the model is refitted (eager)")
 )
 
 
