@@ -794,3 +794,5 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     assert "Undecided between no effect of the library and wind" in nothing.sentence()
     one = Stability("rotor_drag", ("rotor_drag",), "held-out flight", {"rotor_drag": 1}, 1)
     assert one.sentence().startswith("Stability not measured") and one.to_dict()["agree"] == 1
+    other = Stability(NOTHING, (NOTHING,), "held-out flight", {"ground_effect": 1}, 1)  # one answer cannot flip
+    assert other.undecided_between == () and other.sentence().startswith("Stability not measured")

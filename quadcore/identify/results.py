@@ -141,8 +141,10 @@ class Stability:
 
     @property
     def undecided_between(self) -> tuple[str, ...]:
+        """The answers when another one than the top comes first in some unit (none with a single
+        unit: one answer cannot flip)."""
         others = [a for a in self.votes if a not in self.group]
-        return (self.answer, *others) if others else ()
+        return (self.answer, *others) if others and self.total > 1 else ()
 
     def sentence(self) -> str:
         """``Stable: ... first in 5 of 5 folds`` or ``Undecided between A and B: ...``."""
