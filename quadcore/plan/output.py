@@ -42,11 +42,14 @@ def write_json(doc: dict[str, Any], path: str | Path) -> Path:
 
 
 def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None, arena: tuple, title: str,
-             differ_label: str = "where they differ most") -> bytes:
-    """PNG bytes of the planned path (``p_w_m`` (n, 3), ``speed_mps`` (n,)), with ``differ`` (n,)
-    (how much the explanations differ there, any scale; None for a parameter question: how
-    much the parameter shows) marking its largest ``DIFFER_SHARE`` of samples."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6), gridspec_kw={"width_ratios": [1, 1]})
+             differ_label: str = "where they differ most", t_s: np.ndarray | None = None) -> bytes:
+    """PNG bytes of the planned path (``p_w_m`` (n, 3), ``speed_mps`` (n,) at times ``t_s``) from
+    above and from the side, coloured by speed, with ``differ`` (n,) (how much the explanations
+    differ there, any scale; for a parameter question how much the parameter shows) marking its
+    largest ``DIFFER_SHARE`` of samples; and both along time."""
+    fig = plt.figure(figsize=(12, 4.4))
+    axes = [fig.add_axes((0.05, 0.14, 0.25, 0.68)), fig.add_axes((0.36, 0.14, 0.25, 0.68))]
+    ax_t = fig.add_axes((0.70, 0.14, 0.27, 0.68))
     a = np.asarray(arena, float)
     mark = None
     if differ is not None and np.any(differ > 0):
@@ -54,23 +57,31 @@ def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None
     sc = None
     for ax, (i, j), names in ((axes[0], (0, 1), ("x [m]", "y [m]")), (axes[1], (0, 2), ("x [m]", "z [m]"))):
         ax.add_patch(plt.Rectangle((a[i], a[j]), a[i + 3] - a[i], a[j + 3] - a[j], fill=False, lw=1.5, ec="0.3"))
-        sc = ax.scatter(p_w_m[:, i], p_w_m[:, j], c=speed_mps, s=3, cmap="viridis", vmin=0)
         if mark is not None:
-            ax.scatter(p_w_m[mark, i], p_w_m[mark, j], s=18, facecolors="none", edgecolors="crimson", lw=0.6,
-                       label=differ_label)
+            ax.scatter(p_w_m[mark, i], p_w_m[mark, j], s=30, color="crimson", alpha=0.15, lw=0, label=differ_label)
+        sc = ax.scatter(p_w_m[:, i], p_w_m[:, j], c=speed_mps, s=2, cmap="viridis", vmin=0)
         ax.plot(p_w_m[0, i], p_w_m[0, j], "k^", ms=8, label="start / end (hover)")
         ax.set_xlabel(names[0])
         ax.set_ylabel(names[1])
         ax.set_aspect("equal")
-        pad = 0.1
-        ax.set_xlim(a[i] - pad, a[i + 3] + pad)
-        ax.set_ylim(a[j] - pad, a[j + 3] + pad)
-    axes[0].set_title("from above", pad=28)
-    axes[1].set_title("from the side", pad=28)
-    axes[1].legend(loc="lower center", bbox_to_anchor=(0.5, 1.08), fontsize=8, ncol=2)
+        ax.set_xlim(a[i] - 0.1, a[i + 3] + 0.1)
+        ax.set_ylim(a[j] - 0.1, a[j + 3] + 0.1)
+    axes[0].set_title("from above (colour: speed)", fontsize=9)
+    axes[1].set_title("from the side", fontsize=9)
     assert sc is not None
-    fig.colorbar(sc, ax=axes, label="speed [m/s]", shrink=0.8)
-    fig.suptitle(title, fontsize=10)
+    fig.colorbar(sc, ax=axes[1], label="speed [m/s]", shrink=0.8)
+    t = np.arange(len(speed_mps)) if t_s is None else t_s
+    ax_t.plot(t, speed_mps, color="0.2", lw=1, label="speed [m/s]")
+    ax_t.set_xlabel("time [s]")
+    ax_t.set_ylabel("speed [m/s]")
+    if differ is not None and np.any(differ > 0):
+        ax_d = ax_t.twinx()
+        ax_d.plot(t, differ / differ.max(), color="crimson", lw=0.6, alpha=0.7)
+        ax_d.set_ylabel(differ_label + " (share of max)", color="crimson", fontsize=8)
+    ax_t.set_title("along the flight", fontsize=9)
+    handles, labels = axes[1].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=9)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)

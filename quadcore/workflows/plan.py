@@ -54,9 +54,9 @@ def plot_png(result: FlightPlan) -> bytes | None:
     title = (f"separate {q.candidates[0]} from {q.candidates[1]}" if q.kind == "separate"
              else f"pin down {q.parameter}")
     if result.manoeuvre is not None:
-        title += f": {result.manoeuvre.describe()}"
+        title += f"\n{result.manoeuvre.describe()}"
     label = "where they differ most" if q.kind == "separate" else "where the parameter shows most"
-    return output.plot_png(path.p_w_m, speed, result.differ, result.limits.arena, title, label)
+    return output.plot_png(path.p_w_m, speed, result.differ, result.limits.arena, title, label, path.t_s)
 
 
 def write(result: FlightPlan, json_path: Path, trajectory_path: Path | None, plot_path: Path | None = None) -> Written:
