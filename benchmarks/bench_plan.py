@@ -1,7 +1,7 @@
 """Does one planned flight decide what the logged flights leave open, and better than a flight of
 the same length from the lab's trajectory files?
 
-    python benchmarks/bench_plan.py [--seeds N] [--scenarios drag,mass,lag]
+    python benchmarks/bench_plan.py [--seeds N] [--first S] [--scenarios drag,mass,lag]
 
 Per scenario of :mod:`quadcore.plan.bench` (rotor vs parasitic drag on flights at one speed;
 thrust scale vs added mass in hover; motor lag vs thrust delay in hover) and seed: three flights
@@ -25,12 +25,13 @@ from quadcore.plan import bench
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first", type=int, default=0, help="first seed (to resume a run)")
     ap.add_argument("--scenarios", default=",".join(bench.SCENARIOS))
     args = ap.parse_args()
     totals: dict[str, dict[str, int]] = {}
     for name in args.scenarios.split(","):
         counts = totals.setdefault(name, {"planned": 0, **{f: 0 for f in bench.FILES}, "best file": 0, "before": 0})
-        for seed in range(args.seeds):
+        for seed in range(args.first, args.first + args.seeds):
             t0 = time.perf_counter()
             trial = bench.run(name, seed)
             counts["planned"] += trial.planned.decided
