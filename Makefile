@@ -8,9 +8,9 @@ STAMP := $(VENV)/.installed
 DATA ?= data
 PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
-export DAGSTER_HOME ?= $(QUADCORE_DATA_ROOT)/.dagster
+# DAGSTER_HOME: <data root>/.dagster unless set (pipeline.instance), the demo's in its own root.
 
-.PHONY: install run test test-fast lint ui bench fuzz
+.PHONY: install run demo test test-fast lint ui bench fuzz
 
 install: $(STAMP)
 
@@ -24,8 +24,14 @@ $(STAMP): pyproject.toml | $(VENV_PYTHON)
 	$(VENV_PYTHON) -m pip install --quiet --disable-pip-version-check -e '.[dev]'
 	touch $@
 
+# The main job on the data root; on the default one (data/) while data/raw holds no logs, the demo
+# in its own root data/demo (simulated flights never go into a raw folder of yours).
 run: $(STAMP)
 	$(VENV_PYTHON) -m pipeline
+
+# The demo: six simulated flights with a hidden effect, in their own data root (data/demo).
+demo: $(STAMP)
+	$(VENV_PYTHON) -m pipeline --demo
 
 test: $(STAMP)
 	$(VENV_PYTHON) -m pytest -q $(PYTEST_ARGS)

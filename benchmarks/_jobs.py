@@ -30,7 +30,8 @@ def run_main_job(data_root: Path, raw: Path | None, cwd: Path | None = None, env
     if raw is not None:
         environ["QUADCORE_RAW_DIR"] = str(raw)
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline"], cwd=cwd or REPO, env=environ,
+    demo = ["--demo"] if raw is None else []  # the demo runs when asked, in the root it is given
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", *demo], cwd=cwd or REPO, env=environ,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = proc.stdout.read() if proc.stdout else ""
     _, status, usage = os.wait4(proc.pid, 0)

@@ -32,6 +32,6 @@ gc.freeze()
 young, middle, _ = gc.get_threshold()
 gc.set_threshold(young, middle, FULL_COLLECTION_EVERY)
 
-code = main()
+code = main(sys.argv[1:])
 gc.freeze()
 sys.exit(code)

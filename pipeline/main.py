@@ -1,15 +1,20 @@
 """The main job, headless: every flight in the raw folder through every stage.
 
     python -m pipeline            (what ``make run`` calls)
+    python -m pipeline --demo     (``make demo``)
 
-Where the raw folder holds no logs, it first simulates a small set of flights with one
-hidden effect (``DEMO_EFFECT``), so that a new user sees the whole loop: decode ->
-residuals -> fitted model -> diagnosis naming the hidden effect -> error history.
+The demo simulates a small set of flights with one hidden effect (``DEMO_EFFECT``) into a data
+root of its own (``data/demo``), so that a new user sees the whole loop: decode -> residuals ->
+fitted model -> diagnosis naming the hidden effect -> error history. It runs when asked, or on
+the default data root while ``data/raw`` holds no logs (``pipeline.resources.choose_demo``).
+Anywhere else a missing or empty raw folder is an error, never a reason to simulate; and a data
+root never holds simulated and real flights together unless ``QUADCORE_ALLOW_SIMULATED=1``.
 
 It uses the persistent Dagster instance under ``$DAGSTER_HOME`` (default
 ``<data root>/.dagster``), so ``make ui`` shows these runs afterwards.
 """
 
+import argparse
 import os
 import sys
 import time
@@ -27,9 +32,12 @@ from pipeline.instance import ensure_dagster_home, unsynced_event_log
 from pipeline.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
 from pipeline.partitions import flights
 from pipeline.resources import (
+    DEFAULT_ROOT,
     DataRoot,
     ModelConfig,
     SettingError,
+    allow_simulated,
+    choose_demo,
     data_root_from_env,
     executor_from_env,
     learn_row_budget,
@@ -39,9 +47,14 @@ from pipeline.resources import (
 )
 from quadcore.identify import library_stats, sufficient
 from quadcore.logs import flight
-from quadcore.store import safewrite, store
+from quadcore.store import ownership, safewrite, store
 from quadcore.workflows import identify, learn, summary
-from quadcore.workflows.demo import simulate_demo_flights, write_demo_model_file
+from quadcore.workflows.demo import (
+    MixedFlightsError,
+    check_flight_kinds,
+    simulate_demo_flights,
+    write_demo_model_file,
+)
 
 # QUADCORE_RECOMPUTE=1: every stage for every flight, even where its outputs are up to date.
 RECOMPUTE = os.environ.get("QUADCORE_RECOMPUTE", "").lower() in ("1", "true", "yes", "on")
@@ -89,10 +102,17 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
                 if len(keys) > 1:
                     pending.insert(0, [fid])  # its own failed run, with its reason, in the UI
                 else:
-                    failures[fid] = why
-                    log(f"  {label} {fid}: FAILED: {why}")
+                    failures[fid] = reason_of(fid, why)
+                    log(f"  {label} {fid}: skipped: {failures[fid]}")
             pending = flight_ranges(registered, [k for k in keys if k not in failed]) + pending
     return failures
+
+
+def reason_of(fid: str, why: str) -> str:
+    """A failure's reason without the flight's name in front (the line names it once)."""
+    while why.startswith(f"{fid}: "):
+        why = why[len(fid) + 2:]
+    return why
 
 
 def run_fleet(instance, resources: dict, log) -> dict | None:
@@ -165,28 +185,62 @@ def fleet_is_stale(root: Path, model: ModelConfig, changed: list[str]) -> bool:
     return identify.fit_is_stale(root, model.spec())
 
 
-def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print) -> int:
+class InputError(Exception):
+    """The data root or the raw folder cannot be used as given (one line with the fix, exit 2)."""
+
+
+def check_inputs(data_root: DataRoot, demo: bool = False) -> str:
+    """Before anything is written: the raw folder exists and holds logs (the demo's may be
+    empty: it simulates into it), the data root is one the project made or may adopt
+    (:func:`quadcore.store.ownership.claim`), and its flights would not mix simulated and real
+    ones (:func:`quadcore.workflows.demo.check_flight_kinds`). Returns a note ('' if none);
+    :class:`InputError` with the reason and the fix."""
+    raw, root = data_root.raw_path, data_root.root_path
+    if not demo and not raw.is_dir():
+        raise InputError(f"the raw log folder {raw} does not exist: check QUADCORE_RAW_DIR (the demo runs with "
+                         "`make demo`)")
+    logs = flight.discover_logs(raw) if raw.is_dir() else []
+    if not demo and not logs:
+        raise InputError(f"no logs in the raw log folder {raw}: put your flight logs there, or point QUADCORE_RAW_DIR "
+                         "at them (the demo runs with `make demo`)")
+    try:
+        note = ownership.claim(root, "the data root")
+        check_flight_kinds(root, logs, allow_simulated(), demo)
+    except (ownership.ForeignFolderError, MixedFlightsError) as exc:
+        raise InputError(str(exc)) from None
+    return note
+
+
+def run_all(data_root: DataRoot, model: ModelConfig, instance, log=print, demo: bool = False) -> int:
     """Every stage on every flight, holding the data root's lock (a second job on the same data
-    root waits for this one), after sweeping what killed runs left behind."""
+    root waits for this one), after sweeping what killed runs left behind. 2 when the inputs
+    cannot be used (:func:`check_inputs`)."""
+    try:
+        note = check_inputs(data_root, demo)
+    except InputError as exc:
+        log(f"error: {exc}")
+        return 2
+    if note:
+        log(f"note: {note}")
     with safewrite.data_root_lock(data_root.root_path, on_wait=log):
         swept = safewrite.sweep_stale(data_root.root_path)
         if swept:
             log(f"removed {len(swept)} temp file(s) or staging folder(s) left by killed runs")
         try:
-            return _run_stages(data_root, model, instance, log)
+            return _run_stages(data_root, model, instance, log, demo)
         finally:
             parallel.shutdown()
 
 
-def _flight_ids(data_root: DataRoot, instance, log) -> tuple[list[str], bool]:
-    """The raw folder's flights (simulated demo flights where it holds no logs: ``True``),
-    each registered as a flight partition."""
+def _flight_ids(data_root: DataRoot, instance, log, demo: bool) -> list[str]:
+    """The raw folder's flights (the demo's: simulated where it holds none yet), each
+    registered as a flight partition."""
     raw = data_root.raw_path
     logs = flight.discover_logs(raw) if raw.is_dir() else []
-    demo = not logs
-    if demo:
+    if demo and not logs:
         raw.mkdir(parents=True, exist_ok=True)
         logs = simulate_demo_flights(raw, log)
+        ownership.record_flights_kind(data_root.root_path, "simulated")
     by_id, collisions = flight.flight_ids(logs)
     for note in collisions:
         log(f"flight id collision: {note}")
@@ -194,7 +248,7 @@ def _flight_ids(data_root: DataRoot, instance, log) -> tuple[list[str], bool]:
     new = [f for f in ids if not instance.has_dynamic_partition(flights.name, f)]
     if new:
         instance.add_dynamic_partitions(flights.name, new)
-    return ids, demo
+    return ids
 
 
 def _decode_stage(instance, resources: dict, ids: list[str], log) -> tuple[list[str], dict[str, str], list[str]]:
@@ -291,17 +345,17 @@ def _closing(root: Path, model: ModelConfig, suggested: str | None, demo: bool, 
         log(line)
     if suggested and not demo:
         log(f"\nNext step: {identify.next_step(suggested, model.model_file)}")
-    if failures:
-        log(f"\n{len(failures)} flight(s) failed or were quarantined (see {root / 'quarantine'}):")
-        for fid, why in failures.items():
-            log(f"  {fid}: {why}")
+    if failures:  # each was said once, with its reason, where it was skipped
+        named = ", ".join(list(failures)[:5]) + (", ..." if len(failures) > 5 else "")
+        log(f"\n{len(failures)} flight(s) skipped ({named}): the reasons are above; quarantined logs in "
+            f"{root / 'quarantine'}, the runs in the UI")
     log("\nSee it in the UI:  make ui   (Dagster UI on http://127.0.0.1:3000)")
 
 
-def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
+def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log, demo: bool) -> int:
     """The four stages in order, each materialising what is missing or stale; 1 when a stage
     that the next ones need failed."""
-    ids, demo = _flight_ids(data_root, instance, log)
+    ids = _flight_ids(data_root, instance, log, demo)
     resources: dict[str, Any] = {"data_root": data_root, "model": model}
     decode, failures, good = _decode_stage(instance, resources, ids, log)
     if len(good) < 2:
@@ -310,6 +364,7 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     restat = good if RECOMPUTE else to_restat(data_root, model, good, decode)
     if restat:
         failures.update(run_flights(instance, resources, restat, STATISTICS, "statistics", log))
+    good = [f for f in good if f not in failures]  # a flight skipped once is not tried again in this job
     # the fit is made from the statistics: new ones (a new decode, or new code) mean a refit
     diag, refit = _fleet_stage(instance, resources, sorted({*decode, *restat}), log)
     if diag is None:
@@ -324,26 +379,40 @@ def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log) -> int:
     return 0
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline", description="The main job: every flight of the "
+                                     "raw folder through every stage.")
+    parser.add_argument("--demo", action="store_true", help="the demo: six simulated flights with a hidden effect, "
+                        "in a data root of their own (data/demo)")
+    args = parser.parse_args(argv if argv is not None else [])
     try:
         executor_from_env()  # the definitions' executor: a bad QUADCORE_EXECUTOR is refused before any work
         learn_row_budget()  # and a bad QUADCORE_LEARN_ROWS before the learning stage would meet it
+        demo = choose_demo(args.demo)
     except SettingError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     data_root = data_root_from_env()
-    home = ensure_dagster_home(data_root.root_path)
-    unsynced_event_log(home)
-    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}")
     try:
         model = model_config_from_env()
         model.spec()  # a bad model file is a user error: say so before any work
     except (ValueError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    try:  # before anything is written (the Dagster instance included)
+        check_inputs(data_root, demo)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if demo:
+        print(f"The demo: simulated flights in a data root of their own ({data_root.root_path}); your own logs go "
+              f"into {Path(DEFAULT_ROOT, 'raw').resolve()} (or QUADCORE_RAW_DIR) and never mix with them.\n")
+    home = ensure_dagster_home(data_root.root_path)
+    unsynced_event_log(home)
+    print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}")
     path, origin = model_file_from_env()
     print(f"Model:     {path or '(none)'}\n           from {origin}\n")
-    return run_all(data_root, model, dg.DagsterInstance.get())
+    return run_all(data_root, model, dg.DagsterInstance.get(), demo=demo)
 
 
 if __name__ == "__main__":

@@ -30,8 +30,9 @@ from dagster._serdes import deserialize_value, serialize_value
 from pipeline.instance import unsynced_event_log, unsynced_homes
 from pipeline.partitions import failed_flights
 
-# Keep the console to our progress lines; Dagster's own events stay in the instance (and the UI).
-QUIET = {"loggers": {"console": {"config": {"log_level": "ERROR"}}}}
+# Keep the console to our progress lines (one per skipped flight, with its reason); Dagster's own
+# events, a failed step's error and stack trace included, stay in the instance's event log (the UI).
+QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
 
 # Split a range in two from this many flights. The second process's start-up (the definitions,
 # then each asset's libraries on its first flight: 4-5 s under load here) takes what half a short

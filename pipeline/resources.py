@@ -3,7 +3,13 @@
 - ``QUADCORE_DATA_ROOT``: the data root (default ``data`` in the working directory);
   outputs go under it (see ``quadcore.store.store``).
 - ``QUADCORE_RAW_DIR``: the folder of incoming raw logs (default ``<root>/raw``). Point it
-  at a read-only folder of logs to process them without copying.
+  at a read-only folder of logs to process them without copying. It must exist and hold logs.
+- ``QUADCORE_ALLOW_SIMULATED=1``: let one data root hold simulated and real flights together
+  (refused otherwise, see :func:`quadcore.workflows.demo.check_flight_kinds`).
+
+The demo (six simulated flights) has a data root of its own, ``data/demo``: ``python -m pipeline
+--demo`` (``make demo``), or ``make run`` on the default data root while ``data/raw`` holds no
+logs (:func:`choose_demo`). It never simulates into a raw folder of yours.
 """
 
 
@@ -18,7 +24,7 @@ class SettingError(ValueError):
 
 
 def default_data_root() -> str:
-    return os.environ.get("QUADCORE_DATA_ROOT", "data")
+    return os.environ.get("QUADCORE_DATA_ROOT", DEFAULT_ROOT)
 
 
 def automation_status():
@@ -52,6 +58,46 @@ def learn_row_budget() -> int:
     except (ValueError, learners.LearningError):
         raise SettingError(f"QUADCORE_LEARN_ROWS={os.environ['QUADCORE_LEARN_ROWS']!r}: give a whole number of rows, "
                            f"at least 1000 (default {learners.DEFAULT_ROW_BUDGET})") from None
+
+
+DEFAULT_ROOT = "data"  # the default data root (relative to the working directory: the repository's data/)
+DEMO_FOLDER = "demo"  # the demo's own data root, inside the default one
+
+
+def allow_simulated() -> bool:
+    """``QUADCORE_ALLOW_SIMULATED``: simulated and real flights may share a data root."""
+    return os.environ.get("QUADCORE_ALLOW_SIMULATED", "").lower() in ("1", "true", "yes", "on")
+
+
+def _is_default(env: str, default: Path) -> bool:
+    value = os.environ.get(env, "")
+    return not value or Path(value).resolve() == default
+
+
+def choose_demo(explicit: bool) -> bool:
+    """Whether this job runs the demo; if so ``QUADCORE_DATA_ROOT`` is pointed at the demo's own
+    root (``data/demo``, or the root given with ``--demo``), so that everything started from here
+    (Dagster's processes included) uses it. The demo runs when asked (``explicit``), or on the
+    default data root (``data``, raw folder ``data/raw``) while that raw folder holds no logs:
+    the README's first ``make run``. Never where a raw folder was named."""
+    from quadcore.logs.flight import discover_logs
+
+    default = Path(DEFAULT_ROOT).resolve()
+    if explicit:
+        if os.environ.get("QUADCORE_RAW_DIR"):
+            raise SettingError("QUADCORE_RAW_DIR is set: the demo simulates its flights into its own data root's "
+                               "raw folder; unset it to run the demo")
+        if _is_default("QUADCORE_DATA_ROOT", default):
+            os.environ["QUADCORE_DATA_ROOT"] = str(default / DEMO_FOLDER)
+        return True
+    if not (_is_default("QUADCORE_DATA_ROOT", default) and _is_default("QUADCORE_RAW_DIR", default / "raw")):
+        return False
+    raw = default / "raw"
+    if raw.is_dir() and discover_logs(raw):
+        return False
+    os.environ["QUADCORE_DATA_ROOT"] = str(default / DEMO_FOLDER)
+    os.environ.pop("QUADCORE_RAW_DIR", None)
+    return True
 
 
 def default_raw_dir() -> str:

@@ -35,6 +35,7 @@ def header_problem(path) -> str | None:
     only: the format, and every variable :mod:`quadcore.logs.required` names, in one message; an
     unreadable file is one), or None."""
     try:
+        flight.check_inside_folder(path)  # a symlink out of the raw folder is not followed
         with open(path, "rb") as f:
             _, types, _ = logformat.parse_header(f.read(64 * 1024))
         required.check({t.name: t.variables for t in types.values()})

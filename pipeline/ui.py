@@ -118,9 +118,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"make ui: error: {problem}", file=sys.stderr)
         return 2
     from pipeline.instance import ensure_dagster_home
-    from pipeline.resources import data_root_from_env
+    from pipeline.resources import SettingError, choose_demo, data_root_from_env
+    from quadcore.store import ownership
 
-    root = data_root_from_env().root_path
+    try:  # what `make run` runs on: the demo's root while data/raw holds no logs
+        choose_demo(False)
+        root = data_root_from_env().root_path
+        ownership.claim(root, "the data root")  # a folder quadcore did not make gets nothing written into it
+    except (SettingError, ownership.ForeignFolderError) as exc:
+        print(f"make ui: error: {exc}", file=sys.stderr)
+        return 2
     home = ensure_dagster_home(root)
     try:
         cmds = service_commands(args.host, args.port)

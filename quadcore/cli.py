@@ -712,18 +712,26 @@ def _data_root_held(args: argparse.Namespace):
     if args.verb not in DATA_ROOT_VERBS:
         yield
         return
-    from quadcore.store import safewrite
+    from quadcore.store import ownership, safewrite
 
     out = _output_folder(args.out)
     created = not out.exists()
+    try:  # a folder quadcore did not make is refused before anything is written there
+        note = ownership.claim(out, "--out")
+    except ownership.ForeignFolderError as exc:
+        raise UserError(str(exc)) from None
+    if note:
+        print(f"note: {note}", file=sys.stderr)
     try:
         with safewrite.data_root_lock(out, on_wait=lambda m: print(m, file=sys.stderr)):
             safewrite.sweep_stale(out)
             yield
     finally:
         # a command that wrote nothing leaves no folder; one that could not create it keeps its own error
-        if created and out.is_dir() and [p.name for p in out.iterdir()] == [safewrite.LOCK_FILE]:
-            (out / safewrite.LOCK_FILE).unlink()
+        own = {safewrite.LOCK_FILE, ownership.MARKER}
+        if created and out.is_dir() and {p.name for p in out.iterdir()} <= own:
+            for name in own:
+                (out / name).unlink(missing_ok=True)
             out.rmdir()
 
 

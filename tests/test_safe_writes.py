@@ -14,7 +14,7 @@ import pytest
 from fuzz import kills
 
 from quadcore.learn import artefacts, learners
-from quadcore.store import safewrite, store
+from quadcore.store import ownership, safewrite, store
 
 
 def _dead_pid() -> int:
@@ -25,21 +25,22 @@ def _dead_pid() -> int:
 
 def test_sweep_removes_what_dead_writers_left_and_nothing_else(tmp_path):
     dead, now = _dead_pid(), time.time()
+    ownership.claim(tmp_path)
     leftovers = [tmp_path / "decoded" / f".data.parquet.{dead}.abc123.tmp",
                  tmp_path / "learned" / f".xgb.{dead}.k2j4.staging",
                  tmp_path / "learned" / f".mlp.{dead}.99.old"]
-    old_no_pid = tmp_path / "features" / ".data.parquet.x1y2.tmp"
+    legacy = tmp_path / ".features-x1y2z3"  # an earlier version's feature staging: no pid, swept when old
     live = tmp_path / "decoded" / f".data.parquet.{os.getpid()}.zz.tmp"
     keep = [tmp_path / ".gitignore", tmp_path / "decoded" / "flight=a" / "data.parquet", live,
-            tmp_path / "features" / ".recent.x9.tmp"]
-    for p in [*leftovers, old_no_pid, *keep]:
+            tmp_path / "features" / ".recent.x9.tmp", tmp_path / "features" / ".data.parquet.x1y2.tmp"]
+    for p in [*leftovers, legacy, *keep]:
         p.parent.mkdir(parents=True, exist_ok=True)
-        (p.mkdir() if p.suffix in (".staging", ".old") else p.write_text("x"))
-    os.utime(old_no_pid, (now - 2 * safewrite.STALE_AFTER_S,) * 2)
+        (p.mkdir() if p.suffix in (".staging", ".old") or p == legacy else p.write_text("x"))
+    os.utime(legacy, (now - 2 * safewrite.STALE_AFTER_S,) * 2)
 
     removed = safewrite.sweep_stale(tmp_path)
 
-    assert sorted(removed) == sorted([*leftovers, old_no_pid])
+    assert sorted(removed) == sorted([*leftovers, legacy])
     assert all(p.exists() for p in keep) and not any(p.exists() for p in removed)
 
 

@@ -282,9 +282,8 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
     half-written set. In an object store (no renames) each table is replaced whole, in place,
     and the tables of sets and flights no longer there are removed."""
     import shutil
-    import tempfile
 
-    from quadcore.store import store
+    from quadcore.store import safewrite, store
 
     root = store.as_root(root)
     if store.is_remote(root):  # no folder renames in an object store: each table is replaced whole, in place
@@ -294,15 +293,11 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
                 if folder.name not in written or table.name.split("=", 1)[1] not in residual_tables:
                     store.remove_tree(table)  # a set no longer asked for, or a flight no longer there
         return written
-    root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".features-", dir=root))
+    # staging and old folders named as every writer's (safewrite): the sweep knows them by their pid
+    staging = safewrite.staging_folder(root / "features")
     try:
         write_feature_tables(staging, residual_tables, sets, provenance)
-        final, old = root / "features", root / f".features-old-{staging.name}"
-        if final.exists():
-            final.rename(old)
-        (staging / "features").rename(final)
-        shutil.rmtree(old, ignore_errors=True)
+        safewrite.replace_folder(staging / "features", root / "features")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return {fs.name: [feature_path(root, fs.name, f) for f in residual_tables] for fs in sets}

@@ -137,12 +137,29 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "
     return Flight(flight_id, tables, columns, provenance)
 
 
+class OutsideFolderError(logformat.LogFormatError):
+    """A log that is a symlink to a file outside its own folder (the raw folder): not followed."""
+
+
+def check_inside_folder(path: str | Path) -> None:
+    """Symlinks among the logs are followed only within the log's own folder (the raw folder):
+    a link whose target resolves anywhere else raises :class:`OutsideFolderError` (the log is
+    then quarantined with that reason), so a raw folder never reads files outside it."""
+    path = Path(path)
+    if path.is_symlink():
+        target, folder = path.resolve(), path.parent.resolve()
+        if not target.is_relative_to(folder):
+            raise OutsideFolderError(f"{path.name} is a symlink to {target}, outside its folder {folder}: not "
+                                     "followed; copy the log into the folder, or point QUADCORE_RAW_DIR at its own")
+
+
 def decode_flight(path: str | Path, flight_id: str | None = None) -> Flight:
     """Decode a raw uSD log file (at most ``logformat.MAX_LOG_BYTES``) into SI tables, as flight
     ``flight_id`` (default: :func:`flight_id_of` the path). Any event types: whether the physics
     can use them is :func:`quadcore.logs.required.check`'s to say. Raises ``LogFormatError`` if
-    unrecoverable."""
+    unrecoverable (:class:`OutsideFolderError` for a symlink leaving its folder)."""
     path = Path(path)
+    check_inside_folder(path)
     buf = logformat.read_log(path)
     log = logformat.decode_bytes(buf)
     return from_decoded(flight_id or flight_id_of(path), log, str(path.resolve()), hashlib.sha256(buf).hexdigest(),
@@ -211,6 +228,8 @@ def sample_statistics(t_s: np.ndarray, gap_threshold_s: float = 0.02) -> dict[st
     }
 
 
+# The simulator's ground truth beside each log it writes (``<log>.truth.json``): marks a simulated flight.
+TRUTH_SUFFIX = ".truth.json"
 # Files beside the logs that are not logs (the simulator's ground-truth sidecars, notes).
 SIDECAR_SUFFIXES = {".json", ".csv", ".txt", ".md", ".toml", ".yaml", ".yml"}
 

@@ -65,6 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from quadcore import effects as effects_mod
+from quadcore.logs.flight import TRUTH_SUFFIX
 from quadcore.logs.units import DEG_TO_RAD, G0_MPS2, PWM_FULL_SCALE
 from quadcore.physics import vehicle as vehicle_mod
 from quadcore.physics.dynamics import FlightState
@@ -73,7 +74,6 @@ from quadcore.sim.controller import Controller, Gains
 from quadcore.store import store
 
 KINDS = ("figure8", "circle0", "yaw0", "random", "hover", "low_pass", "plan")
-TRUTH_SUFFIX = ".truth.json"
 TRUTH_FORMAT = "quadcore-sim-truth/1"
 
 class SimulationError(ValueError):

@@ -5,7 +5,9 @@
   one, and a leftover whose writer is gone is recognisably stale.
 - A folder of files that only make sense together (a learned model: weights, scaler, features,
   manifest) is written into a staging folder and put in place by :func:`replace_folder`.
-- :func:`sweep_stale` removes what killed writers left behind; the main job calls it on start.
+- :func:`sweep_stale` removes what killed writers left behind; the main job calls it on start. It
+  sweeps only data roots the project made (marked, :mod:`quadcore.store.ownership`), only its
+  output folders there (never ``raw/`` or ``.dagster/``), and only the names its writers give.
 - :func:`data_root_lock` serialises whole jobs on one data root: a second job waits.
 """
 
@@ -15,17 +17,16 @@ import contextlib
 import fcntl
 import hashlib
 import os
-import re
 import shutil
 import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-LOCK_FILE = ".quadcore.lock"
-STALE_AFTER_S = 3600.0  # a leftover without a readable pid is stale after this long
-_LEFTOVER = re.compile(r"^\..*\.(?P<pid>\d+)\.[^.]+\.(tmp|staging|old)$")
-_OLD_FOLDER = re.compile(r"^\..*\.(old|staging)(-[^/]*)?$|^\.features-")
+from quadcore.store import ownership
+
+LOCK_FILE = ownership.LOCK_FILE
+STALE_AFTER_S = 3600.0  # a leftover of an earlier version (no pid in its name) is stale after this long
 
 
 def temp_prefix(name: str) -> str:
@@ -69,10 +70,13 @@ def _pid_alive(pid: int) -> bool:
 
 
 def _is_stale(path: Path, now: float) -> bool:
-    match = _LEFTOVER.match(path.name)
-    if match and int(match["pid"]) != os.getpid():
-        return not _pid_alive(int(match["pid"]))
-    if match or _OLD_FOLDER.match(path.name) or path.name.endswith((".tmp", ".old")):
+    """A leftover of one of the project's writers whose writer is gone: its pid (in the name) is
+    not running; a leftover of an earlier version (no pid) older than ``STALE_AFTER_S``."""
+    match = ownership.LEFTOVER.match(path.name)
+    if match:
+        pid = int(match["pid"])
+        return pid != os.getpid() and not _pid_alive(pid)
+    if ownership.LEGACY_LEFTOVER.match(path.name):
         try:
             return now - path.lstat().st_mtime > STALE_AFTER_S
         except OSError:
@@ -80,23 +84,43 @@ def _is_stale(path: Path, now: float) -> bool:
     return False
 
 
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _walk_output_folder(folder: Path) -> Iterator[Path]:
+    """Every entry under one of the root's output folders, parents first, never through a
+    symlink nor into a nested data root."""
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        here = Path(dirpath)
+        dirnames[:] = [d for d in dirnames if not ownership.is_marked(here / d)]
+        for name in [*dirnames, *filenames]:
+            yield here / name
+
+
 def sweep_stale(root: Path) -> list[Path]:
-    """Remove temp files and staging folders under ``root`` left by writers that were killed
-    (their pid is gone, or, without a pid, older than ``STALE_AFTER_S``). Returns them."""
+    """Remove temp files and staging/old folders that killed writers left in the data root
+    ``root`` (see :func:`_is_stale`). Only a root the project made or adopted (its marker,
+    :func:`quadcore.store.ownership.claim`) is swept, and there only its top level and its output
+    folders (:data:`quadcore.store.ownership.OUTPUT_FOLDERS`), never the raw logs, the Dagster
+    instance or a nested data root. Returns what was removed."""
     removed: list[Path] = []
     if _is_url(root):  # an object store: every write is one whole PUT, no temp object is ever left
         return removed
     root, now = Path(root), time.time()
-    if not root.is_dir():
+    if not root.is_dir() or not ownership.is_marked(root):
         return removed
-    for path in sorted(root.rglob(".*"), key=lambda p: len(p.parts)):
-        if path.name == LOCK_FILE or ".dagster" in path.relative_to(root).parts or not path.exists():
-            continue
-        if _is_stale(path, now):
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+    candidates = []
+    for entry in sorted(root.iterdir()):
+        candidates.append(entry)
+        if entry.name in ownership.OUTPUT_FOLDERS and entry.is_dir() and not entry.is_symlink():
+            candidates += _walk_output_folder(entry)
+    for path in candidates:
+        if ownership.is_leftover_name(path.name) and path.parent.exists() and _is_stale(path, now):
+            _remove(path)
             removed.append(path)
     return removed
 

@@ -26,7 +26,7 @@ import numpy as np
 import polars as pl
 
 from quadcore.learn import artefacts, learners, trainers
-from quadcore.store import safewrite, store
+from quadcore.store import ownership, safewrite, store
 
 CHILD_TEMPLATE = "template"  # folder of models the child copies from (trained once by the parent)
 OUTPUTS = ("xgboost", "mlp")
@@ -60,6 +60,12 @@ def train_templates(folder: Path) -> None:
         trainers.train(spec, fs, tables, ["a", "b"], config).save(folder / kind)
 
 
+def out_folder(root: Path) -> Path:
+    """Where the child writes: an output folder of a data root the project made (the only kind
+    :func:`safewrite.sweep_stale` sweeps)."""
+    return root / "data" / "learned"
+
+
 def child(root: Path) -> None:
     """Rewrite the outputs forever (until killed)."""
     models = {k: artefacts.load(root / CHILD_TEMPLATE / k) for k in OUTPUTS}
@@ -67,35 +73,36 @@ def child(root: Path) -> None:
     print("ready", flush=True)
     while True:
         for kind, m in models.items():
-            m.save(root / "out" / kind)
-        store.write_parquet(table, root / "out" / "table.parquet", {"n": table.height})
+            m.save(out_folder(root) / kind)
+        store.write_parquet(table, out_folder(root) / "table.parquet", {"n": table.height})
 
 
 def _check(root: Path) -> tuple[int, int]:
     """(torn files, unloadable models) among the outputs present."""
     torn = unloadable = 0
-    table = root / "out" / "table.parquet"
+    table = out_folder(root) / "table.parquet"
     if table.exists():
         try:
             torn += pl.read_parquet(table).height != 200_000
         except Exception:  # noqa: BLE001 (any failure to read is a torn file)
             torn += 1
     for kind in OUTPUTS:
-        if (root / "out" / kind).exists():
+        if (out_folder(root) / kind).exists():
             try:
-                artefacts.load(root / "out" / kind)
+                artefacts.load(out_folder(root) / kind)
             except learners.LearningError:
                 unloadable += 1
     return torn, unloadable
 
 
 def _leftovers(root: Path) -> int:
-    return sum(1 for p in (root / "out").rglob(".*") if p.name.endswith((".tmp", ".staging", ".old")))
+    return sum(1 for p in (out_folder(root)).rglob(".*") if p.name.endswith((".tmp", ".staging", ".old")))
 
 
 def run(root: Path, n_kills: int, seed: int = 0, log=print) -> KillReport:
     rng = random.Random(seed)
     root.mkdir(parents=True, exist_ok=True)
+    ownership.claim(root / "data")
     if not (root / CHILD_TEMPLATE).exists():
         train_templates(root / CHILD_TEMPLATE)
     torn = unloadable = 0
@@ -112,7 +119,7 @@ def run(root: Path, n_kills: int, seed: int = 0, log=print) -> KillReport:
         if (i + 1) % 10 == 0:
             log(f"  {i + 1} kills: torn files {torn}, unloadable models {unloadable}")
     before = _leftovers(root)
-    safewrite.sweep_stale(root)
+    safewrite.sweep_stale(root / "data")
     return KillReport(n_kills, torn, unloadable, before, _leftovers(root))
 
 
