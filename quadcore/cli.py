@@ -6,7 +6,7 @@
     quadcore residuals LOG_OR_FOLDER... [--vehicle FILE] [--thrust-map KIND] [--out DIR]
     quadcore fit-thrust LOG_OR_FOLDER... [--vehicle FILE] [--write OUT.toml]
     quadcore export LOG_OR_FOLDER... --out DIR [--vehicle FILE]
-    quadcore export-c MODEL_DIR_OR_FILE --out DIR [--learned xgboost|mlp|none]
+    quadcore export-c MODEL_DIR_OR_FILE --out DIR [--learned xgboost|mlp|none] [--model-file MODEL.toml]
     quadcore train DATA [--holdout F] [--loo] [--models xgboost,mlp] [--feature-sets ...] [--effects ...] [--out DIR]
     quadcore diagnose DATA --json OUT.json [--vehicle FILE] [--effects e1,e2] [--holdout F1,F2] [--report DIR]
     quadcore discover DATA --json OUT.json [--model F] [--vehicle F] [--holdout F1,F2] [--sessions F]
@@ -260,6 +260,10 @@ def cmd_export_c(args: argparse.Namespace) -> int:
     from quadcore.export import c as export_c
     from quadcore.learn import learners
 
+    if args.model_file:  # the plugin effects the model uses come from here, never from the saved model
+        from quadcore.identify import model as modelmod
+
+        modelmod.load_model_file(args.model_file)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -606,6 +610,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for quadcore_model.h and quadcore_model.c")
     p.add_argument("--learned", default="xgboost", choices=["xgboost", "mlp", "none"],
                    help="from a data root: the best model of this kind (default xgboost), or none (physics only)")
+    p.add_argument("--model-file", default=None, metavar="MODEL.toml",
+                   help="the model file whose plugins the model's plugin effects come from (a saved model never "
+                        "names code to run: its plugins are checked against these by name and SHA-256)")
     p.set_defaults(func=cmd_export_c)
 
     p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")

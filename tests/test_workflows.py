@@ -4,6 +4,7 @@ are stale, and the outputs both write."""
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 import subprocess
 import sys
@@ -177,7 +178,7 @@ def test_the_cli_diagnosis_report_shows_the_discovery_beside_it(drag_fleet, tmp_
 # ---------------------------------------------------------------------------------------
 
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
-def test_export_c_loads_the_plugins_the_fit_recorded(tmp_path):
+def test_export_c_takes_plugins_from_the_model_file_given_never_from_the_saved_model(tmp_path):
     example = Path(__file__).resolve().parents[1] / "examples" / "effects" / "linear_drag.py"
     shutil.copy(example, tmp_path / "linear_drag.py")
     (tmp_path / "model.toml").write_text('effects = ["linear_drag"]\nplugins = ["linear_drag.py"]\n')
@@ -188,11 +189,59 @@ def test_export_c_loads_the_plugins_the_fit_recorded(tmp_path):
         path = model.save(fitted, store.physics_model_path(tmp_path / "root"), ["sim000"], spec)
     finally:
         effects.unregister("linear_drag")
-    assert store.read_json(path)["plugins"] == [str(tmp_path / "linear_drag.py")]
-    run = subprocess.run([sys.executable, "-m", "quadcore.cli", "export-c", str(path), "--out", str(tmp_path / "c")],
-                         capture_output=True, text=True)
+    digest = hashlib.sha256(example.read_bytes()).hexdigest()
+    assert store.read_json(path)["plugins"] == [{"effect": "linear_drag", "module": "linear_drag.py",
+                                                 "sha256": digest}]
+
+    def export_c(*extra):
+        return subprocess.run([sys.executable, "-m", "quadcore.cli", "export-c", str(path), "--out",
+                               str(tmp_path / "c"), *extra], capture_output=True, text=True)
+
+    run = export_c()  # without the model file: refused with the reason, nothing imported
+    assert run.returncode == 2 and "'linear_drag'" in run.stderr and "--model" in run.stderr, run.stderr
+    run = export_c("--model-file", str(tmp_path / "model.toml"))
     assert run.returncode == 0, run.stderr
     assert "d_xy_kg_per_s = ((qc_real)0.04)" in (tmp_path / "c" / "quadcore_model.c").read_text()
+    (tmp_path / "linear_drag.py").write_text(example.read_text() + "\n# edited since the fit\n")
+    run = export_c("--model-file", str(tmp_path / "model.toml"))  # another version of the plugin: refit first
+    assert run.returncode == 2 and "another version" in run.stderr, run.stderr
+
+
+SENTINEL_PLUGIN = """from pathlib import Path
+Path({sentinel!r}).write_text("ran")
+"""
+
+
+def test_a_saved_model_naming_code_elsewhere_never_runs_it(tmp_path):
+    """An edited physics_model.json (and a learned model's manifest) naming a module outside the
+    project: export-c, the pipeline's current model and LearnedModel.physics_model() refuse it
+    with the reason, and the module never runs (it would write a sentinel file)."""
+    from quadcore.learn import artefacts
+
+    sentinel = tmp_path / "sentinel"
+    evil = tmp_path / "elsewhere" / "evil.py"
+    evil.parent.mkdir()
+    evil.write_text(SENTINEL_PLUGIN.format(sentinel=str(sentinel)))
+    root = tmp_path / "root"
+    spec = workflows.resolve_model(None)
+    path = model.save(model.PhysicsModel(spec.vehicle, []), store.physics_model_path(root), ["a", "b"], spec)
+    saved = store.read_json(path)
+    for plugins in ([str(evil)], [{"effect": "evil", "module": str(evil), "sha256": "0" * 64}]):
+        store.write_json({**saved, "plugins": plugins, "effects": [{"name": "evil", "params": {}}]}, path)
+        run = subprocess.run([sys.executable, "-m", "quadcore.cli", "export-c", str(path), "--out",
+                              str(tmp_path / "c"), "--learned", "none"], capture_output=True, text=True)
+        assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+        assert "evil" in run.stderr and not sentinel.exists()
+        with pytest.raises(model.ModelFileError):
+            identify.current_model(root, spec)  # the saved spec digest is this spec's: it is read
+        with pytest.raises(model.ModelFileError):
+            artefacts.LearnedModel.physics_model(_Manifest({"physics_model": store.read_json(path)}))
+        assert not sentinel.exists()
+
+
+class _Manifest:
+    def __init__(self, manifest):
+        self.manifest = manifest
 
 
 # ---------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from pipeline.assets.model import RETRAIN, physics_model
 from pipeline.assets.physics import residual_table
 from pipeline.freshness import MODEL_VERSION, REFRESH, model_version
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
-from pipeline.resources import DataRoot
+from pipeline.resources import DataRoot, ModelConfig
 from quadcore.export import c as export_c, mcap as export
 from quadcore.learn import learners
 from quadcore.store import store
@@ -48,13 +48,15 @@ class ExportCConfig(dg.Config):
 
 @dg.asset(group_name="export", deps=[physics_model, learned_models], kinds={"c"}, automation_condition=RETRAIN)
 def exported_model(context: dg.AssetExecutionContext, config: ExportCConfig,
-                   data_root: DataRoot) -> dg.MaterializeResult:
+                   data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """`<root>/export_c/quadcore_model.{h,c}`: the physics model's effects plus the best learned
     residual as self-contained C99 for the flight controller (see the README, "On the vehicle"),
     checked with the strict C99 flags; the flash and RAM footprint in the metadata. An effect
     with no C form is left out, named with why (metadata ``left_out``, a warning, and the top of
-    both files), rather than failing the run."""
+    both files), rather than failing the run. Plugin effects come from the model file (its spec
+    loads them), never from a path the saved model names."""
     root = data_root.root_path
+    model.spec()
     try:
         exported = export_c.export(root, store.export_c_dir(root), config.learned, leave_out=True)
     except (export_c.ExportError, learners.LearningError) as exc:

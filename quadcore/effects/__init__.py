@@ -10,9 +10,11 @@ used raises :class:`PluginError`) and forgotten with :func:`unregister`. A worke
 
 from __future__ import annotations
 
+import hashlib
 import importlib
-import importlib.util
 import pkgutil
+import types
+from dataclasses import dataclass
 from pathlib import Path
 
 from quadcore.effects.base import (
@@ -28,6 +30,7 @@ __all__ = [
     "Effect",
     "Parameter",
     "PluginError",
+    "PluginSource",
     "SimContext",
     "SimHook",
     "Target",
@@ -35,6 +38,7 @@ __all__ = [
     "builtin_names",
     "get",
     "load_plugin",
+    "plugin_source",
     "registry",
     "unregister",
 ]
@@ -94,21 +98,44 @@ class PluginError(TypeError):
     reuses a built-in name). A ``TypeError`` so that callers reporting bad plugins catch it."""
 
 
+@dataclass(frozen=True)
+class PluginSource:
+    """Where a plugin effect was loaded from: the module file and the SHA-256 of the bytes that ran."""
+
+    effect: str
+    path: str
+    sha256: str
+
+    def to_dict(self) -> dict:
+        """As a fitted model records it: the effect, the module's file name (not a path to load:
+        outputs never name code to run) and its digest."""
+        return {"effect": self.effect, "module": Path(self.path).name, "sha256": self.sha256}
+
+
+_PLUGIN_SOURCES: dict[str, PluginSource] = {}  # plugin effect name -> its module, as loaded
+
+
+def plugin_source(name: str) -> PluginSource | None:
+    """The module a plugin effect was loaded from in this process (None: not a loaded plugin)."""
+    return _PLUGIN_SOURCES.get(name)
+
+
 def load_plugin(path: str | Path) -> Effect:
     """Load a user's effect module from a file and register its ``EFFECT``.
 
-    Raises ``FileNotFoundError`` for a missing file and :class:`PluginError` for a module
-    that fails to import, has no ``EFFECT`` or would replace a built-in effect.
+    The file is read once; the bytes that run are those whose SHA-256 is recorded
+    (:func:`plugin_source`). Raises ``FileNotFoundError`` for a missing file and
+    :class:`PluginError` for a module that fails to import, has no ``EFFECT`` or would replace
+    a built-in effect.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"effect module not found: {path}")
-    spec = importlib.util.spec_from_file_location(f"quadcore_plugin_{path.stem}", path)
-    if spec is None or spec.loader is None:
-        raise PluginError(f"effect module {path} cannot be imported (not a Python file?)")
-    module = importlib.util.module_from_spec(spec)
+    data = path.read_bytes()
+    module = types.ModuleType(f"quadcore_plugin_{path.stem}")
+    module.__file__ = str(path)
     try:
-        spec.loader.exec_module(module)
+        exec(compile(data, str(path), "exec"), module.__dict__)  # noqa: S102 (a module the user's model file names)
     except (Exception, SystemExit) as exc:  # a user's module: report, do not crash (nor exit)
         raise PluginError(f"cannot import effect module {path}: {type(exc).__name__}: {exc}") from exc
     effect = getattr(module, "EFFECT", None)
@@ -116,9 +143,11 @@ def load_plugin(path: str | Path) -> Effect:
         raise PluginError(f"effect module {path} names its effect {effect.name!r}, a built-in effect; "
                           "choose another name")
     try:
-        return _register(module)
+        registered = _register(module)
     except TypeError as exc:
         raise PluginError(str(exc)) from None
+    _PLUGIN_SOURCES[registered.name] = PluginSource(registered.name, str(path), hashlib.sha256(data).hexdigest())
+    return registered
 
 
 def unregister(name: str) -> None:
@@ -126,3 +155,4 @@ def unregister(name: str) -> None:
     if name in builtin_names():
         raise ValueError(f"{name!r} is built in and cannot be unregistered")
     _REGISTRY.pop(name, None)
+    _PLUGIN_SOURCES.pop(name, None)

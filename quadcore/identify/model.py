@@ -232,7 +232,7 @@ def spec_from(vehicle: Vehicle, effect_names: list[str], fixed: dict | None = No
 
 
 MODEL_FILE_KEYS = ("vehicle", "thrust_map", "effects", "plugins", "parameters", "per_session", "sessions",
-                   "session_thrust_map")
+                   "session_thrust_map", "allow_unusual")
 
 
 def _string_list(d: dict, key: str, path: Path) -> list[str]:
@@ -243,19 +243,27 @@ def _string_list(d: dict, key: str, path: Path) -> list[str]:
 
 
 def _fixed_parameters(d: dict, names: list[str], path: Path) -> dict[str, dict[str, float]]:
+    """The ``[parameters.<effect>]`` values: finite numbers within the effect's fitting bounds (the
+    plausible range), unless ``allow_unusual = ["<effect>.<parameter>"]`` names them."""
+    allowed = _string_list(d, "allow_unusual", path)
     fixed = d.get("parameters", {})
     if not isinstance(fixed, dict) or not all(isinstance(v, dict) for v in fixed.values()):
         raise ModelFileError(f"{path}: parameters = {fixed!r:.60}: expected [parameters.<effect>] tables")
     for name, params in fixed.items():
         if name not in names:
             raise ModelFileError(f"{path}: [parameters.{name}] given but {name!r} is not in effects")
-        known = {p.name for p in effects.get(name).parameters}
-        unknown = set(params) - known
+        known = {p.name: p for p in effects.get(name).parameters}
+        unknown = set(params) - set(known)
         if unknown:
             raise ModelFileError(f"{path}: unknown parameters for {name}: {sorted(unknown)}; known: {sorted(known)}")
         for key, value in params.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+            if not vehiclemod.is_finite_number(value):
                 raise ModelFileError(f"{path}: [parameters.{name}] {key} = {value!r:.60}: expected a finite number")
+            par = known[key]
+            if not par.lower <= value <= par.upper and f"{name}.{key}" not in allowed:
+                raise ModelFileError(f"{path}: [parameters.{name}] {key} = {value:.4g}: outside the plausible range "
+                                     f"{par.lower:g} to {par.upper:g} {par.unit}; if it really is so, add "
+                                     f"allow_unusual = [\"{name}.{key}\"] to the file")
     return fixed
 
 
@@ -268,7 +276,8 @@ def _per_session(d: dict, names: list[str], fixed: dict, path: Path) -> list[str
         if name not in names or name in fixed:
             raise ModelFileError(f"{path}: [per_session] {name}: {name!r} must be in effects and not fixed")
         known = [p.name for p in effects.get(name).parameters]
-        if not isinstance(params, list) or sorted(params) != sorted(known):
+        names_ok = isinstance(params, list) and all(isinstance(x, str) for x in params)
+        if not names_ok or sorted(params) != sorted(known):
             raise ModelFileError(f"{path}: [per_session] {name} = {params!r:.60}: a session gets all of "
                                  f"{name}'s parameters: {known}")
     return list(table)
@@ -317,6 +326,9 @@ def load_model_file(model_file: str | Path, vehicle_override: str | None = None)
         return str((base / p).resolve())
 
     plugins = _string_list(d, "plugins", path)
+    twice = sorted({p for p in plugins if [resolve(q) for q in plugins].count(resolve(p)) > 1})
+    if twice:
+        raise ModelFileError(f"{path}: plugins: {twice[0]!r} is listed twice: list each module once")
     for plugin in plugins:
         try:
             effects.load_plugin(resolve(plugin))
@@ -327,7 +339,10 @@ def load_model_file(model_file: str | Path, vehicle_override: str | None = None)
         raise ModelFileError(f"{path}: vehicle = {veh_name!r:.60}: expected a built-in vehicle name or a path")
     if veh_name != vehiclemod.DEFAULT_VEHICLE and not vehicle_override:
         veh_name = resolve(veh_name)
-    veh = vehiclemod.load(veh_name)
+    try:
+        veh = vehiclemod.load(veh_name)
+    except vehiclemod.VehicleFileError as exc:  # one line naming both files
+        raise ModelFileError(f"{path}: vehicle {veh_name!r:.200}: {exc}") from None
     if "thrust_map" in d:
         if d["thrust_map"] not in vehiclemod.THRUST_MAP_KINDS:
             raise ModelFileError(f"{path}: thrust_map = {d['thrust_map']!r:.60}: expected one of "
@@ -336,8 +351,8 @@ def load_model_file(model_file: str | Path, vehicle_override: str | None = None)
     names = _string_list(d, "effects", path)
     try:
         spec = spec_from(veh, names, _fixed_parameters(d, names, path))
-    except effects.UnknownEffectError as exc:
-        raise ModelFileError(f"{path}: {exc}") from None
+    except (effects.UnknownEffectError, ModelFileError) as exc:
+        raise ModelFileError(exc.args[0] if str(exc).startswith(str(path)) else f"{path}: {exc}") from None
     spec.source, spec.plugins = str(path), [resolve(p) for p in plugins]
     spec.per_session = _per_session(d, names, spec.fixed, path)
     spec.session_patterns = _session_patterns(d, path)
@@ -353,19 +368,22 @@ PLUGINS = "plugins"
 class FittedModel:
     """A physics model fitted for a spec, as ``physics_model`` and the CLI write it: the model,
     the flights its effects were fitted on and those held out, the digest of the spec it was
-    fitted for (:func:`fitted_for`), and the plugin modules its effects come from (so that a
-    reader of the JSON, such as ``quadcore export-c``, can load them)."""
+    fitted for (:func:`fitted_for`), and the plugin modules its effects come from, by effect
+    name, file name and SHA-256 (never a path to load: a reader, such as ``quadcore export-c``,
+    takes the plugins from the model file its user gives and checks them, :func:`check_plugins`)."""
 
     model: PhysicsModel
     trained_on: tuple[str, ...]
     held_out: tuple[str, ...]
     spec_digest: str
-    plugins: tuple[str, ...] = ()
+    plugins: tuple[dict, ...] = ()
 
     @classmethod
     def of(cls, model: PhysicsModel, spec: ModelSpec, trained_on: list[str],
            held_out: tuple[str, ...] | list[str] = ()) -> FittedModel:
-        return cls(model, tuple(trained_on), tuple(held_out), spec.digest(), tuple(spec.plugins))
+        sources = [effects.plugin_source(name) for name in effects.registry()]
+        plugins = tuple(src.to_dict() for src in sources if src is not None and src.path in spec.plugins)
+        return cls(model, tuple(trained_on), tuple(held_out), spec.digest(), plugins)
 
     def to_dict(self) -> dict:
         """The JSON of the fitted model file (``held_out`` is not part of it: it is every other flight)."""
@@ -396,21 +414,43 @@ def fitted_for(saved: dict, spec: ModelSpec) -> bool:
     return saved.get(SPEC_DIGEST) == spec.digest()
 
 
-def load_plugins(saved: dict) -> None:
-    """Register the plugin effects a saved model names (``plugins``), so that its terms can be
-    evaluated in a process that never read the model file. Raises :class:`ModelFileError` for
-    a plugin that is gone or fails to load."""
-    for plugin in saved.get(PLUGINS, []):
-        try:
-            effects.load_plugin(plugin)
-        except (FileNotFoundError, TypeError, effects.PluginError) as exc:
-            raise ModelFileError(f"the fitted model's plugin {plugin!r}: {exc}") from None
+def check_plugins(saved: dict, where: str = "the fitted model") -> None:
+    """Check that the plugin effects a saved model uses (a fitted model's JSON, a learned model's
+    manifest) are loaded in this process, from the model file its user gave, with the content
+    they were fitted with. Nothing an output names is ever imported: a saved model that names a
+    plugin not loaded, or another version of it, or names it by path (as versions before this
+    check did), or uses an effect no loaded module defines, raises :class:`ModelFileError` with
+    the reason and the fix."""
+    fix = "give the model file that names its plugin (--model, QUADCORE_MODEL)"
+    for entry in saved.get(PLUGINS, []) or []:
+        if not isinstance(entry, dict) or not {"effect", "sha256"} <= set(entry):
+            name = entry if isinstance(entry, str) else repr(entry)[:80]
+            loaded_paths = {src.path for src in map(effects.plugin_source, effects.registry()) if src is not None}
+            if isinstance(entry, str) and entry in loaded_paths:
+                continue  # an earlier version's record: the module the user's model file loaded, not imported here
+            raise ModelFileError(f"{where} names the plugin module {name!r}: outputs never name code to run, so it "
+                                 f"is not imported; {fix}, or refit with this version")
+        loaded = effects.plugin_source(str(entry["effect"]))
+        if loaded is None:
+            raise ModelFileError(f"{where} uses the plugin effect {entry['effect']!r} (module "
+                                 f"{str(entry.get('module', '?'))!r:.80}), which is not loaded: {fix}")
+        if loaded.sha256 != entry["sha256"]:
+            raise ModelFileError(f"{where} was fitted with another version of plugin effect {entry['effect']!r} "
+                                 f"(sha256 {str(entry['sha256'])[:12]}...; loaded from {loaded.path}: "
+                                 f"{loaded.sha256[:12]}...): refit, or give the model file with that version")
+    known = effects.registry()
+    for term in saved.get("effects", []) or []:
+        used = term.get("name") if isinstance(term, dict) else None
+        if used not in known:
+            raise ModelFileError(f"{where} uses the effect {used!r:.80}, which no built-in or loaded plugin module "
+                                 f"defines: {fix}")
 
 
 def load_fitted(path: Path, vehicle: Vehicle) -> PhysicsModel:
-    """A fitted model saved by :func:`save`, on the given vehicle, with its plugins loaded."""
+    """A fitted model saved by :func:`save`, on the given vehicle (its plugins checked, never
+    loaded from it: :func:`check_plugins`)."""
     import json
 
     saved = json.loads(Path(path).read_text())
-    load_plugins(saved)
+    check_plugins(saved, str(path))
     return PhysicsModel.from_dict(saved, vehicle)

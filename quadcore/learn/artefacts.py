@@ -127,11 +127,13 @@ class LearnedModel:
         return pl.DataFrame(out)
 
     def physics_model(self):
-        """The physics model this model was trained against (from the manifest)."""
+        """The physics model this model was trained against (from the manifest). Its plugin effects
+        must be loaded already, from the model file the user gave: the manifest's are checked by
+        name and digest, never imported (:func:`quadcore.identify.model.check_plugins`)."""
         from quadcore.identify import model as modelmod
 
         pm = self.manifest.get("physics_model") or {}
-        modelmod.load_plugins(pm)
+        modelmod.check_plugins(pm, "the learned model's manifest")
         return modelmod.PhysicsModel.from_dict(pm, vehicle_of(pm))
 
     def importance(self) -> dict[str, float]:

@@ -133,7 +133,8 @@ class Vehicle:
 
 
 KNOWN_KEYS = {
-    "": {"name", "mass_kg", "inertia_kgm2", "torque_to_thrust_m", "rotor_radius_m", "rotors", "thrust_map"},
+    "": {"name", "mass_kg", "inertia_kgm2", "torque_to_thrust_m", "rotor_radius_m", "rotors", "thrust_map",
+         "allow_unusual"},
     "rotors": {"arm_m", "angle_deg", "yaw_sign"},
     "thrust_map": {"kind", "pwm_vbat", "motor_speed"},
     "thrust_map.pwm_vbat": {"c0", "cp", "cb", "cpp", "cpb", "vbat_ref_V", "command_period_s"},
@@ -164,12 +165,22 @@ def _number(d: dict, key: str, where: str, lo: float | None = None, strict: bool
     """``d[key]`` as a finite float (not a bool), ``> lo`` (``>= lo`` when not ``strict``)."""
     value = d.get(key, default)
     bound = "" if lo is None else f" {'>' if strict else '>='} {lo:g}"
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    ok = is_finite_number(value)
     if ok and lo is not None:
         ok = value > lo if strict else value >= lo
     if not ok:
         raise VehicleFileError(f"{where}: {key} = {_shown(value)}: expected a finite number{bound}")
     return float(value)
+
+
+def is_finite_number(value) -> bool:
+    """An int or float (not a bool) that is finite as a float (an integer too large for one is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return bool(np.isfinite(float(value)))
+    except OverflowError:
+        return False
 
 
 def from_dict(d: dict, source: str = "") -> Vehicle:
@@ -221,17 +232,81 @@ def from_dict(d: dict, source: str = "") -> Vehicle:
         source=source,
     )
     _check_layout(vehicle, where)
+    _check_plausible(vehicle, arms, d, where)
     return vehicle
+
+
+# The plausible range of each vehicle quantity (SI), from a ~10 g micro quadrotor to a ~200 kg
+# heavy-lift multirotor. A value outside is refused with its range unless the file names the key in
+# ``allow_unusual = ["mass_kg", ...]`` (the override for an unusual vehicle, docs/reliability.md).
+PLAUSIBLE: dict[str, tuple[float, float, str]] = {
+    "mass_kg": (0.005, 200.0, "kg"),
+    "inertia_kgm2": (1e-8, 100.0, "kg m^2 (each principal moment)"),
+    "inertia_condition": (1.0, 100.0, "(largest / smallest principal moment)"),
+    "rotors": (4, 16, "rotors"),
+    "arm_m": (0.01, 5.0, "m"),
+    "rotor_radius_m": (0.005, 1.5, "m"),
+    "torque_to_thrust_m": (1e-4, 0.1, "m"),
+    "thrust_to_weight": (1.0, 20.0, "(all rotors at full PWM and the reference voltage, over the weight)"),
+    "vbat_ref_V": (1.0, 100.0, "V"),
+    "k_F_N_per_radps2": (1e-11, 1e-2, "N/(rad/s)^2"),
+}
+# allow_unusual names these keys; each covers the quantities listed
+UNUSUAL_KEYS = {"mass_kg": ("mass_kg",), "inertia_kgm2": ("inertia_kgm2", "inertia_condition"),
+                "rotors": ("rotors", "arm_m"), "rotor_radius_m": ("rotor_radius_m",),
+                "torque_to_thrust_m": ("torque_to_thrust_m",), "thrust_map": ("thrust_to_weight", "vbat_ref_V",
+                                                                              "k_F_N_per_radps2")}
+
+
+def _allowed(d: dict, where: str) -> set[str]:
+    keys = d.get("allow_unusual", [])
+    if not isinstance(keys, list) or not all(isinstance(k, str) and k in UNUSUAL_KEYS for k in keys):
+        raise VehicleFileError(f"{where}: allow_unusual = {_shown(keys)}: expected a list of keys among "
+                               f"{', '.join(UNUSUAL_KEYS)}")
+    return {q for k in keys for q in UNUSUAL_KEYS[k]}
+
+
+def _plausible(name: str, values, where: str, allowed: set[str]) -> None:
+    lo, hi, unit = PLAUSIBLE[name]
+    vals = np.atleast_1d(np.asarray(values, dtype=float))
+    if name in allowed or np.all((vals >= lo) & (vals <= hi)):
+        return
+    bad = vals[(vals < lo) | (vals > hi)][0]
+    key = next(k for k, qs in UNUSUAL_KEYS.items() if name in qs)
+    raise VehicleFileError(f"{where}: {name} = {bad:.4g}: outside the plausible range {lo:g} to {hi:g} {unit}; "
+                           f"if the vehicle really is so, add allow_unusual = [\"{key}\"] to the file")
+
+
+def _check_plausible(v: Vehicle, arms: np.ndarray, d: dict, where: str) -> None:
+    """Refuse a vehicle no multirotor is (``PLAUSIBLE``) unless ``allow_unusual`` names the key;
+    a thrust map must also grow with PWM over the flying range (p 0.3 to 1)."""
+    allowed = _allowed(d, where)
+    moments = np.linalg.eigvalsh(v.inertia_kgm2)
+    for name, value in (("mass_kg", v.mass_kg), ("inertia_kgm2", moments),
+                        ("inertia_condition", moments[-1] / moments[0]), ("rotors", v.n_rotors), ("arm_m", arms),
+                        ("rotor_radius_m", v.rotor_radius_m), ("torque_to_thrust_m", v.torque_to_thrust_m),
+                        ("vbat_ref_V", v.pwm_vbat.vbat_ref_V)):
+        _plausible(name, value, where, allowed)
+    if v.motor_speed.k_F_N_per_radps2 > 0:
+        _plausible("k_F_N_per_radps2", v.motor_speed.k_F_N_per_radps2, where, allowed)
+    if v.thrust_map_kind == "pwm_vbat":
+        full = float(v.pwm_vbat.thrust_N(np.ones(1), v.pwm_vbat.vbat_ref_V)[0])
+        _plausible("thrust_to_weight", v.n_rotors * full / v.weight_N, f"{where}: [thrust_map.pwm_vbat]", allowed)
+        m = v.pwm_vbat
+        slope = m.cp + 2 * m.cpp * np.linspace(0.3, 1.0, 8) + m.cpb
+        if np.any(slope < 0) and "thrust_to_weight" not in allowed:
+            raise VehicleFileError(f"{where}: [thrust_map.pwm_vbat]: thrust falls as PWM rises between 0.3 and 1 "
+                                   "(cp + 2 cpp p + cpb < 0): not a thrust map; if it really is so, add "
+                                   "allow_unusual = [\"thrust_map\"] to the file")
 
 
 def _inertia(d: dict, where: str) -> np.ndarray:
     raw = d.get("inertia_kgm2")
     try:
         inertia = np.asarray(raw, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         inertia = np.zeros(0)
-    numbers = isinstance(raw, list) and all(isinstance(r, list) and all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in raw)
+    numbers = isinstance(raw, list) and all(isinstance(r, list) and all(map(is_finite_number, r)) for r in raw)
     if not numbers or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)) \
             or not np.allclose(inertia, inertia.T) or np.any(np.linalg.eigvalsh(inertia) <= 0):
         raise VehicleFileError(f"{where}: inertia_kgm2 = {_shown(raw)}: expected a symmetric, positive "
@@ -278,12 +353,33 @@ def write_template(name: str, path: str | Path) -> Vehicle:
     return vehicle
 
 
+MAX_CONFIG_BYTES = 1 << 20  # a vehicle or model file is a few hundred bytes; anything near this is not one
+
+
 def read_toml(path: Path, error: type[Exception], what: str) -> dict:
-    """A TOML file as a dict; a missing or malformed file raises ``error`` saying which."""
+    """A TOML file as a dict; a missing, oversized, non-UTF-8 (UTF-16, binary), malformed or
+    absurdly nested file raises ``error`` naming the file and what is wrong, in one line."""
     if not path.is_file():
         raise error(f"{what} not found: {path}")
     try:
-        return tomllib.loads(path.read_text())
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise error(f"{path}: {len(data):,} bytes: not a {what} (at most {MAX_CONFIG_BYTES:,} bytes)")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise error(f"{path}: UTF-16 text: TOML files are UTF-8; save the {what} as UTF-8")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start}): a {what} is "
+                    "UTF-8 TOML") from None
+    if "\x00" in text:
+        raise error(f"{path}: holds NUL bytes: a binary file, not a {what}")
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{path}: nested too deeply to be a {what}") from None
 

@@ -58,8 +58,8 @@ def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
     path = store.physics_model_path(root)
     if path.is_file():
         saved = store.read_json(path)
-        if model.fitted_for(saved, spec):
-            model.load_plugins(saved)
+        if model.fitted_for(saved, spec):  # the spec's digest covers its plugins' content: they are loaded
+            model.check_plugins(saved, str(path))
             return model.PhysicsModel.from_dict(saved, spec.vehicle)
     if spec.effects:
         warn(f"physics_model has not fitted {spec.effects} as the model file now asks: using the "

@@ -34,7 +34,7 @@ import polars as pl
 from quadcore.export.c.build import CompileError, Footprint, HostModel, check_strict, measure_footprint
 from quadcore.export.c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
 from quadcore.export.c.inputs import ExportError, Field
-from quadcore.identify.model import ModelFileError, PhysicsModel, load_plugins
+from quadcore.identify.model import ModelFileError, PhysicsModel, check_plugins
 from quadcore.learn import artefacts, experiments, learners
 from quadcore.store import store
 
@@ -73,9 +73,9 @@ def _physics_from_json(path: Path) -> PhysicsModel:
     if not isinstance(d, dict) or "effects" not in d or "vehicle" not in d:
         raise ExportError(f"{path}: not a fitted physics model (no 'vehicle' and 'effects')")
     try:
-        load_plugins(d)  # the effects a plugin module defines, as the fit recorded them
+        check_plugins(d, str(path))  # plugin effects come from the user's model file, never from the JSON
     except ModelFileError as exc:
-        raise ExportError(f"{path}: {exc}") from None
+        raise ExportError(str(exc)) from None
     return PhysicsModel.from_dict(d, artefacts.vehicle_of(d))
 
 
