@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import io
 import json
+import shutil
 
 import duckdb
 import polars as pl
@@ -123,7 +124,7 @@ def _corrupt_copy(real_logs, tmp_path, name: str = "corrupt01"):
 def test_corrupt_file_is_quarantined_and_the_good_one_decoded(real_logs, tmp_path, capsys):
     raw = tmp_path / "raw"
     raw.mkdir()
-    (raw / "jana02").symlink_to(real_logs / "jana02")  # a link, not a copy
+    shutil.copyfile(real_logs / "jana02", raw / "jana02")  # a copy: a link out of the raw folder is not followed
     _corrupt_copy(real_logs, raw)
     out = tmp_path / "out"
 
@@ -143,7 +144,7 @@ def test_corrupt_file_is_quarantined_and_the_good_one_decoded(real_logs, tmp_pat
 
     # once the file is good, decoding it again lifts the quarantine
     (raw / "corrupt01").unlink()
-    (raw / "corrupt01").symlink_to(real_logs / "jana03")
+    shutil.copyfile(real_logs / "jana03", raw / "corrupt01")
     assert cli.main(["decode", str(raw), "--out", str(out)]) == 0
     assert not store.quarantine_path(out, "corrupt01").exists()
     assert store.decoded_path(out, "fixedFrequency", "corrupt01").is_file()

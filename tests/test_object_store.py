@@ -3,6 +3,8 @@ S3-compatible server (moto's server mode) started on 127.0.0.1 by the test."""
 
 from __future__ import annotations
 
+import shutil
+
 import dagster as dg
 import pytest
 from mcap.reader import make_reader
@@ -84,7 +86,7 @@ def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monk
     raw.mkdir()
     for p in sorted(drag_fleet.iterdir()):
         if not p.name.endswith(".json"):
-            (raw / p.name).symlink_to(p)
+            shutil.copyfile(p, raw / p.name)
     monkeypatch.chdir(tmp_path)
     data_root = DataRoot(root=f"{s3_url}-job", raw=str(raw))
     root = data_root.root_path

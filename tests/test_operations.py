@@ -4,6 +4,7 @@ and the README's queries. Real Dagster instances, real files."""
 from __future__ import annotations
 
 import hashlib
+import shutil
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -63,7 +64,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
     raw = tmp_path / "raw"
     raw.mkdir()
     for name in ("sim000", "sim001"):
-        (raw / name).symlink_to(sim_logs / name)
+        shutil.copyfile(sim_logs / name, raw / name)
     model_file = tmp_path / "model.toml"
     model_file.write_text("effects = []\n")
     monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))  # what the automation and schedule read
@@ -99,7 +100,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
         assert auto.total_requested == 0
         assert isinstance(sensor_tick(instance, data_root, first.cursor), dg.SkipReason)
 
-        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        shutil.copyfile(sim_logs / "sim002", raw / "sim002")
         second = sensor_tick(instance, data_root, first.cursor)
         assert [r.partition_key for r in second.run_requests] == ["sim002"]
         run(PER_FLIGHT, resources, instance, "sim002")
@@ -133,12 +134,12 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
     raw = tmp_path / "raw"
     raw.mkdir()
     for name in ("sim000", "sim001"):
-        (raw / name).symlink_to(sim_logs / name)
+        shutil.copyfile(sim_logs / name, raw / name)
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
     with dg.instance_for_test() as instance:
         instance.add_dynamic_partitions("flights", ["sim000", "sim001"])
         run([decoded_flight], {"data_root": data_root}, instance, "sim000")  # what `make run` did
-        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        shutil.copyfile(sim_logs / "sim002", raw / "sim002")
         first = sensor_tick(instance, data_root)
         assert sorted(r.partition_key for r in first.run_requests) == ["sim001", "sim002"]
         assert raw_log_sensor.job_name == "process_flight"
@@ -147,7 +148,7 @@ def test_sensor_does_not_redo_flights_the_main_job_processed(sim_logs, tmp_path)
             "decoded_flight", "flight_statistics", "residual_table", "rollout_errors", "flight_mcap"}  # per flight only
         # the same flight id with other bytes is processed again
         (raw / "sim000").unlink()
-        (raw / "sim000").symlink_to(sim_logs / "sim002")
+        shutil.copyfile(sim_logs / "sim002", raw / "sim000")
         again = sensor_tick(instance, data_root, first.cursor)
         assert [r.partition_key for r in again.run_requests] == ["sim000"]
 
@@ -184,7 +185,7 @@ def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_p
     raw = tmp_path / "raw"
     raw.mkdir()
     for name in ("sim000", "sim001"):
-        (raw / name).symlink_to(sim_logs / name)
+        shutil.copyfile(sim_logs / name, raw / name)
     monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))
     monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
     model_file = tmp_path / "model.toml"
@@ -204,7 +205,7 @@ def test_automation_converges_when_a_flight_run_overlaps_a_refit(sim_logs, tmp_p
         before = current_model_version()
 
         # a third flight arrives; its per-flight run starts against the model of two flights ...
-        (raw / "sim002").symlink_to(sim_logs / "sim002")
+        shutil.copyfile(sim_logs / "sim002", raw / "sim002")
         tick = sensor_tick(instance, data_root, tick.cursor)
         assert [r.partition_key for r in tick.run_requests] == ["sim002"]
         run([decoded_flight], resources, instance, "sim002")
@@ -251,7 +252,7 @@ def test_bad_files_are_quarantined_with_their_reason_and_the_rest_goes_on(sim_lo
     raw = tmp_path / "raw"
     raw.mkdir()
     good = (sim_logs / "sim000").read_bytes()
-    (raw / "sim000").symlink_to(sim_logs / "sim000")
+    shutil.copyfile(sim_logs / "sim000", raw / "sim000")
     (raw / "empty").write_bytes(b"")
     (raw / "foreign").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
     (raw / "cut_header").write_bytes(good[:40])
@@ -287,7 +288,7 @@ def test_implausible_flight_gets_check_warnings(sim_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
     (raw / "odd").write_bytes(data)
-    (raw / "sim001").symlink_to(sim_logs / "sim001")
+    shutil.copyfile(sim_logs / "sim001", raw / "sim001")
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
     with dg.instance_for_test() as instance:
         instance.add_dynamic_partitions("flights", ["odd", "sim001"])

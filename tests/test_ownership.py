@@ -201,25 +201,18 @@ def test_symlinks_are_followed_only_inside_the_raw_folder(tmp_path, one_log, cap
     assert "jana03" in out and "outside its folder" in out
 
 
-def test_the_plots_server_lists_no_folder(tmp_path):
-    import urllib.error
-    import urllib.request
+def test_the_plots_are_served_without_a_listing_of_their_folder(tmp_path):
+    from starlette.applications import Starlette
+    from starlette.testclient import TestClient
 
-    from cdp import free_port
-
-    from pipeline.ui import serve_plots
+    from pipeline.plot_links import PLOTS_ROUTE
+    from pipeline.webserver import with_plots
 
     (tmp_path / "a.png").write_bytes(b"png")
-    port = free_port()
-    server = serve_plots(tmp_path, "127.0.0.1", port)
-    try:
-        assert urllib.request.urlopen(f"http://127.0.0.1:{port}/a.png", timeout=5).read() == b"png"
-        for path in ("/", "/.", "/%2e/"):
-            with pytest.raises(urllib.error.HTTPError) as err:
-                urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5)
-            assert err.value.code == 404
-    finally:
-        server.shutdown()
+    client = TestClient(with_plots(Starlette(), tmp_path))
+    assert client.get(f"{PLOTS_ROUTE}/a.png").content == b"png"
+    for path in (f"{PLOTS_ROUTE}/", f"{PLOTS_ROUTE}/.", PLOTS_ROUTE):
+        assert client.get(path).status_code == 404
 
 
 SLOW_TO_STOP = """import signal, sys, time
@@ -237,7 +230,7 @@ def test_sigterm_lets_the_services_stop_and_says_nothing_untrue():
     """SIGTERM to ``make ui``'s launcher: services that take 2 s to stop get them (the launcher
     killed them after its own 1 s poll and said 'did not stop within 20 s')."""
     launcher = ("import sys\nfrom pipeline.ui import serve\n"
-                f"sys.exit(serve([sys.executable, '-c', {SLOW_TO_STOP!r}], {{}}))\n")
+                f"sys.exit(serve([[sys.executable, '-c', {SLOW_TO_STOP!r}]], {{}}))\n")
     proc = subprocess.Popen([sys.executable, "-c", launcher], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"

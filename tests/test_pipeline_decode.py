@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import dagster as dg
 import polars as pl
@@ -90,7 +91,7 @@ def test_decoded_flight_on_real_logs(instance, real_logs, tmp_path):
 def test_corrupt_raw_file_is_quarantined_and_fails_the_run(instance, real_logs, tmp_path):
     raw = tmp_path / "raw"
     raw.mkdir()
-    (raw / "jana02").symlink_to(real_logs / "jana02")  # a link, not a copy
+    shutil.copyfile(real_logs / "jana02", raw / "jana02")  # a copy: a link out of the raw folder is not followed
     (raw / "broken01").write_bytes(b"\x42" + (real_logs / "jana03").read_bytes()[1:])
     root = tmp_path / "root"
     data_root = DataRoot(root=str(root), raw=str(raw))
@@ -119,7 +120,7 @@ def test_corrupt_raw_file_is_quarantined_and_fails_the_run(instance, real_logs, 
 
     # ... and a good file again lifts the quarantine
     (raw / "jana02").unlink()
-    (raw / "jana02").symlink_to(real_logs / "jana02")
+    shutil.copyfile(real_logs / "jana02", raw / "jana02")
     assert _materialize(instance, data_root, "jana02").success
     assert not store.quarantine_path(root, "jana02").exists()
 

@@ -4,6 +4,7 @@ one bad flight isolated, and the multiprocess executor. Real Dagster instances, 
 from __future__ import annotations
 
 import os
+import shutil
 
 import dagster as dg
 import pytest
@@ -36,7 +37,7 @@ def _raw(tmp_path, sim_logs, bad: bool):
     raw = tmp_path / "raw"
     raw.mkdir()
     for name in ("sim000", "sim001", "sim002"):
-        (raw / name).symlink_to(sim_logs / name)
+        shutil.copyfile(sim_logs / name, raw / name)
     if bad:
         (raw / "sim001b").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))  # between sim001 and sim002
     return raw

@@ -48,11 +48,14 @@ class ForeignFolderError(ValueError):
 
 
 def _is_url(root) -> bool:
-    return "://" in str(root)
+    """An object-store root (``s3://...`` or a ``UPath`` with a protocol): never swept, no marker."""
+    return "://" in str(root) or (bool(getattr(root, "protocol", "")) and not isinstance(root, Path))
 
 
 def read_marker(root) -> dict | None:
-    """The marker of ``root`` (None: no marker, or not readable as one)."""
+    """The marker of ``root`` (None: no marker, or not readable as one, or an object store)."""
+    if _is_url(root):
+        return None
     try:
         text = (Path(root) / MARKER).read_text(encoding="utf-8")
         marker = json.loads(text)
