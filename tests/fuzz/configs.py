@@ -72,6 +72,15 @@ def _nested(depth: int, key: str = "mass_kg") -> bytes:
     return (VEHICLE.replace("mass_kg = 0.0347", f"{key} = " + "[" * depth + "]" * depth)).encode()
 
 
+def _thrust_map(change: Callable[[float], float]) -> str:
+    """The built-in vehicle with ``change`` applied to each coefficient of its PWM thrust map."""
+    text = VEHICLE
+    for line in ("c0 = 11.09", "cp = -39.08", "cb = -9.53", "cpp = 20.57", "cpb = 38.43"):
+        name, value = line.split(" = ")
+        text = text.replace(line, f"{name} = {change(float(value))}")
+    return text
+
+
 def vehicle_cases() -> list[Case]:
     v = []
 
@@ -124,15 +133,8 @@ def vehicle_cases() -> list[Case]:
     add("arm 0", _rotors(4, 0.0))
     add("yaw_sign 5", _replace("angle_deg = 45.0\nyaw_sign = 1", "angle_deg = 45.0\nyaw_sign = 5"))
     add("rotors a string", _rotors(0) + 'rotors = "four"\n')
-    zero = VEHICLE
-    for c in ("c0 = 11.09", "cp = -39.08", "cb = -9.53", "cpp = 20.57", "cpb = 38.43"):
-        zero = zero.replace(c, c.split("=")[0] + "= 0.0")
-    add("all thrust coefficients zero", zero)
-    negated = VEHICLE
-    for c in ("c0 = 11.09", "cp = -39.08", "cb = -9.53", "cpp = 20.57", "cpb = 38.43"):
-        name, value = c.split(" = ")
-        negated = negated.replace(c, f"{name} = {-float(value)}")
-    add("negative thrust map", negated)
+    add("all thrust coefficients zero", _thrust_map(lambda c: 0.0))
+    add("negative thrust map", _thrust_map(lambda c: -c))
     add("thrust map 1e300", _replace("c0 = 11.09", "c0 = 1e300"))
     add("thrust map too weak to hover", _replace("cpb = 38.43", "cpb = 0.0"))
     add("falling thrust map", _replace("cpp = 20.57", "cpp = -40.0"))
