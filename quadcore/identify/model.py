@@ -422,7 +422,11 @@ def check_plugins(saved: dict, where: str = "the fitted model") -> None:
     check did), or uses an effect no loaded module defines, raises :class:`ModelFileError` with
     the reason and the fix."""
     fix = "give the model file that names its plugin (--model, QUADCORE_MODEL)"
-    for entry in saved.get(PLUGINS, []) or []:
+    recorded = saved.get(PLUGINS, []) or []
+    if not isinstance(recorded, list):
+        raise ModelFileError(f"{where}: plugins = {recorded!r:.80}: not a list of plugin records; refit with this "
+                             "version")
+    for entry in recorded:
         if not isinstance(entry, dict) or not {"effect", "sha256"} <= set(entry):
             name = entry if isinstance(entry, str) else repr(entry)[:80]
             loaded_paths = {src.path for src in map(effects.plugin_source, effects.registry()) if src is not None}
