@@ -11,7 +11,8 @@ residual table's columns, every term with its unit (:func:`library`):
   motor speeds, battery voltage, a constant);
 * products of pairs and squares of the core variables (``v_b``, ``omega_b``, ``T_N``,
   ``p_w_z_m``; ``vbat_V`` only with ``T_N``: the voltage barely changes, so ``x vbat`` would
-  duplicate ``x``), and signed squares ``x|x|`` of velocity and rate;
+  duplicate ``x``), signed squares ``x|x|`` of velocity and rate, and the airspeed-norm
+  quadratic drag ``|v_b| v_b,a``;
 * physically motivated combinations: per-rotor thrust differences, time derivatives of motor
   speed, rotor thrust and rotor torque (a delay or lag ``Δ`` turns ``f(t-Δ)`` into
   ``f - Δ df/dt``), the net rotor
@@ -46,7 +47,11 @@ orthogonal_mp_gram``, the greedy member of the LARS family) on each fold of a
 cross-validation grouped by flight, scored on the fold's flights. The number of terms is
 where one more term adds less than ``MIN_GAIN`` of the held-out variance. A term is kept
 when it is selected in most folds (stability selection) and, refitted with the other kept
-terms, still adds ``MIN_GAIN`` of the held-out variance. An axis whose residual is within
+terms, still adds ``MIN_GAIN`` of the held-out variance. **Competing forms**: a kept velocity
+term (``v``, ``T v``, ``v|v|``, ``|v_b| v``: :data:`VELOCITY_FORMS`) is replaced by the rival
+form with the least held-out error beside the other kept terms, on the held-out sets that score
+the terms; every rival is reported with its held-out share, and the mechanism is named only
+when the kept form is the better one in most of those sets (else "form undecided"). An axis whose residual is within
 ``evidence.NOISE_MARGIN`` (RMS) of the sensor-noise floor gets no terms, the same
 margin the diagnosis uses.
 
@@ -184,6 +189,10 @@ def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
         ("T_N", "v_b_x_mps", "v_b_y_mps"))
     out["T_N*|v_h|^2"] = Variable(out["T_N*|v_h|^2"].values, _mul(UNIT["N"], _mul(UNIT["m/s"], UNIT["m/s"])),
                                    out["T_N*|v_h|^2"].sources)
+    speed = np.linalg.norm(state.v_b_mps, axis=1)  # quadratic drag grows with the airspeed times each component
+    velocity = tuple(f"v_b_{a}_mps" for a in XYZ)
+    for j, a in enumerate(XYZ):
+        out[f"|v_b|*v_b_{a}_mps"] = Variable(speed * state.v_b_mps[:, j], _mul(UNIT["m/s"], UNIT["m/s"]), velocity)
     if state.motor_radps is not None:
         motors = tuple(f"motor_{i + 1}_radps" for i in range(n_rot))
         for i, name in enumerate(motors):
@@ -211,7 +220,7 @@ def _literature(expr: str, channel: str = "force") -> str:
         (r"^T_N\*v_b_[xy]_mps$", ("rotor drag / blade flapping (Mahony, Kumar & Corke 2012; Faessler et al. 2018): "
                                  "in force a drag -kTv, in torque the flapping hub moment")),
         (r"^v_b_[xyz]_mps$", "linear airframe drag (or rotor drag at constant thrust)"),
-        (r"^v_b_([xyz])_mps\*\|v_b_\1_mps\|$", "parasitic (quadratic) airframe drag"),
+        (r"^v_b_([xyz])_mps\*\|v_b_\1_mps\|$|^\|v_b\|\*v_b_[xyz]_mps$", "parasitic (quadratic) airframe drag"),
         (r"^\(R/4h\)\^2\*T_N$", "ground effect (Cheeseman & Bennett 1955)"),
         (r"^T_N\*\|v_h\|\^2$", "translational lift (momentum theory)"),
         (r"^v_b_([xy])_mps\*v_b_\1_mps$", "a force growing with the horizontal speed squared: translational lift "
@@ -294,6 +303,23 @@ def excluded(term: Term, target: str) -> bool:
 # --- results --------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
+class Form:
+    """One functional form of a term's slot on its axis, scored held out: the share of the
+    held-out variance the axis' kept terms explain with this form in the slot (on the flights
+    the terms are scored on: the holdout, or the folds), and in how many of the cross-validation
+    folds (where forms are chosen, never on the holdout) it leaves less than the kept form."""
+
+    expression: str
+    explained_variance: float
+    better_in: int  # folds where it beats the kept form (0 for the kept form itself)
+    sets: int  # folds
+
+    def to_dict(self) -> dict:
+        return {"expression": self.expression, "explained_variance": self.explained_variance,
+                "better_in": self.better_in, "sets": self.sets}
+
+
+@dataclass(frozen=True)
 class DiscoveredTerm:
     """A kept term: ``target ≈ coefficient · expression`` (SI)."""
 
@@ -311,6 +337,7 @@ class DiscoveredTerm:
     matches_effects: tuple[str, ...] = ()
     literature: str = ""
     collinear_with: tuple[str, ...] = ()
+    competing_forms: tuple[Form, ...] = ()  # its form's rivals, scored held out (best first)
 
     @property
     def formula(self) -> str:
@@ -324,7 +351,8 @@ class DiscoveredTerm:
                 "coefficient": self.coefficient, "std": self.std, "unit": self.unit, "term_unit": self.term_unit,
                 "explained_variance": self.explained_variance, "stability": self.stability,
                 "formula": self.formula, "matches_effects": list(self.matches_effects),
-                "literature": self.literature, "collinear_with": list(self.collinear_with)}
+                "literature": self.literature, "collinear_with": list(self.collinear_with),
+                "competing_forms": [f.to_dict() for f in self.competing_forms]}
 
 
 @dataclass(frozen=True)
@@ -522,8 +550,12 @@ def _cv_ev(grams: list[tuple[np.ndarray, np.ndarray]], cols: list[int], y: int) 
     return 1.0 - sse / tot if tot > 0 else 0.0
 
 
-def _select(fold_grams, G_train, candidates: list[int], y: int) -> tuple[list[int], dict[int, int]]:
-    """Stable terms of one axis and how many folds selected each."""
+def _select(fold_grams, G_train, candidates: list[int], y: int, slot_of: Mapping[int, object] | None = None
+            ) -> tuple[list[int], dict[int, int]]:
+    """Stable terms of one axis and how many folds selected each. Rival forms of one term
+    (``slot_of`` maps a column to its slot: :func:`form_family`) share their folds' votes: a
+    slot is stable when most folds select one of its forms, and stands for them with its most
+    selected form (which :func:`_prefer_forms` then weighs against the others)."""
     paths = [_omp_path(tr, candidates, y, MAX_TERMS) for tr, _ in fold_grams]
     n_steps = min(len(p) for p in paths)
     ev = [0.0]
@@ -535,10 +567,19 @@ def _select(fold_grams, G_train, candidates: list[int], y: int) -> tuple[list[in
     while k < n_steps and ev[k + 1] - ev[k] >= MIN_GAIN:
         k += 1
     counts: dict[int, int] = {}
-    for p in paths:
+    slots: dict[object, set[int]] = {}  # slot -> the folds that selected one of its forms
+    slot = slot_of or {}
+    for f, p in enumerate(paths):
         for c in (p[k - 1] if k else []):
             counts[c] = counts.get(c, 0) + 1
-    stable = [c for c, n in counts.items() if n >= MIN_STABILITY * len(fold_grams)]
+            slots.setdefault(slot.get(c, c), set()).add(f)
+    stable = []
+    for key, folds in slots.items():
+        if len(folds) >= MIN_STABILITY * len(fold_grams):
+            members = [c for c in counts if slot.get(c, c) == key]
+            lead = max(members, key=lambda c: (counts[c], -c))
+            counts[lead] = len(folds)
+            stable.append(lead)
     return _order_and_prune(fold_grams, stable, y), counts
 
 
@@ -556,6 +597,67 @@ def _order_and_prune(fold_grams, stable: list[int], y: int) -> list[int]:
         left.remove(best)
         base += gain
     return chosen
+
+
+# The forms a velocity term takes on one slot of an axis: linear drag, rotor drag (-k T v),
+# per-axis and airspeed-norm quadratic drag. They are nearly collinear on most flights, so the
+# greedy path's first pick need not be the form the held-out flights prefer.
+VELOCITY_FORMS = ("v_b_{a}_mps", "v_b_{a}_mps*T_N", "v_b_{a}_mps*|v_b_{a}_mps|", "|v_b|*v_b_{a}_mps")
+
+
+def form_family(expression: str) -> tuple[str, ...]:
+    """The rival forms of a term (itself among them), or () for a term without rivals."""
+    for a in XYZ:
+        family = tuple(f.format(a=a) for f in VELOCITY_FORMS)
+        if expression in family:
+            return family
+    return ()
+
+
+def _set_sse(pairs, cols: list[int], y: int) -> np.ndarray:
+    """Held-out sum of squares per (training sum, held-out sum) pair."""
+    return np.array([_sse(te, cols, y, _ols(tr, cols, y)) for tr, te in pairs])
+
+
+def _prefer_forms(fold_grams, scored_on, chosen: list[int], y: int, col_term: dict[int, Term]
+                  ) -> tuple[list[int], dict[int, tuple[Form, ...]]]:
+    """Each kept term with rival forms (:func:`form_family`) replaced by the form the
+    cross-validation folds prefer: with the axis' other kept terms beside it, the best mean rank
+    of its held-out error among the rivals over the folds (each fold one vote, so one fold's
+    large variance does not decide), then the least error summed over them. Chosen where the
+    terms are selected, so a holdout stays unseen; every rival scored on ``scored_on``, the
+    sets the kept terms' shares are scored on."""
+    column_of = {t.expression: c for c, t in col_term.items()}
+    tot = sum(te[y, y] for _, te in scored_on)
+    out, forms = list(chosen), {}
+    for i, c in enumerate(chosen):
+        rivals = [column_of[e] for e in form_family(col_term[c].expression)
+                  if e in column_of and (column_of[e] == c or column_of[e] not in out)]
+        if len(rivals) < 2:
+            continue
+        sse = {r: _set_sse(fold_grams, out[:i] + [r] + out[i + 1:], y) for r in rivals}
+        ranks = np.argsort(np.argsort(np.array([sse[r] for r in rivals]), axis=0), axis=0).mean(axis=1)
+        best = min(rivals, key=lambda r: (float(ranks[rivals.index(r)]), float(sse[r].sum()), r != c))
+        out[i] = best
+        held = {r: float(_set_sse(scored_on, out[:i] + [r] + out[i + 1:], y).sum()) for r in rivals}
+        scored = [Form(col_term[r].expression, 1.0 - held[r] / tot if tot > 0 else 0.0,
+                       int(np.sum(sse[r] < sse[best])), len(fold_grams)) for r in rivals]
+        forms[best] = tuple(sorted(scored, key=lambda f: (f.expression != col_term[best].expression,
+                                                          -f.explained_variance)))
+    return out, forms
+
+
+def _form_label(expression: str, forms: tuple[Form, ...], channel: str) -> str:
+    """The mechanism's name when the kept form (listed first) beats each rival in most folds
+    (``MIN_STABILITY``, as a term must be kept in most folds); else the rival forms with their
+    held-out scores."""
+    scores = ", ".join(f"{f.expression} {f.explained_variance:.1%}" for f in forms)
+    decided = all(f.sets - f.better_in >= MIN_STABILITY * f.sets for f in forms if f.expression != expression)
+    if not forms or decided:
+        name = _literature(expression, channel)
+        return f"{name}; forms held out: {scores}" if forms and name else name
+    return (f"form undecided: held out {scores} of the variance; the kept form is not the better one in most "
+            "folds, so no mechanism is named")
 
 
 @dataclass(frozen=True)
@@ -728,14 +830,20 @@ def _discover_axis(axis: int, target: str, lib: _Library, fold_grams, G_train: n
         return AxisResult(target, 0.0, True, (why,)), [], None
     candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
                   if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
-    chosen, counts = _select(fold_grams, G_train, candidates, y)
+    col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
+    chosen, counts = _select(fold_grams, G_train, candidates, y,
+                             {c: form_family(col_term[c].expression) or c for c in candidates})
+    scored_on = [(G_train, lib.sums.held_out())] if holdout else fold_grams
+    picked, forms = _prefer_forms(fold_grams, scored_on, chosen, y, {c: col_term[c] for c in candidates})
+    for old, new in zip(chosen, picked):  # a form's stability is its slot's: the folds that kept a form there
+        counts[new] = max(counts.get(new, 0), counts.get(old, 0))
+    chosen = picked
     beta = _ols(G_train, chosen, y)
     jack = [_ols(tr, chosen, y) for tr, _ in fold_grams]
     k_f = len(fold_grams)
     std = np.sqrt((k_f - 1) / k_f * np.sum((np.array(jack) - np.mean(jack, axis=0)) ** 2, axis=0)) if chosen \
         else np.zeros(0)
-    shares = _sequential_shares([(G_train, lib.sums.held_out())] if holdout else fold_grams, chosen, y)
-    col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
+    shares = _sequential_shares(scored_on, chosen, y)
     kept = []
     for i, c in enumerate(chosen):
         t = col_term[c]
@@ -744,8 +852,8 @@ def _discover_axis(axis: int, target: str, lib: _Library, fold_grams, G_train: n
             target, t.expression, t.variables, float(beta[i]), float(std[i]), unit_text(coef_unit),
             unit_text(t.unit), shares[i], counts.get(c, 0) / k_f, counts.get(c, 0), k_f,
             _matches(G_train, cols, c, axis, fx_effects, model_effects),
-            _literature(t.expression, "force" if axis < 3 else "torque"),
-            _collinear(G_train, c, [d for d in candidates if d != c], col_term)))
+            _form_label(t.expression, forms.get(c, ()), "force" if axis < 3 else "torque"),
+            _collinear(G_train, c, [d for d in candidates if d != c], col_term), forms.get(c, ())))
     result = AxisResult(target, float(sum(shares)), False,
                         _modelled_side_note(G_train, cols, chosen, beta, axis, target))
     return result, kept, (chosen, beta)
@@ -1093,6 +1201,8 @@ def c_term(expression: str, vehicle: Vehicle) -> str | None:
         "1": "1.0f",
         "(R/4h)^2*T_N": f"QC_ROTOR_RADIUS_M * QC_ROTOR_RADIUS_M / (16 * {h} * {h}) * T_N",
         "T_N*|v_h|^2": "T_N * (v_b_mps[0] * v_b_mps[0] + v_b_mps[1] * v_b_mps[1])",
+        **{f"|v_b|*v_b_{a}_mps": "qc_sqrt(v_b_mps[0] * v_b_mps[0] + v_b_mps[1] * v_b_mps[1] + v_b_mps[2] * v_b_mps[2])"
+                                 f" * v_b_mps[{j}]" for j, a in enumerate(XYZ)},
         "Omega_net_radps": " + ".join(f"({float(s)!r}f * motor_radps[{i}])" for i, s in enumerate(vehicle.yaw_sign)),
     }
 
@@ -1124,7 +1234,8 @@ def parameter_name(target: str, expression: str, unit: str) -> str:
     (``s^2/m^2`` -> ``s2_per_m2``)."""
     axis = target.replace("_res_b_", "_").removesuffix("_Nm").removesuffix("_N")
     body = (expression.replace("*|", "_times_abs_").replace("*", "_times_").replace("(R/4h)^2", "ground_R_over_4h_sq")
-            .replace("|v_h|^2", "vh_sq").replace("d(", "d_").replace(")/dt", "_dt").replace("-", "_minus_"))
+            .replace("|v_h|^2", "vh_sq").replace("|v_b|", "speed_b").replace("d(", "d_").replace(")/dt", "_dt")
+            .replace("-", "_minus_"))
     unit_slug = _slug(unit.replace("^", "").replace("/", " per ")) or "one"
     return f"{_slug(axis)}__{_slug(body)}__{unit_slug}"
 
