@@ -597,14 +597,14 @@ def model_spec(thrust_map: str, effects: tuple[str, ...] = ()):
 
 
 def diagnose(flights, thrust_map: str, effects: tuple[str, ...] = ()):
-    """``quadcore diagnose``: cross-validation over the given flights (no holdout)."""
+    """``quadcore diagnose`` (no holdout: cross-validation over the given flights)."""
     from quadcore.workflows import identify
 
-    return identify.diagnose(flights, model_spec(thrust_map, effects), [], default_held=False)
+    return identify.diagnose(flights, model_spec(thrust_map, effects), [])
 
 
 def discover(flights, thrust_map: str, effects: tuple[str, ...] = ()):
     """``quadcore discover``: cross-validation over the given flights (no holdout)."""
     from quadcore.workflows import identify
 
-    return identify.discover(flights, model_spec(thrust_map, effects), [], default_held=False)
+    return identify.discover(flights, model_spec(thrust_map, effects), [])
