@@ -10,7 +10,7 @@ PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 # DAGSTER_HOME: <data root>/.dagster unless set (pipeline.instance), the demo's in its own root.
 
-.PHONY: install run demo test test-fast lint ui bench fuzz
+.PHONY: install run demo test test-fast lint docs ui bench fuzz
 
 install: $(STAMP)
 
@@ -43,6 +43,13 @@ test-fast: $(STAMP)
 lint: $(STAMP)
 	$(VENV_PYTHON) -m ruff check .
 	$(VENV_PYTHON) -m mypy
+
+# The documentation site (mkdocs.yml): the generated reference pages first (the CLI from its parser,
+# the JSON keys from their pinned list), then mkdocs build --strict into site/: a broken link or
+# anchor fails it. tests/test_docs.py builds it in the fast tier (CI: make test).
+docs: $(STAMP)
+	$(VENV_PYTHON) docs/gen_reference.py
+	NO_MKDOCS_2_WARNING=1 $(VENV_PYTHON) -m mkdocs build --strict --quiet
 
 # Dagster's UI and daemon until Ctrl-C / SIGTERM (plots served on the same port); PORT=3300 make ui for another port.
 ui: $(STAMP)

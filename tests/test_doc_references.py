@@ -34,7 +34,7 @@ def _resolves(name: str) -> bool:
 def _references() -> dict[str, str]:
     """name -> where it first appears (file:line)."""
     found: dict[str, str] = {}
-    docs = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    docs = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
     sources = sorted([*(REPO / "quadcore").rglob("*.py"), *(REPO / "pipeline").rglob("*.py")])
     for path, pattern in [*((p, DOTTED) for p in docs), *((p, ROLE) for p in sources)]:
         for i, line in enumerate(path.read_text().splitlines(), 1):
