@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-DOTTED = re.compile(r"(?<![\w/.])(?:quadcore|pipeline)(?:\.[A-Za-z_]\w*)+(?<!\.md)(?![\w/])")  # not a page (pipeline.md)
+DOTTED = re.compile(r"(?<![\w/.])(?:quadcore|pipeline)(?:\.[A-Za-z_]\w*)+(?<!\.md)(?![\w/])")  # not pipeline.md
 ROLE = re.compile(r":(?:func|class|mod|meth|data|attr):`~?((?:quadcore|pipeline)(?:\.[A-Za-z_]\w*)+)`")
 
 
