@@ -196,11 +196,12 @@ def _beyond_the_best(top: dict, found: list[dict]) -> str:
     independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
     overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
     if independent:  # both shares from the same screen (least squares on the evaluated flights), not held-out
-        text += (" Also missing, beyond it (a least-squares screen on the evaluated flights): "
+        text += (" Also missing, beyond it: "
                  + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
                              f"on top of {top['effect']}, {r.get('explained_alone_screen', 0.0):.0%} alone"
                              + (f"; indistinguishable from {', '.join(r['tied_with'])}" if r.get("tied_with") else "")
-                             + ")" for r in independent[:3]) + ".")
+                             + ")" for r in independent[:3]) + " (both shares by one least-squares screen on the "
+                 "evaluated flights).")
     if overlapping:
         text += (f" Explaining the same residual as {top['effect']} (alternatives, nothing left for them once it is "
                  "in the model): "
