@@ -4,7 +4,7 @@ import warnings
 
 import dagster as dg
 
-from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT
+from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT, PLANNING
 from pipeline.resources import (
     automation_status,
     data_root_from_env,
@@ -25,7 +25,7 @@ automation = dg.AutomationConditionSensorDefinition(
 )
 
 defs = dg.Definitions(
-    assets=[*PER_FLIGHT, *FLEET, QUARANTINE, *LEARNING, *EXPORT],
+    assets=[*PER_FLIGHT, *FLEET, *PLANNING, QUARANTINE, *LEARNING, *EXPORT],
     jobs=[process_flight, retrain_learned_models],
     sensors=[raw_log_sensor, automation],
     schedules=[nightly_retrain_learned_models],

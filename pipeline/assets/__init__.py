@@ -18,7 +18,10 @@ STATISTICS = [flight_statistics]
 AGAINST_MODEL = [residual_table, rollout_errors, flight_mcap]
 PER_FLIGHT = [*DECODE, *STATISTICS, *AGAINST_MODEL]
 # Computed over all flights.
-FLEET = [physics_model, term_discovery, model_diagnosis, error_history, flight_plan]
+FLEET = [physics_model, term_discovery, model_diagnosis, error_history]
+# The next flight to fly, from the stored diagnosis: materialised on demand or by its automation
+# condition, not by the main job (its search takes minutes on a large fleet).
+PLANNING = [flight_plan]
 # Learned residual models on top of the physics model (fan-in over all residual tables).
 LEARNING = [learning_features, learned_models, learning_report]
 # The current model as C for the flight controller.

@@ -12,7 +12,8 @@ from quadcore.workflows import plan as planflow
 
 @dg.asset(group_name="model", deps=[model_diagnosis], kinds={"csv"}, automation_condition=RETRAIN)
 def flight_plan(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
-    """The flight that answers the diagnosis's open question (two candidates it cannot tell
+    """Not in the main job (``make run``): materialise it in the UI, or let the automation sensor
+    do it after the diagnosis. The flight that answers the diagnosis's open question (two candidates it cannot tell
     apart, or a parameter known too loosely), in the lab's trajectory format, within the default
     limits and arena, with the separation it is predicted to bring (the simulator's proof is
     ``quadcore plan``'s). Writes reports/flight_plan.{json,csv,png}; plans nothing, and says
