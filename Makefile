@@ -75,8 +75,8 @@ bench: $(STAMP)
 # The fuzz harness (tests/fuzz): 2,000 mutants of the real logs (simulated ones where absent), the
 # structure-aware cases of tests/fuzz/structure.py, 100 writers and 8 main jobs killed at random moments;
 # and the config harness (tests/fuzz/configs.py: 130 hostile vehicle and model files, outputs edited to
-# name code, a decoy tree of user files around the output folders). Prints the counts the README's
-# Reliability section quotes.
+# name code, a decoy tree of user files around the output folders). Prints the counts docs/benchmarks.md
+# (Robustness) quotes.
 fuzz: $(STAMP)
 	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.harness --mutants 2000 --kills 100 --pipeline-kills 8
 	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.configs

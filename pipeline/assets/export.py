@@ -50,7 +50,7 @@ class ExportCConfig(dg.Config):
 def exported_model(context: dg.AssetExecutionContext, config: ExportCConfig,
                    data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """`<root>/export_c/quadcore_model.{h,c}`: the physics model's effects plus the best learned
-    residual as self-contained C99 for the flight controller (see the README, "On the vehicle"),
+    residual as self-contained C99 for the flight controller (see docs/how-to/firmware-export.md),
     checked with the strict C99 flags; the flash and RAM footprint in the metadata. An effect
     with no C form is left out, named with why (metadata ``left_out``, a warning, and the top of
     both files), rather than failing the run. Plugin effects come from the model file (its spec
