@@ -47,11 +47,13 @@ orthogonal_mp_gram``, the greedy member of the LARS family) on each fold of a
 cross-validation grouped by flight, scored on the fold's flights. The number of terms is
 where one more term adds less than ``MIN_GAIN`` of the held-out variance. A term is kept
 when it is selected in most folds (stability selection) and, refitted with the other kept
-terms, still adds ``MIN_GAIN`` of the held-out variance. **Competing forms**: a kept velocity
-term (``v``, ``T v``, ``v|v|``, ``|v_b| v``: :data:`VELOCITY_FORMS`) is replaced by the rival
-form with the least held-out error beside the other kept terms, on the held-out sets that score
-the terms; every rival is reported with its held-out share, and the mechanism is named only
-when the kept form is the better one in most of those sets (else "form undecided"). An axis whose residual is within
+terms, still adds ``MIN_GAIN`` of the held-out variance. **Competing forms**: the forms of a
+velocity term (``v``, ``T v``, ``v|v|``, ``|v_b| v``: :data:`VELOCITY_FORMS`) share one slot's
+votes in the stability selection, and the slot keeps the form with the best mean rank of
+held-out error over the folds, beside the other kept terms (:func:`_prefer_forms`; chosen on the
+folds, never on a holdout); every rival is reported with its held-out share, and the mechanism
+is named only when the kept form beats each rival in most folds (else "form undecided").
+An axis whose residual is within
 ``evidence.NOISE_MARGIN`` (RMS) of the sensor-noise floor gets no terms, the same
 margin the diagnosis uses.
 
