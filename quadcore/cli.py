@@ -540,8 +540,8 @@ def cmd_vehicle(args: argparse.Namespace) -> int:
     v = vehicle.load(Path(args.name))
     print(f"{args.name}: vehicle {v.name!r}, {v.mass_kg * 1e3:.4g} g, {v.n_rotors} rotors, thrust map "
           f"{v.thrust_map_kind}, hover thrust per rotor {v.weight_N / v.n_rotors * 1e3:.4g} mN")
-    print("it is valid; use it with vehicle = \"" + args.name + "\" in the model file, --vehicle (CLI) or "
-          "QUADCORE_VEHICLE (pipeline)")
+    print("it is valid; use it with vehicle = \"PATH\" in the model file (PATH relative to the model file), "
+          f"--vehicle {args.name} (CLI) or QUADCORE_VEHICLE={args.name} (pipeline)")
     return 0
 
 
