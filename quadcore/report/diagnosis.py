@@ -255,8 +255,8 @@ def _percent(x: float) -> str:
 
 
 def _p(p: float) -> str:
-    """A p-value for people: two digits, and no smaller than what double precision can tell."""
-    return "< 1e-15" if p < 1e-15 else f"{p:.2g}"
+    """A p-value for people: two significant digits (as the verdict writes it)."""
+    return f"{p:.2g}"
 
 
 def evidence_table(d: dict, limit: int = 6) -> pl.DataFrame:
