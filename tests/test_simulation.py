@@ -211,7 +211,8 @@ EFFECT_CASES = {
     # rotorpy's Crazyflie: 0.0054 kg/s at hover thrust (0.29 N), i.e. k_z = 0.018 s/m; 10x here
     "rotor_drag_z": (_random(17, speed_min_mps=0.8), {"k_z_s_per_m": 0.2}, [("force", (2,))]),
     "rotor_imbalance": (_random(13), {"d_1": 0.05, "d_2": -0.03, "d_3": 0.02}, [("torque", (0, 1, 2))]),
-    "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.03}, [("force", (2,)), ("torque", (0, 1, 2))]),
+    # 20 ms: at 30 ms this fast flight goes unstable under the nominal controller and hits the floor
+    "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.02}, [("force", (2,)), ("torque", (0, 1, 2))]),
     "inertia_scale": (_random(16, speed_min_mps=0.8), {"s_x": 1.3, "s_y": 0.8, "s_z": 1.3},
                       [("torque", (0, 1))]),  # yaw: first order in ΔJ, 25 % off at s_z = 1.3
 }
@@ -417,3 +418,32 @@ def test_cli_simulate_bad_effect_is_a_user_error(tmp_path, spec, message):
     assert code == 2
     assert message in stderr and "Traceback" not in stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_a_log_can_start_mid_manoeuvre():
+    """``log_start_s``: the log holds the same flight from that time on, its clock restarting
+    there: the vehicle already moving, a motor lag's state not at rest on the first command."""
+    cfg = _random(1, duration=6.0, speed_min_mps=0.8)
+    whole = simulation.simulate(cfg, VEHICLE, {"motor_lag": {"tau_s": 0.04}})
+    late = simulation.simulate(replace(cfg, log_start_s=3.3), VEHICLE, {"motor_lag": {"tau_s": 0.04}})
+    skip = int(round(3.3 * cfg.log_rate_hz))
+    np.testing.assert_allclose(late.t_s, whole.t_s[skip:] - whole.t_s[skip], atol=1e-12)
+    for a, b in ((late.v_true, whole.v_true), (late.f_actual_N, whole.f_actual_N), (late.pwm_raw, whole.pwm_raw)):
+        np.testing.assert_array_equal(a, b[skip:])
+    assert np.linalg.norm(late.v_true[0]) > 0.3  # in motion on the first logged sample
+    assert np.max(np.abs(late.f_actual_N[0] - late.f_map_N[0])) > 0.01  # the lag is not at rest there
+    assert late.truth()["duration_s"] == pytest.approx(6.0 - 3.3, abs=0.01)
+    with pytest.raises(simulation.SimulationError, match="log_start_s"):
+        simulation.simulate(replace(cfg, log_start_s=6.5), VEHICLE)
+
+
+def test_a_flight_can_start_off_its_reference_with_the_rotors_at_hover():
+    """``start_offset_m``: the vehicle starts away from the reference, so the first commands are
+    a correction, while a lag's rotors (and a delay's history) still give the hover thrust."""
+    cfg = replace(_random(2, duration=3.0), start_offset_m=(0.1, -0.1, 0.05))
+    hover = VEHICLE.weight_N / VEHICLE.n_rotors
+    for effect in ({"motor_lag": {"tau_s": 0.04}}, {"thrust_delay": {"t_d_s": 0.02}}):
+        sim = simulation.simulate(cfg, VEHICLE, effect)
+        np.testing.assert_allclose(sim.p_true[0], np.array([0.1, -0.1, cfg.start_height_m + 0.05]), atol=1e-12)
+        np.testing.assert_allclose(sim.f_actual_N[0], hover, rtol=1e-12)
+        assert np.max(np.abs(sim.f_map_N[0] - hover)) > 0.01  # the first command is no hover

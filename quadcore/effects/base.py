@@ -161,6 +161,16 @@ class Effect(ABC):
     def wrench(self, state: FlightState, vehicle: Vehicle, params: dict[str, float]) -> Wrench:
         """Body-frame force and torque added to the model, over the whole flight."""
 
+    def memory_s(self) -> float:
+        """How long after a log's first sample the wrench still depends on the flight before it
+        (a filter settling from an initial state it cannot know, a delay's history): within
+        this time the fits, held-out tests and predictions of the identification take no part of
+        it (:func:`quadcore.identify.fitting.prediction`), so a flight whose log starts in a
+        manoeuvre does not bias them. The same for every parameter value (a fit compares values
+        on the same samples): take the longest the parameter's range allows. 0, the default,
+        for memoryless effects."""
+        return 0.0
+
     def simulator(self, params: dict[str, float], context: SimContext) -> SimHook | None:
         """The mechanism to fly in the simulator, or None (the default): then the simulator
         adds :meth:`wrench` evaluated on the true state at every physics step, which is

@@ -7,7 +7,10 @@ torque about all three axes. Nonlinear in the time constant τ_m (s); evaluated 
 exact discretisation at the median sample period. The force is the lag's value at each
 sample (what the accelerometer sees); the torque its mean over the interval that follows,
 ``f_cmd + (f - f_cmd)(1 - a) τ_m / dt`` (what the gyro's derivative integrates, with the
-command held over the interval: docs/timing.md).
+command held over the interval: docs/timing.md). It starts at steady state on the first
+command. A log that starts in a manoeuvre starts with the rotors' true lag state unknown: the
+identification leaves out the first five time constants at the longest lag searched
+(:meth:`MotorLag.memory_s`, 1 s), where that start would bias the fit.
 """
 
 import math
@@ -45,17 +48,19 @@ def interval_mean_share(t_s: np.ndarray, tau_s: float) -> float:
 
 class LagHook(SimHook):
     """Each rotor's thrust relaxes toward its input, integrated exactly per physics step
-    (the input ``x`` is held over the step); starts at steady state on the first input.
+    (the input ``x`` is held over the step); starts at ``start_N`` (the rotors' thrust before
+    the flight, the nominal hover thrust: a first command that asks for more or less is a step
+    they follow with the lag), or at steady state on the first input when None.
 
     From ``y_0`` at the step's start, ``y(h) = x + (y_0 - x) a`` with ``a = exp(-h / τ)``; the
     body integrates the step's mean ``x + (y_0 - x) (1 - a) τ / h``, and the sensors see
     ``y_0`` at the log instant. (Holding ``y_0`` over the step instead would delay the thrust
     the body feels by ``h / 2`` behind the logged rotor speed.)"""
 
-    def __init__(self, tau_s: float, h_s: float):
+    def __init__(self, tau_s: float, h_s: float, start_N: list[float] | None = None):
         self.a = math.exp(-h_s / tau_s) if tau_s > 0 else 0.0
         self.mean = (1.0 - self.a) * tau_s / h_s if tau_s > 0 else 0.0
-        self.f_N: list[float] | None = None
+        self.f_N: list[float] | None = start_N
 
     def thrusts_now(self, f_N):
         return list(self.f_N) if self.f_N is not None else list(f_N)
@@ -83,8 +88,16 @@ class MotorLag(Effect):
         if params["tau_s"] < 0:
             raise ValueError("tau_s must be >= 0")
 
+    def memory_s(self):
+        """Five time constants at the longest lag searched: an initial thrust error decays to
+        e^-5 (0.7 %) of itself at that lag, and to far less at shorter ones."""
+        return 5.0 * self.parameters[0].upper
+
     def simulator(self, params, context):
-        return LagHook(params["tau_s"], context.h_s) if params["tau_s"] > 0 else SimHook()  # no lag: nothing to fly
+        if params["tau_s"] <= 0:
+            return SimHook()  # no lag: nothing to fly
+        n = context.vehicle.n_rotors  # the vehicle hovered before the flight
+        return LagHook(params["tau_s"], context.h_s, [context.vehicle.weight_N / n] * n)
 
     def c_code(self, vehicle, params):
         if params["tau_s"] <= 0:  # as in first_order_lag: no lag, no wrench

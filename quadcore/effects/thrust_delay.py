@@ -33,13 +33,14 @@ def delayed(x: np.ndarray, t_s: np.ndarray, delay_s: float) -> np.ndarray:
 
 class DelayHook(SimHook):
     """Each rotor's thrust is its input ``t_d`` earlier, from a history kept per physics step
-    (linear between steps; the first input held before the flight)."""
+    (linear between steps); before the flight, ``start_N`` (the nominal hover thrust: the
+    vehicle hovered), or the first input held when None."""
 
-    def __init__(self, delay_s: float, h_s: float):
+    def __init__(self, delay_s: float, h_s: float, start_N: list[float] | None = None):
         self.steps = delay_s / h_s
         self.whole = int(np.floor(self.steps))
         self.frac = self.steps - self.whole
-        self.history: list[list[float]] = []
+        self.history: list[list[float]] = [list(start_N)] if start_N is not None else []
 
     def rotor_thrusts(self, f_N, k, j):
         self.history.append(list(f_N))
@@ -61,12 +62,19 @@ class ThrustDelay(Effect):
     def wrench(self, state, vehicle, params):
         return rotor_wrench(vehicle, delayed(state.f_rotor_N, state.t_s, params["t_d_s"]) - state.f_rotor_N)
 
+    def memory_s(self):
+        """The longest delay searched: before it the delayed thrust is the first sample's, held."""
+        return self.parameters[0].upper
+
     def check(self, params):
         if params["t_d_s"] < 0:
             raise ValueError("t_d_s must be >= 0")
 
     def simulator(self, params, context):
-        return DelayHook(params["t_d_s"], context.h_s) if params["t_d_s"] > 0 else SimHook()
+        if params["t_d_s"] <= 0:
+            return SimHook()
+        n = context.vehicle.n_rotors  # the vehicle hovered before the flight
+        return DelayHook(params["t_d_s"], context.h_s, [context.vehicle.weight_N / n] * n)
 
     def c_code(self, vehicle, params):
         if params["t_d_s"] <= 0:

@@ -133,7 +133,14 @@ class SimConfig:
     low_pass (repeated passes at ``low_pass_height_m``, drawn in 0.03-0.08 m when None), plan (the
     lab-format trajectory CSV ``plan_file``, flown as the built-in plans are).
     ``duration_s``: None = the plan's natural length (plans) or 10 s; otherwise the flight is
-    cut or its end hover extended to this length.
+    cut or its end hover extended to this length. ``log_start_s``: the log holds the flight from
+    this time on (its clock starting there), so a flight can begin in a manoeuvre, with the
+    vehicle moving, the controller busy and every mechanism with memory (a motor lag, a delay)
+    in its state of that moment rather than at rest, as a log switched on in flight (or an
+    independent simulator's flight starting on a moving trajectory) is. ``start_offset_m``: the
+    vehicle starts this far (world frame) from where the reference starts, hovering: the
+    controller's first commands are a hard correction while the rotors still give hover thrust
+    (a flight that begins in a manoeuvre from its first logged sample).
     """
 
     kind: str = "figure8"
@@ -157,7 +164,9 @@ class SimConfig:
     mocap_jitter_s: float = 0.0015
     wind_gust_std_mps: float = 0.0
     wind_gust_tau_s: float = 1.0
-    start_height_m: float = 0.1  # the log starts airborne here (no ground contact model)
+    start_height_m: float = 0.1  # the flight starts airborne here (no ground contact model)
+    log_start_s: float = 0.0  # the log begins this long into the flight (> 0: mid-manoeuvre, filters not settled)
+    start_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # where the vehicle starts, from the reference's start
     takeoff_s: float = 2.0
     hover_s: float = 1.0
     end_hover_s: float = 1.0
@@ -177,7 +186,7 @@ class SimConfig:
         for key, typ in nested.items():
             if isinstance(d.get(key), dict):
                 d[key] = typ(**{k: tuple(v) if isinstance(v, list) else v for k, v in d[key].items()})
-        for key in ("box_min_m", "box_max_m"):
+        for key in ("box_min_m", "box_max_m", "start_offset_m"):
             if isinstance(d.get(key), list):
                 d[key] = tuple(d[key])
         known = {f.name for f in fields(cls)}
@@ -198,6 +207,8 @@ class SimConfig:
             raise SimulationError("need 0 < speed_min_mps <= speed_max_mps")
         if any(a >= b for a, b in zip(self.box_min_m, self.box_max_m)):
             raise SimulationError("box_min_m must be below box_max_m on every axis")
+        if not 0 <= self.log_start_s < flight_duration(self) - 1.0 / max(self.log_rate_hz, 1e-9):
+            raise SimulationError("log_start_s must be >= 0 and leave some of the flight to log")
         if self.physics_substeps < 1 or self.log_rate_hz <= 0:
             raise SimulationError("physics_substeps >= 1 and log_rate_hz > 0 required")
         if not 0 <= self.drop_prob < 1 or not 0 <= self.mocap_drop_prob < 1:
@@ -548,7 +559,8 @@ def _fly(config: SimConfig, veh: vehicle_mod.Vehicle, ref: trajectories.Referenc
     n, dt, S = len(t), float(t[1] - t[0]), int(config.physics_substeps)
     h = dt / S
     sag_per_N = config.battery.r_internal_ohm * config.battery.current_per_thrust_A_per_N
-    p, v, w = [float(x) for x in ref.p_w_m[0]], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+    p = [float(x) + float(d) for x, d in zip(ref.p_w_m[0], config.start_offset_m)]
+    v, w = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
     yaw0 = float(ref.yaw_rad[0])
     q = (0.0, 0.0, math.sin(0.5 * yaw0), math.cos(0.5 * yaw0))
     Jt = tuple(tuple(float(x) for x in row) for row in body.inertia_kgm2)
@@ -624,8 +636,10 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     body = _true_body(veh, eff, context, n)
     noise = _draw_noise(noise_rng, config.noise, n)
     rec = _fly(config, veh, ref, body, noise, t)
-    logged = slice(None, None, every)  # the log samples the controller's steps
-    t, rec, noise = t[logged], rec.sampled(logged), noise.sampled(logged)
+    # the log samples the controller's steps, from log_start_s on (its clock restarting there)
+    skip = min(int(round(config.log_start_s * float(config.log_rate_hz))), n // every - 2) * every
+    logged = slice(skip, None, every)
+    t, rec, noise = t[logged] - t[skip], rec.sampled(logged), noise.sampled(logged)
 
     data, kept = usdlog.encode(config, t, rec.P, rec.V, rec.Q, rec.W, rec.SF, rec.F_ACT, rec.PWM, rec.VBAT_MV,
                          veh.motor_speed, noise.pos, noise.vel, noise.att, noise.gyro, noise.acc, noise.rpm,
