@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +163,38 @@ def test_hidden_effect_is_found_recovered_and_removes_the_residual(hidden, name)
     # ... and then nothing of the library explains what is left
     assert not any(r["useful"] for r in with_it["candidates"]), with_it["verdict"]
     assert with_it["verdict"].startswith("No effect of the library explains"), with_it["verdict"]
+
+
+# Flights that begin in a manoeuvre (an independent simulator's start on a moving trajectory):
+# five fast go-to flights start 0.1-0.16 m off the reference's start, so the first commands are a
+# hard correction while the rotors still give hover thrust; a low pass starts at rest
+_FAST = SimConfig(kind="random", duration_s=8.0, speed_min_mps=1.0, speed_max_mps=1.5)
+MID_MANOEUVRE = (replace(_FAST, seed=1, start_offset_m=(0.12, -0.08, 0.05)),
+                 replace(_FAST, seed=2, start_offset_m=(-0.1, 0.12, 0.05)),
+                 replace(_FAST, seed=3, start_offset_m=(0.08, 0.1, 0.05)),
+                 replace(_FAST, seed=4, start_offset_m=(-0.12, -0.1, 0.05)),
+                 replace(_FAST, seed=6, start_offset_m=(0.1, -0.12, 0.05)),
+                 _low(5))
+
+
+@pytest.mark.slow  # simulated scenarios of their own
+@pytest.mark.parametrize("name, truth", [("motor_lag", {"tau_s": 0.04}), ("thrust_delay", {"t_d_s": 0.02})])
+def test_lag_and_delay_fits_on_flights_starting_mid_manoeuvre_cover_the_truth(sim_sets, name, truth):
+    """A motor lag and a delay on flights that begin in a manoeuvre: the filter cannot start at
+    steady state on the first command there, so the fits leave out its settling
+    (Effect.memory_s), and the error bars come from the profile of the objective (not its
+    curvature). The truth lies within 3 σ, as the candidate and as the model's fitted effect.
+    On main at 5464bb9 (steady state assumed at the log's start, error bars from the curvature)
+    the lag came out 0.03947 ± 0.00012 s, 4.4 σ low (now 0.03982 ± 0.00036), the delay
+    0.02021 ± 0.00009 s, 2.2 σ high (now 0.01997 ± 0.00016)."""
+    (param, true), = truth.items()
+    _, tables = sim_sets(f"mid_{name}", MID_MANOEUVRE, {name: truth})
+    d = _diagnose(tables)
+    row = d["candidates"][0]
+    assert row["effect"] == name and row["found"], d["verdict"]
+    assert abs(row["parameters"][param] - true) <= 3 * row["parameter_std"][param], row
+    fitted = fitting.fit_model(model.spec_from(VEHICLE, [name]), tables, sorted(tables)).terms[0]
+    assert abs(fitted.params[param] - true) <= 3 * fitted.std[param], (fitted.params, fitted.std)
 
 
 @pytest.mark.slow  # a simulated scenario of its own

@@ -11,9 +11,13 @@ equations accumulated flight by flight; nonlinear parameters are found by bounde
 least squares (``scipy.optimize.least_squares``) with the linear ones solved inside
 (variable projection). Several effects are fitted jointly.
 
-Standard errors come from the curvature of ``J`` at the optimum, inflated by the
-smoother's window length because neighbouring samples of a smoothed residual are not
-independent (about one independent sample per window).
+Standard errors come from the curvature of ``J`` at the optimum (linear parameters: ``J`` is
+quadratic in them), and for one nonlinear parameter from the profile of ``J`` itself (where it
+has risen by one standard error's worth, :func:`scalar_minimum`: right when ``J`` is not
+quadratic), inflated by the smoother's window length because neighbouring samples of a smoothed
+residual are not independent (about one independent sample per window). An effect with memory
+(a lag, a delay) predicts nothing within its ``memory_s`` of a flight's start
+(:func:`prediction`): a log that starts in a manoeuvre starts from a state the filter cannot know.
 
 **Torque through the measurement's own filter.** The measured torque is
 ``J dω/dt + ω × J ω`` with ``dω/dt`` from the Savitzky-Golay *derivative*
@@ -192,9 +196,15 @@ def sensor_noise_floor(state: FlightState, vehicle: Vehicle, mask: np.ndarray | 
 
 
 def prediction(effect: Effect, params: dict, fd: FlightData, vehicle: Vehicle) -> np.ndarray:
-    """(n, 6) smoothed force and torque of an effect on a flight."""
+    """(n, 6) smoothed force and torque of an effect on a flight; zero within the effect's
+    :meth:`~quadcore.effects.Effect.memory_s` of the flight's first sample (a lag's settling
+    from the unknown state the log starts in), for the fits, tests and model predictions alike."""
     f, t = effect.wrench(fd.state, vehicle, params)
-    return smoothed_wrench(f, t, fd.state)
+    out = smoothed_wrench(f, t, fd.state)
+    memory = effect.memory_s()
+    if memory > 0 and len(out):
+        out[fd.state.t_s - fd.state.t_s[0] < memory] = 0.0
+    return out
 
 
 @dataclass
@@ -517,9 +527,13 @@ def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: flo
     """The minimum of ``J`` (a weighted sum of squares over ``n`` values) over ``[lower, upper]``
     and the variance of its position: ``J`` on the geometric grid
     (:func:`quadcore.identify.profiles.search_grid`), then Brent's method between the grid
-    neighbours of the best point (``xatol`` 5e-4 of the span); the variance from the curvature
-    of ``J`` (a one-sided second difference when the optimum sits on a bound),
-    ``2 J/(n - 1) / J'' × SAMPLES_PER_INDEPENDENT``."""
+    neighbours of the best point (``xatol`` 5e-4 of the span); the variance from the profile of
+    ``J`` itself, not its curvature: the standard error is the larger distance from the optimum
+    at which ``J`` has risen by ``s² W`` (``s² = J/(n - 1)``, ``W = SAMPLES_PER_INDEPENDENT``) --
+    the likelihood-ratio interval, which for a quadratic ``J`` is the curvature's
+    ``2 s² W / J''`` and stays right where ``J`` is not quadratic (a lag's kink at the first
+    sample, a delay's ripple, a minimum on a bound). No rise within the bounds on either side:
+    infinite."""
     from quadcore.identify.profiles import search_grid
 
     span = upper - lower
@@ -533,16 +547,20 @@ def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: flo
         if res.fun <= costs[i]:
             best = float(res.x)
     j0 = J(best)
-    h = max(1e-3 * span, 0.01 * abs(best))
-    if best + h > upper:  # on the upper bound: one-sided, inwards
-        curvature = (J(best - 2 * h) - 2 * J(best - h) + j0) / h**2
-    elif best - h < lower:
-        curvature = (J(best + 2 * h) - 2 * J(best + h) + j0) / h**2
-    else:
-        curvature = (J(best + h) - 2 * j0 + J(best - h)) / h**2
-    s2 = j0 / max(n - 1, 1)
-    var = 2 * s2 / curvature * SAMPLES_PER_INDEPENDENT if curvature > 0 else np.inf
-    return best, float(var)
+    level = j0 + j0 / max(n - 1, 1) * SAMPLES_PER_INDEPENDENT
+    sides = [_rise(J, best, edge, level, span) for edge in (lower, upper)]
+    widths = [abs(v - best) for v in sides if v is not None]
+    return best, float(max(widths) ** 2) if widths else float(np.inf)
+
+
+def _rise(J: Callable[[float], float], best: float, edge: float, level: float, span: float) -> float | None:
+    """Where ``J`` reaches ``level`` between ``best`` and ``edge`` (a root of ``J - level``, to
+    1e-5 of the span), or None when it does not there."""
+    from scipy.optimize import brentq
+
+    if edge == best or J(edge) < level:
+        return None
+    return float(brentq(lambda v: J(v) - level, best, edge, xtol=1e-5 * span))
 
 
 def _vector_search(nonlin, lin, flights, ys, w, vehicle):

@@ -28,8 +28,8 @@ any τ > 0 delays the thrust by a whole sample). So, with weights ``ω(v)``, the
     J(v) = Σ_f Σ_c w_c [u_fᵀ G_fc u_f - 2 ω(v)·(P_f·c[:W] u_f) + ω(v)·P_f·c[W]],
 
 exact on the grid (the search's grid stage finds the row search's grid point), a smooth
-interpolant between (the bounded Brent refinement and the curvature's second difference
-run on it); beside linear effects, these are solved inside it (:func:`fit_effects`). A held-out
+interpolant between (the bounded Brent refinement and the profile interval of the standard
+error run on it); beside linear effects, these are solved inside it (:func:`fit_effects`). A held-out
 prediction at the fitted ``v`` is an extra column whose sums with every other column are
 ``ω(v)·P`` per block: exact on a grid point (to float32 rounding per block), interpolated between
 as the search's objective is; the unit wrench and the reference are exact (stored columns).
@@ -228,7 +228,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
                 vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None) -> Fit:
     """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
     targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
-    effect's parameter by the row search's grid, Brent refinement and curvature
+    effect's parameter by the row search's grid, Brent refinement and profile interval
     (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
     effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
     ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
