@@ -48,6 +48,17 @@ def test_the_site_builds_strictly(tmp_path):
     shutil.rmtree(site)
 
 
+def test_every_environment_variable_the_code_reads_is_in_the_configuration_reference():
+    import re
+
+    read = re.compile(r"(?:environ(?:\.get)?[\[(]|getenv\()\s*\"(QUADCORE_\w+)\"")
+    names = {m for path in [*(REPO / "quadcore").rglob("*.py"), *(REPO / "pipeline").rglob("*.py")]
+             for m in read.findall(path.read_text())}
+    assert len(names) >= 10
+    page = (REPO / "docs" / "reference" / "configuration.md").read_text()
+    assert sorted(n for n in names if f"`{n}`" not in page) == []
+
+
 def test_the_readme_links_point_at_files_that_exist():
     """The README is not part of the site (GitHub shows it): its relative links are checked here."""
     import re
