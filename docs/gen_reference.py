@@ -50,7 +50,7 @@ def _help(parser: argparse.ArgumentParser, width: int = 100) -> str:
 
 def json_keys_page() -> str:
     keys = (REPO / "tests" / "snapshots" / "diagnose_json_keys.txt").read_text().splitlines()
-    out = [HEADER.format(source="tests/snapshots/diagnose_json_keys.txt", how="`make docs`"),
+    out = [HEADER.format(source="the pinned documents in tests/snapshots/", how="`make docs`"),
            "# JSON contracts\n\n",
            "`quadcore diagnose --json OUT.json` and the `model_diagnosis` asset (`reports/diagnosis.json`) ",
            "write one document; `quadcore discover --json` and `term_discovery` (`reports/discovery.json`) ",
@@ -64,7 +64,7 @@ def json_keys_page() -> str:
     for line in keys:
         path, _, kind = line.partition(": ")
         out.append(f"| `{path}` | {kind or ('list' if path.endswith(']') else 'object')} |\n")
-    return "".join(out)
+    return "".join(out) + _discovery_keys()
 
 
 def parquet_page(root: Path) -> str:
@@ -95,6 +95,33 @@ def parquet_page(root: Path) -> str:
         out += [f"\n## `{kind}/flight=<id>/data.parquet`\n\n", "| column | type | unit |\n|---|---|---|\n"]
         out += [f"| `{f.name}` | {f.type} | {units.get(f.name, '1')} |\n" for f in schema if f.name != "flight"]
     return "".join(out)
+
+
+def _key_paths(value, path: str = "") -> dict[str, str]:
+    """Every key path of a JSON document (``[]`` a list's items, merged) with its leaf type."""
+    kinds = {bool: "bool", int: "number", float: "number", str: "str", type(None): "null"}
+    if isinstance(value, dict):
+        out: dict[str, str] = {}
+        for k, v in value.items():
+            out |= _key_paths(v, f"{path}.{k}")
+        return out or {path: "object"}
+    if isinstance(value, list):
+        out = {path + "[]": "list"} if not value else {}
+        for item in value:
+            out |= _key_paths(item, path + "[]")
+        return out
+    return {path: kinds[type(value)]}
+
+
+def _discovery_keys() -> str:
+    import json
+
+    doc = json.loads((REPO / "tests" / "snapshots" / "discover_drag_fleet.json").read_text())
+    rows = sorted(_key_paths(doc).items())
+    return ("\n## Keys of the discovery document\n\n"
+            "Every key path of the pinned `quadcore discover` document (`tests/snapshots/discover_drag_fleet.json`), "
+            "with its JSON type where it is a leaf (`null` where the pinned fleet leaves it empty):\n\n"
+            "| key | type |\n|---|---|\n" + "".join(f"| `{k}` | {t} |\n" for k, t in rows))
 
 
 PAGES = {
