@@ -1,6 +1,7 @@
 """Generate the reference pages that must not drift from the code: the CLI (from the argparse
 parser, ``quadcore.cli.build_parser``) and the keys of the JSON contracts (from the pinned key
-list ``tests/snapshots/diagnose_json_keys.txt``).
+list ``tests/snapshots/diagnose_json_keys.txt`` and the pinned discovery document); on request
+(``--parquet-from ROOT``) the Parquet columns from a data root's files.
 
 ``python docs/gen_reference.py`` rewrites them (``make docs`` does it first);
 ``python docs/gen_reference.py --check`` exits 1 naming the pages that differ (the fast test
