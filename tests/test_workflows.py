@@ -249,9 +249,10 @@ class _Manifest:
 # ---------------------------------------------------------------------------------------
 
 # Calls that fit, pick or check a holdout, or write a report or the history: each belongs in
-# quadcore.workflows, which both the CLI and the assets call.
+# quadcore.workflows, which both the CLI and the assets call (the learning's experiments.plan, not
+# quadcore.workflows.plan, the flight planner's workflow, which they call).
 ORCHESTRATION = ("fit_model", "fit_effects", "diagnosis.diagnose(", "discovery.discover(", "resolve_holdout",
-                 "named_holdout", "report.write(", "history.record(", "full_report(", "run_plan(", "plan(",
+                 "named_holdout", "report.write(", "history.record(", "full_report(", "run_plan(", "experiments.plan(",
                  "split_usable", "usable_flights", "read_sessions_file", "fitted_for", "write_report(")
 
 
