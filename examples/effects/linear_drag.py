@@ -15,7 +15,7 @@ part, tell the two apart -- and the diagnosis will say so when they cannot.
 import numpy as np
 
 from quadcore.effects import Effect, Parameter
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class LinearDrag(Effect):

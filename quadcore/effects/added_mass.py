@@ -17,7 +17,7 @@ from quadcore.effects.base import (
     body_z,
     collective_thrust_N,
 )
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class PayloadHook(SimHook):

@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 from quadcore.physics import dynamics
 from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
@@ -203,7 +203,7 @@ class Effect(ABC):
         return [params[p.name] - p.default for p in self.parameters]
 
     def c_code(self, vehicle: Vehicle, params: dict[str, float]) -> CCode | None:
-        """The wrench as C99 statements for ``quadcore export-c`` (see :mod:`quadcore.export.ccode`).
+        """The wrench as C99 statements for ``quadcore export-c`` (see :mod:`quadcore.effects.ccode`).
         ``None``, the default, means no C form: exporting a model with this effect fails with
         an error naming it."""
         return None

@@ -9,7 +9,7 @@ Linear in (x_c, y_c).
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, collective_thrust_N
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class ComOffset(Effect):

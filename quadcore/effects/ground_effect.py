@@ -10,7 +10,7 @@ larger for multirotors whose rotors and frame interact. Linear in k_ge.
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, body_z, collective_thrust_N
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 def proximity(state, vehicle) -> np.ndarray:

@@ -26,7 +26,7 @@ inertia is in doubt.
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, SimHook
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 from quadcore.physics import dynamics
 
 AXES = ("x", "y", "z")

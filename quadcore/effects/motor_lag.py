@@ -19,7 +19,7 @@ import numpy as np
 from scipy.signal import lfilter, lfilter_zi
 
 from quadcore.effects.base import Effect, Parameter, SimHook, rotor_wrench
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 def first_order_lag(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:

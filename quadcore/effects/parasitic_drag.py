@@ -9,7 +9,7 @@ simulated wind the simulator applies it to the airspeed.
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class ParasiticDrag(Effect):

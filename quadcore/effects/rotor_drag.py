@@ -9,7 +9,7 @@ Linear in (k_x, k_y). At constant thrust it looks exactly like a linear drag.
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, collective_thrust_N
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class RotorDrag(Effect):

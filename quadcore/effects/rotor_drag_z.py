@@ -19,7 +19,7 @@ horizontal rotor drag keeps its meaning (see ``docs/adding-an-effect.md``).
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, body_z, collective_thrust_N
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 class RotorDragZ(Effect):

@@ -12,7 +12,7 @@ from one when the rotors' thrusts part. Linear in (d_1, d_2, d_3). Four rotors o
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, rotor_wrench
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 def rotor_factors(params: dict[str, float]) -> np.ndarray:

@@ -17,7 +17,7 @@ thrusts do. Linear in J_r. A Crazyflie-sized rotor (45 mm propeller, 7 mm motor)
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, SimHook
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 
 def rotor_speeds_radps(state, vehicle) -> np.ndarray:

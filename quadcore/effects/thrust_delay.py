@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from quadcore.effects.base import Effect, Parameter, SimHook, rotor_wrench
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 
 MIN_PERIOD_S = 0.001  # the C form keeps a history long enough for calls at up to 1 kHz
 

@@ -8,7 +8,7 @@ Linear in (s - 1). In force it is indistinguishable from an unmodelled payload
 """
 
 from quadcore.effects.base import Effect, Parameter, ScaleRotorThrusts, body_z
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 from quadcore.physics import dynamics
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from quadcore.effects.base import Effect, Parameter, SimHook, collective_thrust_N
-from quadcore.export.ccode import CCode
+from quadcore.effects.ccode import CCode
 from quadcore.physics import rotations
 
 

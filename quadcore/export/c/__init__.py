@@ -10,7 +10,7 @@ body frame that the nominal model (thrust map and rigid body) misses:
 
 Single precision, no heap, nothing but ``math.h``; the flash and RAM footprint, measured by
 compiling it, is written in a comment at the top of both files. Every effect gives its own C
-form through ``Effect.c_code`` (:mod:`quadcore.export.ccode`); an effect without one stops the export
+form through ``Effect.c_code`` (:mod:`quadcore.effects.ccode`); an effect without one stops the export
 with :class:`NoCFormError` naming it, or (``leave_out``, what the pipeline's ``exported_model``
 asks for, so that one plugin cannot fail the user's job) is left out and named at the top of the
 files and in ``Generated.left_out``.

@@ -23,7 +23,7 @@ class NoCFormError(ExportError):
 
     def __init__(self, effect: str):
         super().__init__(f"effect {effect!r} has no C form: its c_code(vehicle, params) gives none (a method "
-                         "returning quadcore.export.ccode.CCode; see docs/adding-an-effect.md, section 6)")
+                         "returning quadcore.effects.ccode.CCode; see docs/adding-an-effect.md, section 6)")
         self.effect = effect
 
 
