@@ -32,9 +32,10 @@ def model_version(model_dict: dict | None) -> str:
 def current_model_version() -> str:
     """The version of the model a per-flight run would compute against now (the fitted model if
     it matches the model file, else the nominal vehicle: see ``current_model``)."""
-    from pipeline.assets.model import current_model
+    from quadcore.workflows import identify
 
-    return model_version(current_model(data_root_from_env(), model_config_from_env()).to_dict())
+    model = identify.current_model(data_root_from_env().root_path, model_config_from_env().spec())
+    return model_version(model.to_dict())
 
 
 def versions_used(instance: dg.DagsterInstance, key: dg.AssetKey, partitions: set[str],
