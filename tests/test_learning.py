@@ -37,6 +37,7 @@ from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
 from quadcore.store import store
+from quadcore.workflows import learn as learn_workflow
 
 VEHICLE = vehicle.load()
 HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}
@@ -291,7 +292,7 @@ def report_run(tmp_path_factory, residual_tables):
     physics = {**model.PhysicsModel(VEHICLE, []).to_dict(), "trained_on": [f for f in residual_tables if f != HOLDOUT]}
     records = experiments.run_plan(p, feat.feature_tables(residual_tables, sets), root / "learned", physics, CONFIG,
                                 SIM_KINDS, log=lambda m: None, latency_repeats=30)
-    report, pngs, paths = evaluation.full_report(root / "learned", residual_tables, VEHICLE, root / "reports", root)
+    report, pngs, paths = learn_workflow.full_report(root / "learned", residual_tables, VEHICLE, root / "reports", root)
     return root, p, records, report, pngs, paths
 
 
@@ -491,7 +492,7 @@ def test_real_logs_holdout_jana02(real_logs, tmp_path):
                                 {**nominal.to_dict(), "trained_on": [f for f in res if f != "jana02"]},
                                 learners.TrainConfig(threads=1), kinds, log=lambda m: None, latency_repeats=30)
     assert len(records) == 2 and all(len(r.train_flights) == 18 for r in records)
-    report, _, paths = evaluation.full_report(tmp_path / "learned", res, VEHICLE, tmp_path / "reports", tmp_path)
+    report, _, paths = learn_workflow.full_report(tmp_path / "learned", res, VEHICLE, tmp_path / "reports", tmp_path)
     assert paths["html"].is_file()
     base = report["baselines"]["holdout-jana02"]
     assert base["physics-only"]["rows"] == report["runs"][0]["metrics"]["rows"] > 3800

@@ -15,9 +15,10 @@ import polars as pl
 import pytest
 
 from quadcore.identify import model
-from quadcore.learn import evaluation, experiments, features as feat, learners, metrics, splits, trainers
+from quadcore.learn import experiments, features as feat, learners, metrics, splits, trainers
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.workflows import learn as learn_workflow
 
 REPO = Path(__file__).resolve().parents[1]
 VEHICLE = vehicle.load()
@@ -115,7 +116,7 @@ def test_the_report_says_what_the_budget_left(tmp_path, tables, residuals):
     usable = sum(_usable(tables, f) for f in train)
     assert all(r.manifest["rows_held"] == 1500 and r.manifest["rows_usable"] == usable for r in records)
     assert all(r.rows_fit <= 1500 for r in records)
-    report, _, paths = evaluation.full_report(tmp_path / "learned", residuals, VEHICLE, tmp_path / "reports")
+    report, _, paths = learn_workflow.full_report(tmp_path / "learned", residuals, VEHICLE, tmp_path / "reports")
     sentence = report["setup"]["training_rows"]
     assert sentence.startswith(f"trained on 1,500 of {usable:,} usable rows of the training flights: the row budget")
     assert "500 rows of each flight" in sentence and sentence in paths["md"].read_text()

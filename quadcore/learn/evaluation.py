@@ -63,7 +63,6 @@ from quadcore.learn.tables import (
     results_table,
     verdict,
 )
-from quadcore.report.learning import make_plots, write_report
 
 
 def evaluate(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
@@ -235,19 +234,3 @@ def record_history(root: str | Path, report: dict) -> list[Path]:
     written = [history.record(root, "learned", h["model_label"], h["force"], h["torque"], eff,
                               h["parameters"], h["eval_mode"], h["eval_flights"]) for h in report["history_rows"]]
     return [p for p in written if p is not None]
-
-
-def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle, report_dir: str | Path,
-                root_for_history: str | Path | None = None,
-                physics_trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
-    """Evaluate, record the history (when ``root_for_history``), plot and write the report.
-    ``physics_trained_on``: the flights the physics model's effects were fitted on (default: as
-    the index says). Returns (report, plots, paths)."""
-    report = evaluate(out_dir, residual_tables, vehicle, physics_trained_on)
-    hist = None
-    if root_for_history is not None:
-        report["history_files"] = [str(p) for p in record_history(root_for_history, report)]
-        hist = history.read(root_for_history)
-    pngs = make_plots(report, out_dir, residual_tables, vehicle, hist)
-    paths = write_report(report, pngs, report_dir)
-    return report, pngs, paths

@@ -235,18 +235,39 @@ def train_on_flights(flights: Fleet, spec: ModelSpec, feature_sets: list[Feature
     return Training(fitted.model, holdout, fitted.trained_on, runs, report, paths)
 
 
+def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle, report_dir: str | Path,
+                root_for_history: str | Path | None = None,
+                physics_trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
+    """Evaluate (:func:`quadcore.learn.evaluation.evaluate`), record the history (when
+    ``root_for_history``), plot and write the report (:mod:`quadcore.report.learning`).
+    ``physics_trained_on``: the flights the physics model's effects were fitted on (default: as
+    the index says). Returns (report, plots, paths)."""
+    from quadcore.identify import history
+    from quadcore.learn import evaluation
+    from quadcore.report.learning import make_plots, write_report
+
+    report = evaluation.evaluate(out_dir, residual_tables, vehicle, physics_trained_on)
+    hist = None
+    if root_for_history is not None:
+        report["history_files"] = [str(p) for p in evaluation.record_history(root_for_history, report)]
+        hist = history.read(root_for_history)
+    pngs = make_plots(report, out_dir, residual_tables, vehicle, hist)
+    paths = write_report(report, pngs, report_dir)
+    return report, pngs, paths
+
+
 def write_learning_report(root, residuals: Mapping[str, pl.DataFrame] | None = None,
                           trained_on: list[str] | None = None) -> tuple[dict, dict[str, bytes], dict[str, Path]]:
     """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
     data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
     Returns (report, plots, paths)."""
-    from quadcore.learn import artefacts, evaluation, experiments, features as feat
+    from quadcore.learn import artefacts, experiments, features as feat
     from quadcore.store import store
 
     index, _ = experiments.read_runs(store.learned_dir(root))
     physics = index.get("physics_model", {})
     residuals = residuals if residuals is not None else feat.read_residual_tables(root)
-    return evaluation.full_report(store.learned_dir(root), residuals, artefacts.vehicle_of(physics),
+    return full_report(store.learned_dir(root), residuals, artefacts.vehicle_of(physics),
                                   store.reports_dir(root), root, trained_on)
 
 
