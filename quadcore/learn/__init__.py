@@ -2,3 +2,6 @@
 (``learners``), which flights (``splits``), the trainers (``trainers``, ``trees`` for the compiled
 forest), a trained model's folder (``artefacts``; ``quadcore.learn.artefacts.load``), experiments
 (``experiments``) and how good they are (``evaluation``, ``metrics``, ``tables``)."""
+
+# The modules other packages import (the public surface; importing the package imports none of them).
+__all__ = ["artefacts", "evaluation", "experiments", "features", "learners", "metrics", "splits", "tables", "trees"]

@@ -10,3 +10,6 @@ separation (:mod:`~quadcore.plan.separation`), the proof in the simulator
 (:mod:`~quadcore.plan.proof`), the outputs (:mod:`~quadcore.plan.output`), and the planner that
 joins them (:mod:`~quadcore.plan.planner`). Explained in ``docs/flight-planning.md``.
 """
+
+# The modules other packages import (the public surface; importing the package imports none of them).
+__all__ = ["limits", "output", "pieces", "planner", "question"]
