@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.identify import history
 from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.store.names import MAIN_EVENT
@@ -242,7 +243,6 @@ def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame]
     ``root_for_history``), plot and write the report (:mod:`quadcore.report.learning`).
     ``physics_trained_on``: the flights the physics model's effects were fitted on (default: as
     the index says). Returns (report, plots, paths)."""
-    from quadcore.identify import history
     from quadcore.learn import evaluation
     from quadcore.report.learning import make_plots, write_report
 
