@@ -40,9 +40,11 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(VENV_PYTHON) -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
+# lint-imports: the layer contracts of pyproject.toml's [tool.importlinter] (docs/architecture.md).
 lint: $(STAMP)
 	$(VENV_PYTHON) -m ruff check .
 	$(VENV_PYTHON) -m mypy
+	$(VENV)/bin/lint-imports --no-cache
 
 # The documentation site (mkdocs.yml): the generated reference pages first (the CLI from its parser,
 # the JSON keys from their pinned list), then mkdocs build --strict into site/: a broken link or

@@ -1,0 +1,235 @@
+"""No import cycle among quadcore's and pipeline's modules, and function-level imports only on an allow-list.
+
+The graph is read from the source with ast (tools/imports.py; nothing is imported), at any depth:
+module-level imports and imports inside function bodies alike (`if TYPE_CHECKING:` blocks are left out:
+they never run). A cycle is a strongly connected component of more than one module.
+
+What is allow-listed, honestly: the import-linter contracts (pyproject.toml, make lint) hold the stage
+order; this test holds the module level. Today it passes only because
+
+- the two cycles inside quadcore.identify (the 7-module fitting/sufficient/profiles/evidence/regimes/
+  sessions/summaries circle and discovery <-> library_stats) are listed in KNOWN_CYCLES, and every
+  function-level import inside identify is listed in IDENTIFY_RELAYOUT: both to be removed by the identify
+  re-layout (issue 23, docs/architecture.md);
+- KNOT_CYCLES lists the one cycle outside identify (store.store, logs.checks, physics.dynamics,
+  physics.vehicle) and KNOTS the function-level imports that hide it;
+- STARTUP lists the CLI's lazy imports (a command imports only its own stage: `quadcore --help` stays fast);
+- UNREVIEWED lists the other function-level imports as found on 2026-11-26 (workflows, learn, plan,
+  pipeline): each still needs its reason written here (start-up time, an optional dependency) or a move to
+  module level. It is a record, not a justification.
+
+A NEW cycle, or a function-level import of a (module, imported module) pair not listed, fails.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+_PATH = Path(__file__).resolve().parents[1] / "tools" / "imports.py"
+_spec = importlib.util.spec_from_file_location("quadcore_tools_imports", _PATH)
+assert _spec is not None and _spec.loader is not None
+graph = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = graph  # its dataclass looks itself up there
+_spec.loader.exec_module(graph)
+
+# ---- to be removed by the identify re-layout, issue 23 --------------------------------------------------
+KNOWN_CYCLES = [
+    {"quadcore.identify.discovery", "quadcore.identify.library_stats"},
+    {"quadcore.identify.evidence", "quadcore.identify.fitting", "quadcore.identify.profiles",
+     "quadcore.identify.regimes", "quadcore.identify.sessions", "quadcore.identify.sufficient",
+     "quadcore.identify.summaries"},
+]
+IDENTIFY_RELAYOUT = {
+    ("quadcore.identify.discovery", "quadcore.export.c.inputs"),
+    ("quadcore.identify.discovery", "quadcore.export.ccode"),
+    ("quadcore.identify.discovery", "quadcore.physics.vehicle"),
+    ("quadcore.identify.evidence", "quadcore.identify.sufficient"),
+    ("quadcore.identify.fitting", "quadcore.effects"),
+    ("quadcore.identify.fitting", "quadcore.identify.model"),
+    ("quadcore.identify.fitting", "quadcore.identify.profiles"),
+    ("quadcore.identify.fitting", "quadcore.identify.sessions"),
+    ("quadcore.identify.fitting", "quadcore.identify.sufficient"),
+    ("quadcore.identify.library_stats", "quadcore.identify.discovery"),
+    ("quadcore.identify.library_stats", "quadcore.identify.fitting"),
+    ("quadcore.identify.model", "quadcore.store.store"),
+    ("quadcore.identify.profiles", "quadcore.identify.evidence"),
+    ("quadcore.identify.profiles", "quadcore.identify.fitting"),
+    ("quadcore.identify.profiles", "quadcore.identify.sufficient"),
+    ("quadcore.identify.sessions", "quadcore.effects"),
+    ("quadcore.identify.sessions", "quadcore.identify.model"),
+    ("quadcore.identify.sessions", "quadcore.identify.sufficient"),
+    ("quadcore.identify.sufficient", "quadcore.identify.evidence"),
+    ("quadcore.identify.sufficient", "quadcore.identify.fitting"),
+    ("quadcore.identify.sufficient", "quadcore.identify.summaries"),
+}
+# ---- end of the identify block ---------------------------------------------------------------------------
+
+# Hide a cycle outside identify: logs/checks <-> physics/dynamics, store -> logs/checks, physics/vehicle ->
+# store (issue 23; untie by moving the physics gate above logs and the decoded-table writer above store).
+KNOT_CYCLES = [
+    {"quadcore.logs.checks", "quadcore.physics.dynamics", "quadcore.physics.vehicle", "quadcore.store.store"},
+]
+KNOTS = {
+    ("quadcore.logs.checks", "quadcore.physics.dynamics"),
+    ("quadcore.logs.checks", "quadcore.physics.rotations"),
+    ("quadcore.physics.dynamics", "quadcore.logs.checks"),
+    ("quadcore.physics.dynamics", "quadcore.logs.units"),
+    ("quadcore.physics.vehicle", "quadcore.store.store"),
+    ("quadcore.store.store", "quadcore.logs.checks"),
+}
+
+# Start-up time: the CLI imports a command's stage inside the command; workflows.learn's report step imports
+# report.learning (matplotlib) only when a report is written.
+STARTUP = {
+    ("quadcore.workflows.learn", "quadcore.report.learning"),
+    ("quadcore.cli", "quadcore.effects"),
+    ("quadcore.cli", "quadcore.export.c"),
+    ("quadcore.cli", "quadcore.export.mcap"),
+    ("quadcore.cli", "quadcore.identify.discovery"),
+    ("quadcore.cli", "quadcore.identify.model"),
+    ("quadcore.cli", "quadcore.identify.verdict"),
+    ("quadcore.cli", "quadcore.learn.features"),
+    ("quadcore.cli", "quadcore.learn.learners"),
+    ("quadcore.cli", "quadcore.learn.splits"),
+    ("quadcore.cli", "quadcore.learn.tables"),
+    ("quadcore.cli", "quadcore.logs.flight"),
+    ("quadcore.cli", "quadcore.physics.dynamics"),
+    ("quadcore.cli", "quadcore.physics.residuals"),
+    ("quadcore.cli", "quadcore.physics.thrustfit"),
+    ("quadcore.cli", "quadcore.physics.vehicle"),
+    ("quadcore.cli", "quadcore.plan.limits"),
+    ("quadcore.cli", "quadcore.plan.planner"),
+    ("quadcore.cli", "quadcore.plan.question"),
+    ("quadcore.cli", "quadcore.sim.simulation"),
+    ("quadcore.cli", "quadcore.store.ownership"),
+    ("quadcore.cli", "quadcore.store.safewrite"),
+    ("quadcore.cli", "quadcore.store.store"),
+    ("quadcore.cli", "quadcore.workflows"),
+    ("quadcore.cli", "quadcore.workflows.fleet"),
+    ("quadcore.cli", "quadcore.workflows.identify"),
+    ("quadcore.cli", "quadcore.workflows.learn"),
+    ("quadcore.cli", "quadcore.workflows.plan"),
+}
+
+# Found on 2026-11-26 without a recorded reason (see the module docstring).
+UNREVIEWED = {
+    ("pipeline.freshness", "quadcore.identify.library_stats"),
+    ("pipeline.freshness", "quadcore.workflows.identify"),
+    ("pipeline.instance", "quadcore.store.store"),
+    ("pipeline.parallel", "pipeline.assets"),
+    ("pipeline.resources", "quadcore.learn.learners"),
+    ("pipeline.resources", "quadcore.logs.flight"),
+    ("pipeline.resources", "quadcore.store.store"),
+    ("pipeline.resources", "quadcore.workflows"),
+    ("pipeline.schedules", "pipeline.freshness"),
+    ("pipeline.ui", "pipeline.instance"),
+    ("pipeline.ui", "pipeline.resources"),
+    ("pipeline.ui", "quadcore.store.ownership"),
+    ("pipeline.webserver", "pipeline.plot_links"),
+    ("pipeline.webserver", "pipeline.resources"),
+    ("quadcore.export.c", "quadcore.learn.evaluation"),
+    ("quadcore.learn.artefacts", "quadcore.identify.model"),
+    ("quadcore.learn.artefacts", "quadcore.physics.vehicle"),
+    ("quadcore.learn.features", "quadcore.store.safewrite"),
+    ("quadcore.learn.features", "quadcore.store.store"),
+    ("quadcore.physics.thrustfit", "quadcore.store.store"),
+    ("quadcore.plan.bench", "quadcore.plan.pieces"),
+    ("quadcore.plan.planner", "quadcore.plan.limits"),
+    ("quadcore.plan.planner", "quadcore.plan.separation"),
+    ("quadcore.report.learning", "quadcore.report.diagnosis"),
+    ("quadcore.workflows.demo", "quadcore.sim.simulation"),
+    ("quadcore.workflows.demo", "quadcore.store.ownership"),
+    ("quadcore.workflows.demo", "quadcore.store.store"),
+    ("quadcore.workflows.fleet", "quadcore.identify.model"),
+    ("quadcore.workflows.fleet", "quadcore.identify.sessions"),
+    ("quadcore.workflows.fleet", "quadcore.logs.checks"),
+    ("quadcore.workflows.fleet", "quadcore.logs.flight"),
+    ("quadcore.workflows.fleet", "quadcore.logs.logformat"),
+    ("quadcore.workflows.fleet", "quadcore.physics.vehicle"),
+    ("quadcore.workflows.fleet", "quadcore.store.store"),
+    ("quadcore.workflows.identify", "quadcore.identify.diagnosis"),
+    ("quadcore.workflows.identify", "quadcore.identify.discovery"),
+    ("quadcore.workflows.identify", "quadcore.identify.fitting"),
+    ("quadcore.workflows.identify", "quadcore.identify.history"),
+    ("quadcore.workflows.identify", "quadcore.identify.library_stats"),
+    ("quadcore.workflows.identify", "quadcore.identify.model"),
+    ("quadcore.workflows.identify", "quadcore.identify.sufficient"),
+    ("quadcore.workflows.identify", "quadcore.report.diagnosis"),
+    ("quadcore.workflows.identify", "quadcore.store.store"),
+    ("quadcore.workflows.learn", "quadcore.learn.artefacts"),
+    ("quadcore.workflows.learn", "quadcore.learn.evaluation"),
+    ("quadcore.workflows.learn", "quadcore.learn.experiments"),
+    ("quadcore.workflows.learn", "quadcore.learn.features"),
+    ("quadcore.workflows.learn", "quadcore.learn.learners"),
+    ("quadcore.workflows.learn", "quadcore.learn.splits"),
+    ("quadcore.workflows.learn", "quadcore.store.store"),
+    ("quadcore.workflows.learn", "quadcore.workflows.identify"),
+    ("quadcore.workflows.plan", "quadcore.identify.model"),
+    ("quadcore.workflows.plan", "quadcore.identify.results"),
+    ("quadcore.workflows.plan", "quadcore.plan.output"),
+    ("quadcore.workflows.plan", "quadcore.plan.pieces"),
+    ("quadcore.workflows.plan", "quadcore.plan.planner"),
+    ("quadcore.workflows.plan", "quadcore.store.store"),
+    ("quadcore.workflows.plan", "quadcore.workflows.fleet"),
+}
+
+ALLOWED = IDENTIFY_RELAYOUT | KNOTS | STARTUP | UNREVIEWED
+
+
+def test_no_new_import_cycle() -> None:
+    found = [set(c) for c in graph.cycles(graph.imports())]
+    new = [sorted(c) for c in found if c not in KNOWN_CYCLES + KNOT_CYCLES]
+    assert not new, "new import cycles (break them; docs/architecture.md): " + "; ".join(" <-> ".join(c) for c in new)
+
+
+def test_function_level_imports_only_on_the_allow_list() -> None:
+    inner = graph.function_level(graph.imports())
+    assert inner, "the reader finds no function-level import at all: it is broken, not the code clean"
+    new = sorted({f"{e.source}:{e.line} imports {e.target} inside {e.function}()"
+                  for e in inner if (e.source, e.target) not in ALLOWED})
+    assert not new, ("function-level imports not on the allow-list (import at module level, or add the pair "
+                     "with its reason to tests/test_import_graph.py):\n" + "\n".join(new))
+
+
+def test_the_reader_sees_a_cycle_it_is_given(tmp_path: Path) -> None:
+    """The cycle finder on a made-up package: a -> b at module level, b -> a inside a function."""
+    pkg = tmp_path / "quadcore"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from quadcore import b\n")
+    (pkg / "b.py").write_text("def f():\n    from quadcore.a import x\n    return x\n")
+    (tmp_path / "pipeline").mkdir()
+    edges = graph.imports(graph.modules(tmp_path))
+    assert graph.cycles(edges) == [["quadcore.a", "quadcore.b"]]
+    inner = [(e.source, e.target, e.function) for e in graph.function_level(edges)]
+    assert inner == [("quadcore.b", "quadcore.a", "f")]
+
+
+def test_the_architecture_picture_is_the_codes() -> None:
+    """docs/img/layers.mmd and docs/architecture.md's mermaid block are what `python tools/imports.py
+    --write-docs` writes from the imports as they are now (re-run it after a change of layers)."""
+    text = graph.mermaid(graph.imports())
+    root = Path(graph.ROOT)
+    assert (root / graph.MERMAID_FILE).read_text(encoding="utf-8") == text
+    assert graph.mermaid_block((root / graph.ARCHITECTURE_PAGE).read_text(encoding="utf-8")) == text
+
+
+def test_each_packages_all_names_what_it_holds() -> None:
+    """Every name in a quadcore package's ``__all__`` imports (a submodule or an attribute), and the old path
+    of CCode (quadcore.export.ccode, kept for plugins) is the same class as the new one."""
+    import importlib
+
+    from quadcore.effects.ccode import CCode
+    from quadcore.export.ccode import CCode as OldPathCCode
+
+    assert OldPathCCode is CCode
+    packages = sorted(p.parent.name for p in (Path(graph.ROOT) / "quadcore").glob("*/__init__.py"))
+    assert len(packages) >= 10
+    for name in packages:
+        package = importlib.import_module(f"quadcore.{name}")
+        assert package.__all__, name
+        for public in package.__all__:
+            found = hasattr(package, public) or importlib.util.find_spec(f"quadcore.{name}.{public}") is not None
+            assert found, f"quadcore.{name}.__all__ names {public!r}, which it does not hold"
