@@ -47,9 +47,10 @@ def _fitted(d, effect: str, name: str) -> str:
     return f"{row.parameters[name]:.4g} ± {row.parameter_std[name]:.2g}"
 
 
-def _term(disc, target: str, expression: str) -> str:
-    t = next((t for t in disc.terms if t.target == target and t.expression == expression), None)
-    return "not kept" if t is None else f"{t.coefficient:.4g} ± {t.std:.2g}"
+def _term(disc, target: str, base: str):
+    """The kept term of ``target`` linear in ``base`` (``base`` or ``base`` times the thrust)."""
+    return next((t for t in disc.terms if t.target == target and t.expression in (base, f"{base}*T_N", f"T_N*{base}")),
+                None)
 
 
 def _kept(disc) -> str:
@@ -71,7 +72,7 @@ def rows_at(rate: int, fleets: dict[str, rf.Fleet]) -> list[list[str]]:
 
     for name in ("rotor_drag", "rotor_drag_xy"):
         fleet = fleets[name]
-        truth, hover = rf.projected_truth(fleet, rate), rf.truth(fleet.physics)
+        truth, hover = rf.projected_truth(fleet, rate), rf.truth(fleet.physics)  # k: projected on T v
         what = "rotor drag k_d, k_z (rotorpy's default)" if name == "rotor_drag" else "rotor drag k_d alone (k_z = 0)"
         d = rf.diagnose(flights(name, SPEED), SPEED)
         for axis in "xy":
@@ -79,14 +80,23 @@ def rows_at(rate: int, fleets: dict[str, rf.Fleet]) -> list[list[str]]:
             out.append([what, f"rotor_drag.{key}", f"{truth['rotor_drag.' + key]:.4g} "
                         f"(hover {hover['rotor_drag.' + key]:.4g})", _fitted(d, "rotor_drag", key), _verdict(d)])
         d2 = rf.diagnose(flights(name, SPEED), SPEED, ("rotor_drag",))
-        out.append([what, "with rotor_drag in the model", "-", "-", _verdict(d2)])
+        k_z = -rf.projection(fleet, rate, "f_res_b_z_N", "T_N*v_b_z_mps", rotor_drag_only=True)
+        out.append([what, "with rotor_drag in the model: rotor_drag_z.k_z_s_per_m", f"{k_z:.4g}",
+                    _fitted(d2, "rotor_drag_z", "k_z_s_per_m"), _verdict(d2)])
+        if name == "rotor_drag":
+            d3 = rf.diagnose(flights(name, SPEED), SPEED, ("rotor_drag", "rotor_drag_z"))
+            out.append([what, "with rotor_drag and rotor_drag_z in the model", "-", "-", _verdict(d3)])
         disc = rf.discover(flights(name, SPEED), SPEED, ("rotor_drag",))
-        for label, target, expr, key, sign in (
-                ("vertical drag, kg/s", "f_res_b_z_N", "v_b_z_mps", "vertical_drag_kg_per_s", -1),
-                ("roll damping, N m s", "tau_res_b_x_Nm", "omega_b_x_radps", "roll_rate_damping_Nms", -1),
-                ("yaw damping, N m s", "tau_res_b_z_Nm", "omega_b_z_radps", "yaw_rate_damping_Nms", -1)):
-            out.append([what, f"discover on rotor_drag: {label}", f"{sign * truth[key]:.4g}", _term(disc, target, expr),
-                        "kept" if "not" not in _term(disc, target, expr) else "not kept"])
+        for label, target, base in (("vertical drag", "f_res_b_z_N", "v_b_z_mps"),
+                                    ("roll damping", "tau_res_b_x_Nm", "omega_b_x_radps"),
+                                    ("yaw damping", "tau_res_b_z_Nm", "omega_b_z_radps")):
+            t = _term(disc, target, base)
+            if t is None:
+                out.append([what, f"discover on rotor_drag: {label}", "-", "-", "not kept"])
+                continue
+            value = rf.projection(fleet, rate, target, t.expression, rotor_drag_only=True)
+            out.append([what, f"discover on rotor_drag: {label}, {target} ~ c {t.expression}", f"{value:.4g}",
+                        f"{t.coefficient:.4g} ± {t.std:.2g}", "kept"])
         out.append([what, "discover on rotor_drag: every term", "-", "-", _kept(disc)])
 
     fleet = fleets["parasitic"]
