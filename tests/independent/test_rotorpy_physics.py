@@ -306,22 +306,21 @@ def test_motor_lag_is_first_and_recovered(fleet, thrust_map, rate):
     thrust ``k_eta w^2`` then lags its command ``k_eta w_cmd^2`` with the same time constant to
     first order. Through the PWM map (the logged commands) motor_lag is first and tau within three
     reported standard deviations of 0.072 s, on flights half of which start mid-manoeuvre."""
-    d = _diagnosis(fleet, rate, thrust_map)
-    top = d.candidates[0]
-    assert top.effect == "motor_lag" and top.found, _found(d)
-    _within_3_sigma(top.parameters["tau_s"], top.parameter_std["tau_s"], FLEETS[fleet].physics.tau_m or 0.0,
-                    "motor_lag.tau_s")
+    _assert_lag_recovered_and_first(_diagnosis(fleet, rate, thrust_map), FLEETS[fleet].physics.tau_m or 0.0)
+
+
+def _assert_lag_recovered_and_first(d, tau_s: float) -> None:
+    row = next(c for c in d.candidates if c.effect == "motor_lag")
+    _within_3_sigma(row.parameters["tau_s"], row.parameter_std["tau_s"], tau_s, "motor_lag.tau_s")
+    assert d.candidates[0].effect == "motor_lag" and row.found, _found(d)
 
 
 @pytest.mark.parametrize("fleet,thrust_map,rate", _cases("motor lag from hover starts", LAG))
 def test_motor_lag_is_recovered_on_flights_that_start_in_hover(fleet, thrust_map, rate):
     """The same on the three flights whose log starts in hover (the rotors at their steady
     state), where the lag filter's steady start is right."""
-    d = _diagnosis(fleet, rate, thrust_map, only=HOVER_START)
-    top = d.candidates[0]
-    assert top.effect == "motor_lag" and top.found, _found(d)
-    _within_3_sigma(top.parameters["tau_s"], top.parameter_std["tau_s"], FLEETS[fleet].physics.tau_m or 0.0,
-                    "motor_lag.tau_s")
+    _assert_lag_recovered_and_first(_diagnosis(fleet, rate, thrust_map, only=HOVER_START),
+                                    FLEETS[fleet].physics.tau_m or 0.0)
 
 
 @pytest.mark.parametrize("fleet,thrust_map,rate", _cases("motor lag in, nothing left", LAG))
