@@ -10,7 +10,7 @@ PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
 # DAGSTER_HOME: <data root>/.dagster unless set (pipeline.instance), the demo's in its own root.
 
-.PHONY: install run demo test test-fast lint docs ui bench fuzz
+.PHONY: install run demo test test-fast lint docs ui bench fuzz cluster-up cluster-run cluster-down
 
 install: $(STAMP)
 
@@ -82,3 +82,17 @@ bench: $(STAMP)
 fuzz: $(STAMP)
 	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.harness --mutants 2000 --kills 100 --pipeline-kills 8
 	nice -n 10 $(VENV_PYTHON) -m tests.fuzz.configs
+
+# The local cluster (pipeline.cluster, deploy/local): PostgreSQL, Redis, an S3 store (moto), Celery
+# workers, the daemon and the webserver, all on 127.0.0.1, state in .cluster/. WORKERS=4 for more.
+WORKERS ?= 2
+cluster-up: $(STAMP)
+	bash deploy/local/system-packages.sh
+	$(VENV_PYTHON) -m pipeline.cluster up --workers $(WORKERS)
+
+# The main job with its runs on the cluster (through the daemon's queue, steps on the workers).
+cluster-run: $(STAMP)
+	$(VENV_PYTHON) -m pipeline.cluster run
+
+cluster-down: $(STAMP)
+	$(VENV_PYTHON) -m pipeline.cluster down

@@ -27,6 +27,7 @@ from dagster._core.instance.ref import InstanceRef
 from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
 from dagster._serdes import deserialize_value, serialize_value
 
+from pipeline.cluster import launch
 from pipeline.instance import unsynced_event_log, unsynced_homes
 from pipeline.partitions import failed_flights
 
@@ -71,6 +72,12 @@ def failure_reason(result) -> str:
 
 
 def materialize(assets, resources, instance, partition_key=None, tags=None):
+    """One run of ``assets``: in this process, or on the cluster when ``QUADCORE_CLUSTER_URL`` is
+    set (:mod:`pipeline.cluster.launch`: the code location's resources, which the same
+    environment configures)."""
+    if launch.cluster_url():
+        tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
+        return launch.wait(instance, [launch.submit(assets, tags)])[0]
     return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
                           run_config=QUIET, raise_on_error=False, tags=tags)
 
@@ -94,6 +101,8 @@ def halves(keys: list[str], sizes: Sequence[float] | None = None, split_at: int 
     of consecutive partitions of about the same work: the same total of ``sizes`` (the flights'
     log bytes: the time per flight grows with its samples) or, without them, of flights. Else
     the range itself."""
+    if launch.cluster_url():  # a run per worker: the cluster runs them at once
+        split_at = 2
     if len(keys) < (SPLIT_AT_FLIGHTS if split_at is None else split_at) or one_process():
         return [keys]
     cumulative = np.cumsum(sizes if sizes is not None else np.ones(len(keys)))
@@ -114,6 +123,8 @@ def materialize_ranges(assets, resources: dict, instance, ranges: list[list[str]
     process (:func:`second_process`) on the same instance (``instance.get_ref()``). A second
     process that dies (killed, out of memory) leaves its range to this process, so its flights
     still run."""
+    if launch.cluster_url():
+        return _on_cluster(assets, instance, ranges)
     if len(ranges) == 1:
         return [materialize_range(assets, resources, instance, ranges[0])]
     first, second = ranges
@@ -130,6 +141,15 @@ def materialize_ranges(assets, resources: dict, instance, ranges: list[list[str]
     except BrokenProcessPool:
         shutdown()
         return [here, materialize_range(assets, resources, instance, second)]
+
+
+def _on_cluster(assets, instance, ranges: list[list[str]]) -> list[RangeOutcome]:
+    """Every range a run in the cluster's queue at once; the daemon runs as many as it allows."""
+    t0 = time.perf_counter()
+    runs = launch.wait(instance, [launch.submit(assets, range_tags(keys)) for keys in ranges])
+    seconds = time.perf_counter() - t0
+    return [RangeOutcome(True, {}, "", seconds) if run.success
+            else RangeOutcome(False, failed_flights(run), failure_reason(run), seconds) for run in runs]
 
 
 _POOL: list[ProcessPoolExecutor] = []

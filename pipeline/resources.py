@@ -209,10 +209,14 @@ def executor_from_env():
         from dagster_k8s import k8s_job_executor  # type: ignore[import-not-found]
 
         return k8s_job_executor
-    if kind == "celery":
+    if kind == "celery":  # the broker and result backend: QUADCORE_CELERY_BROKER / _BACKEND (see pipeline.cluster)
         from dagster_celery import celery_executor  # type: ignore[import-not-found]
 
-        return celery_executor
+        from pipeline.cluster.services import celery_config
+
+        broker = os.environ.get("QUADCORE_CELERY_BROKER", "")
+        backend = os.environ.get("QUADCORE_CELERY_BACKEND", "") or "rpc://"
+        return celery_executor.configured(celery_config(broker, backend)) if broker else celery_executor
     local = {"": None, "in_process": dg.in_process_executor, "multiprocess": dg.multiprocess_executor}
     if kind not in local:
         raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")

@@ -1,0 +1,99 @@
+"""The main job's runs, submitted to a cluster instead of executed in this process.
+
+With ``QUADCORE_CLUSTER_URL`` set (``make cluster-up`` writes it to ``.cluster/env``), every
+materialisation of the main job (:mod:`pipeline.main`) is a run submitted through the
+webserver's GraphQL API to the instance's run queue: the daemon launches it when a slot is
+free, its steps run on the Celery workers, and this process waits for it and reads its events
+from the shared instance (PostgreSQL). The stages, their order and what counts as stale are the
+same as on one machine: only where the work runs changes.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from urllib.parse import urlparse
+
+import dagster as dg
+
+# Polling the instance for the runs' ends: a run of the main job takes seconds to minutes.
+POLL_S = 1.0
+# Our location's name in deploy/local/workspace.yaml.
+LOCATION = "quadcore"
+# The implicit job of all assets: a submission names the assets it materialises.
+ASSET_JOB = "__ASSET_JOB"
+ENDED = {dg.DagsterRunStatus.SUCCESS, dg.DagsterRunStatus.FAILURE, dg.DagsterRunStatus.CANCELED}
+
+
+def cluster_url() -> str | None:
+    """The cluster's webserver (``QUADCORE_CLUSTER_URL``), or None: runs in this process."""
+    return os.environ.get("QUADCORE_CLUSTER_URL", "").strip() or None
+
+
+@dataclass
+class SubmittedRun:
+    """A run submitted to the cluster, read back as :func:`dagster.materialize`'s result is read:
+    ``success``, the step failure events and all events (for the failure reasons)."""
+
+    run_id: str
+    instance: dg.DagsterInstance
+
+    @property
+    def success(self) -> bool:
+        run = self.instance.get_run_by_id(self.run_id)
+        return run is not None and run.status == dg.DagsterRunStatus.SUCCESS
+
+    @property
+    def all_events(self) -> list[dg.DagsterEvent]:
+        return [e.dagster_event for e in self.instance.all_logs(self.run_id) if e.dagster_event is not None]
+
+    def get_step_failure_events(self) -> list[dg.DagsterEvent]:
+        return [e for e in self.all_events if e.is_step_failure]
+
+
+def _client():
+    from dagster_graphql import DagsterGraphQLClient
+
+    url = urlparse(cluster_url() or "")
+    return DagsterGraphQLClient(url.hostname or "127.0.0.1", port_number=url.port, timeout=120)
+
+
+def submit(assets, tags: dict[str, str] | None = None) -> str:
+    """One run of ``assets`` (keys, partitions in ``tags``) in the cluster's queue; its id."""
+    keys = [key for a in assets for key in a.keys]
+    return _client().submit_job_execution(ASSET_JOB, repository_location_name=LOCATION,
+                                          tags={"quadcore/main": "yes", **(tags or {})}, asset_selection=keys)
+
+
+def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = True) -> list[SubmittedRun]:
+    """Wait until each run has ended: a run retried by the daemon (``run_retries``) is followed
+    to its last retry. The runs, read back."""
+    final = list(run_ids)
+    while True:
+        runs = [instance.get_run_by_id(r) for r in final]
+        if all(r is not None and r.status in ENDED for r in runs):
+            retried = [_retry_of(instance, r) if retries and r is not None and r.status != dg.DagsterRunStatus.SUCCESS
+                       else None for r in runs]
+            if not any(retried):
+                return [SubmittedRun(r, instance) for r in final]
+            final = [new or old for new, old in zip(retried, final)]
+        time.sleep(POLL_S)
+
+
+def _retry_of(instance: dg.DagsterInstance, run) -> str | None:
+    """The daemon's retry of a failed run, if it made or will make one (``dagster/retry_number``)."""
+    retries = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
+    if retries:
+        return retries[0].run_id
+    max_retries = int(run.tags.get("dagster/max_retries", instance.run_retries_max_retries))
+    number = int(run.tags.get("dagster/retry_number", "0"))
+    if instance.run_retries_enabled and number < max_retries and run.status == dg.DagsterRunStatus.FAILURE:
+        deadline = time.monotonic() + 60.0  # the daemon's retry loop runs every few seconds
+        while time.monotonic() < deadline:
+            found = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
+            if found:
+                return found[0].run_id
+            time.sleep(POLL_S)
+    return None
