@@ -210,7 +210,7 @@ def executor_from_env():
 
         return k8s_job_executor
     if kind == "celery":  # the broker and result backend: QUADCORE_CELERY_BROKER / _BACKEND (see pipeline.cluster)
-        from dagster_celery import celery_executor  # type: ignore[import-not-found]
+        from dagster_celery import celery_executor
 
         from pipeline.cluster.services import celery_config
 

@@ -52,6 +52,10 @@ class SubmittedRun:
     def get_step_failure_events(self) -> list[dg.DagsterEvent]:
         return [e for e in self.all_events if e.is_step_failure]
 
+    def asset_materializations_for_node(self, node: str) -> list[dg.AssetMaterialization]:
+        return [e.step_materialization_data.materialization for e in self.all_events
+                if e.is_step_materialization and e.step_key == node]
+
 
 def _client():
     from dagster_graphql import DagsterGraphQLClient

@@ -142,6 +142,9 @@ def write_settings(c: Cluster, raw_dir: Path, workers: int) -> dict[str, str]:
         "QUADCORE_CLUSTER_URL": f"http://127.0.0.1:{web}",
         "DAGSTER_HOME": str(c.home / "dagster"),
         "QUADCORE_EXECUTOR": "celery",
+        # every process of the cluster sees the sensors' default status alike (a sensor started
+        # or stopped from a shell records it only where its default differs)
+        "QUADCORE_AUTOMATION": os.environ.get("QUADCORE_AUTOMATION", "on"),
         "QUADCORE_CELERY_BROKER": f"redis://127.0.0.1:{redis}/0",
         "QUADCORE_CELERY_BACKEND": f"redis://127.0.0.1:{redis}/1",
         "QUADCORE_DATA_ROOT": f"s3://{BUCKET}/data",
@@ -175,7 +178,8 @@ def _wait(check, what: str, log: Path, timeout: float = START_TIMEOUT_S, pidfile
             break
         time.sleep(0.5)
     tail = log.read_text(errors="replace").splitlines()[-5:] if log.is_file() else []
-    raise ClusterError(f"{what} did not start" + (f" within {timeout:.0f} s" if timeout else " (it ended)") + f" (log {log}): " + " | ".join(tail))
+    when = f" within {timeout:.0f} s" if timeout else " (it ended)"
+    raise ClusterError(f"{what} did not start{when} (log {log}): " + " | ".join(tail))
 
 
 def _port_open(port: int) -> bool:
@@ -191,6 +195,10 @@ def start_postgres(c: Cluster, s: dict[str, str]) -> None:
     sockets.mkdir(exist_ok=True)
     log = c.logs / "postgres.log"
     if os.geteuid() == 0:
+        reach = subprocess.run(["runuser", "-u", "postgres", "--", "test", "-x", str(c.home)], capture_output=True)
+        if reach.returncode != 0:
+            raise ClusterError(f"PostgreSQL runs as the user postgres, which cannot reach {c.home}: choose a "
+                               "QUADCORE_CLUSTER_DIR whose every parent folder others may enter (mode o+x)")
         for path in (sockets, c.logs):
             shutil.chown(path, "postgres")
     if not (data / "PG_VERSION").is_file():
@@ -265,7 +273,7 @@ def start_store(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
     port = int(s["QUADCORE_CLUSTER_S3_PORT"])
     spawn(c, "s3", [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], env)
     _wait(lambda: _port_open(port), "the S3 server", c.logs / "s3.log")
-    import boto3  # moto's dependency; only the cluster needs it
+    import boto3  # type: ignore[import-untyped]  # moto's dependency; only the cluster needs it
 
     client = boto3.client("s3", endpoint_url=s["AWS_ENDPOINT_URL"], aws_access_key_id=s["AWS_ACCESS_KEY_ID"],
                           aws_secret_access_key=s["AWS_SECRET_ACCESS_KEY"], region_name=s["AWS_DEFAULT_REGION"])

@@ -38,7 +38,7 @@ def document_json(doc: dict[str, Any]) -> str:
 
 
 def write_json(doc: dict[str, Any], path: str | Path) -> Path:
-    return store.write_text(document_json(doc), path)
+    return store.write_text(document_json(doc), store.as_root(path))
 
 
 def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None, arena: tuple, title: str,
@@ -89,4 +89,4 @@ def plot_png(p_w_m: np.ndarray, speed_mps: np.ndarray, differ: np.ndarray | None
 
 
 def write_plot(png: bytes, path: str | Path) -> Path:
-    return store.write_bytes(png, path)
+    return store.write_bytes(png, store.as_root(path))

@@ -73,4 +73,4 @@ def to_csv(traj: PolyTrajectory) -> str:
 
 def write_csv(traj: PolyTrajectory, path: str | Path) -> Path:
     """Write the CSV atomically (``quadcore.store.store.write_text``)."""
-    return store.write_text(to_csv(traj), path)
+    return store.write_text(to_csv(traj), store.as_root(path))
