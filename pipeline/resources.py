@@ -18,6 +18,8 @@ from pathlib import Path
 
 import dagster as dg
 
+from pipeline.cluster import services
+
 
 class SettingError(ValueError):
     """A ``QUADCORE_*`` environment setting that cannot be used (a user error: one line, exit 2)."""
@@ -212,11 +214,9 @@ def executor_from_env():
     if kind == "celery":  # the broker and result backend: QUADCORE_CELERY_BROKER / _BACKEND (see pipeline.cluster)
         from dagster_celery import celery_executor
 
-        from pipeline.cluster.services import celery_config
-
         broker = os.environ.get("QUADCORE_CELERY_BROKER", "")
         backend = os.environ.get("QUADCORE_CELERY_BACKEND", "") or "rpc://"
-        return celery_executor.configured(celery_config(broker, backend)) if broker else celery_executor
+        return celery_executor.configured(services.celery_config(broker, backend)) if broker else celery_executor
     local = {"": None, "in_process": dg.in_process_executor, "multiprocess": dg.multiprocess_executor}
     if kind not in local:
         raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
