@@ -51,7 +51,7 @@ lint: $(STAMP)
 # anchor fails it. tests/test_docs.py builds it in the fast tier (CI: make test).
 docs: $(STAMP)
 	$(VENV_PYTHON) docs/gen_reference.py
-	NO_MKDOCS_2_WARNING=1 $(VENV_PYTHON) -m mkdocs build --strict --quiet
+	NO_MKDOCS_2_WARNING=1 $(VENV_PYTHON) -m mkdocs build --strict
 
 # Dagster's UI and daemon until Ctrl-C / SIGTERM (plots served on the same port); PORT=3300 make ui for another port.
 ui: $(STAMP)
