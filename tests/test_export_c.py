@@ -267,14 +267,16 @@ def test_dagster_asset_writes_the_c_files_under_the_data_root(data_root, tmp_pat
     import dagster as dg
 
     from pipeline.assets.export import exported_model
-    from pipeline.resources import DataRoot
+    from pipeline.resources import DataRoot, ModelConfig
 
     root, physics = data_root
+    fitted = ModelConfig(effects="com_offset")  # the data root's model (the asset loads its spec's plugins)
     with dg.instance_for_test() as instance:
-        result = dg.materialize([exported_model], instance=instance, resources={"data_root": DataRoot(root=str(root))},
+        result = dg.materialize([exported_model], instance=instance,
+                                resources={"data_root": DataRoot(root=str(root)), "model": fitted},
                                 run_config={"ops": {"exported_model": {"config": {"learned": "mlp"}}}})
         empty = dg.materialize([exported_model], instance=instance, raise_on_error=False,
-                               resources={"data_root": DataRoot(root=str(tmp_path))})
+                               resources={"data_root": DataRoot(root=str(tmp_path)), "model": fitted})
     (mat,) = result.asset_materializations_for_node("exported_model")
     meta = {k: v.value for k, v in mat.metadata.items()}
     assert meta["header"] == str(root / "export_c" / "quadcore_model.h") and Path(meta["source"]).is_file()
