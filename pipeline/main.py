@@ -27,6 +27,7 @@ from pipeline import parallel
 from pipeline.assets import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
+from pipeline.cluster import launch
 from pipeline.freshness import model_version
 from pipeline.instance import ensure_dagster_home, unsynced_event_log
 from pipeline.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
@@ -412,7 +413,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Data root: {data_root.root_path}\nRaw logs:  {data_root.raw_path}\nDagster:   {home}")
     path, origin = model_file_from_env()
     print(f"Model:     {path or '(none)'}\n           from {origin}\n")
-    return run_all(data_root, model, dg.DagsterInstance.get(), demo=demo)
+    try:
+        return run_all(data_root, model, dg.DagsterInstance.get(), demo=demo)
+    except launch.ClusterUnavailable as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -25,6 +25,13 @@ LOCATION = "quadcore"
 # The implicit job of all assets: a submission names the assets it materialises.
 ASSET_JOB = "__ASSET_JOB"
 ENDED = {dg.DagsterRunStatus.SUCCESS, dg.DagsterRunStatus.FAILURE, dg.DagsterRunStatus.CANCELED}
+# The daemon beats every few seconds; a run coordinator silent for longer is not running, and a
+# queued run would wait for it for ever.
+DAEMON_SILENT_S = 120.0
+
+
+class ClusterUnavailable(RuntimeError):
+    """The cluster cannot run what was submitted (its daemon is not running): one line for the user."""
 
 
 def cluster_url() -> str | None:
@@ -77,6 +84,8 @@ def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = T
     final = list(run_ids)
     while True:
         runs = [instance.get_run_by_id(r) for r in final]
+        if any(r is not None and r.status == dg.DagsterRunStatus.QUEUED for r in runs):
+            check_daemon(instance)
         if all(r is not None and r.status in ENDED for r in runs):
             retried = [_retry_of(instance, r) if retries and r is not None and r.status != dg.DagsterRunStatus.SUCCESS
                        else None for r in runs]
@@ -84,6 +93,15 @@ def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = T
                 return [SubmittedRun(r, instance) for r in final]
             final = [new or old for new, old in zip(retried, final)]
         time.sleep(POLL_S)
+
+
+def check_daemon(instance: dg.DagsterInstance) -> None:
+    """:class:`ClusterUnavailable` when the daemon's run coordinator has not beaten for
+    :data:`DAEMON_SILENT_S` (or never): queued runs would never start."""
+    beat = instance.get_daemon_heartbeats().get("QUEUED_RUN_COORDINATOR")
+    if beat is None or time.time() - beat.timestamp > DAEMON_SILENT_S:
+        raise ClusterUnavailable("the cluster's daemon is not running, so the queued runs cannot start: "
+                                 "`make cluster-up` starts it again (its log: .cluster/logs/daemon.log)")
 
 
 def _retry_of(instance: dg.DagsterInstance, run) -> str | None:
