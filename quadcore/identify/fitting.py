@@ -158,41 +158,76 @@ def flight_data(flight: str, decoded, vehicle: Vehicle) -> FlightData:
     return FlightData(flight, state, r["f_res_b"], r["tau_res_b"], mask, sensor_noise_floor(state, vehicle, mask))
 
 
-def _noise_gains(dt: float) -> tuple[float, float]:
-    """RMS gain for white noise of the smoother and of the derivative (per second) at
-    sample period ``dt``: the norms of their impulse responses."""
+def _noise_gains(dt: float, hold_s: float = 0.0) -> tuple[float, float, float]:
+    """RMS gain for white noise of the smoother, of the derivative (per second) and of the
+    modelled torque's filter (:func:`quadcore.physics.signals.matched_to_derivative` with
+    samples held ``hold_s``) at sample period ``dt``: the norms of their impulse responses."""
     n = 8 * signals.WINDOW + 1
     x = np.zeros(n)
     x[n // 2] = 1.0
+    t = np.arange(n) * dt
     return (float(np.sqrt(np.sum(signals.smooth(x) ** 2))),
-            float(np.sqrt(np.sum(signals.derivative(x, np.arange(n) * dt) ** 2))))
+            float(np.sqrt(np.sum(signals.derivative(x, t) ** 2))),
+            float(np.sqrt(np.sum(signals.matched_to_derivative(x, t, hold_s) ** 2))))
+
+
+def _white_noise(x: np.ndarray, mask: np.ndarray, g_s: float) -> np.ndarray:
+    """Per column, the white-noise standard deviation of a logged signal: what the smoother
+    removes (``x - smooth(x)``; robust spread, so short manoeuvres do not count), scaled by
+    ``1 / sqrt(1 - h0)`` for the share of white noise the smoother keeps (``h0`` = its centre
+    coefficient = ``g_s²``, the squared norm of its impulse response)."""
+    d = (x - signals.smooth(x))[mask]
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(max(1.0 - g_s**2, 1e-6))
 
 
 def sensor_noise_floor(state: FlightState, vehicle: Vehicle, mask: np.ndarray | None = None) -> np.ndarray:
-    """(6,) RMS that white accelerometer and gyro noise alone leave in the residual force
-    (N) and torque (N m), per axis: the floor below which no effect can be seen.
+    """(6,) RMS that white measurement noise alone leaves in the residual force (N) and
+    torque (N m), body frame, per axis: the floor below which no effect can be seen.
 
-    The white-noise level of each sensor axis is read off the flight itself: what the
-    smoother removes (``x - smooth(x)``; robust spread, so short manoeuvres do not count),
-    scaled by ``1 / sqrt(1 - h0)`` for the share of white noise the smoother keeps
-    (``h0`` = its centre coefficient = the squared norm of its impulse response). It then
-    passes the residual's filters: ``m smooth(sf)`` for force, ``J d/dt ω`` for torque.
-    Anything above ~17 Hz that is not noise (vibration) counts as noise here, which is
-    what it is for a rigid-body model.
+    **Measured side.** The white-noise level σ of each accelerometer and gyro axis is read off
+    the flight itself (:func:`_white_noise`). It then passes the residual's filters:
+    ``m smooth(sf_b)`` for force (``m σ_sf g_s``), ``J d/dt ω_b`` for torque
+    (``g_d sqrt((J∘J) σ_ω²)``, ``g_d`` the derivative's gain per second).
+
+    **Modelled side.** PWM commands are set, not measured: they carry no noise. With the
+    ``motor_speed`` map the modelled wrench is a function of logged, noisy rotor speeds
+    ``ω_i = ω̄_i + ε_i`` (white, σ_i per rotor, read off the flight the same way). To first
+    order (``k_F ε²`` is ``ε / 2ω`` smaller) the rotor thrusts move by ``δf_i = 2 k_F ω_i ε_i``
+    and the body wrench ``[T, τ_x, τ_y, τ_z] = A f`` (``A``: ``Vehicle.allocation``) by
+    ``δw_c = Σ_i A_ci 2 k_F ω_i ε_i``, whose variance averaged over the usable samples is::
+
+        σ_c² = Σ_i A_ci² (2 k_F)² ⟨ω_i²⟩ σ_i²
+
+    The thrust ``T`` (body z force) passes ``smooth`` (gain ``g_s``) and the torques pass
+    :func:`quadcore.physics.signals.matched_to_derivative` (gain ``g_m``, the held-for-no-time
+    trapezoid for measured speeds). Measured and modelled noise are independent: the floor
+    per channel is their root sum of squares. Anything above ~17 Hz that is not noise
+    (vibration, fast motor-speed ripple) counts as noise here, which is what it is for a
+    rigid-body model.
     """
     mask = np.ones(state.n, dtype=bool) if mask is None else mask
     if state.n < 4 * signals.WINDOW or mask.sum() < signals.WINDOW:
         return np.zeros(6)
-    g_s, g_d = _noise_gains(float(np.median(np.diff(state.t_s))))
-
-    def white(x: np.ndarray) -> np.ndarray:
-        d = (x - signals.smooth(x))[mask]
-        mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-        return 1.4826 * mad / np.sqrt(max(1.0 - g_s**2, 1e-6))
-
-    s_acc, s_gyro = white(state.sf_b_mps2), white(state.omega_b_radps)
+    g_s, g_d, g_m = _noise_gains(float(np.median(np.diff(state.t_s))), state.thrust_hold_s)
+    s_acc, s_gyro = _white_noise(state.sf_b_mps2, mask, g_s), _white_noise(state.omega_b_radps, mask, g_s)
     J = np.asarray(vehicle.inertia_kgm2)
-    return np.concatenate([vehicle.mass_kg * s_acc * g_s, g_d * np.sqrt((J**2) @ (s_gyro**2))])
+    floor = np.concatenate([vehicle.mass_kg * s_acc * g_s, g_d * np.sqrt((J**2) @ (s_gyro**2))])
+    if vehicle.thrust_map_kind == "motor_speed" and state.motor_radps is not None:
+        gains = np.array([0.0, 0.0, g_s, g_m, g_m, g_m])
+        floor = np.sqrt(floor**2 + gains**2 * _thrust_input_variance(state, vehicle, mask, g_s))
+    return floor
+
+
+def _thrust_input_variance(state: FlightState, vehicle: Vehicle, mask: np.ndarray, g_s: float) -> np.ndarray:
+    """(6,) ``σ_c²`` of the body wrench [F_x, F_y, F_z, τ_x, τ_y, τ_z] before the residual's
+    filters, from the white noise of the logged rotor speeds through the motor-speed map
+    (see :func:`sensor_noise_floor`; no thrust on the body x and y axes)."""
+    omega = np.asarray(state.motor_radps)
+    s_omega = _white_noise(omega, mask, g_s)
+    slope_sq = np.mean(vehicle.motor_speed.thrust_slope_N_per_radps(omega[mask]) ** 2, axis=0)
+    var_w = (vehicle.allocation**2) @ (slope_sq * s_omega**2)  # [T, τ_x, τ_y, τ_z]
+    return np.concatenate([[0.0, 0.0], var_w])
 
 
 def prediction(effect: Effect, params: dict, fd: FlightData, vehicle: Vehicle) -> np.ndarray:

@@ -76,6 +76,10 @@ class MotorSpeedThrustMap:
     def speed_for_thrust(self, thrust_N: np.ndarray) -> np.ndarray:
         return np.sqrt(np.maximum(thrust_N, 0.0) / self.k_F_N_per_radps2)
 
+    def thrust_slope_N_per_radps(self, omega_radps: np.ndarray) -> np.ndarray:
+        """The map's Jacobian per rotor: ``df/domega = 2 k_F omega`` (N per rad/s)."""
+        return 2.0 * self.k_F_N_per_radps2 * np.asarray(omega_radps)
+
 
 @dataclass(frozen=True)
 class Vehicle:

@@ -45,14 +45,9 @@ HOVER_START = ("f2", "f4", "f5")  # the flights whose log starts in hover (rf.st
 # What fails on main today, by test and case (fleet, thrust map, log rate): the item of issue 21
 # that owns the cause, and what is wrong. Whoever lands the fix deletes the entry (its strict
 # xfail fails once the behaviour is right, naming this table).
-_T100 = ("item 2", "at 100 Hz discover keeps a pitch torque ~ -1e-6 omega_x omega_z on clean flights (and, with the "
-        "motor-speed map, -2.3 ms x d(tau_rotor_z)/dt): the Euler term and the rotor torque are not yet aligned "
-        "with the measured torque at 100 Hz; the clean torque residual is 1.9x the noise floor (PWM map)")
-_NOISE = ("(a cause not in items 2-7)", "the sensor-noise floor leaves out the noise of the logged motor speeds "
-          "(15 rpm), which the motor-speed map carries into the modelled torque: on clean flights the torque "
-          "residual is 1.45x the floor at 500 Hz (5.2x at 100 Hz, with item 2), and the verdict reads 'mostly "
-          "outside the library' (thrust_delay 0.67 +- 0.17 ms 'confirmed') or 'a physical effect outside the "
-          "library'")
+_T100 = ("item 2", "at 100 Hz discover keeps a pitch torque ~ -1e-6 omega_x omega_z on clean flights: the Euler "
+        "term and the rotor torque are not yet aligned with the measured torque at 100 Hz; the clean torque "
+        "residual is 1.9x the noise floor (PWM map)")
 _FIRST = ("item 3", "on rotorpy's rotor drag (horizontal k_d and vertical k_z) parasitic_drag is ranked first: its two "
           "coefficients cover x-y and z, while rotor_drag and rotor_drag_z each explain one part; the two linear "
           "effects together are the answer")
@@ -64,10 +59,8 @@ _LAG500 = ("item 4", "since 769a0dd (lag and delay fits for flights starting in 
 KNOWN: dict[tuple[str, str, str, int], tuple[str, str]] = {
     ("motor lag first", "lag", PWM, 500): _LAG500,
     ("motor lag from hover starts", "lag", PWM, 500): _LAG500,
-    ("nothing found", "clean", SPEED, 500): _NOISE,
-    **{("at the noise floor", f, SPEED, r): _NOISE for f in ("clean", "lag") for r in RATES},
     ("at the noise floor", "clean", PWM, 100): _T100,
-    **{("discover keeps nothing", f, m, 100): _T100 for f, m in (("clean", SPEED), ("clean", PWM), ("lag", SPEED))},
+    ("discover keeps nothing", "clean", PWM, 100): _T100,
     **{("rotor drag first", "rotor_drag", SPEED, r): _FIRST for r in RATES},
     ("motor lag first", "lag", PWM, 100): _LAG100,
     ("motor lag from hover starts", "lag", PWM, 100): _LAG100,
