@@ -86,9 +86,14 @@ def materialize_range(assets, resources: dict, instance, keys: Sequence[str]) ->
     """One run of ``assets`` over the flight partitions ``keys`` (consecutive), in this process."""
     t0 = time.perf_counter()
     result = materialize(assets, resources, instance, tags=range_tags(keys))
+    return outcome(result, time.perf_counter() - t0)
+
+
+def outcome(result, seconds: float) -> RangeOutcome:
+    """A run's result (in this process or on the cluster) as the main job reads it."""
     if result.success:
-        return RangeOutcome(True, {}, "", time.perf_counter() - t0)
-    return RangeOutcome(False, failed_flights(result), failure_reason(result), time.perf_counter() - t0)
+        return RangeOutcome(True, {}, "", seconds)
+    return RangeOutcome(False, failed_flights(result), failure_reason(result), seconds)
 
 
 def one_process() -> bool:
@@ -147,9 +152,7 @@ def _on_cluster(assets, instance, ranges: list[list[str]]) -> list[RangeOutcome]
     """Every range a run in the cluster's queue at once; the daemon runs as many as it allows."""
     t0 = time.perf_counter()
     runs = launch.wait(instance, [launch.submit(assets, range_tags(keys)) for keys in ranges])
-    seconds = time.perf_counter() - t0
-    return [RangeOutcome(True, {}, "", seconds) if run.success
-            else RangeOutcome(False, failed_flights(run), failure_reason(run), seconds) for run in runs]
+    return [outcome(run, time.perf_counter() - t0) for run in runs]
 
 
 _POOL: list[ProcessPoolExecutor] = []

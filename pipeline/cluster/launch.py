@@ -106,16 +106,14 @@ def check_daemon(instance: dg.DagsterInstance) -> None:
 
 def _retry_of(instance: dg.DagsterInstance, run) -> str | None:
     """The daemon's retry of a failed run, if it made or will make one (``dagster/retry_number``)."""
-    retries = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
-    if retries:
-        return retries[0].run_id
     max_retries = int(run.tags.get("dagster/max_retries", instance.run_retries_max_retries))
     number = int(run.tags.get("dagster/retry_number", "0"))
-    if instance.run_retries_enabled and number < max_retries and run.status == dg.DagsterRunStatus.FAILURE:
-        deadline = time.monotonic() + 60.0  # the daemon's retry loop runs every few seconds
-        while time.monotonic() < deadline:
-            found = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
-            if found:
-                return found[0].run_id
-            time.sleep(POLL_S)
-    return None
+    expected = instance.run_retries_enabled and number < max_retries and run.status == dg.DagsterRunStatus.FAILURE
+    deadline = time.monotonic() + (60.0 if expected else 0.0)  # the daemon's retry loop runs every few seconds
+    while True:
+        found = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
+        if found:
+            return found[0].run_id
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(POLL_S)
