@@ -544,25 +544,38 @@ def test_cli_diagnose_bad_input_is_a_message_not_a_traceback(case, cli_folder, g
 # ---------------------------------------------------------------------------------------
 
 @pytest.fixture
-def linear_drag():
-    effect = effects.load_plugin(LINEAR_DRAG)
-    yield effect
-    effects.unregister("linear_drag")  # keep the registry of the other tests built-in only
+def forget_linear_drag():
+    """The test loads the plugin through model files; afterwards it is forgotten, so the
+    registry of the other tests holds the built-in effects only."""
+    yield
+    effects.unregister("linear_drag")
 
 
 LINEAR_DRAG_TRUTH = {"d_xy_kg_per_s": 0.04, "d_z_kg_per_s": 0.06}
 
 
-def test_plugin_is_a_candidate_and_is_fitted(linear_drag, sim_sets, tmp_path):
-    assert linear_drag.name == "linear_drag" and "linear_drag" in effects.registry()
+def test_plugin_is_a_candidate_and_is_fitted(sim_sets, tmp_path, forget_linear_drag):
+    """A model file's plugin is a candidate of that model's diagnosis, found and fitted like a
+    built-in effect; in the same process, a model whose file does not list it is diagnosed
+    without it (the default candidates are the library's and the model file's own plugins, not
+    every effect the process has loaded: a long-lived process such as the Dagster UI reads
+    many model files)."""
+    with_plugin, without = tmp_path / "with_plugin.toml", tmp_path / "without.toml"
+    with_plugin.write_text(f'vehicle = "crazyflie21"\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
+    without.write_text('vehicle = "crazyflie21"\n')
+    spec = model.load_model_file(with_plugin)  # loads the plugin, which the simulation needs too
     _, tables = sim_sets("linear_drag", STANDARD[:2], {"linear_drag": LINEAR_DRAG_TRUTH})
-    result = _diagnose(tables)
+    result = diagnosis.diagnose(tables, spec).to_dict()
     names = [r["effect"] for r in result["candidates"]]
-    assert "linear_drag" in names and names[0] == "linear_drag", result["verdict"]
+    assert names[0] == "linear_drag", result["verdict"]
     _assert_recovered(result["candidates"][0], LINEAR_DRAG_TRUTH, list(LINEAR_DRAG_TRUTH), "linear_drag")
 
-    # via a model file: listed under plugins, named under effects, fitted like a built-in
-    effects.unregister("linear_drag")
+    other = diagnosis.diagnose(tables, model.load_model_file(without)).to_dict()
+    names = [r["effect"] for r in other["candidates"]]
+    assert "linear_drag" in effects.registry() and "linear_drag" not in names, names
+    assert names and set(names) <= set(effects.builtin_names()), names
+
+    # listed under plugins, named under effects: fitted like a built-in
     model_file = tmp_path / "model.toml"
     model_file.write_text(
         f'vehicle = "crazyflie21"\neffects = ["linear_drag"]\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')

@@ -39,6 +39,7 @@ __all__ = [
     "get",
     "load_plugin",
     "plugin_source",
+    "plugins_from",
     "registry",
     "unregister",
 ]
@@ -118,6 +119,14 @@ _PLUGIN_SOURCES: dict[str, PluginSource] = {}  # plugin effect name -> its modul
 def plugin_source(name: str) -> PluginSource | None:
     """The module a plugin effect was loaded from in this process (None: not a loaded plugin)."""
     return _PLUGIN_SOURCES.get(name)
+
+
+def plugins_from(paths) -> list[PluginSource]:
+    """The plugin effects this process loaded from the module files ``paths`` (a model file's
+    resolved ``plugins``), in the registry's order: that model's own plugins, not every plugin
+    a long-lived process has loaded for other models."""
+    paths = {str(Path(p)) for p in paths}
+    return [src for name in registry() if (src := _PLUGIN_SOURCES.get(name)) is not None and src.path in paths]
 
 
 def load_plugin(path: str | Path) -> Effect:

@@ -204,8 +204,7 @@ class _Problem:
         self.spec, self.vehicle = spec, spec.vehicle
         self.ids = sorted(decoded)
         self.model_effects = [effectlib.get(n) for n in spec.effects]
-        names = candidates if candidates is not None else [n for n, e in effectlib.registry().items()
-                                                           if n not in spec.effects and e.offered]
+        names = candidates if candidates is not None else default_candidates(spec)
         self.cands = [effectlib.get(n) for n in names]
         self.effect_of = {c.name: c for c in self.cands}
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
@@ -248,6 +247,16 @@ class _Problem:
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
         return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
+
+
+def default_candidates(spec: ModelSpec) -> list[str]:
+    """The effects a diagnosis offers when not told which: the library's built-in effects, then
+    the plugin effects of the spec's own model file (its ``plugins``), each offered and not
+    already in the model. Not every effect this process has loaded: a long-lived process (the
+    Dagster UI, a test run) keeps the plugins of every model file it ever read, and another
+    model's plugin is no candidate for this one."""
+    own = [src.effect for src in effectlib.plugins_from(spec.plugins)]
+    return [n for n in (*effectlib.builtin_names(), *own) if n not in spec.effects and effectlib.get(n).offered]
 
 
 def _splits(ids: list[str], holdout: list[str] | None, n_folds: int

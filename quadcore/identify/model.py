@@ -381,8 +381,7 @@ class FittedModel:
     @classmethod
     def of(cls, model: PhysicsModel, spec: ModelSpec, trained_on: list[str],
            held_out: tuple[str, ...] | list[str] = ()) -> FittedModel:
-        sources = [effects.plugin_source(name) for name in effects.registry()]
-        plugins = tuple(src.to_dict() for src in sources if src is not None and src.path in spec.plugins)
+        plugins = tuple(src.to_dict() for src in effects.plugins_from(spec.plugins))
         return cls(model, tuple(trained_on), tuple(held_out), spec.digest(), plugins)
 
     def to_dict(self) -> dict:
