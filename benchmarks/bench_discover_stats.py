@@ -1,4 +1,4 @@
-"""Term discovery from per-flight statistics (`quadcore.identify.library_stats`): prints the
+"""Term discovery from per-flight statistics (`quadcore.identify.discovery.library_stats`): prints the
 statistics' size and compute time per real flight, and discovery's combine time and peak memory
 at 19 / 100 / 1,000 flights against discovery from rows.
 
@@ -25,7 +25,8 @@ from pathlib import Path
 import polars as pl
 from _common import REAL_LOGS
 
-from quadcore.identify import discovery, library_stats, model
+from quadcore.identify import discovery, model
+from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 

@@ -141,7 +141,7 @@ REFRESH = (
 class StatisticsOutdated(dg.AutomationCondition):
     """True for the flight partitions whose statistics were computed for another vehicle,
     session thrust map or effect library than the model file gives now (metadata
-    ``stats_version`` against :func:`quadcore.identify.library_stats.version`). Not the
+    ``stats_version`` against :func:`quadcore.identify.discovery.library_stats.version`). Not the
     fitted model's version: the fit is made from the statistics, so that would be a cycle."""
 
     @property
@@ -153,7 +153,7 @@ class StatisticsOutdated(dg.AutomationCondition):
         return "computed for another vehicle, thrust map or effect library"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
-        from quadcore.identify import library_stats
+        from quadcore.identify.discovery import library_stats
 
         candidates = context.candidate_subset.expensively_compute_partition_keys()
         if not candidates or context.partitions_def is None:

@@ -46,7 +46,8 @@ from pipeline.resources import (
     model_file_from_env,
     retrain_cron,
 )
-from quadcore.identify import library_stats, sufficient
+from quadcore.identify import sufficient
+from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
 from quadcore.store import ownership, safewrite, store
 from quadcore.workflows import identify, learn, summary

@@ -18,6 +18,7 @@ import pytest
 
 from quadcore import cli, effects
 from quadcore.identify import discovery, evidence
+from quadcore.identify.discovery import results, select, terms as termlib
 from quadcore.physics import dynamics, vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
@@ -124,21 +125,21 @@ def test_written_effect_is_a_working_plugin(discovered, hidden_flights, tmp_path
 def test_a_target_never_sees_its_own_measurement():
     """The tautology guard: the gyro derivative is out of the torque library, the accelerometer
     out of the force library, and the modelled thrust T out of the f_z library."""
-    terms = {t.expression: t for t in discovery.library(_fake_variables())}
-    for target in discovery.TARGETS:
-        names = {e for e, t in terms.items() if not discovery.excluded(t, target)}
+    terms = {t.expression: t for t in termlib.library(_fake_variables())}
+    for target in termlib.TARGETS:
+        names = {e for e, t in terms.items() if not termlib.excluded(t, target)}
         if target.startswith("tau_"):
             assert not any("omega_dot" in n for n in names)
             assert "sf_b_x_mps2" in names
         else:
             assert not any(n.startswith("sf_b") for n in names)
             assert "omega_dot_b_x_radps2" in names
-    assert discovery.excluded(terms["T_N"], "f_res_b_z_N")
+    assert termlib.excluded(terms["T_N"], "f_res_b_z_N")
     for target in ("tau_res_b_x_Nm", "tau_res_b_z_Nm"):  # the rotor torque's ingredients
-        assert discovery.excluded(terms["f_rotor_1_N"], target)
-        assert discovery.excluded(terms["(f_rotor_1_N-f_rotor_3_N)"], target)
-        assert not discovery.excluded(terms["d(f_rotor_1_N)/dt"], target)
-    assert not discovery.excluded(terms["T_N"], "tau_res_b_x_Nm")
+        assert termlib.excluded(terms["f_rotor_1_N"], target)
+        assert termlib.excluded(terms["(f_rotor_1_N-f_rotor_3_N)"], target)
+        assert not termlib.excluded(terms["d(f_rotor_1_N)/dt"], target)
+    assert not termlib.excluded(terms["T_N"], "tau_res_b_x_Nm")
 
 
 def _fake_variables() -> dict:
@@ -152,7 +153,7 @@ def _fake_variables() -> dict:
                                  rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.uniform(size=(n, 4)),
                                  np.full(n, 3.9), rng.uniform(1000, 2000, size=(n, 4)), R, rng.normal(size=(n, 3)),
                                  rng.uniform(0.05, 0.1, size=(n, 4)))
-    return discovery.variables(state, veh)
+    return termlib.variables(state, veh)
 
 
 def test_discover_user_errors(hidden_flights, tmp_path):
@@ -383,10 +384,10 @@ def test_pure_rotor_drag_keeps_the_linear_thrust_form(drag_discoveries):
 def test_a_form_the_held_out_sets_do_not_prefer_gets_no_mechanism_name():
     """Kept form better than a rival in only half of the held-out sets: the label lists the
     forms with their scores instead of naming rotor drag."""
-    forms = (discovery.Form("v_b_x_mps*T_N", 0.951, 0, 4), discovery.Form("v_b_x_mps", 0.950, 2, 4))
-    label = discovery._form_label("v_b_x_mps*T_N", forms, "force")
+    forms = (results.Form("v_b_x_mps*T_N", 0.951, 0, 4), results.Form("v_b_x_mps", 0.950, 2, 4))
+    label = select._form_label("v_b_x_mps*T_N", forms, "force")
     assert label.startswith("form undecided") and "v_b_x_mps 95.0%" in label and "rotor drag" not in label
-    decided = (discovery.Form("v_b_x_mps*T_N", 0.99, 0, 4), discovery.Form("v_b_x_mps", 0.95, 1, 4))
-    assert "rotor drag" in discovery._form_label("v_b_x_mps*T_N", decided, "force")
-    assert discovery.form_family("|v_b|*v_b_y_mps") == ("v_b_y_mps", "v_b_y_mps*T_N", "v_b_y_mps*|v_b_y_mps|",
+    decided = (results.Form("v_b_x_mps*T_N", 0.99, 0, 4), results.Form("v_b_x_mps", 0.95, 1, 4))
+    assert "rotor drag" in select._form_label("v_b_x_mps*T_N", decided, "force")
+    assert termlib.form_family("|v_b|*v_b_y_mps") == ("v_b_y_mps", "v_b_y_mps*T_N", "v_b_y_mps*|v_b_y_mps|",
                                                        "|v_b|*v_b_y_mps")

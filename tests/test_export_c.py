@@ -374,6 +374,7 @@ def test_write_effect_keeps_only_terms_with_a_c_form_and_says_which_it_left_out(
     """``discover --write-effect`` writes the terms with an on-board form; a zero-phase derivative
     is left out and named with why, in the module and the result."""
     from quadcore.identify import discovery
+    from quadcore.identify.discovery import writer
 
     kept = [("tau_res_b_y_Nm", "v_b_x_mps"), ("f_res_b_x_N", "omega_dot_b_y_radps2")]
     terms = tuple(discovery.DiscoveredTerm(target=t, expression=e, variables=(e,), coefficient=1e-4, std=1e-5,
@@ -390,7 +391,7 @@ def test_write_effect_keeps_only_terms_with_a_c_form_and_says_which_it_left_out(
     effects.load_plugin(written.path)
     try:
         assert [p.name for p in effects.get("found_terms").parameters] == [
-            discovery.parameter_name("tau_res_b_y_Nm", "v_b_x_mps", "kg m/s")]
+            writer.parameter_name("tau_res_b_y_Nm", "v_b_x_mps", "kg m/s")]
         assert effects.get("found_terms").c_code(VEHICLE, {p.name: 1e-4 for p in effects.get(
             "found_terms").parameters}) is not None
     finally:

@@ -84,7 +84,8 @@ def test_facts_answer_for_another_vehicles_columns(decoded_root):
 def stats_root(drag_fleet, tmp_path_factory):
     """drag_fleet decoded, with every flight's sufficient and discovery statistics stored (what
     the flight_statistics asset writes)."""
-    from quadcore.identify import library_stats, model, sufficient
+    from quadcore.identify import model, sufficient
+    from quadcore.identify.discovery import library_stats
 
     root = tmp_path_factory.mktemp("stats_root")
     fleet.decode_logs([str(drag_fleet)], out=root)
@@ -138,7 +139,8 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
     import dataclasses
     import shutil
 
-    from quadcore.identify import library_stats, model
+    from quadcore.identify import model
+    from quadcore.identify.discovery import library_stats
 
     root = tmp_path / "root"
     shutil.copytree(stats_root, root)

@@ -15,7 +15,8 @@ from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import STATS_VERSION, versions_used
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import effects
-from quadcore.identify import fitting, library_stats, sufficient
+from quadcore.identify import fitting, sufficient
+from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.store import store

@@ -212,7 +212,7 @@ def test_one_flight_data_for_all_three_stores_the_same_files(stored_root, tmp_pa
     statistics, the summary and the library statistics (the bases cached by the first reused by
     the others): the stored files are those of each computed on its own (the same headers, the
     same arrays to rounding), the summary that of the design built afresh (the previous code's way)."""
-    from quadcore.identify import library_stats
+    from quadcore.identify.discovery import library_stats
 
     _, spec, tables = stored_root
     f = sorted(tables)[0]

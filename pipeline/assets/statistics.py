@@ -8,7 +8,8 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import STATS_REFRESH, STATS_VERSION
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.identify import fitting, library_stats, sufficient
+from quadcore.identify import fitting, sufficient
+from quadcore.identify.discovery import library_stats
 from quadcore.physics import dynamics
 from quadcore.store import store
 from quadcore.workflows.fleet import MAIN_EVENT
@@ -22,7 +23,7 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
     residual] per channel, with the sensor-noise floor and sample counts: what the fleet fit,
     its folds and the held-out tests need of this flight (``stats/flight=<id>/stats.bin``); and
     the Gram matrices of term discovery's candidate library (``library.bin``,
-    :mod:`quadcore.identify.library_stats`); and its summary (``summary.bin``,
+    :mod:`quadcore.identify.discovery.library_stats`); and its summary (``summary.bin``,
     :mod:`quadcore.identify.summaries`): what the diagnosis's regime, flight, segment and
     frequency tables need of it as an evaluated flight."""
     spec = model.spec()

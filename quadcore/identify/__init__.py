@@ -2,10 +2,11 @@
 (``sessions``), per-flight sufficient statistics (``sufficient``), fitting effect parameters
 (``fitting``), what physics is missing (``diagnosis``, explained in ``docs/diagnosis.md``) with its
 regime tables (``regimes``), verdict text (``verdict``), typed result (``results``) and evidence
-(``evidence``), sparse term discovery (``discovery``), residual spectra (``spectrum``) and the run
+(``evidence``), sparse term discovery (``discovery``, a package: terms, Gram matrices,
+stored statistics, selection, effect writer), residual spectra (``spectrum``) and the run
 history (``history``)."""
 
 # The modules other packages import today (the identify re-layout of issue 23 narrows this to the
 # model, diagnosis and discovery; docs/architecture.md). Importing the package imports none of them.
-__all__ = ["diagnosis", "discovery", "evidence", "fitting", "history", "library_stats", "model", "regimes",
-           "results", "sessions", "sufficient", "verdict"]
+__all__ = ["diagnosis", "discovery", "evidence", "fitting", "history", "model", "regimes", "results", "sessions",
+           "sufficient", "verdict"]

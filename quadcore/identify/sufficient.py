@@ -545,7 +545,7 @@ _HEAD = len(MAGIC) + 8  # the magic, then the JSON header's length
 
 
 # The one file format of the per-flight records (stats.bin here, library.bin of
-# :mod:`quadcore.identify.library_stats`, summary.bin of :mod:`quadcore.identify.summaries`).
+# :mod:`quadcore.identify.discovery.library_stats`, summary.bin of :mod:`quadcore.identify.summaries`).
 
 def encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
     """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each

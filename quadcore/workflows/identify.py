@@ -194,7 +194,7 @@ MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
 def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
              where: str = "the decoded flights", root=None) -> Discovery:
     """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`);
-    with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.library_stats`).
+    with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.discovery.library_stats`).
     Raises :class:`TooFewFlights` with fewer than two training flights."""
     from quadcore.identify import discovery
 
@@ -204,7 +204,8 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
                             "are grouped by flight)")
     stored = stats = None
     if root is not None:
-        from quadcore.identify import library_stats, sufficient
+        from quadcore.identify import sufficient
+        from quadcore.identify.discovery import library_stats
 
         stored, stats = library_stats.stored(root, spec), sufficient.stored(root, spec)
     return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),

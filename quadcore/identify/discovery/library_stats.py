@@ -1,7 +1,8 @@
 """Per-flight statistics of term discovery's candidate library: what
-:func:`quadcore.identify.discovery.discover` needs of a flight, without its rows.
+:func:`quadcore.identify.discovery.select.discover` needs of a flight, without its rows.
 
-**The columns.** On a flight's samples the discovery design row is (:func:`quadcore.identify.discovery.flight_grams`)
+**The columns.** On a flight's samples the discovery design row is
+(:func:`quadcore.identify.discovery.grams.flight_grams`)
 
     z_i = [F_i | Tq_i | y0_i | m_i | B_i]
 
@@ -38,23 +39,25 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import sufficient
-
-if TYPE_CHECKING:
-    from quadcore.identify.fitting import FlightData
+from quadcore.identify import fitting, sufficient
+from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
+from quadcore.identify.discovery.terms import library, variables
 
 FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
-_MODULES = ("quadcore.identify.discovery", "quadcore.identify.library_stats")
+# the modules the statistics are computed by (with the sufficient statistics' code: sufficient.code_digest)
+_MODULES = ("quadcore.identify.discovery.terms", "quadcore.identify.discovery.grams",
+            "quadcore.identify.discovery.library_stats")
 
 
 @dataclass(frozen=True)
@@ -67,7 +70,7 @@ class FlightLibrary:
     key: str
     source: str  # SHA-256 of the log the decoded table came from
     variables: tuple[tuple[str, tuple[int, ...], tuple[str, ...], str], ...]  # name, unit, sources, channel
-    labels: tuple[str, ...]  # a name per Gram column (discovery._Columns.labels)
+    labels: tuple[str, ...]  # a name per Gram column (grams.Columns.labels)
     samples: int
     noise: np.ndarray  # (6,)
     y0_squares: np.ndarray  # (6,) Σ over usable samples of y0²
@@ -91,10 +94,8 @@ def fx_effects(spec) -> list[effectlib.Effect]:
 
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
-    """The sufficient statistics' code digest and the source of this module and discovery's
-    (once per process, as :func:`quadcore.identify.sufficient.code_digest`)."""
-    import importlib.util
-
+    """The sufficient statistics' code digest and the source of the modules the discovery statistics
+    are computed by (once per process, as :func:`quadcore.identify.sufficient.code_digest`)."""
     digest = hashlib.sha256(sufficient.code_digest().encode())
     for name in _MODULES:
         found = importlib.util.find_spec(name)
@@ -117,18 +118,16 @@ def version(spec, flight: str) -> str:
     return f"{sufficient.current_key(spec, flight)}+{library_key(spec, flight)}"
 
 
-def compute(spec, flight: str, decoded, source: str = "", fd: FlightData | None = None) -> FlightLibrary:
+def compute(spec, flight: str, decoded, source: str = "", fd: fitting.FlightData | None = None) -> FlightLibrary:
     """A flight's statistics from its decoded table (its rows read once); ``fd``: the table's
     :func:`quadcore.identify.fitting.flight_data` when the caller has it (the effects' bases
     cached there are not computed again)."""
-    from quadcore.identify import discovery, fitting
-
     fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
-    vars_ = discovery.variables(fd.state, spec.vehicle)
+    vars_ = variables(fd.state, spec.vehicle)
     effects = fx_effects(spec)
-    cols = discovery.library_columns(discovery.library(vars_), effects)
+    cols = library_columns(library(vars_), effects)
     y0 = fitting.targets_of([fd])[0]
-    G, H = discovery.flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE)
+    G, H = flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE)
     described = tuple((name, tuple(v.unit), tuple(v.sources), v.channel) for name, v in vars_.items())
     return FlightLibrary(flight, library_key(spec, flight), source, described, cols.labels(), fd.n,
                          np.asarray(fd.noise, dtype=float), (y0[fd.mask] ** 2).sum(axis=0), lambda: (G, H))
@@ -141,13 +140,11 @@ def library_path(root: Any, flight: str) -> Any:
 def save(lib: FlightLibrary, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically); the Gram matrices as their
     upper triangles (``H``: its force and its torque block)."""
-    from quadcore.identify import discovery
-
     G, H = lib.grams()
     header = {"format": FORMAT, "flight": lib.flight, "key": lib.key, "source": lib.source,
               "variables": [list(v) for v in lib.variables], "labels": list(lib.labels), "samples": lib.samples,
               "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist()}  # floats round-trip exactly
-    force, torque = discovery.channel_groups(lib.labels)
+    force, torque = channel_groups(lib.labels)
     return sufficient.write_file(library_path(root, lib.flight), header,
                                  {"G": sufficient.packed(G), "H_force": sufficient.packed(H[np.ix_(force, force)]),
                                   "H_torque": sufficient.packed(H[np.ix_(torque, torque)])})
@@ -186,11 +183,9 @@ def _flat_indices(labels: tuple[str, ...]) -> tuple[np.ndarray, ...]:
     """Where the packed upper triangles go in a flattened (W, W) matrix: ``G``'s, then ``H``'s
     force block and torque block (computed once per layout; a block's columns are in order, so
     its upper triangle lies in the matrix's)."""
-    from quadcore.identify import discovery
-
     width = len(labels)
     out = []
-    for idx in (np.arange(width), *discovery.channel_groups(labels)):
+    for idx in (np.arange(width), *channel_groups(labels)):
         i, j = np.triu_indices(len(idx))
         out.append(idx[i] * width + idx[j])
     return tuple(out)

@@ -1,0 +1,160 @@
+"""The flights' Gram sums term discovery selects from (:class:`LibrarySums`), made flight by
+flight: from each flight's rows and its residual under the model (:func:`from_rows`), or from the
+flights' stored statistics (:func:`from_statistics`, :mod:`quadcore.identify.discovery.library_stats`)
+with a model's linear effects subtracted from the sums."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from quadcore import effects as effectlib
+from quadcore.effects.base import Effect
+from quadcore.identify import fitting, sessions as sessionlib, sufficient
+from quadcore.identify.discovery import library_stats
+from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
+from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
+from quadcore.identify.model import ModelSpec
+from quadcore.physics.vehicle import Vehicle
+
+
+@dataclass(frozen=True)
+class LibrarySums:
+    """The candidate library (its terms and their Gram columns) and the flights' Gram matrices
+    accumulated flight by flight, with each flight's usable samples and sensor noise."""
+
+    terms: list[Term]
+    cols: Columns
+    sums: GramSums
+    samples: dict[str, int]
+    noise_of: dict[str, np.ndarray]
+    full: GramSums | None = None  # from statistics: the same sums on every usable sample
+    y0_squares: dict[str, np.ndarray] | None = None  # from statistics, a model without effects: Σ y0² per flight
+
+
+def from_rows(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
+                fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, log) -> LibrarySums:
+    """Each flight's rows (``flight(f)``: its rows and residual) turned into its Gram matrix and
+    dropped; the library is built from the first flight's variables."""
+    vehicle = spec.vehicle
+    # motor terms only when every flight has them (read off the columns, before any Gram matrix)
+    motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
+    sums = GramSums(folds, holdout)
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    for f in ids:
+        fd, r = flight(f)
+        if f == ids[0]:
+            terms = library_of(variables(fd.state, vehicle), motors)
+            cols = library_columns(terms, fx_effects)
+            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
+                f"accumulating on {len(ids)} flights")
+        sums.add(f, flight_gram(fd, r, cols, fx_effects, vehicle, stride))
+        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
+    return LibrarySums(terms, cols, sums, samples, noise_of)
+
+
+def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Term]:
+    """The candidate library from a flight's recorded variables (as :func:`from_rows` builds it
+    from its rows)."""
+    return library_of({name: Variable(np.empty(0), unit, sources, channel)
+                        for name, unit, sources, channel in first.variables}, motors)
+
+
+def _residual_transform(cols: Columns, model, vehicle: Vehicle) -> np.ndarray:
+    """``T`` with ``z T`` the design whose residual columns are ``y0 - Σ θ B`` (the fitted
+    model's linear effects ``model`` subtracted; see :mod:`quadcore.identify.discovery.library_stats`)."""
+    T = np.eye(cols.n_total)
+    for term in model.terms:
+        e = effectlib.get(term.name)
+        theta = np.asarray(e.to_linear({**e.defaults(), **term.params}, vehicle), dtype=float)
+        for axis in range(6):
+            T[cols.effect_cols[(e.name, axis)], cols.target0 + axis] -= theta
+    return T
+
+
+def from_statistics(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, fx_effects: list[Effect],
+                    folds: list[list[str]], holdout: list[str], train: list[str], stored, stats, sessions,
+                    log) -> LibrarySums:
+    """:func:`from_rows` from the flights' discovery statistics (:mod:`quadcore.identify.discovery.library_stats`):
+    the stored ones, else computed from the flight's rows; a model's linear effects fitted from
+    the sufficient statistics (``stats``) and subtracted from the sums (:func:`_residual_transform`)."""
+    found = {f: stored(f) for f in ids}
+    motors = all(found[f].logs_motors if found[f] is not None else _logs_motors(decoded[f], spec.vehicle_for(f))
+                 for f in ids)
+    first = found[ids[0]] or library_stats.compute(spec, ids[0], decoded[ids[0]])
+    terms = _library_terms(first, motors)
+    cols = library_columns(terms, fx_effects)
+    labels = cols.labels()
+    missing = [f for f in ids if found[f] is None]
+    log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; combining "
+        f"{len(ids) - len(missing)} flights' stored statistics" + (f", computing {len(missing)}" if missing else ""))
+    sums, full = GramSums(folds, holdout), GramSums(folds, holdout, scored_only=True)
+    samples: dict[str, int] = {}
+    noise_of: dict[str, np.ndarray] = {}
+    y0_squares: dict[str, np.ndarray] = {}
+    for f in ids:
+        G, H, lib = _flight_statistics(f, found[f] if f != ids[0] else first, labels, spec, decoded, cols, fx_effects)
+        sums.add(f, G)
+        full.add(f, H)
+        samples[f], noise_of[f], y0_squares[f] = lib.samples, lib.noise, lib.y0_squares
+    if spec.effects:
+        model = fitting.fit_model(spec, decoded, train, sessions, log, stats)
+        T = _residual_transform(cols, model, spec.vehicle)
+        sums.transformed(T)
+        full.transformed(T)
+    return LibrarySums(terms, cols, sums, samples, noise_of, full, None if spec.effects else y0_squares)
+
+
+def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, decoded, cols: Columns,
+                       fx_effects) -> tuple[np.ndarray, np.ndarray, library_stats.FlightLibrary]:
+    """(G, H, the statistics) of one flight in the columns ``labels``: the stored ones (``lib``),
+    else computed from its rows; from its rows with ``cols`` when they lack a column (an effect
+    loaded since)."""
+    if lib is not None and set(labels) <= set(lib.labels):
+        try:
+            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
+        except sufficient.StatsError:  # cut short since its header was read
+            lib = None
+    if lib is None:
+        lib = library_stats.compute(spec, f, decoded[f])
+        if set(labels) <= set(lib.labels):
+            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
+    fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))
+    G, H = flight_grams(fd, fitting.targets_of([fd])[0], cols, fx_effects, spec.vehicle, library_stats.STRIDE)
+    return G, H, lib
+
+
+def _picked(M: np.ndarray, have: tuple[str, ...], want: tuple[str, ...]) -> np.ndarray:
+    """The rows and columns ``want`` of a matrix over the columns ``have`` (by name)."""
+    if have == want:
+        return M
+    at = {name: i for i, name in enumerate(have)}
+    idx = np.array([at[name] for name in want])
+    return M[np.ix_(idx, idx)]
+
+
+def _logs_motors(df: pl.DataFrame, vehicle: Vehicle) -> bool:
+    """Whether a decoded table has every rotor's speed (``FlightState.motor_radps`` is set)."""
+    return all(f"motor_{i}_radps" in df.columns for i in range(1, vehicle.n_rotors + 1))
+
+
+def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
+               sessions: dict[str, list[str]] | None, log) -> Callable | None:
+    """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training
+    flights (per session for per-session effects), or None for a model without effects."""
+    model_effects = [effectlib.get(n) for n in spec.effects]
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
+        targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
+        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
+        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
+    if not model_effects:
+        return None
+    log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
+    fds_train = [fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
+    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed)
+    return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
