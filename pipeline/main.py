@@ -390,6 +390,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         executor_from_env()  # the definitions' executor: a bad QUADCORE_EXECUTOR is refused before any work
         learn_row_budget()  # and a bad QUADCORE_LEARN_ROWS before the learning stage would meet it
+        if launch.cluster_url():
+            launch.wait_timeout_s()  # and a bad QUADCORE_CLUSTER_TIMEOUT_S before the first run's wait
         demo = choose_demo(args.demo)
     except SettingError as exc:
         print(f"error: {exc}", file=sys.stderr)

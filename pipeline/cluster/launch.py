@@ -18,6 +18,8 @@ from urllib.parse import urlparse
 
 import dagster as dg
 
+from pipeline.resources import SettingError
+
 # Polling the instance for the runs' ends: a run of the main job takes seconds to minutes.
 POLL_S = 1.0
 # Our location's name in deploy/local/workspace.yaml.
@@ -28,6 +30,12 @@ ENDED = {dg.DagsterRunStatus.SUCCESS, dg.DagsterRunStatus.FAILURE, dg.DagsterRun
 # The daemon beats every few seconds; a run coordinator silent for longer is not running, and a
 # queued run would wait for it for ever.
 DAEMON_SILENT_S = 120.0
+# The longest the main job waits for its runs (QUADCORE_CLUSTER_TIMEOUT_S): a run that hangs
+# (a step whose worker never answers) would otherwise hold the data root's lock for ever. The
+# 100 simulated flights' slowest stage took minutes here (docs/benchmarks.md#local-cluster).
+WAIT_TIMEOUT_S = 6 * 3600.0
+# The daemon's retry of a failed run appears within a few of its loops.
+RETRY_APPEARS_S = 60.0
 
 
 class ClusterUnavailable(RuntimeError):
@@ -78,9 +86,27 @@ def submit(assets, tags: dict[str, str] | None = None) -> str:
                                           tags={"quadcore/main": "yes", **(tags or {})}, asset_selection=keys)
 
 
-def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = True) -> list[SubmittedRun]:
+def wait_timeout_s() -> float:
+    """``QUADCORE_CLUSTER_TIMEOUT_S`` (default :data:`WAIT_TIMEOUT_S`); :class:`SettingError` when
+    it is not a positive number of seconds."""
+    text = os.environ.get("QUADCORE_CLUSTER_TIMEOUT_S", "").strip()
+    try:
+        value = float(text) if text else WAIT_TIMEOUT_S
+    except ValueError:
+        value = -1.0
+    if not value > 0 or value == float("inf"):
+        raise SettingError(f"QUADCORE_CLUSTER_TIMEOUT_S={text!r}: give a positive number of seconds "
+                           f"(default {WAIT_TIMEOUT_S:.0f})")
+    return value
+
+
+def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = True,
+         timeout_s: float | None = None) -> list[SubmittedRun]:
     """Wait until each run has ended: a run retried by the daemon (``run_retries``) is followed
-    to its last retry. The runs, read back."""
+    to its last retry. The runs, read back. Past ``timeout_s`` (default :func:`wait_timeout_s`)
+    the runs still going are terminated and :class:`ClusterUnavailable` says so."""
+    limit = wait_timeout_s() if timeout_s is None else timeout_s
+    deadline = time.monotonic() + limit
     final = list(run_ids)
     while True:
         runs = [instance.get_run_by_id(r) for r in final]
@@ -92,6 +118,8 @@ def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = T
             if not any(retried):
                 return [SubmittedRun(r, instance) for r in final]
             final = [new or old for new, old in zip(retried, final)]
+        elif time.monotonic() > deadline:
+            give_up([r.run_id for r in runs if r is not None and r.status not in ENDED], limit)
         time.sleep(POLL_S)
 
 
@@ -104,12 +132,34 @@ def check_daemon(instance: dg.DagsterInstance) -> None:
                                  "`make cluster-up` starts it again (its log: .cluster/logs/daemon.log)")
 
 
+def give_up(run_ids: list[str], limit_s: float) -> None:
+    """Terminate the runs still going (through the webserver) and raise :class:`ClusterUnavailable`."""
+    try:
+        if run_ids:
+            _client().terminate_runs(run_ids)
+        what = "terminated"
+    except Exception as exc:  # the webserver gone too: say so, the runs' ids are in the line
+        what = f"could not be terminated ({type(exc).__name__}): stop them in the UI"
+    raise ClusterUnavailable(f"the cluster's runs did not end within the wait's limit (QUADCORE_CLUSTER_TIMEOUT_S, "
+                             f"{limit_s:.0f} s); the runs still going, {', '.join(run_ids) or 'none'}, "
+                             f"{what}; their logs: .cluster/logs and the UI")
+
+
 def _retry_of(instance: dg.DagsterInstance, run) -> str | None:
-    """The daemon's retry of a failed run, if it made or will make one (``dagster/retry_number``)."""
-    max_retries = int(run.tags.get("dagster/max_retries", instance.run_retries_max_retries))
-    number = int(run.tags.get("dagster/retry_number", "0"))
-    expected = instance.run_retries_enabled and number < max_retries and run.status == dg.DagsterRunStatus.FAILURE
-    deadline = time.monotonic() + (60.0 if expected else 0.0)  # the daemon's retry loop runs every few seconds
+    """The daemon's retry of a failed run, if it made or will make one. Dagster decides when the
+    run fails and records it on the run (``dagster/will_retry``: false for a step's own failure, a
+    bad flight, with ``retry_on_asset_or_op_failure: false`` in deploy/local/dagster.yaml); a
+    run without that tag is expected to be retried while ``dagster/retry_number`` is below the
+    retries allowed."""
+    will = run.tags.get("dagster/will_retry")
+    if will is not None:
+        expected = will == "true"
+    else:
+        max_retries = int(run.tags.get("dagster/max_retries", instance.run_retries_max_retries))
+        number = int(run.tags.get("dagster/retry_number", "0"))
+        expected = instance.run_retries_enabled and number < max_retries
+    expected = expected and run.status == dg.DagsterRunStatus.FAILURE
+    deadline = time.monotonic() + (RETRY_APPEARS_S if expected else 0.0)  # the daemon's loop runs every few seconds
     while True:
         found = instance.get_runs(filters=dg.RunsFilter(tags={"dagster/parent_run_id": run.run_id}))
         if found:
