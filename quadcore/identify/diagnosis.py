@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 from collections import Counter
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -381,7 +381,7 @@ class _HeldOut:
 
 def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
     eval_ids = sorted(folds.eval_resid)
-    eval_fds = _evaluated(p, eval_ids, folds)
+    eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.model_effects + p.cands)
     before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
     # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
@@ -390,6 +390,33 @@ def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
     at_noise = evidence.at_noise_level(before, noise_ss)
     w = _weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
     return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
+
+
+def _on_common_samples(flights: list, effects) -> list:
+    """The evaluated flights without the first blocks (of ``BLOCK_S``, numbered as the held-out
+    test numbers them) within the longest :meth:`~quadcore.effects.Effect.memory_s` of
+    ``effects``: an effect with memory predicts nothing there (:func:`quadcore.identify.fitting.prediction`),
+    so a score over the whole flight would count that start against it and not against a
+    memoryless candidate, or a shorter memory. Every candidate, the model's residual and the
+    noise floor are scored on the same samples; whole blocks, so that the statistics (per-block
+    Gram matrices) and the rows leave out the same. Flights too short to keep any sample
+    after it are evaluated whole (nothing would be left to compare)."""
+    memory = max((e.memory_s() for e in effects), default=0.0)
+    k = int(np.ceil(memory / evidence.BLOCK_S - 1e-9))
+    if k <= 0:
+        return flights
+    out = [_after_blocks(fd, k) for fd in flights]
+    return out if sum(fd.n for fd in out) > 0 else flights
+
+
+def _after_blocks(fd, k: int):
+    """A flight's rows (:class:`FlightData`) or statistics without its first ``k`` blocks."""
+    if isinstance(fd, FlightData):
+        keep = fd.mask.copy()
+        keep[np.flatnonzero(fd.mask)[sufficient.block_index(fd.state.t_s[fd.mask]) < k]] = False
+        return replace(fd, mask=keep, _sums={}, _designs={})  # the cached sums and designs are masked
+    gram = fd.gram[k:]
+    return replace(fd, total=gram.sum(axis=0), rows=fd.rows[k:], blocks_source=lambda: gram)
 
 
 def _at_bound(c, params: dict[str, float], held: dict[str, float]) -> list[str]:

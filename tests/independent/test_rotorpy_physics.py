@@ -51,19 +51,10 @@ _T100 = ("item 2", "at 100 Hz discover keeps a pitch torque ~ -1e-6 omega_x omeg
 _FIRST = ("item 3", "on rotorpy's rotor drag (horizontal k_d and vertical k_z) parasitic_drag is ranked first: its two "
           "coefficients cover x-y and z, while rotor_drag and rotor_drag_z each explain one part; the two linear "
           "effects together are the answer")
-_LAG100 = ("item 4", "at 100 Hz, as at 500 Hz since 769a0dd, thrust_delay is ranked first on rotorpy's first-order "
-           "lag; motor_lag's tau = 0.0696 +- 0.0009 s (hover starts 0.0693 +- 0.002) against 0.072")
-_LAG500 = ("item 4", "since 769a0dd (lag and delay fits for flights starting in a manoeuvre) thrust_delay is ranked "
-           "first on rotorpy's first-order lag (explains 96 % held out) over motor_lag (89 %, though its tau = "
-           "0.0720 +- 0.0004 s is right; before 769a0dd motor_lag explained 98 % and was first)")
 KNOWN: dict[tuple[str, str, str, int], tuple[str, str]] = {
-    ("motor lag first", "lag", PWM, 500): _LAG500,
-    ("motor lag from hover starts", "lag", PWM, 500): _LAG500,
     ("at the noise floor", "clean", PWM, 100): _T100,
     ("discover keeps nothing", "clean", PWM, 100): _T100,
     **{("rotor drag first", "rotor_drag", SPEED, r): _FIRST for r in RATES},
-    ("motor lag first", "lag", PWM, 100): _LAG100,
-    ("motor lag from hover starts", "lag", PWM, 100): _LAG100,
 }
 
 
