@@ -145,6 +145,32 @@ def test_cli_plan_asks_what_it_is_told_and_refuses_unknown_candidates(hover_tie,
     assert not (tmp_path / "p.json").exists()
 
 
+def test_cli_plan_for_a_parameter_writes_its_contract_and_a_flight_that_narrows_it(hover_tie, tmp_path):
+    """``--parameter EFFECT.NAME``: the question is the parameter, the JSON carries its standard
+    error before and as the planned flight would leave it (smaller: a flight can only add
+    information), the trajectory loads and keeps the limits; a malformed or unknown parameter is
+    a message, and nothing is written."""
+    out = tmp_path / "out"
+    code, stdout, err = _run(["plan", str(hover_tie), "--json", str(out / "plan.json"), "--trajectory",
+                              str(out / "plan.csv"), "--parameter", "thrust_scale.scale", "--duration", "5",
+                              "--no-proof", "--quiet"])
+    assert code == 0, err
+    doc = json.loads((out / "plan.json").read_text())
+    assert list(doc)[:5] == CONTRACT_KEYS
+    assert doc["question"] == {"kind": "parameter", "parameter": "thrust_scale.scale"}
+    assert set(doc["predicted"]) == {"parameter_std_before", "parameter_std_after"}
+    before, after = doc["predicted"]["parameter_std_before"], doc["predicted"]["parameter_std_after"]
+    assert math.isfinite(before) and before > 0 and 0 < after < before, doc["predicted"]
+    traj = trajectories.load_plan(out / "plan.csv")
+    assert traj.duration_s == pytest.approx(5.0) and limits.check(traj, VEHICLE, LIMITS).ok
+    assert "thrust_scale.scale" in stdout
+    for bad, message in (("thrust_scale", "EFFECT.NAME"), ("thrust_scale.nope", "has no parameter")):
+        code, _, err = _run(["plan", str(hover_tie), "--json", str(tmp_path / "p.json"), "--trajectory",
+                             str(tmp_path / "p.csv"), "--parameter", bad, "--no-proof", "--quiet"])
+        assert code == 2 and message in err and "Traceback" not in err, err
+        assert not (tmp_path / "p.json").exists() and not (tmp_path / "p.csv").exists()
+
+
 def test_nothing_to_separate_plans_nothing(tmp_path):
     folder = tmp_path / "still"
     simulation.simulate_set(folder, [SimConfig(kind="hover", duration_s=6.0, seed=s) for s in (4, 5)], {}, VEHICLE)
