@@ -155,3 +155,18 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
     assert sorted(p.parent.name for p in reads) == ["flight=sim001", "flight=sim002"]
     rows.pop("after"), stored.pop("after")
     assert stored == rows
+
+
+def test_the_library_statistics_key_covers_the_modules_that_compute_them():
+    """The key of stored discovery statistics hashes the source of the modules that compute them: each is
+    found (a renamed or moved one would hash as "missing", and statistics would outlive a change of their
+    code), and they are the candidate terms, the Gram matrices and the statistics' own module."""
+    import importlib.util
+    from pathlib import Path
+
+    from quadcore.identify.discovery import grams, library_stats, terms
+
+    assert {terms.__name__, grams.__name__, library_stats.__name__} <= set(library_stats._MODULES)
+    for name in library_stats._MODULES:
+        found = importlib.util.find_spec(name)
+        assert found is not None and found.origin is not None and Path(found.origin).is_file(), name

@@ -35,7 +35,7 @@ Kept by discover but left out here, as they have no C form for the flight contro
         one): a flight controller cannot compute it
 
 Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.identify.discovery.evaluate; every one has a C form (quadcore export-c).
+The terms are evaluated by quadcore.identify.discovery.terms.evaluate; every one has a C form (quadcore export-c).
 """
 
 from quadcore.identify.discovery import DiscoveredEffect

@@ -24,7 +24,7 @@ Literature:
     d(Omega_net_radps)/dt: rotor inertia: reaction torque of accelerating rotors
 
 Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.identify.discovery.evaluate.
+The terms are evaluated by quadcore.identify.discovery.terms.evaluate.
 """
 
 from quadcore.identify.discovery import DiscoveredEffect

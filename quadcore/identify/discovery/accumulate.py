@@ -35,10 +35,14 @@ class LibrarySums:
     y0_squares: dict[str, np.ndarray] | None = None  # from statistics, a model without effects: Σ y0² per flight
 
 
-def from_rows(ids: list[str], flight, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
-                fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, log) -> LibrarySums:
-    """Each flight's rows (``flight(f)``: its rows and residual) turned into its Gram matrix and
-    dropped; the library is built from the first flight's variables."""
+# ``flight(f, quiet=False) -> (its rows, its residual under the model)``; quiet: without the model's progress
+RowsOf = Callable[..., tuple[fitting.FlightData, np.ndarray]]
+
+
+def from_rows(ids: list[str], flight: RowsOf, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
+              fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, log) -> LibrarySums:
+    """Each flight's rows (``flight(f)``: its rows and residual, :func:`residual_rows`) turned into its
+    Gram matrix and dropped; the library is built from the first flight's variables."""
     vehicle = spec.vehicle
     # motor terms only when every flight has them (read off the columns, before any Gram matrix)
     motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
@@ -61,7 +65,7 @@ def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Ter
     """The candidate library from a flight's recorded variables (as :func:`from_rows` builds it
     from its rows)."""
     return library_of({name: Variable(np.empty(0), unit, sources, channel)
-                        for name, unit, sources, channel in first.variables}, motors)
+                       for name, unit, sources, channel in first.variables}, motors)
 
 
 def _residual_transform(cols: Columns, model, vehicle: Vehicle) -> np.ndarray:
@@ -142,8 +146,22 @@ def _logs_motors(df: pl.DataFrame, vehicle: Vehicle) -> bool:
     return all(f"motor_{i}_radps" in df.columns for i in range(1, vehicle.n_rotors + 1))
 
 
+def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
+                  sessions: dict[str, list[str]] | None, log) -> RowsOf:
+    """``flight(f, quiet=False)``: one flight's rows and its residual (force N, torque N m, body frame)
+    under the model's effects, fitted here on the training flights (:func:`model_fit`)."""
+    predict = model_fit(spec, decoded, ids, train, sessions, log)
+
+    def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
+        fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
+        target = fitting.targets_of([fd])[0]
+        return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
+
+    return flight
+
+
 def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
-               sessions: dict[str, list[str]] | None, log) -> Callable | None:
+              sessions: dict[str, list[str]] | None, log) -> Callable | None:
     """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training
     flights (per session for per-session effects), or None for a model without effects."""
     model_effects = [effectlib.get(n) for n in spec.effects]

@@ -300,7 +300,6 @@ def discover(
     :func:`quadcore.identify.sufficient.stored`). The same sums in the same order as from rows, so
     the same terms and coefficients; the held-out RMSE after the terms is a quadratic form of the
     flights' Gram matrices (equal to the rows' to rounding)."""
-    vehicle = spec.vehicle
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
     train = [f for f in ids if f not in holdout]
@@ -310,42 +309,17 @@ def discover(
     folds = fitting.folds(train, n_folds)
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects))
+    flight = None
     if combinable:
         lib = accumulate.from_statistics(ids, decoded, spec, fx_effects, folds, holdout, train, stored, stats,
                                          sessions, log)
     else:
-        predict = accumulate.model_fit(spec, decoded, ids, train, sessions, log)
-
-        def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
-            """One flight's rows and its residual under the model."""
-            fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
-            target = fitting.targets_of([fd])[0]
-            return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
-
+        flight = accumulate.residual_rows(spec, decoded, ids, train, sessions, log)
         lib = accumulate.from_rows(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
-    fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
     noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
-
-    kept: list[DiscoveredTerm] = []
-    axes: list[AxisResult] = []
-    coefs: dict[int, tuple[list[int], np.ndarray]] = {}
-    for axis, target in enumerate(TARGETS):
-        result, terms, coef = _discover_axis(axis, target, lib, fold_grams, G_train, noise, bool(holdout),
-                                             spec.effects, fx_effects)
-        axes.append(result)
-        kept += terms
-        if coef is not None:
-            coefs[axis] = coef
+    kept, axes, coefs = _discover_axes(lib, noise, bool(holdout), spec.effects, fx_effects)
     eval_ids = holdout or ids
-    if lib.full is not None:  # each flight scored with its fold's training sum (the holdout: all training flights')
-        pairs = [(G_train, lib.full.held_out())] if holdout else [
-            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.own_sums())]
-        base, after = _rmse_from_sums(lib, coefs, pairs, eval_ids)
-    else:
-        train_gram = {f: G_train for f in eval_ids} if holdout else {
-            f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
-        base, after = _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms,
-                                     coefs, vehicle)
+    base, after = _held_out_errors(lib, coefs, folds, holdout, eval_ids, flight, spec.vehicle)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         _by_axis(noise),
@@ -354,6 +328,42 @@ def discover(
          # with a holdout the model's effects never see it; without one they are fitted on all flights
          "model_effects_fitted_on": train},
         tuple(spec.effects), {"force": len(lib.cols.force), "torque": len(lib.cols.torque)})
+
+
+def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_effects, fx_effects: list[Effect]
+                   ) -> tuple[list[DiscoveredTerm], list[AxisResult], dict[int, tuple[list[int], np.ndarray]]]:
+    """Every residual axis through :func:`_discover_axis`: the kept terms, each axis' result, and the
+    kept columns with their coefficients per axis that kept any."""
+    fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
+    kept: list[DiscoveredTerm] = []
+    axes: list[AxisResult] = []
+    coefs: dict[int, tuple[list[int], np.ndarray]] = {}
+    for axis, target in enumerate(TARGETS):
+        result, terms, coef = _discover_axis(axis, target, lib, fold_grams, G_train, noise, holdout,
+                                             model_effects, fx_effects)
+        axes.append(result)
+        kept += terms
+        if coef is not None:
+            coefs[axis] = coef
+    return kept, axes, coefs
+
+
+def _held_out_errors(lib: LibrarySums, coefs: dict, folds: list[list[str]], holdout: list[str], eval_ids: list[str],
+                     flight: accumulate.RowsOf | None, vehicle) -> tuple[dict, dict]:
+    """The RMSE per axis on the evaluated flights before and after the kept terms (``coefs``), each
+    flight scored with the terms fitted on its fold's training flights (a holdout: on every training
+    flight): from the sums when the library was combined from statistics (:func:`_rmse_from_sums`),
+    else from the flights' rows read again (``flight``, :func:`_held_out_rmse`)."""
+    fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
+    if lib.full is not None:
+        pairs = [(G_train, lib.full.held_out())] if holdout else [
+            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.own_sums())]
+        return _rmse_from_sums(lib, coefs, pairs, eval_ids)
+    assert flight is not None, "sums made from rows (no lib.full) come with the rows' reader"
+    train_gram = {f: G_train for f in eval_ids} if holdout else {
+        f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
+    return _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms, coefs,
+                          vehicle)
 
 
 def _usable(cols: Columns, axis: int, terms: list[Term]) -> list[Term]:

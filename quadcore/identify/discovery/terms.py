@@ -149,8 +149,8 @@ def variables(state: FlightState, vehicle: Vehicle) -> dict[str, Variable]:
     put("(R/4h)^2*T_N", (vehicle.rotor_radius_m / (4 * h)) ** 2 * T, "N", ("p_w_z_m", "T_N"))
     put("T_N*|v_h|^2", T * (state.v_b_mps[:, 0] ** 2 + state.v_b_mps[:, 1] ** 2), "N",
         ("T_N", "v_b_x_mps", "v_b_y_mps"))
-    out["T_N*|v_h|^2"] = Variable(out["T_N*|v_h|^2"].values, mul_units(UNIT["N"], mul_units(UNIT["m/s"], UNIT["m/s"])),
-                                   out["T_N*|v_h|^2"].sources)
+    out["T_N*|v_h|^2"] = Variable(out["T_N*|v_h|^2"].values,
+                                  mul_units(UNIT["N"], mul_units(UNIT["m/s"], UNIT["m/s"])), out["T_N*|v_h|^2"].sources)
     speed = np.linalg.norm(state.v_b_mps, axis=1)  # quadratic drag grows with the airspeed times each component
     velocity = tuple(f"v_b_{a}_mps" for a in XYZ)
     for j, a in enumerate(XYZ):

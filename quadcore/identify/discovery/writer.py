@@ -15,7 +15,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect, Parameter
 from quadcore.effects.ccode import CCode
-from quadcore.identify.discovery.results import Discovery
+from quadcore.identify.discovery.results import DiscoveredTerm, Discovery
 from quadcore.identify.discovery.terms import MIN_HEIGHT_M, TARGETS, evaluate
 from quadcore.physics import vehicle as vehicles
 from quadcore.physics.dynamics import XYZ
@@ -162,6 +162,12 @@ def write_effect(result: Discovery, path: str | Path, vehicle: Vehicle | None = 
     if not terms:
         raise ValueError("no kept term has a C form (" + "; ".join(f"{e}: {w}" for e, w in left_out.items())
                          + "): there is no exportable effect to write")
+    return WrittenEffect(store.write_text(_module_text(name, result, terms, left_out), path), left_out)
+
+
+def _module_text(name: str, result: Discovery, terms: list[DiscoveredTerm], left_out: dict[str, str]) -> str:
+    """The source of the plugin module ``name`` holding ``terms`` (each with a C form), its docstring
+    naming the kept terms ``left_out`` (term -> why)."""
     rows = []
     for t in terms:
         bound = max(100 * abs(t.coefficient), 100 * t.std, 1e-12)
@@ -177,7 +183,7 @@ def write_effect(result: Discovery, path: str | Path, vehicle: Vehicle | None = 
     evaluation = textwrap.fill(f"Discovered on top of the model {'+'.join(['nominal', *result.effects_in_model])} "
                                f"({result.evaluation['mode']}; evaluated on "
                                f"{', '.join(result.evaluation['eval_flights'])}):", width=100)
-    text = f'''"""{name}: terms found by ``quadcore discover``, as a linear effect. List this file under
+    return f'''"""{name}: terms found by ``quadcore discover``, as a linear effect. List this file under
 ``plugins`` in the model file and ``{name}`` under ``effects``: the fit refits the coefficients.
 
 {evaluation.strip()}
@@ -185,7 +191,7 @@ def write_effect(result: Discovery, path: str | Path, vehicle: Vehicle | None = 
 {formulas}
 {("" if not literature else chr(10) + "Literature:" + chr(10) + literature + chr(10))}
 {left_note}Each parameter is the coefficient of one term on one residual axis (SI; default 0 = no effect).
-The terms are evaluated by quadcore.identify.discovery.evaluate; every one has a C form (quadcore export-c).
+The terms are evaluated by quadcore.identify.discovery.terms.evaluate; every one has a C form (quadcore export-c).
 """
 
 from quadcore.identify.discovery import DiscoveredEffect
@@ -197,4 +203,3 @@ TERMS = [
 
 EFFECT = DiscoveredEffect({name!r}, TERMS, __doc__)
 '''
-    return WrittenEffect(store.write_text(text, path), left_out)
