@@ -54,6 +54,7 @@ sys.path.insert(0, str(REPO))
 
 from quadcore.report import plots  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
+from quadcore.physics import decoded  # noqa: E402
 from quadcore.store import store  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
@@ -211,8 +212,8 @@ def decoded_pool() -> Path:
     root = CACHE / "decoded_pool"
     for i in range(POOL):
         main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
-        if not main.is_file() or store.recorded_physics_facts(main) is None:
-            store.write_decoded(root, flight.decode_flight(pool_log(i)))
+        if not main.is_file() or decoded.recorded_physics_facts(main) is None:
+            decoded.write_decoded(root, flight.decode_flight(pool_log(i)))
     return root
 
 

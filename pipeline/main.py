@@ -49,6 +49,7 @@ from pipeline.resources import (
 from quadcore.identify import sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
+from quadcore.physics import decoded
 from quadcore.store import ownership, safewrite, store
 from quadcore.workflows import identify, learn, summary
 from quadcore.workflows.demo import (
@@ -149,7 +150,7 @@ def _decoded_from_current_log(data_root: DataRoot, fid: str) -> bool:
         log_path = data_root.raw_log(fid)
     except (OSError, ValueError):
         return False  # unreadable or unsafe: decode it, and let decoding say why it fails
-    return store.decoded_from(data_root.root_path, MAIN_EVENT, fid, log_path)
+    return decoded.decoded_from(data_root.root_path, MAIN_EVENT, fid, log_path)
 
 
 def to_recompute(

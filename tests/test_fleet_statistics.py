@@ -8,6 +8,7 @@ import pytest
 
 from quadcore.logs import checks, flight
 from quadcore.physics import vehicle
+from quadcore.physics import decoded
 from quadcore.store import store
 from quadcore.workflows import fleet
 
@@ -24,7 +25,7 @@ def decoded_root(drag_fleet, tmp_path_factory):
     main = low.tables[MAIN_EVENT]
     low.tables[MAIN_EVENT] = main.with_columns(
         pl.when(pl.int_range(pl.len()) < 7).then(2.0).otherwise(pl.col("vbat_V")).alias("vbat_V"))
-    store.write_decoded(root, low)
+    decoded.write_decoded(root, low)
     return root
 
 
@@ -60,7 +61,7 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
         df, meta = store.read_parquet(path), store.read_metadata(path)
         assert checks.PhysicsFacts.from_dict(meta[store.PHYSICS_FACTS]) is not None
         store.write_parquet(df.head(100) if fid == "sim002" else df, store.decoded_path(root, MAIN_EVENT, fid), meta)
-    assert store.recorded_physics_facts(store.decoded_path(root, MAIN_EVENT, "sim002")) is None
+    assert decoded.recorded_physics_facts(store.decoded_path(root, MAIN_EVENT, "sim002")) is None
     reads = _counting_reads(monkeypatch)
     fl = fleet.fleet_from_store(root, vehicle.load())
     assert len(reads) == 2  # both tables judged from their rows
@@ -70,7 +71,7 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
 def test_facts_answer_for_another_vehicles_columns(decoded_root):
     """A vehicle that reads columns the table lacks (motor speeds) is told which, from the facts."""
     path = store.decoded_path(decoded_root, MAIN_EVENT, "sim000")
-    facts = checks.PhysicsFacts.from_dict(store.recorded_physics_facts(path))
+    facts = checks.PhysicsFacts.from_dict(decoded.recorded_physics_facts(path))
     df = store.read_parquet(path)
     for columns in (["t_s", "vbat_V"], [c for c in df.columns if c.startswith("pwm_")] + ["t_s"]):
         assert facts.covers(columns) and facts.problem(columns) == checks.physics_problem(df, columns)

@@ -11,8 +11,8 @@ order; this test holds the module level. Today it passes only because
   sessions/summaries circle) is listed in KNOWN_CYCLES, and every
   function-level import inside identify is listed in IDENTIFY_RELAYOUT: both to be removed by the identify
   re-layout (issue 23, docs/architecture.md);
-- KNOT_CYCLES lists the one cycle outside identify (store.store, logs.checks, physics.dynamics,
-  physics.vehicle) and KNOTS the function-level imports that hide it;
+- KNOT_CYCLES lists the one cycle outside identify (logs.checks <-> physics.dynamics) and KNOTS the
+  function-level imports that hide it;
 - STARTUP lists the CLI's lazy imports (a command imports only its own stage: `quadcore --help` stays fast);
 - UNREVIEWED lists the other function-level imports as found on 2026-11-26 (workflows, learn, plan,
   pipeline): each still needs its reason written here (start-up time, an optional dependency) or a move to
@@ -63,10 +63,10 @@ IDENTIFY_RELAYOUT = {
 }
 # ---- end of the identify block ---------------------------------------------------------------------------
 
-# Hide a cycle outside identify: logs/checks <-> physics/dynamics, store -> logs/checks, physics/vehicle ->
-# store (issue 23; untie by moving the physics gate above logs and the decoded-table writer above store).
+# Hide a cycle outside identify: logs/checks <-> physics/dynamics (issue 23; untie by moving the physics gate
+# into physics).
 KNOT_CYCLES = [
-    {"quadcore.logs.checks", "quadcore.physics.dynamics", "quadcore.physics.vehicle", "quadcore.store.store"},
+    {"quadcore.logs.checks", "quadcore.physics.dynamics"},
 ]
 KNOTS = {
     ("quadcore.logs.checks", "quadcore.physics.dynamics"),
@@ -74,7 +74,6 @@ KNOTS = {
     ("quadcore.physics.dynamics", "quadcore.logs.checks"),
     ("quadcore.physics.dynamics", "quadcore.logs.units"),
     ("quadcore.physics.vehicle", "quadcore.store.store"),
-    ("quadcore.store.store", "quadcore.logs.checks"),
 }
 
 # Start-up time: the CLI imports a command's stage inside the command; workflows.learn's report step imports

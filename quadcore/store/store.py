@@ -35,7 +35,6 @@ from typing import Any
 import polars as pl
 
 from quadcore.logs import units
-from quadcore.logs.flight import Provenance
 from quadcore.store.names import (
     MAIN_EVENT as MAIN_EVENT,  # re-exported: store.MAIN_EVENT
     check_component,
@@ -173,16 +172,16 @@ def atomic_write(path: Any, write) -> Path:
     return path
 
 
-def write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
+def write_parquet(df: pl.DataFrame, path: Path, metadata: dict, physics_facts: dict | None = None) -> Path:
     """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata, which
     always holds ``units`` (column -> unit): the given ones, else those of a ``columns``
     description, else read off the column names (:func:`quadcore.logs.units.column_units`).
     Physics facts in ``metadata`` are dropped: they were found in other rows (metadata copied
-    from another file), and only :func:`write_decoded` records those of the rows it writes."""
-    return _write_parquet(df, path, {k: v for k, v in metadata.items() if k != PHYSICS_FACTS})
-
-
-def _write_parquet(df: pl.DataFrame, path: Path, metadata: dict) -> Path:
+    from another file); ``physics_facts`` (those of these very rows, which only
+    :func:`quadcore.physics.decoded.write_decoded` knows) are recorded under :data:`PHYSICS_FACTS`."""
+    metadata = {k: v for k, v in metadata.items() if k != PHYSICS_FACTS}
+    if physics_facts is not None:
+        metadata[PHYSICS_FACTS] = physics_facts
     metadata = {"units": _units(df, metadata), **metadata}
     meta = {METADATA_KEY.decode(): json.dumps(metadata, default=str)}
     return atomic_write(path, lambda tmp: df.write_parquet(tmp, compression="zstd", metadata=meta))
@@ -259,33 +258,6 @@ def write_json(obj: dict, path: Path) -> Path:
     return atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(obj, indent=2, default=str)))
 
 
-def write_decoded(root: Path, flight) -> dict[str, Path]:
-    """Write every event table of a :class:`quadcore.logs.flight.Flight`; returns event -> path."""
-    from quadcore.logs import checks
-
-    paths = {}
-    for event, df in flight.tables.items():
-        meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event],
-                **flight.provenance.to_dict()}
-        if event == MAIN_EVENT:  # the fleet stages decide usability from these, without the rows
-            meta[PHYSICS_FACTS] = checks.physics_facts(df).to_dict()
-        paths[event] = _write_parquet(df, decoded_path(root, event, flight.flight_id), meta)
-    return paths
-
-
-def recorded_physics_facts(path: Any) -> dict | None:
-    """The physics facts (:class:`quadcore.logs.checks.PhysicsFacts` as a dict) recorded in a
-    decoded main table's footer by :func:`write_decoded`, or None (decoded by older code)."""
-    return read_metadata(path).get(PHYSICS_FACTS)
-
-
-def recorded_provenance(root: Path, event: str, flight: str) -> Provenance | None:
-    """The :class:`quadcore.logs.flight.Provenance` written with a flight's decoded ``event`` table, or
-    None if not decoded yet."""
-    path = decoded_path(root, event, flight)
-    return Provenance.from_dict(read_metadata(path)) if path.is_file() else None
-
-
 def file_sha256(path: Path) -> str:
     """SHA-256 of a file's bytes, read in 1 MiB blocks."""
     digest = hashlib.sha256()
@@ -293,16 +265,6 @@ def file_sha256(path: Path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
-
-
-def decoded_from(root: Path, event: str, flight: str, log_path: Path) -> bool:
-    """Whether the flight's decoded ``event`` table was decoded from exactly these bytes (the
-    SHA-256 in its provenance); False when it is missing or the log cannot be read."""
-    recorded = recorded_provenance(root, event, flight)
-    try:
-        return recorded is not None and recorded.source_sha256 == file_sha256(log_path)
-    except (OSError, ValueError):
-        return False
 
 
 def read_decoded(root: Path, event: str, flight: str) -> pl.DataFrame:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
+from quadcore.physics import decoded
 
 if TYPE_CHECKING:
     import polars as pl
@@ -95,7 +96,7 @@ def decode_logs(paths: list[str], out: Path | None = None,
         try:  # any failure is this file's alone: it is quarantined with its reason, the others go on
             fl = flightmod.decode_flight(path, fid)
             if out is not None:
-                store.write_decoded(out, fl)
+                decoded.write_decoded(out, fl)
         except Exception as exc:  # noqa: BLE001 (per-file isolation: the reason is recorded and reported)
             reason = quarantine_reason(exc)
             if out is not None:
@@ -139,7 +140,7 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     """The flights the physics can use with ``vehicle``, each log once (:func:`duplicates` by
     ``digest``: flight -> the SHA-256 of its log); each other one is skipped with its reason,
     said through ``warn``. Tables decoded under a data root are judged from the physics facts and
-    the digest their footers record (:func:`quadcore.store.store.write_decoded`), without reading
+    the digest their footers record (:func:`quadcore.store.decoded.write_decoded`), without reading
     their rows; a table without facts (decoded by older code, or rewritten) is read."""
     from quadcore.logs import checks
     from quadcore.store import store

@@ -15,6 +15,7 @@ from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.store.names import MAIN_EVENT
 from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
+from quadcore.physics import decoded
 
 if TYPE_CHECKING:
     import polars as pl
@@ -103,7 +104,7 @@ def _recorded_digest(root, fid: str) -> str | None:
     """The SHA-256 of the log a flight was decoded from, as its decoded main table records it."""
     from quadcore.store import store
 
-    recorded = store.recorded_provenance(root, MAIN_EVENT, fid)
+    recorded = decoded.recorded_provenance(root, MAIN_EVENT, fid)
     return recorded.source_sha256 if recorded is not None else None
 
 
