@@ -25,7 +25,8 @@ from _common import logs_folder
 
 from quadcore import effects
 from quadcore.identify import fitting, sufficient
-from quadcore.logs import checks, flight
+from quadcore.logs import flight
+from quadcore.physics import gate
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 
@@ -35,7 +36,7 @@ NAMES = ("motor_lag", "thrust_delay")
 
 def flights(folder: Path) -> dict[str, fitting.FlightData]:
     tables = {p.name: flight.decode_flight(p).tables.get("fixedFrequency") for p in flight.discover_logs(folder)}
-    good, _ = checks.usable_flights({f: t for f, t in tables.items() if t is not None}, VEHICLE)
+    good, _ = gate.usable_flights({f: t for f, t in tables.items() if t is not None}, VEHICLE)
     return {f: fitting.flight_data(f, tables[f], VEHICLE) for f in good}
 
 

@@ -15,7 +15,7 @@ from fuzz.badlogs import KINDS, bad_logs
 from pipeline.main import run_all
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import cli
-from quadcore.logs import checks
+from quadcore.physics import gate
 from quadcore.sim import simulation
 from quadcore.store import store
 
@@ -101,7 +101,7 @@ def test_main_job_gives_every_good_flight_its_outputs(raw, tmp_path, monkeypatch
         console = capfd.readouterr()
         assert "ERROR" not in console.out + console.err and "Stack Trace" not in console.out + console.err
     for kind, check in USABLE_WITH_WARNING.items():  # what the decoded_flight asset check reports
-        passed, description, _ = checks.ALL_CHECKS[check](store.read_decoded(root, "fixedFrequency", f"bad_{kind}"))
+        passed, description, _ = gate.ALL_CHECKS[check](store.read_decoded(root, "fixedFrequency", f"bad_{kind}"))
         assert not passed, (kind, description)
 
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import polars as pl
 import pytest
 
-from quadcore.logs import checks, flight
+from quadcore.logs import flight
+from quadcore.physics import gate
 from quadcore.physics import vehicle
 from quadcore.physics import decoded
 from quadcore.store import store
@@ -43,7 +44,7 @@ def _counting_reads(monkeypatch) -> list:
 
 def test_usability_is_decided_from_the_footers_with_the_same_reasons(decoded_root, monkeypatch):
     cf = vehicle.load()
-    from_rows = checks.usable_flights(store.read_all_decoded(decoded_root, MAIN_EVENT), cf)
+    from_rows = gate.usable_flights(store.read_all_decoded(decoded_root, MAIN_EVENT), cf)
     reads = _counting_reads(monkeypatch)
     fl = fleet.fleet_from_store(decoded_root, cf)
     assert reads == []  # no decoded table read
@@ -59,7 +60,7 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
     for fid in ("sim000", "sim002"):
         path = store.decoded_path(decoded_root, MAIN_EVENT, fid)
         df, meta = store.read_parquet(path), store.read_metadata(path)
-        assert checks.PhysicsFacts.from_dict(meta[store.PHYSICS_FACTS]) is not None
+        assert gate.PhysicsFacts.from_dict(meta[store.PHYSICS_FACTS]) is not None
         store.write_parquet(df.head(100) if fid == "sim002" else df, store.decoded_path(root, MAIN_EVENT, fid), meta)
     assert decoded.recorded_physics_facts(store.decoded_path(root, MAIN_EVENT, "sim002")) is None
     reads = _counting_reads(monkeypatch)
@@ -71,10 +72,10 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
 def test_facts_answer_for_another_vehicles_columns(decoded_root):
     """A vehicle that reads columns the table lacks (motor speeds) is told which, from the facts."""
     path = store.decoded_path(decoded_root, MAIN_EVENT, "sim000")
-    facts = checks.PhysicsFacts.from_dict(decoded.recorded_physics_facts(path))
+    facts = gate.PhysicsFacts.from_dict(decoded.recorded_physics_facts(path))
     df = store.read_parquet(path)
     for columns in (["t_s", "vbat_V"], [c for c in df.columns if c.startswith("pwm_")] + ["t_s"]):
-        assert facts.covers(columns) and facts.problem(columns) == checks.physics_problem(df, columns)
+        assert facts.covers(columns) and facts.problem(columns) == gate.physics_problem(df, columns)
 
 
 # ---------------------------------------------------------------------------------------

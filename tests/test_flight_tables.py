@@ -6,7 +6,8 @@ from __future__ import annotations
 import polars as pl
 import pytest
 
-from quadcore.logs import checks, flight
+from quadcore.logs import flight
+from quadcore.physics import gate
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.physics import decoded
@@ -51,6 +52,6 @@ def test_usable_flights_walks_a_lazy_fleet(tmp_path):
     broken = decoded.tables[MAIN_EVENT].drop("omega_b_x_radps")
     store.write_parquet(broken, store.decoded_path(tmp_path, MAIN_EVENT, "sim001"), {})
     tables = store.read_all_decoded(tmp_path, MAIN_EVENT)
-    usable, skipped = checks.usable_flights(tables, vehicle.load())
+    usable, skipped = gate.usable_flights(tables, vehicle.load())
     assert usable == ["sim000"] and list(skipped) == ["sim001"] and "omega_b_x_radps" in skipped["sim001"]
     assert tables.subset(usable)["sim000"].equals(decoded.tables[MAIN_EVENT])

@@ -11,8 +11,8 @@ order; this test holds the module level. Today it passes only because
   sessions/summaries circle) is listed in KNOWN_CYCLES, and every
   function-level import inside identify is listed in IDENTIFY_RELAYOUT: both to be removed by the identify
   re-layout (issue 23, docs/architecture.md);
-- KNOT_CYCLES lists the one cycle outside identify (logs.checks <-> physics.dynamics) and KNOTS the
-  function-level imports that hide it;
+- KNOTS lists the function-level imports left of the knots outside identify (no cycle outside identify
+  is left: KNOT_CYCLES is empty);
 - STARTUP lists the CLI's lazy imports (a command imports only its own stage: `quadcore --help` stays fast);
 - UNREVIEWED lists the other function-level imports as found on 2026-11-26 (workflows, learn, plan,
   pipeline): each still needs its reason written here (start-up time, an optional dependency) or a move to
@@ -63,16 +63,9 @@ IDENTIFY_RELAYOUT = {
 }
 # ---- end of the identify block ---------------------------------------------------------------------------
 
-# Hide a cycle outside identify: logs/checks <-> physics/dynamics (issue 23; untie by moving the physics gate
-# into physics).
-KNOT_CYCLES = [
-    {"quadcore.logs.checks", "quadcore.physics.dynamics"},
-]
+# physics.vehicle writes its template through store (issue 23: to module level).
+KNOT_CYCLES: list[set[str]] = []
 KNOTS = {
-    ("quadcore.logs.checks", "quadcore.physics.dynamics"),
-    ("quadcore.logs.checks", "quadcore.physics.rotations"),
-    ("quadcore.physics.dynamics", "quadcore.logs.checks"),
-    ("quadcore.physics.dynamics", "quadcore.logs.units"),
     ("quadcore.physics.vehicle", "quadcore.store.store"),
 }
 
@@ -140,7 +133,6 @@ UNREVIEWED = {
     ("quadcore.workflows.demo", "quadcore.store.store"),
     ("quadcore.workflows.fleet", "quadcore.identify.model"),
     ("quadcore.workflows.fleet", "quadcore.identify.sessions"),
-    ("quadcore.workflows.fleet", "quadcore.logs.checks"),
     ("quadcore.workflows.fleet", "quadcore.logs.flight"),
     ("quadcore.workflows.fleet", "quadcore.logs.logformat"),
     ("quadcore.workflows.fleet", "quadcore.physics.vehicle"),

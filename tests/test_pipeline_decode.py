@@ -13,7 +13,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot
 from pipeline.sensors import raw_log_sensor
-from quadcore.logs import checks
+from quadcore.physics import gate
 from quadcore.store import store
 
 
@@ -65,7 +65,7 @@ def test_decoded_flight_on_real_logs(instance, real_logs, tmp_path):
     assert meta["parquet"] == str(store.decoded_path(tmp_path, "fixedFrequency", "jana02"))
     assert 495 < meta["rate_hz_median"] < 515  # the deck logs at 500 Hz
     ev02 = _checks(r02)
-    assert set(ev02) == set(checks.ALL_CHECKS)
+    assert set(ev02) == set(gate.ALL_CHECKS)
     assert all(ev.passed for ev in ev02.values()), {n: ev.description for n, ev in ev02.items()}
     assert pl.read_parquet(store.decoded_path(tmp_path, "fixedFrequency", "jana02")).height == 3900
 
@@ -214,4 +214,4 @@ def test_definitions_load():
     assert dg.AssetKey("decoded_flight") in graph.get_all_asset_keys()
     assert defs.resolve_sensor_def("raw_log_sensor") is not None
     check_keys = {k.name for k in graph.asset_check_keys}
-    assert check_keys == set(checks.ALL_CHECKS)
+    assert check_keys == set(gate.ALL_CHECKS)

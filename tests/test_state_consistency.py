@@ -7,7 +7,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from quadcore.logs import checks, flight
+from quadcore.logs import flight
+from quadcore.physics import gate
 from quadcore.physics import dynamics, vehicle
 from quadcore.workflows import fleet
 
@@ -15,11 +16,11 @@ from quadcore.workflows import fleet
 def test_every_real_flight_passes_with_a_wide_margin(real_logs):
     for path in flight.discover_logs(real_logs):
         df = flight.decode_flight(path).tables["fixedFrequency"]
-        assert checks.state_estimate_problem(df) is None, path.name
+        assert gate.state_estimate_problem(df) is None, path.name
         t = df["t_s"].to_numpy()
-        drift, _ = checks._window_drift(t, df.select(checks.STATE_COLUMNS[:3]).to_numpy().astype(float),
-                                        df.select(checks.STATE_COLUMNS[3:6]).to_numpy().astype(float))
-        assert drift.max() < checks.MAX_POSITION_DRIFT_M / 5, path.name  # measured: <= 0.021 m
+        drift, _ = gate._window_drift(t, df.select(gate.STATE_COLUMNS[:3]).to_numpy().astype(float),
+                                        df.select(gate.STATE_COLUMNS[3:6]).to_numpy().astype(float))
+        assert drift.max() < gate.MAX_POSITION_DRIFT_M / 5, path.name  # measured: <= 0.021 m
 
 
 def _jumped(df: pl.DataFrame, column: str, rows: slice, by: float) -> pl.DataFrame:
@@ -35,7 +36,7 @@ def main_table(request) -> pl.DataFrame:
     else:
         path = sorted(request.getfixturevalue("drag_fleet").glob("sim00[0-9]"))[0]
     df = flight.decode_flight(path).tables["fixedFrequency"]
-    assert checks.physics_problem(df, dynamics.NOMINAL_COLUMNS) is None
+    assert gate.physics_problem(df, gate.NOMINAL_COLUMNS) is None
     return df
 
 
@@ -46,18 +47,18 @@ def main_table(request) -> pl.DataFrame:
 ])
 def test_a_state_estimate_that_contradicts_itself_is_refused(main_table, column, rows, by, what):
     bad = _jumped(main_table, column, rows, by)
-    problem = checks.physics_problem(bad, dynamics.NOMINAL_COLUMNS)
+    problem = gate.physics_problem(bad, gate.NOMINAL_COLUMNS)
     assert problem is not None and "contradicts itself" in problem and what in problem, problem
-    assert checks.physics_facts(bad).problem(dynamics.NOMINAL_COLUMNS) == problem  # the footer's facts agree
+    assert gate.physics_facts(bad).problem(gate.NOMINAL_COLUMNS) == problem  # the footer's facts agree
     usable = fleet.usable({"good": main_table, "bad": bad}, vehicle.load(None))
     assert usable.ids == ["good"] and "contradicts itself" in usable.skipped["bad"]
 
 
 def test_old_footer_facts_are_not_trusted_for_the_new_check(main_table):
     """Facts recorded before this check lack its key: the table is read again."""
-    d = checks.physics_facts(main_table).to_dict()
+    d = gate.physics_facts(main_table).to_dict()
     del d["state_estimate"]
-    assert checks.PhysicsFacts.from_dict(d) is None
+    assert gate.PhysicsFacts.from_dict(d) is None
 
 
 def test_a_long_gap_restarts_the_integration():
@@ -65,9 +66,9 @@ def test_a_long_gap_restarts_the_integration():
     while nothing was logged passes; the samples on each side are checked."""
     n = 2000
     t = np.r_[np.arange(n // 2) / 500.0, 10.0 + np.arange(n // 2) / 500.0]
-    cols = {c: np.zeros(n) for c in checks.STATE_COLUMNS}
+    cols = {c: np.zeros(n) for c in gate.STATE_COLUMNS}
     cols.update(t_s=t, q_w=np.ones(n), sf_b_z_mps2=np.full(n, -dynamics.GRAVITY_W_MPS2[2]))
     cols["p_w_x_m"] = np.r_[np.zeros(n // 2), np.full(n // 2, 3.0)]
-    assert checks.state_estimate_problem(pl.DataFrame(cols)) is None
+    assert gate.state_estimate_problem(pl.DataFrame(cols)) is None
     cols["p_w_x_m"][1500:] += 1.0
-    assert "position" in (checks.state_estimate_problem(pl.DataFrame(cols)) or "")
+    assert "position" in (gate.state_estimate_problem(pl.DataFrame(cols)) or "")

@@ -8,14 +8,15 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.plot_links import number
 from pipeline.resources import DataRoot
 from quadcore.learn.features import find_flights_csv
-from quadcore.logs import checks, flight, required
+from quadcore.logs import flight, required
+from quadcore.physics import gate
 from quadcore.physics import decoded
 from quadcore.store import store
 from quadcore.workflows.fleet import quarantine_reason
 
 MAIN_EVENT = store.MAIN_EVENT
-CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight", description=checks.DESCRIPTIONS[name])
-          for name in checks.ALL_CHECKS]
+CHECKS = [dg.AssetCheckSpec(name, asset="decoded_flight", description=gate.DESCRIPTIONS[name])
+          for name in gate.ALL_CHECKS]
 
 
 def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log) -> tuple[dict, dict]:
@@ -44,7 +45,7 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
     main = fl.tables.get(MAIN_EVENT)
     stats = flight.sample_statistics(main["t_s"].to_numpy()) if main is not None else {}
     outcomes = {name: check(main) if main is not None else (False, f"no {MAIN_EVENT} table", {})
-                for name, check in checks.ALL_CHECKS.items()}
+                for name, check in gate.ALL_CHECKS.items()}
     metadata = {
         **{f"rows_{e}": n for e, n in fl.provenance.rows.items()},
         **stats,
@@ -81,7 +82,7 @@ def latest_outcomes(data_root: DataRoot) -> dict[str, dict[str, tuple[bool, str]
     """Every decoded flight's latest check outcomes, read once: check -> flight -> (passed,
     reason) (flights whose decoded table is gone are left out)."""
     root = data_root.root_path
-    out: dict[str, dict[str, tuple[bool, str]]] = {name: {} for name in checks.ALL_CHECKS}
+    out: dict[str, dict[str, tuple[bool, str]]] = {name: {} for name in gate.ALL_CHECKS}
     for path in sorted(store.checks_dir(root).glob("*.json")):
         if not store.decoded_path(root, MAIN_EVENT, path.stem).is_file():
             continue
@@ -115,7 +116,7 @@ def _check_results(outcomes: dict[str, dict], data_root: DataRoot) -> list[dg.As
     flight cannot turn a check green while other flights fail it."""
     results = []
     latest = latest_outcomes(data_root)
-    for name in checks.ALL_CHECKS:
+    for name in gate.ALL_CHECKS:
         every = latest[name]
         every.update({fid: (ok, d) for fid, o in outcomes.items() for ok, d, _ in [o[name]]})
         failing = sorted(fid for fid, (ok, _) in every.items() if not ok)

@@ -2,7 +2,7 @@
 flight's provenance, and in the main table's footer the physics gate's facts of its rows.
 
 The writer sits above ``logs`` (it knows a :class:`~quadcore.logs.flight.Flight`, its
-:class:`~quadcore.logs.flight.Provenance` and the gate's :class:`~quadcore.logs.checks.PhysicsFacts`);
+:class:`~quadcore.logs.flight.Provenance` and the gate's :class:`~quadcore.physics.gate.PhysicsFacts`);
 the store below it knows paths and Parquet with metadata only.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from quadcore.logs import checks
+from quadcore.physics import gate
 from quadcore.logs.flight import Flight, Provenance
 from quadcore.store import store
 from quadcore.store.names import MAIN_EVENT
@@ -24,13 +24,13 @@ def write_decoded(root: Path, flight: Flight) -> dict[str, Path]:
     for event, df in flight.tables.items():
         meta = {"flight": flight.flight_id, "event": event, "columns": flight.columns[event],
                 **flight.provenance.to_dict()}
-        facts = checks.physics_facts(df).to_dict() if event == MAIN_EVENT else None
+        facts = gate.physics_facts(df).to_dict() if event == MAIN_EVENT else None
         paths[event] = store.write_parquet(df, store.decoded_path(root, event, flight.flight_id), meta, facts)
     return paths
 
 
 def recorded_physics_facts(path: Any) -> dict | None:
-    """The physics facts (:class:`quadcore.logs.checks.PhysicsFacts` as a dict) recorded in a
+    """The physics facts (:class:`quadcore.physics.gate.PhysicsFacts` as a dict) recorded in a
     decoded main table's footer by :func:`write_decoded`, or None (decoded by older code)."""
     return store.read_metadata(path).get(store.PHYSICS_FACTS)
 

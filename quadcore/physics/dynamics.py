@@ -23,18 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from quadcore.logs.units import G0_MPS2
+from quadcore.logs.units import SI_COLUMNS
 from quadcore.physics import rotations
+from quadcore.physics.gate import XYZ as XYZ  # re-exported for identify.regimes (its re-layout, issue 23)
+from quadcore.physics.gate import cols, physics_problem, required_columns
+from quadcore.physics.rotations import GRAVITY_W_MPS2 as GRAVITY_W_MPS2  # re-exported, as XYZ
 from quadcore.physics.vehicle import Vehicle
-
-GRAVITY_W_MPS2 = np.array([0.0, 0.0, -G0_MPS2])
-
-XYZ = ("x", "y", "z")
-
-
-def cols(prefix: str, unit: str) -> list[str]:
-    """``cols("v_w", "mps")`` -> ``["v_w_x_mps", "v_w_y_mps", "v_w_z_mps"]``."""
-    return [f"{prefix}_{a}_{unit}" for a in XYZ]
 
 
 @dataclass
@@ -61,7 +55,7 @@ class FlightState:
 
 
 class UnusableFlightError(ValueError):
-    """A flight the physics cannot use (see :func:`quadcore.logs.checks.physics_problem`): the
+    """A flight the physics cannot use (see :func:`quadcore.physics.gate.physics_problem`): the
     fleet stages skip it with this reason and go on."""
 
 
@@ -70,30 +64,13 @@ class MissingColumnsError(UnusableFlightError):
     with more rotors than the log has motors)."""
 
 
-NOMINAL_COLUMNS = ["t_s", *cols("p_w", "m"), *cols("v_w", "mps"), "q_x", "q_y", "q_z", "q_w",
-                   *cols("omega_b", "radps"), *cols("sf_b", "mps2"), "vbat_V", "pwm_1", "pwm_2", "pwm_3", "pwm_4"]
-
-
-def required_columns(vehicle: Vehicle) -> list[str]:
-    """The SI columns :func:`flight_state` needs for this vehicle and thrust map."""
-    need = [c for c in NOMINAL_COLUMNS if not c.startswith("pwm_")]
-    need += [f"pwm_{i}" for i in range(1, vehicle.n_rotors + 1)]
-    if vehicle.thrust_map_kind == "motor_speed":
-        need += [f"motor_{i}_radps" for i in range(1, vehicle.n_rotors + 1)]
-    return need
-
-
 def flight_state(df: pl.DataFrame, vehicle: Vehicle) -> FlightState:
     """Arrays for the dynamics from a decoded ``fixedFrequency`` SI table.
 
     Raises :class:`MissingColumnsError` naming the logged variables that are missing, and
-    :class:`UnusableFlightError` for a flight :func:`quadcore.logs.checks.physics_problem` refuses."""
-    from quadcore.logs.checks import physics_problem
-
+    :class:`UnusableFlightError` for a flight :func:`quadcore.physics.gate.physics_problem` refuses."""
     missing = [c for c in required_columns(vehicle) if c not in df.columns]
     if missing:
-        from quadcore.logs.units import SI_COLUMNS
-
         logged = {si: var for var, (si, *_rest) in SI_COLUMNS.items()}
         names = ", ".join(f"{c} (log variable {logged[c]})" if c in logged else c for c in missing)
         raise MissingColumnsError(

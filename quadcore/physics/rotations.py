@@ -1,6 +1,7 @@
-"""Attitude: quaternions (x, y, z, w, scalar last, as logged) and rotation matrices.
+"""Frames and attitude: quaternions (x, y, z, w, scalar last, as logged) and rotation matrices.
 
-``R = rotation_matrix(q)`` maps body-frame vectors to the world frame: ``v_w = R v_b``.
+``R = rotation_matrix(q)`` maps body-frame vectors to the world frame: ``v_w = R v_b``; the world
+frame has z up, so gravity is ``g_w = (0, 0, -g0)``.
 Built on ``scipy.spatial.transform.Rotation``, which uses the same scalar-last order.
 All functions take whole flights: quaternions ``(n, 4)``, vectors ``(n, 3)``.
 """
@@ -9,6 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from quadcore.logs.units import G0_MPS2
+
+GRAVITY_W_MPS2 = np.array([0.0, 0.0, -G0_MPS2])
 
 
 def rotation_matrix(q_xyzw: np.ndarray) -> np.ndarray:

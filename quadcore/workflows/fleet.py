@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.physics import decoded, gate
 from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
-from quadcore.physics import decoded
 
 if TYPE_CHECKING:
     import polars as pl
@@ -142,7 +142,6 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     said through ``warn``. Tables decoded under a data root are judged from the physics facts and
     the digest their footers record (:func:`quadcore.store.decoded.write_decoded`), without reading
     their rows; a table without facts (decoded by older code, or rewritten) is read."""
-    from quadcore.logs import checks
     from quadcore.store import store
 
     facts = None
@@ -154,15 +153,15 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
                 footers[fid] = store.read_metadata(tables.path(fid))
             return footers[fid]
 
-        def facts(fid: str) -> checks.PhysicsFacts | None:
-            return checks.PhysicsFacts.from_dict(footer(fid).get(store.PHYSICS_FACTS))
+        def facts(fid: str) -> gate.PhysicsFacts | None:
+            return gate.PhysicsFacts.from_dict(footer(fid).get(store.PHYSICS_FACTS))
 
         digest = digest or (lambda fid: footer(fid).get("source_sha256"))
 
     copies = duplicates(tables, digest) if digest is not None else {}
     for fid, why in copies.items():
         warn(f"{fid} skipped: {why}")
-    good, unusable = checks.usable_flights(_subset(tables, [f for f in tables if f not in copies]), vehicle, facts)
+    good, unusable = gate.usable_flights(_subset(tables, [f for f in tables if f not in copies]), vehicle, facts)
     skipped = {**(skipped or {}), **copies, **unusable}
     for fid, why in unusable.items():
         warn(f"{fid} skipped: {why}")
