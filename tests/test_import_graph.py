@@ -11,8 +11,6 @@ order; this test holds the module level. Today it passes only because
   sessions/summaries circle) is listed in KNOWN_CYCLES, and every
   function-level import inside identify is listed in IDENTIFY_RELAYOUT: both to be removed by the identify
   re-layout (issue 23, docs/architecture.md);
-- KNOTS lists the function-level imports left of the knots outside identify (no cycle outside identify
-  is left: KNOT_CYCLES is empty);
 - STARTUP lists the CLI's lazy imports (a command imports only its own stage: `quadcore --help` stays fast);
 - UNREVIEWED lists the other function-level imports as found on 2026-11-26 (workflows, learn, plan,
   pipeline): each still needs its reason written here (start-up time, an optional dependency) or a move to
@@ -62,12 +60,6 @@ IDENTIFY_RELAYOUT = {
     ("quadcore.identify.sufficient", "quadcore.identify.summaries"),
 }
 # ---- end of the identify block ---------------------------------------------------------------------------
-
-# physics.vehicle writes its template through store (issue 23: to module level).
-KNOT_CYCLES: list[set[str]] = []
-KNOTS = {
-    ("quadcore.physics.vehicle", "quadcore.store.store"),
-}
 
 # Start-up time: the CLI imports a command's stage inside the command; workflows.learn's report step imports
 # report.learning (matplotlib) only when a report is written.
@@ -123,7 +115,6 @@ UNREVIEWED = {
     ("quadcore.learn.artefacts", "quadcore.physics.vehicle"),
     ("quadcore.learn.features", "quadcore.store.safewrite"),
     ("quadcore.learn.features", "quadcore.store.store"),
-    ("quadcore.physics.thrustfit", "quadcore.store.store"),
     ("quadcore.plan.bench", "quadcore.plan.pieces"),
     ("quadcore.plan.planner", "quadcore.plan.limits"),
     ("quadcore.plan.planner", "quadcore.plan.separation"),
@@ -163,12 +154,12 @@ UNREVIEWED = {
     ("quadcore.workflows.plan", "quadcore.workflows.fleet"),
 }
 
-ALLOWED = IDENTIFY_RELAYOUT | KNOTS | STARTUP | UNREVIEWED
+ALLOWED = IDENTIFY_RELAYOUT | STARTUP | UNREVIEWED
 
 
 def test_no_new_import_cycle() -> None:
     found = [set(c) for c in graph.cycles(graph.imports())]
-    new = [sorted(c) for c in found if c not in KNOWN_CYCLES + KNOT_CYCLES]
+    new = [sorted(c) for c in found if c not in KNOWN_CYCLES]
     assert not new, "new import cycles (break them; docs/architecture.md): " + "; ".join(" <-> ".join(c) for c in new)
 
 

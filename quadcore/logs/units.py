@@ -98,13 +98,3 @@ def to_si(
         units[name] = {"unit": unit, "description": desc, "source": var}
     return pl.DataFrame(columns), units
 
-
-# The unit of a column, from the last part of its name (the project's naming convention:
-# ``f_res_b_x_N``, ``v_w_x_mps``, ``timestamp_us``); a name without one is dimensionless ("1").
-SUFFIX_UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2",
-                "m": "m", "V": "V", "s": "s", "us": "us", "deg": "deg", "rad": "rad", "kg": "kg", "Hz": "Hz"}
-
-
-def column_units(columns) -> dict[str, str]:
-    """Unit of each column name, read off its suffix (see ``SUFFIX_UNITS``)."""
-    return {c: SUFFIX_UNITS.get(c.rsplit("_", 1)[-1], "1") for c in columns}

@@ -27,10 +27,10 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from quadcore.logs import units
 from quadcore.physics import dynamics, rotations, signals
 from quadcore.physics.dynamics import FlightState, cols
 from quadcore.physics.vehicle import Vehicle
+from quadcore.store import names
 
 F_RES_B, F_RES_W = cols("f_res_b", "N"), cols("f_res_w", "N")
 TAU_RES_B = cols("tau_res_b", "Nm")
@@ -125,7 +125,7 @@ def residual_table(
 
 def column_units(df: pl.DataFrame) -> dict[str, str]:
     """Unit of every column, read off its name suffix (``_N``, ``_Nm``, ``_mps``, ...)."""
-    return units.column_units(df.columns)
+    return names.column_units(df.columns)
 
 
 def rmse(df: pl.DataFrame, columns: list[str], where: pl.Expr | None = None) -> list[float]:

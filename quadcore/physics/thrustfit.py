@@ -20,6 +20,7 @@ import polars as pl
 
 from quadcore.physics import signals
 from quadcore.physics.vehicle import Vehicle
+from quadcore.store import store
 
 
 def speed_squared_sum(df: pl.DataFrame, n_rotors: int) -> np.ndarray:
@@ -49,6 +50,4 @@ def write_k_F(vehicle_toml_text: str, k_F: float, out: Path) -> Path:
     new, n = re.subn(r"(?m)^(\s*k_F_N_per_radps2\s*=\s*)[^#\n]*", rf"\g<1>{k_F:.6e} ", vehicle_toml_text)
     if n != 1:
         raise ValueError("vehicle file has no single 'k_F_N_per_radps2 = ...' line under [thrust_map.motor_speed]")
-    from quadcore.store import store
-
     return store.write_text(new, out)  # atomic: a kill never leaves half a vehicle file

@@ -15,6 +15,7 @@ The built-in default is ``vehicles/crazyflie21.toml``; every constant lives ther
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.logs.units import G0_MPS2
+from quadcore.store import store
 
 DEFAULT_VEHICLE = "crazyflie21"
 THRUST_MAP_KINDS = ("pwm_vbat", "motor_speed")
@@ -342,10 +344,6 @@ def write_template(name: str, path: str | Path) -> Vehicle:
     template (``vehicles/template.toml``: every number with its meaning and unit, starting at the
     Crazyflie 2.1's values), checked by :func:`load` before it is written. Refuses to overwrite
     a file; a name that is not a plain identifier is a :class:`VehicleFileError`."""
-    import re
-
-    from quadcore.store import store
-
     if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
         raise VehicleFileError(f"vehicle name {name!r}: use letters, digits, '_' or '-' (starting with a letter)")
     path = Path(path)

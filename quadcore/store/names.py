@@ -1,4 +1,5 @@
-"""Names that become path components under the data root (event types, flight ids, run names).
+"""Names that become path components under the data root (event types, flight ids, run names), and
+the unit a column's name carries (:func:`column_units`, recorded in every Parquet file's metadata).
 
 Such a name comes from a log's header or from a file name, so it is untrusted: it could hold a
 separator, ``..``, a ``=`` (which breaks hive-partitioned paths such as ``flight=<id>``), or be
@@ -69,3 +70,14 @@ def unique_safe_names(names: list[str]) -> tuple[list[str], list[str]]:
         taken.add(candidate)
         out.append(candidate)
     return out, warnings
+
+
+# The unit of a column, from the last part of its name (the project's naming convention:
+# ``f_res_b_x_N``, ``v_w_x_mps``, ``timestamp_us``); a name without one is dimensionless ("1").
+SUFFIX_UNITS = {"N": "N", "Nm": "N m", "mps": "m/s", "mps2": "m/s^2", "radps": "rad/s", "radps2": "rad/s^2",
+                "m": "m", "V": "V", "s": "s", "us": "us", "deg": "deg", "rad": "rad", "kg": "kg", "Hz": "Hz"}
+
+
+def column_units(columns) -> dict[str, str]:
+    """Unit of each column name, read off its suffix (see ``SUFFIX_UNITS``)."""
+    return {c: SUFFIX_UNITS.get(c.rsplit("_", 1)[-1], "1") for c in columns}

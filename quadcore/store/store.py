@@ -34,10 +34,10 @@ from typing import Any
 
 import polars as pl
 
-from quadcore.logs import units
 from quadcore.store.names import (
     MAIN_EVENT as MAIN_EVENT,  # re-exported: store.MAIN_EVENT
     check_component,
+    column_units,
 )
 from quadcore.store.safewrite import temp_prefix
 
@@ -175,7 +175,7 @@ def atomic_write(path: Any, write) -> Path:
 def write_parquet(df: pl.DataFrame, path: Path, metadata: dict, physics_facts: dict | None = None) -> Path:
     """Write ``df`` to ``path`` atomically (temp file + rename) with JSON file metadata, which
     always holds ``units`` (column -> unit): the given ones, else those of a ``columns``
-    description, else read off the column names (:func:`quadcore.logs.units.column_units`).
+    description, else read off the column names (:func:`quadcore.store.names.column_units`).
     Physics facts in ``metadata`` are dropped: they were found in other rows (metadata copied
     from another file); ``physics_facts`` (those of these very rows, which only
     :func:`quadcore.physics.decoded.write_decoded` knows) are recorded under :data:`PHYSICS_FACTS`."""
@@ -191,7 +191,7 @@ def _units(df: pl.DataFrame, metadata: dict) -> dict[str, str]:
     if "units" in metadata:
         return metadata["units"]
     described = metadata.get("columns") or {}
-    by_name = units.column_units(df.columns)
+    by_name = column_units(df.columns)
     return {c: described[c]["unit"] if isinstance(described.get(c), dict) and "unit" in described[c] else by_name[c]
             for c in df.columns}
 
