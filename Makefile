@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 DATA ?= data
 PORT ?= 3000
 export QUADCORE_DATA_ROOT ?= $(abspath $(DATA))
-# DAGSTER_HOME: <data root>/.dagster unless set (pipeline.instance), the demo's in its own root.
+# DAGSTER_HOME: <data root>/.dagster unless set (pipeline.run.instance), the demo's in its own root.
 
 .PHONY: install run demo test test-fast lint docs ui bench fuzz cluster-up cluster-run cluster-down
 
@@ -55,7 +55,7 @@ docs: $(STAMP)
 
 # Dagster's UI and daemon until Ctrl-C / SIGTERM (plots served on the same port); PORT=3300 make ui for another port.
 ui: $(STAMP)
-	$(VENV_PYTHON) -m pipeline.ui --port $(PORT)
+	$(VENV_PYTHON) -m pipeline.run.ui --port $(PORT)
 
 bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_export.py

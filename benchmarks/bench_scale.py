@@ -99,7 +99,7 @@ def child(args: list[str]) -> subprocess.CompletedProcess:
 
 def peak_mb() -> float:
     """This process's peak resident memory plus its largest child's (the main job's second
-    process, pipeline.parallel): an upper bound of the two at once."""
+    process, pipeline.run.parallel): an upper bound of the two at once."""
     return sum(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)) / 1024
 
 
@@ -162,7 +162,7 @@ def per_flight_child(n: int) -> None:
     sufficient statistics, then the tables against the model); prints seconds."""
     import dagster as dg
 
-    from pipeline import main as job, parallel
+    from pipeline.run import main as job, parallel
     from pipeline.assets import AGAINST_MODEL, DECODE, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
@@ -238,7 +238,7 @@ def fleet_child(n: int) -> None:
     MB, refresh seconds, peak MB."""
     import dagster as dg
 
-    from pipeline import main as job
+    from pipeline.run import main as job
     from pipeline.assets import DECODE, FLEET, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
 
@@ -288,7 +288,7 @@ def learning_child(n: int) -> None:
     residual tables ``--per-flight n`` left; prints seconds per asset, peak MB."""
     import dagster as dg
 
-    from pipeline import main as job
+    from pipeline.run import main as job
     from pipeline.assets import EXPORT, LEARNING
     from pipeline.resources import DataRoot, ModelConfig
 

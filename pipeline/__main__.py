@@ -1,4 +1,4 @@
-"""``python -m pipeline``: the main job (:mod:`pipeline.main`).
+"""``python -m pipeline``: the main job (:mod:`pipeline.run.main`).
 
 Python's cyclic garbage collector is kept out of the way of what a batch job does not need:
 it is paused while Dagster, SciPy, polars and matplotlib are imported (they make millions of
@@ -7,7 +7,7 @@ long-lived objects, and each full collection walks them all), those objects are 
 imported by the learning stage, and each run's objects would otherwise be walked again every
 70,000 allocations), and everything left is frozen again before the interpreter tears itself
 down (its last full collection walks the whole heap once more). Measured here: importing
-pipeline.main 1.95 -> 1.52 s CPU, exiting after it 2.2 -> 0.2 s; in the demo job, 14 full
+pipeline.run.main 1.95 -> 1.52 s CPU, exiting after it 2.2 -> 0.2 s; in the demo job, 14 full
 collections (4.3 s) -> 1 (0.9 s). Memory is still freed by reference counting as before; only
 garbage in reference cycles waits longer."""
 
@@ -22,7 +22,7 @@ try:
     from pipeline.resources import SettingError
 
     try:
-        from pipeline.main import main
+        from pipeline.run.main import main
     except SettingError as exc:  # a bad QUADCORE_* setting read with the definitions: one line, exit 2
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)

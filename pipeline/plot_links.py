@@ -5,7 +5,7 @@ characters; a PNG inline as base64 is far longer, so it hides behind "[Show Mark
 plot is written once under ``<data root>/plots/<content hash>.png`` and the metadata is a short
 Markdown image link to ``/quadcore-plots/<file>``: a path with no host or port, resolved by the
 browser against the UI's own page and served by the UI process from its own data root
-(:mod:`pipeline.webserver`, what ``make ui`` runs). The link stays right on any port, after a
+(:mod:`pipeline.run.webserver`, what ``make ui`` runs). The link stays right on any port, after a
 restart, and on a copy of the data root. With an object-store data root (the UI serves this
 machine's disk) the PNG stays inline (one click, but nothing to serve).
 """
@@ -19,7 +19,7 @@ from quadcore.report import render
 from quadcore.store import store
 
 PLOTS_FOLDER = "plots"
-PLOTS_ROUTE = "/quadcore-plots"  # pipeline.webserver serves <data root>/plots there
+PLOTS_ROUTE = "/quadcore-plots"  # pipeline.run.webserver serves <data root>/plots there
 
 
 def plot_md(data_root: DataRoot, png: bytes, alt: str) -> dg.MetadataValue:

@@ -23,9 +23,9 @@ REAL_LOGS = Path(__file__).resolve().parents[1].parent / "shared" / "crazyflie" 
 def unsynced_dagster_test_instances(tmp_path_factory):
     """``dg.instance_for_test()`` makes its Dagster home with ``tempfile``: here, in a folder
     whose SQLite files are written without fsync, as the headless main job's are
-    (:func:`pipeline.instance.unsynced_event_log`). About ten fsyncs per event otherwise: most of
+    (:func:`pipeline.run.instance.unsynced_event_log`). About ten fsyncs per event otherwise: most of
     a Dagster test's time on a busy disk, for run records thrown away after the test."""
-    from pipeline.instance import unsynced_event_log
+    from pipeline.run.instance import unsynced_event_log
 
     folder = tmp_path_factory.mktemp("dagster_instances")
     unsynced_event_log(folder)

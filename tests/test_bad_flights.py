@@ -12,7 +12,7 @@ import dagster as dg
 import pytest
 from fuzz.badlogs import KINDS, bad_logs
 
-from pipeline.main import run_all
+from pipeline.run.main import run_all
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore import cli
 from quadcore.physics import gate

@@ -100,7 +100,7 @@ def test_malformed_model_file_is_one_line_naming_the_key(case, logs, tmp_path):
 
 
 def test_pipeline_refuses_a_bad_model_file_before_any_work(tmp_path, monkeypatch, capsys):
-    from pipeline import main as pipeline_main
+    from pipeline.run import main as pipeline_main
 
     bad = tmp_path / "model.toml"
     bad.write_text("parameters = 5\n")
@@ -178,7 +178,7 @@ def test_an_unusual_vehicle_is_accepted_with_its_documented_override(tmp_path):
 
 
 def test_the_main_job_names_a_model_file_that_is_not_utf8(tmp_path, monkeypatch, capsys):
-    from pipeline import main as pipeline_main
+    from pipeline.run import main as pipeline_main
 
     bad = tmp_path / "model.toml"
     bad.write_bytes("# mod\xe8le\neffects = []\n".encode("latin-1"))

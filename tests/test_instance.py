@@ -6,7 +6,7 @@ from __future__ import annotations
 import dagster as dg
 from sqlalchemy import create_engine, text
 
-from pipeline.instance import ensure_dagster_home, unsynced_event_log
+from pipeline.run.instance import ensure_dagster_home, unsynced_event_log
 
 
 def _synchronous(db) -> int:

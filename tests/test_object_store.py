@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from pipeline.assets import PER_FLIGHT
-from pipeline.parallel import range_tags
+from pipeline.run.parallel import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.sim import simulation
@@ -81,7 +81,7 @@ def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monk
     """``python -m pipeline``'s stages with ``QUADCORE_DATA_ROOT=s3://...``: every output (decoded
     and residual Parquet, the fitted model, diagnosis and discovery JSON, reports, history,
     learned models, MCAP, C) is in the bucket, and nothing under the working directory."""
-    from pipeline.main import run_all
+    from pipeline.run.main import run_all
 
     raw = tmp_path / "raw"
     raw.mkdir()

@@ -206,7 +206,7 @@ def test_the_plots_are_served_without_a_listing_of_their_folder(tmp_path):
     from starlette.testclient import TestClient
 
     from pipeline.plot_links import PLOTS_ROUTE
-    from pipeline.webserver import with_plots
+    from pipeline.run.webserver import with_plots
 
     (tmp_path / "a.png").write_bytes(b"png")
     client = TestClient(with_plots(Starlette(), tmp_path))
@@ -229,7 +229,7 @@ while True:
 def test_sigterm_lets_the_services_stop_and_says_nothing_untrue():
     """SIGTERM to ``make ui``'s launcher: services that take 2 s to stop get them (the launcher
     killed them after its own 1 s poll and said 'did not stop within 20 s')."""
-    launcher = ("import sys\nfrom pipeline.ui import serve\n"
+    launcher = ("import sys\nfrom pipeline.run.ui import serve\n"
                 f"sys.exit(serve([[sys.executable, '-c', {SLOW_TO_STOP!r}]], {{}}))\n")
     proc = subprocess.Popen([sys.executable, "-c", launcher], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

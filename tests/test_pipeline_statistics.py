@@ -7,7 +7,7 @@ from __future__ import annotations
 import dagster as dg
 import pytest
 
-from pipeline import main as job
+from pipeline.run import main as job
 from pipeline.assets.decode import decoded_flight
 from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import physics_model

@@ -26,7 +26,7 @@ def test_the_ui_serves_the_plots_of_its_own_data_root(tmp_path):
     from starlette.routing import Route
     from starlette.testclient import TestClient
 
-    from pipeline.webserver import with_plots
+    from pipeline.run.webserver import with_plots
 
     md = plot_md(DataRoot(root=str(tmp_path / "copy")), PNG, "candidates").value
     app = with_plots(Starlette(routes=[Route("/{path:path}", lambda r: PlainTextResponse("index"))]),

@@ -9,7 +9,7 @@ import shutil
 import dagster as dg
 import pytest
 
-from pipeline import main, parallel
+from pipeline.run import main, parallel
 from pipeline.assets import PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import process_flight_job

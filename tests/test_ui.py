@@ -50,7 +50,7 @@ def webserver(tmp_path_factory):
     left = _kill_everything_of(home)
     log.close()
     assert code == 0 and not left, f"exit {code}; still running after SIGTERM: {left}"
-    from pipeline.ui import port_problem
+    from pipeline.run.ui import port_problem
 
     assert port_problem("127.0.0.1", port) is None
 
@@ -59,7 +59,7 @@ def start_ui(base: Path, home: Path, port: int, env: dict[str, str]):
     """`make ui`'s launcher on ``port``, its output in ``base/dagster_dev.log``, in a session of
     its own (so that a failed test can still end everything); (process, log file) once it answers."""
     log = open(base / "dagster_dev.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.ui", "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.run.ui", "--port", str(port)],
                             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.time() + 180
     while True:
@@ -122,7 +122,7 @@ def test_a_taken_port_is_one_clear_line(tmp_path):
         taken.listen()
         port = taken.getsockname()[1]
         env = {**os.environ, "DAGSTER_HOME": str(tmp_path / "home"), "QUADCORE_DATA_ROOT": str(tmp_path / "root")}
-        done = subprocess.run([sys.executable, "-m", "pipeline.ui", "--port", str(port)], cwd=REPO, env=env,
+        done = subprocess.run([sys.executable, "-m", "pipeline.run.ui", "--port", str(port)], cwd=REPO, env=env,
                               capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert done.stderr.strip() == (f"make ui: error: port {port} on 127.0.0.1 is already in use; "

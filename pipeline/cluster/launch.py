@@ -1,7 +1,7 @@
 """The main job's runs, submitted to a cluster instead of executed in this process.
 
 With ``QUADCORE_CLUSTER_URL`` set (``make cluster-up`` writes it to ``.cluster/env``), every
-materialisation of the main job (:mod:`pipeline.main`) is a run submitted through the
+materialisation of the main job (:mod:`pipeline.run.main`) is a run submitted through the
 webserver's GraphQL API to the instance's run queue: the daemon launches it when a slot is
 free, its steps run on the Celery workers, and this process waits for it and reads its events
 from the shared instance (PostgreSQL). The stages, their order and what counts as stale are the

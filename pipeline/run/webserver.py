@@ -1,6 +1,6 @@
 """Dagster's webserver with the data root's plots on the same origin, at ``/quadcore-plots/``.
 
-    python -m pipeline.webserver -w workspace.yaml -h 127.0.0.1 -p 3000   (what ``make ui`` starts)
+    python -m pipeline.run.webserver -w workspace.yaml -h 127.0.0.1 -p 3000   (what ``make ui`` starts)
 
 The plots the assets write (``<data root>/plots/<content hash>.png``, see
 :mod:`pipeline.plot_links`) are linked from their metadata as ``/quadcore-plots/<file>``: a path

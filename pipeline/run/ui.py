@@ -1,13 +1,13 @@
 """``make ui``: Dagster's UI and daemon on the persistent instance, for a lab to leave running.
 
-    python -m pipeline.ui [--port 3000] [--host 127.0.0.1]
+    python -m pipeline.run.ui [--port 3000] [--host 127.0.0.1]
 
 - ``$DAGSTER_HOME`` (default ``<data root>/.dagster``) gets a ``dagster.yaml`` with a run queue
   limited to two runs at once (the machine has two cores), if it has none yet.
 - A port already in use is one line on stderr and exit code 2, before anything starts.
 - The services ``dg dev`` would start, Dagster's webserver and daemon, with the webserver
   serving the data root's plots on its own origin (``/quadcore-plots/``, see
-  :mod:`pipeline.webserver`), so that the asset pages show them on any port.
+  :mod:`pipeline.run.webserver`), so that the asset pages show them on any port.
 - The services run in a process group of their own; SIGINT or SIGTERM to this process stops them
   and everything they started (code servers), also when started without a terminal.
 """
@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 # How long the services get to stop after an interrupt before they are killed.
 STOP_TIMEOUT_S = 20.0
 
@@ -46,14 +46,14 @@ def port_problem(host: str, port: int) -> str | None:
 
 def service_commands(host: str, port: int) -> list[list[str]]:
     """The UI's two services on our workspace: Dagster's webserver with the data root's plots on
-    the same origin (:mod:`pipeline.webserver`), and Dagster's daemon (sensors, schedules,
+    the same origin (:mod:`pipeline.run.webserver`), and Dagster's daemon (sensors, schedules,
     automation, the run queue). What ``dg dev`` starts, with the webserver extended; each loads
     the code location from ``workspace.yaml`` itself."""
     daemon = shutil.which("dagster-daemon", path=str(Path(sys.executable).parent)) or shutil.which("dagster-daemon")
     if daemon is None:
         raise FileNotFoundError("the `dagster-daemon` command (package dagster) is not installed; run `make install`")
     workspace = str(REPO / "workspace.yaml")
-    return [[sys.executable, "-m", "pipeline.webserver", "-w", workspace, "-h", host, "-p", str(port)],
+    return [[sys.executable, "-m", "pipeline.run.webserver", "-w", workspace, "-h", host, "-p", str(port)],
             [daemon, "run", "-w", workspace]]
 
 
@@ -109,7 +109,7 @@ def _end_group(pgid: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.ui", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m pipeline.run.ui", description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, default=int(os.environ.get("PORT", "3000")))
     parser.add_argument("--host", default="127.0.0.1")
     args = parser.parse_args(argv)
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"make ui: error: {problem}", file=sys.stderr)
         return 2
-    from pipeline.instance import ensure_dagster_home
+    from pipeline.run.instance import ensure_dagster_home
     from pipeline.resources import SettingError, choose_demo, data_root_from_env
     from quadcore.store import ownership
 

@@ -23,14 +23,14 @@ from typing import Any
 
 import dagster as dg
 
-from pipeline import parallel
+from pipeline.run import parallel
 from pipeline.assets import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.cluster import launch
 from pipeline.freshness import model_version
-from pipeline.instance import ensure_dagster_home, unsynced_event_log
-from pipeline.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
+from pipeline.run.instance import ensure_dagster_home, unsynced_event_log
+from pipeline.run.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
 from pipeline.partitions import flights
 from pipeline.resources import (
     DEFAULT_ROOT,
@@ -79,7 +79,7 @@ def run_flights(instance, resources: dict, flight_ids: list[str], assets, label:
                 split_at: int | None = None) -> dict[str, str]:
     """Materialise per-flight ``assets`` for the flights, in as few runs as possible: one run per
     range of consecutive flight partitions (one run in all for a fresh data root), a long range
-    as two runs at once, one per core (:func:`pipeline.parallel.halves`, from ``split_at``
+    as two runs at once, one per core (:func:`pipeline.run.parallel.halves`, from ``split_at``
     flights). A flight that fails
     is retried alone, so that it fails in a run of its own and the others' runs succeed.
     Returns flight -> failure reason."""

@@ -28,7 +28,7 @@ from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PART
 from dagster._serdes import deserialize_value, serialize_value
 
 from pipeline.cluster import launch
-from pipeline.instance import unsynced_event_log, unsynced_homes
+from pipeline.run.instance import unsynced_event_log, unsynced_homes
 from pipeline.partitions import failed_flights
 
 # Keep the console to our progress lines (one per skipped flight, with its reason); Dagster's own
