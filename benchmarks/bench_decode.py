@@ -7,7 +7,7 @@ beside the clone). Every log file in it is decoded
 
 - by quadcore, best of 3 each: ``quadcore.logs.logformat.decode_file`` (the vectorised decode
   alone: raw values, like the baseline), ``quadcore.logs.flight.decode_flight`` (decode + SI
-  tables + provenance), and ``decode_flight`` + ``quadcore.store.decoded.write_decoded`` (SI
+  tables + provenance), and ``decode_flight`` + ``quadcore.physics.decoded.write_decoded`` (SI
   Parquet to a temp dir);
 - by the baseline below: one ``struct.unpack_from`` per record, the obvious way to read the
   format (decode only, no SI, no Parquet), one pass.

@@ -10,7 +10,8 @@ import time
 
 from _common import logs_folder
 
-from quadcore.identify import discovery, model
+from quadcore.identify import discovery
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -25,7 +26,7 @@ def main() -> None:
         decoded = {f.flight_id: f.tables["fixedFrequency"]
                    for f in map(flight.decode_flight, flight.discover_logs(folder))}
         holdout = ["jana02"] if "jana02" in decoded else []
-        result = discovery.discover(decoded, model.spec_from(veh, effects), holdout)
+        result = discovery.discover(decoded, spec_from(veh, effects), holdout)
         dt = time.perf_counter() - t0
         rows = sum(t.height for t in decoded.values())
         label = "+".join(["nominal", *effects])

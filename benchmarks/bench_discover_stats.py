@@ -25,8 +25,9 @@ from pathlib import Path
 import polars as pl
 from _common import REAL_LOGS
 
-from quadcore.identify import discovery, model
+from quadcore.identify import discovery
 from quadcore.identify.discovery import library_stats
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -59,7 +60,7 @@ def once(root: str, rows: bool) -> None:
     cross-validated without the default held-out flight, as the asset does)."""
     from quadcore.workflows import fleet, identify
 
-    spec = model.spec_from(vehicle.load(), [])
+    spec = spec_from(vehicle.load(), [])
     t0 = time.perf_counter()
     result = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, [], root=None if rows else root)
     print(f"{'rows' if rows else 'stored statistics'}: {time.perf_counter() - t0:.2f} s, {len(result.terms)} terms")
@@ -78,7 +79,7 @@ def main() -> None:
     if not Path(args.logs).is_dir():
         print(f"real Crazyflie logs not found at {args.logs}: pass a folder of logs as the first argument")
         sys.exit(0)
-    spec = model.spec_from(vehicle.load(), [])
+    spec = spec_from(vehicle.load(), [])
     decoded = {f.flight_id: f.tables["fixedFrequency"]
                for f in map(flight.decode_flight, flight.discover_logs(args.logs))}
     real = sorted(decoded)

@@ -10,7 +10,8 @@ import time
 
 from _common import best_of, logs_folder
 
-from quadcore.identify import diagnosis, model
+from quadcore.identify import diagnosis
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import residuals, vehicle
 
@@ -28,7 +29,7 @@ def main() -> None:
 
     t0 = time.perf_counter()
     decoded = {f.flight_id: f.tables["fixedFrequency"] for f in map(flight.decode_flight, flight.discover_logs(folder))}
-    result = diagnosis.diagnose(decoded, model.spec_from(veh, []))
+    result = diagnosis.diagnose(decoded, spec_from(veh, []))
     t_diag = time.perf_counter() - t0
     print(f"diagnosis incl. decoding (5-fold): {t_diag:7.3f} s   target < 20 s: {'MET' if t_diag < 20 else 'NOT MET'}")
     print(f"  top candidate: {result.candidates[0].effect}")

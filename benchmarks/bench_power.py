@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 
 from quadcore import effects  # noqa: E402
 from quadcore.identify import diagnosis, model  # noqa: E402
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight  # noqa: E402
 from quadcore.physics import vehicle  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
@@ -63,7 +64,7 @@ def diagnose(configs: list[SimConfig], hidden: dict) -> dict:
     try:
         simulation.simulate_set(folder, configs, hidden, VEHICLE)
         tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
-        return diagnosis.diagnose(tables, model.spec_from(VEHICLE, [])).to_dict()
+        return diagnosis.diagnose(tables, spec_from(VEHICLE, [])).to_dict()
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 

@@ -24,7 +24,8 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import workflows
-from quadcore.identify import fitting, model, sufficient, summaries
+from quadcore.identify import fitting, sufficient, summaries
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.workflows import fleet, identify
@@ -33,7 +34,7 @@ from quadcore.workflows import fleet, identify
 def per_flight() -> None:
     logs = sorted(p for p in logs_folder().iterdir() if p.is_file() and "." not in p.name)
     veh = vehicle.load()
-    layout = sufficient.spec_layout(model.spec_from(veh, []))
+    layout = sufficient.spec_layout(spec_from(veh, []))
     columns = sufficient.Layout(layout.effects, layout.sizes)  # what a summary holds: no profiles' extras
     stats_s, summary_s, sizes, seconds = [], [], [], []
     for log in logs:

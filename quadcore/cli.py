@@ -261,7 +261,7 @@ def cmd_export_c(args: argparse.Namespace) -> int:
     from quadcore.learn import learners
 
     if args.model_file:  # the plugin effects the model uses come from here, never from the saved model
-        from quadcore.identify import model as modelmod
+        from quadcore.spec import model as modelmod
 
         modelmod.load_model_file(args.model_file)
     try:
@@ -702,8 +702,8 @@ def _user_errors() -> tuple[type[Exception], ...]:
     """The exceptions that mean "the user asked for something wrong" (imported only once a
     command has run, so that ``--help`` stays fast)."""
     from quadcore import effects, workflows
-    from quadcore.identify import model
     from quadcore.physics import dynamics, vehicle
+    from quadcore.spec import model
 
     return (UserError, dynamics.UnusableFlightError, vehicle.VehicleFileError, model.ModelFileError,
             effects.UnknownEffectError, workflows.WorkflowError)

@@ -11,6 +11,7 @@ import pytest
 
 from quadcore import cli
 from quadcore.identify import model
+from quadcore.spec.model import ModelFileError, load_model_file
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 
@@ -91,8 +92,8 @@ def test_malformed_model_file_is_one_line_naming_the_key(case, logs, tmp_path):
         (tmp_path / name).write_text(content)
     path = tmp_path / "model.toml"
     path.write_text(text)
-    with pytest.raises(model.ModelFileError):
-        model.load_model_file(path)
+    with pytest.raises(ModelFileError):
+        load_model_file(path)
     code, out, err = _run("diagnose", str(logs), "--json", str(tmp_path / "d.json"), "--model", str(path))
     assert code == 2 and err.count("\n") == 1, err
     assert str(path) in err and all(w in err for w in words), (words, err)

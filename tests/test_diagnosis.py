@@ -21,6 +21,7 @@ import snapshot
 
 from quadcore import cli, effects
 from quadcore.identify import diagnosis, evidence, fitting, model
+from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -101,7 +102,7 @@ def sim_sets(tmp_path_factory):
 
 
 def _diagnose(tables: dict, effect_names=(), holdout=None, candidates=None) -> dict:
-    return diagnosis.diagnose(tables, model.spec_from(VEHICLE, list(effect_names)), holdout, candidates).to_dict()
+    return diagnosis.diagnose(tables, spec_from(VEHICLE, list(effect_names)), holdout, candidates).to_dict()
 
 
 def _rmse(result: dict, channel: str) -> np.ndarray:
@@ -193,7 +194,7 @@ def test_lag_and_delay_fits_on_flights_starting_mid_manoeuvre_cover_the_truth(si
     row = d["candidates"][0]
     assert row["effect"] == name and row["found"], d["verdict"]
     assert abs(row["parameters"][param] - true) <= 3 * row["parameter_std"][param], row
-    fitted = fitting.fit_model(model.spec_from(VEHICLE, [name]), tables, sorted(tables)).terms[0]
+    fitted = fitting.fit_model(spec_from(VEHICLE, [name]), tables, sorted(tables)).terms[0]
     assert abs(fitted.params[param] - true) <= 3 * fitted.std[param], (fitted.params, fitted.std)
 
 
@@ -563,14 +564,14 @@ def test_plugin_is_a_candidate_and_is_fitted(sim_sets, tmp_path, forget_linear_d
     with_plugin, without = tmp_path / "with_plugin.toml", tmp_path / "without.toml"
     with_plugin.write_text(f'vehicle = "crazyflie21"\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
     without.write_text('vehicle = "crazyflie21"\n')
-    spec = model.load_model_file(with_plugin)  # loads the plugin, which the simulation needs too
+    spec = load_model_file(with_plugin)  # loads the plugin, which the simulation needs too
     _, tables = sim_sets("linear_drag", STANDARD[:2], {"linear_drag": LINEAR_DRAG_TRUTH})
     result = diagnosis.diagnose(tables, spec).to_dict()
     names = [r["effect"] for r in result["candidates"]]
     assert names[0] == "linear_drag", result["verdict"]
     _assert_recovered(result["candidates"][0], LINEAR_DRAG_TRUTH, list(LINEAR_DRAG_TRUTH), "linear_drag")
 
-    other = diagnosis.diagnose(tables, model.load_model_file(without)).to_dict()
+    other = diagnosis.diagnose(tables, load_model_file(without)).to_dict()
     names = [r["effect"] for r in other["candidates"]]
     assert "linear_drag" in effects.registry() and "linear_drag" not in names, names
     assert names and set(names) <= set(effects.builtin_names()), names
@@ -579,7 +580,7 @@ def test_plugin_is_a_candidate_and_is_fitted(sim_sets, tmp_path, forget_linear_d
     model_file = tmp_path / "model.toml"
     model_file.write_text(
         f'vehicle = "crazyflie21"\neffects = ["linear_drag"]\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
-    spec = model.load_model_file(model_file)
+    spec = load_model_file(model_file)
     assert spec.effects == ["linear_drag"]
     fitted = fitting.fit_model(spec, tables, sorted(tables))
     _assert_recovered({"parameters": fitted.terms[0].params}, LINEAR_DRAG_TRUTH, list(LINEAR_DRAG_TRUTH),
@@ -742,7 +743,7 @@ def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
     _, tables = two_sessions
     path = tmp_path / "model.toml"
     path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
-    spec = model.load_model_file(path)
+    spec = load_model_file(path)
     fitted = fitting.fit_model(spec, tables, sorted(tables))
     term = fitted.terms[0]
     assert sorted(fitted.sessions.values()) == [["sim000", "sim001", "sim002"], ["sim003", "sim004", "sim005"]]
@@ -757,7 +758,7 @@ def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
 
     # held out, with named sessions: sim005 is scored with its session's scale, better than one fleet scale
     path.write_text(path.read_text() + '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]"]\n')
-    per_session = diagnosis.diagnose(tables, model.load_model_file(path), ["sim005"]).to_dict()
+    per_session = diagnosis.diagnose(tables, load_model_file(path), ["sim005"]).to_dict()
     fleet = _diagnose(tables, ["thrust_scale"], holdout=["sim005"])
     assert per_session["model"]["effects"][0]["per_session"]["tuesday"]["scale"] == pytest.approx(
         SESSION_SCALES["late"], rel=0.02)
@@ -772,8 +773,8 @@ def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
 def test_per_session_model_file_errors(tmp_path, text, message):
     path = tmp_path / "model.toml"
     path.write_text(text)
-    with pytest.raises(model.ModelFileError, match=message):
-        model.load_model_file(path)
+    with pytest.raises(ModelFileError, match=message):
+        load_model_file(path)
 
 
 def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
@@ -784,7 +785,7 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n'
                     '[sessions]\nmonday = ["sim00[012]"]\ntuesday = ["sim00[345]", "sim01*"]\n'
                     '[session_thrust_map]\ntuesday = "motor_speed"\n')
-    spec = model.load_model_file(path)
+    spec = load_model_file(path)
     assert spec.vehicle_for("sim004").thrust_map_kind == "motor_speed"
     assert spec.vehicle_for("sim001").thrust_map_kind == spec.vehicle.thrust_map_kind == "pwm_vbat"
     fitted = fitting.fit_model(spec, tables, sorted(tables))
@@ -799,8 +800,8 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     restored = model.PhysicsModel.from_dict(fitted.to_dict(), VEHICLE)
     assert restored.for_flight("sim005").vehicle.thrust_map_kind == "motor_speed"
     path.write_text(path.read_text().replace('tuesday = "motor_speed"', 'friday = "motor_speed"'))
-    with pytest.raises(model.ModelFileError, match="no session 'friday'"):
-        model.load_model_file(path)
+    with pytest.raises(ModelFileError, match="no session 'friday'"):
+        load_model_file(path)
 
 
 def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):

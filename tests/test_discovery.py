@@ -256,11 +256,12 @@ def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights
     """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
     per-session effects on those groups, as the diagnosis does: the same starting residual."""
     from quadcore.identify import diagnosis, model
+    from quadcore.spec.model import load_model_file
     from quadcore.logs import flight
 
     model_file = tmp_path / "model.toml"
     model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
-    spec = model.load_model_file(model_file)
+    spec = load_model_file(model_file)
     decoded = {flight.flight_id_of(p): flight.decode_flight(p).tables["fixedFrequency"]
                for p in flight.discover_logs(hidden_flights)}
     groups = {"one": ["sim000", "sim003"], "two": ["sim001", "sim002"]}

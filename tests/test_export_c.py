@@ -20,6 +20,7 @@ from quadcore import cli, effects
 from quadcore.export import c as export_c
 from quadcore.export.c.learned import raw_thresholds
 from quadcore.identify import fitting, model
+from quadcore.spec.model import spec_from
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, trainers
 from quadcore.logs import flight
@@ -110,7 +111,7 @@ def test_all_effects_together_and_the_struct_carries_what_they_read(decoded, tmp
 
 
 def test_fitted_physics_model_through_the_cli(decoded, tmp_path):
-    spec = model.spec_from(VEHICLE, ["rotor_drag", "com_offset", "motor_lag"])
+    spec = spec_from(VEHICLE, ["rotor_drag", "com_offset", "motor_lag"])
     train = [f for f in decoded if f != HOLDOUT]
     fitted = fitting.fit_model(spec, decoded, train)
     path = model.save(fitted, tmp_path / "models" / "physics_model.json", train, spec)
@@ -136,7 +137,7 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
     learned models) and XGBoost and MLP runs on three feature sets, the holdout flight left out."""
     root = tmp_path_factory.mktemp("root")
     train = [f for f in decoded if f != HOLDOUT]
-    spec = model.spec_from(VEHICLE, ["com_offset"])
+    spec = spec_from(VEHICLE, ["com_offset"])
     physics = fitting.fit_model(spec, decoded, train)
     model.save(physics, root / "models" / "physics_model.json", train, spec)
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
@@ -208,7 +209,7 @@ def test_effect_without_c_form_is_refused_by_name(tmp_path, decoded):
             export_c.export_models(pm, None, tmp_path / "out", "test")
         assert info.value.effect == "tether_no_c"
         assert not (tmp_path / "out").exists()  # nothing half-written
-        path = model.save(pm, tmp_path / "physics_model.json", [], model.spec_from(VEHICLE, pm.effect_names))
+        path = model.save(pm, tmp_path / "physics_model.json", [], spec_from(VEHICLE, pm.effect_names))
         err = io.StringIO()
         with contextlib.redirect_stderr(err):
             assert cli.main(["export-c", str(path), "--out", str(tmp_path / "cli")]) == 2

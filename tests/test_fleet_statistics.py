@@ -88,10 +88,11 @@ def stats_root(drag_fleet, tmp_path_factory):
     the flight_statistics asset writes)."""
     from quadcore.identify import model, sufficient
     from quadcore.identify.discovery import library_stats
+    from quadcore.spec.model import spec_from
 
     root = tmp_path_factory.mktemp("stats_root")
     fleet.decode_logs([str(drag_fleet)], out=root)
-    for spec in (model.spec_from(vehicle.load(), []), model.spec_from(vehicle.load(), ["rotor_drag"])):
+    for spec in (spec_from(vehicle.load(), []), spec_from(vehicle.load(), ["rotor_drag"])):
         for fid in store.decoded_flights(root, MAIN_EVENT):
             df, source = store.read_decoded(root, MAIN_EVENT, fid), sufficient.decoded_source(root, fid)
             sufficient.save(sufficient.compute_current(spec, fid, df, source), root)
@@ -102,9 +103,10 @@ def stats_root(drag_fleet, tmp_path_factory):
 def _discoveries(root, effects, holdout, monkeypatch) -> tuple[dict, dict, list]:
     """(from rows, from the stored statistics, the decoded tables read for the second)."""
     from quadcore.identify import model
+    from quadcore.spec.model import spec_from
     from quadcore.workflows import identify
 
-    spec = model.spec_from(vehicle.load(), effects)
+    spec = spec_from(vehicle.load(), effects)
     rows = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout)
     reads = _counting_reads(monkeypatch)
     stored = identify.discover(fleet.fleet_from_store(root, spec.vehicle), spec, holdout, root=root)
@@ -143,12 +145,13 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
 
     from quadcore.identify import model
     from quadcore.identify.discovery import library_stats
+    from quadcore.spec.model import spec_from
 
     root = tmp_path / "root"
     shutil.copytree(stats_root, root)
     path = library_stats.library_path(root, "sim001")
     path.write_bytes(path.read_bytes()[:-100])
-    spec = model.spec_from(vehicle.load(), [])
+    spec = spec_from(vehicle.load(), [])
     assert library_stats.stored(root, spec)("sim001") is not None  # the header is whole: caught when read
     other_log = dataclasses.replace(library_stats.load(root, "sim002"), source="0" * 64)
     library_stats.save(other_log, root)

@@ -73,6 +73,7 @@ def with_copy(real_logs, tmp_path_factory):
 def test_a_copy_of_the_held_out_flight_is_not_a_training_flight(with_copy):
     """Today jana99 (jana02's bytes) is fitted on while jana02 is held out."""
     from quadcore.identify import model
+    from quadcore.spec.model import spec_from
     from quadcore.workflows import identify
 
     warned: list[str] = []
@@ -81,7 +82,7 @@ def test_a_copy_of_the_held_out_flight_is_not_a_training_flight(with_copy):
     assert flights.ids == ["jana02", "jana03", "jana11"]
     assert flights.skipped["jana99"].startswith("duplicate of jana02")
     assert any(w.startswith("jana99 skipped: duplicate of jana02") for w in warned)
-    fitted = identify.fit(flights, model.spec_from(veh, []), ["jana02"])  # jana02 held out, as the issue's
+    fitted = identify.fit(flights, spec_from(veh, []), ["jana02"])  # jana02 held out, as the issue's
     assert fitted.trained_on == ("jana03", "jana11")
 
 

@@ -143,7 +143,7 @@ def test_a_data_root_in_an_object_store_has_its_own_model_file(s3_url, monkeypat
     in a bucket as on a disk; a plugin named by a relative path cannot be read from a bucket
     and is refused with the file and the reason."""
     from pipeline.resources import model_config_from_env
-    from quadcore.identify.model import ModelFileError
+    from quadcore.spec.model import ModelFileError
     from quadcore.workflows import demo
 
     url = f"{s3_url}-own-model"

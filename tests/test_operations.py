@@ -401,11 +401,12 @@ def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
     and the model the pipeline loads from then on is that one: a second run continues the story."""
     from pipeline.resources import model_config_from_env
     from quadcore.identify import model
+    from quadcore.spec.model import load_model_file
     from quadcore.workflows.demo import write_demo_model_file
 
     repo_file = Path(__file__).resolve().parents[1] / "model.toml"
     own = write_demo_model_file(tmp_path, str(repo_file), ["rotor_drag"])
-    assert own == tmp_path / "model.toml" and model.load_model_file(own).effects == ["rotor_drag"]
+    assert own == tmp_path / "model.toml" and load_model_file(own).effects == ["rotor_drag"]
     assert "# Fix a parameter instead of fitting it" in own.read_text()  # the template's comments kept
     monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path))
     monkeypatch.delenv("QUADCORE_MODEL", raising=False)

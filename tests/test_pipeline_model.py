@@ -138,6 +138,7 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
     the held-out error falls and the history records both evaluations."""
     from quadcore import effects
     from quadcore.identify import discovery, model
+    from quadcore.spec.model import spec_from
     from quadcore.physics import vehicle
 
     root = tmp_path / "root"
@@ -149,7 +150,7 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
         res = materialize(FLEET, {"data_root": data_root, "model": ModelConfig()}, instance)
         before = metadata(res, "model_diagnosis")["force_rmse_x_N"]
         decoded = store.read_all_decoded(root, "fixedFrequency")
-        found = discovery.discover(decoded, model.spec_from(vehicle.load(), []))
+        found = discovery.discover(decoded, spec_from(vehicle.load(), []))
         module = discovery.write_effect(found, tmp_path / "fx" / "found_drag.py").path
         model_file = tmp_path / "fx" / "model.toml"
         model_file.write_text('effects = ["found_drag"]\nplugins = ["found_drag.py"]\n')
@@ -168,6 +169,7 @@ def test_rollouts_use_each_flights_session_values(raw, tmp_path):
     """A model with a per-session thrust scale: a flight's open-loop rollout flies its
     session's value, as its residual table does, not the fleet value."""
     from quadcore.identify import model
+    from quadcore.spec.model import spec_from
     from quadcore.identify.model import EffectTerm, PhysicsModel
     from quadcore.physics import vehicle
 

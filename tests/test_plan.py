@@ -201,11 +201,12 @@ def test_a_data_roots_plan_is_made_from_its_stored_diagnosis_beside_it(hover_tie
     the plan written as reports/flight_plan.{json,csv,png}; a plan that plans nothing removes
     an earlier plan's trajectory and picture."""
     from quadcore.identify import model
+    from quadcore.spec.model import spec_from
     from quadcore.plan.planner import PlanRequest
     from quadcore.store import store
     from quadcore.workflows import fleet as fleetlib, identify, plan as planflow
 
-    spec = model.spec_from(VEHICLE, [])
+    spec = spec_from(VEHICLE, [])
     flights = fleetlib.fleet_from_logs([str(hover_tie)], VEHICLE, lambda m: None)
     diag = identify.diagnose(flights, spec, [])
     identify.write_diagnosis_json(diag, store.diagnosis_path(tmp_path))

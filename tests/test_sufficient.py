@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, model, sessions, sufficient
+from quadcore.identify import evidence, fitting, sessions, sufficient
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -63,7 +64,7 @@ def test_fixed_effects_are_subtracted_alike(fleet):
 def test_per_session_fit_from_statistics_equals_the_row_fit(fleet):
     fds, stats = fleet
     ids = sorted(fds)
-    spec = model.spec_from(VEHICLE, ["thrust_scale", "rotor_drag"])
+    spec = spec_from(VEHICLE, ["thrust_scale", "rotor_drag"])
     spec.per_session = ["thrust_scale"]
     groups = {"a": ids[:2], "b": ids[2:]}
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
@@ -197,7 +198,7 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
     path.write_text(SLOW_THRUST)
     e = effects.load_plugin(path)
     try:
-        assert "slow_thrust" in sufficient.spec_layout(model.spec_from(VEHICLE, ["slow_thrust"])).profiled
+        assert "slow_thrust" in sufficient.spec_layout(spec_from(VEHICLE, ["slow_thrust"])).profiled
         fds, _ = lagged_fleet
         ids = sorted(fds)
         layout = sufficient.layout_of([e])
@@ -245,7 +246,7 @@ def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_pr
         read = []
         with pytest.MonkeyPatch.context() as m:
             m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
-            result = diagnosis.diagnose({f: "rows" for f in fds}, model.spec_from(VEHICLE, []), [held],
+            result = diagnosis.diagnose({f: "rows" for f in fds}, spec_from(VEHICLE, []), [held],
                                         ["motor_lag", "scaled_lag"], stats=stats.get).to_dict()
         assert set(read) == set(fds)  # the two-parameter candidate's training rows, the held-out flight's
         rows = {r["effect"]: r for r in result["candidates"]}
@@ -286,7 +287,7 @@ def test_several_nonlinear_effects_are_refused(fleet):
 def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     fds, stats = fleet
     ids = sorted(fds)
-    spec = model.spec_from(VEHICLE, ["rotor_drag", "thrust_scale"])
+    spec = spec_from(VEHICLE, ["rotor_drag", "thrust_scale"])
     no_rows = {f: None for f in ids}  # any look at a flight's decoded table would fail
     fitted = fitting.fit_model(spec, no_rows, ids, stats=stats.get)
     es = [effects.get(n) for n in spec.effects]
@@ -297,7 +298,7 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
 def test_a_model_with_a_lag_is_fitted_from_stored_profiles_without_reading_rows(lagged_fleet):
     fds, stats = lagged_fleet
     ids = sorted(fds)
-    spec = model.spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
     fitted = fitting.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
     es = [effects.get(n) for n in spec.effects]
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
@@ -328,7 +329,7 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
     held = sorted(tables)[-1]
     linear = [n for n in LINEAR if n != "rotor_drag"]
-    spec = model.spec_from(VEHICLE, ["rotor_drag"])
+    spec = spec_from(VEHICLE, ["rotor_drag"])
     result = diagnosis.diagnose(_OnlyThese(tables, {held}), spec, [held], linear, stats=stats.get).to_dict()
     again = diagnosis.diagnose(tables, spec, [held], linear).to_dict()  # statistics computed from the rows
     assert result["verdict"] == again["verdict"]
@@ -352,7 +353,7 @@ def test_a_hidden_lag_is_diagnosed_from_stored_profiles_without_training_rows(la
     tables = {f: "rows" for f in fds}
     held = sorted(tables)[-1]
     read = []
-    spec = model.spec_from(VEHICLE, [])
+    spec = spec_from(VEHICLE, [])
     with pytest.MonkeyPatch.context() as m:
         m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
         result = diagnosis.diagnose(tables, spec, [held], ["motor_lag", "thrust_delay", "thrust_scale"],
@@ -372,7 +373,7 @@ def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(
     from quadcore.store import store
 
     root = tmp_path / "root"
-    spec = model.spec_from(VEHICLE, [])
+    spec = spec_from(VEHICLE, [])
     decoded.write_decoded(root, flight.decode_flight(drag_fleet / "sim000"))
     decoded = store.read_decoded(root, "fixedFrequency", "sim000")
     source = decoded.recorded_provenance(root, "fixedFrequency", "sim000").source_sha256
@@ -393,12 +394,12 @@ def test_the_statistics_key_follows_the_spec_not_the_plugins_this_process_loaded
     from pathlib import Path
 
     plugin = Path(__file__).resolve().parent / "plugins" / "hidden_terms.py"
-    spec = model.spec_from(VEHICLE, [])
+    spec = spec_from(VEHICLE, [])
     before = sufficient.current_key(spec, "sim000")
     effects.load_plugin(plugin)
     try:
         assert sufficient.current_key(spec, "sim000") == before
-        with_plugin = model.spec_from(VEHICLE, ["hidden_terms"])
+        with_plugin = spec_from(VEHICLE, ["hidden_terms"])
         assert sufficient.current_key(with_plugin, "sim000") != before  # a model that uses it stores it
         assert "hidden_terms" in sufficient.spec_layout(with_plugin).effects
         assert "hidden_terms" not in sufficient.spec_layout(spec).effects
@@ -416,7 +417,7 @@ def test_statistics_made_by_other_code_are_stale(tmp_path, monkeypatch):
     (tmp_path / "qc_probe_code.py").write_text("SCALE = 1.0\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(sufficient, "CODE_MODULES", (*sufficient.CODE_MODULES, "qc_probe_code"))
-    spec = model.spec_from(VEHICLE, [])
+    spec = spec_from(VEHICLE, [])
     sufficient.code_digest.cache_clear()
     before = sufficient.current_key(spec, "sim000")
     (tmp_path / "qc_probe_code.py").write_text("SCALE = 2.0\n")  # the code changed (a new release)

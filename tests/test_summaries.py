@@ -12,7 +12,8 @@ import polars as pl
 import pytest
 
 from quadcore import effects
-from quadcore.identify import diagnosis, fitting, model, regimes, spectrum, sufficient, summaries
+from quadcore.identify import diagnosis, fitting, regimes, spectrum, sufficient, summaries
+from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -147,7 +148,7 @@ def test_a_summary_with_too_few_spectral_bins_for_the_fleet_takes_its_rows(drag_
 def stored_root(drag_fleet, tmp_path_factory):
     """The shared fleet's statistics as the per-flight asset stores them, for a model of rotor drag."""
     root = tmp_path_factory.mktemp("summaries_root")
-    spec = model.spec_from(VEHICLE, ["rotor_drag"])
+    spec = spec_from(VEHICLE, ["rotor_drag"])
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
     for f, t in tables.items():
         sufficient.save(sufficient.compute_current(spec, f, t, source=f"log-of-{f}"), root)

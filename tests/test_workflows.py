@@ -18,6 +18,7 @@ from pipeline.assets.model import failing_on_user_errors
 from pipeline.resources import ModelConfig
 from quadcore import cli, effects, workflows
 from quadcore.identify import model
+from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 from quadcore.physics import vehicle
 from quadcore.store import store
 from quadcore.workflows import Fleet, identify, learn
@@ -94,7 +95,7 @@ def test_effects_override_keeps_the_model_files_source(tmp_path):
     spec = ModelConfig(model_file=str(path), effects="rotor_drag,motor_lag").spec()
     assert spec.source == str(path) and spec.effects == ["rotor_drag", "motor_lag"]
     assert spec.fixed == {"rotor_drag": {"k_x_s_per_m": 0.1}}
-    assert model.load_model_file(path).with_effects(["motor_lag"]).fixed == {}
+    assert load_model_file(path).with_effects(["motor_lag"]).fixed == {}
 
 
 def test_the_cli_and_the_assets_resolve_the_same_model(tmp_path):
@@ -142,13 +143,13 @@ def _residuals_and_learned_models(root, physics: model.PhysicsModel) -> None:
 def test_learned_models_are_stale_when_the_model_spec_changes_not_on_a_refit(tmp_path):
     """The same effects fitted for another spec (here a fixed parameter value) retrain the
     learned models at once; a refit of the same spec on new flights waits for the nightly run."""
-    spec = model.spec_from(vehicle.load(), ["thrust_scale"])
+    spec = spec_from(vehicle.load(), ["thrust_scale"])
     _save_fit(tmp_path, spec)
     _residuals_and_learned_models(tmp_path, identify.current_model(tmp_path, spec))
     assert learn.learning_is_stale(tmp_path) is None
     _save_fit(tmp_path, spec, scale=1.02)  # a refit: other values, same spec
     assert learn.learning_is_stale(tmp_path) is None
-    fixed = model.spec_from(vehicle.load(), ["thrust_scale"], {"thrust_scale": {"scale": 0.95}})
+    fixed = spec_from(vehicle.load(), ["thrust_scale"], {"thrust_scale": {"scale": 0.95}})
     _save_fit(tmp_path, fixed, scale=0.95)  # the residual tables keep the same effects and labels
     assert "the model spec changed" in learn.learning_is_stale(tmp_path)
 
@@ -232,9 +233,9 @@ def test_a_saved_model_naming_code_elsewhere_never_runs_it(tmp_path):
                               str(tmp_path / "c"), "--learned", "none"], capture_output=True, text=True)
         assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
         assert "evil" in run.stderr and not sentinel.exists()
-        with pytest.raises(model.ModelFileError):
+        with pytest.raises(ModelFileError):
             identify.current_model(root, spec)  # the saved spec digest is this spec's: it is read
-        with pytest.raises(model.ModelFileError):
+        with pytest.raises(ModelFileError):
             artefacts.LearnedModel.physics_model(_Manifest({"physics_model": store.read_json(path)}))
         assert not sentinel.exists()
 
@@ -269,7 +270,7 @@ def test_residuals_against_an_older_fit_do_not_take_the_new_fits_flights(tmp_pat
     """The learned models record (and check their holdout against) the flights the physics under
     them was fitted on: residual tables computed against an earlier fit of the same effects must
     not be credited with the new fit's flights and spec digest."""
-    spec = model.spec_from(vehicle.load(), ["thrust_scale"])
+    spec = spec_from(vehicle.load(), ["thrust_scale"])
     older = model.PhysicsModel(spec.vehicle, [model.EffectTerm("thrust_scale", {"scale": 0.95})])
     table = pl.DataFrame({"t_s": [0.0, 0.01]})
     store.write_parquet(table, store.table_path(tmp_path, "residuals", "sim000"), {"model": older.to_dict()})

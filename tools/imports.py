@@ -139,7 +139,7 @@ def function_level(edges: list[Import]) -> list[Import]:
     return [e for e in edges if e.function]
 
 
-STAGES = ("store", "logs", "physics", "effects", "identify", "learn", "export", "sim", "plan",
+STAGES = ("store", "logs", "physics", "effects", "spec", "identify", "learn", "export", "sim", "plan",
           "report", "workflows", "cli")
 
 

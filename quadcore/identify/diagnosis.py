@@ -30,7 +30,8 @@ from quadcore.identify.evidence import (
     TIE_MARGIN,
 )
 from quadcore.identify.fitting import FlightData
-from quadcore.identify.model import EffectTerm, ModelSpec, PhysicsModel
+from quadcore.identify.model import EffectTerm, PhysicsModel
+from quadcore.spec.model import ModelSpec
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
 from quadcore.identify.results import NOTHING, CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict

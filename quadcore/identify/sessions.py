@@ -14,7 +14,7 @@ uncertainty:
   flights spread along a continuum rather than fall into sessions, the groups say so by
   their number and their neighbouring values.
 * **From a sessions file** (TOML, ``[sessions] NAME = ["jana00", "jana1*", ...]``, shell
-  patterns allowed): the groups are the sessions; they disagree when two of them differ by
+  patterns allowed; read by :func:`quadcore.spec.sessions.read_sessions_file`): the groups are the sessions; they disagree when two of them differ by
   more than ``SESSION_SIGMA``.
 
 Each group's value is the parameter fitted jointly on the group's flights, its ``std`` the
@@ -25,15 +25,12 @@ be right there, and the disagreement says so (a map error, not physics).
 
 from __future__ import annotations
 
-import fnmatch
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from quadcore.effects import Effect
 from quadcore.identify import fitting
-from quadcore.physics import vehicle as vehiclemod
 from quadcore.physics.vehicle import Vehicle
 
 SPLIT_SIGMA = 5.0
@@ -41,10 +38,6 @@ DISTINCT = 3.0
 SESSION_SIGMA = 3.0
 MIN_GROUP = 3
 STUCK_VBAT_V = 0.001  # a logged voltage whose in-flight standard deviation is below this is stuck
-
-
-class SessionsFileError(ValueError):
-    """A sessions file that is missing, unreadable or malformed."""
 
 
 @dataclass(frozen=True)
@@ -84,27 +77,6 @@ class Disagreement:
 
 def _flight_range(flights: tuple[str, ...]) -> str:
     return flights[0] if len(flights) == 1 else f"{flights[0]}…{flights[-1]} ({len(flights)} flights)"
-
-
-def read_sessions_file(path: str | Path, flights: list[str]) -> dict[str, list[str]]:
-    """Sessions -> flights (among ``flights``) from a TOML sessions file. A flight matched by
-    two sessions is an error; flights matched by none are left out."""
-    d = vehiclemod.read_toml(Path(path), SessionsFileError, "sessions file")
-    table = d.get("sessions")
-    if not isinstance(table, dict) or not table:
-        raise SessionsFileError(f"{path}: needs a [sessions] table: NAME = [\"flight\", \"pattern*\", ...]")
-    out: dict[str, list[str]] = {}
-    owner: dict[str, str] = {}
-    for name, patterns in table.items():
-        if not isinstance(patterns, list) or not all(isinstance(p, str) for p in patterns):
-            raise SessionsFileError(f"{path}: session {name!r} must be a list of flight names or patterns")
-        members = sorted({f for f in flights for p in patterns if fnmatch.fnmatchcase(f, p)})
-        for f in members:
-            if f in owner:
-                raise SessionsFileError(f"{path}: flight {f!r} is in sessions {owner[f]!r} and {name!r}")
-            owner[f] = name
-        out[name] = members
-    return out
 
 
 def session_of(flight: str, sessions: dict[str, list[str]]) -> str | None:
@@ -255,7 +227,7 @@ def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: lis
 
 def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                     sessions: dict[str, list[str]] | None = None, log=lambda msg: None):
-    """Fit ``spec`` (a :class:`quadcore.identify.model.ModelSpec` with ``per_session`` effects) on the
+    """Fit ``spec`` (a :class:`quadcore.spec.model.ModelSpec` with ``per_session`` effects) on the
     ``train`` flights: the per-session effects on each session's flights, the others on all,
     alternating ``ROUNDS`` times. Sessions: ``sessions``, else the model file's, else the
     groups the data show. Returns a :class:`quadcore.identify.model.PhysicsModel` whose per-session

@@ -17,7 +17,7 @@ class LearningError(ValueError):
 
 @dataclass(frozen=True)
 class LearnerSpec:
-    """Hyper-parameters of one learned model (not to be confused with :class:`quadcore.identify.model.ModelSpec`,
+    """Hyper-parameters of one learned model (not to be confused with :class:`quadcore.spec.model.ModelSpec`,
     the physics model a model file asks for). XGBoost uses ``max_depth``, ``n_estimators`` (the most
     trees per output; early stopping keeps fewer), ``learning_rate``, ``subsample``,
     ``min_child_weight``, ``early_stopping_rounds``; the MLP ``hidden`` (widths of the hidden

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.identify import diagnosis as diagnosislib
-from quadcore.identify.model import ModelSpec, PhysicsModel
+from quadcore.identify.model import PhysicsModel
+from quadcore.spec.model import ModelSpec
 from quadcore.identify.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.plan import pieces, separation

@@ -22,7 +22,8 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions
-from quadcore.identify.model import ModelSpec, PhysicsModel
+from quadcore.identify.model import PhysicsModel
+from quadcore.spec.model import ModelSpec
 
 N_FOLDS = 5
 

@@ -9,13 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.physics import decoded, gate
+from quadcore.physics import decoded, gate, vehicle as vehiclemod
+from quadcore.spec.model import ModelSpec, load_model_file, spec_from
+from quadcore.spec.sessions import SessionsFileError, read_sessions_file
 from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
 
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore.identify.model import ModelSpec
     from quadcore.logs import flight as flightmod
     from quadcore.physics.vehicle import Vehicle
 
@@ -140,7 +141,7 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     """The flights the physics can use with ``vehicle``, each log once (:func:`duplicates` by
     ``digest``: flight -> the SHA-256 of its log); each other one is skipped with its reason,
     said through ``warn``. Tables decoded under a data root are judged from the physics facts and
-    the digest their footers record (:func:`quadcore.store.decoded.write_decoded`), without reading
+    the digest their footers record (:func:`quadcore.physics.decoded.write_decoded`), without reading
     their rows; a table without facts (decoded by older code, or rewritten) is read."""
     from quadcore.store import store
 
@@ -236,26 +237,21 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
     ``QUADCORE_SESSIONS``) joins the spec, so that its digest, and hence the fit's freshness,
     follows the file's content.
 
-    Raises :class:`quadcore.identify.model.ModelFileError`, :class:`quadcore.physics.vehicle.VehicleFileError`,
+    Raises :class:`quadcore.spec.model.ModelFileError`, :class:`quadcore.physics.vehicle.VehicleFileError`,
     :class:`quadcore.effects.UnknownEffectError` or, for a sessions file that is missing or
     malformed, :class:`WorkflowError`, with the reason."""
-    from quadcore.identify import model
-    from quadcore.physics import vehicle
-
     if model_file:
-        spec = model.load_model_file(model_file, vehicle_override=vehicle_name or None)
+        spec = load_model_file(model_file, vehicle_override=vehicle_name or None)
     else:
-        spec = model.spec_from(vehicle.load(vehicle_name or None), [])
+        spec = spec_from(vehiclemod.load(vehicle_name or None), [])
     if effects:
         spec = spec.with_effects(effects)
     if thrust_map:
         spec.vehicle = spec.vehicle.with_thrust_map(thrust_map)
     if sessions_file:
-        from quadcore.identify import sessions
-
         try:  # read now, so a missing or malformed file stops a run before any work
-            sessions.read_sessions_file(sessions_file, [])
-        except sessions.SessionsFileError as exc:
+            read_sessions_file(sessions_file, [])
+        except SessionsFileError as exc:
             raise WorkflowError(str(exc)) from None
         spec.sessions_file = str(sessions_file)
     return spec
@@ -264,12 +260,11 @@ def resolve_model(model_file: str | None, vehicle_name: str | None = None, thrus
 def sessions_of(spec: ModelSpec, flights: list[str]) -> dict[str, list[str]] | None:
     """The sessions file's groups among ``flights`` (session -> flights), or None without one
     (the workflows then use the model file's sessions, or the groups the data show).
-    Raises :class:`quadcore.identify.sessions.SessionsFileError` (a :class:`WorkflowError`)."""
-    from quadcore.identify import sessions
+    Raises :class:`quadcore.spec.sessions.SessionsFileError` (a :class:`WorkflowError`)."""
 
     if not spec.sessions_file:
         return None
     try:
-        return sessions.read_sessions_file(spec.sessions_file, flights)
-    except sessions.SessionsFileError as exc:
+        return read_sessions_file(spec.sessions_file, flights)
+    except SessionsFileError as exc:
         raise WorkflowError(str(exc)) from None

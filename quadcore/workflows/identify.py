@@ -13,7 +13,8 @@ from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
 if TYPE_CHECKING:
     from quadcore.identify.discovery import Discovery
-    from quadcore.identify.model import FittedModel, ModelSpec, PhysicsModel
+    from quadcore.identify.model import FittedModel, PhysicsModel
+    from quadcore.spec.model import ModelSpec
     from quadcore.identify.results import Diagnosis
 
 Log = Callable[[str], None]

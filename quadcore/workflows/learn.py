@@ -20,7 +20,8 @@ from quadcore.physics import decoded
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore.identify.model import ModelSpec, PhysicsModel
+    from quadcore.identify.model import PhysicsModel
+    from quadcore.spec.model import ModelSpec
     from quadcore.learn.experiments import Plan, RunRecord
     from quadcore.learn.features import FeatureSet
     from quadcore.learn.learners import LearnerSpec, TrainConfig

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from quadcore.workflows.fleet import Fleet, sessions_of
 
 if TYPE_CHECKING:
-    from quadcore.identify.model import ModelSpec
+    from quadcore.spec.model import ModelSpec
     from quadcore.identify.results import Diagnosis
     from quadcore.plan.planner import FlightPlan, PlanRequest
 

@@ -40,6 +40,7 @@ from typing import Any
 
 from quadcore import cli, effects
 from quadcore.identify import model
+from quadcore.spec.model import ModelFileError, ModelSpec
 from quadcore.store import ownership, safewrite, store
 
 VEHICLE = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
@@ -289,7 +290,7 @@ def output_cases(base: Path) -> tuple[int, int, int]:
     evil = base / "elsewhere" / "evil.py"
     evil.parent.mkdir(parents=True, exist_ok=True)
     evil.write_text(SENTINEL.format(path=str(sentinel)))
-    spec = model.ModelSpec(__import__("quadcore.physics.vehicle", fromlist=["load"]).load(), [])
+    spec = ModelSpec(__import__("quadcore.physics.vehicle", fromlist=["load"]).load(), [])
     root = base / "root"
     path = model.save(model.PhysicsModel(spec.vehicle, []), store.physics_model_path(root), ["a", "b"], spec)
     saved = store.read_json(path)
@@ -314,7 +315,7 @@ def output_cases(base: Path) -> tuple[int, int, int]:
                 with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
                     got = call()
                 not_refused += got != 2
-            except (model.ModelFileError, cli.UserError):
+            except (ModelFileError, cli.UserError):
                 pass
             except BaseException:  # noqa: BLE001 (a traceback: counted as not refused)
                 not_refused += 1

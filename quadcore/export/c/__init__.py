@@ -34,7 +34,8 @@ import polars as pl
 from quadcore.export.c.build import CompileError, Footprint, HostModel, check_strict, measure_footprint
 from quadcore.export.c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
 from quadcore.export.c.inputs import ExportError, Field
-from quadcore.identify.model import ModelFileError, PhysicsModel, check_plugins
+from quadcore.identify.model import PhysicsModel, check_plugins
+from quadcore.spec.model import ModelFileError
 from quadcore.learn import artefacts, experiments, learners
 from quadcore.store import store
 

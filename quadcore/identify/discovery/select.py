@@ -56,7 +56,7 @@ from quadcore.identify.discovery.terms import (
     mul_units,
     unit_text,
 )
-from quadcore.identify.model import ModelSpec
+from quadcore.spec.model import ModelSpec
 from quadcore.physics import signals
 
 MIN_STABILITY = 0.6  # selected in at least this share of the folds ("most folds")
