@@ -26,6 +26,8 @@ from quadcore.learn.features import TARGETS, FeatureSet, Scaler
 from quadcore.learn.learners import LearnerSpec, LearningError
 from quadcore.learn.trees import CompiledForest
 from quadcore.store import safewrite, store
+from quadcore.identify import model as modelmod
+from quadcore.physics import vehicle as vehiclemod
 
 FORMAT = "quadcore-learned/1"
 
@@ -130,8 +132,6 @@ class LearnedModel:
         """The physics model this model was trained against (from the manifest). Its plugin effects
         must be loaded already, from the model file the user gave: the manifest's are checked by
         name and digest, never imported (:func:`quadcore.identify.model.check_plugins`)."""
-        from quadcore.identify import model as modelmod
-
         pm = self.manifest.get("physics_model") or {}
         modelmod.check_plugins(pm, "the learned model's manifest")
         return modelmod.PhysicsModel.from_dict(pm, vehicle_of(pm))
@@ -181,8 +181,6 @@ class LearnedModel:
 
 def vehicle_of(physics: dict):
     """The vehicle a physics-model dict (``PhysicsModel.to_dict()``) names, with its thrust map."""
-    from quadcore.physics import vehicle as vehiclemod
-
     src = physics.get("vehicle_source") or physics.get("vehicle")
     name = src.split(":", 1)[1] if src and src.startswith("builtin:") else src
     veh = vehiclemod.load(name or None)

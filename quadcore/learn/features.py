@@ -55,6 +55,8 @@ import polars as pl
 
 from quadcore.physics import residuals, rotations
 from quadcore.physics.dynamics import XYZ, cols
+from quadcore.store import store
+from quadcore.store import safewrite, store
 
 TARGET_FORCE = list(residuals.F_RES_B)  # f_res_b_{x,y,z}_N
 TARGET_TORQUE = list(residuals.TAU_RES_B)  # tau_res_b_{x,y,z}_Nm
@@ -254,8 +256,6 @@ class Scaler:
 # ---------------------------------------------------------------------------------------
 
 def feature_path(root: Path, feature_set: str, flight: str) -> Path:
-    from quadcore.store import store
-
     return store.table_path(store.as_root(root) / "features", feature_set, flight)
 
 
@@ -263,8 +263,6 @@ def write_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFrame]
                          provenance: dict | None = None) -> dict[str, list[Path]]:
     """``<root>/features/<set>/flight=<id>/data.parquet`` for every set and flight; a set whose
     columns a table lacks raises :class:`FeatureError`. Returns set name -> paths."""
-    from quadcore.store import store
-
     out: dict[str, list[Path]] = {fs.name: [] for fs in sets}
     for fid in residual_tables:  # flight by flight: each residual table is read once, whatever the sets
         table = residual_tables[fid]
@@ -282,8 +280,6 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
     half-written set. In an object store (no renames) each table is replaced whole, in place,
     and the tables of sets and flights no longer there are removed."""
     import shutil
-
-    from quadcore.store import safewrite, store
 
     root = store.as_root(root)
     if store.is_remote(root):  # no folder renames in an object store: each table is replaced whole, in place
@@ -312,8 +308,6 @@ FEATURE_CACHE_BYTES = 64 << 20
 def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping[str, pl.DataFrame]]]:
     """Every feature set under ``<root>/features`` (its definition from the files' metadata)
     and its tables, each read when it is looked up: (sets, {set name: {flight: table}})."""
-    from quadcore.store import store
-
     sets: list[FeatureSet] = []
     tables: dict[str, Mapping[str, pl.DataFrame]] = {}
     base = store.as_root(root) / "features"
@@ -330,15 +324,11 @@ def read_feature_tables(root: Path) -> tuple[list[FeatureSet], dict[str, Mapping
 def read_residual_tables(root: Path) -> Mapping[str, pl.DataFrame]:
     """Every ``<root>/residuals/flight=<id>/data.parquet`` by flight id, sorted, each read when
     it is looked up (:class:`quadcore.store.store.FlightTables`)."""
-    from quadcore.store import store
-
     return store.flight_tables(store.as_root(root) / "residuals")
 
 
 def read_flight_kinds(path: str | Path | None) -> dict[str, str]:
     """``flights.csv`` (columns ``flight``, ``kind``) -> {flight: kind}; {} when absent."""
-    from quadcore.store import store
-
     if not path or not store.as_root(path).is_file():
         return {}
     with store.as_root(path).open("r", newline="") as fh:  # here or in an object store
@@ -351,7 +341,6 @@ def find_flights_csv(*folders: str | Path | None) -> Path | None:
     for folder in folders:
         if not folder:
             continue
-        from quadcore.store import store
 
         folder = store.as_root(folder)
         for cand in (folder / "flights.csv", folder.parent / "flights.csv"):

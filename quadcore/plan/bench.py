@@ -33,6 +33,7 @@ from quadcore.plan import planner, signatures
 from quadcore.plan.limits import Limits
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
+from quadcore.plan import pieces
 
 FILES = ("figure8", "circle0", "yaw0")  # the lab's trajectory files (the simulator's built-in plans)
 PLAN_S = 10.0  # the planned manoeuvre; flown with 2 s take-off, 1 s hover before and 1 s after
@@ -125,7 +126,6 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
         log(f"{name} seed {seed}: truth {truth}; plan {plan.manoeuvre.describe()}")
         flown = {}
         csv = root / "plan.csv"
-        from quadcore.plan import pieces
 
         pieces.write_csv(plan.trajectory, csv)
         start = plan.trajectory.evaluate(np.zeros(1))[0]

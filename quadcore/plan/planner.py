@@ -20,10 +20,11 @@ from quadcore.spec.model import ModelSpec
 from quadcore.identify.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, signatures
-from quadcore.plan.limits import LimitCheck, Limits, check
+from quadcore.plan.limits import LimitCheck, Limits, check, largest_scale
 from quadcore.plan.question import Question
 from quadcore.plan.signatures import Explanation
 from quadcore.sim.trajectories import PolyTrajectory
+from quadcore.plan import separation
 
 DEFAULT_DURATION_S = 20.0
 MIN_PROBE_SIGMA = 1.0  # a rival no probe flight separates by this much is nested in the top candidate
@@ -134,8 +135,6 @@ def plan(tables: Mapping, spec: ModelSpec, diag: Diagnosis, request: PlanRequest
 
 
 def fitting_flights(tables: Mapping, spec: ModelSpec) -> dict[str, fitting.FlightData]:
-    from quadcore.plan import separation
-
     return separation.flights_of(tables, spec)
 
 
@@ -145,9 +144,7 @@ def _probe(limits: Limits, duration_s: float, vehicle: Vehicle, loop: np.ndarray
     m = family.Manoeuvre("figure8", 0.3, 2.0, float(min(half[0], half[1])), 0.6 * half[2], limits.centre_m,
                          duration_s)
     unit = family.trajectory(m)
-    from quadcore.plan import limits as limitlib
-
-    s = limitlib.largest_scale(unit, m.centre_m, vehicle, limits)
+    s = largest_scale(unit, m.centre_m, vehicle, limits)
     return signatures.planned_flight(family.scaled_trajectory(unit, m.centre_m, s), vehicle, loop) if s > 0 else None
 
 

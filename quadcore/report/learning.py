@@ -21,6 +21,7 @@ from quadcore.learn.metrics import AXES, mae
 from quadcore.learn.tables import REGIME_BINS, TABLE_TITLES, _best_preds, frame, importance, regime_table, report_run
 from quadcore.report import plots, render
 from quadcore.store import store
+from quadcore.report import diagnosis as diagnosis_report
 
 TITLE = "Learned residual models"
 
@@ -129,8 +130,6 @@ def comparison_plot(report: dict) -> bytes:
 def make_plots(report: dict, out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame], vehicle,
                hist: pl.DataFrame | None = None) -> dict[str, bytes]:
     """All plots as PNG bytes; also stores the regime table and importances in ``report``."""
-    from quadcore.report import diagnosis as diagnosis_report
-
     out = {"comparison": comparison_plot(report), "timeseries": timeseries_plot(report, out_dir)}
     if report["best"]:
         reg = regime_table(report, out_dir, residual_tables, vehicle)

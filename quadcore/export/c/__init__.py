@@ -38,6 +38,7 @@ from quadcore.identify.model import PhysicsModel, check_plugins
 from quadcore.spec.model import ModelFileError
 from quadcore.learn import artefacts, experiments, learners
 from quadcore.store import store
+from quadcore.learn import evaluation
 
 __all__ = ["ExportError", "NoCFormError", "CompileError", "Exported", "Footprint", "HostModel", "export",
            "export_models", "load_source", "input_rows", "LEARNED_KINDS"]
@@ -81,8 +82,6 @@ def _physics_from_json(path: Path) -> PhysicsModel:
 
 
 def _best_run(learned_dir: Path, kind: str) -> Path:
-    from quadcore.learn import evaluation
-
     index, records = experiments.read_runs(learned_dir)
     hold = [{**r, "causal": r["feature_set"].get("causal", True)} for r in records
             if r["split"]["name"] == f"holdout-{index['holdout']}"]
