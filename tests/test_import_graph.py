@@ -61,10 +61,16 @@ IDENTIFY_RELAYOUT = {
 }
 # ---- end of the identify block ---------------------------------------------------------------------------
 
-# Start-up time: the CLI imports a command's stage inside the command; workflows.learn's report step imports
-# report.learning (matplotlib) only when a report is written.
+# Start-up time: the CLI imports a command's stage inside the command; the workflows import a report or a
+# picture (matplotlib, ~0.5 s) only when one is written: workflows.learn's report.learning, workflows.identify's
+# report.diagnosis, workflows.plan's plan.output.
 STARTUP = {
+    ("quadcore.workflows.identify", "quadcore.report.diagnosis"),
+    # scikit-learn (the identify.discovery package, ~0.7 s CPU) only for a discovery, not every fit and diagnosis
+    ("quadcore.workflows.identify", "quadcore.identify.discovery"),
+    ("quadcore.workflows.identify", "quadcore.identify.discovery.library_stats"),
     ("quadcore.workflows.learn", "quadcore.report.learning"),
+    ("quadcore.workflows.plan", "quadcore.plan.output"),
     ("quadcore.cli", "quadcore.effects"),
     ("quadcore.cli", "quadcore.export.c"),
     ("quadcore.cli", "quadcore.export.mcap"),
@@ -110,36 +116,6 @@ UNREVIEWED = {
     ("pipeline.run.ui", "quadcore.store.ownership"),
     ("pipeline.run.webserver", "pipeline.plot_links"),
     ("pipeline.run.webserver", "pipeline.resources"),
-    ("quadcore.workflows.demo", "quadcore.sim.simulation"),
-    ("quadcore.workflows.demo", "quadcore.store.ownership"),
-    ("quadcore.workflows.demo", "quadcore.store.store"),
-    ("quadcore.workflows.fleet", "quadcore.logs.flight"),
-    ("quadcore.workflows.fleet", "quadcore.logs.logformat"),
-    ("quadcore.workflows.fleet", "quadcore.store.store"),
-    ("quadcore.workflows.identify", "quadcore.identify.diagnosis"),
-    ("quadcore.workflows.identify", "quadcore.identify.discovery"),
-    ("quadcore.workflows.identify", "quadcore.identify.fitting"),
-    ("quadcore.workflows.identify", "quadcore.identify.history"),
-    ("quadcore.workflows.identify", "quadcore.identify.discovery.library_stats"),
-    ("quadcore.workflows.identify", "quadcore.identify.model"),
-    ("quadcore.workflows.identify", "quadcore.identify.sufficient"),
-    ("quadcore.workflows.identify", "quadcore.report.diagnosis"),
-    ("quadcore.workflows.identify", "quadcore.store.store"),
-    ("quadcore.workflows.learn", "quadcore.learn.artefacts"),
-    ("quadcore.workflows.learn", "quadcore.learn.evaluation"),
-    ("quadcore.workflows.learn", "quadcore.learn.experiments"),
-    ("quadcore.workflows.learn", "quadcore.learn.features"),
-    ("quadcore.workflows.learn", "quadcore.learn.learners"),
-    ("quadcore.workflows.learn", "quadcore.learn.splits"),
-    ("quadcore.workflows.learn", "quadcore.store.store"),
-    ("quadcore.workflows.learn", "quadcore.workflows.identify"),
-    ("quadcore.workflows.plan", "quadcore.identify.model"),
-    ("quadcore.workflows.plan", "quadcore.identify.results"),
-    ("quadcore.workflows.plan", "quadcore.plan.output"),
-    ("quadcore.workflows.plan", "quadcore.plan.pieces"),
-    ("quadcore.workflows.plan", "quadcore.plan.planner"),
-    ("quadcore.workflows.plan", "quadcore.store.store"),
-    ("quadcore.workflows.plan", "quadcore.workflows.fleet"),
 }
 
 ALLOWED = IDENTIFY_RELAYOUT | STARTUP | UNREVIEWED

@@ -8,6 +8,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from quadcore.logs.flight import TRUTH_SUFFIX
+from quadcore.sim import simulation
+from quadcore.store import store
+from quadcore.store import ownership
 
 # The effect hidden in the demo flights, and its true parameters (SI).
 DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
@@ -15,8 +18,6 @@ DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}
 
 def simulate_demo_flights(raw: Path, log: Callable[[str], None] = print) -> list[Path]:
     """Six simulated flights with ``DEMO_EFFECT`` hidden in them, as uSD logs under ``raw``."""
-    from quadcore.sim import simulation
-
     log(f"The demo: simulating 6 flights with a hidden effect into {raw} (see {raw}/*.truth.json) ...")
     written = simulation.simulate_set(raw, simulation.default_flights(seed=0), DEMO_EFFECT)
     return [log_path for log_path, _ in written]
@@ -25,8 +26,6 @@ def simulate_demo_flights(raw: Path, log: Callable[[str], None] = print) -> list
 def write_demo_model_file(root: Path, template: str, effects: list[str]) -> Path:
     """The demo's own model file ``<root>/model.toml``: the template's text (the repository's
     model.toml) with its ``effects`` list set to ``effects``."""
-    from quadcore.store import store
-
     text = Path(template).read_text() if template and Path(template).is_file() else "effects = []\n"
     listed = "effects = [" + ", ".join(f'"{e}"' for e in effects) + "]"
     text, n = re.subn(r"(?m)^effects\s*=\s*\[[^\]]*\]", listed, text)
@@ -47,8 +46,6 @@ def is_simulated_log(path: str | Path) -> bool:
 def simulated_in_store(root: Path) -> tuple[list[str], list[str]]:
     """(simulated, real) flights already decoded under ``root``, from each decoded main table's
     source log (simulated when its ground truth is still beside it)."""
-    from quadcore.store import store
-
     folder = Path(root) / "decoded" / store.MAIN_EVENT
     sim: list[str] = []
     real: list[str] = []
@@ -70,8 +67,6 @@ def check_flight_kinds(root: Path, logs: list[Path], allow_mixed: bool, demo: bo
     ``logs`` are in it, recorded in its marker; :class:`MixedFlightsError` with the reason and
     the fix where simulated and real flights would meet unless ``allow_mixed``
     (``QUADCORE_ALLOW_SIMULATED=1``). The demo's root holds simulated flights only."""
-    from quadcore.store import ownership
-
     sim = [p.name for p in logs if is_simulated_log(p)]
     real = [p.name for p in logs if not is_simulated_log(p)]
     recorded = ownership.flights_kind(root)

@@ -13,11 +13,13 @@ from quadcore.physics import decoded, gate, vehicle as vehiclemod
 from quadcore.spec.model import ModelSpec, load_model_file, spec_from
 from quadcore.spec.sessions import SessionsFileError, read_sessions_file
 from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
+from quadcore.store import store
+from quadcore.logs import logformat
+from quadcore.logs import flight as flightmod
 
 if TYPE_CHECKING:
     import polars as pl
 
-    from quadcore.logs import flight as flightmod
     from quadcore.physics.vehicle import Vehicle
 
 
@@ -53,8 +55,6 @@ class Fleet:
 
 
 def _subset(tables: Mapping[str, pl.DataFrame], flights: Iterable[str]) -> Mapping[str, pl.DataFrame]:
-    from quadcore.store import store
-
     return tables.subset(flights) if isinstance(tables, store.FlightTables) else {f: tables[f] for f in flights}
 
 
@@ -68,8 +68,6 @@ def quarantine_reason(exc: BaseException) -> str:
     """The one-line reason a file is quarantined for: the error's type and message (a decoder's
     own :class:`~quadcore.logs.logformat.LogFormatError` as it says; any other error marked as an
     unexpected one, so that it is reported as a defect, not as the file's fault alone)."""
-    from quadcore.logs import logformat
-
     text = str(exc).splitlines()[0][:300] if str(exc) else ""
     if isinstance(exc, (logformat.LogFormatError, OSError)):
         return f"{type(exc).__name__}: {text}"
@@ -80,9 +78,6 @@ def decode_logs(paths: list[str], out: Path | None = None,
                 log: Callable[[str], None] = lambda m: None) -> tuple[list[flightmod.Flight], dict[str, str]]:
     """Decode every log under ``paths``; with ``out``, write SI Parquet and quarantine records
     there. Returns (flights, quarantined: id -> reason); one unreadable log never stops the others."""
-    from quadcore.logs import flight as flightmod
-    from quadcore.store import store
-
     try:
         logs = flightmod.discover_logs(*paths)
     except FileNotFoundError as exc:
@@ -143,8 +138,6 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     said through ``warn``. Tables decoded under a data root are judged from the physics facts and
     the digest their footers record (:func:`quadcore.physics.decoded.write_decoded`), without reading
     their rows; a table without facts (decoded by older code, or rewritten) is read."""
-    from quadcore.store import store
-
     facts = None
     if isinstance(tables, store.FlightTables):  # decoded under a data root: their footers say
         footers: dict[str, dict] = {}
@@ -198,8 +191,6 @@ def fleet_from_logs(paths: list[str], vehicle: Vehicle, warn: Callable[[str], No
 
 def fleet_from_store(root, vehicle: Vehicle, warn: Callable[[str], None] = lambda m: None) -> Fleet:
     """Every decoded flight under the data root that the physics can use."""
-    from quadcore.store import store
-
     return usable(store.read_all_decoded(root, MAIN_EVENT), vehicle, warn=warn)
 
 

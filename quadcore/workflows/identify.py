@@ -10,6 +10,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
+from quadcore.identify import diagnosis, fitting, history, model, sufficient
+from quadcore.store import store
 
 if TYPE_CHECKING:
     from quadcore.identify.discovery import Discovery
@@ -30,8 +32,6 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, st
     (sessions from its sessions file, its model file, or the data). ``stats``: the flights' stored
     sufficient statistics (:func:`quadcore.identify.sufficient.stored`), combined for linear
     effects instead of reading rows."""
-    from quadcore.identify import fitting, model
-
     if not fleet.tables:
         raise WorkflowError("fitting needs at least one usable decoded flight")
     held = held_out(holdout, fleet.ids)
@@ -44,8 +44,6 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, st
 
 def save_fit(root, fitted: FittedModel) -> Path:
     """Write the fitted model file (``store.physics_model_path``)."""
-    from quadcore.store import store
-
     return store.write_json(fitted.to_dict(), store.physics_model_path(root))
 
 
@@ -53,9 +51,6 @@ def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
     """The fitted model under ``root`` if it was fitted for ``spec`` as it is now
     (:func:`quadcore.identify.model.fitted_for`), else the nominal vehicle (said through ``warn`` when
     the spec has effects: the fit has not been made for it yet)."""
-    from quadcore.identify import model
-    from quadcore.store import store
-
     path = store.physics_model_path(root)
     if path.is_file():
         saved = store.read_json(path)
@@ -71,9 +66,6 @@ def current_model(root, spec: ModelSpec, warn: Log = _quiet) -> PhysicsModel:
 def fit_is_stale(root, spec: ModelSpec) -> bool:
     """Whether the saved fit was made for another spec than ``spec`` (an effect added, a fixed
     value changed, a sessions file edited...). False when nothing is fitted."""
-    from quadcore.identify import model
-    from quadcore.store import store
-
     path = store.physics_model_path(root)
     return path.is_file() and not model.fitted_for(store.read_json(path), spec)
 
@@ -98,8 +90,6 @@ def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
     """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
     with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`;
     ``discover_command``: the command the verdict points to when what is left is outside the library."""
-    from quadcore.identify import diagnosis
-
     seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
@@ -130,16 +120,12 @@ def diagnosis_json(result: Diagnosis) -> str:
 
 
 def write_diagnosis_json(result: Diagnosis, path) -> Path:
-    from quadcore.store import store
-
     return store.write_text(diagnosis_json(result), path)
 
 
 def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     """The discovery kept in ``reports_dir`` (``discovery.json``), if it was made on top of these
     effects (otherwise it is about another model, and left out)."""
-    from quadcore.store import store
-
     path = store.as_root(reports_dir) / store.DISCOVERY_FILE  # a folder here or in an object store
     disc = store.read_json(path) if path.is_file() else None
     return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
@@ -150,7 +136,6 @@ def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
     history; ``model_file``: the file its next step tells to edit. The one report path of
     ``quadcore diagnose --report`` and ``model_diagnosis``."""
-    from quadcore.identify import history
     from quadcore.report import diagnosis as diagnosis_report
 
     hist = history.read(root) if root is not None else None
@@ -161,9 +146,6 @@ def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file
 def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Path]:
     """Write a data root's diagnosis: ``reports/diagnosis.json``, a row of the error history and
     the report. Returns the report's (md, html)."""
-    from quadcore.identify import history
-    from quadcore.store import store
-
     write_diagnosis_json(result, store.diagnosis_path(root))
     b, ev = result.baseline, result.evaluation
     history.record(root, "diagnosis", result.model.label, list(b.force_rmse_N), list(b.torque_rmse_Nm),
@@ -197,7 +179,9 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
     """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`);
     with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.discovery.library_stats`).
     Raises :class:`TooFewFlights` with fewer than two training flights."""
+    # scikit-learn (the discovery package's selection): ~0.7 s CPU that fit and diagnose do not need
     from quadcore.identify import discovery
+    from quadcore.identify.discovery import library_stats
 
     seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     if len(seen.tables) - len(holdout or []) < MIN_DISCOVERY_TRAINING:
@@ -205,15 +189,10 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
                             "are grouped by flight)")
     stored = stats = None
     if root is not None:
-        from quadcore.identify import sufficient
-        from quadcore.identify.discovery import library_stats
-
         stored, stats = library_stats.stored(root, spec), sufficient.stored(root, spec)
     return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
                               stored=stored, stats=stats)
 
 
 def write_discovery(result: Discovery, path) -> Path:
-    from quadcore.store import store
-
     return store.write_json(result.to_dict(), path)

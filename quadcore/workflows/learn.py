@@ -16,6 +16,14 @@ from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.store.names import MAIN_EVENT
 from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
 from quadcore.physics import decoded
+from quadcore.learn import learners
+from quadcore.store import store
+from quadcore.learn import features as feat
+from quadcore.learn import splits
+from quadcore.learn import experiments, learners
+from quadcore.workflows import identify
+from quadcore.learn import evaluation
+from quadcore.learn import artefacts, experiments, features as feat
 
 if TYPE_CHECKING:
     import polars as pl
@@ -50,8 +58,6 @@ class LearningRequest:
 
     def learner_specs(self) -> dict[str, LearnerSpec]:
         """Kind -> learner spec (:class:`quadcore.learn.learners.LearningError` for a bad option or kind)."""
-        from quadcore.learn import learners
-
         if not self.models:
             raise learners.LearningError("no model kind named")
         if self.stride < 1 or self.threads < 1:
@@ -60,8 +66,6 @@ class LearningRequest:
         return {k: learners.parse_spec(f"{k}:{self.options[k]}" if self.options.get(k) else k) for k in self.models}
 
     def config(self) -> TrainConfig:
-        from quadcore.learn import learners
-
         return learners.TrainConfig(stride=self.stride, max_rows=self.max_rows, seed=self.seed, threads=self.threads)
 
 
@@ -76,8 +80,6 @@ def physics_of_residuals(root) -> dict:
     the fitted model file is that model (the same values: a later refit of the same effects is not).
     :class:`WorkflowError` when the tables were computed against different models (some not
     refreshed after a refit)."""
-    from quadcore.store import store
-
     files = sorted((store.as_root(root) / "residuals").glob("flight=*/data.parquet"))
     models = {f.parent.name.split("=", 1)[1]: store.read_metadata(f).get("model", {}) for f in files}
     distinct = {json.dumps(m, sort_keys=True) for m in models.values()}
@@ -103,8 +105,6 @@ def physics_of_residuals(root) -> dict:
 
 def _recorded_digest(root, fid: str) -> str | None:
     """The SHA-256 of the log a flight was decoded from, as its decoded main table records it."""
-    from quadcore.store import store
-
     recorded = decoded.recorded_provenance(root, MAIN_EVENT, fid)
     return recorded.source_sha256 if recorded is not None else None
 
@@ -114,9 +114,6 @@ def build_features(root, feature_sets: list[str]) -> tuple[list[FeatureSet], int
     whole under ``features/``), each log once (a copy of another flight's log is left out, as
     :func:`quadcore.workflows.fleet.usable` leaves it out of the fit). Returns (the sets, the
     number of flights)."""
-    from quadcore.learn import features as feat
-    from quadcore.store import store
-
     physics = physics_of_residuals(root)  # every residual table against one physics model
     res = feat.read_residual_tables(root)
     copies = duplicates(res, lambda fid: _recorded_digest(root, fid))  # as the fleet stages skip them
@@ -140,8 +137,6 @@ def learning_holdout(requested: str | None, flights: list[str], named_model_hold
     default, :data:`quadcore.learn.splits.DEFAULT_HOLDOUT` (jana02, the reference data set's)
     where there is one, else the last flight in sorted order. The choice never changes the
     physics fit or the diagnosis: without a named holdout both use every flight."""
-    from quadcore.learn import splits
-
     if requested:
         return splits.resolve_holdout(requested, flights, explicit=explicit)
     named = held_out(list(named_model_holdout or []), flights)
@@ -173,8 +168,6 @@ def train(tables_by_set: Mapping[str, Mapping[str, pl.DataFrame]], sets: list[Fe
     physics under them has seen although the user held it out. The default test flight
     (:func:`learning_holdout`, nothing named) sits on a physics model fitted on every flight:
     allowed, and the learning report says so."""
-    from quadcore.learn import experiments, learners
-
     flights = sorted(next(iter(tables_by_set.values())))
     if named and holdout in (physics.get("trained_on") or []):
         raise learners.LearningError(
@@ -192,9 +185,6 @@ def train_data_root(root, request: LearningRequest, requested_holdout: str, mode
     """The learning assets' training: the feature tables under ``root``, the physics model their
     residuals were computed against, the holdout (``requested_holdout``, else the physics
     model's), then :func:`train` into ``root/learned``. The holdout's note leads the notes."""
-    from quadcore.learn import features as feat
-    from quadcore.store import store
-
     sets, tables = feat.read_feature_tables(root)
     if not sets:
         raise WorkflowError(f"no feature tables in {store.features_dir(root)}: materialise learning_features first")
@@ -223,10 +213,6 @@ def train_on_flights(flights: Fleet, spec: ModelSpec, feature_sets: list[Feature
     """``quadcore train``: fit the spec's effects on every flight but ``holdout``, build each
     flight's residual and feature tables against that fit (its session's values), train into
     ``out/learned`` and write the learning report (and the history) under ``out``."""
-    from quadcore.learn import features as feat
-    from quadcore.store import store
-    from quadcore.workflows import identify
-
     fitted = identify.fit(flights, spec, [holdout], log if spec.effects else _quiet)
     res = residual_tables(flights.tables, fitted.model)
     try:
@@ -245,7 +231,6 @@ def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame]
     ``root_for_history``), plot and write the report (:mod:`quadcore.report.learning`).
     ``physics_trained_on``: the flights the physics model's effects were fitted on (default: as
     the index says). Returns (report, plots, paths)."""
-    from quadcore.learn import evaluation
     from quadcore.report.learning import make_plots, write_report
 
     report = evaluation.evaluate(out_dir, residual_tables, vehicle, physics_trained_on)
@@ -263,9 +248,6 @@ def write_learning_report(root, residuals: Mapping[str, pl.DataFrame] | None = N
     """Evaluate the learned models under ``root/learned`` against ``residuals`` (default: the
     data root's residual tables), record the history and write ``reports/learning.{md,html,json}``.
     Returns (report, plots, paths)."""
-    from quadcore.learn import artefacts, experiments, features as feat
-    from quadcore.store import store
-
     index, _ = experiments.read_runs(store.learned_dir(root))
     physics = index.get("physics_model", {})
     residuals = residuals if residuals is not None else feat.read_residual_tables(root)
@@ -279,8 +261,6 @@ def learning_is_stale(root) -> str | None:
     or thrust map); or for another model spec than the current fit's (``spec_digest``: a fixed
     value, a per-session effect, a sessions file or a plugin's code changed). A refit on new
     flights alone waits for the nightly retraining."""
-    from quadcore.store import store
-
     index_path = store.learned_dir(root) / "index.json"
     if not index_path.is_file() or not store.learning_report_path(root).is_file():
         return "no learned models yet"

@@ -10,10 +10,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.workflows.fleet import Fleet, sessions_of
+from quadcore.plan import pieces, planner
+from quadcore.identify.model import PhysicsModel
+from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
+from quadcore.store import store
+from quadcore.workflows.fleet import WorkflowError
 
 if TYPE_CHECKING:
     from quadcore.spec.model import ModelSpec
-    from quadcore.identify.results import Diagnosis
     from quadcore.plan.planner import FlightPlan, PlanRequest
 
 Log = Callable[[str], None]
@@ -25,8 +29,6 @@ def _quiet(msg: str) -> None:
 
 def plan(fleet: Fleet, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, log: Log = _quiet) -> FlightPlan:
     """The plan for ``diag`` (a diagnosis of ``fleet``'s flights with ``spec``)."""
-    from quadcore.plan import planner
-
     seen = fleet.only(sorted({*diag.evaluation.train_flights, *diag.evaluation.eval_flights}))
     return planner.plan(seen.tables, spec, diag, request, sessions_of(spec, seen.ids), log)
 
@@ -62,7 +64,7 @@ def plot_png(result: FlightPlan) -> bytes | None:
 def write(result: FlightPlan, json_path: Path, trajectory_path: Path | None, plot_path: Path | None = None) -> Written:
     """Write the CSV (where planned), the picture (beside the JSON as ``.png`` unless given) and
     the JSON, in that order: the JSON, written last, names only what exists."""
-    from quadcore.plan import output, pieces
+    from quadcore.plan import output
 
     csv = None
     png = None
@@ -86,9 +88,6 @@ def diagnosis_from_document(doc: dict, spec: ModelSpec) -> Diagnosis:
     planner reads (candidates, model, evaluation, residual and noise levels); the tables empty."""
     import polars as pl
 
-    from quadcore.identify.model import PhysicsModel
-    from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
-
     def rmse(d: dict) -> ResidualRmse:
         return ResidualRmse(tuple(d["force_rmse_N"]), tuple(d["torque_rmse_Nm"]))
 
@@ -109,9 +108,6 @@ def plan_data_root(root, fleet: Fleet, spec: ModelSpec, request: PlanRequest, lo
                    ) -> tuple[FlightPlan, Written]:
     """The plan for a data root's stored diagnosis (``reports/diagnosis.json``, made for ``spec``'s
     effects), written under ``reports/`` as ``flight_plan.{json,csv,png}``."""
-    from quadcore.store import store
-    from quadcore.workflows.fleet import WorkflowError
-
     path = store.diagnosis_path(root)
     if not path.is_file():
         raise WorkflowError("no diagnosis to plan from: materialise model_diagnosis first")
