@@ -17,6 +17,8 @@ import json
 import dagster as dg
 
 from pipeline.resources import data_root_from_env, model_config_from_env
+from quadcore.workflows import identify
+from quadcore.identify.discovery import library_stats
 
 MODEL_VERSION = "model_version"
 STATS_VERSION = "stats_version"  # what a flight's sufficient statistics were computed for
@@ -32,8 +34,6 @@ def model_version(model_dict: dict | None) -> str:
 def current_model_version() -> str:
     """The version of the model a per-flight run would compute against now (the fitted model if
     it matches the model file, else the nominal vehicle: see ``current_model``)."""
-    from quadcore.workflows import identify
-
     model = identify.current_model(data_root_from_env().root_path, model_config_from_env().spec())
     return model_version(model.to_dict())
 
@@ -113,8 +113,6 @@ class ModelFileChanged(dg.AutomationCondition):
         return "the model file names another model than the one fitted"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
-        from quadcore.workflows import identify
-
         try:
             changed = identify.fit_is_stale(data_root_from_env().root_path, model_config_from_env().spec())
         except (ValueError, KeyError, OSError) as exc:  # a bad model file: physics_model's run says why
@@ -153,8 +151,6 @@ class StatisticsOutdated(dg.AutomationCondition):
         return "computed for another vehicle, thrust map or effect library"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
-        from quadcore.identify.discovery import library_stats
-
         candidates = context.candidate_subset.expensively_compute_partition_keys()
         if not candidates or context.partitions_def is None:
             return dg.AutomationResult(context=context, true_subset=context.get_empty_subset())

@@ -19,6 +19,12 @@ from pathlib import Path
 import dagster as dg
 
 from pipeline.cluster import services
+from quadcore.learn import learners
+from quadcore.logs.flight import discover_logs
+from quadcore.store.store import as_root, is_remote
+from quadcore.logs.flight import find_log
+from quadcore import workflows
+from quadcore.store import store
 
 
 class SettingError(ValueError):
@@ -50,8 +56,6 @@ def learn_row_budget() -> int:
     """The learning stage's row budget: ``QUADCORE_LEARN_ROWS``, the most usable rows of its
     training flights one training run holds (above it, drawn evenly per flight; default
     :data:`quadcore.learn.learners.DEFAULT_ROW_BUDGET`). :class:`SettingError` for a bad value."""
-    from quadcore.learn import learners
-
     text = os.environ.get("QUADCORE_LEARN_ROWS", "").strip().replace("_", "")
     if not text:
         return learners.DEFAULT_ROW_BUDGET
@@ -82,8 +86,6 @@ def choose_demo(explicit: bool) -> bool:
     (Dagster's processes included) uses it. The demo runs when asked (``explicit``), or on the
     default data root (``data``, raw folder ``data/raw``) while that raw folder holds no logs:
     the README's first ``make run``. Never where a raw folder was named."""
-    from quadcore.logs.flight import discover_logs
-
     default = Path(DEFAULT_ROOT).resolve()
     if explicit:
         if os.environ.get("QUADCORE_RAW_DIR"):
@@ -115,8 +117,6 @@ class DataRoot(dg.ConfigurableResource):
     @property
     def root_path(self) -> Path:
         """The root folder, or a ``UPath`` for an object-store URL (``s3://bucket/prefix``)."""
-        from quadcore.store.store import as_root, is_remote
-
         root = as_root(self.root)
         return root if is_remote(root) else root.resolve()
 
@@ -126,8 +126,6 @@ class DataRoot(dg.ConfigurableResource):
 
     def raw_log(self, flight: str) -> Path:
         """The raw log of a flight id (``FileNotFoundError`` if it is gone)."""
-        from quadcore.logs.flight import find_log
-
         return find_log(self.raw_path, flight)
 
 
@@ -155,8 +153,6 @@ class ModelConfig(dg.ConfigurableResource):
     def spec(self):
         """The model these settings ask for, its sessions file included:
         :func:`quadcore.workflows.resolve_model`, as the CLI does."""
-        from quadcore import workflows
-
         return workflows.resolve_model(self.model_file, self.vehicle, self.thrust_map,
                                        workflows.parse_names(self.effects), self.sessions_file)
 
@@ -164,8 +160,6 @@ class ModelConfig(dg.ConfigurableResource):
     def holdout_flights(self) -> list[str]:
         """The flights named in ``holdout`` (empty: none held out; the diagnosis cross-validates,
         see :func:`quadcore.workflows.held_out`)."""
-        from quadcore import workflows
-
         return workflows.parse_names(self.holdout)
 
 
@@ -174,8 +168,6 @@ def model_file_from_env() -> tuple[str, str]:
     else the data root's own ``model.toml`` (the demo writes one, so that later runs continue its
     story; it then takes precedence over ./model.toml), else ./model.toml, else none (the nominal
     vehicle). The path is absolute, so that a hint naming it is the file to edit."""
-    from quadcore.store import store
-
     given = os.environ.get("QUADCORE_MODEL", "")
     if given:
         return str(Path(given).resolve()), "QUADCORE_MODEL"

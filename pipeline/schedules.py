@@ -13,6 +13,7 @@ import dagster as dg
 
 from pipeline.assets import EXPORT, LEARNING
 from pipeline.resources import automation_status, retrain_cron
+from pipeline.freshness import current_model_version, versions_used
 
 retrain_learned_models = dg.define_asset_job(
     "retrain_learned_models", selection=dg.AssetSelection.assets(*LEARNING, *EXPORT),
@@ -25,8 +26,6 @@ def learning_due(instance: dg.DagsterInstance) -> tuple[bool, str]:
     table materialised after the latest ``learning_features``; not while any flight's residual
     table was computed against an older physics model than the current one (the learning would
     mix two models: the automation refreshes those flights first)."""
-    from pipeline.freshness import current_model_version, versions_used
-
     last = instance.get_latest_materialization_event(dg.AssetKey("learning_features"))
     if last is not None and not instance.fetch_materializations(
             dg.AssetRecordsFilter(asset_key=dg.AssetKey("residual_table"), after_timestamp=last.timestamp),

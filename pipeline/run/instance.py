@@ -4,6 +4,7 @@ import hashlib
 import os
 import sqlite3
 from pathlib import Path
+from quadcore.store import store
 
 # Two cores: at most two runs at once; the others wait in the queue (``dg dev`` and the daemon
 # use the queued run coordinator). SQLite storage also locks under more concurrent writers.
@@ -21,8 +22,6 @@ def ensure_dagster_home(root: Path) -> Path:
     """Use ``$DAGSTER_HOME`` or ``<root>/.dagster``; create it with our dagster.yaml if it has none
     (written by rename: a kill never leaves half of it). The instance stays on this machine: for
     an object-store root (``s3://...``) the default is ``~/.quadcore/dagster-<digest of the URL>``."""
-    from quadcore.store import store
-
     if os.environ.get("DAGSTER_HOME"):
         home = Path(os.environ["DAGSTER_HOME"]).resolve()
     elif store.is_remote(store.as_root(root)):

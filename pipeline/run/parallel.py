@@ -30,6 +30,7 @@ from dagster._serdes import deserialize_value, serialize_value
 from pipeline.cluster import launch
 from pipeline.run.instance import unsynced_event_log, unsynced_homes
 from pipeline.partitions import failed_flights
+from pipeline.assets import PER_FLIGHT
 
 # Keep the console to our progress lines (one per skipped flight, with its reason); Dagster's own
 # events, a failed step's error and stack trace included, stay in the instance's event log (the UI).
@@ -178,8 +179,6 @@ def _materialize_in_child(ref: str, homes: list[str], configs: dict, names: list
     """:func:`materialize_range` in the second process: the per-flight assets named ``names``,
     the resources from their classes and configs, the instance from its serialised ref (its
     SQLite files written as the parent writes them)."""
-    from pipeline.assets import PER_FLIGHT
-
     resources = {name: cls(**config) for name, (cls, config) in configs.items()}
     for home in homes:
         unsynced_event_log(Path(home))

@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 
 from pipeline.plot_links import PLOTS_ROUTE
+from pipeline.plot_links import PLOTS_FOLDER
+from pipeline.resources import data_root_from_env
 
 
 def with_plots(app, folder: Path):
@@ -33,9 +35,6 @@ def with_plots(app, folder: Path):
 
 def main() -> None:
     import dagster_webserver.cli as cli
-
-    from pipeline.plot_links import PLOTS_FOLDER
-    from pipeline.resources import data_root_from_env
 
     folder = data_root_from_env().root_path / PLOTS_FOLDER
     create = cli.create_app_from_workspace_process_context
