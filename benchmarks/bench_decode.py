@@ -7,7 +7,7 @@ beside the clone). Every log file in it is decoded
 
 - by quadcore, best of 3 each: ``quadcore.logs.logformat.decode_file`` (the vectorised decode
   alone: raw values, like the baseline), ``quadcore.logs.flight.decode_flight`` (decode + SI
-  tables + provenance), and ``decode_flight`` + ``quadcore.physics.decoded.write_decoded`` (SI
+  tables + provenance), and ``decode_flight`` + ``quadcore.physics.decoded_store.write_decoded`` (SI
   Parquet to a temp dir);
 - by the baseline below: one ``struct.unpack_from`` per record, the obvious way to read the
   format (decode only, no SI, no Parquet), one pass.
@@ -109,8 +109,7 @@ def main(argv: list[str]) -> int:
         return 0
 
     from quadcore.logs import flight, logformat
-    from quadcore.physics import decoded
-    from quadcore.store import store
+    from quadcore.physics import decoded_store
 
     paths = find_logs(folder)
     if not paths:
@@ -130,7 +129,7 @@ def main(argv: list[str]) -> int:
             fls = []
             for p in paths:
                 fl = flight.decode_flight(p)
-                decoded.write_decoded(Path(tmp), fl)
+                decoded_store.write_decoded(Path(tmp), fl)
                 fls.append(fl)
             return fls
 

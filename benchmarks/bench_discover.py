@@ -11,9 +11,9 @@ import time
 from _common import logs_folder
 
 from quadcore.identify import discovery
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.spec.model import spec_from
 
 EFFECTS = ["thrust_scale", "com_offset", "rotor_drag", "motor_lag"]
 

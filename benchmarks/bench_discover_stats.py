@@ -27,9 +27,9 @@ from _common import REAL_LOGS
 
 from quadcore.identify import discovery
 from quadcore.identify.discovery import library_stats
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.spec.model import spec_from
 
 
 class _NoRows(Mapping[str, pl.DataFrame]):

@@ -28,10 +28,10 @@ from _common import logs_folder
 from quadcore.export import c as export_c
 from quadcore.export.c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
 from quadcore.identify import fitting
-from quadcore.spec.model import spec_from
 from quadcore.learn import artefacts, features as feat, learners, trainers, trees
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle
+from quadcore.spec.model import spec_from
 
 HOLDOUT = "jana02"
 EFFECTS = ["rotor_drag", "com_offset", "thrust_scale", "motor_lag"]

@@ -11,9 +11,9 @@ import time
 from _common import best_of, logs_folder
 
 from quadcore.identify import diagnosis
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import residuals, vehicle
+from quadcore.spec.model import spec_from
 
 
 def main() -> None:

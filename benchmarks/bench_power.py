@@ -32,12 +32,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from quadcore import effects  # noqa: E402
-from quadcore.identify import diagnosis, model  # noqa: E402
-from quadcore.spec.model import spec_from
+from quadcore.identify import diagnosis  # noqa: E402
 from quadcore.logs import flight  # noqa: E402
 from quadcore.physics import vehicle  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
 from quadcore.sim.simulation import SimConfig  # noqa: E402
+from quadcore.spec.model import spec_from
 
 OUT = Path(__file__).resolve().parent / "out"
 DURATION_S = 4.0

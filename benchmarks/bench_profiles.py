@@ -26,8 +26,7 @@ from _common import logs_folder
 from quadcore import effects
 from quadcore.identify import fitting, sufficient
 from quadcore.logs import flight
-from quadcore.physics import gate
-from quadcore.physics import vehicle
+from quadcore.physics import gate, vehicle
 from quadcore.sim import simulation
 
 VEHICLE = vehicle.load()

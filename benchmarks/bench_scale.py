@@ -52,9 +52,9 @@ from _jobs import REPO, report, run_main_job
 
 sys.path.insert(0, str(REPO))
 
+from quadcore.physics import decoded_store  # noqa: E402
 from quadcore.report import plots  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
-from quadcore.physics import decoded  # noqa: E402
 from quadcore.store import store  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
@@ -162,9 +162,9 @@ def per_flight_child(n: int) -> None:
     sufficient statistics, then the tables against the model); prints seconds."""
     import dagster as dg
 
-    from pipeline.run import main as job, parallel
     from pipeline.assets import AGAINST_MODEL, DECODE, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
+    from pipeline.run import main as job, parallel
 
     raw, root = simulated(n), CACHE / f"root{n}"
     shutil.rmtree(root, ignore_errors=True)
@@ -212,8 +212,8 @@ def decoded_pool() -> Path:
     root = CACHE / "decoded_pool"
     for i in range(POOL):
         main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
-        if not main.is_file() or decoded.recorded_physics_facts(main) is None:
-            decoded.write_decoded(root, flight.decode_flight(pool_log(i)))
+        if not main.is_file() or decoded_store.recorded_physics_facts(main) is None:
+            decoded_store.write_decoded(root, flight.decode_flight(pool_log(i)))
     return root
 
 
@@ -238,9 +238,9 @@ def fleet_child(n: int) -> None:
     MB, refresh seconds, peak MB."""
     import dagster as dg
 
-    from pipeline.run import main as job
     from pipeline.assets import DECODE, FLEET, STATISTICS
     from pipeline.resources import DataRoot, ModelConfig
+    from pipeline.run import main as job
 
     root, raw = CACHE / f"fleet{n}", CACHE / f"raw{n + 1}"
     resources = {"data_root": DataRoot(root=str(root), raw=str(raw)), "model": ModelConfig()}
@@ -288,9 +288,9 @@ def learning_child(n: int) -> None:
     residual tables ``--per-flight n`` left; prints seconds per asset, peak MB."""
     import dagster as dg
 
-    from pipeline.run import main as job
     from pipeline.assets import EXPORT, LEARNING
     from pipeline.resources import DataRoot, ModelConfig
+    from pipeline.run import main as job
 
     resources = {"data_root": DataRoot(root=str(CACHE / f"root{n}"), raw=str(CACHE / f"raw{n}")),
                  "model": ModelConfig()}

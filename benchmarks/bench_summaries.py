@@ -25,9 +25,9 @@ from _common import logs_folder
 
 from quadcore import workflows
 from quadcore.identify import fitting, sufficient, summaries
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.spec.model import spec_from
 from quadcore.workflows import fleet, identify
 
 

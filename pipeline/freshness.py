@@ -17,8 +17,8 @@ import json
 import dagster as dg
 
 from pipeline.resources import data_root_from_env, model_config_from_env
-from quadcore.workflows import identify
 from quadcore.identify.discovery import library_stats
+from quadcore.workflows import identify
 
 MODEL_VERSION = "model_version"
 STATS_VERSION = "stats_version"  # what a flight's sufficient statistics were computed for

@@ -19,12 +19,11 @@ from pathlib import Path
 import dagster as dg
 
 from pipeline.cluster import services
-from quadcore.learn import learners
-from quadcore.logs.flight import discover_logs
-from quadcore.store.store import as_root, is_remote
-from quadcore.logs.flight import find_log
 from quadcore import workflows
+from quadcore.learn import learners
+from quadcore.logs.flight import discover_logs, find_log
 from quadcore.store import store
+from quadcore.store.store import as_root, is_remote
 
 
 class SettingError(ValueError):

@@ -12,8 +12,8 @@ diagnosis stay eager (they are cheap). Materialise ``learning_features`` to retr
 import dagster as dg
 
 from pipeline.assets import EXPORT, LEARNING
-from pipeline.resources import automation_status, retrain_cron
 from pipeline.freshness import current_model_version, versions_used
+from pipeline.resources import automation_status, retrain_cron
 
 retrain_learned_models = dg.define_asset_job(
     "retrain_learned_models", selection=dg.AssetSelection.assets(*LEARNING, *EXPORT),

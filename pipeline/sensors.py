@@ -11,7 +11,7 @@ from pipeline.assets.decode import MAIN_EVENT
 from pipeline.partitions import FLIGHTS_PARTITION, flights
 from pipeline.resources import DataRoot, automation_status
 from quadcore.logs import flight, logformat, required
-from quadcore.physics import decoded
+from quadcore.physics import decoded_store
 from quadcore.store import store
 
 
@@ -64,7 +64,7 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
             continue
         if fid not in known:
             add.append(fid)
-        elif fid in decoded and decoded.decoded_from(data_root.root_path, MAIN_EVENT, fid, paths[fid]):
+        elif fid in decoded and decoded_store.decoded_from(data_root.root_path, MAIN_EVENT, fid, paths[fid]):
             continue  # processed already (by `make run`, or before a restart): same bytes, nothing to redo
         runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid))
     events = [quarantine_report(data_root)] if refused else []

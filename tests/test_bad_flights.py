@@ -12,8 +12,8 @@ import dagster as dg
 import pytest
 from fuzz.badlogs import KINDS, bad_logs
 
-from pipeline.run.main import run_all
 from pipeline.resources import DataRoot, ModelConfig
+from pipeline.run.main import run_all
 from quadcore import cli
 from quadcore.physics import gate
 from quadcore.sim import simulation

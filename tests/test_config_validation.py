@@ -10,10 +10,9 @@ from importlib import resources
 import pytest
 
 from quadcore import cli
-from quadcore.identify import model
-from quadcore.spec.model import ModelFileError, load_model_file
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
+from quadcore.spec.model import ModelFileError, load_model_file
 
 VEHICLE_TEXT = (resources.files("quadcore") / "vehicles" / "crazyflie21.toml").read_text()
 FOURTH_ROTOR = "[[rotors]]\narm_m = 0.046\nangle_deg = 45.0\nyaw_sign = 1\n"

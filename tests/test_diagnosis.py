@@ -21,11 +21,11 @@ import snapshot
 
 from quadcore import cli, effects
 from quadcore.identify import diagnosis, evidence, fitting, model
-from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
+from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 
 VEHICLE = vehicle.load()
 REPO = Path(__file__).resolve().parents[1]

@@ -255,9 +255,9 @@ def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
 def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path):
     """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
     per-session effects on those groups, as the diagnosis does: the same starting residual."""
-    from quadcore.identify import diagnosis, model
-    from quadcore.spec.model import load_model_file
+    from quadcore.identify import diagnosis
     from quadcore.logs import flight
+    from quadcore.spec.model import load_model_file
 
     model_file = tmp_path / "model.toml"
     model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')

@@ -20,13 +20,13 @@ from quadcore import cli, effects
 from quadcore.export import c as export_c
 from quadcore.export.c.learned import raw_thresholds
 from quadcore.identify import fitting, model
-from quadcore.spec.model import spec_from
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, trainers
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
+from quadcore.spec.model import spec_from
 from quadcore.store import store
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,

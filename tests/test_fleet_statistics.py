@@ -7,9 +7,7 @@ import polars as pl
 import pytest
 
 from quadcore.logs import flight
-from quadcore.physics import gate
-from quadcore.physics import vehicle
-from quadcore.physics import decoded
+from quadcore.physics import decoded_store, gate, vehicle
 from quadcore.store import store
 from quadcore.workflows import fleet
 
@@ -26,7 +24,7 @@ def decoded_root(drag_fleet, tmp_path_factory):
     main = low.tables[MAIN_EVENT]
     low.tables[MAIN_EVENT] = main.with_columns(
         pl.when(pl.int_range(pl.len()) < 7).then(2.0).otherwise(pl.col("vbat_V")).alias("vbat_V"))
-    decoded.write_decoded(root, low)
+    decoded_store.write_decoded(root, low)
     return root
 
 
@@ -62,7 +60,7 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
         df, meta = store.read_parquet(path), store.read_metadata(path)
         assert gate.PhysicsFacts.from_dict(meta[store.PHYSICS_FACTS]) is not None
         store.write_parquet(df.head(100) if fid == "sim002" else df, store.decoded_path(root, MAIN_EVENT, fid), meta)
-    assert decoded.recorded_physics_facts(store.decoded_path(root, MAIN_EVENT, "sim002")) is None
+    assert decoded_store.recorded_physics_facts(store.decoded_path(root, MAIN_EVENT, "sim002")) is None
     reads = _counting_reads(monkeypatch)
     fl = fleet.fleet_from_store(root, vehicle.load())
     assert len(reads) == 2  # both tables judged from their rows
@@ -72,7 +70,7 @@ def test_a_table_rewritten_with_copied_metadata_is_read_again(decoded_root, tmp_
 def test_facts_answer_for_another_vehicles_columns(decoded_root):
     """A vehicle that reads columns the table lacks (motor speeds) is told which, from the facts."""
     path = store.decoded_path(decoded_root, MAIN_EVENT, "sim000")
-    facts = gate.PhysicsFacts.from_dict(decoded.recorded_physics_facts(path))
+    facts = gate.PhysicsFacts.from_dict(decoded_store.recorded_physics_facts(path))
     df = store.read_parquet(path)
     for columns in (["t_s", "vbat_V"], [c for c in df.columns if c.startswith("pwm_")] + ["t_s"]):
         assert facts.covers(columns) and facts.problem(columns) == gate.physics_problem(df, columns)
@@ -86,7 +84,7 @@ def test_facts_answer_for_another_vehicles_columns(decoded_root):
 def stats_root(drag_fleet, tmp_path_factory):
     """drag_fleet decoded, with every flight's sufficient and discovery statistics stored (what
     the flight_statistics asset writes)."""
-    from quadcore.identify import model, sufficient
+    from quadcore.identify import sufficient
     from quadcore.identify.discovery import library_stats
     from quadcore.spec.model import spec_from
 
@@ -102,7 +100,6 @@ def stats_root(drag_fleet, tmp_path_factory):
 
 def _discoveries(root, effects, holdout, monkeypatch) -> tuple[dict, dict, list]:
     """(from rows, from the stored statistics, the decoded tables read for the second)."""
-    from quadcore.identify import model
     from quadcore.spec.model import spec_from
     from quadcore.workflows import identify
 
@@ -143,7 +140,6 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
     import dataclasses
     import shutil
 
-    from quadcore.identify import model
     from quadcore.identify.discovery import library_stats
     from quadcore.spec.model import spec_from
 

@@ -72,7 +72,6 @@ def with_copy(real_logs, tmp_path_factory):
 
 def test_a_copy_of_the_held_out_flight_is_not_a_training_flight(with_copy):
     """Today jana99 (jana02's bytes) is fitted on while jana02 is held out."""
-    from quadcore.identify import model
     from quadcore.spec.model import spec_from
     from quadcore.workflows import identify
 

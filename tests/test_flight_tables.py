@@ -7,10 +7,8 @@ import polars as pl
 import pytest
 
 from quadcore.logs import flight
-from quadcore.physics import gate
-from quadcore.physics import vehicle
+from quadcore.physics import decoded_store, gate, vehicle
 from quadcore.sim import simulation
-from quadcore.physics import decoded
 from quadcore.store import store
 
 MAIN_EVENT = "fixedFrequency"
@@ -48,7 +46,7 @@ def test_the_cache_keeps_recent_tables_up_to_its_budget(tmp_path):
 def test_usable_flights_walks_a_lazy_fleet(tmp_path):
     simulation.simulate_set(tmp_path / "raw", [simulation.SimConfig(kind="random", duration_s=2.0, seed=5)])
     decoded = flight.decode_flight(tmp_path / "raw" / "sim000")
-    decoded.write_decoded(tmp_path, decoded)
+    decoded_store.write_decoded(tmp_path, decoded)
     broken = decoded.tables[MAIN_EVENT].drop("omega_b_x_radps")
     store.write_parquet(broken, store.decoded_path(tmp_path, MAIN_EVENT, "sim001"), {})
     tables = store.read_all_decoded(tmp_path, MAIN_EVENT)

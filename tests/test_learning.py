@@ -20,7 +20,6 @@ import pytest
 
 from quadcore import cli
 from quadcore.identify import fitting, history, model
-from quadcore.spec.model import spec_from
 from quadcore.learn import (
     artefacts,
     evaluation,
@@ -37,6 +36,7 @@ from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
+from quadcore.spec.model import spec_from
 from quadcore.store import store
 from quadcore.workflows import learn as learn_workflow
 

@@ -11,11 +11,11 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from pipeline.assets import PER_FLIGHT
-from pipeline.run.parallel import range_tags
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
+from pipeline.run.parallel import range_tags
+from quadcore.physics import decoded_store
 from quadcore.sim import simulation
-from quadcore.physics import decoded
 from quadcore.store import store
 from quadcore.store.names import UnsafeNameError
 
@@ -58,7 +58,7 @@ def test_per_flight_stages_round_trip_through_s3(s3_url, tmp_path):
     decoded = store.read_decoded(root, "fixedFrequency", "sim001")
     assert decoded.height > 1000 and "omega_b_x_radps" in decoded.columns
     assert store.read_metadata(store.decoded_path(root, "fixedFrequency", "sim001"))["flight"] == "sim001"
-    provenance = decoded.recorded_provenance(root, "fixedFrequency", "sim001")
+    provenance = decoded_store.recorded_provenance(root, "fixedFrequency", "sim001")
     assert provenance is not None and provenance.start_ns is not None
     assert provenance.source_sha256 == store.file_sha256(raw / "sim001")
     residual = store.read_table(root, "residuals", "sim000")

@@ -400,7 +400,6 @@ def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
     """The demo's next turn is written to <root>/model.toml (the repository's file untouched),
     and the model the pipeline loads from then on is that one: a second run continues the story."""
     from pipeline.resources import model_config_from_env
-    from quadcore.identify import model
     from quadcore.spec.model import load_model_file
     from quadcore.workflows.demo import write_demo_model_file
 

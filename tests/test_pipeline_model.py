@@ -137,9 +137,9 @@ def test_a_discovered_effect_joins_the_model_and_the_history(raw, tmp_path):
     effect module; named in a model file (plugins + effects, unedited) the fleet assets fit it,
     the held-out error falls and the history records both evaluations."""
     from quadcore import effects
-    from quadcore.identify import discovery, model
-    from quadcore.spec.model import spec_from
+    from quadcore.identify import discovery
     from quadcore.physics import vehicle
+    from quadcore.spec.model import spec_from
 
     root = tmp_path / "root"
     data_root = DataRoot(root=str(root), raw=str(raw))
@@ -169,7 +169,6 @@ def test_rollouts_use_each_flights_session_values(raw, tmp_path):
     """A model with a per-session thrust scale: a flight's open-loop rollout flies its
     session's value, as its residual table does, not the fleet value."""
     from quadcore.identify import model
-    from quadcore.spec.model import spec_from
     from quadcore.identify.model import EffectTerm, PhysicsModel
     from quadcore.physics import vehicle
 

@@ -7,13 +7,13 @@ from __future__ import annotations
 import dagster as dg
 import pytest
 
-from pipeline.run import main as job
 from pipeline.assets.decode import decoded_flight
 from pipeline.assets.discovery import term_discovery
 from pipeline.assets.model import physics_model
 from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import STATS_VERSION, versions_used
 from pipeline.resources import DataRoot, ModelConfig
+from pipeline.run import main as job
 from quadcore import effects
 from quadcore.identify import fitting, sufficient
 from quadcore.identify.discovery import library_stats

@@ -200,9 +200,8 @@ def test_a_data_roots_plan_is_made_from_its_stored_diagnosis_beside_it(hover_tie
     """What the flight_plan asset does: the typed diagnosis rebuilt from reports/diagnosis.json,
     the plan written as reports/flight_plan.{json,csv,png}; a plan that plans nothing removes
     an earlier plan's trajectory and picture."""
-    from quadcore.identify import model
-    from quadcore.spec.model import spec_from
     from quadcore.plan.planner import PlanRequest
+    from quadcore.spec.model import spec_from
     from quadcore.store import store
     from quadcore.workflows import fleet as fleetlib, identify, plan as planflow
 

@@ -9,12 +9,12 @@ import shutil
 import dagster as dg
 import pytest
 
-from pipeline.run import main, parallel
 from pipeline.assets import PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
+from pipeline.run import main, parallel
 from quadcore.identify import sufficient
 from quadcore.sim import simulation
 from quadcore.store import store

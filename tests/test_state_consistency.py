@@ -8,8 +8,7 @@ import polars as pl
 import pytest
 
 from quadcore.logs import flight
-from quadcore.physics import gate
-from quadcore.physics import dynamics, vehicle
+from quadcore.physics import dynamics, gate, vehicle
 from quadcore.workflows import fleet
 
 

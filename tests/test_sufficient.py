@@ -8,9 +8,9 @@ import pytest
 
 from quadcore import effects
 from quadcore.identify import evidence, fitting, sessions, sufficient
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.spec.model import spec_from
 
 VEHICLE = vehicle.load()
 REL = 1e-9
@@ -369,20 +369,20 @@ def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(
     """The statistics follow the decoded table they were made from: a flight re-decoded from
     another log (a replaced file under the same name) must not be fitted from its old
     statistics, even before the per-flight asset has run again."""
-    from quadcore.physics import decoded
+    from quadcore.physics import decoded_store
     from quadcore.store import store
 
     root = tmp_path / "root"
     spec = spec_from(VEHICLE, [])
-    decoded.write_decoded(root, flight.decode_flight(drag_fleet / "sim000"))
+    decoded_store.write_decoded(root, flight.decode_flight(drag_fleet / "sim000"))
     decoded = store.read_decoded(root, "fixedFrequency", "sim000")
-    source = decoded.recorded_provenance(root, "fixedFrequency", "sim000").source_sha256
+    source = decoded_store.recorded_provenance(root, "fixedFrequency", "sim000").source_sha256
     sufficient.save(sufficient.compute_current(spec, "sim000", decoded, source), root)
     assert sufficient.stored(root, spec)("sim000") is not None
     other = tmp_path / "raw" / "sim000"
     other.parent.mkdir()
     other.write_bytes((drag_fleet / "sim001").read_bytes())  # new bytes under the same flight id
-    decoded.write_decoded(root, flight.decode_flight(other))
+    decoded_store.write_decoded(root, flight.decode_flight(other))
     assert sufficient.stored(root, spec)("sim000") is None
 
 

@@ -13,9 +13,9 @@ import pytest
 
 from quadcore import effects
 from quadcore.identify import diagnosis, fitting, regimes, spectrum, sufficient, summaries
-from quadcore.spec.model import spec_from
 from quadcore.logs import flight
 from quadcore.physics import vehicle
+from quadcore.spec.model import spec_from
 
 VEHICLE = vehicle.load()
 REL = 1e-9

@@ -18,8 +18,8 @@ from pipeline.assets.model import failing_on_user_errors
 from pipeline.resources import ModelConfig
 from quadcore import cli, effects, workflows
 from quadcore.identify import model
-from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 from quadcore.physics import vehicle
+from quadcore.spec.model import ModelFileError, load_model_file, spec_from
 from quadcore.store import store
 from quadcore.workflows import Fleet, identify, learn
 

@@ -9,8 +9,7 @@ from pipeline.plot_links import number
 from pipeline.resources import DataRoot
 from quadcore.learn.features import find_flights_csv
 from quadcore.logs import flight, required
-from quadcore.physics import gate
-from quadcore.physics import decoded
+from quadcore.physics import decoded_store, gate
 from quadcore.store import store
 from quadcore.workflows.fleet import quarantine_reason
 
@@ -36,9 +35,9 @@ def _decode_one(fid: str, data_root: DataRoot, given_starts: dict[str, int], log
             metadata={"source_file": str(path), "reason": reason},
             allow_retries=False,
         ) from None
-    recorded = decoded.recorded_provenance(data_root.root_path, MAIN_EVENT, fid)
+    recorded = decoded_store.recorded_provenance(data_root.root_path, MAIN_EVENT, fid)
     flight.settle_start_time(fl, recorded, given_starts.get(fid))
-    paths = decoded.write_decoded(data_root.root_path, fl)
+    paths = decoded_store.write_decoded(data_root.root_path, fl)
     store.clear_quarantine(data_root.root_path, fid)
     for w in fl.warnings:
         log.warning(f"{fid}: {w}")

@@ -12,7 +12,7 @@ from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
 from quadcore.export import c as export_c, mcap as export
 from quadcore.learn import learners
-from quadcore.physics import decoded
+from quadcore.physics import decoded_store
 from quadcore.store import store
 
 
@@ -25,7 +25,7 @@ def flight_mcap(context: dg.AssetExecutionContext, data_root: DataRoot) -> dg.Ma
 
     def work(fid):
         table = store.read_table(root, "residuals", fid)
-        provenance = decoded.recorded_provenance(root, MAIN_EVENT, fid)
+        provenance = decoded_store.recorded_provenance(root, MAIN_EVENT, fid)
         if provenance is None or provenance.start_ns is None:
             raise dg.Failure(
                 description=f"{fid}: no start time in its decoded provenance: re-materialise decoded_flight")

@@ -4,6 +4,7 @@ import hashlib
 import os
 import sqlite3
 from pathlib import Path
+
 from quadcore.store import store
 
 # Two cores: at most two runs at once; the others wait in the queue (``dg dev`` and the daemon

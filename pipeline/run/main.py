@@ -23,14 +23,11 @@ from typing import Any
 
 import dagster as dg
 
-from pipeline.run import parallel
 from pipeline.assets import AGAINST_MODEL, DECODE, EXPORT, FLEET, LEARNING, STATISTICS
 from pipeline.assets.decode import MAIN_EVENT
 from pipeline.assets.model import current_model
 from pipeline.cluster import launch
 from pipeline.freshness import model_version
-from pipeline.run.instance import ensure_dagster_home, unsynced_event_log
-from pipeline.run.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
 from pipeline.partitions import flights
 from pipeline.resources import (
     DEFAULT_ROOT,
@@ -46,10 +43,13 @@ from pipeline.resources import (
     model_file_from_env,
     retrain_cron,
 )
+from pipeline.run import parallel
+from pipeline.run.instance import ensure_dagster_home, unsynced_event_log
+from pipeline.run.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
 from quadcore.identify import sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
-from quadcore.physics import decoded
+from quadcore.physics import decoded_store
 from quadcore.store import ownership, safewrite, store
 from quadcore.workflows import identify, learn, summary
 from quadcore.workflows.demo import (
@@ -150,7 +150,7 @@ def _decoded_from_current_log(data_root: DataRoot, fid: str) -> bool:
         log_path = data_root.raw_log(fid)
     except (OSError, ValueError):
         return False  # unreadable or unsafe: decode it, and let decoding say why it fails
-    return decoded.decoded_from(data_root.root_path, MAIN_EVENT, fid, log_path)
+    return decoded_store.decoded_from(data_root.root_path, MAIN_EVENT, fid, log_path)
 
 
 def to_recompute(

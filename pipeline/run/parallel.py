@@ -27,10 +27,10 @@ from dagster._core.instance.ref import InstanceRef
 from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
 from dagster._serdes import deserialize_value, serialize_value
 
-from pipeline.cluster import launch
-from pipeline.run.instance import unsynced_event_log, unsynced_homes
-from pipeline.partitions import failed_flights
 from pipeline.assets import PER_FLIGHT
+from pipeline.cluster import launch
+from pipeline.partitions import failed_flights
+from pipeline.run.instance import unsynced_event_log, unsynced_homes
 
 # Keep the console to our progress lines (one per skipped flight, with its reason); Dagster's own
 # events, a failed step's error and stack trace included, stay in the instance's event log (the UI).

@@ -117,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"make ui: error: {problem}", file=sys.stderr)
         return 2
-    from pipeline.run.instance import ensure_dagster_home
     from pipeline.resources import SettingError, choose_demo, data_root_from_env
+    from pipeline.run.instance import ensure_dagster_home
     from quadcore.store import ownership
 
     try:  # what `make run` runs on: the demo's root while data/raw holds no logs

@@ -16,8 +16,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from pipeline.plot_links import PLOTS_ROUTE
-from pipeline.plot_links import PLOTS_FOLDER
+from pipeline.plot_links import PLOTS_FOLDER, PLOTS_ROUTE
 from pipeline.resources import data_root_from_env
 
 

@@ -31,11 +31,11 @@ from quadcore.identify.evidence import (
 )
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, PhysicsModel
-from quadcore.spec.model import ModelSpec
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
 from quadcore.identify.results import NOTHING, CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict
 from quadcore.physics.dynamics import XYZ
+from quadcore.spec.model import ModelSpec
 
 
 def _total(parts: Iterable[np.ndarray]) -> np.ndarray:

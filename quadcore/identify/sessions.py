@@ -14,8 +14,8 @@ uncertainty:
   flights spread along a continuum rather than fall into sessions, the groups say so by
   their number and their neighbouring values.
 * **From a sessions file** (TOML, ``[sessions] NAME = ["jana00", "jana1*", ...]``, shell
-  patterns allowed; read by :func:`quadcore.spec.sessions.read_sessions_file`): the groups are the sessions; they disagree when two of them differ by
-  more than ``SESSION_SIGMA``.
+  patterns allowed; read by :func:`quadcore.spec.sessions.read_sessions_file`): the groups are the
+  sessions; they disagree when two of them differ by more than ``SESSION_SIGMA``.
 
 Each group's value is the parameter fitted jointly on the group's flights, its ``std`` the
 larger of that fit's error and the between-flight standard error. Where a disagreeing

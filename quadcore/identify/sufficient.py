@@ -59,8 +59,8 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify import profiles
+from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import Vehicle
-from quadcore.physics import decoded
 from quadcore.store import store
 from quadcore.store.names import check_component
 
@@ -667,7 +667,7 @@ def compute_current(spec, flight: str, decoded, source: str = "", fd: FlightData
 def decoded_source(root: Any, flight: str) -> str | None:
     """The SHA-256 of the log the flight's main table under the data root was decoded from
     (None when it is not decoded)."""
-    provenance = decoded.recorded_provenance(root, store.MAIN_EVENT, flight)
+    provenance = decoded_store.recorded_provenance(root, store.MAIN_EVENT, flight)
     return provenance.source_sha256 if provenance is not None else None
 
 

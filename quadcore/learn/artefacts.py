@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from quadcore.identify import model as modelmod
 from quadcore.learn import features as feat
 from quadcore.learn.features import TARGETS, FeatureSet, Scaler
 from quadcore.learn.learners import LearnerSpec, LearningError
 from quadcore.learn.trees import CompiledForest
-from quadcore.store import safewrite, store
-from quadcore.identify import model as modelmod
 from quadcore.physics import vehicle as vehiclemod
+from quadcore.store import safewrite, store
 
 FORMAT = "quadcore-learned/1"
 

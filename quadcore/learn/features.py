@@ -55,7 +55,6 @@ import polars as pl
 
 from quadcore.physics import residuals, rotations
 from quadcore.physics.dynamics import XYZ, cols
-from quadcore.store import store
 from quadcore.store import safewrite, store
 
 TARGET_FORCE = list(residuals.F_RES_B)  # f_res_b_{x,y,z}_N

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-
 # Physically plausible ranges for a small quadrotor (SI). Values outside are flagged, not dropped.
 VALUE_RANGES = {
     "p_w_x_m": (-20.0, 20.0),

@@ -50,7 +50,8 @@ class Provenance:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Provenance:
-        """From the JSON form (e.g. :func:`quadcore.physics.decoded.recorded_provenance`); unknown keys ignored."""
+        """From the JSON form (e.g. :func:`quadcore.physics.decoded_store.recorded_provenance`); unknown keys
+        ignored."""
         start = d.get("start_ns")
         return cls(str(d.get("source_file", "")), str(d.get("source_sha256", "")), int(d.get("format_version", 0)),
                    d.get("crc_ok"), int(d.get("bytes_total", 0)), int(d.get("bytes_dropped", 0)),

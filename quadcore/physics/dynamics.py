@@ -25,8 +25,12 @@ import polars as pl
 
 from quadcore.logs.units import SI_COLUMNS
 from quadcore.physics import rotations
-from quadcore.physics.gate import XYZ as XYZ  # re-exported for identify.regimes (its re-layout, issue 23)
-from quadcore.physics.gate import cols, physics_problem, required_columns
+from quadcore.physics.gate import (
+    XYZ as XYZ,  # re-exported for identify.regimes (its re-layout, issue 23)
+    cols,
+    physics_problem,
+    required_columns,
+)
 from quadcore.physics.rotations import GRAVITY_W_MPS2 as GRAVITY_W_MPS2  # re-exported, as XYZ
 from quadcore.physics.vehicle import Vehicle
 

@@ -61,7 +61,7 @@ STATE_COLUMNS = ("p_w_x_m", "p_w_y_m", "p_w_z_m", "v_w_x_mps", "v_w_y_mps", "v_w
 class PhysicsFacts:
     """What the physics gate (:func:`physics_problem`) finds in one decoded table, for any
     columns the physics may read (another vehicle reads other PWM or motor columns): recorded in
-    the decoded main table's footer (:func:`quadcore.physics.decoded.write_decoded`), so that a fleet
+    the decoded main table's footer (:func:`quadcore.physics.decoded_store.write_decoded`), so that a fleet
     stage decides which flights it can use without reading their rows."""
 
     columns: tuple[str, ...]  # every column of the table

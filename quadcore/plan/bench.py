@@ -25,15 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.identify import diagnosis as diagnosislib
-from quadcore.spec.model import spec_from
 from quadcore.identify.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.physics import vehicle as vehiclelib
-from quadcore.plan import planner, signatures
+from quadcore.plan import pieces, planner, signatures
 from quadcore.plan.limits import Limits
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
-from quadcore.plan import pieces
+from quadcore.spec.model import spec_from
 
 FILES = ("figure8", "circle0", "yaw0")  # the lab's trajectory files (the simulator's built-in plans)
 PLAN_S = 10.0  # the planned manoeuvre; flown with 2 s take-off, 1 s hover before and 1 s after

@@ -16,15 +16,14 @@ from typing import Any
 import numpy as np
 
 from quadcore.identify import fitting
-from quadcore.spec.model import ModelSpec
 from quadcore.identify.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
-from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, signatures
+from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, separation, signatures
 from quadcore.plan.limits import LimitCheck, Limits, check, largest_scale
 from quadcore.plan.question import Question
 from quadcore.plan.signatures import Explanation
 from quadcore.sim.trajectories import PolyTrajectory
-from quadcore.plan import separation
+from quadcore.spec.model import ModelSpec
 
 DEFAULT_DURATION_S = 20.0
 MIN_PROBE_SIGMA = 1.0  # a rival no probe flight separates by this much is nested in the top candidate

@@ -25,13 +25,13 @@ import numpy as np
 
 from quadcore.identify import diagnosis as diagnosislib
 from quadcore.identify.model import PhysicsModel
-from quadcore.spec.model import ModelSpec
 from quadcore.identify.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.plan import pieces, separation
 from quadcore.plan.signatures import Explanation
 from quadcore.sim import simulation
 from quadcore.sim.trajectories import PolyTrajectory
+from quadcore.spec.model import ModelSpec
 
 
 @dataclass(frozen=True)

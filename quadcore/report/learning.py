@@ -19,9 +19,8 @@ from quadcore.learn.artefacts import PRED_COLUMNS
 from quadcore.learn.features import TARGETS
 from quadcore.learn.metrics import AXES, mae
 from quadcore.learn.tables import REGIME_BINS, TABLE_TITLES, _best_preds, frame, importance, regime_table, report_run
-from quadcore.report import plots, render
+from quadcore.report import diagnosis as diagnosis_report, plots, render
 from quadcore.store import store
-from quadcore.report import diagnosis as diagnosis_report
 
 TITLE = "Learned residual models"
 

@@ -178,7 +178,7 @@ def write_parquet(df: pl.DataFrame, path: Path, metadata: dict, physics_facts: d
     description, else read off the column names (:func:`quadcore.store.names.column_units`).
     Physics facts in ``metadata`` are dropped: they were found in other rows (metadata copied
     from another file); ``physics_facts`` (those of these very rows, which only
-    :func:`quadcore.physics.decoded.write_decoded` knows) are recorded under :data:`PHYSICS_FACTS`."""
+    :func:`quadcore.physics.decoded_store.write_decoded` knows) are recorded under :data:`PHYSICS_FACTS`."""
     metadata = {k: v for k, v in metadata.items() if k != PHYSICS_FACTS}
     if physics_facts is not None:
         metadata[PHYSICS_FACTS] = physics_facts

@@ -9,8 +9,7 @@ from pathlib import Path
 
 from quadcore.logs.flight import TRUTH_SUFFIX
 from quadcore.sim import simulation
-from quadcore.store import store
-from quadcore.store import ownership
+from quadcore.store import ownership, store
 
 # The effect hidden in the demo flights, and its true parameters (SI).
 DEMO_EFFECT = {"rotor_drag": {"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.12}}

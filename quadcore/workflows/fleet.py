@@ -9,13 +9,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.physics import decoded, gate, vehicle as vehiclemod
+from quadcore.logs import flight as flightmod, logformat
+from quadcore.physics import decoded_store, gate, vehicle as vehiclemod
 from quadcore.spec.model import ModelSpec, load_model_file, spec_from
 from quadcore.spec.sessions import SessionsFileError, read_sessions_file
-from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
 from quadcore.store import store
-from quadcore.logs import logformat
-from quadcore.logs import flight as flightmod
+from quadcore.store.names import MAIN_EVENT  # the decoded table the physics reads
 
 if TYPE_CHECKING:
     import polars as pl
@@ -92,7 +91,7 @@ def decode_logs(paths: list[str], out: Path | None = None,
         try:  # any failure is this file's alone: it is quarantined with its reason, the others go on
             fl = flightmod.decode_flight(path, fid)
             if out is not None:
-                decoded.write_decoded(out, fl)
+                decoded_store.write_decoded(out, fl)
         except Exception as exc:  # noqa: BLE001 (per-file isolation: the reason is recorded and reported)
             reason = quarantine_reason(exc)
             if out is not None:
@@ -136,7 +135,7 @@ def usable(tables: Mapping[str, pl.DataFrame], vehicle: Vehicle, skipped: dict[s
     """The flights the physics can use with ``vehicle``, each log once (:func:`duplicates` by
     ``digest``: flight -> the SHA-256 of its log); each other one is skipped with its reason,
     said through ``warn``. Tables decoded under a data root are judged from the physics facts and
-    the digest their footers record (:func:`quadcore.physics.decoded.write_decoded`), without reading
+    the digest their footers record (:func:`quadcore.physics.decoded_store.write_decoded`), without reading
     their rows; a table without facts (decoded by older code, or rewritten) is read."""
     facts = None
     if isinstance(tables, store.FlightTables):  # decoded under a data root: their footers say

@@ -9,15 +9,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 from quadcore.identify import diagnosis, fitting, history, model, sufficient
 from quadcore.store import store
+from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
 if TYPE_CHECKING:
     from quadcore.identify.discovery import Discovery
     from quadcore.identify.model import FittedModel, PhysicsModel
-    from quadcore.spec.model import ModelSpec
     from quadcore.identify.results import Diagnosis
+    from quadcore.spec.model import ModelSpec
 
 Log = Callable[[str], None]
 

@@ -12,27 +12,22 @@ from typing import TYPE_CHECKING
 
 from quadcore.identify import history
 from quadcore.identify.model import PLUGINS, SPEC_DIGEST
+from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, splits
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
-from quadcore.store.names import MAIN_EVENT
-from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
-from quadcore.physics import decoded
-from quadcore.learn import learners
+from quadcore.physics import decoded_store
 from quadcore.store import store
-from quadcore.learn import features as feat
-from quadcore.learn import splits
-from quadcore.learn import experiments, learners
+from quadcore.store.names import MAIN_EVENT
 from quadcore.workflows import identify
-from quadcore.learn import evaluation
-from quadcore.learn import artefacts, experiments, features as feat
+from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
 
 if TYPE_CHECKING:
     import polars as pl
 
     from quadcore.identify.model import PhysicsModel
-    from quadcore.spec.model import ModelSpec
     from quadcore.learn.experiments import Plan, RunRecord
     from quadcore.learn.features import FeatureSet
     from quadcore.learn.learners import LearnerSpec, TrainConfig
+    from quadcore.spec.model import ModelSpec
 
 Log = Callable[[str], None]
 
@@ -105,7 +100,7 @@ def physics_of_residuals(root) -> dict:
 
 def _recorded_digest(root, fid: str) -> str | None:
     """The SHA-256 of the log a flight was decoded from, as its decoded main table records it."""
-    recorded = decoded.recorded_provenance(root, MAIN_EVENT, fid)
+    recorded = decoded_store.recorded_provenance(root, MAIN_EVENT, fid)
     return recorded.source_sha256 if recorded is not None else None
 
 

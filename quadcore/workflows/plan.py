@@ -9,16 +9,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from quadcore.workflows.fleet import Fleet, sessions_of
-from quadcore.plan import pieces, planner
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
+from quadcore.plan import pieces, planner
 from quadcore.store import store
-from quadcore.workflows.fleet import WorkflowError
+from quadcore.workflows.fleet import Fleet, WorkflowError, sessions_of
 
 if TYPE_CHECKING:
-    from quadcore.spec.model import ModelSpec
     from quadcore.plan.planner import FlightPlan, PlanRequest
+    from quadcore.spec.model import ModelSpec
 
 Log = Callable[[str], None]
 

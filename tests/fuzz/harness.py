@@ -6,7 +6,7 @@ count what the issue's bar asks for.
 Good logs: the real Crazyflie logs (``../shared/crazyflie/logs``, the three smallest), or
 simulated ones where they are absent. For every mutant: the decoder either returns or raises
 a ``LogFormatError`` (anything else is an untyped exception), within ``MAX_SECONDS``; what it
-returns is written with :func:`quadcore.physics.decoded.write_decoded` under one data root, and no file may
+returns is written with :func:`quadcore.physics.decoded_store.write_decoded` under one data root, and no file may
 appear outside it; every whole record before the corrupted bytes is kept; after a corruption
 in the body, the share of the records after it that is recovered is measured (median >= 90 %).
 Then the structure-aware cases of :mod:`.structure` (field-boundary cuts, edited headers, hostile
@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.logs import flight, logformat
-from quadcore.physics import decoded
-from quadcore.store import store
+from quadcore.physics import decoded_store
 
 from . import structure
 from .mutants import ESCAPE_MARK, Layout, Mutant, layout, mutants
@@ -120,7 +119,7 @@ def check(m: Mutant, clean: Clean, root: Path, flight_id: str) -> Outcome:
         return Outcome(m.kind, time.perf_counter() - t0, untyped_error=_short(exc))
     seconds = time.perf_counter() - t0
     try:
-        decoded.write_decoded(root, flight.from_decoded(flight_id, log, f"mutant:{m.kind}"))
+        decoded_store.write_decoded(root, flight.from_decoded(flight_id, log, f"mutant:{m.kind}"))
     except Exception as exc:  # noqa: BLE001
         return Outcome(m.kind, seconds, untyped_error=f"writing: {_short(exc)}")
     cut = len(m.data) if m.kind == "truncate" else m.corrupt_from

@@ -403,8 +403,7 @@ def run_case(case: Case, tally: Tally, write_root=None) -> None:
     from pathlib import Path
 
     from quadcore.logs import flight
-    from quadcore.physics import decoded
-    from quadcore.store import store
+    from quadcore.physics import decoded_store
 
     tally.cases += 1
     tally.by_family[case.family] += 1
@@ -420,7 +419,7 @@ def run_case(case: Case, tally: Tally, write_root=None) -> None:
             tally.slowest_s = max(tally.slowest_s, time.perf_counter() - t0)
         fl = flight.from_decoded(f"s{tally.cases:05d}", log, f"structure:{case.family}")
         if write_root is not None:
-            decoded.write_decoded(write_root, fl)
+            decoded_store.write_decoded(write_root, fl)
     except _Hang:
         tally.hangs += 1
         return

@@ -35,10 +35,9 @@ from quadcore.export.c.build import CompileError, Footprint, HostModel, check_st
 from quadcore.export.c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
 from quadcore.export.c.inputs import ExportError, Field
 from quadcore.identify.model import PhysicsModel, check_plugins
+from quadcore.learn import artefacts, evaluation, experiments, learners
 from quadcore.spec.model import ModelFileError
-from quadcore.learn import artefacts, experiments, learners
 from quadcore.store import store
-from quadcore.learn import evaluation
 
 __all__ = ["ExportError", "NoCFormError", "CompileError", "Exported", "Footprint", "HostModel", "export",
            "export_models", "load_source", "input_rows", "LEARNED_KINDS"]

@@ -17,8 +17,8 @@ from quadcore.identify import fitting, sessions as sessionlib, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
-from quadcore.spec.model import ModelSpec
 from quadcore.physics.vehicle import Vehicle
+from quadcore.spec.model import ModelSpec
 
 
 @dataclass(frozen=True)

@@ -56,8 +56,8 @@ from quadcore.identify.discovery.terms import (
     mul_units,
     unit_text,
 )
-from quadcore.spec.model import ModelSpec
 from quadcore.physics import signals
+from quadcore.spec.model import ModelSpec
 
 MIN_STABILITY = 0.6  # selected in at least this share of the folds ("most folds")
 MAX_TERMS = 8  # per axis

@@ -11,8 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from quadcore.physics import gate
 from quadcore.logs.flight import Flight, Provenance
+from quadcore.physics import gate
 from quadcore.store import store
 from quadcore.store.names import MAIN_EVENT
 
