@@ -83,7 +83,7 @@ def parquet_page(root: Path) -> str:
            "polars and DuckDB read every flight at once ([query the outputs](../how-to/query-outputs.md)). Units and ",
            "provenance are in each file's key-value metadata under `quadcore` ",
            "(`quadcore.store.store.read_metadata(path)`); a column's unit is also read off its name's suffix ",
-           "(`quadcore.logs.units.SUFFIX_UNITS`; `1` for dimensionless). Below, the columns of each kind of ",
+           "(`quadcore.store.names.SUFFIX_UNITS`; `1` for dimensionless). Below, the columns of each kind of ",
            "table, read from the files `make run` wrote for the demo (regenerated with ",
            "`python docs/gen_reference.py --parquet-from data/demo` after `make demo`).\n"]
     kinds: dict[str, Path] = {}
