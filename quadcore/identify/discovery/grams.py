@@ -143,7 +143,6 @@ def channel_groups(labels: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(axes < 3), np.flatnonzero(axes >= 3)
 
 
-
 def library_columns(terms: list[Term], fx_effects: list[Effect]) -> Columns:
     """Where each of the Gram matrices' columns is: the terms usable in force, in torque, the
     six residual axes, the six modelled sides, then each effect's basis per axis."""
@@ -156,7 +155,6 @@ def library_columns(terms: list[Term], fx_effects: list[Effect]) -> Columns:
             effect_cols[(e.name, axis)] = list(range(i, i + len(e.parameters)))
             i += len(e.parameters)
     return Columns(terms, force, torque, effect_cols, i)
-
 
 
 class GramSums:

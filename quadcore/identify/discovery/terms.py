@@ -262,8 +262,6 @@ def excluded(term: Term, target: str) -> bool:
     return target == "f_res_b_z_N" and (term.expression == "T_N" or per_rotor)
 
 
-
-
 # The forms a velocity term takes on one slot of an axis: linear drag, rotor drag (-k T v),
 # per-axis and airspeed-norm quadratic drag. They are nearly collinear on most flights, so the
 # greedy path's first pick need not be the form the held-out flights prefer.
@@ -277,7 +275,6 @@ def form_family(expression: str) -> tuple[str, ...]:
         if expression in family:
             return family
     return ()
-
 
 
 def library_of(vars_: dict[str, Variable], motors: bool) -> list[Term]:
