@@ -4,15 +4,46 @@ logged state, motion-capture packets, encoded with :func:`quadcore.logs.logforma
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from quadcore.logs import logformat
 from quadcore.logs.units import DEG_TO_RAD, G0_MPS2, RPM_TO_RADPS
 
-if TYPE_CHECKING:
-    from quadcore.sim.simulation import SimConfig
+
+class MocapNoise(Protocol):
+    """The motion-capture noise the log writer adds (standard deviations)."""
+
+    @property
+    def mocap_pos_m(self) -> float: ...
+
+    @property
+    def mocap_att_rad(self) -> float: ...
+
+
+class LogSettings(Protocol):
+    """What the log writer reads of a simulation's settings (:class:`quadcore.sim.simulation.SimConfig` is
+    one): the dropped samples, the motion-capture packets and their noise. Named here, so that the writer
+    imports nothing of the simulation above it."""
+
+    @property
+    def noise(self) -> MocapNoise: ...
+
+    @property
+    def drop_prob(self) -> float: ...
+
+    @property
+    def drop_max_samples(self) -> int: ...
+
+    @property
+    def mocap_rate_hz(self) -> float: ...
+
+    @property
+    def mocap_jitter_s(self) -> float: ...
+
+    @property
+    def mocap_drop_prob(self) -> float: ...
 
 # The real logs' header (jana00..jana33), copied from ``logformat.parse_header``: event ids,
 # names, variables, type characters and their order. Hard-coded so the simulator works
@@ -62,7 +93,7 @@ def _quat_noise(q: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
-def _drop_mask(n: int, config: SimConfig, rng: np.random.Generator) -> np.ndarray:
+def _drop_mask(n: int, config: LogSettings, rng: np.random.Generator) -> np.ndarray:
     """True for samples kept. Gaps start with probability ``drop_prob`` per sample and last
     1..``drop_max_samples`` samples; the first and last few samples are always kept."""
     kept = np.ones(n, dtype=bool)
@@ -75,8 +106,8 @@ def _drop_mask(n: int, config: SimConfig, rng: np.random.Generator) -> np.ndarra
     return kept
 
 
-def encode(config, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, motor_map, n_pos, n_vel, n_att, n_gyro, n_acc, n_rpm,
-            drop_rng, mocap_rng, clock_rng) -> tuple[bytes, np.ndarray]:
+def encode(config: LogSettings, t, P, V, Q, W, SF, F_ACT, PWM, VBAT_MV, motor_map, n_pos, n_vel, n_att, n_gyro,
+           n_acc, n_rpm, drop_rng, mocap_rng, clock_rng) -> tuple[bytes, np.ndarray]:
     n = len(t)
     noise = config.noise
     kept = _drop_mask(n, config, drop_rng)
