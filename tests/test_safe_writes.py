@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -53,19 +54,40 @@ def test_temp_names_carry_the_writer_and_are_unique(tmp_path, monkeypatch):
     assert len(set(seen)) == 2 and all(n.startswith(f".x.json.{os.getpid()}.") for n in seen)
 
 
-def test_a_second_job_on_one_data_root_waits(tmp_path):
+def _hold_lock(root, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Another process holding ``root``'s lock for 1.5 s (once it prints 'held')."""
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time\nfrom quadcore.store import safewrite\n"
          "with safewrite.data_root_lock(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(1.5)\n",
-         str(tmp_path)],
-        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+         str(root)],
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), **(env or {})},
         stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "held"
+    assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_a_second_job_on_one_data_root_waits(tmp_path):
+    holder = _hold_lock(tmp_path)
     waited, t0 = [], time.perf_counter()
     with safewrite.data_root_lock(tmp_path, on_wait=waited.append):
         elapsed = time.perf_counter() - t0
     holder.wait()
     assert waited and "waiting" in waited[0] and elapsed > 0.5
+
+
+@pytest.mark.parametrize(("endpoint", "waits"), [("http://127.0.0.1:1", True), ("http://127.0.0.1:2", False)])
+def test_an_object_store_root_is_locked_per_store(monkeypatch, endpoint, waits):
+    """The same s3:// URL at the same endpoint is one store (a second job waits); at another
+    endpoint (two local clusters' S3 servers on one machine) another store, which does not."""
+    url = f"s3://quadcore-lock-test-{os.getpid()}/data"
+    # the lock lives in the temp folder, which this test session moves (conftest): the holder's too
+    holder = _hold_lock(url, {"AWS_ENDPOINT_URL": "http://127.0.0.1:1", "TMPDIR": tempfile.gettempdir()})
+    monkeypatch.setenv("AWS_ENDPOINT_URL", endpoint)
+    waited: list[str] = []
+    with safewrite.data_root_lock(url, on_wait=waited.append):
+        pass
+    holder.wait()
+    assert bool(waited) == waits
 
 
 @pytest.fixture(scope="module")

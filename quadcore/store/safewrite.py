@@ -131,10 +131,12 @@ def data_root_lock(root: Path, on_wait=None) -> Iterator[None]:
     this wait (``on_wait(message)`` is called once first); the lock dies with its process.
 
     An object store has no such lock: for ``s3://...`` the lock is a local file named after the
-    URL (in the temp folder), which serialises the jobs of this machine on that root, not those
-    of other machines."""
+    URL and the store's endpoint (``AWS_ENDPOINT_URL``; in the temp folder), which serialises the
+    jobs of this machine on that root, not those of other machines. Two stores of one machine
+    (two local clusters, each its own S3 server) hold the same URL and do not wait for each other."""
     if _is_url(root):
-        digest = hashlib.sha256(str(root).encode()).hexdigest()[:16]
+        endpoint = os.environ.get("AWS_ENDPOINT_URL", "").strip()
+        digest = hashlib.sha256(f"{endpoint} {root}".strip().encode()).hexdigest()[:16]
         lock = Path(tempfile.gettempdir()) / f"quadcore-{digest}{LOCK_FILE}"
     else:
         Path(root).mkdir(parents=True, exist_ok=True)
