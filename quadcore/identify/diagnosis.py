@@ -402,8 +402,7 @@ def _on_common_samples(flights: list, effects) -> list:
     noise floor are scored on the same samples; whole blocks, so that the statistics (per-block
     Gram matrices) and the rows leave out the same. Flights too short to keep any sample
     after it are evaluated whole (nothing would be left to compare)."""
-    memory = max((e.memory_s() for e in effects), default=0.0)
-    k = int(np.ceil(memory / evidence.BLOCK_S - 1e-9))
+    k = evidence.memory_blocks(effects)
     if k <= 0:
         return flights
     out = [_after_blocks(fd, k) for fd in flights]
@@ -413,9 +412,7 @@ def _on_common_samples(flights: list, effects) -> list:
 def _after_blocks(fd, k: int):
     """A flight's rows (:class:`FlightData`) or statistics without its first ``k`` blocks."""
     if isinstance(fd, FlightData):
-        keep = fd.mask.copy()
-        keep[np.flatnonzero(fd.mask)[sufficient.block_index(fd.state.t_s[fd.mask]) < k]] = False
-        return replace(fd, mask=keep, _sums={}, _designs={})  # the cached sums and designs are masked
+        return evidence.after_blocks(fd, k)
     gram = fd.gram[k:]
     return replace(fd, total=gram.sum(axis=0), rows=fd.rows[k:], blocks_source=lambda: gram)
 

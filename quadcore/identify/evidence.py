@@ -45,7 +45,7 @@ much shorter than a sample cannot be fitted).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -106,6 +106,27 @@ def _blocks(fd: FlightData) -> np.ndarray:
     if not len(t):
         return np.zeros(0, dtype=int)
     return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
+
+
+def memory_blocks(effects) -> int:
+    """How many of a flight's first blocks (of ``BLOCK_S``) lie within the longest
+    :meth:`~quadcore.effects.Effect.memory_s` of ``effects``: where an effect with memory predicts
+    nothing (:func:`quadcore.identify.fitting.prediction`) and a memoryless one, or one with a
+    shorter memory, does. Comparing candidates on the samples after them compares them on the
+    same samples (the diagnosis's evaluation, the planner's objective)."""
+    memory = max((e.memory_s() for e in effects), default=0.0)
+    return int(np.ceil(memory / BLOCK_S - 1e-9))
+
+
+def after_blocks(fd: FlightData, k: int) -> FlightData:
+    """A flight's rows without its first ``k`` blocks (numbered as :func:`_blocks` numbers them):
+    its usable samples from there on; the cached sums and designs, taken over the usable
+    samples, start afresh."""
+    if k <= 0:
+        return fd
+    keep = fd.mask.copy()
+    keep[np.flatnonzero(fd.mask)[_blocks(fd) < k]] = False
+    return replace(fd, mask=keep, _sums={}, _designs={})
 
 
 def block_channel_sums(flights: Flights, pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:

@@ -22,6 +22,12 @@ The diagnosis also needs the two scores (shares of the residual explained) to di
 maximises ``min over truths of min(σ / SIGMA_GOAL, gap / GAP_GOAL)``: one number that is
 above 1 when both of the diagnosis's tie conditions are broken with margin.
 
+Both are taken on the samples the diagnosis compares candidates on: each flight's first
+``skip`` blocks (:func:`quadcore.identify.evidence.memory_blocks`: within the longest memory of
+the diagnosis's effects) are left out, as the diagnosis leaves them out. There an effect with
+memory predicts nothing and one without (or with a shorter memory) does: counting them would
+"separate" a lag from a delay by the first second of every flight, whatever the manoeuvre.
+
 ``σ_c`` per axis is the held-out residual the diagnosis leaves after the better of the two
 explanations, never below the sensor-noise floor the logs show: on simulated flights that is
 the floor; on real flights whatever else is unmodelled counts as noise too.
@@ -68,6 +74,14 @@ def blocks(fd: fitting.FlightData) -> np.ndarray:
     return ((t - t[0]) // evidence.BLOCK_S).astype(int) if len(t) else np.zeros(0, dtype=int)
 
 
+def compared(fd: fitting.FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
+    """The usable samples the diagnosis compares candidates on (all but the first ``skip``
+    blocks; a boolean over the usable samples) and their blocks, numbered from 0."""
+    b = blocks(fd)
+    keep = b >= skip
+    return keep, b[keep] - skip
+
+
 def _per_block(values: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Sum ``values`` (n, ...) over the samples of each block -> (blocks, ...)."""
     out = np.zeros((int(b.max(initial=-1)) + 1, *values.shape[1:]))
@@ -82,8 +96,8 @@ class Direction:
     block and channel (the comparison's clusters), the old flights' computed once."""
 
     def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
-                 w: np.ndarray):
-        self.truth, self.rival, self.vehicle = truth, rival, vehicle
+                 w: np.ndarray, skip: int = 0):
+        self.truth, self.rival, self.vehicle, self.skip = truth, rival, vehicle, skip
         e = rival.effect
         self.kind = "linear" if e.linear else ("grid" if len(e.parameters) == 1 else "fixed")
         self.values = _grid(rival) if self.kind == "grid" else None
@@ -103,19 +117,19 @@ class Direction:
         """One flight's part per block and channel: the Gram sums of the rival's basis and the
         truth's prediction (linear rival), or the squared mismatch at each grid value
         ((values, blocks, 6))."""
-        y = predict(self.truth, fd, self.vehicle)[fd.mask]
-        b = blocks(fd)
+        keep, b = compared(fd, self.skip)
+        y = predict(self.truth, fd, self.vehicle)[fd.mask][keep]
         if self.kind == "linear":
-            X = fd.basis(self.rival.effect, self.vehicle)[fd.mask]
+            X = fd.basis(self.rival.effect, self.vehicle)[fd.mask][keep]
             return (_per_block(np.einsum("nci,ncj->ncij", X, X), b), _per_block(np.einsum("nci,nc->nci", X, y), b),
                     _per_block(y**2, b))
         if self.kind == "fixed":
-            return _per_block((y - predict(self.rival, fd, self.vehicle)[fd.mask]) ** 2, b)[None]
+            return _per_block((y - predict(self.rival, fd, self.vehicle)[fd.mask][keep]) ** 2, b)[None]
         name = self.rival.effect.parameters[0].name
         out = []
         for v in self.values if self.values is not None else ():
             pred = fitting.prediction(self.rival.effect, {**self.rival.params, name: float(v)}, fd, self.vehicle)
-            out.append(_per_block((y - pred[fd.mask]) ** 2, b))
+            out.append(_per_block((y - pred[fd.mask][keep]) ** 2, b))
         return np.stack(out)
 
     def _fit(self, parts: list, w: np.ndarray):
@@ -170,15 +184,17 @@ class Separation:
 
 class SeparationObjective:
     """The separation of ``a`` and ``b`` given the old flights, their residual energy per axis
-    (``old_energy``, (6,) sums of squares of the model's residual) and the noise ``sigma`` (6,)."""
+    (``old_energy``, (6,) sums of squares of the model's residual, on the samples the diagnosis
+    compared) and the noise ``sigma`` (6,); ``skip``: the first blocks of each flight the
+    diagnosis leaves out of its comparison (see the module)."""
 
     def __init__(self, a: Explanation, b: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
-                 sigma: np.ndarray, old_energy: np.ndarray):
-        self.a, self.b, self.vehicle = a, b, vehicle
+                 sigma: np.ndarray, old_energy: np.ndarray, skip: int = 0):
+        self.a, self.b, self.vehicle, self.skip = a, b, vehicle, skip
         self.sigma = np.maximum(np.asarray(sigma, float), 1e-12)
         self.w = 1.0 / self.sigma**2
         self.old_energy = np.asarray(old_energy, float)
-        self.directions = [Direction(a, b, old, vehicle, self.w), Direction(b, a, old, vehicle, self.w)]
+        self.directions = [Direction(a, b, old, vehicle, self.w, skip), Direction(b, a, old, vehicle, self.w, skip)]
 
     def evaluate(self, new: fitting.FlightData | None = None) -> Separation:
         by_truth = {}
@@ -186,8 +202,9 @@ class SeparationObjective:
             per_block = d.held_out(self.w, d.sums(new) if new is not None else None)
             energy = self.old_energy.copy()
             if new is not None:
-                y = predict(d.truth, new, self.vehicle)[new.mask]
-                energy += (y**2).sum(axis=0) + new.n * self.sigma**2
+                keep, _ = compared(new, self.skip)
+                y = predict(d.truth, new, self.vehicle)[new.mask][keep]
+                energy += (y**2).sum(axis=0) + len(y) * self.sigma**2
             sigma = t_statistic(0.5 * per_block @ self.w)
             mis = per_block.sum(axis=0)
             gap = 0.5 * sum(float(mis[sl].sum() / energy[sl].sum()) for sl in CHANNELS.values() if energy[sl].sum() > 0)

@@ -155,7 +155,8 @@ def _choose_rival(q: Question, diag: Diagnosis, old, vehicle, limits: Limits, du
     for rival in q.alternatives:
         b = questionlib.explanation(diag, rival)
         sigma = noise_sigma(diag, [top.name, rival])
-        sep = objective.SeparationObjective(top, b, old, vehicle, sigma, old_energy(diag)).evaluate(probe)
+        sep = objective.SeparationObjective(top, b, old, vehicle, sigma, old_energy(diag),
+                                            separation.compared_blocks(diag)).evaluate(probe)
         if sep.sigma >= MIN_PROBE_SIGMA:
             return q.with_rival(rival, f"{q.why.rsplit(' ', 1)[0]} {rival}" if rival != q.candidates[1] else q.why)
         log(f"plan: no flight separates {top.name} from {rival} (a flight of the family gives {sep.sigma:.2f} σ): "
@@ -175,7 +176,8 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
             return FlightPlan(q, limits, request.duration_s)
     a, b = (questionlib.explanation(diag, n) for n in q.candidates)
     sigma = noise_sigma(diag, list(q.candidates))
-    obj = objective.SeparationObjective(a, b, old, vehicle, sigma, old_energy(diag))
+    skip = separation.compared_blocks(diag)
+    obj = objective.SeparationObjective(a, b, old, vehicle, sigma, old_energy(diag), skip)
     loop = signatures.activity(old)
     best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,
                          request.duration_s, log)
@@ -184,7 +186,7 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": after.to_dict(),
                               "expected_to_decide": bool(after.value >= 1.0),
                               "noise_per_axis": [float(v) for v in sigma]}
-    measured = proof.before(tables, spec, diag.model, (a.name, b.name))
+    measured = proof.before(tables, spec, diag.model, (a.name, b.name), skip)
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,

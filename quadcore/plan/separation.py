@@ -7,6 +7,10 @@ training flights' residual of the model and predict the test flights; then
 fits the residual better, in the channels above the sensor-noise floor. Its ``t`` is the
 separation in standard errors (positive: the first fits better).
 
+As the diagnosis, it compares the two on the same samples: each flight's first ``skip`` blocks
+(:func:`compared_blocks`: those within the longest memory of the diagnosis's effects) are left
+out.
+
 One simplification against the diagnosis: the model's own effects are not refitted in each
 fold; its residual is taken against the model fitted on all flights (``model``, from the
 diagnosis), so the model's parameters have seen the test flights (a few parameters over
@@ -23,6 +27,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.results import Diagnosis
 from quadcore.spec.model import ModelSpec
 
 N_FOLDS = 5
@@ -49,9 +54,17 @@ def flights_of(tables: Mapping, spec: ModelSpec) -> dict[str, fitting.FlightData
     return {f: fitting.flight_data(f, tables[f], spec.vehicle_for(f)) for f in sorted(tables)}
 
 
+def compared_blocks(diag: Diagnosis) -> int:
+    """The first blocks of each flight the diagnosis left out of its comparison of candidates
+    (:func:`quadcore.identify.evidence.memory_blocks` of its model's effects and candidates)."""
+    names = [*diag.effects_in_model, *(c.effect for c in diag.candidates)]
+    return evidence.memory_blocks([effectlib.get(n) for n in names])
+
+
 def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, b: str,
-            n_folds: int = N_FOLDS) -> Comparison:
-    """The held-out comparison of candidates ``a`` and ``b`` on ``fds`` (see the module)."""
+            n_folds: int = N_FOLDS, skip: int = 0) -> Comparison:
+    """The held-out comparison of candidates ``a`` and ``b`` on ``fds``, each flight without its
+    first ``skip`` blocks (see the module)."""
     ids = sorted(fds)
     vehicle = model.vehicle
     resid = {}
@@ -68,11 +81,11 @@ def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, 
             fit = fitting.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)
             for f in held:
                 out[f] = fit.predict([e], fds[f], vehicle)
-    flights = [fds[f] for f in ids]
-    before = sum((resid[f][fds[f].mask] ** 2).sum(axis=0) for f in ids)
-    floor = sum((fds[f].noise ** 2 * fds[f].n for f in ids), np.zeros(6))
+    flights = [evidence.after_blocks(fds[f], skip) for f in ids]
+    before = sum((resid[fd.flight][fd.mask] ** 2).sum(axis=0) for fd in flights)
+    floor = sum((fd.noise ** 2 * fd.n for fd in flights), np.zeros(6))
     quiet = evidence.at_noise_level(before, floor)
-    w = fitting.channel_weights([resid[f][fds[f].mask] for f in ids])
+    w = fitting.channel_weights([resid[fd.flight][fd.mask] for fd in flights])
     w = w * evidence.channel_mask([ch for ch, q in quiet.items() if not q])
     test = evidence.compare(flights, resid, pred_a, pred_b, w)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
