@@ -21,6 +21,7 @@ class JobRun:
     returncode: int
     output: str
     stage_s: dict[str, float] = field(default_factory=dict)  # stage number ("1".."4") -> seconds of its runs
+    cpu_s: float = 0.0  # user + system seconds of the job and every process it waited for (its second process, steps)
 
 
 def run_main_job(data_root: Path, raw: Path | None, cwd: Path | None = None, env: dict | None = None) -> JobRun:
@@ -36,7 +37,8 @@ def run_main_job(data_root: Path, raw: Path | None, cwd: Path | None = None, env
     out = proc.stdout.read() if proc.stdout else ""
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
-    return JobRun(wall, usage.ru_maxrss / 1024, os.waitstatus_to_exitcode(status), out, stage_seconds(out))
+    return JobRun(wall, usage.ru_maxrss / 1024, os.waitstatus_to_exitcode(status), out, stage_seconds(out),
+                  usage.ru_utime + usage.ru_stime)
 
 
 def stage_seconds(output: str) -> dict[str, float]:

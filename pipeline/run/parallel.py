@@ -7,7 +7,9 @@ storage takes two concurrent runs: each run's events go to a file of its own; th
 (busy timeout 5 s for the runs, ``SQLITE_BUSY_TIMEOUT_SECONDS`` = 30 s for the index) instead of
 failing; the instance's ``max_concurrent_runs: 2`` allows as many. A range too short to repay
 the second process's start-up (:data:`SPLIT_AT_FLIGHTS`) and ``QUADCORE_EXECUTOR=in_process``
-stay in one process.
+stay in one process. ``QUADCORE_EXECUTOR=multiprocess`` runs each range as one run through
+Dagster's multiprocess executor instead (each step a process of its own, two at once: the
+alternative issue 26 measured against this split, ``benchmarks/bench_executors.py``).
 """
 
 from __future__ import annotations
@@ -27,9 +29,10 @@ from dagster._core.instance.ref import InstanceRef
 from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
 from dagster._serdes import deserialize_value, serialize_value
 
-from pipeline.assets import PER_FLIGHT
+from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT
 from pipeline.cluster import launch
 from pipeline.partitions import failed_flights
+from pipeline.resources import DataRoot, ModelConfig
 from pipeline.run.instance import unsynced_event_log, unsynced_homes
 
 # Keep the console to our progress lines (one per skipped flight, with its reason); Dagster's own
@@ -44,6 +47,8 @@ QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
 SPLIT_AT_FLIGHTS = 40
 # Decoding costs 0.05-0.25 s a flight: the split pays only on many more flights.
 DECODE_SPLIT_AT = 100
+# Dagster's multiprocess executor (QUADCORE_EXECUTOR=multiprocess): steps at once, one per core.
+MAX_CONCURRENT_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,8 @@ def materialize(assets, resources, instance, partition_key=None, tags=None):
     if launch.cluster_url():
         tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
         return launch.wait(instance, [launch.submit(assets, tags)])[0]
+    if executor_kind() == "multiprocess":
+        return _multiprocess(assets, resources, instance, partition_key, tags)
     return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
                           run_config=QUIET, raise_on_error=False, tags=tags)
 
@@ -97,9 +104,38 @@ def outcome(result, seconds: float) -> RangeOutcome:
     return RangeOutcome(False, failed_flights(result), failure_reason(result), seconds)
 
 
+def executor_kind() -> str:
+    """``QUADCORE_EXECUTOR`` as the main job reads it (validated by ``pipeline.resources.executor_from_env``)."""
+    return os.environ.get("QUADCORE_EXECUTOR", "").strip().lower()
+
+
 def one_process() -> bool:
-    """``QUADCORE_EXECUTOR=in_process``: every run of the main job in this process."""
-    return os.environ.get("QUADCORE_EXECUTOR", "").strip().lower() == "in_process"
+    """``QUADCORE_EXECUTOR=in_process``: every run of the main job in this process;
+    ``multiprocess``: no split of ours either (Dagster's executor spreads the steps)."""
+    return executor_kind() in ("in_process", "multiprocess")
+
+
+def _multiprocess(assets, resources: dict, instance, partition_key=None, tags=None) -> launch.SubmittedRun:
+    """One run of ``assets`` through Dagster's multiprocess executor: each step in a process of
+    its own (:data:`MAX_CONCURRENT_STEPS` at once) that rebuilds the job from
+    :func:`asset_job` with these resources' configs; read back from the instance."""
+    names = [a.key.to_user_string() for a in assets]
+    configs = {name: r.model_dump() for name, r in resources.items()}
+    job = dg.build_reconstructable_job("pipeline.run.parallel", "asset_job",
+                                       reconstructable_kwargs={"names": names, "configs": configs})
+    run_config = {**QUIET, "execution": {"config": {"multiprocess": {"max_concurrent": MAX_CONCURRENT_STEPS}}}}
+    tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
+    with dg.execute_job(job, instance, run_config=run_config, tags=tags, raise_on_error=False) as result:
+        return launch.SubmittedRun(result.run_id, instance)
+
+
+def asset_job(names: list[str], configs: dict[str, dict]) -> dg.JobDefinition:
+    """The job of the assets ``names`` with the main job's resources (``data_root``, ``model``
+    from their configs): what each step process of :func:`_multiprocess` rebuilds."""
+    every = [*PER_FLIGHT, *FLEET, *LEARNING, *EXPORT]
+    job = dg.define_asset_job("quadcore_main", selection=[a.key for a in every if a.key.to_user_string() in names])
+    resources = {"data_root": DataRoot(**configs["data_root"]), "model": ModelConfig(**configs["model"])}
+    return dg.Definitions(assets=every, resources=resources, jobs=[job]).resolve_job_def("quadcore_main")
 
 
 def halves(keys: list[str], sizes: Sequence[float] | None = None, split_at: int | None = None) -> list[list[str]]:

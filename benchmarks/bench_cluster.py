@@ -1,0 +1,137 @@
+"""The simulated fleet through the local cluster with 1, 2 and 4 Celery workers (issue 26): wall
+time and CPU seconds summed over every process of the cluster.
+
+    nice -n 10 python benchmarks/bench_cluster.py [--flights 100] [--workers 1 2 4]
+
+For each number of workers, a cluster of its own (``python -m pipeline.cluster up --workers N``
+in a fresh folder: PostgreSQL, Redis, moto's S3 server, the Celery workers, the daemon, the
+webserver), the main job through it (``python -m pipeline.cluster run``: runs through the
+daemon's queue, steps on the workers, outputs in the S3 store), then ``down --purge``. The fleet is
+bench_scale.py's pool of 20 simulated 10 s flights hard-linked under N ids, the learning stage
+capped at ``QUADCORE_LEARN_ROWS=20000`` rows as in bench_executors.py.
+
+CPU seconds: this script makes itself the subreaper of everything it starts (``prctl
+PR_SET_CHILD_SUBREAPER``), so every service, daemonised or not, stays its descendant. The CPU
+of the descendants at a moment is what the ones that ended have left in this process's
+``RUSAGE_CHILDREN`` plus, for each one alive, its own and its ended children's user + system
+time (``/proc/PID/stat``); the job's CPU is the difference across the job. Also printed: the
+steps each worker executed, and the load average before and after. A report, not a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _jobs import REPO, stage_seconds
+from bench_executors import SIM_LEARN_ROWS, load, simulated_fleet
+
+PR_SET_CHILD_SUBREAPER = 36
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def descendants() -> list[int]:
+    """The live processes below this one (from every process's parent in /proc)."""
+    parent: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parent[int(stat.parent.name)] = int(fields[1])
+    found, frontier = [], [os.getpid()]
+    while frontier:
+        kids = [pid for pid, ppid in parent.items() if ppid in frontier]
+        found += kids
+        frontier = kids
+    return found
+
+
+def cpu_now() -> float:
+    """User + system seconds of every process this one started, ended or alive."""
+    ended = resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = ended.ru_utime + ended.ru_stime
+    for pid in descendants():
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += sum(int(f) for f in fields[11:15]) / TICK  # utime stime cutime cstime
+    return total
+
+
+def reap() -> None:
+    """Wait for the ended orphans the subreaper inherited (their CPU then counts in RUSAGE_CHILDREN)."""
+    while True:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            return
+
+
+def cli(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pipeline.cluster", *args], env=env, cwd=REPO, text=True,
+                          capture_output=True)
+
+
+def measure(workers: int, raw: Path, base: Path) -> None:
+    home = base / f"cluster{workers}"
+    shutil.rmtree(home, ignore_errors=True)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
+    env.update(QUADCORE_CLUSTER_DIR=str(home), QUADCORE_AUTOMATION="off", QUADCORE_LEARN_ROWS=SIM_LEARN_ROWS)
+    t0, c0 = time.perf_counter(), cpu_now()
+    up = cli(env, "up", "--workers", str(workers), "--raw", str(raw))
+    up_s, up_cpu = time.perf_counter() - t0, cpu_now() - c0
+    if up.returncode != 0:
+        print(f"  {workers} worker(s): up failed: {up.stderr.strip()[-500:]}")
+        cli(env, "down", "--purge")
+        return
+    before = load()
+    t1, c1 = time.perf_counter(), cpu_now()
+    run = cli(env, "run")
+    run_s, run_cpu = time.perf_counter() - t1, cpu_now() - c1
+    after = load()
+    tasks = {log.stem: log.read_text(errors="replace").count("succeeded in")
+             for log in sorted((home / "logs").glob("worker*.log"))}
+    cli(env, "down", "--purge")
+    reap()
+    stages = " ".join(f"{k}:{v:.1f}" for k, v in sorted(stage_seconds(run.stdout).items()))
+    print(f"  {workers} worker(s): up {up_s:5.1f} s ({up_cpu:5.1f} s CPU); job wall {run_s:7.1f} s, "
+          f"CPU {run_cpu:7.1f} s (all processes); stages [{stages}]; steps per worker {tasks}; exit {run.returncode}; "
+          f"load {before} -> {after}", flush=True)
+    if run.returncode != 0:
+        print("    " + "\n    ".join((run.stdout + run.stderr).splitlines()[-8:]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--flights", type=int, default=100)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
+    args = parser.parse_args()
+    if ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
+        print("prctl(PR_SET_CHILD_SUBREAPER) failed: the CPU of daemonised services would be lost")
+        return
+    # a folder the postgres user can enter (PostgreSQL runs as that user when this runs as root)
+    base = Path(tempfile.mkdtemp(prefix="quadcore-bench-cluster-", dir="/tmp"))
+    base.chmod(0o755)
+    raw = simulated_fleet(args.flights, base / "raw")
+    print(f"{args.flights} simulated flights, workers {args.workers}, load average {load()}", flush=True)
+    try:
+        for n in args.workers:
+            measure(n, raw, base)
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
