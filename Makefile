@@ -33,12 +33,15 @@ run: $(STAMP)
 demo: $(STAMP)
 	$(VENV_PYTHON) -m pipeline --demo
 
+# Both tiers on two pytest-xdist workers (the CI machine's two cores), the tests of a module
+# together and the costliest groups first (tests/scheduling.py); XDIST= runs them in one process.
+XDIST ?= -n 2 --dist loadgroup --no-loadscope-reorder
 test: $(STAMP)
-	$(VENV_PYTHON) -m pytest -q $(PYTEST_ARGS)
+	$(VENV_PYTHON) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 # The edit-loop tier: everything not marked slow (see pyproject's pytest markers).
 test-fast: $(STAMP)
-	$(VENV_PYTHON) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(VENV_PYTHON) -m pytest -q -m "not slow" $(XDIST) $(PYTEST_ARGS)
 
 # lint-imports: the layer contracts of pyproject.toml's [tool.importlinter] (docs/architecture.md).
 lint: $(STAMP)

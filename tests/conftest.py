@@ -6,17 +6,48 @@ are skipped, with the reason, on a machine without the shared data set.
 
 from __future__ import annotations
 
-import struct
-import tempfile
-from dataclasses import dataclass
-from pathlib import Path
+import os
 
-import numpy as np
-import pytest
+# One BLAS (OpenBLAS, MKL) and OpenMP thread in every test process and every process a test starts
+# (set before numpy loads its BLAS): the suite's numbers do not depend on the machine's cores or
+# on how many pytest-xdist workers share them (make test runs two), and two workers on two cores
+# do not wait for each other's BLAS threads.
+os.environ.update(dict.fromkeys(("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"), "1"))
 
-from quadcore.logs import logformat
+import struct  # noqa: E402
+import tempfile  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from quadcore.logs import logformat  # noqa: E402
 
 REAL_LOGS = Path(__file__).resolve().parents[1].parent / "shared" / "crazyflie" / "logs"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_blas_thread():
+    """One BLAS thread in this process also where a plugin loaded numpy before this file set the
+    variables above (threadpoolctl limits the loaded libraries)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        yield
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist's ``--dist loadgroup`` (make test): each test marked with its worker
+    group, the costliest groups first (tests/scheduling.py). Before xdist reads the marks."""
+    if hasattr(config, "workerinput") and config.getoption("dist") == "loadgroup":
+        import scheduling
+
+        names = [scheduling.group(item) for item in items]
+        for item, name in zip(items, names):
+            item.add_marker(pytest.mark.xdist_group(name))
+        items[:] = scheduling.order(items, names)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -42,6 +42,7 @@ flight's seed.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import inspect
 import io
@@ -449,7 +450,24 @@ def prepare(fleets: list[Fleet], workers: int | None = None) -> None:
     """Simulate and write every flight of ``fleets`` not in the cache yet, shared among
     ``workers`` processes (default: up to two, the CI machine's cores). Each flight's files are
     written whole (a temporary name, then renamed); a fleet is complete once its ``done`` marker
-    is written, so an interrupted run resumes with the flights it lacks."""
+    is written, so an interrupted run resumes with the flights it lacks. Under the cache's lock: a
+    second process (another pytest-xdist worker) waits and then finds the flights written."""
+    with _cache_lock():
+        _prepare(fleets, workers)
+
+
+@contextlib.contextmanager
+def _cache_lock():
+    """The cache's lock file, held while flights are written (released by the system if killed)."""
+    import fcntl
+
+    cache_root().mkdir(parents=True, exist_ok=True)
+    with open(cache_root() / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+def _prepare(fleets: list[Fleet], workers: int | None) -> None:
     todo = [(fleet, flight) for fleet in fleets if not (_root(fleet) / "done").is_file()
             for flight in fleet.flights if not _flight_done(fleet, flight)]
     workers = workers or min(2, os.cpu_count() or 1, len(todo))
