@@ -21,6 +21,7 @@ steps each worker executed, and the load average before and after. A report, not
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import os
 import resource
@@ -68,15 +69,28 @@ def cpu_now() -> float:
     return total
 
 
-def reap() -> None:
-    """Wait for the ended orphans the subreaper inherited (their CPU then counts in RUSAGE_CHILDREN)."""
-    while True:
+def reap(keep: int | None = None) -> None:
+    """Wait for the ended orphans the subreaper inherited (their CPU then counts in
+    RUSAGE_CHILDREN), each by its pid, all but ``keep`` (a child that subprocess waits for)."""
+    for pid in descendants():
         try:
-            pid, _ = os.waitpid(-1, os.WNOHANG)
-        except ChildProcessError:
-            return
-        if pid == 0:
-            return
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if pid != keep and state[0] == "Z" and int(state[1]) == os.getpid():
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, os.WNOHANG)
+
+
+def down(env: dict[str, str]) -> None:
+    """``down --purge``, reaping the services as they end: ``down`` waits for each to be gone,
+    and an unreaped child of this subreaper would look alive to it."""
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cluster", "down", "--purge"], env=env, cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while proc.poll() is None:
+        reap(keep=proc.pid)
+        time.sleep(0.2)
+    reap()
 
 
 def cli(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
@@ -94,7 +108,7 @@ def measure(workers: int, raw: Path, base: Path) -> None:
     up_s, up_cpu = time.perf_counter() - t0, cpu_now() - c0
     if up.returncode != 0:
         print(f"  {workers} worker(s): up failed: {up.stderr.strip()[-500:]}")
-        cli(env, "down", "--purge")
+        down(env)
         return
     before = load()
     t1, c1 = time.perf_counter(), cpu_now()
@@ -103,8 +117,7 @@ def measure(workers: int, raw: Path, base: Path) -> None:
     after = load()
     tasks = {log.stem: log.read_text(errors="replace").count("succeeded in")
              for log in sorted((home / "logs").glob("worker*.log"))}
-    cli(env, "down", "--purge")
-    reap()
+    down(env)
     stages = " ".join(f"{k}:{v:.1f}" for k, v in sorted(stage_seconds(run.stdout).items()))
     print(f"  {workers} worker(s): up {up_s:5.1f} s ({up_cpu:5.1f} s CPU); job wall {run_s:7.1f} s, "
           f"CPU {run_cpu:7.1f} s (all processes); stages [{stages}]; steps per worker {tasks}; exit {run.returncode}; "
