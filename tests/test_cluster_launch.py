@@ -69,7 +69,7 @@ def test_runs_that_outlive_the_wait_are_terminated_and_the_job_stops(monkeypatch
 
 @pytest.mark.parametrize("text", ["abc", "0", "-5", "inf", "nan"])
 def test_a_bad_wait_limit_is_a_one_line_user_error(monkeypatch, capsys, text):
-    from pipeline import main
+    from pipeline.run import main
 
     monkeypatch.setenv("QUADCORE_CLUSTER_URL", "http://127.0.0.1:9")
     monkeypatch.setenv("QUADCORE_CLUSTER_TIMEOUT_S", text)
