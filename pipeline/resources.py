@@ -14,12 +14,14 @@ logs (:func:`choose_demo`). It never simulates into a raw folder of yours.
 
 
 import os
+import shlex
 from pathlib import Path
 
 import dagster as dg
 
 from pipeline.cluster import services
 from quadcore import workflows
+from quadcore.commands import shown_path
 from quadcore.learn import learners
 from quadcore.logs.flight import discover_logs, find_log
 from quadcore.store import store
@@ -212,3 +214,47 @@ def executor_from_env():
     if kind not in local:
         raise SettingError(f"QUADCORE_EXECUTOR={kind!r}: use in_process, multiprocess, k8s or celery")
     return local[kind]
+
+
+# The settings that choose what `make run` and `make ui` work on (data, model, fit, learning, where
+# the steps run), in the order a hint prints them; DAGSTER_HOME and PORT follow.
+COMMAND_SETTINGS = ("QUADCORE_RAW_DIR", "QUADCORE_DATA_ROOT", "QUADCORE_MODEL", "QUADCORE_VEHICLE",
+                    "QUADCORE_THRUST_MAP", "QUADCORE_EFFECTS", "QUADCORE_HOLDOUT", "QUADCORE_SESSIONS",
+                    "QUADCORE_ALLOW_SIMULATED", "QUADCORE_LEARN_ROWS", "QUADCORE_RETRAIN_CRON", "QUADCORE_EXECUTOR",
+                    "QUADCORE_CELERY_BROKER", "QUADCORE_CELERY_BACKEND", "QUADCORE_CLUSTER_URL")
+PATH_SETTINGS = ("QUADCORE_RAW_DIR", "QUADCORE_MODEL", "QUADCORE_VEHICLE", "QUADCORE_SESSIONS")
+
+
+def _bare_root(raw_given: bool) -> Path:
+    """The data root a `make` target chooses with no ``QUADCORE_DATA_ROOT``: the demo's while
+    ``data/raw`` holds no logs and no raw folder is named (:func:`choose_demo`), else ``data``."""
+    default = Path(DEFAULT_ROOT).resolve()
+    raw = default / "raw"
+    demo = not raw_given and not (raw.is_dir() and discover_logs(raw))
+    return default / DEMO_FOLDER if demo else default
+
+
+def make_command(target: str, port: int | None = None) -> str:
+    """``make TARGET`` as a hint prints it: preceded by every setting of this process that a bare
+    ``make TARGET`` would not use (the raw folder, data root, model file, ..., as the tutorial
+    writes them), so that it works on the same flights with the same model; ``port``: the UI's
+    (``PORT=``, left out at 3000)."""
+    root = data_root_from_env().root_path
+    local = not is_remote(root)
+    given = {k: os.environ[k] for k in COMMAND_SETTINGS if os.environ.get(k)}
+    if local and "QUADCORE_RAW_DIR" in given and Path(given["QUADCORE_RAW_DIR"]).resolve() == root / "raw":
+        del given["QUADCORE_RAW_DIR"]  # the data root's own raw folder: the default
+    given.pop("QUADCORE_DATA_ROOT", None)
+    if not local:
+        given["QUADCORE_DATA_ROOT"] = str(root)
+    elif root not in (_bare_root("QUADCORE_RAW_DIR" in given), Path(DEFAULT_ROOT).resolve()):
+        given["QUADCORE_DATA_ROOT"] = str(root)  # (the default root: a bare `make` picks it or the demo's, as here)
+    home = os.environ.get("DAGSTER_HOME", "")
+    if home and (not local or Path(home).resolve() != root / ".dagster"):
+        given["DAGSTER_HOME"] = home
+    if port is not None and port != 3000:
+        given["PORT"] = str(port)
+    order = [*COMMAND_SETTINGS, "DAGSTER_HOME", "PORT"]
+    shown = {k: shown_path(v) if k in (*PATH_SETTINGS, "DAGSTER_HOME") or (k == "QUADCORE_DATA_ROOT" and local)
+             else v for k, v in given.items()}
+    return " ".join([*(f"{k}={shlex.quote(shown[k])}" for k in order if k in shown), "make", target])

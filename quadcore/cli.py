@@ -30,6 +30,8 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.commands import quadcore_command
+
 # Only the standard library at module level: `quadcore --help` must start in well under a
 # second, so each command imports the numerical modules it needs.
 if TYPE_CHECKING:
@@ -317,7 +319,7 @@ def _discover_command(args: argparse.Namespace) -> str:
     """The ``quadcore discover`` command on the same flights and model as this ``diagnose``."""
     import shlex
 
-    parts = ["quadcore", "discover", args.data, "--json", "discovery.json"]
+    parts = [quadcore_command(), "discover", args.data, "--json", "discovery.json"]
     for flag, value in (("--model", args.model), ("--effects", args.effects), ("--vehicle", args.vehicle),
                         ("--thrust-map", args.thrust_map), ("--holdout", args.holdout), ("--sessions", args.sessions)):
         if value:
@@ -358,9 +360,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.report:
         md, page = identify.write_diagnosis_report(result, Path(args.report), model_file=spec.source)
         with_discovery = identify.discovery_for(args.report, spec.effects) is not None
+        first = f"{quadcore_command()} discover ... --json {Path(args.report) / 'discovery.json'}"
         print(f"wrote {md} and {page}" + ("" if with_discovery else
-              f" (no discovery section: run `quadcore discover ... --json {Path(args.report) / 'discovery.json'}` "
-              "with the same model first to include one)"))
+              f" (no discovery section: run `{first}` with the same model first to include one)"))
     return 0
 
 
@@ -535,7 +537,7 @@ def cmd_vehicle(args: argparse.Namespace) -> int:
         out = Path(args.out or f"{args.name}.toml")
         v = vehicle.write_template(args.name, out)
         print(f"wrote {out}: vehicle {v.name!r} with the Crazyflie 2.1's numbers; replace each with yours (every "
-              f"line says its meaning and unit), then check it with `quadcore vehicle check {out}`")
+              f"line says its meaning and unit), then check it with `{quadcore_command()} vehicle check {out}`")
         return 0
     v = vehicle.load(Path(args.name))
     print(f"{args.name}: vehicle {v.name!r}, {v.mass_kg * 1e3:.4g} g, {v.n_rotors} rotors, thrust map "

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from quadcore import cli, effects
+from quadcore.commands import quadcore_command
 from quadcore.identify import discovery, evidence
 from quadcore.identify.discovery import results, select, terms as termlib
 from quadcore.physics import dynamics, vehicle
@@ -316,7 +317,8 @@ def test_diagnose_says_the_remainder_is_outside_the_library_and_points_to_discov
     outside = d["outside_library"]
     assert outside is not None and outside["channels"]
     assert all(p["explained_above_noise"] < evidence.LIBRARY_SHARE for p in outside["channels"])
-    command = f"quadcore discover {hidden_flights} --json discovery.json --holdout {HOLDOUT}"
+    # the quadcore command as this shell would find it (`.venv/bin/quadcore` without the venv activated)
+    command = f"{quadcore_command()} discover {hidden_flights} --json discovery.json --holdout {HOLDOUT}"
     assert outside["command"] == command and f"`{command}`" in d["verdict"]
     assert any(c["status"] == "partial" for c in d["candidates"])
 

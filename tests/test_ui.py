@@ -4,6 +4,7 @@ GraphQL API, metadata read back; and the asset graph in headless Chromium."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -121,13 +122,27 @@ def test_a_taken_port_is_one_clear_line(tmp_path):
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        env = {**os.environ, "DAGSTER_HOME": str(tmp_path / "home"), "QUADCORE_DATA_ROOT": str(tmp_path / "root")}
+        env = {**{k: v for k, v in os.environ.items() if not k.startswith("QUADCORE_")},
+               "DAGSTER_HOME": str(tmp_path / "home"), "QUADCORE_DATA_ROOT": str(tmp_path / "root")}
         done = subprocess.run([sys.executable, "-m", "pipeline.run.ui", "--port", str(port)], cwd=REPO, env=env,
                               capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
-    assert done.stderr.strip() == (f"make ui: error: port {port} on 127.0.0.1 is already in use; "
-                                   f"choose another with PORT={port + 1} make ui")
+    # the command to type, with the settings in use (the data root and the instance of this one)
+    assert done.stderr.strip() == (f"make ui: error: port {port} on 127.0.0.1 is already in use; choose another: "
+                                   f"QUADCORE_DATA_ROOT={tmp_path / 'root'} DAGSTER_HOME={tmp_path / 'home'} "
+                                   f"PORT={port + 1} make ui")
     assert not (tmp_path / "home").exists()  # nothing started, nothing written
+
+
+def test_make_ui_says_when_the_ui_answers(webserver):
+    """The URL is printed at once, with the instance and plots folder; that the UI answers is said
+    when it does (seconds on an idle machine, a minute on a loaded one), with the URL to open."""
+    url, _, base = webserver
+    deadline = time.time() + 30  # the launcher polls every half second once the UI answers
+    while "make ui: ready after" not in (text := (base / "dagster_dev.log").read_text()) and time.time() < deadline:
+        time.sleep(0.5)
+    assert f"Starting Dagster's UI on {url} (instance " in text
+    assert re.search(rf"make ui: ready after \d+ s: open {re.escape(url)}\n", text), text[-2000:]
 
 
 def test_materialise_through_graphql_and_read_metadata(webserver):

@@ -11,7 +11,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.assets.statistics import flight_statistics
 from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
-from pipeline.resources import DataRoot, ModelConfig, SettingError
+from pipeline.resources import DataRoot, ModelConfig, SettingError, make_command
 from quadcore import workflows
 from quadcore.identify import history, sessions, sufficient, verdict
 from quadcore.learn import learners
@@ -105,13 +105,13 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
                                    stats=sufficient.stored(data_root.root_path, spec),
                                    discover_command=identify.discover_command(data_root.raw_path, spec,
                                                                               model.holdout_flights))
-    md, page = identify.record_diagnosis(data_root.root_path, result, spec)
+    md, page = identify.record_diagnosis(data_root.root_path, result, spec, make_command("run"))
     b, doc = result.baseline, result.to_dict()  # the plots draw the JSON document
     disagreements = [d.to_dict() for d in result.disagreements]
     per_session = diagnosis_report.session_values(doc)
     return dg.MaterializeResult(metadata={
         "headline": dg.MetadataValue.md(diagnosis_report.headline(doc)),
-        "next_step": dg.MetadataValue.md(diagnosis_report.next_step(doc, spec.source)),
+        "next_step": dg.MetadataValue.md(diagnosis_report.next_step(doc, spec.source, make_command("run"))),
         "evidence": dg.MetadataValue.md(render.markdown_table(diagnosis_report.evidence_table(doc, 5))),
         "verdict": dg.MetadataValue.md(result.verdict),
         "protocol": result.evaluation.protocol,

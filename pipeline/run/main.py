@@ -39,6 +39,7 @@ from pipeline.resources import (
     data_root_from_env,
     executor_from_env,
     learn_row_budget,
+    make_command,
     model_config_from_env,
     model_file_from_env,
     retrain_cron,
@@ -320,8 +321,8 @@ def _learning_stage(instance, resources: dict, refit: bool, log) -> bool:
         log(f"  (one run, {time.perf_counter() - t0:.1f} s)")
         return True
     log(f"4/4 learned models: trained on this physics model; new flights are learned by the schedule "
-        f"nightly_retrain_learned_models ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON; make ui runs it) or by "
-        "materialising learning_features")
+        f"nightly_retrain_learned_models ({retrain_cron()} UTC, QUADCORE_RETRAIN_CRON; `{make_command('ui')}` runs "
+        "it) or by materialising learning_features")
     if refit:  # the C model carries the refitted parameters
         result = materialize(EXPORT, resources, instance)
         log(f"  the model as C, with the refitted parameters: {'ok' if result.success else 'FAILED'}"
@@ -347,12 +348,13 @@ def _closing(root: Path, model: ModelConfig, suggested: str | None, demo: bool, 
     for line in [*summary.outputs(root), *summary.error_history(root)]:
         log(line)
     if suggested and not demo:
-        log(f"\nNext step: {identify.next_step(suggested, model.model_file)}")
+        log(f"\nNext step: {identify.next_step(suggested, model.model_file, make_command('run'))}")
     if failures:  # each was said once, with its reason, where it was skipped
         named = ", ".join(list(failures)[:5]) + (", ..." if len(failures) > 5 else "")
         log(f"\n{len(failures)} flight(s) skipped ({named}): the reasons are above; quarantined logs in "
             f"{root / 'quarantine'}, the runs in the UI")
-    log("\nSee it in the UI:  make ui   (Dagster UI on http://127.0.0.1:3000)")
+    port = int(os.environ.get("PORT", "3000"))
+    log(f"\nSee it in the UI:  {make_command('ui', port)}   (Dagster UI on http://127.0.0.1:{port})")
 
 
 def _run_stages(data_root: DataRoot, model: ModelConfig, instance, log, demo: bool) -> int:

@@ -23,6 +23,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,7 +40,9 @@ def port_problem(host: str, port: int) -> str | None:
             sock.bind((host, port))
         except OSError as exc:
             if exc.errno == errno.EADDRINUSE:
-                return f"port {port} on {host} is already in use; choose another with PORT={port + 1} make ui"
+                from pipeline.resources import make_command
+
+                return f"port {port} on {host} is already in use; choose another: {make_command('ui', port + 1)}"
             return f"cannot serve on {host}:{port}: {exc.strerror}"
     return None
 
@@ -64,9 +67,19 @@ def _restore_default_signals() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def serve(cmds: list[list[str]], env: dict[str, str]) -> int:
+def answers(url: str) -> bool:
+    """Whether the webserver at ``url`` answers (its ``/server_info``)."""
+    try:
+        with urllib.request.urlopen(f"{url}/server_info", timeout=1):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def serve(cmds: list[list[str]], env: dict[str, str], url: str = "") -> int:
     """Run ``cmds`` in one process group of their own until one exits or we are told to stop;
-    then interrupt them all (and kill what is left after :data:`STOP_TIMEOUT_S`)."""
+    then interrupt them all (and kill what is left after :data:`STOP_TIMEOUT_S`). With ``url``,
+    say once when the webserver there answers (it takes seconds, a minute on a loaded machine)."""
     # a process group of their own (in this session: a group of another session cannot be joined),
     # so that a terminal's Ctrl-C reaches this process only, which stops them in order
     first = subprocess.Popen(cmds[0], cwd=REPO, env=env, process_group=0, preexec_fn=_restore_default_signals)
@@ -79,10 +92,13 @@ def serve(cmds: list[list[str]], env: dict[str, str]) -> int:
 
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
-    code = None
+    code, started = None, time.time()
     while not stopping and code is None:
         time.sleep(0.5)
         code = next((p.returncode for p in procs if p.poll() is not None), None)
+        if url and code is None and answers(url):
+            print(f"make ui: ready after {time.time() - started:.0f} s: open {url}", flush=True)
+            url = ""
     if code is not None and not stopping:
         print(f"make ui: a service stopped (exit code {code}); stopping the others", file=sys.stderr)
     try:
@@ -134,9 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"make ui: error: {exc}", file=sys.stderr)
         return 2
-    print(f"Dagster UI on http://{args.host}:{args.port} (instance {home}; plots from {root}/plots); "
+    url = f"http://{args.host}:{args.port}"
+    print(f"Starting Dagster's UI on {url} (instance {home}; plots from {root}/plots); it says when it is ready; "
           "Ctrl-C stops it", flush=True)
-    return serve(cmds, {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(root)})
+    return serve(cmds, {**os.environ, "DAGSTER_HOME": str(home), "QUADCORE_DATA_ROOT": str(root)}, url)
 
 
 if __name__ == "__main__":

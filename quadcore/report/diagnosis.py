@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
+from quadcore.commands import quadcore_command  # noqa: E402
 from quadcore.identify import history, sessions, verdict  # noqa: E402
 from quadcore.identify.history import RMSE_COLUMNS  # noqa: E402
 from quadcore.identify.results import CandidateScore  # noqa: E402
@@ -274,18 +275,21 @@ def evidence_table(d: dict, limit: int = 6) -> pl.DataFrame:
         "effect", "status", "force removed", "torque removed", "held-out p", "parameters ± σ", "why it ranks here")})
 
 
-def next_step(d: dict, model_file: str = "") -> str:
-    """What to do next, naming the file to edit."""
+def next_step(d: dict, model_file: str = "", rerun: str = "") -> str:
+    """What to do next, naming the file to edit and, given ``rerun``, the exact command that runs
+    again on the same flights and settings (the main job's, with its variables)."""
     found = [r for r in d["candidates"] if r.get("found", r.get("useful", False))]
     where = model_file or "the model file (model.toml)"
     notes = _unique(n for dis in d.get("disagreements", []) for n in dis.get("notes", []))
     if found:
-        text = (f"Add '{found[0]['effect']}' to `effects` in {where}, then run again (`make run`, or let the UI "
-                "refit: it follows the model file).")
+        again = f"`{rerun}`, or let the UI refit: it follows the model file" if rerun else \
+            "the same command, or let the UI refit: it follows the model file"
+        text = f"Add '{found[0]['effect']}' to `effects` in {where}, then run again ({again})."
     else:
         text = ("Nothing in the library to add. Look at where the model fails (regimes, frequency, worst segments "
-                "below), or search for terms the library lacks with `quadcore discover ... --write-effect "
-                f"DIR/NAME.py` and list the module under `plugins` and its name under `effects` in {where}.")
+                f"below), or search for terms the library lacks with `{quadcore_command()} discover ... "
+                f"--write-effect DIR/NAME.py` and list the module under `plugins` and its name under `effects` in "
+                f"{where}.")
     if notes:
         text += f" Parameters also differ between groups of flights: see that section (sessions go in {where})."
     return text
@@ -325,7 +329,7 @@ def in_mNm(df: pl.DataFrame) -> pl.DataFrame:
 
 
 def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None,
-             model_file: str = "") -> list[tuple[str, str, object]]:
+             model_file: str = "", rerun: str = "") -> list[tuple[str, str, object]]:
     """(title, kind, content) with kind in text / table / captioned / image: the headline, the
     evidence, the next step (naming ``model_file``), the sensitivity, then the details."""
     b = d["baseline"]
@@ -338,7 +342,7 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
         ("Verdict", "text", headline(d)),
         ("How stable the answer is", "text", d["stability"]["sentence"]) if "stability" in d else None,
         ("Evidence: the candidate effects, best first", "table", evidence_table(d)) if d["candidates"] else None,
-        ("Next step", "text", next_step(d, model_file)),
+        ("Next step", "text", next_step(d, model_file, rerun)),
         ("Sensitivity: the smallest effect these flights would detect", "captioned", (
             f"Each parameter alone, detected {basis.get('detection_probability', 0.9):.0%} of the time at "
             f"{basis.get('false_alarm_probability', 0.01):.0%} false alarms for the whole library; below these "
@@ -393,13 +397,13 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
 
 
 def write(d: dict, out_dir: Path, hist: pl.DataFrame | None = None, disc: dict | None = None,
-          model_file: str = "") -> tuple[Path, Path]:
+          model_file: str = "", rerun: str = "") -> tuple[Path, Path]:
     """Write the report (with a discovery's section when ``disc`` is given), kept for good in
     ``out_dir/diagnosis/<UTC time>-<model>/`` (diagnosis.json, .md, .html and the plots as PNG
     beside the .md), and as the latest in ``out_dir/diagnosis.{md,html}`` (its .md links the kept
     PNGs). The .html is self-contained. Returns the latest (md, html)."""
     out_dir = store.as_root(out_dir)  # a folder here or in an object store
-    secs = sections(d, hist, disc, model_file)
+    secs = sections(d, hist, disc, model_file, rerun)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     kept = out_dir / "diagnosis" / f"{stamp}-{_slug(d['model']['label'])}"
     pngs = {title: f"{i:02d}-{_slug(title)}.png" for i, (title, kind, _) in enumerate(secs) if kind == "image"}

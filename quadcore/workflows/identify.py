@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.commands import quadcore_command
 from quadcore.identify import diagnosis, fitting, history, model, sufficient
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
@@ -103,7 +104,7 @@ def discover_command(data, spec: ModelSpec, holdout: list[str]) -> str:
     outside the library."""
     import shlex
 
-    parts = ["quadcore", "discover", str(data), "--json", "discovery.json"]
+    parts = [quadcore_command(), "discover", str(data), "--json", "discovery.json"]
     if spec.source:
         parts += ["--model", spec.source]
     elif spec.effects:
@@ -131,26 +132,27 @@ def discovery_for(reports_dir, effects: list[str]) -> dict | None:
     return disc if disc is not None and disc.get("effects_in_model") == list(effects) else None
 
 
-def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file: str = "") -> tuple[Path, Path]:
+def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file: str = "",
+                           rerun: str = "") -> tuple[Path, Path]:
     """The diagnosis report (Markdown and HTML, with the plots) in ``reports_dir``, with the
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
-    history; ``model_file``: the file its next step tells to edit. The one report path of
-    ``quadcore diagnose --report`` and ``model_diagnosis``."""
+    history; ``model_file``: the file its next step tells to edit, ``rerun``: the command it
+    tells to run again. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
     from quadcore.report import diagnosis as diagnosis_report
 
     hist = history.read(root) if root is not None else None
     return diagnosis_report.write(result.to_dict(), reports_dir, hist,
-                                  discovery_for(reports_dir, list(result.effects_in_model)), model_file)
+                                  discovery_for(reports_dir, list(result.effects_in_model)), model_file, rerun)
 
 
-def record_diagnosis(root, result: Diagnosis, spec: ModelSpec) -> tuple[Path, Path]:
+def record_diagnosis(root, result: Diagnosis, spec: ModelSpec, rerun: str = "") -> tuple[Path, Path]:
     """Write a data root's diagnosis: ``reports/diagnosis.json``, a row of the error history and
-    the report. Returns the report's (md, html)."""
+    the report (its next step naming ``rerun``, the command that runs again). Returns the report's (md, html)."""
     write_diagnosis_json(result, store.diagnosis_path(root))
     b, ev = result.baseline, result.evaluation
     history.record(root, "diagnosis", result.model.label, list(b.force_rmse_N), list(b.torque_rmse_Nm),
                    spec.effects, {t.name: t.params for t in result.model.terms}, ev.mode, list(ev.eval_flights))
-    return write_diagnosis_report(result, store.reports_dir(root), root, spec.source)
+    return write_diagnosis_report(result, store.reports_dir(root), root, spec.source, rerun)
 
 
 def suggestion(result: dict) -> str | None:
@@ -160,13 +162,15 @@ def suggestion(result: dict) -> str | None:
     return useful[0]["effect"] if useful else None
 
 
-def next_step(effect: str, model_file: str) -> str:
+def next_step(effect: str, model_file: str, rerun: str = "") -> str:
     """The hint that follows a diagnosis suggesting ``effect``, naming the model file to edit
-    (the one the run used: see ``pipeline.resources.model_file_from_env``)."""
+    (the one the run used: see ``pipeline.resources.model_file_from_env``) and ``rerun``, the
+    command that runs again with the same settings."""
+    again = f"run again: {rerun}" if rerun else "run again."
     if model_file:
-        return f"add {effect!r} to `effects` in {model_file} and run again."
+        return f"add {effect!r} to `effects` in {model_file} and {again}"
     return (f"write a model file with effects = [\"{effect}\"] (copy the repository's model.toml) and name it with "
-            "QUADCORE_MODEL=FILE (or --model FILE), then run again.")
+            f"QUADCORE_MODEL=FILE (or --model FILE), then {again}")
 
 
 # --- discovery -----------------------------------------------------------------------------
