@@ -122,18 +122,36 @@ class ModelFileChanged(dg.AutomationCondition):
         return dg.AutomationResult(context=context, true_subset=subset)
 
 
-# Recompute a flight's table when it is missing or its own inputs changed (eager, its decoded
+def inputs_updated(ignore: tuple[str, ...] = ()) -> dg.AutomationCondition:
+    """Dagster's ``eager()`` without its "newly missing" trigger: true for a flight partition once
+    an input was updated by a run that did not select this asset (``any_deps_updated``: an update
+    made by a run that selected it is that run's own), until it is requested or updated; never
+    while an input is missing or in progress, or the asset is.
+
+    A new flight's tables are computed by the run that decodes it (the raw-log sensor's
+    ``process_flight`` run, which selects every per-flight asset, or the main job). ``eager()``
+    would also arm on the flight being *newly missing* when the sensor adds its partition, and
+    request the flight again at any tick where that run's remaining steps are not seen as in
+    progress: the new flight computed twice."""
+    skip = dg.AssetSelection.assets(*ignore)
+    return (dg.AutomationCondition.any_deps_updated().ignore(skip).since_last_handled()
+            & ~dg.AutomationCondition.any_deps_missing().ignore(skip)
+            & ~dg.AutomationCondition.any_deps_in_progress().ignore(skip)
+            & ~dg.AutomationCondition.in_progress()).with_label("an input changed outside its own run")
+
+
+# Recompute a flight's table when its own inputs changed outside the run that made it (its decoded
 # table: a refit of physics_model alone is not a reason, as a new flight refits it without
 # changing the model), and whenever it was computed against an older model than the current one
 # (state, so a refit that moved a parameter, or a run that overlapped a refit, is caught); never
 # while a run for it is going on, and not again after a failure.
 REFRESH = (
-    dg.AutomationCondition.eager().ignore(dg.AssetSelection.assets("physics_model"))
+    inputs_updated(ignore=("physics_model",))
     | (ComputedAgainstOlderModel()
        & ~dg.AutomationCondition.in_progress()
        & ~dg.AutomationCondition.any_deps_in_progress()
        & ~dg.AutomationCondition.execution_failed())
-).with_label("recompute when missing, when its decoded table changes, or when computed against an older model")
+).with_label("recompute when its decoded table changes outside its own run, or when computed against an older model")
 
 
 class StatisticsOutdated(dg.AutomationCondition):
@@ -164,12 +182,14 @@ class StatisticsOutdated(dg.AutomationCondition):
         return dg.AutomationResult(context=context, true_subset=subset, metadata={"stale_flights": len(stale)})
 
 
-# A flight's statistics: computed when decoded (eager), again when the model file names another
-# vehicle, thrust map or effect library; never while a run for it is going on or after a failure.
+# A flight's statistics: computed with its decode (by that run), again when it is decoded outside
+# that run or the model file names another vehicle, thrust map or effect library; never while a run
+# for it is going on or after a failure.
 STATS_REFRESH = (
-    dg.AutomationCondition.eager()
+    inputs_updated()
     | (StatisticsOutdated()
        & ~dg.AutomationCondition.in_progress()
        & ~dg.AutomationCondition.any_deps_in_progress()
        & ~dg.AutomationCondition.execution_failed())
-).with_label("compute when decoded, or when the model file names another vehicle, thrust map or effect library")
+).with_label("again when decoded outside its own run, or when the model file names another vehicle, thrust map "
+              "or effect library")

@@ -14,6 +14,9 @@ from quadcore.logs import flight, logformat, required
 from quadcore.physics import decoded_store
 from quadcore.store import store
 
+# What the sensor's run for a flight computes: every per-flight asset.
+PER_FLIGHT_KEYS = [a.key for a in PER_FLIGHT]
+
 
 def raw_logs(data_root: DataRoot) -> dict[str, Path]:
     """Flight id -> path of every candidate log in the raw folder."""
@@ -66,7 +69,9 @@ def new_flight_requests(context: dg.SensorEvaluationContext, data_root: DataRoot
             add.append(fid)
         elif fid in decoded and decoded_store.decoded_from(data_root.root_path, MAIN_EVENT, fid, paths[fid]):
             continue  # processed already (by `make run`, or before a restart): same bytes, nothing to redo
-        runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid))
+        # every per-flight asset named: Dagster's automation then knows the decode was this run's own
+        # (executed_with_root_target), so it does not compute the flight's other tables again
+        runs.append(dg.RunRequest(run_key=f"{fid}:{fp}", partition_key=fid, asset_selection=PER_FLIGHT_KEYS))
     events = [quarantine_report(data_root)] if refused else []
     return dg.SensorResult(
         run_requests=runs,

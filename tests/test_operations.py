@@ -411,3 +411,57 @@ def test_the_demo_keeps_its_own_model_file(tmp_path, monkeypatch):
     monkeypatch.delenv("QUADCORE_MODEL", raising=False)
     monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
     assert model_config_from_env().spec().effects == ["rotor_drag"]
+
+
+@pytest.mark.slow  # the sensor, two flights' runs, a third flight's run and three automation ticks
+def test_the_automation_leaves_a_new_flight_to_the_run_the_sensor_launched(sim_logs, tmp_path, monkeypatch):
+    """The raw-log sensor's run for a new flight selects every per-flight asset (the daemon runs
+    it as the process_flight job), so neither the partition appearing nor that run's decode arms
+    the automation on the flight's other tables: where the run's later steps leave nothing the
+    automation sees as done or in progress (here they fail: the motors never leave idle, so
+    the physics refuses the flight), it requests none of them. With Dagster's eager() (the
+    partition newly missing, the decode counted as made by another run) it requested the
+    flight's statistics, residual table, rollouts and MCAP again: in a running UI, a new flight
+    computed twice when a tick fell before the sensor's run had its later steps in progress."""
+    from fuzz.badlogs import bad_logs
+
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001"):
+        shutil.copyfile(sim_logs / name, raw / name)
+    model_file = tmp_path / "model.toml"
+    model_file.write_text("effects = []\n")
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))  # what the automation's conditions read
+    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
+    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
+    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    resources = {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))}
+    # the sensor's job as the daemon runs it, with this test's resources
+    process_flight = dg.define_asset_job("process_flight", selection=dg.AssetSelection.assets(*PER_FLIGHT))
+    local = dg.Definitions(assets=[*PER_FLIGHT, *FLEET], resources=resources, jobs=[process_flight])
+    job = local.resolve_job_def("process_flight")
+
+    def launch(request):
+        return job.execute_in_process(instance=instance, partition_key=request.partition_key, run_config=QUIET,
+                                      asset_selection=request.asset_selection, raise_on_error=False)
+
+    with dg.instance_for_test() as instance:
+        first = sensor_tick(instance, data_root)
+        for request in first.run_requests:
+            assert launch(request).success
+        run(FLEET, resources, instance)
+        cursor = settle(instance, resources, None)
+        (raw / "idle").write_bytes(bad_logs((sim_logs / "sim000").read_bytes())["motors_idle"])
+        second = sensor_tick(instance, data_root, first.cursor)  # adds the partition
+        [request] = second.run_requests
+        assert set(request.asset_selection or []) == {a.key for a in PER_FLIGHT}
+        auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=cursor)  # before the run
+        result = launch(request)
+        done = {m.asset_key.to_user_string() for m in result.get_asset_materialization_events()
+                if m.asset_key is not None}
+        assert "decoded_flight" in done and "residual_table" not in done, done  # decoded; the physics refused it
+        for _ in range(2):
+            auto = dg.evaluate_automation_conditions(defs=defs, instance=instance, cursor=auto.cursor)
+            again = {a.key.to_user_string() for a in PER_FLIGHT if "idle" in auto.get_requested_partitions(a.key)}
+            assert not again, again

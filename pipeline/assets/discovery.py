@@ -17,8 +17,13 @@ from quadcore.report import diagnosis as diagnosis_report, render
 from quadcore.store import store
 from quadcore.workflows import identify
 
+# After each refit (which follows every new or changed flight), not on the decode itself: a new
+# flight would otherwise run discovery twice, once on its decode and once on the refit it causes.
+AFTER_REFIT = RETRAIN.ignore(dg.AssetSelection.assets("decoded_flight")).with_label(
+    "again when the model is refitted (which follows new flights)")
 
-@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=RETRAIN)
+
+@dg.asset(group_name="model", deps=[*ALL_FLIGHTS, physics_model], kinds={"json"}, automation_condition=AFTER_REFIT)
 def term_discovery(context: dg.AssetExecutionContext, data_root: DataRoot, model: ModelConfig) -> dg.MaterializeResult:
     """Sparse regression of the model's residual on a library of candidate terms, grouped by
     flight: the formulas the model lacks, each with its coefficient, uncertainty, held-out
