@@ -9,7 +9,7 @@ import shutil
 import dagster as dg
 import pytest
 
-from pipeline.assets import PER_FLIGHT
+from pipeline.assets import DECODE, PER_FLIGHT
 from pipeline.assets.decode import decoded_flight
 from pipeline.definitions import process_flight_job
 from pipeline.partitions import flights
@@ -187,3 +187,20 @@ def test_new_statistics_refit_the_fleet(sim_logs, tmp_path):
         assert main.run_all(data_root, ModelConfig(), instance, log=third.append) == 0
     assert any(line.startswith("2/4 fit the model") for line in third), third
     assert sufficient.stats_path(tmp_path / "root", "sim001").is_file()
+
+
+def test_the_main_job_through_dagsters_multiprocess_executor(sim_logs, tmp_path, monkeypatch):
+    """QUADCORE_EXECUTOR=multiprocess (what benchmarks/bench_executors.py measures against our
+    split): the main job's decoding, each step in a process of its own, one bad flight named and
+    skipped, the others decoded into their own partitions."""
+    raw = _raw(tmp_path, sim_logs, bad=True)
+    monkeypatch.setenv("QUADCORE_EXECUTOR", "multiprocess")
+    resources = {"data_root": DataRoot(root=str(tmp_path / "root"), raw=str(raw)), "model": ModelConfig()}
+    ids = ["sim000", "sim001", "sim001b", "sim002"]
+    with dg.instance_for_test() as instance:
+        failures = main.run_flights(instance, resources, ids, DECODE, "decode", log=lambda *_: None)
+        assert list(failures) == ["sim001b"]
+        assert set(_materializations(instance, "decoded_flight")) == {"sim000", "sim001", "sim002"}
+        starts = [e for r in instance.get_runs() for e in instance.all_logs(r.run_id)
+                  if e.dagster_event is not None and e.dagster_event.event_type_value == "STEP_START"]
+        assert starts and all(e.dagster_event.pid != os.getpid() for e in starts)

@@ -81,11 +81,11 @@ def materialize(assets, resources, instance, partition_key=None, tags=None):
     """One run of ``assets``: in this process, or on the cluster when ``QUADCORE_CLUSTER_URL`` is
     set (:mod:`pipeline.cluster.launch`: the code location's resources, which the same
     environment configures)."""
+    run_tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
     if launch.cluster_url():
-        tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
-        return launch.wait(instance, [launch.submit(assets, tags)])[0]
+        return launch.wait(instance, [launch.submit(assets, run_tags)])[0]
     if executor_kind() == "multiprocess":
-        return _multiprocess(assets, resources, instance, partition_key, tags)
+        return _multiprocess(assets, resources, instance, run_tags)
     return dg.materialize(assets, partition_key=partition_key, instance=instance, resources=resources,
                           run_config=QUIET, raise_on_error=False, tags=tags)
 
@@ -115,7 +115,7 @@ def one_process() -> bool:
     return executor_kind() in ("in_process", "multiprocess")
 
 
-def _multiprocess(assets, resources: dict, instance, partition_key=None, tags=None) -> launch.SubmittedRun:
+def _multiprocess(assets, resources: dict, instance, tags: dict[str, str]) -> launch.SubmittedRun:
     """One run of ``assets`` through Dagster's multiprocess executor: each step in a process of
     its own (:data:`MAX_CONCURRENT_STEPS` at once) that rebuilds the job from
     :func:`asset_job` with these resources' configs; read back from the instance."""
@@ -124,7 +124,6 @@ def _multiprocess(assets, resources: dict, instance, partition_key=None, tags=No
     job = dg.build_reconstructable_job("pipeline.run.parallel", "asset_job",
                                        reconstructable_kwargs={"names": names, "configs": configs})
     run_config = {**QUIET, "execution": {"config": {"multiprocess": {"max_concurrent": MAX_CONCURRENT_STEPS}}}}
-    tags = {**(tags or {}), **({"dagster/partition": partition_key} if partition_key else {})}
     with dg.execute_job(job, instance, run_config=run_config, tags=tags, raise_on_error=False) as result:
         return launch.SubmittedRun(result.run_id, instance)
 
