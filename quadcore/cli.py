@@ -30,10 +30,13 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+# Only the standard library at module level, and the quadcore modules that import nothing else (checked by
+# tests/test_import_graph.py): `quadcore --help` must start in well under a second, so each command
+# imports the numerical modules it needs.
 from quadcore.commands import quadcore_command
+from quadcore.learn import learners
+from quadcore.store import ownership, safewrite
 
-# Only the standard library at module level: `quadcore --help` must start in well under a
-# second, so each command imports the numerical modules it needs.
 if TYPE_CHECKING:
     import polars as pl
 
@@ -260,7 +263,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_export_c(args: argparse.Namespace) -> int:
     """The current model as C99 for a flight controller (see quadcore.export.c)."""
     from quadcore.export import c as export_c
-    from quadcore.learn import learners
 
     if args.model_file:  # the plugin effects the model uses come from here, never from the saved model
         from quadcore.spec import model as modelmod
@@ -475,7 +477,7 @@ def _plan_request(args: argparse.Namespace):
 def cmd_train(args: argparse.Namespace) -> int:
     """Learn the residual the physics model leaves (XGBoost, MLP), evaluate, write the report."""
     from quadcore import workflows
-    from quadcore.learn import features as feat, learners, splits
+    from quadcore.learn import features as feat, splits
     from quadcore.learn.tables import TABLE_TITLES, text_table
     from quadcore.workflows import fleet, learn
 
@@ -548,8 +550,6 @@ def cmd_vehicle(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from quadcore.learn.learners import DEFAULT_ROW_BUDGET  # a constant (the module imports nothing heavy)
-
     # one flat table of the verbs and their options, read top to bottom: long, not deep (issue #15)
     parser = argparse.ArgumentParser(prog="quadcore",
                                      description="Quadrotor flight logs -> SI Parquet -> dynamics models.")
@@ -688,9 +688,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="flight kinds (flight,kind; default: flights.csv beside or above DATA)")
     p.add_argument("--no-compare", action="store_true", help="skip the training-size and complexity comparisons")
     p.add_argument("--stride", type=int, default=5, metavar="N", help="fit on every N-th sample (default 5)")
-    p.add_argument("--max-rows", type=int, default=DEFAULT_ROW_BUDGET, metavar="N",
+    p.add_argument("--max-rows", type=int, default=learners.DEFAULT_ROW_BUDGET, metavar="N",
                    help=f"the row budget: the most usable training rows one model holds; above it they are drawn "
-                        f"evenly per flight (default {DEFAULT_ROW_BUDGET})")
+                        f"evenly per flight (default {learners.DEFAULT_ROW_BUDGET})")
     p.add_argument("--seed", type=int, default=0, metavar="N")
     p.add_argument("--threads", type=int, default=1, metavar="N",
                    help="XGBoost threads (default 1, measured faster here)")
@@ -721,8 +721,6 @@ def _data_root_held(args: argparse.Namespace):
     if args.verb not in DATA_ROOT_VERBS:
         yield
         return
-    from quadcore.store import ownership, safewrite
-
     out = _output_folder(args.out)
     created = not out.exists()
     try:  # a folder quadcore did not make is refused before anything is written there
