@@ -45,15 +45,10 @@ HOVER_START = ("f2", "f4", "f5")  # the flights whose log starts in hover (rf.st
 # What fails on main today, by test and case (fleet, thrust map, log rate): the item of issue 21
 # that owns the cause, and what is wrong. Whoever lands the fix deletes the entry (its strict
 # xfail fails once the behaviour is right, naming this table).
-_T100 = ("item 2", "at 100 Hz discover keeps a pitch torque ~ -1e-6 omega_x omega_z on clean flights: the Euler "
-        "term and the rotor torque are not yet aligned with the measured torque at 100 Hz; the clean torque "
-        "residual is 1.9x the noise floor (PWM map)")
 _FIRST = ("item 3", "on rotorpy's rotor drag (horizontal k_d and vertical k_z) parasitic_drag is ranked first: its two "
           "coefficients cover x-y and z, while rotor_drag and rotor_drag_z each explain one part; the two linear "
           "effects together are the answer")
 KNOWN: dict[tuple[str, str, str, int], tuple[str, str]] = {
-    ("at the noise floor", "clean", PWM, 100): _T100,
-    ("discover keeps nothing", "clean", PWM, 100): _T100,
     **{("rotor drag first", "rotor_drag", SPEED, r): _FIRST for r in RATES},
 }
 
