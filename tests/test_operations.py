@@ -52,6 +52,23 @@ def materialization_count(instance, asset: str, key: str) -> int:
     return len(records.records)
 
 
+def nominal_lab(sim_logs: Path, tmp_path: Path, monkeypatch) -> tuple[Path, DataRoot, dict]:
+    """A raw folder with two flights, the nominal model file (a refit leaves the model as it is) and
+    the settings the automation's conditions and the schedule read: (raw folder, data root, resources)."""
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("sim000", "sim001"):
+        shutil.copyfile(sim_logs / name, raw / name)
+    model_file = tmp_path / "model.toml"
+    model_file.write_text("effects = []\n")
+    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))
+    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
+    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
+    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
+    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
+    return raw, data_root, {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))}
+
+
 @pytest.mark.slow  # the sensor and every stage, twice
 def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_path, monkeypatch):
     """A new flight is decoded and computed alone; the refit it causes leaves the model as it was
@@ -61,18 +78,7 @@ def test_new_flight_flows_through_without_rerunning_the_others(sim_logs, tmp_pat
     from pipeline.assets.learning import learning_features
     from pipeline.schedules import nightly_retrain_learned_models
 
-    raw = tmp_path / "raw"
-    raw.mkdir()
-    for name in ("sim000", "sim001"):
-        shutil.copyfile(sim_logs / name, raw / name)
-    model_file = tmp_path / "model.toml"
-    model_file.write_text("effects = []\n")
-    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))  # what the automation and schedule read
-    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
-    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
-    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
-    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
-    resources = {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))}
+    raw, data_root, resources = nominal_lab(sim_logs, tmp_path, monkeypatch)
 
     def tick_at(when):
         return nightly_retrain_learned_models.evaluate_tick(
@@ -425,18 +431,7 @@ def test_the_automation_leaves_a_new_flight_to_the_run_the_sensor_launched(sim_l
     computed twice when a tick fell before the sensor's run had its later steps in progress."""
     from fuzz.badlogs import bad_logs
 
-    raw = tmp_path / "raw"
-    raw.mkdir()
-    for name in ("sim000", "sim001"):
-        shutil.copyfile(sim_logs / name, raw / name)
-    model_file = tmp_path / "model.toml"
-    model_file.write_text("effects = []\n")
-    monkeypatch.setenv("QUADCORE_DATA_ROOT", str(tmp_path / "root"))  # what the automation's conditions read
-    monkeypatch.setenv("QUADCORE_RAW_DIR", str(raw))
-    monkeypatch.setenv("QUADCORE_MODEL", str(model_file))
-    monkeypatch.delenv("QUADCORE_EFFECTS", raising=False)
-    data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
-    resources = {"data_root": data_root, "model": ModelConfig(model_file=str(model_file))}
+    raw, data_root, resources = nominal_lab(sim_logs, tmp_path, monkeypatch)
     # the sensor's job as the daemon runs it, with this test's resources
     process_flight = dg.define_asset_job("process_flight", selection=dg.AssetSelection.assets(*PER_FLIGHT))
     local = dg.Definitions(assets=[*PER_FLIGHT, *FLEET], resources=resources, jobs=[process_flight])
