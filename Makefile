@@ -35,7 +35,7 @@ demo: $(STAMP)
 
 # Both tiers on two pytest-xdist workers (the CI machine's two cores), the tests of a module
 # together and the costliest groups first (tests/scheduling.py); XDIST= runs them in one process.
-XDIST ?= -n 2 --dist loadgroup --no-loadscope-reorder
+XDIST ?= -n 2 --dist loadscope --no-loadscope-reorder
 test: $(STAMP)
 	$(VENV_PYTHON) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 

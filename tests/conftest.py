@@ -37,17 +37,24 @@ def one_blas_thread():
         yield
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist's ``--dist loadgroup`` (make test): each test marked with its worker
-    group, the costliest groups first (tests/scheduling.py). Before xdist reads the marks."""
-    if hasattr(config, "workerinput") and config.getoption("dist") == "loadgroup":
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """Under ``--dist loadscope`` (make test): the tests of a group on one worker
+    (tests/scheduling.py)."""
+    if config.getoption("dist") == "loadscope":
         import scheduling
 
-        names = [scheduling.group(item) for item in items]
-        for item, name in zip(items, names):
-            item.add_marker(pytest.mark.xdist_group(name))
-        items[:] = scheduling.order(items, names)
+        return scheduling.GroupScheduling(config, log)
+    return None
+
+
+def pytest_collection_modifyitems(config, items):
+    """On an xdist worker: the costliest groups first (tests/scheduling.py; the scheduler hands
+    out the groups in this order)."""
+    if hasattr(config, "workerinput"):
+        import scheduling
+
+        items[:] = scheduling.order(items)
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -230,3 +237,4 @@ def reference_records(buf: bytes, end: int | None = None) -> list[tuple[int, int
 def record_offsets():
     """The plain per-record walker :func:`reference_records`, as a fixture."""
     return reference_records
+

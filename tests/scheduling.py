@@ -1,5 +1,5 @@
-"""How ``make test`` shares the suite between its two pytest-xdist workers (``-n 2 --dist loadgroup
---no-loadscope-reorder``, docs/reference/testing.md).
+"""How ``make test`` shares the suite between its two pytest-xdist workers (``-n 2 --dist loadscope
+--no-loadscope-reorder`` with :class:`GroupScheduling`, docs/reference/testing.md).
 
 Groups: the tests of one module run on one worker, so that a module's costly fixture (the
 cluster, the running UI, a simulated fleet) and its per-process caches are made once. Two kinds
@@ -16,6 +16,7 @@ cache written whole under a lock)."""
 from __future__ import annotations
 
 import pytest
+from xdist.scheduler import LoadScopeScheduling  # type: ignore[import-untyped]
 
 # Rough cost of a group in one CI run, in seconds on the 2-core CI machine (from `--durations`;
 # a name ending in "-" stands for every group it begins); the rest keep their collection order.
@@ -34,19 +35,31 @@ def cost(name: str) -> float:
                default=0)
 
 
-def group(item: pytest.Item) -> str:
-    """The xdist group of a collected test (see the module)."""
-    module = item.nodeid.split("::")[0]  # tests/test_x.py
-    params = getattr(item, "callspec", None)
+def group(nodeid: str) -> str:
+    """The worker group of a test, from its node id alone (see the module)."""
+    module, _, rest = nodeid.partition("::")
+    name, _, params = rest.partition("[")
+    params = params.rstrip("]")
     if module == "tests/independent/test_rotorpy_physics.py":
-        return f"rotorpy-{params.params.get('fleet', 'logs') if params else 'logs'}"
-    if module == "tests/test_plan.py" and params and item.name.startswith("test_the_planned_flight_decides"):
-        return f"plan-{params.id}"
+        fleet = params.split("-")[0]  # the case ids begin with the fleet (a rate alone: the logs' own test)
+        return f"rotorpy-{fleet if fleet and not fleet.isdigit() else 'logs'}"
+    if module == "tests/test_plan.py" and params and name.startswith("test_the_planned_flight_decides"):
+        return f"plan-{params}"
     return module
 
 
-def order(items: list[pytest.Item], groups: list[str]) -> list[pytest.Item]:
+class GroupScheduling(LoadScopeScheduling):
+    """xdist's scheduling by scope, a scope being a :func:`group`. (xdist's own ``loadgroup``
+    reads groups from node ids it rewrites, which pytest 9.2's structured node ids no longer allow:
+    the groups would silently be lost.)"""
+
+    def _split_scope(self, nodeid: str) -> str:
+        return group(nodeid)
+
+
+def order(items: list[pytest.Item]) -> list[pytest.Item]:
     """``items`` with the tests of a group together, the costliest group first (stable otherwise)."""
+    groups = [group(item.nodeid) for item in items]
     first: dict[str, int] = {}
     for i, name in enumerate(groups):
         first.setdefault(name, i)

@@ -312,12 +312,26 @@ def start_dagster(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
     bindir = Path(sys.executable).parent
     # the instance's tables first: the daemon and the webserver would both create them at once
     _run([str(bindir / "dagster"), "instance", "migrate"], c, "dagster instance migrate", env=env)
+    daemon_log = c.logs / "daemon.log"
+    seen = daemon_log.stat().st_size if daemon_log.is_file() else 0
     spawn(c, "daemon", [str(bindir / "dagster-daemon"), "run", "-w", workspace], env)
     port = int(s["QUADCORE_CLUSTER_WEB_PORT"])
     spawn(c, "webserver", [str(bindir / "dagster-webserver"), "-h", "127.0.0.1", "-p", str(port), "-w", workspace],
           env)
     _wait(lambda: _http_ok(f"{s['QUADCORE_CLUSTER_URL']}/server_info"), "dagster-webserver",
           c.logs / "webserver.log", pidfile=c.pids / "webserver.pid")
+    # Up once the daemon's run queue has gone round (it logs each round, every few seconds, and
+    # beats with it): a run queued before its first heartbeat is refused (launch.check_daemon), and
+    # on a loaded machine the daemon loads the code a minute after the webserver answers.
+    _wait(lambda: "QueuedRunCoordinatorDaemon" in _text_after(daemon_log, seen), "dagster-daemon's run queue",
+          daemon_log, pidfile=c.pids / "daemon.pid")
+
+
+def _text_after(log: Path, offset: int) -> str:
+    """What ``log`` gained after its first ``offset`` bytes."""
+    with open(log, "rb") as f:
+        f.seek(offset)
+        return f.read().decode(errors="replace")
 
 
 def _http_ok(url: str) -> bool:
