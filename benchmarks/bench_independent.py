@@ -1,7 +1,7 @@
 """The diagnosis against an independent simulator: rotorpy's effects, its values, what
 `quadcore diagnose` and `quadcore discover` make of them, at 500 Hz and 100 Hz logging.
 
-    python benchmarks/bench_independent.py [--rates 500,100] [--markdown]
+    python benchmarks/bench_independent.py [--rates 500,100] [--markdown] [--sections rotor_drag,parasitic]
 
 The flights are the independent-physics suite's (tests/independent/rotorpy_flights.py: six
 flights per fleet, simulated with rotorpy once and cached under tests/.cache); the diagnosis
@@ -57,48 +57,53 @@ def _kept(disc) -> str:
     return "; ".join(f"{t.target} ~ {t.expression}" for t in disc.terms) or "nothing kept"
 
 
-def rows_at(rate: int, fleets: dict[str, rf.Fleet]) -> list[list[str]]:
+def rows_at(rate: int, fleets: dict[str, rf.Fleet], sections: tuple[str, ...] = ()) -> list[list[str]]:
+    """The rows of ``sections`` (all of :data:`SECTIONS` when empty) at ``rate``."""
+    return [r for name, section in SECTIONS.items() if not sections or name in sections
+            for r in section(rate, fleets, lambda fleet, tmap: rf.decoded(fleets[fleet], rate, tmap))]
+
+
+def _nothing_rows(rate: int, fleets: dict[str, rf.Fleet], flights) -> list[list[str]]:
     out = []
-
-    def flights(name: str, thrust_map: str):
-        return rf.decoded(fleets[name], rate, thrust_map)
-
     for name, tmap in (("clean", SPEED), ("clean", PWM), ("lag", SPEED)):
         what = "nothing" if name == "clean" else "motor lag only, seen through the measured motor speeds"
         d = rf.diagnose(flights(name, tmap), tmap)
         out.append([f"{what} ({tmap})", "diagnose", "-", "-", _verdict(d)])
         disc = rf.discover(flights(name, tmap), tmap)
         out.append([f"{what} ({tmap})", "discover", "-", "-", _kept(disc)])
+    return out
 
+
+def _rotor_drag_rows(rate: int, fleets: dict[str, rf.Fleet], flights) -> list[list[str]]:
+    out = []
     for name in ("rotor_drag", "rotor_drag_xy"):
         fleet = fleets[name]
         truth, hover = rf.projected_truth(fleet, rate), rf.truth(fleet.physics)  # k: projected on T v
         what = "rotor drag k_d, k_z (rotorpy's default)" if name == "rotor_drag" else "rotor drag k_d alone (k_z = 0)"
         d = rf.diagnose(flights(name, SPEED), SPEED)
-        for axis in "xy":
+        for axis in "xyz":
             key = f"k_{axis}_s_per_m"
             out.append([what, f"rotor_drag.{key}", f"{truth['rotor_drag.' + key]:.4g} "
                         f"(hover {hover['rotor_drag.' + key]:.4g})", _fitted(d, "rotor_drag", key), _verdict(d)])
         d2 = rf.diagnose(flights(name, SPEED), SPEED, ("rotor_drag",))
-        k_z = -rf.projection(fleet, rate, "f_res_b_z_N", "T_N*v_b_z_mps", rotor_drag_only=True)
-        out.append([what, "with rotor_drag in the model: rotor_drag_z.k_z_s_per_m", f"{k_z:.4g}",
-                    _fitted(d2, "rotor_drag_z", "k_z_s_per_m"), _verdict(d2)])
-        if name == "rotor_drag":
-            d3 = rf.diagnose(flights(name, SPEED), SPEED, ("rotor_drag", "rotor_drag_z"))
-            out.append([what, "with rotor_drag and rotor_drag_z in the model", "-", "-", _verdict(d3)])
-        disc = rf.discover(flights(name, SPEED), SPEED, ("rotor_drag",))
+        out.append([what, "with rotor_drag in the model", "-", "-", _verdict(d2)])
+        disc = rf.discover(flights(name, SPEED), SPEED)
         for label, target, base in (("vertical drag", "f_res_b_z_N", "v_b_z_mps"),
                                     ("roll damping", "tau_res_b_x_Nm", "omega_b_x_radps"),
                                     ("yaw damping", "tau_res_b_z_Nm", "omega_b_z_radps")):
             t = _term(disc, target, base)
             if t is None:
-                out.append([what, f"discover on rotor_drag: {label}", "-", "-", "not kept"])
+                out.append([what, f"discover: {label}", "-", "-", "not kept"])
                 continue
             value = rf.projection(fleet, rate, target, t.expression, rotor_drag_only=True)
-            out.append([what, f"discover on rotor_drag: {label}, {target} ~ c {t.expression}", f"{value:.4g}",
+            out.append([what, f"discover: {label}, {target} ~ c {t.expression}", f"{value:.4g}",
                         f"{t.coefficient:.4g} ± {t.std:.2g}", "kept"])
-        out.append([what, "discover on rotor_drag: every term", "-", "-", _kept(disc)])
+        out.append([what, "discover: every term", "-", "-", _kept(disc)])
+    return out
 
+
+def _parasitic_rows(rate: int, fleets: dict[str, rf.Fleet], flights) -> list[list[str]]:
+    out = []
     fleet = fleets["parasitic"]
     hover = rf.truth(fleet.physics)
     d = rf.diagnose(flights("parasitic", SPEED), SPEED)
@@ -108,7 +113,11 @@ def rows_at(rate: int, fleets: dict[str, rf.Fleet]) -> list[list[str]]:
     d2 = rf.diagnose(flights("parasitic", SPEED), SPEED, ("parasitic_drag",))
     out.append(["parasitic drag c_D", "with parasitic_drag in the model", "-", "-", _verdict(d2)])
     out.append(["parasitic drag c_D", "discover", "-", "-", _kept(rf.discover(flights("parasitic", SPEED), SPEED))])
+    return out
 
+
+def _lag_rows(rate: int, fleets: dict[str, rf.Fleet], flights) -> list[list[str]]:
+    out = []
     tau = rf.truth(fleets["lag"].physics)["motor_lag.tau_s"]
     lag = flights("lag", PWM)
     for label, subset in (("all six flights", lag), ("the three that start in hover", lag.only(("f2", "f4", "f5")))):
@@ -120,17 +129,28 @@ def rows_at(rate: int, fleets: dict[str, rf.Fleet]) -> list[list[str]]:
     return out
 
 
+# the table's sections, in its order: the fleets each simulates and its rows
+SECTIONS = {"nothing": _nothing_rows, "rotor_drag": _rotor_drag_rows, "parasitic": _parasitic_rows, "lag": _lag_rows}
+FLEETS_OF = {"nothing": ("clean", "lag"), "rotor_drag": ("rotor_drag", "rotor_drag_xy"), "parasitic": ("parasitic",),
+             "lag": ("lag",)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rates", default="500,100", help="log rates in Hz (default 500,100)")
     parser.add_argument("--markdown", action="store_true", help="a Markdown table (as docs/validation.md holds)")
+    parser.add_argument("--sections", default="", help=f"only these rows (comma-separated: {', '.join(SECTIONS)})")
     args = parser.parse_args()
+    sections = tuple(s for s in args.sections.split(",") if s)
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        parser.error(f"unknown section {unknown[0]!r}; one of {', '.join(SECTIONS)}")
     fleets = rf.fleets()
     t0 = time.perf_counter()
-    rf.prepare(list(fleets.values()))
+    rf.prepare([fleets[f] for f in dict.fromkeys(f for s in sections or SECTIONS for f in FLEETS_OF[s])])
     print(f"flights ready in {time.perf_counter() - t0:.1f} s (cache: {rf.cache_root()})", file=sys.stderr)
     header = ["rate", "rotorpy's effect", "what is checked", "rotorpy's value", "fitted ± σ", "verdict"]
-    rows = [[f"{rate} Hz", *r] for rate in map(int, args.rates.split(",")) for r in rows_at(rate, fleets)]
+    rows = [[f"{rate} Hz", *r] for rate in map(int, args.rates.split(",")) for r in rows_at(rate, fleets, sections)]
     if args.markdown:
         print("| " + " | ".join(header) + " |\n|" + "---|" * len(header))
         for r in rows:

@@ -49,11 +49,10 @@ STANDARD = (_fast(1), _fast(2), _low(3))
 #                   where it acts: [(channel, axes)])
 # Values: realistic for a 35 g quadrotor, a few times what the real logs show where they show it.
 CASES = {
-    # real logs: k = 0.036-0.04 s/m; anisotropic here to check both axes are recovered
+    # real logs: k = 0.036-0.04 s/m; anisotropic here to check both axes are recovered (the axial
+    # k_z: test_rotor_drag_with_its_vertical_part_at_rotorpys_size_is_one_effect)
     "rotor_drag": ({"k_x_s_per_m": 0.12, "k_y_s_per_m": 0.10}, STANDARD,
                    ["k_x_s_per_m", "k_y_s_per_m"], [("force", (0, 1))]),
-    # rotorpy's Crazyflie: 0.0054 kg/s at hover (k_z = 0.018 s/m); larger here, the flights climb less
-    "rotor_drag_z": ({"k_z_s_per_m": 0.1}, STANDARD, ["k_z_s_per_m"], [("force", (2,))]),
     # ½ρC_dA of a ~0.01 m² frame with C_d ~ 1.5: ~0.01 kg/m
     "parasitic_drag": ({"c_xy_kg_per_m": 0.01, "c_z_kg_per_m": 0.015}, STANDARD,
                        ["c_xy_kg_per_m", "c_z_kg_per_m"], [("force", (0, 1, 2))]),
@@ -128,7 +127,7 @@ def hidden(sim_sets):
         if name not in cache:
             params, configs, _, _ = CASES[name]
             _, tables = sim_sets(name, configs, {name: params})
-            every = list(effects.registry()) if not effects.get(name).offered else None  # ranked among all
+            every = list(effects.builtin_names()) if not effects.get(name).offered else None  # ranked among all
             cache[name] = (_diagnose(tables, candidates=every),
                            _diagnose(tables, [name], candidates=[n for n in every if n != name] if every else None))
         return cache[name]
@@ -199,21 +198,22 @@ def test_lag_and_delay_fits_on_flights_starting_mid_manoeuvre_cover_the_truth(si
 
 
 @pytest.mark.slow  # a simulated scenario of its own
-def test_with_rotor_drag_in_the_model_its_vertical_part_is_found_not_vetoed_by_noise(sim_sets):
+def test_rotor_drag_with_its_vertical_part_at_rotorpys_size_is_one_effect(sim_sets):
     """An independent simulator's case (rotorpy's Crazyflie: vertical rotor drag 0.0054 kg/s at
-    hover, k_z = 0.02 s/m) on this one: horizontal and vertical rotor drag hidden, rotor_drag in
-    the model. What is left is the vertical part: rotor_drag_z is found with its truth within
-    3 σ, no thrust scale is invented, and a candidate whose parameter leaves its bound by less
-    than its noise (parasitic drag's c_xy) is judged with the bound active, not vetoed."""
-    hidden = {"rotor_drag": {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1}, "rotor_drag_z": {"k_z_s_per_m": 0.02}}
-    _, tables = sim_sets("drag_xyz", STANDARD, hidden)
-    d = _diagnose(tables, ["rotor_drag"])
+    hover, k_z = 0.02 s/m) on this one: horizontal and vertical rotor drag hidden. rotor_drag
+    (``-T diag(k_x, k_y, k_z) v``) is first with all three within 3 σ, no thrust scale or added
+    mass is invented, and every candidate's fit lies within its bounds (a bound held in noise is
+    said so); with rotor_drag in the model nothing is left to find."""
+    truth = {"k_x_s_per_m": 0.1, "k_y_s_per_m": 0.1, "k_z_s_per_m": 0.02}
+    _, tables = sim_sets("drag_xyz", STANDARD, {"rotor_drag": truth})
+    d = _diagnose(tables)
     top = d["candidates"][0]
-    assert top["effect"] == "rotor_drag_z" and top["found"], d["verdict"]
-    assert abs(top["parameters"]["k_z_s_per_m"] - 0.02) <= 3 * top["parameter_std"]["k_z_s_per_m"], top
+    assert top["effect"] == "rotor_drag" and top["found"], d["verdict"]
+    for k, v in truth.items():
+        assert abs(top["parameters"][k] - v) <= 3 * top["parameter_std"][k], top
     by = {r["effect"]: r for r in d["candidates"]}
     assert not by["thrust_scale"]["found"] and not by["added_mass"]["found"]
-    assert by["parasitic_drag"]["physical"], by["parasitic_drag"]["notes"]
+    assert not [r["effect"] for r in _diagnose(tables, ["rotor_drag"])["candidates"] if r["found"]]
     for r in d["candidates"]:
         p = {q.name: q for q in effects.get(r["effect"]).parameters}
         assert all(p[k].lower <= v <= p[k].upper for k, v in r["parameters"].items()), r  # every fit within bounds
@@ -499,7 +499,13 @@ def test_cli_diagnose_holdout_and_effects(cli_folder, tmp_path):
     assert held["evaluation"]["mode"] == "holdout"
     assert held["evaluation"]["eval_flights"] == ["sim001"]
     assert held["evaluation"]["train_flights"] == ["sim000", "sim002"]
-    assert held["candidates"][0]["effect"] == "rotor_drag"
+    # one held-out flight may not separate rotor_drag (k_x, k_y, k_z) from parasitic_drag (two
+    # parameters) significantly: then they tie, the one with fewer parameters is listed first, and
+    # the verdict says the data cannot choose
+    top, by = held["candidates"][0], {r["effect"]: r for r in held["candidates"]}
+    assert by["rotor_drag"]["found"], held["verdict"]
+    assert top["effect"] == "rotor_drag" or ("rotor_drag" in top["tied_with"]
+                                             and "cannot tell it apart from" in held["verdict"]), held["verdict"]
 
     out = tmp_path / "e.json"
     code, _, stderr = _run(["diagnose", str(cli_folder), "--json", str(out), "--holdout", "sim001",

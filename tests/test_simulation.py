@@ -204,7 +204,9 @@ def test_no_effect_residuals_are_at_noise_level(tmp_path):
 
 EFFECT_CASES = {
     # name: (config, params, [(target, axes)])
-    "rotor_drag": (_random(1), {"k_x_s_per_m": 0.6, "k_y_s_per_m": 0.5}, [("force", (0, 1))]),
+    # rotorpy's Crazyflie: axial k_z 0.018 s/m (0.0054 kg/s at hover thrust, 0.29 N); 10x here
+    "rotor_drag": (_random(17, speed_min_mps=0.8), {"k_x_s_per_m": 0.6, "k_y_s_per_m": 0.5, "k_z_s_per_m": 0.2},
+                   [("force", (0, 1, 2))]),
     "parasitic_drag": (_random(1, speed_min_mps=0.8), {"c_xy_kg_per_m": 0.02, "c_z_kg_per_m": 0.03},
                        [("force", (0, 1, 2))]),
     "ground_effect": (SimConfig(kind="low_pass", duration_s=10.0, low_pass_height_m=0.04, seed=2),
@@ -214,8 +216,6 @@ EFFECT_CASES = {
     "thrust_scale": (_random(5), {"scale": 0.9}, [("force", (2,))]),
     "added_mass": (_random(6), {"m_p_kg": 0.005}, [("force", (2,))]),
     "wind": (_random(7), {"k_s_per_m": 0.5, "w_x_mps": 1.0, "w_y_mps": -0.5}, [("force", (0, 1))]),
-    # rotorpy's Crazyflie: 0.0054 kg/s at hover thrust (0.29 N), i.e. k_z = 0.018 s/m; 10x here
-    "rotor_drag_z": (_random(17, speed_min_mps=0.8), {"k_z_s_per_m": 0.2}, [("force", (2,))]),
     "rotor_imbalance": (_random(13), {"d_1": 0.05, "d_2": -0.03, "d_3": 0.02}, [("torque", (0, 1, 2))]),
     # 20 ms: at 30 ms this fast flight goes unstable under the nominal controller and hits the floor
     "thrust_delay": (_random(14, speed_min_mps=0.8), {"t_d_s": 0.02}, [("force", (2,)), ("torque", (0, 1, 2))]),
@@ -411,7 +411,8 @@ def test_cli_simulate_writes_logs_and_truth(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["sim000", "sim000.truth.json", "sim001", "sim001.truth.json"]
     assert str(out.resolve()) in stdout and "truth.json" in stdout
     truth = json.loads((out / "sim000.truth.json").read_text())
-    assert truth["effects"] == {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.2}}
+    # every parameter flown, the ones not given at their 'no effect' value
+    assert truth["effects"] == {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.2, "k_z_s_per_m": 0.0}}
     assert truth["seed"] == 4 and truth["config"]["kind"] == "hover"
     fl = flight.decode_flight(out / "sim001")
     assert fl.tables["fixedFrequency"].height > 900

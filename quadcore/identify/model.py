@@ -38,6 +38,13 @@ class EffectTerm:
     per_session: dict[str, dict[str, float]] = field(default_factory=dict)
     per_session_std: dict[str, dict[str, float]] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        # a parameter not given is at its 'no effect' value (as the simulator takes it): a model
+        # saved before its effect gained a parameter (rotor_drag's k_z) meant it there
+        defaults = _defaults(self.name)
+        self.params = {**defaults, **self.params}
+        self.per_session = {s: {**defaults, **v} for s, v in self.per_session.items()}
+
     @property
     def effect(self) -> effects.Effect:
         return effects.get(self.name)
@@ -140,6 +147,12 @@ class PhysicsModel:
         return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()},
                    dict(d.get("session_thrust_map", {})),
                    {k: list(v) for k, v in d.get("session_patterns", {}).items()})
+
+
+def _defaults(name: str) -> dict[str, float]:
+    """A known effect's 'no effect' values (none for an effect this process does not know)."""
+    known = effects.registry()
+    return known[name].defaults() if name in known else {}
 
 
 SPEC_DIGEST = "spec_digest"

@@ -531,7 +531,8 @@ def hover_speed_radps() -> float:
 
 def truth(physics: Physics) -> dict[str, float]:
     """rotorpy's effects as this project's parameters (see the tests' docstrings for the
-    derivations): ``rotor_drag.k`` = k_d / (k_eta w_h) s/m; vertical drag 4 k_z w_h kg/s;
+    derivations): ``rotor_drag.k`` = k_d / (k_eta w_h) s/m (its axial ``k_z`` likewise,
+    k_z / (k_eta w_h)); vertical drag 4 k_z w_h kg/s;
     yaw rate damping 4 k_d w_h d^2 and roll/pitch rate damping 2 k_z w_h d^2 N m s;
     parasitic c = c_D kg/m; motor lag tau_m s."""
     p = base_params()
@@ -540,6 +541,7 @@ def truth(physics: Physics) -> dict[str, float]:
     return {
         "rotor_drag.k_x_s_per_m": physics.k_d / (p["k_eta"] * w_h),
         "rotor_drag.k_y_s_per_m": physics.k_d / (p["k_eta"] * w_h),
+        "rotor_drag.k_z_s_per_m": physics.k_z / (p["k_eta"] * w_h),
         "vertical_drag_kg_per_s": 4 * physics.k_z * w_h,
         "yaw_rate_damping_Nms": 4 * physics.k_d * w_h * d**2,
         "roll_rate_damping_Nms": 2 * physics.k_z * w_h * d**2,
@@ -563,6 +565,7 @@ def projected_truth(fleet: Fleet, rate_hz: int) -> dict[str, float]:
     out = dict(truth(fleet.physics))
     for key, target, expression in (("rotor_drag.k_x_s_per_m", "f_res_b_x_N", "T_N*v_b_x_mps"),
                                     ("rotor_drag.k_y_s_per_m", "f_res_b_y_N", "T_N*v_b_y_mps"),
+                                    ("rotor_drag.k_z_s_per_m", "f_res_b_z_N", "T_N*v_b_z_mps"),
                                     ("vertical_drag_kg_per_s", "f_res_b_z_N", "v_b_z_mps"),
                                     ("roll_rate_damping_Nms", "tau_res_b_x_Nm", "omega_b_x_radps"),
                                     ("pitch_rate_damping_Nms", "tau_res_b_y_Nm", "omega_b_y_radps"),

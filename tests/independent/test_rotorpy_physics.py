@@ -45,11 +45,7 @@ HOVER_START = ("f2", "f4", "f5")  # the flights whose log starts in hover (rf.st
 # What fails on main today, by test and case (fleet, thrust map, log rate): the item of issue 21
 # that owns the cause, and what is wrong. Whoever lands the fix deletes the entry (its strict
 # xfail fails once the behaviour is right, naming this table).
-_FIRST = ("item 3", "on rotorpy's rotor drag (horizontal k_d and vertical k_z) parasitic_drag is ranked first: its two "
-          "coefficients cover x-y and z, while rotor_drag and rotor_drag_z each explain one part; the two linear "
-          "effects together are the answer")
 KNOWN: dict[tuple[str, str, str, int], tuple[str, str]] = {
-    **{("rotor drag first", "rotor_drag", SPEED, r): _FIRST for r in RATES},
 }
 
 
@@ -146,50 +142,34 @@ ROTOR_DRAG = _at_both_rates(("rotor_drag", SPEED), ("rotor_drag_xy", SPEED))
 
 @pytest.mark.parametrize("fleet,thrust_map,rate", _cases("rotor drag first", ROTOR_DRAG))
 def test_rotor_drag_is_first_and_k_is_rotorpys(fleet, thrust_map, rate):
-    """rotorpy's rotor drag on rotor i is ``H_i = -w_i k_d v_i`` (horizontal; ``w_i`` its speed,
-    ``v_i`` the air velocity at its hub). Summed over the rotors, and for the body velocity,
-    ``f_xy = -k_d (sum w_i) v_xy``. This project's ``rotor_drag`` is ``f_xy = -k T v_xy`` with
-    ``T = k_eta sum w_i^2``, so ``k = k_d sum(w_i) / (k_eta sum(w_i^2))``, which in hover
-    (``w_i = w_h``, ``4 k_eta w_h^2 = m g``) is ``k_d / (k_eta w_h) = k_d / sqrt(k_eta m g / 4)``
-    = 0.02492 s/m. The two forms differ where the rotors turn faster or slower than in hover; on
-    a given set of flights the value a fit of ``-k T v`` converges to is rotorpy's rotor drag
-    force projected on ``T v`` by least squares (``rf.projected_truth``), 4-5 % below the hover
-    value on these manoeuvring flights. rotor_drag must be first, and that value must lie within
-    three reported standard deviations."""
+    """rotorpy's rotor drag on rotor i is ``H_i = -w_i diag(k_d, k_d, k_z) v_i`` (``w_i`` its
+    speed, ``v_i`` the air velocity at its hub). Summed over the rotors, and for the body
+    velocity, ``f = -(sum w_i) diag(k_d, k_d, k_z) v``. This project's ``rotor_drag`` is
+    ``f = -T diag(k_x, k_y, k_z) v`` with ``T = k_eta sum w_i^2``, so ``k = k_d sum(w_i) /
+    (k_eta sum(w_i^2))``, which in hover (``w_i = w_h``, ``4 k_eta w_h^2 = m g``) is ``k_d /
+    (k_eta w_h) = k_d / sqrt(k_eta m g / 4)`` = 0.02492 s/m (``k_z``: 0.01836 s/m; 0 on the
+    fleet without it). The two forms differ where the rotors turn faster or slower than in
+    hover; on a given set of flights the value a fit of ``-k T v`` converges to is rotorpy's
+    rotor drag force projected on ``T v`` by least squares (``rf.projected_truth``), 4-5 % below
+    the hover value on these manoeuvring flights. rotor_drag must be first (its vertical part
+    makes it explain what parasitic drag's two coefficients did), and each of its three values
+    must lie within three reported standard deviations."""
     d = _diagnosis(fleet, rate, thrust_map)
     row = next(c for c in d.candidates if c.effect == "rotor_drag")
     truth = rf.projected_truth(FLEETS[fleet], rate)
-    for name in ("k_x_s_per_m", "k_y_s_per_m"):
+    for name in ("k_x_s_per_m", "k_y_s_per_m", "k_z_s_per_m"):
         _within_3_sigma(row.parameters[name], row.parameter_std[name], truth[f"rotor_drag.{name}"],
                         f"rotor_drag.{name}")
     assert d.candidates[0].effect == "rotor_drag" and row.found, _found(d)
 
 
-@pytest.mark.parametrize("fleet,thrust_map,rate", _cases("rotor drag in, rotor_drag_z next",
-                                                         _at_both_rates(("rotor_drag", SPEED))))
-def test_with_rotor_drag_in_the_model_its_vertical_part_is_next(fleet, thrust_map, rate):
-    """rotorpy's vertical rotor drag ``-k_z (sum w_i) v_z`` is this project's ``rotor_drag_z``
-    (``-k_z T v_z``, the same conversion as ``rotor_drag``'s): with rotor_drag in the model it is
-    first, and its value on these flights (``rf.projection`` on ``T v_z``) within three reported
-    standard deviations."""
+@pytest.mark.parametrize("fleet,thrust_map,rate", _cases("rotor drag in, outside the library", ROTOR_DRAG))
+def test_with_rotor_drag_in_the_model_what_is_left_is_outside_the_library(fleet, thrust_map, rate):
+    """What rotor_drag leaves of rotorpy's aerodynamics has no effect in the library: the damping
+    torques of the rotor drag acting at the hubs (yaw: ``-k_d (sum w_i) d^2 Omega_z``; roll and
+    pitch from the vertical part). No library effect may be reported found for it, and the
+    verdict must say that the remainder lies outside the library."""
     d = _diagnosis(fleet, rate, thrust_map, effects=("rotor_drag",))
-    top = d.candidates[0]
-    assert top.effect == "rotor_drag_z" and top.found, _found(d)
-    truth = -rf.projection(FLEETS[fleet], rate, "f_res_b_z_N", "T_N*v_b_z_mps", rotor_drag_only=True)
-    _within_3_sigma(top.parameters["k_z_s_per_m"], top.parameter_std["k_z_s_per_m"], truth, "rotor_drag_z.k_z_s_per_m")
-
-
-ROTOR_DRAG_IN = {"rotor_drag": ("rotor_drag", "rotor_drag_z"), "rotor_drag_xy": ("rotor_drag",)}
-
-
-@pytest.mark.parametrize("fleet,thrust_map,rate,effects", _cases(
-    "rotor drag in, outside the library", [(*case, ROTOR_DRAG_IN[case[0]]) for case in ROTOR_DRAG]))
-def test_with_rotor_drag_in_the_model_what_is_left_is_outside_the_library(fleet, thrust_map, rate, effects):
-    """What the rotor-drag effects leave of rotorpy's aerodynamics has no effect in the library:
-    the damping torques of the rotor drag acting at the hubs (yaw: ``-k_d (sum w_i) d^2 Omega_z``;
-    roll and pitch from the vertical part). No library effect may be reported found for it, and
-    the verdict must say that the remainder lies outside the library."""
-    d = _diagnosis(fleet, rate, thrust_map, effects=effects)
     assert not _found(d), _found(d)
     assert "outside the library" in d.verdict, d.verdict
 
@@ -197,12 +177,13 @@ def test_with_rotor_drag_in_the_model_what_is_left_is_outside_the_library(fleet,
 @pytest.mark.parametrize("fleet,thrust_map,rate", _cases("discover names vertical drag and damping",
                                                          _at_both_rates(("rotor_drag", SPEED))))
 def test_discover_names_rotorpys_vertical_drag_and_rotor_damping_with_their_sizes(fleet, thrust_map, rate):
-    """On top of rotor_drag, discover keeps what rotorpy has and the library lacks, each within
-    three reported standard deviations of its value on these flights (``rf.projected_truth``):
-    vertical drag ``f_z = -c v_z`` (in hover ``c = 4 k_z w_h`` = 0.0054 kg/s) and rate damping
-    ``tau = -D Omega`` (yaw ``4 k_d w_h d^2`` = 1.36e-5 N m s; roll and pitch ``2 k_z w_h d^2``
-    = 5.0e-6 N m s, the vertical drag at hubs that move up and down as the body rolls)."""
-    disc = _discovery(fleet, rate, thrust_map, effects=("rotor_drag",))
+    """On the nominal model, discover keeps what rotorpy has, each within three reported
+    standard deviations of its value on these flights (``rf.projection``): vertical drag
+    ``f_z = -c v_z`` (in hover ``c = 4 k_z w_h`` = 0.0054 kg/s; rotor_drag's ``k_z`` in the
+    library) and, outside the library, rate damping ``tau = -D Omega`` (yaw ``4 k_d w_h d^2`` =
+    1.36e-5 N m s; roll and pitch ``2 k_z w_h d^2`` = 5.0e-6 N m s, the vertical drag at hubs
+    that move up and down as the body rolls)."""
+    disc = _discovery(fleet, rate, thrust_map)
     for target, base in (("f_res_b_z_N", "v_b_z_mps"), ("tau_res_b_x_Nm", "omega_b_x_radps"),
                          ("tau_res_b_y_Nm", "omega_b_y_radps"), ("tau_res_b_z_Nm", "omega_b_z_radps")):
         term = next((t for t in disc.terms if t.target == target and _linear_in(t.expression, base)), None)
