@@ -237,4 +237,3 @@ def reference_records(buf: bytes, end: int | None = None) -> list[tuple[int, int
 def record_offsets():
     """The plain per-record walker :func:`reference_records`, as a fixture."""
     return reference_records
-
