@@ -17,13 +17,12 @@ VEHICLE = vehicle.load()
 RPM_TO_RADPS = 2 * np.pi / 60
 
 
-def _hover(rate_hz: float, thrust_map: str, rpm_noise: float, seed: int = 0) -> dynamics.FlightState:
-    """30000 samples at rest in hover, logged at ``rate_hz``: acc 0.005 g, gyro 0.7 deg/s and rotor
+def _hover(rate_hz: float, thrust_map: str, rpm_noise: float, seed: int = 0, n: int = 30000) -> dynamics.FlightState:
+    """``n`` (30000) samples at rest in hover, logged at ``rate_hz``: acc 0.005 g, gyro 0.7 deg/s and rotor
     speeds ``rpm_noise`` rpm of white noise (the levels of the real Crazyflie logs). Over five
     seeds the residual's RMS lies within 3 % of the floor on every channel at both rates."""
     veh = VEHICLE.with_thrust_map(thrust_map)
     rng = np.random.default_rng(seed)
-    n = 30000
     t = np.arange(n) / rate_hz
     k_F = veh.motor_speed.k_F_N_per_radps2
     omega_hover = np.sqrt(veh.weight_N / veh.n_rotors / k_F)
@@ -58,6 +57,32 @@ def test_the_floor_is_the_residual_of_pure_noise(thrust_map, rate_hz):
     ratio = rms / floor
     # body z force and the three torques: where the motor-speed map carries rotor-speed noise
     assert np.all(np.abs(ratio[2:] - 1.0) < 0.08), ratio
+
+
+@pytest.mark.parametrize("rate_hz", (500.0, 100.0))
+@pytest.mark.parametrize("thrust_map", ("motor_speed", "pwm_vbat"))
+def test_the_floor_holds_on_the_samples_the_statistics_count(thrust_map, rate_hz):
+    """On 400 short flights (150 samples each, so the filters' edge fits are a fifth of them):
+    over the samples every residual statistic counts (``fitting.usable_samples``: edges left
+    out) the residual's RMS is the floor (pooled over the flights, the floor's default samples)
+    within 4 % on every channel (measured: within 2.7 %). The edge rows themselves pass more
+    noise than the floor counts (the derivative's first row 3.9 times the interior gain): with
+    them the torques' RMS is 1.13-1.43 times the floor here, which is why they are left out."""
+    veh = VEHICLE.with_thrust_map(thrust_map)
+    used_ss, all_ss, floor_ss, n_used, n_all = np.zeros(6), np.zeros(6), np.zeros(6), 0, 0
+    for seed in range(400):
+        state = _hover(rate_hz, thrust_map, rpm_noise=15.0, seed=seed, n=150)
+        r = residuals.residual_arrays(state, veh)
+        sq = np.concatenate([r["f_res_b"], r["tau_res_b"]], axis=1) ** 2
+        used = fitting.usable_samples(state.t_s)
+        used_ss, all_ss = used_ss + sq[used].sum(axis=0), all_ss + sq.sum(axis=0)
+        floor_ss += used.sum() * fitting.sensor_noise_floor(state, veh) ** 2
+        n_used, n_all = n_used + int(used.sum()), n_all + state.n
+    assert n_used == 400 * (150 - 2 * (signals.WINDOW // 2))
+    ratio = np.sqrt(used_ss / floor_ss)
+    assert np.all(np.abs(ratio - 1.0) < 0.04), ratio
+    with_edges = np.sqrt(all_ss / n_all / (floor_ss / n_used))
+    assert np.all(with_edges[3:] > 1.08), with_edges
 
 
 def test_pwm_floor_ignores_rotor_speeds():

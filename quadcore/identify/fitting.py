@@ -73,7 +73,7 @@ class FlightData:
     state: FlightState
     r_f: np.ndarray  # (n, 3) nominal residual force, N
     r_tau: np.ndarray  # (n, 3) nominal residual torque, N m
-    mask: np.ndarray  # (n,) samples away from gaps
+    mask: np.ndarray  # (n,) the usable samples (usable_samples: away from gaps and the filters' edges)
     noise: np.ndarray = field(default_factory=lambda: np.zeros(6))  # (6,) sensor-noise RMS of r_f, r_tau
     _basis: dict = field(default_factory=dict, repr=False)
     _predictions: dict = field(default_factory=dict, repr=False)
@@ -154,8 +154,16 @@ def flight_data(flight: str, decoded, vehicle: Vehicle) -> FlightData:
     """
     state = dynamics.flight_state(decoded, vehicle)
     r = residuals.residual_arrays(state, vehicle)
-    mask = ~signals.near_gap(state.t_s)
+    mask = usable_samples(state.t_s)
     return FlightData(flight, state, r["f_res_b"], r["tau_res_b"], mask, sensor_noise_floor(state, vehicle, mask))
+
+
+def usable_samples(t_s: np.ndarray) -> np.ndarray:
+    """(n,) the samples every residual statistic counts (fits, scores, the sensor-noise floor):
+    those whose filter window spans no gap (:func:`quadcore.physics.signals.near_gap`) and is
+    not an edge fit (:func:`quadcore.physics.signals.near_edge`), where the filters pass more
+    noise than the floor's interior gains count."""
+    return ~(signals.near_gap(t_s) | signals.near_edge(t_s))
 
 
 def _noise_gains(dt: float, hold_s: float = 0.0) -> tuple[float, float, float]:
@@ -183,7 +191,8 @@ def _white_noise(x: np.ndarray, mask: np.ndarray, g_s: float) -> np.ndarray:
 
 def sensor_noise_floor(state: FlightState, vehicle: Vehicle, mask: np.ndarray | None = None) -> np.ndarray:
     """(6,) RMS that white measurement noise alone leaves in the residual force (N) and
-    torque (N m), body frame, per axis: the floor below which no effect can be seen.
+    torque (N m), body frame, per axis, over the samples ``mask`` (default: :func:`usable_samples`,
+    where the filters' interior gains hold): the floor below which no effect can be seen.
 
     **Measured side.** The white-noise level σ of each accelerometer and gyro axis is read off
     the flight itself (:func:`_white_noise`). It then passes the residual's filters:
@@ -206,7 +215,7 @@ def sensor_noise_floor(state: FlightState, vehicle: Vehicle, mask: np.ndarray | 
     (vibration, fast motor-speed ripple) counts as noise here, which is what it is for a
     rigid-body model.
     """
-    mask = np.ones(state.n, dtype=bool) if mask is None else mask
+    mask = usable_samples(state.t_s) if mask is None else mask
     if state.n < 4 * signals.WINDOW or mask.sum() < signals.WINDOW:
         return np.zeros(6)
     g_s, g_d, g_m = _noise_gains(float(np.median(np.diff(state.t_s))), state.thrust_hold_s)

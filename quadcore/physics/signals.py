@@ -112,6 +112,23 @@ def near_gap(t_s: np.ndarray, window: int = WINDOW, gap_s: float = GAP_S) -> np.
     return np.cumsum(marks[:-1]) > 0
 
 
+def near_edge(t_s: np.ndarray, window: int = WINDOW) -> np.ndarray:
+    """True for the first and last ``window // 2`` samples of each segment (:func:`segments`).
+
+    There the filters are edge fits (a polynomial fitted to the segment's first or last
+    ``window`` samples), whose rows weigh the samples more unevenly than inside: for white noise
+    their RMS gain is larger (the derivative's first row 3.9 times the interior's, the
+    smoother's 1.9 times), so a residual there is noisier than the sensor-noise floor, which
+    holds for the interior. The residual statistics leave these samples out, as they leave out
+    those near a gap (:func:`near_gap`)."""
+    flag = np.zeros(len(t_s), dtype=bool)
+    half = window // 2
+    for seg in segments(t_s) if len(t_s) else []:
+        flag[seg.start:min(seg.start + half, seg.stop)] = True
+        flag[max(seg.stop - half, seg.start):seg.stop] = True
+    return flag
+
+
 def interval_integrals(x: np.ndarray, t_s: np.ndarray, hold_s: float) -> np.ndarray:
     """``∫ x̂ dt`` over each sample interval ``[t_i, t_i+1]`` (n - 1 rows) of the signal ``x̂``
     whose samples ``x_i = x̂(t_i)`` hold for ``hold_s`` each::
