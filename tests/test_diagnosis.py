@@ -832,7 +832,7 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     """Every fold's answer counted against the top one and what the data cannot tell from it:
     a flip to another candidate in any fold is 'undecided between A and B'; a single held-out
     flight cannot measure it."""
-    from quadcore.identify.results import NOTHING, Stability
+    from quadcore.identify.results import NO_EVIDENCE, NOTHING, Stability
 
     stable = Stability("rotor_drag", ("rotor_drag", "wind"), "fold", {"rotor_drag": 3, "wind": 2}, 5)
     assert stable.agree == 5 and stable.undecided_between == ()
@@ -843,6 +843,14 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     assert flips.sentence().startswith("Undecided between com_offset and ground_effect: the answer depends on which "
                                        "flights are held out (first in each of 5 folds: com_offset in 3, "
                                        "ground_effect in 2)")
+    # a fold whose flights are at their noise floor (a hover shows no drag) abstains
+    quiet = Stability("rotor_drag", ("rotor_drag", "wind"), "fold", {"rotor_drag": 2, "wind": 2, NO_EVIDENCE: 1}, 5)
+    assert quiet.agree == 4 and quiet.undecided_between == ()
+    assert quiet.sentence().startswith("Stable: rotor_drag (or wind, which the data cannot tell from it) comes first "
+                                       "in 4 of 5 folds (rotor_drag in 2, wind in 2, none (flights at the "
+                                       "sensor-noise floor: no evidence) in 1).")
+    flat = Stability(NOTHING, (NOTHING,), "fold", {NO_EVIDENCE: 5}, 5)
+    assert flat.undecided_between == () and flat.sentence().startswith("Stability not measured")
     nothing = Stability(NOTHING, (NOTHING,), "fold", {NOTHING: 4, "wind": 1}, 5)
     assert "Undecided between no effect of the library and wind" in nothing.sentence()
     one = Stability("rotor_drag", ("rotor_drag",), "held-out flight", {"rotor_drag": 1}, 1)

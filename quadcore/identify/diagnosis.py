@@ -32,7 +32,15 @@ from quadcore.identify.evidence import (
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
-from quadcore.identify.results import NOTHING, CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
+from quadcore.identify.results import (
+    NO_EVIDENCE,
+    NOTHING,
+    CandidateScore,
+    Diagnosis,
+    Evaluation,
+    ResidualRmse,
+    Stability,
+)
 from quadcore.identify.verdict import _ev_on, _other, rank_reasons, verdict
 from quadcore.physics.dynamics import XYZ
 from quadcore.spec.model import ModelSpec
@@ -661,18 +669,25 @@ def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list
 def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str]) -> str:
     """The answer of one fold (its test ``flights``): the physical candidate whose held-out
     prediction (fitted without them) removes the largest share of their residual, scored as the
-    ranking scores (force and torque averaged, channels at the noise floor clipped), or
-    :data:`NOTHING` when none removes ``MIN_EXPLAINED`` of its channel."""
+    ranking scores (force and torque averaged, channels at the fleet's or the fold's noise floor
+    clipped), :data:`NOTHING` when none removes ``MIN_EXPLAINED`` of its channel, or
+    :data:`NO_EVIDENCE` when the fold's residual is at its own noise floor on every channel (a
+    hover shows no drag: that is no vote against it)."""
     index = {f: i for i, f in enumerate(held.ids)}
     fds = [held.flights[index[f]] for f in flights]
     before = _total(_ss(held.resid[f], fd) for f, fd in zip(flights, fds))
+    # The fold's own noise floor: a channel at it holds no evidence for an effect in these
+    # flights (as the fleet's in the ranking); with every channel there, the fold abstains.
+    at_noise = evidence.at_noise_level(before, _total(fd.noise ** 2 * fd.n for fd in fds))
+    if all(at_noise.values()):
+        return NO_EVIDENCE
     best, best_score, best_ev = NOTHING, 0.0, 0.0
     for r in rows:
         if not r["physical"]:
             continue
         pred = held.cand_pred[r["effect"]]
         after = _total(_ss(held.resid[f] - pred[f], fd) for f, fd in zip(flights, fds))
-        ev = [min(x, 0.0) if held.at_noise[ch] else x
+        ev = [min(x, 0.0) if held.at_noise[ch] or at_noise[ch] else x
               for ch, x in ((ch, _ev(before, after, sl)) for ch, sl in TARGET_CHANNELS.items())]
         if 0.5 * sum(ev) > best_score:
             best, best_score, best_ev = r["effect"], 0.5 * sum(ev), max(ev)

@@ -119,6 +119,9 @@ class Evaluation:
 
 
 NOTHING = "nothing"  # a fold's (or the diagnosis's) answer when no candidate of the library is found
+# A fold's answer when its flights' residual is at their own sensor-noise floor on every channel
+# (a hover that shows no drag): they hold no evidence for any effect, so the fold abstains.
+NO_EVIDENCE = "no evidence"
 
 
 @dataclass(frozen=True)
@@ -127,7 +130,9 @@ class Stability:
     folds, or each held-out flight), the candidate that removes the largest share of the residual
     of its flights (or :data:`NOTHING`), counted against the diagnosis's answer and the
     candidates the data cannot tell from it (``group``). ``undecided_between`` lists the answers
-    when another one comes first in some fold: the top answer flips with the flights held out."""
+    when another one comes first in some fold: the top answer flips with the flights held out. A
+    fold of :data:`NO_EVIDENCE` (its flights at their noise floor) abstains: it neither agrees
+    nor flips the answer, and the sentence says how many did."""
 
     answer: str
     group: tuple[str, ...]
@@ -143,13 +148,14 @@ class Stability:
     def undecided_between(self) -> tuple[str, ...]:
         """The answers when another one than the top comes first in some unit (none with a single
         unit: one answer cannot flip)."""
-        others = [a for a in self.votes if a not in self.group]
+        others = [a for a in self.votes if a not in self.group and a != NO_EVIDENCE]
         return (self.answer, *others) if others and self.total > 1 else ()
 
     def sentence(self) -> str:
         """``Stable: ... first in 5 of 5 folds`` or ``Undecided between A and B: ...``."""
         def name(a: str) -> str:
-            return "no effect of the library" if a == NOTHING else a
+            return {NOTHING: "no effect of the library",
+                    NO_EVIDENCE: "none (flights at the sensor-noise floor: no evidence)"}.get(a, a)
 
         units = f"{self.unit}{'s' if self.total != 1 else ''}"
         if self.total < 2:
@@ -159,6 +165,10 @@ class Stability:
         if self.undecided_between:
             return (f"Undecided between {' and '.join(name(a) for a in self.undecided_between)}: the answer "
                     f"depends on which flights are held out (first in each of {self.total} {units}: {counts}).")
+        abstained = self.votes.get(NO_EVIDENCE, 0)
+        if abstained == self.total:
+            return (f"Stability not measured: the flights of every {self.unit} are at their sensor-noise floor "
+                    "(no evidence for any effect).")
         alike = [a for a in self.group if a != self.answer]
         return (f"Stable: {name(self.answer)}" + (f" (or {', '.join(alike)}, which the data cannot tell from it)"
                                                    if alike else "")
