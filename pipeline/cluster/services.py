@@ -312,19 +312,22 @@ def start_dagster(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
     bindir = Path(sys.executable).parent
     # the instance's tables first: the daemon and the webserver would both create them at once
     _run([str(bindir / "dagster"), "instance", "migrate"], c, "dagster instance migrate", env=env)
-    daemon_log = c.logs / "daemon.log"
+    daemon_log, daemon_pid = c.logs / "daemon.log", c.pids / "daemon.pid"
     seen = daemon_log.stat().st_size if daemon_log.is_file() else 0
+    running = daemon_pid.is_file() and _alive(int(daemon_pid.read_text()))
     spawn(c, "daemon", [str(bindir / "dagster-daemon"), "run", "-w", workspace], env)
     port = int(s["QUADCORE_CLUSTER_WEB_PORT"])
     spawn(c, "webserver", [str(bindir / "dagster-webserver"), "-h", "127.0.0.1", "-p", str(port), "-w", workspace],
           env)
     _wait(lambda: _http_ok(f"{s['QUADCORE_CLUSTER_URL']}/server_info"), "dagster-webserver",
           c.logs / "webserver.log", pidfile=c.pids / "webserver.pid")
-    # Up once the daemon's run queue has gone round (it logs each round, every few seconds, and
-    # beats with it): a run queued before its first heartbeat is refused (launch.check_daemon), and
-    # on a loaded machine the daemon loads the code a minute after the webserver answers.
-    _wait(lambda: "QueuedRunCoordinatorDaemon" in _text_after(daemon_log, seen), "dagster-daemon's run queue",
-          daemon_log, pidfile=c.pids / "daemon.pid")
+    # A daemon started now: up once its run queue has gone round (its first round logs, and beats):
+    # a run queued before its first heartbeat is refused (launch.check_daemon), and on a loaded
+    # machine the daemon loads the code a minute after the webserver answers. A daemon already
+    # running has beaten (an idle queue logs nothing, so there is nothing new to wait for).
+    if not running:
+        _wait(lambda: "QueuedRunCoordinatorDaemon" in _text_after(daemon_log, seen), "dagster-daemon's run queue",
+              daemon_log, pidfile=daemon_pid)
 
 
 def _text_after(log: Path, offset: int) -> str:
