@@ -36,8 +36,10 @@ def _close(a, b, where: str = "") -> None:
         for i, (x, y) in enumerate(zip(a, b)):
             _close(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and not isinstance(b, bool):
-        # a phase is an angle: near 0° (a real transfer) it is rounding, in degrees, not relative
-        tiny = 1e-9 if "phase_deg" in where else 1e-300
+        # a phase is an angle: near 0° (a real transfer) it is rounding, in degrees, not relative;
+        # an explained share is a fraction of the residual: near 0 (an effect that explains nothing)
+        # its rounding is that of 1, not relative to its own size
+        tiny = 1e-9 if "phase_deg" in where else 1e-12 if "explained" in where or "share" in where else 1e-300
         assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, rel=REL, abs=tiny), f"{where}: {a} vs {b}"
     else:
         assert a == b, f"{where}: {a!r} vs {b!r}"
@@ -76,7 +78,7 @@ def _layout() -> sufficient.Layout:
 def _residual(layout: sufficient.Layout) -> np.ndarray:
     """A residual after a model of three linear effects, as a signal vector."""
     v = layout.target()
-    v[layout.cols("rotor_drag")] = [-0.1, -0.12]
+    v[layout.cols("rotor_drag")] = [-0.1, -0.12, -0.05]
     v[layout.cols("thrust_scale")] = [-0.05]
     v[layout.cols("com_offset")] = [1e-3, -2e-3]
     return v
