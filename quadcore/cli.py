@@ -330,7 +330,7 @@ def _discover_command(args: argparse.Namespace) -> str:
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from quadcore.identify import verdict
+    from quadcore.identify.diagnosis import verdict
     from quadcore.workflows import identify
 
     _output_folders(str(Path(args.json).parent), args.report)

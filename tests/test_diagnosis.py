@@ -832,7 +832,7 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     """Every fold's answer counted against the top one and what the data cannot tell from it:
     a flip to another candidate in any fold is 'undecided between A and B'; a single held-out
     flight cannot measure it."""
-    from quadcore.identify.results import NO_EVIDENCE, NOTHING, Stability
+    from quadcore.identify.diagnosis.results import NO_EVIDENCE, NOTHING, Stability
 
     stable = Stability("rotor_drag", ("rotor_drag", "wind"), "fold", {"rotor_drag": 3, "wind": 2}, 5)
     assert stable.agree == 5 and stable.undecided_between == ()

@@ -225,7 +225,7 @@ def memoryless_candidates(monkeypatch):
     from quadcore.identify import diagnosis
 
     everything = diagnosis.default_candidates
-    monkeypatch.setattr(diagnosis, "default_candidates",
+    monkeypatch.setattr(diagnosis.problem, "default_candidates",
                         lambda spec: [n for n in everything(spec) if effectlib.get(n).memory_s() == 0])
 
 

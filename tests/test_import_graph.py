@@ -78,7 +78,7 @@ STARTUP = {
     ("quadcore.cli", "quadcore.export.c"),
     ("quadcore.cli", "quadcore.export.mcap"),
     ("quadcore.cli", "quadcore.identify.discovery"),
-    ("quadcore.cli", "quadcore.identify.verdict"),
+    ("quadcore.cli", "quadcore.identify.diagnosis.verdict"),
     ("quadcore.cli", "quadcore.learn.features"),
     ("quadcore.cli", "quadcore.learn.splits"),
     ("quadcore.cli", "quadcore.learn.tables"),

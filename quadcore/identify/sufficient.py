@@ -74,7 +74,7 @@ Record = TypeVar("Record")  # what a per-flight record file is read as
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
-GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis._SpanOverlap)
+GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis.span._SpanOverlap)
 
 
 class StatsError(ValueError):

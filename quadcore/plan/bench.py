@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.identify import diagnosis as diagnosislib
-from quadcore.identify.results import Diagnosis
+from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.physics import vehicle as vehiclelib
 from quadcore.plan import pieces, planner, signatures

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from quadcore.identify import fitting
-from quadcore.identify.results import Diagnosis
+from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, separation, signatures
 from quadcore.plan.limits import LimitCheck, Limits, check, largest_scale

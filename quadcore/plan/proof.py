@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from quadcore.identify import diagnosis as diagnosislib
+from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.plan import pieces, separation
 from quadcore.plan.signatures import Explanation

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from quadcore import effects as effectlib
-from quadcore.identify.results import CandidateScore, Diagnosis
+from quadcore.identify.diagnosis.results import CandidateScore, Diagnosis
 from quadcore.plan.signatures import Explanation
 
 RELATIVE_STD = 0.10  # a found parameter known to better than this needs no flight of its own

@@ -26,8 +26,8 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions
+from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.results import Diagnosis
 from quadcore.spec.model import ModelSpec
 
 N_FOLDS = 5

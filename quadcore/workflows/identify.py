@@ -15,9 +15,9 @@ from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
 if TYPE_CHECKING:
+    from quadcore.identify.diagnosis.results import Diagnosis
     from quadcore.identify.discovery import Discovery
     from quadcore.identify.model import FittedModel, PhysicsModel
-    from quadcore.identify.results import Diagnosis
     from quadcore.spec.model import ModelSpec
 
 Log = Callable[[str], None]

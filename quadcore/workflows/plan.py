@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from quadcore.identify.diagnosis.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.plan import pieces, planner
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, sessions_of

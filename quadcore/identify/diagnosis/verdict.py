@@ -10,8 +10,8 @@ from typing import Any
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence
+from quadcore.identify.diagnosis.results import CandidateScore
 from quadcore.identify.evidence import MIN_EXPLAINED, MIN_SIGMA, TIE_MARGIN
-from quadcore.identify.results import CandidateScore
 
 
 def _why_not(r: dict, at_noise: dict[str, bool]) -> tuple[str, str]:
@@ -108,7 +108,7 @@ def _search_with(outside: dict | None) -> str:
 
 def _outside_library(rows: list[dict], part: dict, headline: bool) -> str:
     """What the library finds in a channel is a small part of what is left there (see
-    :func:`quadcore.identify.diagnosis._outside_library`)."""
+    :func:`quadcore.identify.diagnosis.run._outside_library`)."""
     best = next(r for r in rows if r["effect"] == part["best"])
     ch, left = part["channel"], part.get("residual_to_noise_after")
     return (("Mostly outside the library: the best candidate, " if headline

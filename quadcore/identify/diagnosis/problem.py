@@ -1,0 +1,362 @@
+"""The diagnosis's problem: its flights (rows or statistics, :class:`_Flights`), their targets,
+the model's effects and the candidates (:class:`_Problem`), the folds (:func:`_splits`), the
+cross-fit of the model and of every candidate on each fold's training flights
+(:func:`_cross_fit`), and the evaluated flights as the scores take them (:func:`_held_out`)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from quadcore import effects as effectlib
+from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
+from quadcore.identify.fitting import FlightData
+from quadcore.identify.model import EffectTerm, PhysicsModel
+from quadcore.spec.model import ModelSpec
+
+TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
+
+
+def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
+    """Element-wise sum of per-flight arrays (the same additions, in the same order, as ``sum``)."""
+    return functools.reduce(np.add, parts)
+
+
+def _ss(resid: np.ndarray, flight) -> np.ndarray:
+    """Sum of squares per channel (6,) on usable samples (of a signal vector: from statistics)."""
+    if resid.ndim == 1:
+        return sufficient.sum_of_squares(flight, resid)
+    return (resid[flight.mask] ** 2).sum(axis=0)
+
+
+def _weights(flights: list, signals: list[np.ndarray]) -> np.ndarray:
+    if signals and signals[0].ndim == 1:
+        return sufficient.channel_weights(flights, signals)
+    return fitting.channel_weights([y[fd.mask] for fd, y in zip(flights, signals)])
+
+
+class _Flights:
+    """The diagnosis's flights, in one of two forms, and the rows where they are needed.
+
+    A model of linear effects is scored from the flights' sufficient statistics
+    (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
+    every residual and linear prediction a signal vector); a model with a nonlinear effect
+    from rows (``flight(f)`` a :class:`~quadcore.identify.fitting.FlightData`, signals (n, 6) arrays).
+    Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): the evaluated
+    flights' tables and spectra, and candidates with several nonlinear parameters (a
+    one-parameter nonlinear candidate comes from the flights' profiles,
+    :mod:`quadcore.identify.profiles`)."""
+
+    def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
+        self.decoded, self.spec, self.ids = decoded, spec, ids
+        self._rows: dict[str, FlightData] = {}
+        self._rates: dict[str, float] = {}  # each flight's sample rate, kept when its rows go
+        self.linear = all(effectlib.get(n).linear for n in spec.effects)
+        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
+
+    def rows(self, f: str) -> FlightData:
+        if f not in self._rows:  # a session's thrust map for its state
+            self._rows[f] = fitting.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
+            self._rates[f] = spectrum.sample_rate_hz(self._rows[f].state.t_s)
+        return self._rows[f]
+
+    def release(self, f: str) -> None:
+        """Let a flight's rows go (from statistics; from rows the flight is the statistics)."""
+        if self.stats is not None:
+            self._rows.pop(f, None)
+
+    def sample_rate_hz(self, f: str) -> float:
+        if f not in self._rates:
+            self.rows(f)
+            self.release(f)
+        return self._rates[f]
+
+    def statistics(self, f: str) -> sufficient.FlightStats:
+        """A flight's statistics (only a model of linear effects is scored from them)."""
+        if self.stats is None:
+            raise sufficient.StatsError(f"{f}: a model with a nonlinear effect is scored from rows, not statistics")
+        return self.stats[f]
+
+    def flight(self, f: str):
+        return self.stats[f] if self.stats is not None else self.rows(f)
+
+    def target(self, f: str) -> np.ndarray:
+        if self.stats is not None:
+            return self.stats[f].layout.target()
+        fd = self.rows(f)
+        return np.concatenate([fd.r_f, fd.r_tau], axis=1)
+
+    def signal_rows(self, f: str, signal: np.ndarray) -> np.ndarray:
+        """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are)."""
+        if self.stats is None or signal.ndim == 2:
+            return signal
+        layout = self.stats[f].layout  # the evaluated flights' extra columns are no part of a residual
+        if np.any(signal[layout.width:]):
+            raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
+        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width])
+
+
+class _Problem:
+    """One diagnosis's flights in the form it scores them (:class:`_Flights`), their targets, the
+    model's effects and the candidates, and how a candidate is fitted: from the flights'
+    statistics, or (``by_rows``: a nonlinear candidate beside statistics) from its training
+    flights' rows."""
+
+    def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats):
+        self.spec, self.vehicle = spec, spec.vehicle
+        self.ids = sorted(decoded)
+        self.model_effects = [effectlib.get(n) for n in spec.effects]
+        names = candidates if candidates is not None else default_candidates(spec)
+        self.cands = [effectlib.get(n) for n in names]
+        self.effect_of = {c.name: c for c in self.cands}
+        self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
+        self.fds = {f: self.fl.flight(f) for f in self.ids}
+        self.targets = {f: self.fl.target(f) for f in self.ids}
+        # from statistics, a nonlinear candidate is fitted and predicted from its profiles
+        # (quadcore.identify.profiles); one with several nonlinear parameters from rows
+        self.by_rows = {c.name: self.fl.stats is not None and not c.linear and not profiles.profiled(c)
+                        for c in self.cands}
+        # the latest residual turned into rows once for all nonlinear candidates (a fold's
+        # candidates share it; later fits never come back to an older one), so rows of one
+        # residual are held, not one per fold; the residual is kept so its id cannot be reused
+        self._row_resid_of: tuple[dict, dict[str, np.ndarray]] = ({}, {})
+
+    def fit_candidate(self, c, flights: list[str], resid: dict) -> fitting.Fit:
+        """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
+        parameters' physical bounds (the free fit, when it left them, kept as ``free``)."""
+        if self.by_rows[c.name]:
+            return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
+                                       [self._row_resid(f, resid) for f in flights], self.vehicle, bounded=True)
+        return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle,
+                                   bounded=True)
+
+    def _row_resid(self, f: str, resid: dict) -> np.ndarray:
+        if self._row_resid_of[0] is not resid:
+            self._row_resid_of = (resid, {})
+        rows = self._row_resid_of[1]
+        if f not in rows:
+            rows[f] = self.fl.signal_rows(f, resid[f])
+        return rows[f]
+
+    def forget_row_resid(self) -> None:
+        """Drop the residual rows the nonlinear candidates' fits kept (after the last fit)."""
+        self._row_resid_of = ({}, {})
+
+    def from_profile(self, c) -> bool:
+        """Whether ``c`` is fitted and predicted from the flights' profiles."""
+        return self.fl.stats is not None and profiles.profiled(c)
+
+    def scored_flight(self, c, f: str):
+        """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
+        return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
+
+
+def default_candidates(spec: ModelSpec) -> list[str]:
+    """The effects a diagnosis offers when not told which: the library's built-in effects, then
+    the plugin effects of the spec's own model file (its ``plugins``), each offered and not
+    already in the model. Not every effect this process has loaded: a long-lived process (the
+    Dagster UI, a test run) keeps the plugins of every model file it ever read, and another
+    model's plugin is no candidate for this one."""
+    own = [src.effect for src in effectlib.plugins_from(spec.plugins)]
+    return [n for n in (*effectlib.builtin_names(), *own) if n not in spec.effects and effectlib.get(n).offered]
+
+
+def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
+            ) -> tuple[list[tuple[list[str], list[str]]], list[str], str]:
+    """The (training, test) flights of each fold, all the training flights, and the mode: the
+    held-out flights when given, else folds over the flights (in-sample with one flight)."""
+    holdout = [h for h in (holdout or [])]
+    if holdout:
+        train_all = [f for f in ids if f not in holdout]
+        return [(train_all, holdout)], train_all, "holdout"
+    splits = ([([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)]
+              if len(ids) > 1 else [(ids, ids)])
+    return splits, ids, "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
+
+
+def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, log) -> tuple[Any, dict]:
+    """The model fitted on ``train`` (per session for a model with per-session effects), and its
+    residual (target minus prediction) on the ``train`` and ``test`` flights."""
+    fds, targets = p.fds, p.targets
+    tr = [fds[f] for f in train]
+    if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
+        pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log)
+        return pm, {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
+    fit_m = fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed)
+    return fit_m, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in {*train, *test}}
+
+
+@dataclass(frozen=True)
+class _Folds:
+    """What the folds leave: each test flight's model residual and every candidate's prediction
+    there (fitted without it; for a candidate fitted from its profiles, ``values``: its
+    parameter's value there, the prediction made by :func:`_evaluated`), each candidate's
+    parameters per fold (the flight-to-flight spread; ``free_params``: of its fits without the
+    physical bounds), and the last fold's fits of the model and of each candidate."""
+
+    eval_resid: dict[str, np.ndarray]
+    cand_pred: dict[str, dict[str, np.ndarray]]
+    values: dict[str, dict[str, float]]
+    params: dict[str, list[dict]]
+    free_params: dict[str, list[dict]]
+    fits: dict[str, fitting.Fit]
+    model_fit: Any
+
+
+def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log) -> _Folds:
+    """Per fold: the model and each candidate (on the model's residual) fitted on the training
+    flights, and their residual and predictions on the test flights."""
+    eval_resid: dict[str, np.ndarray] = {}
+    cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
+    fold_fits: dict[str, fitting.Fit] = {}
+    fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    values: dict[str, dict[str, float]] = {}
+    model_fit = None
+    for k, (train, test) in enumerate(splits, 1):
+        log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
+        model_fit, resid = _model_residuals(p, train, test, sessions, log)
+        for c in p.cands:
+            fit_c = fold_fits[c.name] = p.fit_candidate(c, train, resid)
+            fold_params[c.name].append(fit_c.params[c.name])
+            free_params[c.name].append((fit_c.free or fit_c).params[c.name])
+            for f in test:
+                if p.from_profile(c):
+                    values.setdefault(c.name, {})[f] = fit_c.params[c.name][c.parameters[0].name]
+                else:
+                    cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
+        for f in test:
+            eval_resid[f] = resid[f]
+    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit)
+
+
+def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, dict]:
+    """The model fitted on all training flights (the parameters reported; ``fold_fit``, the only
+    fold's fit, when it is that one) and its residual on them."""
+    fds, targets, spec = p.fds, p.targets, p.spec
+    tr = [fds[f] for f in train_all]
+    if spec.per_session:
+        model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
+                                                                                 sessions, log)
+        return model, {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
+    fit_m = (fold_fit if fold_fit is not None
+             else fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed))
+    model = PhysicsModel(p.vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
+                                                e.name in spec.fixed) for e in p.model_effects],
+                         spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
+    return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
+
+
+def _group_spread(p: _Problem, train_all: list[str], resid_train: dict, n_folds: int
+                  ) -> tuple[dict[str, list[dict]], dict[str, list[dict]]]:
+    """One split only: each candidate refitted leaving out groups of training flights, for the
+    spread, in place of its fit on all of them: its parameters per group, within the bounds and
+    free."""
+    fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
+    for group in fitting.folds(train_all, n_folds):
+        sub = [f for f in train_all if f not in group]
+        for c in p.cands:
+            fit = p.fit_candidate(c, sub, resid_train)
+            fold_params[c.name].append(fit.params[c.name])
+            free_params[c.name].append((fit.free or fit).params[c.name])
+    return fold_params, free_params
+
+
+@dataclass(frozen=True)
+class _HeldOut:
+    """The evaluated flights as the scores take them (:func:`_evaluated`), the model's residual
+    and each candidate's prediction on them, the residual's sums of squares per channel
+    (``before``) over ``n`` samples, the sensor-noise floor's, the channels at that floor, and
+    the channel weights."""
+
+    ids: list[str]
+    flights: list
+    resid: dict[str, np.ndarray]
+    cand_pred: dict[str, dict[str, np.ndarray]]
+    before: np.ndarray
+    n: int
+    noise_ss: np.ndarray
+    at_noise: dict[str, bool]
+    w: np.ndarray
+
+
+def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
+    eval_ids = sorted(folds.eval_resid)
+    eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.model_effects + p.cands)
+    before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
+    n_eval = sum(fd.n for fd in eval_fds)
+    # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
+    # holds no evidence FOR an effect (only against one that would add error there).
+    noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
+    at_noise = evidence.at_noise_level(before, noise_ss)
+    w = _weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
+    return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
+
+
+def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
+    """The evaluated flights as the scores take them. From statistics, a nonlinear candidate's
+    held-out prediction is an extra column ``pred:`` + its name of the evaluated flights'
+    statistics: from its profile at the fitted value (:func:`quadcore.identify.profiles.with_predictions`,
+    no rows read), or, for a candidate without one (several nonlinear parameters), from the
+    flight's rows with its unit wrenches (:func:`detection_limits`; ``unit:``, ``ref:``); the
+    signals of ``cand_pred`` and ``eval_resid`` are moved into that layout."""
+    fl, cand_pred, eval_resid = p.fl, folds.cand_pred, folds.eval_resid
+    if fl.stats is None:
+        return [fl.rows(f) for f in eval_ids]
+    by_rows = [c for c in p.cands if p.by_rows[c.name]]
+    if not by_rows and not folds.values:
+        return [fl.stats[f] for f in eval_ids]
+    out = []
+    for f in eval_ids:
+        s = _with_row_predictions(fl, f, by_rows, cand_pred) if by_rows else fl.stats[f]
+        if folds.values:
+            s = profiles.with_predictions(s, {c: values[f] for c, values in folds.values.items()})
+        eval_resid[f] = s.layout.pad(eval_resid[f])
+        for c in p.cands:
+            cand_pred[c.name][f] = (s.layout.unit(s.layout.extra(f"pred:{c.name}")) if not c.linear
+                                    else s.layout.pad(cand_pred[c.name][f]))
+        out.append(s)
+    return out
+
+
+def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> sufficient.FlightStats:
+    """A flight's statistics with the held-out predictions of ``cands`` (no profile) and their
+    unit wrenches as extra columns, from its rows (read once)."""
+    vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.statistics(f)
+    extras = {}
+    for c in cands:  # its prediction, then its unit wrenches and reference as a profiled effect has them
+        extras[f"pred:{c.name}"] = cand_pred[c.name][f]
+        extras.update(profiles.fixed_signals([c.name], fd, vehicle))
+    s = sufficient.flight_stats(fd, vehicle, base.layout.with_extras(list(extras)), base.key, extras)
+    fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
+    return s
+
+
+def _on_common_samples(flights: list, effects) -> list:
+    """The evaluated flights without the first blocks (of ``BLOCK_S``, numbered as the held-out
+    test numbers them) within the longest :meth:`~quadcore.effects.Effect.memory_s` of
+    ``effects``: an effect with memory predicts nothing there (:func:`quadcore.identify.fitting.prediction`),
+    so a score over the whole flight would count that start against it and not against a
+    memoryless candidate, or a shorter memory. Every candidate, the model's residual and the
+    noise floor are scored on the same samples; whole blocks, so that the statistics (per-block
+    Gram matrices) and the rows leave out the same. Flights too short to keep any sample
+    after it are evaluated whole (nothing would be left to compare)."""
+    k = evidence.memory_blocks(effects)
+    if k <= 0:
+        return flights
+    out = [_after_blocks(fd, k) for fd in flights]
+    return out if sum(fd.n for fd in out) > 0 else flights
+
+
+def _after_blocks(fd, k: int):
+    """A flight's rows (:class:`FlightData`) or statistics without its first ``k`` blocks."""
+    if isinstance(fd, FlightData):
+        return evidence.after_blocks(fd, k)
+    gram = fd.gram[k:]
+    return replace(fd, total=gram.sum(axis=0), rows=fd.rows[k:], blocks_source=lambda: gram)

@@ -1,0 +1,76 @@
+"""How small an effect could hide in what is left: each candidate parameter's detection limit on
+the evaluated flights (:func:`detection_limits`) and what those values mean (:func:`sensitivity_basis`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadcore.identify import evidence, fitting, sufficient
+from quadcore.identify.evidence import (
+    MIN_SIGMA,
+    TIE_MARGIN,
+)
+from quadcore.identify.fitting import FlightData
+
+
+def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.ndarray], noise_ss: np.ndarray,
+                     vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
+    """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
+    would detect (:func:`quadcore.identify.evidence.detection_limits`); None when no value within the
+    parameter's range would be. A parameter stated at a reference point of the others (a
+    wind, at a rotor drag) must also lift the score by ``2 TIE_MARGIN`` above the simpler
+    effect it then resembles (a wind above rotor drag), or the two are a tie."""
+    jobs = [(c, p) for c in cands for p in c.parameters]
+    base_ss = {c.name: sum(_reference_ss(c, fd, vehicle) for fd in flights) for c in cands if c.sensitivity_reference}
+    # statistics: every parameter's sums from one read of the Gram matrices; rows: one unit
+    # wrench (a signal per flight) in memory at a time
+    batch = max(len(jobs), 1) if sufficient.are_stats(flights) else 1
+    out: dict[str, dict[str, float | None]] = {c.name: {} for c in cands}
+    for start in range(0, len(jobs), batch):
+        part = jobs[start: start + batch]
+        asks = [_limit_ask(c, p, flights, vehicle, base_ss.get(c.name, 0.0)) for c, p in part]
+        limits = evidence.detection_limits(flights, resid, asks, noise_ss, MIN_SIGMA, n_candidates)
+        for (c, p), v in zip(part, limits):
+            if not c.linear:  # the unit wrench is a secant: nothing is known below its step
+                v = max(v, evidence.SECANT * (p.upper - p.lower))
+            out[c.name][p.name] = float(v) if v <= max(p.upper - p.default, p.default - p.lower) else None
+    return out
+
+
+def _limit_ask(c, p, flights: sufficient.Flights, vehicle, base_ss: float) -> evidence.LimitAsk:
+    """A parameter's detection limit to find: stated at a reference point of the others (a wind,
+    at a rotor drag), it must also lift the score by ``2 TIE_MARGIN`` above the effect it then
+    resembles."""
+    unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
+    if c.sensitivity_reference and p.name not in c.sensitivity_reference:
+        return evidence.LimitAsk(unit, 2 * TIE_MARGIN, base_ss)
+    return evidence.LimitAsk(unit)
+
+
+def _unit(c, p, fd, vehicle) -> np.ndarray:
+    """:func:`quadcore.identify.evidence.unit_wrench` on rows, or as a signal vector on statistics."""
+    if isinstance(fd, FlightData):
+        return evidence.unit_wrench(c, p, fd, vehicle)
+    if c.linear:
+        return sufficient.unit_vector(c, p, fd, vehicle, evidence.SECANT)
+    return fd.layout.unit(fd.layout.extra(f"unit:{c.name}:{p.name}"))
+
+
+def _reference_ss(c, fd, vehicle) -> float:
+    """Energy of a candidate's prediction at its sensitivity reference on a flight's usable samples."""
+    ref = {**c.defaults(), **c.sensitivity_reference}
+    if isinstance(fd, FlightData):
+        return float((fitting.prediction(c, ref, fd, vehicle)[fd.mask] ** 2).sum())
+    v = (fd.layout.coefficients(c, ref, vehicle) if c.linear else fd.layout.unit(fd.layout.extra(f"ref:{c.name}")))
+    return float(sufficient.sum_of_squares(fd, v).sum())
+
+
+def sensitivity_basis(cands) -> dict:
+    """What the sensitivity values mean (for the JSON and the reports)."""
+    return {
+        "meaning": "smallest |parameter - its 'no effect' value| these flights would detect, each parameter alone",
+        "detection_probability": evidence.POWER,
+        "false_alarm_probability": evidence.ALPHA,
+        "noise_margin": evidence.NOISE_MARGIN,
+        "conditions": {c.name: dict(c.sensitivity_reference) for c in cands if c.sensitivity_reference},
+    }
