@@ -52,7 +52,7 @@ import numpy as np
 from scipy import stats
 
 from quadcore.identify import fitting, ranges
-from quadcore.identify.fitting import FlightData
+from quadcore.identify.fitting import BOUND_SIGMA, FlightData  # noqa: F401  (BOUND_SIGMA: the diagnosis's threshold)
 
 if TYPE_CHECKING:
     from quadcore.identify.sufficient import Flights, Signals
@@ -63,7 +63,6 @@ BLOCK_S = 1.0  # length of the blocks (clusters) of the held-out test, s
 NOISE_MARGIN = 0.10  # a channel within this fraction (RMS) of its noise floor holds no evidence
 MIN_EXPLAINED = 0.05  # screening: below this share of the residual a candidate adds nothing beyond the best one
 MIN_SIGMA = 3.0  # a fit within this many standard errors of 'no effect' is not significant
-BOUND_SIGMA = 3.0  # a free fit beyond a physical bound by more than this many standard errors is unphysical
 LIBRARY_SHARE = 0.5  # found candidates removing less than this share of the above-noise residual: outside the library
 SAME_SIGNATURE = 0.1  # share of one prediction another candidate cannot reproduce, below which they are alike
 TIE_MARGIN = 0.02  # score difference within which two alike candidates are a tie (parsimony decides)

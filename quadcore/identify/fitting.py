@@ -51,9 +51,11 @@ from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
+    from quadcore.identify.model import HeldBound
     from quadcore.identify.sufficient import Flights, FlightStats
 
 SAMPLES_PER_INDEPENDENT = signals.WINDOW
+BOUND_SIGMA = 3.0  # a free fit beyond a physical bound by more than this many standard errors is unphysical
 
 
 def smoothed_wrench(f: np.ndarray, tau: np.ndarray, state: FlightState) -> np.ndarray:
@@ -408,6 +410,26 @@ def solved_linear(lin: list[Effect], A: np.ndarray, b: np.ndarray, yy: float, n:
     return Fit(params, std, w, active, free)
 
 
+def held_bounds(fit: Fit, effect: Effect) -> dict[str, HeldBound]:
+    """The parameters of ``effect`` a bounded ``fit`` holds at a physical bound, each with its free
+    value and how many standard errors that lies beyond the bound. Beyond by more than
+    ``BOUND_SIGMA``: the effect's form does not fit the data (the free fit absorbs something the
+    effect cannot be), which is said rather than hidden behind the bound."""
+    from quadcore.identify.model import HeldBound
+
+    free = fit.free or fit
+    out = {}
+    for k, bound in fit.active.get(effect.name, {}).items():
+        v, s = float(free.params[effect.name][k]), float(free.std[effect.name].get(k, 0.0))
+        z = abs(v - bound) / s if s > 0 else float(np.inf)
+        where = f"{k} held at its bound {bound:g} (free fit {v:.3g} ± {s:.2g}, {z:.1f} σ beyond it)"
+        note = (f"{where}: {effect.name}'s form does not fit the data; the fit absorbs something else "
+                "(a missing effect, or this one's form is wrong)" if z > BOUND_SIGMA
+                else f"{where}: within noise of it")
+        out[k] = HeldBound(float(bound), v, s, float(z), note)
+    return out
+
+
 def outside_bounds(effect: Effect, params: dict[str, float]) -> list[str]:
     """The parameters of ``effect`` outside their physical bounds."""
     return [p.name for p in effect.parameters if not p.lower <= params[p.name] <= p.upper]
@@ -440,12 +462,17 @@ def bounded_linear_parameters(lin: list[Effect], A: np.ndarray, b: np.ndarray, y
     ps = [p for e in lin for p in e.parameters]
     lo, hi = np.array([p.lower for p in ps]), np.array([p.upper for p in ps])
     if all(type(e).from_linear is Effect.from_linear for e in lin):
+        # in coordinates scaled to unit diagonal (u = d θ): parameters of very different sizes (a
+        # discovered term's 1e-7 beside a drag's 0.04) would otherwise leave the small eigenvalues
+        # of A, dropped below 1e-12 of the largest, carrying whole parameters
         default = np.array([p.default for p in ps])
-        lam, V = np.linalg.eigh(A)
+        d = np.sqrt(np.diag(A))
+        d = np.where(d > 0, d, 1.0)
+        lam, V = np.linalg.eigh(A / np.outer(d, d))
         keep = lam > lam.max(initial=0.0) * 1e-12
         M = np.sqrt(lam[keep])[:, None] * V[:, keep].T
-        y = (V[:, keep].T @ b) / np.sqrt(lam[keep])
-        x = default + lsq_linear(M, y, bounds=(lo - default, hi - default), method="bvls").x
+        y = (V[:, keep].T @ (b / d)) / np.sqrt(lam[keep])
+        x = default + lsq_linear(M, y, bounds=((lo - default) * d, (hi - default) * d), method="bvls").x / d
     else:
         span = hi - lo
 
@@ -652,7 +679,9 @@ def _from_statistics(spec, effects: list[Effect]) -> bool:
 def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None, log=None,
               stats=None):
     """Fit the effects a :class:`quadcore.identify.model.ModelSpec` names on the ``train`` flights (its
-    ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`).
+    ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`), within
+    their parameters' physical bounds; a parameter held at a bound says so in its term
+    (:func:`held_bounds`: its free value, and whether that is within noise of the bound).
 
     A model of linear effects, and one effect with a single nonlinear parameter (not fixed) beside
     them, is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`, the
@@ -682,6 +711,7 @@ def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list
         from quadcore.identify import sessions as sessionlib
 
         return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None))
-    fit = fit_effects(effect_list, flights, [targets[f] for f in train], spec.vehicle, spec.fixed)
-    terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed) for e in effect_list]
+    fit = fit_effects(effect_list, flights, [targets[f] for f in train], spec.vehicle, spec.fixed, bounded=True)
+    terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed, held=held_bounds(fit, e))
+             for e in effect_list]
     return PhysicsModel(spec.vehicle, terms, *maps)

@@ -26,9 +26,32 @@ from quadcore.physics.vehicle import Vehicle
 from quadcore.spec.model import ModelFileError, ModelSpec
 
 
+@dataclass(frozen=True)
+class HeldBound:
+    """A fitted parameter held at a physical bound: the bound, the free fit (without bounds) and
+    its standard error, how many of them the free value lies beyond the bound, and ``note``: what
+    that says (within noise of the bound, or a form that does not fit the data)."""
+
+    bound: float
+    free: float
+    free_std: float
+    beyond_sigma: float
+    note: str
+
+    def to_dict(self) -> dict:
+        return {"bound": self.bound, "free": self.free, "free_std": self.free_std,
+                "beyond_sigma": self.beyond_sigma, "note": self.note}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> HeldBound:
+        return cls(float(d["bound"]), float(d["free"]), float(d["free_std"]), float(d["beyond_sigma"]),
+                   str(d.get("note", "")))
+
+
 @dataclass
 class EffectTerm:
-    """An effect in the model with its parameter values (SI) and their standard errors."""
+    """An effect in the model with its parameter values (SI) and their standard errors;
+    ``held``: the parameters the fit held at a physical bound (their free fit left it)."""
 
     name: str
     params: dict[str, float]
@@ -37,6 +60,8 @@ class EffectTerm:
     # fitted per session: session -> parameters (and their std); ``params`` is then the fleet value
     per_session: dict[str, dict[str, float]] = field(default_factory=dict)
     per_session_std: dict[str, dict[str, float]] = field(default_factory=dict)
+    held: dict[str, HeldBound] = field(default_factory=dict)
+    per_session_held: dict[str, dict[str, HeldBound]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         # a parameter not given is at its 'no effect' value (as the simulator takes it): a model
@@ -53,6 +78,11 @@ class EffectTerm:
         out = {"name": self.name, "params": self.params, "std": self.std, "fixed": self.fixed}
         if self.per_session:
             out |= {"per_session": self.per_session, "per_session_std": self.per_session_std}
+        if self.held:
+            out["held_at_bound"] = {k: h.to_dict() for k, h in self.held.items()}
+        if self.per_session_held:
+            out["per_session_held_at_bound"] = {s: {k: h.to_dict() for k, h in held.items()}
+                                                for s, held in self.per_session_held.items()}
         return out
 
 
@@ -95,7 +125,8 @@ class PhysicsModel:
             warnings.warn(f"flight {flight!r} is in no fitted session: {', '.join(t.name for t in split)} "
                           "at the fleet value", stacklevel=2)
             return PhysicsModel(vehicle, self.terms, self.sessions, self.session_maps, self.session_patterns)
-        terms = [EffectTerm(t.name, t.per_session[session], t.per_session_std.get(session, {}), t.fixed)
+        terms = [EffectTerm(t.name, t.per_session[session], t.per_session_std.get(session, {}), t.fixed,
+                            held=t.per_session_held.get(session, {}))
                  if t.per_session and session else t for t in self.terms]
         return PhysicsModel(vehicle, terms, self.sessions, self.session_maps, self.session_patterns)
 
@@ -142,11 +173,17 @@ class PhysicsModel:
     @classmethod
     def from_dict(cls, d: dict, vehicle: Vehicle) -> PhysicsModel:
         terms = [EffectTerm(e["name"], dict(e["params"]), dict(e.get("std", {})), e.get("fixed", False),
-                            dict(e.get("per_session", {})), dict(e.get("per_session_std", {})))
+                            dict(e.get("per_session", {})), dict(e.get("per_session_std", {})),
+                            _held(e.get("held_at_bound", {})),
+                            {s: _held(h) for s, h in e.get("per_session_held_at_bound", {}).items()})
                  for e in d.get("effects", [])]
         return cls(vehicle, terms, {k: list(v) for k, v in d.get("sessions", {}).items()},
                    dict(d.get("session_thrust_map", {})),
                    {k: list(v) for k, v in d.get("session_patterns", {}).items()})
+
+
+def _held(d: dict) -> dict[str, HeldBound]:
+    return {k: HeldBound.from_dict(h) for k, h in d.items()}
 
 
 def _defaults(name: str) -> dict[str, float]:

@@ -225,14 +225,15 @@ def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
 
 
 def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None) -> Fit:
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
     """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
     targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
     effect's parameter by the row search's grid, Brent refinement and profile interval
     (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
     effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
     ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
-    the linear effects on what it leaves at the optimum. Those named in ``fixed`` (linear) are
+    the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
+    :func:`quadcore.identify.fitting.solved_linear`). Those named in ``fixed`` (linear) are
     subtracted first."""
     from quadcore.identify import fitting, sufficient
 
@@ -255,8 +256,8 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     params[nonlinear.name] = {p.name: best}
     std[nonlinear.name] = {p.name: float(np.sqrt(max(var, 0.0)))}
     if lin:
-        rss, theta = sums.rss(weights(p.lower, p.upper, best))
-        fitting.linear_parameters(lin, theta, sums.A, rss, sums.n, vehicle, params, std)
+        b, yy = sums.normal(weights(p.lower, p.upper, best))
+        return fitting.solved_linear(lin, sums.A, b, yy, sums.n, vehicle, params, std, w, bounded)
     return fitting.Fit(params, std, w)
 
 
@@ -292,12 +293,16 @@ class _Sums:
             n += 6 * s.n
         return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
 
+    def normal(self, om: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(b, yy)`` of the linear effects' normal equations (their ``A`` is :attr:`A`) on what
+        the profiled effect leaves at weights ``om``."""
+        return self.b0 - self.B @ om, self.const - 2 * float(om @ self.S) + float(om @ self.Q)
+
     def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
         """The residual sum of squares at weights ``om`` and the linear coordinates there."""
-        yy = self.const - 2 * float(om @ self.S) + float(om @ self.Q)
+        b, yy = self.normal(om)
         if not len(self.b0):
             return max(yy, 0.0), np.zeros(0)
-        b = self.b0 - self.B @ om
         theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
         return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
 

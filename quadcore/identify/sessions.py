@@ -229,9 +229,11 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                     sessions: dict[str, list[str]] | None = None, log=lambda msg: None):
     """Fit ``spec`` (a :class:`quadcore.spec.model.ModelSpec` with ``per_session`` effects) on the
     ``train`` flights: the per-session effects on each session's flights, the others on all,
-    alternating ``ROUNDS`` times. Sessions: ``sessions``, else the model file's, else the
-    groups the data show. Returns a :class:`quadcore.identify.model.PhysicsModel` whose per-session
-    terms carry the fleet value (for flights of no session) and one value per session."""
+    alternating ``ROUNDS`` times, every fit within the parameters' physical bounds (a parameter
+    held at one says so in its term: :func:`quadcore.identify.fitting.held_bounds`). Sessions:
+    ``sessions``, else the model file's, else the groups the data show. Returns a
+    :class:`quadcore.identify.model.PhysicsModel` whose per-session terms carry the fleet value (for
+    flights of no session) and one value per session."""
     from quadcore import effects as effectlib
     from quadcore.identify.model import EffectTerm, PhysicsModel
 
@@ -239,7 +241,8 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     every = [effectlib.get(n) for n in spec.effects]
     split = [e for e in every if e.name in spec.per_session]
     shared = [e for e in every if e.name not in spec.per_session]
-    fleet = fitting.fit_effects(every, [fds[f] for f in train], [targets[f] for f in train], vehicle, spec.fixed)
+    fleet = fitting.fit_effects(every, [fds[f] for f in train], [targets[f] for f in train], vehicle, spec.fixed,
+                                bounded=True)
     if sessions is None:
         sessions = spec.sessions_of(sorted(fds)) or found_sessions(split, fds, targets, train, vehicle, spec.fixed)
     members = {s: [f for f in fl if f in train] for s, fl in sessions.items()}
@@ -252,28 +255,32 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
         + ("; ".join(f"{s}: {len(fl)} flights" for s, fl in members.items()) or "no session has a training flight"))
     shared_params = {e.name: fleet.params[e.name] for e in shared}
     shared_std = {e.name: fleet.std[e.name] for e in shared}
+    shared_fit = fleet
     by_session: dict[str, fitting.Fit] = {}
     session_of = {f: s for s, fl in members.items() for f in fl}
     for _ in range(ROUNDS):
         for s, fl in members.items():
             by_session[s] = fitting.fit_effects(every, [fds[f] for f in fl], [targets[f] for f in fl], vehicle,
-                                                {**spec.fixed, **shared_params})
+                                                {**spec.fixed, **shared_params}, bounded=True)
         if not shared or all(e.name in spec.fixed for e in shared):
             break
         ys = []
         for f in train:
             source = by_session[session_of[f]] if f in session_of else fleet
             ys.append(targets[f] - source.predict(split, fds[f], vehicle))
-        fit_s = fitting.fit_effects(shared, [fds[f] for f in train], ys, vehicle, spec.fixed)
-        shared_params, shared_std = fit_s.params, fit_s.std
+        shared_fit = fitting.fit_effects(shared, [fds[f] for f in train], ys, vehicle, spec.fixed, bounded=True)
+        shared_params, shared_std = shared_fit.params, shared_fit.std
     terms = []
     for e in every:
         if e in split:
             terms.append(EffectTerm(e.name, fleet.params[e.name], fleet.std[e.name], False,
                                     {s: fit.params[e.name] for s, fit in by_session.items()},
-                                    {s: fit.std[e.name] for s, fit in by_session.items()}))
+                                    {s: fit.std[e.name] for s, fit in by_session.items()},
+                                    fitting.held_bounds(fleet, e),
+                                    {s: h for s, fit in by_session.items() if (h := fitting.held_bounds(fit, e))}))
         else:
-            terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed))
+            terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed,
+                                    held=fitting.held_bounds(shared_fit, e)))
     return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()}, dict(spec.session_maps),
                         dict(spec.session_patterns))
 

@@ -381,7 +381,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     fixed = fixed or {}
     nonlinear = [e for e in effects if not e.linear]
     if len(nonlinear) == 1 and nonlinear[0].name not in fixed and profiles.covers(nonlinear[0], stats):
-        return profiles.fit_effects(effects, stats, targets, vehicle, fixed)
+        return profiles.fit_effects(effects, stats, targets, vehicle, fixed, bounded)
     if nonlinear:
         raise StatsError(f"nonlinear effect(s) {', '.join(e.name for e in nonlinear)}: fitted from rows, not "
                          "statistics (but one with a profile in every flight's statistics)")

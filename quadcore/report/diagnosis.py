@@ -301,6 +301,16 @@ def _unique(items) -> list[str]:
     return list(dict.fromkeys(items))
 
 
+def model_effects(m: dict) -> pl.DataFrame:
+    """The fitted model's parameters (the JSON of :class:`quadcore.identify.model.PhysicsModel`),
+    with what the fit says of each one held at a physical bound when there is one."""
+    held = any(e.get("held_at_bound") for e in m["effects"])
+    return pl.DataFrame([
+        {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan")),
+         **({"held at a physical bound": e.get("held_at_bound", {}).get(k, {}).get("note", "")} if held else {})}
+        for e in m["effects"] for k, v in e["params"].items()])
+
+
 def session_values(d: dict) -> pl.DataFrame | None:
     """The values the model uses per session (``[per_session]`` in the model file), beside the
     fleet value a flight of no session gets; None when nothing is fitted per session."""
@@ -311,11 +321,16 @@ def session_values(d: dict) -> pl.DataFrame | None:
             for k, v in values.items():
                 rows.append({"effect": e["name"], "parameter": k, "session": s, "value": v,
                              "std": e.get("per_session_std", {}).get(s, {}).get(k, float("nan")),
-                             "flights": f"{len(flights)}: {_flight_list(flights)}" if flights else "-"})
+                             "flights": f"{len(flights)}: {_flight_list(flights)}" if flights else "-",
+                             "held at a physical bound":
+                                 e.get("per_session_held_at_bound", {}).get(s, {}).get(k, {}).get("note", "")})
         if e.get("per_session"):
             for k, v in e["params"].items():
                 rows.append({"effect": e["name"], "parameter": k, "session": "fleet (flights of no session)",
-                             "value": v, "std": e["std"].get(k, float("nan")), "flights": "-"})
+                             "value": v, "std": e["std"].get(k, float("nan")), "flights": "-",
+                             "held at a physical bound": e.get("held_at_bound", {}).get(k, {}).get("note", "")})
+    if rows and not any(r["held at a physical bound"] for r in rows):
+        rows = [{k: v for k, v in r.items() if k != "held at a physical bound"} for r in rows]
     return pl.DataFrame(rows) if rows else None
 
 
@@ -363,10 +378,7 @@ def sections(d: dict, hist: pl.DataFrame | None = None, disc: dict | None = None
         })),
     ]
     if d["model"]["effects"]:
-        out.append(("Effects in the model (fleet values)", "table", pl.DataFrame([
-            {"effect": e["name"], "parameter": k, "value": v, "std": e["std"].get(k, float("nan"))}
-            for e in d["model"]["effects"] for k, v in e["params"].items()
-        ])))
+        out.append(("Effects in the model (fleet values)", "table", model_effects(d["model"])))
     if per_session is not None:
         out.append(("Values per session, as the model uses them", "table", per_session))
     cands = (pl.DataFrame(verdict.candidate_summary(CandidateScore.from_dict(r) for r in d["candidates"]))

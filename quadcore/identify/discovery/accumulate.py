@@ -174,5 +174,6 @@ def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[st
         return None
     log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
     fds_train = [fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
-    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed)
+    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed,
+                              bounded=True)
     return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
