@@ -38,7 +38,7 @@ from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
 from quadcore.spec.model import spec_from
 from quadcore.store import store
-from quadcore.workflows import learn as learn_workflow
+from quadcore.workflows import fleet, learn as learn_workflow
 
 VEHICLE = vehicle.load()
 HIDDEN = {"rotor_drag": {"k_x_s_per_m": 0.3, "k_y_s_per_m": 0.3}}
@@ -480,7 +480,7 @@ def test_dagster_assets(tmp_path, residual_tables):
 
 @pytest.mark.slow  # the real fleet
 def test_real_logs_holdout_jana02(real_logs, tmp_path):
-    flights, _ = cli.load_flights([str(real_logs)], None, log=lambda m: None)
+    flights, _ = fleet.decode_logs([str(real_logs)], None, log=lambda m: None)
     nominal = model.PhysicsModel(VEHICLE, [])
     res = {f.flight_id: nominal.residual_table(f.tables["fixedFrequency"]) for f in flights}
     assert len(res) == 19
