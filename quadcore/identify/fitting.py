@@ -51,7 +51,7 @@ from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
-    from quadcore.identify.model import HeldBound
+    from quadcore.identify.model import EffectTerm, HeldBound
     from quadcore.identify.sufficient import Flights, FlightStats
 
 SAMPLES_PER_INDEPENDENT = signals.WINDOW
@@ -667,6 +667,15 @@ def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     return [ids[i::k] for i in range(k)]
 
 
+def model_terms(effects: list[Effect], fit: Fit, fixed: Mapping[str, dict[str, float]]) -> list[EffectTerm]:
+    """The model's terms from its effects' fit (within their bounds): values, standard errors,
+    whether fixed, and the parameters held at a bound (:func:`held_bounds`)."""
+    from quadcore.identify.model import EffectTerm
+
+    return [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in fixed, held=held_bounds(fit, e))
+            for e in effects]
+
+
 def _from_statistics(spec, effects: list[Effect]) -> bool:
     """Whether :func:`fit_model` fits ``effects`` from the flights' statistics."""
     from quadcore.identify import profiles
@@ -690,7 +699,7 @@ def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list
     effects beside a nonlinear one included) reads every training flight's rows."""
     from quadcore.effects import get
     from quadcore.identify import sufficient
-    from quadcore.identify.model import EffectTerm, PhysicsModel
+    from quadcore.identify.model import PhysicsModel
 
     effect_list = [get(n) for n in spec.effects]
     maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
@@ -712,6 +721,5 @@ def fit_model(spec, decoded: Mapping, train: list[str], sessions: dict[str, list
 
         return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None))
     fit = fit_effects(effect_list, flights, [targets[f] for f in train], spec.vehicle, spec.fixed, bounded=True)
-    terms = [EffectTerm(e.name, fit.params[e.name], fit.std[e.name], e.name in spec.fixed, held=held_bounds(fit, e))
-             for e in effect_list]
+    terms = model_terms(effect_list, fit, spec.fixed)
     return PhysicsModel(spec.vehicle, terms, *maps)

@@ -16,7 +16,7 @@ import polars as pl
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
 from quadcore.identify.fitting import FlightData
-from quadcore.identify.model import EffectTerm, PhysicsModel
+from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
 TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
@@ -187,7 +187,8 @@ def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, l
     if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
         pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log)
         return pm, {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
-    fit_m = fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed)
+    fit_m = fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
+                                bounded=True)  # the model within its bounds, as fit_model
     return fit_m, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in {*train, *test}}
 
 
@@ -245,9 +246,9 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
                                                                                  sessions, log)
         return model, {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
     fit_m = (fold_fit if fold_fit is not None
-             else fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed))
-    model = PhysicsModel(p.vehicle, [EffectTerm(e.name, fit_m.params[e.name], fit_m.std[e.name],
-                                                e.name in spec.fixed) for e in p.model_effects],
+             else fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
+                                      bounded=True))
+    model = PhysicsModel(p.vehicle, fitting.model_terms(p.model_effects, fit_m, spec.fixed),
                          spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
     return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
 
