@@ -52,22 +52,25 @@ import numpy as np
 from scipy import stats
 
 from quadcore.identify import fitting, ranges
-from quadcore.identify.fitting import BOUND_SIGMA, FlightData  # noqa: F401  (BOUND_SIGMA: the diagnosis's threshold)
+from quadcore.identify.fitting import FlightData
+from quadcore.identify.settings import DEFAULT, STATISTICS, DiagnosisSettings
 
 if TYPE_CHECKING:
     from quadcore.identify.sufficient import Flights, Signals
 
-ALPHA = 0.01  # one-sided false-alarm probability of the held-out test, per candidate
-POWER = 0.9  # detection probability the sensitivity is stated at
-BLOCK_S = 1.0  # length of the blocks (clusters) of the held-out test, s
-NOISE_MARGIN = 0.10  # a channel within this fraction (RMS) of its noise floor holds no evidence
-MIN_EXPLAINED = 0.05  # screening: below this share of the residual a candidate adds nothing beyond the best one
-MIN_SIGMA = 3.0  # a fit within this many standard errors of 'no effect' is not significant
-LIBRARY_SHARE = 0.5  # found candidates removing less than this share of the above-noise residual: outside the library
-SAME_SIGNATURE = 0.1  # share of one prediction another candidate cannot reproduce, below which they are alike
-TIE_MARGIN = 0.02  # score difference within which two alike candidates are a tie (parsimony decides)
-LARGE_SNR = 3.0  # a found effect whose removed residual exceeds this many noise floors (RMS) is "large"
-SECANT = 0.01  # share of a parameter's range over which its unit wrench is taken
+# The defaults of quadcore.identify.settings (their meaning there) under the names the code reads;
+# the diagnosis takes its own DiagnosisSettings.
+ALPHA = DEFAULT.alpha
+POWER = DEFAULT.power
+BLOCK_S = STATISTICS.block_s
+NOISE_MARGIN = DEFAULT.noise_margin
+MIN_EXPLAINED = DEFAULT.min_explained
+MIN_SIGMA = DEFAULT.min_sigma
+LIBRARY_SHARE = DEFAULT.library_share
+SAME_SIGNATURE = DEFAULT.same_signature
+TIE_MARGIN = DEFAULT.tie_margin
+LARGE_SNR = DEFAULT.large_snr
+SECANT = STATISTICS.secant
 CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
 
 
@@ -205,8 +208,8 @@ def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np
     return HeldOutTest(float(np.mean(g)), t, float(2 * stats.t.sf(abs(t), n - 1)), n)
 
 
-def critical_t(blocks: int, n_candidates: int = 1) -> float:
-    return float(stats.t.isf(alpha_each(n_candidates), max(blocks - 1, 1)))
+def critical_t(blocks: int, n_candidates: int = 1, alpha: float = ALPHA) -> float:
+    return float(stats.t.isf(alpha_each(n_candidates, alpha), max(blocks - 1, 1)))
 
 
 def unit_wrench(effect, param, fd: FlightData, vehicle) -> np.ndarray:
@@ -220,9 +223,9 @@ def unit_wrench(effect, param, fd: FlightData, vehicle) -> np.ndarray:
     return (fitting.prediction(effect, params, fd, vehicle) - base) / step
 
 
-def alpha_each(n_candidates: int) -> float:
-    """Per-candidate level of the held-out test: ``ALPHA`` for the whole library (Bonferroni)."""
-    return ALPHA / max(n_candidates, 1)
+def alpha_each(n_candidates: int, alpha: float = ALPHA) -> float:
+    """Per-candidate level of the held-out test: ``alpha`` for the whole library (Bonferroni)."""
+    return alpha / max(n_candidates, 1)
 
 
 @dataclass(frozen=True)
@@ -237,22 +240,22 @@ class LimitAsk:
 
 
 def detection_limits(flights: Flights, resid: Signals, asks: Sequence[LimitAsk], floor_ss: np.ndarray,
-                     min_sigma: float, n_candidates: int = 1) -> list[float]:
+                     n_candidates: int = 1, settings: DiagnosisSettings = DEFAULT) -> list[float]:
     """Per ask: the smallest |deviation| of a parameter with its unit wrench that the test, the
     fit's significance and the noise floor all let through (see the module); inf if none. On
     statistics, every ask's sums come from one read of each flight's Gram matrices."""
     pairs = [pair for a in asks for pair in ((a.unit, resid), (a.unit, a.unit))]
     *sums, rr_c = block_channel_sums(flights, [*pairs, (resid, resid)])
     n = sum(fd.n for fd in flights)
-    return [_limit(sums[2 * k], sums[2 * k + 1], rr_c, n, floor_ss, min_sigma, n_candidates, a)
+    return [_limit(sums[2 * k], sums[2 * k + 1], rr_c, n, floor_ss, n_candidates, a, settings)
             for k, a in enumerate(asks)]
 
 
 def _limit(ur_c: np.ndarray, uu_c: np.ndarray, rr_c: np.ndarray, n: int, floor_ss: np.ndarray,
-           min_sigma: float, n_candidates: int, ask: LimitAsk) -> float:
+           n_candidates: int, ask: LimitAsk, settings: DiagnosisSettings) -> float:
     """:func:`detection_limits` of one ask from its per-block, per-channel sums (unit·residual,
     unit·unit, residual·residual); each channel's sums are these weighted by its mask."""
-    z_power = float(stats.norm.isf(1 - POWER))
+    z_power = float(stats.norm.isf(1 - settings.power))
     best = np.inf
     for ch in CHANNELS:
         w = channel_mask([ch])
@@ -265,16 +268,16 @@ def _limit(ur_c: np.ndarray, uu_c: np.ndarray, rr_c: np.ndarray, n: int, floor_s
         R = float((rr_c @ w).sum())
         F = float(floor_ss[CHANNELS[ch]].sum())
         Q = len(ur) / (len(ur) - 1) * float(np.sum((ur - beta * uu) ** 2))
-        v_test = (critical_t(len(ur), n_candidates) + z_power) * np.sqrt(Q) / S
+        v_test = (critical_t(len(ur), n_candidates, settings.alpha) + z_power) * np.sqrt(Q) / S
         ms = max(R - beta**2 * S, 0.0) / (3 * n)
-        v_sigma = (min_sigma + z_power) * np.sqrt(ms * fitting.SAMPLES_PER_INDEPENDENT / S)
-        v_floor = np.sqrt(max(0.0, (1 + NOISE_MARGIN) ** 2 * F - R) / S)
+        v_sigma = (settings.min_sigma + z_power) * np.sqrt(ms * fitting.SAMPLES_PER_INDEPENDENT / S)
+        v_floor = np.sqrt(max(0.0, (1 + settings.noise_margin) ** 2 * F - R) / S)
         v_share = np.sqrt(ask.min_share * (R + ask.base_ss) / S)
         best = min(best, max(v_test, v_sigma, v_floor, v_share))
     return float(best)
 
 
-def at_noise_level(resid_ss: np.ndarray, floor_ss: np.ndarray) -> dict[str, bool]:
-    """Per channel: is the residual (sum of squares per axis) within the margin of its floor?"""
-    return {ch: bool(resid_ss[sl].sum() <= (1 + NOISE_MARGIN) ** 2 * floor_ss[sl].sum())
+def at_noise_level(resid_ss: np.ndarray, floor_ss: np.ndarray, margin: float = NOISE_MARGIN) -> dict[str, bool]:
+    """Per channel: is the residual (sum of squares per axis) within ``margin`` (RMS) of its floor?"""
+    return {ch: bool(resid_ss[sl].sum() <= (1 + margin) ** 2 * floor_ss[sl].sum())
             for ch, sl in CHANNELS.items()}

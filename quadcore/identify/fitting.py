@@ -46,6 +46,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from quadcore.effects import Effect
+from quadcore.identify.settings import DEFAULT
 from quadcore.physics import dynamics, residuals, signals
 from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
@@ -55,7 +56,8 @@ if TYPE_CHECKING:
     from quadcore.identify.sufficient import Flights, FlightStats
 
 SAMPLES_PER_INDEPENDENT = signals.WINDOW
-BOUND_SIGMA = 3.0  # a free fit beyond a physical bound by more than this many standard errors is unphysical
+# a free fit beyond a physical bound by more than this many standard errors is unphysical (the settings' default)
+BOUND_SIGMA = DEFAULT.bound_sigma
 
 
 def smoothed_wrench(f: np.ndarray, tau: np.ndarray, state: FlightState) -> np.ndarray:

@@ -13,15 +13,17 @@ import numpy as np
 import polars as pl
 
 from quadcore.identify.fitting import FlightData
+from quadcore.identify.settings import STATISTICS
 from quadcore.physics import rotations, signals
 from quadcore.physics.dynamics import GRAVITY_W_MPS2, XYZ
 
-SPEED_BINS = [0.0, 0.25, 0.5, 1.0, 1.5]
-HEIGHT_BINS = [-np.inf, 0.1, 0.3, 0.6, 1.0]
-THRUST_BINS = [0.0, 0.8, 0.95, 1.05, 1.2]
-RATE_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
-VBAT_BINS = [0.0, 3.5, 3.7, 3.9]
-ACCEL_BINS = [0.0, 0.5, 1.0, 2.0, 4.0]
+# the bins' edges (quadcore.identify.settings.STATISTICS)
+SPEED_BINS = list(STATISTICS.speed_bins_mps)
+HEIGHT_BINS = list(STATISTICS.height_bins_m)
+THRUST_BINS = list(STATISTICS.thrust_to_weight_bins)
+RATE_BINS = list(STATISTICS.angular_rate_bins_radps)
+VBAT_BINS = list(STATISTICS.battery_bins_V)
+ACCEL_BINS = list(STATISTICS.acceleration_bins_mps2)
 
 
 @dataclass

@@ -59,6 +59,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify import profiles
+from quadcore.identify.settings import STATISTICS
 from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import Vehicle
 from quadcore.store import store
@@ -74,7 +75,8 @@ Record = TypeVar("Record")  # what a per-flight record file is read as
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
-GRAM_STRIDE = 4  # every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis.span._SpanOverlap)
+# every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis.span._SpanOverlap)
+GRAM_STRIDE = STATISTICS.gram_stride
 
 
 class StatsError(ValueError):
@@ -471,10 +473,11 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 
 # The code a flight's statistics come from besides the effects' own classes: the state and the
 # nominal residual (dynamics, residuals, signals), the usable mask, noise floor and voltage
-# (fitting.flight_data), the blocks (evidence.BLOCK_S), the bases' helpers, this module and the
-# summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
-CODE_MODULES = ("quadcore.physics.dynamics", "quadcore.physics.residuals", "quadcore.physics.signals",
-                "quadcore.physics.rotations", "quadcore.identify.fitting", "quadcore.identify.evidence",
+# (fitting.flight_data), the blocks and strides (settings.STATISTICS), the bases' helpers, this module and
+# the summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
+CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quadcore.physics.residuals",
+                "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.fitting",
+                "quadcore.identify.evidence",
                 "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles",
                 "quadcore.identify.summaries", "quadcore.identify.regimes", "quadcore.identify.spectrum")
 

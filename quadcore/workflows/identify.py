@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from quadcore.commands import quadcore_command
 from quadcore.identify import diagnosis, fitting, history, model, sufficient
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
@@ -87,14 +88,16 @@ def diagnosis_flights(fleet: Fleet, named: list[str], where: str = "the decoded 
 
 
 def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
-             where: str = "the decoded flights", stats=None, discover_command: str | None = None) -> Diagnosis:
+             where: str = "the decoded flights", stats=None, discover_command: str | None = None,
+             settings: DiagnosisSettings = DEFAULT) -> Diagnosis:
     """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
     with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`;
-    ``discover_command``: the command the verdict points to when what is left is outside the library."""
+    ``discover_command``: the command the verdict points to when what is left is outside the library;
+    ``settings``: its thresholds and folds."""
     seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
-                                stats=stats, discover_command=discover_command)
+                                stats=stats, discover_command=discover_command, settings=settings)
     return result.with_skipped(fleet.skipped)
 
 

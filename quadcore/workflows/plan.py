@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from quadcore.identify.diagnosis.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.settings import DiagnosisSettings
 from quadcore.plan import pieces, planner
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, sessions_of
@@ -100,7 +101,8 @@ def diagnosis_from_document(doc: dict, spec: ModelSpec) -> Diagnosis:
         candidates=tuple(CandidateScore.from_dict(c) for c in doc["candidates"]), sensitivity=doc["sensitivity"],
         sensitivity_basis=doc["sensitivity_basis"], verdict=doc["verdict"],
         stability=Stability.from_dict(doc.get("stability")), disagreements=(),
-        regimes=pl.DataFrame(), flights=pl.DataFrame(), worst_segments=pl.DataFrame(), frequency={})
+        regimes=pl.DataFrame(), flights=pl.DataFrame(), worst_segments=pl.DataFrame(), frequency={},
+        settings=DiagnosisSettings.from_dict(doc.get("settings")))
 
 
 def plan_data_root(root, fleet: Fleet, spec: ModelSpec, request: PlanRequest, log: Log = _quiet

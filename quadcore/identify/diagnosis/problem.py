@@ -17,6 +17,7 @@ from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
 from quadcore.identify.fitting import FlightData
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.settings import DiagnosisSettings
 from quadcore.spec.model import ModelSpec
 
 TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
@@ -287,15 +288,15 @@ class _HeldOut:
     w: np.ndarray
 
 
-def _held_out(p: _Problem, folds: _Folds) -> _HeldOut:
+def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldOut:
     eval_ids = sorted(folds.eval_resid)
     eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.model_effects + p.cands)
     before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
-    # The sensor-noise floor: a channel whose residual is within evidence.NOISE_MARGIN of it
+    # The sensor-noise floor: a channel whose residual is within settings.noise_margin of it
     # holds no evidence FOR an effect (only against one that would add error there).
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
-    at_noise = evidence.at_noise_level(before, noise_ss)
+    at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
     w = _weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
     return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from quadcore.identify.model import VEHICLE_DIGEST
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 if TYPE_CHECKING:
     import polars as pl
@@ -224,6 +225,7 @@ class Diagnosis:
     # when what the library finds removes less than evidence.LIBRARY_SHARE of the above-noise
     # residual: the channel, that share, the residual left in noise floors (RMS), the command to run
     outside_library: Mapping[str, Any] | None = None
+    settings: DiagnosisSettings = DEFAULT  # the thresholds and folds it was made with
 
     def with_skipped(self, skipped: Mapping[str, str]) -> Diagnosis:
         return replace(self, skipped_flights=dict(skipped))
@@ -238,6 +240,7 @@ class Diagnosis:
             "effects_in_model": list(self.effects_in_model),
             "model": {k: v for k, v in self.model.to_dict().items() if k != VEHICLE_DIGEST},  # the pinned contract
             "evaluation": self.evaluation.to_dict(),
+            "settings": self.settings.to_dict(),
             "baseline": self.baseline.to_dict(),
             "noise_floor": self.noise_floor.to_dict(),
             "at_noise_level": dict(self.at_noise_level),

@@ -37,12 +37,9 @@ from quadcore.identify.diagnosis.scoring import _beyond_the_best, _decide, _ev, 
 from quadcore.identify.diagnosis.sensitivity import sensitivity_basis
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import verdict
-from quadcore.identify.evidence import (
-    LIBRARY_SHARE,
-    MIN_EXPLAINED,
-)
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.spec.model import ModelSpec
 
 
@@ -51,7 +48,7 @@ def diagnose(
     spec: ModelSpec,
     holdout: list[str] | None = None,
     candidates: list[str] | None = None,
-    n_folds: int = 5,
+    settings: DiagnosisSettings = DEFAULT,
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
     stats=None,
@@ -69,44 +66,47 @@ def diagnose(
     (:mod:`quadcore.identify.summaries`) give the regime tables and spectra (their rows where a
     flight has no current summary, and for every flight of a model with a nonlinear effect).
     ``discover_command``: the ``quadcore discover`` command the verdict points to when what is
-    left is outside the library (None: one with placeholders for the logs and the model file)."""
+    left is outside the library (None: one with placeholders for the logs and the model file).
+    ``settings``: the thresholds and folds it decides by (:class:`~quadcore.identify.settings.DiagnosisSettings`),
+    recorded in the result."""
     p = _Problem(decoded, spec, candidates, stats)
-    splits, train_all, mode = _splits(p.ids, holdout, n_folds)
+    splits, train_all, mode = _splits(p.ids, holdout, settings.n_folds)
     folds = _cross_fit(p, splits, sessions, log)
     # With a single split on all training flights (holdout), its fits are the final ones.
     reuse = len(splits) == 1 and splits[0][0] == train_all
     model, resid_train = _training_model(p, folds.model_fit if reuse else None, train_all, sessions, log)
-    fold_params, free_params = (_group_spread(p, train_all, resid_train, n_folds) if reuse and len(train_all) >= 3
-                                else (folds.params, folds.free_params))
+    fold_params, free_params = (_group_spread(p, train_all, resid_train, settings.n_folds)
+                                if reuse and len(train_all) >= 3 else (folds.params, folds.free_params))
 
-    held = _held_out(p, folds)
+    held = _held_out(p, folds, settings)
     rows: list[dict[str, Any]] = []
     # every candidate's held-out sums at once (on statistics: one read of the Gram matrices)
     tests = evidence.held_out_sums(held.flights, held.resid, [held.cand_pred[c.name] for c in p.cands])
     for c, test_sums in zip(p.cands, tests):
         fit_c = folds.fits[c.name] if reuse else p.fit_candidate(c, train_all, resid_train)
-        rows.append(_score(c, held, fit_c, (fold_params[c.name], free_params[c.name]), test_sums))
+        rows.append(_score(c, held, fit_c, (fold_params[c.name], free_params[c.name]), test_sums,
+                           settings))
     for r in rows:
-        _decide(r, held.at_noise, len(rows))
+        _decide(r, held.at_noise, len(rows), settings)
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)
-    _mark_alike(rows, span, held, p)
+    _mark_alike(rows, span, held, p, settings)
     rows = _rank(rows)
-    sensitivity = _beyond_the_best(rows, span, held, p)
-    outside = _outside_library(rows, held, discover_command or _discover_placeholder(spec))
+    sensitivity = _beyond_the_best(rows, span, held, p, settings)
+    outside = _outside_library(rows, held, discover_command or _discover_placeholder(spec), settings.library_share)
     disagree = _session_disagreements(p, rows, sessions, log)
     evaluation = Evaluation(mode, len(splits), tuple(train_all), tuple(held.ids), held.n)
     return _assemble(p, held, model, evaluation, rows, sensitivity, disagree, outside,
-                     _stability(rows, splits, held))
+                     _stability(rows, splits, held, settings), settings)
 
 
 def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[dict],
               sensitivity: dict, disagree: list, outside: dict[str, Any] | None,
-              stability: Stability) -> Diagnosis:
+              stability: Stability, settings: DiagnosisSettings) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
     and in frequency (from their rows) and the verdict: how stable its answer is leads it when
     the answer flips between folds, and closes it otherwise, with the protocol."""
     described = _by_flight(p, held)
-    text = verdict(rows, held.at_noise, sensitivity, outside)
+    text = verdict(rows, held.at_noise, sensitivity, outside, settings)
     if disagree:
         text += " Parameters differ between groups of flights: " + "; ".join(d.summary() for d in disagree) + "."
     if stability.undecided_between:
@@ -126,7 +126,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
                            else None for ch, sl in TARGET_CHANNELS.items()},
         candidates=tuple(CandidateScore.from_dict(r) for r in rows),
         sensitivity=sensitivity,
-        sensitivity_basis=sensitivity_basis(p.cands),
+        sensitivity_basis=sensitivity_basis(p.cands, settings),
         verdict=text,
         stability=stability,
         disagreements=tuple(disagree),
@@ -135,6 +135,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         worst_segments=described.worst_segments,
         frequency=described.frequency,
         outside_library=outside if outside is not None and outside["channels"] else None,
+        settings=settings,
     )
 
 
@@ -202,12 +203,12 @@ def _discover_placeholder(spec: ModelSpec) -> str:
     return f"quadcore discover LOGS {model_arg} --json discovery.json"
 
 
-def _outside_library(rows: list[dict], held: _HeldOut, command: str) -> dict[str, Any] | None:
+def _outside_library(rows: list[dict], held: _HeldOut, command: str, library_share: float) -> dict[str, Any] | None:
     """Whether what the library finds is only a small part of what is left, per channel: the
     share of the held-out residual *above the sensor-noise floor* that the found candidates of
     that channel remove -- the best of them alone (held out), and in the best candidate's channel
     plus what the others also missing there remove on top of it (``explained_after_top``, as a
-    share above the floor) -- is below ``LIBRARY_SHARE``. Then those candidates are ``partial``
+    share above the floor) -- is below ``library_share``. Then those candidates are ``partial``
     (not found: an effect may be real and still not be what is missing) and the verdict says that
     the rest is outside the library and how to search for it (``command``). Returns
     ``{"channels": [{channel, best, explained_above_noise, residual_to_noise_after,
@@ -227,7 +228,7 @@ def _outside_library(rows: list[dict], held: _HeldOut, command: str) -> dict[str
         share = best["explained_above_noise"] + (sum(r["explained_after_top"] * before / (before - floor)
                                                      for r in mine[1:] if r["status"] == "found")
                                                  if best is top else 0.0)
-        if share >= LIBRARY_SHARE:
+        if share >= library_share:
             continue
         for r in mine:
             r["found"] = r["useful"] = False
@@ -241,11 +242,11 @@ def _outside_library(rows: list[dict], held: _HeldOut, command: str) -> dict[str
     return {"channels": out, "command": command} if out else None
 
 
-def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str]) -> str:
+def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:
     """The answer of one fold (its test ``flights``): the physical candidate whose held-out
     prediction (fitted without them) removes the largest share of their residual, scored as the
     ranking scores (force and torque averaged, channels at the fleet's or the fold's noise floor
-    clipped), :data:`NOTHING` when none removes ``MIN_EXPLAINED`` of its channel, or
+    clipped), :data:`NOTHING` when none removes ``min_explained`` of its channel, or
     :data:`NO_EVIDENCE` when the fold's residual is at its own noise floor on every channel (a
     hover shows no drag: that is no vote against it)."""
     index = {f: i for i, f in enumerate(held.ids)}
@@ -253,7 +254,7 @@ def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str]) -> str:
     before = _total(_ss(held.resid[f], fd) for f, fd in zip(flights, fds))
     # The fold's own noise floor: a channel at it holds no evidence for an effect in these
     # flights (as the fleet's in the ranking); with every channel there, the fold abstains.
-    at_noise = evidence.at_noise_level(before, _total(fd.noise ** 2 * fd.n for fd in fds))
+    at_noise = evidence.at_noise_level(before, _total(fd.noise ** 2 * fd.n for fd in fds), settings.noise_margin)
     if all(at_noise.values()):
         return NO_EVIDENCE
     best, best_score, best_ev = NOTHING, 0.0, 0.0
@@ -266,10 +267,11 @@ def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str]) -> str:
               for ch, x in ((ch, _ev(before, after, sl)) for ch, sl in TARGET_CHANNELS.items())]
         if 0.5 * sum(ev) > best_score:
             best, best_score, best_ev = r["effect"], 0.5 * sum(ev), max(ev)
-    return best if best_ev >= MIN_EXPLAINED else NOTHING
+    return best if best_ev >= settings.min_explained else NOTHING
 
 
-def _stability(rows: list[dict], splits: list[tuple[list[str], list[str]]], held: _HeldOut) -> Stability:
+def _stability(rows: list[dict], splits: list[tuple[list[str], list[str]]], held: _HeldOut,
+               settings: DiagnosisSettings) -> Stability:
     """How many folds agree on the top answer (:class:`quadcore.identify.diagnosis.results.Stability`): the
     cross-validation's folds, or with one split each held-out flight. From the held-out
     predictions the scores already hold: no refit."""
@@ -278,5 +280,5 @@ def _stability(rows: list[dict], splits: list[tuple[list[str], list[str]]], held
     group = (answer, *top["tied_with"]) if top else (NOTHING,)
     units, unit = (([test for _, test in splits], "fold") if len(splits) > 1
                    else ([[f] for f in held.ids], "held-out flight"))
-    votes = Counter(_fold_answer(rows, held, flights) for flights in units)
+    votes = Counter(_fold_answer(rows, held, flights, settings) for flights in units)
     return Stability(answer, tuple(group), unit, dict(votes.most_common()), len(units))

@@ -21,14 +21,7 @@ from quadcore.identify.diagnosis.problem import (
 from quadcore.identify.diagnosis.sensitivity import detection_limits
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import _ev_on, _other, rank_reasons
-from quadcore.identify.evidence import (
-    BOUND_SIGMA,
-    LARGE_SNR,
-    MIN_EXPLAINED,
-    MIN_SIGMA,
-    SAME_SIGNATURE,
-    TIE_MARGIN,
-)
+from quadcore.identify.settings import DiagnosisSettings
 from quadcore.physics.dynamics import XYZ
 
 
@@ -51,13 +44,13 @@ def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
 
 
 def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict], list[dict]],
-           test_sums: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+           test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> dict[str, Any]:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
     channel it explains, its parameters (``fit_c``: on all training flights, within the physical
     bounds) with their uncertainty (``fold_params``: per fold, for the spread, bounded and free)
     and checks, and the held-out test (``test_sums``: its
     :func:`quadcore.identify.evidence.held_out_sums`). A free fit beyond a bound by more than
-    ``BOUND_SIGMA`` standard errors is unphysical; one within noise of it is judged as fitted
+    ``settings.bound_sigma`` standard errors is unphysical; one within noise of it is judged as fitted
     with the bound active (``active_bounds``)."""
     before, at_noise = held.before, held.at_noise
     after = _total(_ss(held.resid[f] - held.cand_pred[c.name][f], fd) for f, fd in zip(held.ids, held.flights))
@@ -70,7 +63,7 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict],
     # differ (battery, propellers, a stuck log variable) more than samples within a flight do
     std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
     free_spread = _jackknife_std(fold_params[1])
-    bounds = _bounds(c, fit_c, free_spread)
+    bounds = _bounds(c, fit_c, free_spread, settings.bound_sigma)
     active = fit_c.active.get(c.name, {})
     # a parameter held at its bound: how well the data pin it is its free fit's error and spread
     std.update({k: max(std[k], free_spread.get(k, 0.0)) for k in active})
@@ -97,8 +90,8 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict],
         "physical": not bounds.unphysical,
         "active_bounds": dict(active),
         "significance_sigma": sigma,
-        "significant": sigma >= MIN_SIGMA,
-        "notes": _parameter_notes(bounds, active, _at_bound(c, params, active), sigma),
+        "significant": sigma >= settings.min_sigma,
+        "notes": _parameter_notes(bounds, active, _at_bound(c, params, active), sigma, settings.min_sigma),
         **_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
                              before, after, held.noise_ss, target),
     }
@@ -152,6 +145,7 @@ class _Bounds:
     the bound and how many standard errors beyond it (``beyond``)."""
 
     outside: dict[str, tuple[float, float, float, float]]
+    bound_sigma: float
 
     @property
     def beyond(self) -> float:
@@ -160,11 +154,11 @@ class _Bounds:
     @property
     def unphysical(self) -> bool:
         """Beyond a bound by clearly more than its noise: the data ask for values the effect
-        cannot have (``BOUND_SIGMA`` standard errors)."""
-        return self.beyond > BOUND_SIGMA
+        cannot have (``bound_sigma`` standard errors)."""
+        return self.beyond > self.bound_sigma
 
 
-def _bounds(c, fit_c: fitting.Fit, free_spread: dict[str, float]) -> _Bounds:
+def _bounds(c, fit_c: fitting.Fit, free_spread: dict[str, float], bound_sigma: float) -> _Bounds:
     free = fit_c.free or fit_c
     values, std = free.params[c.name], free.std[c.name]
     out = {}
@@ -175,16 +169,17 @@ def _bounds(c, fit_c: fitting.Fit, free_spread: dict[str, float]) -> _Bounds:
         bound = p.lower if v < p.lower else p.upper
         s = max(std.get(p.name, 0.0), free_spread.get(p.name, 0.0))
         out[p.name] = (v, s, bound, abs(v - bound) / s if s > 0 else np.inf)
-    return _Bounds(out)
+    return _Bounds(out, bound_sigma)
 
 
-def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[str], sigma: float) -> list[str]:
+def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[str], sigma: float,
+                     min_sigma: float) -> list[str]:
     def free(k: str) -> str:
         v, s, bound, z = bounds.outside[k]
         return f"{k} = {v:.3g} ± {s:.2g}, {z:.2g} σ beyond its bound {bound:g}"
 
     if bounds.unphysical:
-        notes = [f"fitted outside the physical bounds by more than {BOUND_SIGMA:g} standard errors ("
+        notes = [f"fitted outside the physical bounds by more than {bounds.bound_sigma:g} standard errors ("
                  + "; ".join(free(k) for k in bounds.outside) + "): not a physical explanation"]
     elif active:
         beyond = [free(k) for k in active if k in bounds.outside]
@@ -193,16 +188,16 @@ def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[s
     else:
         notes = []
     notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
-    if sigma < MIN_SIGMA:
+    if sigma < min_sigma:
         notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
     return notes
 
 
-def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
+def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int, settings: DiagnosisSettings) -> None:
     """``found`` (alias ``useful``): physical, its parameters significant, confirmed on the
     held-out flights (:func:`quadcore.identify.evidence.held_out_test`), removing some of a target
     residual that stands above the noise floor. ``grade`` says how large it is."""
-    r["held_out_alpha"] = evidence.alpha_each(n_candidates)
+    r["held_out_alpha"] = evidence.alpha_each(n_candidates, settings.alpha)
     confirmed = r["held_out_p_value"] < r["held_out_alpha"] and r["held_out_slope"] > 0
     r["found"] = bool(r["physical"] and r["significant"] and confirmed and r["explained_variance"] > 0
                       and not at_noise[r["target"]])
@@ -211,7 +206,7 @@ def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
         r["grade"] = "unphysical"
     elif not r["found"]:
         r["grade"] = "indistinguishable from noise"
-    elif r["signal_to_noise"] >= LARGE_SNR:
+    elif r["signal_to_noise"] >= settings.large_snr:
         r["grade"] = "large"
     elif r["signal_to_noise"] >= 1.0:
         r["grade"] = "clear"
@@ -219,23 +214,24 @@ def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int) -> None:
         r["grade"] = "small but certain"
 
 
-def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem) -> None:
+def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem,
+                settings: DiagnosisSettings) -> None:
     """Which candidates leave the same signature on the evaluated flights: per row, the physical
     ones that reproduce its prediction in its channel and it theirs (``indistinguishable_from``),
-    those of them it ties with (scores within TIE_MARGIN, or the held-out flights prefer
+    those of them it ties with (scores within ``tie_margin``, or the held-out flights prefer
     neither; a tie goes both ways), and what separates it from the others (``separated_by``)."""
     evidence_w = held.w * evidence.channel_mask([ch for ch, quiet in held.at_noise.items() if not quiet])
 
     def separated(a: str, b: str) -> bool:
         """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the noise)."""
         return (evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], evidence_w).p_value
-                < evidence.ALPHA)
+                < settings.alpha)
     by_name = {r["effect"]: r for r in rows}
 
     def can_mimic(a: str, b: str, ch: str) -> bool:
         """``b``, with physical parameter values, reproduces ``a``'s held-out prediction in ``ch``."""
         r2, beta = span.mimic(a, b, ch)
-        if r2 < 1 - SAME_SIGNATURE:
+        if r2 < 1 - settings.same_signature:
             return False
         e = p.effect_of[b]
         if not e.linear:  # only its own fitted prediction is known to be physical
@@ -247,13 +243,15 @@ def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Proble
         ch = r["target"]
         alike = []
         for o in rows:
-            if o is r or not o["physical"] or _ev_on(o, ch) < MIN_EXPLAINED and _ev_on(r, ch) < MIN_EXPLAINED:
+            if (o is r or not o["physical"]
+                    or _ev_on(o, ch) < settings.min_explained and _ev_on(r, ch) < settings.min_explained):
                 continue
             if can_mimic(r["effect"], o["effect"], ch) and can_mimic(o["effect"], r["effect"], ch):
                 alike.append(o["effect"])
         r["indistinguishable_from"] = alike
         r["tied_with"] = [o for o in alike
-                          if abs(by_name[o]["score"] - r["score"]) < TIE_MARGIN or not separated(r["effect"], o)]
+                          if abs(by_name[o]["score"] - r["score"]) < settings.tie_margin
+                          or not separated(r["effect"], o)]
         # what separates alike candidates: the other channel when either acts there (for an
         # effect acting in both, through its joint fit), otherwise how well each fits this one
         r["separated_by"] = {o: _other(ch) if "both" in (r["acts_on"], by_name[o]["acts_on"]) else ch
@@ -265,7 +263,7 @@ def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Proble
                 by_name[o]["separated_by"].pop(r["effect"], None)
 
 
-def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem
+def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem, settings: DiagnosisSettings
                      ) -> dict[str, dict[str, float | None]]:
     """On the ranked rows: what each could still explain once the best one is in the model
     (``explained_after_top``), why each is ranked where it is, and how small an effect could
@@ -276,10 +274,10 @@ def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _P
         # what it removes alone by the same screen (not its held-out share): the verdict compares the two
         r["explained_alone_screen"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
                                        else span.left_after(r["effect"], None, r["target"]))
-    rank_reasons(rows, held.at_noise)
+    rank_reasons(rows, held.at_noise, settings)
     left = ({f: held.resid[f] - held.cand_pred[rows[0]["effect"]][f] for f in held.ids}
             if rows and rows[0]["found"] else held.resid)
-    sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands))
+    sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands), settings)
     for r in rows:
         r["sensitivity"] = sensitivity[r["effect"]]
     return sensitivity

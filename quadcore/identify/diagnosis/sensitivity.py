@@ -6,19 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from quadcore.identify import evidence, fitting, sufficient
-from quadcore.identify.evidence import (
-    MIN_SIGMA,
-    TIE_MARGIN,
-)
 from quadcore.identify.fitting import FlightData
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
 def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.ndarray], noise_ss: np.ndarray,
-                     vehicle, n_candidates: int) -> dict[str, dict[str, float | None]]:
+                     vehicle, n_candidates: int, settings: DiagnosisSettings = DEFAULT
+                     ) -> dict[str, dict[str, float | None]]:
     """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
     would detect (:func:`quadcore.identify.evidence.detection_limits`); None when no value within the
     parameter's range would be. A parameter stated at a reference point of the others (a
-    wind, at a rotor drag) must also lift the score by ``2 TIE_MARGIN`` above the simpler
+    wind, at a rotor drag) must also lift the score by ``2 tie_margin`` above the simpler
     effect it then resembles (a wind above rotor drag), or the two are a tie."""
     jobs = [(c, p) for c in cands for p in c.parameters]
     base_ss = {c.name: sum(_reference_ss(c, fd, vehicle) for fd in flights) for c in cands if c.sensitivity_reference}
@@ -28,8 +26,8 @@ def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.nda
     out: dict[str, dict[str, float | None]] = {c.name: {} for c in cands}
     for start in range(0, len(jobs), batch):
         part = jobs[start: start + batch]
-        asks = [_limit_ask(c, p, flights, vehicle, base_ss.get(c.name, 0.0)) for c, p in part]
-        limits = evidence.detection_limits(flights, resid, asks, noise_ss, MIN_SIGMA, n_candidates)
+        asks = [_limit_ask(c, p, flights, vehicle, base_ss.get(c.name, 0.0), settings.tie_margin) for c, p in part]
+        limits = evidence.detection_limits(flights, resid, asks, noise_ss, n_candidates, settings)
         for (c, p), v in zip(part, limits):
             if not c.linear:  # the unit wrench is a secant: nothing is known below its step
                 v = max(v, evidence.SECANT * (p.upper - p.lower))
@@ -37,13 +35,13 @@ def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.nda
     return out
 
 
-def _limit_ask(c, p, flights: sufficient.Flights, vehicle, base_ss: float) -> evidence.LimitAsk:
+def _limit_ask(c, p, flights: sufficient.Flights, vehicle, base_ss: float, tie_margin: float) -> evidence.LimitAsk:
     """A parameter's detection limit to find: stated at a reference point of the others (a wind,
-    at a rotor drag), it must also lift the score by ``2 TIE_MARGIN`` above the effect it then
+    at a rotor drag), it must also lift the score by ``2 tie_margin`` above the effect it then
     resembles."""
     unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
     if c.sensitivity_reference and p.name not in c.sensitivity_reference:
-        return evidence.LimitAsk(unit, 2 * TIE_MARGIN, base_ss)
+        return evidence.LimitAsk(unit, 2 * tie_margin, base_ss)
     return evidence.LimitAsk(unit)
 
 
@@ -65,12 +63,12 @@ def _reference_ss(c, fd, vehicle) -> float:
     return float(sufficient.sum_of_squares(fd, v).sum())
 
 
-def sensitivity_basis(cands) -> dict:
+def sensitivity_basis(cands, settings: DiagnosisSettings = DEFAULT) -> dict:
     """What the sensitivity values mean (for the JSON and the reports)."""
     return {
         "meaning": "smallest |parameter - its 'no effect' value| these flights would detect, each parameter alone",
-        "detection_probability": evidence.POWER,
-        "false_alarm_probability": evidence.ALPHA,
-        "noise_margin": evidence.NOISE_MARGIN,
+        "detection_probability": settings.power,
+        "false_alarm_probability": settings.alpha,
+        "noise_margin": settings.noise_margin,
         "conditions": {c.name: dict(c.sensitivity_reference) for c in cands if c.sensitivity_reference},
     }

@@ -9,35 +9,34 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence
 from quadcore.identify.diagnosis.results import CandidateScore
-from quadcore.identify.evidence import MIN_EXPLAINED, MIN_SIGMA, TIE_MARGIN
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
-def _why_not(r: dict, at_noise: dict[str, bool]) -> tuple[str, str]:
+def _why_not(r: dict, at_noise: dict[str, bool], settings: DiagnosisSettings) -> tuple[str, str]:
     """(status, reason) of a candidate that is not found."""
     ch = r["target"]
     if not r["physical"]:
         return "unphysical", "unphysical fit: " + "; ".join(n for n in r["notes"] if "outside" in n)
     if at_noise[ch]:
-        return "noise_level", (f"no evidence: the held-out {ch} residual is within {evidence.NOISE_MARGIN:.0%} "
+        return "noise_level", (f"no evidence: the held-out {ch} residual is within {settings.noise_margin:.0%} "
                                "of the sensor-noise floor")
     if r["explained_variance"] <= 0:
         return "no_gain", f"removes nothing from the held-out {ch} residual"
-    if r["significance_sigma"] >= MIN_SIGMA:
+    if r["significance_sigma"] >= settings.min_sigma:
         return "not_significant", (f"indistinguishable from noise on held-out flights "
                                    f"(p = {r['held_out_p_value']:.2g}, needs p < {r['held_out_alpha']:.2g})")
     return "not_significant", f"its fit is within noise of 'no effect' ({r['significance_sigma']:.1f} σ)"
 
 
-def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
+def rank_reasons(rows: list[dict], at_noise: dict[str, bool], settings: DiagnosisSettings = DEFAULT) -> None:
     """Give every candidate (best first) a ``status`` and a ``reason``: why it is ranked where
     it is (found and how large; tied with; an alternative to the best one; unphysical; not
     significant; at the noise level)."""
     top = rows[0] if rows and rows[0]["found"] else None
     for i, r in enumerate(rows):
         if not r["found"]:
-            r["status"], r["reason"] = _why_not(r, at_noise)
+            r["status"], r["reason"] = _why_not(r, at_noise, settings)
             above = [o["effect"] for o in rows[:i] if o["effect"] in r.get("indistinguishable_from", [])]
             if above and r["physical"]:
                 r["reason"] += f"; indistinguishable from {', '.join(above)}"
@@ -52,7 +51,7 @@ def rank_reasons(rows: list[dict], at_noise: dict[str, bool]) -> None:
             r["status"] = "tied"
             r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
                            f"many parameters; {size}")
-        elif r.get("explained_after_top", 0.0) >= MIN_EXPLAINED:
+        elif r.get("explained_after_top", 0.0) >= settings.min_explained:
             r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
         else:
             r["status"] = "alternative"
@@ -128,10 +127,11 @@ def _params(r: dict) -> str:
     return ", ".join(f"{k} = {v:.4g} ± {std.get(k, float('nan')):.2g}" for k, v in r["parameters"].items())
 
 
-def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str, outside: dict | None = None) -> str:
+def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str, outside: dict | None,
+                   settings: DiagnosisSettings) -> str:
     if at_noise and all(at_noise.values()):
         return ("No effect of the library explains the residual on held-out flights: none improves it "
-                f"significantly, and it is within {evidence.NOISE_MARGIN:.0%} (RMS) of the sensor-noise floor in "
+                f"significantly, and it is within {settings.noise_margin:.0%} (RMS) of the sensor-noise floor in "
                 "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
     best = rows[0] if rows else None
     tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
@@ -140,7 +140,7 @@ def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: s
             "detect." + _search_with(outside) + missed)
 
 
-def _most_likely(top: dict) -> str:
+def _most_likely(top: dict, settings: DiagnosisSettings) -> str:
     """The best candidate found: how large, how sure, what it removes, its parameters."""
     grade = top.get("grade", "clear")
     size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
@@ -150,7 +150,7 @@ def _most_likely(top: dict) -> str:
     text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
             f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
             "the sensor-noise floor)")
-    if top["acts_on"] == "both" and _ev_on(top, other) >= MIN_EXPLAINED:
+    if top["acts_on"] == "both" and _ev_on(top, other) >= settings.min_explained:
         text += f" and {_ev_on(top, other):.0%} of the {other} residual"
     text += f" ({params})."
     if top["notes"]:
@@ -158,7 +158,7 @@ def _most_likely(top: dict) -> str:
     return text
 
 
-def _alike(top: dict, by_name: dict[str, dict]) -> str:
+def _alike(top: dict, by_name: dict[str, dict], settings: DiagnosisSettings) -> str:
     """What the data cannot tell apart from the best candidate, and what separates the others."""
     text = ""
     ch = top["target"]
@@ -179,7 +179,7 @@ def _alike(top: dict, by_name: dict[str, dict]) -> str:
                      f"({_pct(_ev_on(r, ch))} against {_pct(_ev_on(top, ch))}).")
             continue
         text += f" In {ch} alone it is indistinguishable from {o}; the {by} residual tells them apart: "
-        if _ev_on(top, by) >= MIN_EXPLAINED and _ev_on(top, by) - _ev_on(r, by) >= TIE_MARGIN:
+        if _ev_on(top, by) >= settings.min_explained and _ev_on(top, by) - _ev_on(r, by) >= settings.tie_margin:
             text += (f"{top['effect']} also removes {_pct(_ev_on(top, by))} of the held-out {by} residual, "
                      f"{o} {_pct(_ev_on(r, by))}.")
         else:
@@ -188,13 +188,13 @@ def _alike(top: dict, by_name: dict[str, dict]) -> str:
     return text
 
 
-def _beyond_the_best(top: dict, found: list[dict]) -> str:
+def _beyond_the_best(top: dict, found: list[dict], settings: DiagnosisSettings) -> str:
     """The other found candidates: also missing (they explain more once the best is in), or alternatives."""
     text = ""
     alike = set(top.get("indistinguishable_from", [])) | set(top.get("tied_with", []))
     others = [r for r in found[1:] if r["effect"] not in alike]
-    independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= MIN_EXPLAINED])
-    overlapping = [r for r in others if r.get("explained_after_top", 0.0) < MIN_EXPLAINED]
+    independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= settings.min_explained])
+    overlapping = [r for r in others if r.get("explained_after_top", 0.0) < settings.min_explained]
     if independent:  # both shares from the same screen (least squares on the evaluated flights), not held-out
         text += (" Also missing, beyond it: "
                  + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
@@ -211,24 +211,25 @@ def _beyond_the_best(top: dict, found: list[dict]) -> str:
 
 
 def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None,
-            outside: dict | None = None) -> str:
+            outside: dict | None = None, settings: DiagnosisSettings = DEFAULT) -> str:
     """One paragraph a person reads first: what is missing and how sure, or why nothing is (or
     why what the library finds is not what is missing: ``outside``, with the command that
     searches outside the library), and how small an effect these flights could have missed."""
     found = [r for r in rows if r.get("found", r.get("useful", False))]
     unseen = [r["effect"] for r in rows if r not in found[:1]]
-    missed = (f" Smaller effects would go unnoticed on these flights ({evidence.POWER:.0%} detection, "
-              f"{evidence.ALPHA:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
+    missed = (f" Smaller effects would go unnoticed on these flights ({settings.power:.0%} detection, "
+              f"{settings.alpha:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
               if sensitivity else "")
     parts = outside["channels"] if outside else []
     outside_text = "".join(_outside_library(rows, part, i == 0 and not found) for i, part in enumerate(parts))
     if parts:
         outside_text += _search_with(outside)
     if not found:
-        return outside_text.lstrip() + missed if parts else _nothing_found(rows, at_noise, missed, outside)
+        return outside_text.lstrip() + missed if parts else _nothing_found(rows, at_noise, missed, outside, settings)
     top = found[0]
     by_name = {r["effect"]: r for r in rows}
-    return _most_likely(top) + _alike(top, by_name) + _beyond_the_best(top, found) + outside_text + missed
+    return (_most_likely(top, settings) + _alike(top, by_name, settings) + _beyond_the_best(top, found, settings)
+            + outside_text + missed)
 
 
 def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:

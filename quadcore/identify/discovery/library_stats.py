@@ -52,9 +52,10 @@ from quadcore import effects as effectlib
 from quadcore.identify import fitting, sufficient
 from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
 from quadcore.identify.discovery.terms import library, variables
+from quadcore.identify.settings import STATISTICS
 
 FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
-STRIDE = 4  # discovery's default: every 4th usable sample in the selection's Gram matrix
+STRIDE = STATISTICS.library_stride  # discovery's default: every 4th usable sample in the selection's Gram matrix
 # the modules the statistics are computed by (with the sufficient statistics' code: sufficient.code_digest)
 _MODULES = ("quadcore.identify.discovery.terms", "quadcore.identify.discovery.grams",
             "quadcore.identify.discovery.library_stats")

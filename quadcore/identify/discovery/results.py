@@ -6,7 +6,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-MIN_GAIN = 0.02  # a term must add this share of the held-out variance of its axis
+from quadcore.identify.settings import DEFAULT
+
+MIN_GAIN = DEFAULT.min_gain  # a term must add this share of the held-out variance of its axis
 
 
 @dataclass(frozen=True)
