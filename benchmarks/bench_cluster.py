@@ -1,14 +1,20 @@
-"""The simulated fleet through the local cluster with 1, 2 and 4 Celery workers (issue 26): wall
-time and CPU seconds summed over every process of the cluster.
+"""The simulated fleet through the local cluster with 1, 2 and 4 Celery workers, and the main job
+without the cluster beside it, in one run (issue 26): wall time and CPU seconds summed over
+every process.
 
     nice -n 10 python benchmarks/bench_cluster.py [--flights 100] [--workers 1 2 4]
 
-For each number of workers, a cluster of its own (``python -m pipeline.cluster up --workers N``
-in a fresh folder: PostgreSQL, Redis, moto's S3 server, the Celery workers, the daemon, the
-webserver), the main job through it (``python -m pipeline.cluster run``: runs through the
-daemon's queue, steps on the workers, outputs in the S3 store), then ``down --purge``. The fleet is
-bench_scale.py's pool of 20 simulated 10 s flights hard-linked under N ids, the learning stage
-capped at ``QUADCORE_LEARN_ROWS=20000`` rows as in bench_executors.py.
+In this order, so that the ratios are of one sitting on the shared machine: the main job without
+the cluster as it runs on one machine (our split over two processes, ``pipeline/run/parallel.py``)
+and in one process (``QUADCORE_EXECUTOR=in_process``); then for each number of workers a cluster
+of its own (``python -m pipeline.cluster up --workers N`` in a fresh folder: PostgreSQL, Redis,
+moto's S3 server, the Celery workers, the daemon, the webserver), the main job through it
+(``python -m pipeline.cluster run``: runs through the daemon's queue, steps on the workers,
+outputs in the S3 store), then ``down --purge``; last the one-process job again, to show how far
+the machine's load drifted meanwhile. The fleet is bench_scale.py's pool of 20 simulated 10 s
+flights hard-linked under N ids, the learning stage capped at ``QUADCORE_LEARN_ROWS=20000`` rows
+as in bench_executors.py. Ends with a table: each way's wall and CPU seconds and their ratios to
+the first one-process job.
 
 CPU seconds: this script makes itself the subreaper of everything it starts (``prctl
 PR_SET_CHILD_SUBREAPER``), so every service, daemonised or not, stays its descendant. The CPU
@@ -30,9 +36,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from _jobs import REPO, stage_seconds
+from _jobs import REPO, run_main_job, stage_seconds
 from bench_executors import SIM_LEARN_ROWS, load, simulated_fleet
 
 PR_SET_CHILD_SUBREAPER = 36
@@ -98,7 +105,18 @@ def cli(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
                           capture_output=True)
 
 
-def measure(workers: int, raw: Path, base: Path) -> None:
+@dataclass
+class Figure:
+    """One way's main job: wall and CPU seconds (all processes), and the load average around it."""
+
+    way: str
+    wall_s: float
+    cpu_s: float
+    load: str
+    ok: bool
+
+
+def measure_cluster(workers: int, raw: Path, base: Path) -> Figure | None:
     home = base / f"cluster{workers}"
     shutil.rmtree(home, ignore_errors=True)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
@@ -107,9 +125,9 @@ def measure(workers: int, raw: Path, base: Path) -> None:
     up = cli(env, "up", "--workers", str(workers), "--raw", str(raw))
     up_s, up_cpu = time.perf_counter() - t0, cpu_now() - c0
     if up.returncode != 0:
-        print(f"  {workers} worker(s): up failed: {up.stderr.strip()[-500:]}")
+        print(f"  cluster, {workers} worker(s): up failed: {up.stderr.strip()[-500:]}", flush=True)
         down(env)
-        return
+        return None
     before = load()
     t1, c1 = time.perf_counter(), cpu_now()
     run = cli(env, "run")
@@ -119,11 +137,34 @@ def measure(workers: int, raw: Path, base: Path) -> None:
              for log in sorted((home / "logs").glob("worker*.log"))}
     down(env)
     stages = " ".join(f"{k}:{v:.1f}" for k, v in sorted(stage_seconds(run.stdout).items()))
-    print(f"  {workers} worker(s): up {up_s:5.1f} s ({up_cpu:5.1f} s CPU); job wall {run_s:7.1f} s, "
+    print(f"  cluster, {workers} worker(s): up {up_s:5.1f} s ({up_cpu:5.1f} s CPU); job wall {run_s:7.1f} s, "
           f"CPU {run_cpu:7.1f} s (all processes); stages [{stages}]; steps per worker {tasks}; exit {run.returncode}; "
           f"load {before} -> {after}", flush=True)
     if run.returncode != 0:
         print("    " + "\n    ".join((run.stdout + run.stderr).splitlines()[-8:]))
+    return Figure(f"cluster, {workers} worker(s)", run_s, run_cpu, f"{before} -> {after}", run.returncode == 0)
+
+
+def measure_local(way: str, extra: dict[str, str], raw: Path, base: Path) -> Figure:
+    """The main job on this machine without the cluster (``python -m pipeline``, no service)."""
+    root = base / "local"
+    shutil.rmtree(root, ignore_errors=True)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
+    before = load()
+    run = run_main_job(root, raw, env={**env, "QUADCORE_LEARN_ROWS": SIM_LEARN_ROWS, **extra})
+    shutil.rmtree(root, ignore_errors=True)
+    after = load()
+    stages = " ".join(f"{k}:{v:.1f}" for k, v in sorted(run.stage_s.items()))
+    print(f"  {way}: job wall {run.wall_s:7.1f} s, CPU {run.cpu_s:7.1f} s; stages [{stages}]; exit {run.returncode}; "
+          f"load {before} -> {after}", flush=True)
+    if run.returncode != 0:
+        print("    " + "\n    ".join(run.output.splitlines()[-8:]))
+    return Figure(way, run.wall_s, run.cpu_s, f"{before} -> {after}", run.returncode == 0)
+
+
+# The main job without the cluster: as it runs on one machine (our split over two processes from
+# 40 flights, pipeline/run/parallel.py) and in one process only.
+LOCAL = {"one machine (parallel.py)": {}, "one process": {"QUADCORE_EXECUTOR": "in_process"}}
 
 
 def main() -> None:
@@ -138,12 +179,26 @@ def main() -> None:
     base = Path(tempfile.mkdtemp(prefix="quadcore-bench-cluster-", dir="/tmp"))
     base.chmod(0o755)
     raw = simulated_fleet(args.flights, base / "raw")
-    print(f"{args.flights} simulated flights, workers {args.workers}, load average {load()}", flush=True)
+    print(f"{args.flights} simulated flights, workers {args.workers}, {os.cpu_count()} cores, "
+          f"load average {load()}", flush=True)
+    figures: list[Figure] = []
     try:
-        for n in args.workers:
-            measure(n, raw, base)
+        figures += [measure_local(way, extra, raw, base) for way, extra in LOCAL.items()]
+        figures += [f for n in args.workers if (f := measure_cluster(n, raw, base)) is not None]
+        # the one-process job again: how far the shared machine's load drifted over the run
+        figures.append(measure_local("one process, again", LOCAL["one process"], raw, base))
     finally:
         shutil.rmtree(base, ignore_errors=True)
+    summary(figures)
+
+
+def summary(figures: list[Figure]) -> None:
+    """Each way's figures and its ratios to the first one-process job."""
+    ref = next(f for f in figures if f.way == "one process")
+    print(f"\n  {'way':28s} {'wall s':>8s} {'CPU s':>8s} {'wall/one':>9s} {'CPU/one':>8s}  load average (1/5/15 min)")
+    for f in figures:
+        print(f"  {f.way:28s} {f.wall_s:8.1f} {f.cpu_s:8.1f} {f.wall_s / ref.wall_s:9.2f} {f.cpu_s / ref.cpu_s:8.2f}"
+              f"  {f.load}{'' if f.ok else '  (FAILED)'}")
 
 
 if __name__ == "__main__":

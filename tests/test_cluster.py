@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -72,7 +73,6 @@ def cluster():
         pids = [int(p.read_text()) for p in (home / "pids").glob("*.pid")]
         stopped = _cli(env, "down")
         assert stopped.returncode == 0, stopped.stderr
-        time.sleep(1)
         assert not [p for p in pids if services._alive(p)], "a service outlived `down`"
         shutil.rmtree(base, ignore_errors=True)
 
@@ -173,30 +173,41 @@ def test_a_second_job_started_meanwhile_queues_and_then_runs(cluster):
     assert seen_queued, "no run waited in the queue while others ran"
 
 
+def _tasks(log: Path, what: str) -> set[str]:
+    """The ids of the Celery tasks a worker's log says were ``what`` ("received", "succeeded")."""
+    return set(re.findall(rf"Task \S+\[([0-9a-f-]+)\] {what}", log.read_text(errors="replace")))
+
+
 def test_a_worker_killed_mid_step_is_replaced_and_the_run_completes(cluster):
     import dagster as dg
 
     _, raw, c, env = cluster
     flights = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
     tags = {"dagster/asset_partition_range_start": flights[0], "dagster/asset_partition_range_end": flights[-1]}
-    received = {log.name: log.read_text(errors="replace").count("received") for log in c.logs.glob("worker*.log")}
+    logs = sorted(c.logs.glob("worker*.log"))
+    received = {log: _tasks(log, "received") for log in logs}
     run = _submit(c, ["flight_statistics"], tags)
     instance = _instance(c)
-    victim = None
+    victim, task = None, None
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while victim is None and time.monotonic() < deadline:  # the worker that took the step
-        for log in sorted(c.logs.glob("worker*.log")):
-            if log.read_text(errors="replace").count("received") > received[log.name]:
-                victim = log.stem
+        for log in logs:
+            new = _tasks(log, "received") - received[log]
+            if new:
+                victim, task = log, new.pop()
         time.sleep(0.2)
     assert victim is not None, "no worker received the step"
-    os.killpg(int((c.pids / f"{victim}.pid").read_text()), signal.SIGKILL)
+    os.killpg(int((c.pids / f"{victim.stem}.pid").read_text()), signal.SIGKILL)
+    assert task not in _tasks(victim, "succeeded"), "the step had ended before the kill: nothing was tested"
     while time.monotonic() < deadline and _status(instance, run) not in (dg.DagsterRunStatus.SUCCESS,
                                                                             dg.DagsterRunStatus.FAILURE):
         time.sleep(0.5)
     assert _status(instance, run) == dg.DagsterRunStatus.SUCCESS
+    survivors = [log for log in logs if log != victim]
+    assert any(task in _tasks(log, "succeeded") for log in survivors), "the killed step was not run again elsewhere"
     restarted = _cli(env, "up", "--workers", "2", "--raw", str(raw))  # brings the killed worker back
     assert restarted.returncode == 0, restarted.stderr
+    assert all(services._alive(int(p.read_text())) for p in c.pids.glob("worker*.pid"))
 
 
 def test_the_sensor_picks_up_a_new_log(cluster):

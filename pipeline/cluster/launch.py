@@ -123,11 +123,18 @@ def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = T
         time.sleep(POLL_S)
 
 
+def daemon_beat(instance: dg.DagsterInstance) -> float | None:
+    """When the daemon's run coordinator (the loop that launches queued runs) last beat, in
+    seconds since the epoch; None when it never has."""
+    beat = instance.get_daemon_heartbeats().get("QUEUED_RUN_COORDINATOR")
+    return None if beat is None else float(beat.timestamp)
+
+
 def check_daemon(instance: dg.DagsterInstance) -> None:
     """:class:`ClusterUnavailable` when the daemon's run coordinator has not beaten for
     :data:`DAEMON_SILENT_S` (or never): queued runs would never start."""
-    beat = instance.get_daemon_heartbeats().get("QUEUED_RUN_COORDINATOR")
-    if beat is None or time.time() - beat.timestamp > DAEMON_SILENT_S:
+    beat = daemon_beat(instance)
+    if beat is None or time.time() - beat > DAEMON_SILENT_S:
         raise ClusterUnavailable("the cluster's daemon is not running, so the queued runs cannot start: "
                                  "`make cluster-up` starts it again (its log: .cluster/logs/daemon.log)")
 

@@ -248,16 +248,18 @@ def start_redis(c: Cluster, s: dict[str, str]) -> None:
     _wait(lambda: _port_open(port), "Redis", c.logs / "redis.log")
 
 
-def spawn(c: Cluster, name: str, cmd: list[str], env: dict[str, str]) -> None:
+def spawn(c: Cluster, name: str, cmd: list[str], env: dict[str, str]) -> bool:
     """A service in a process group of its own (so ``down`` ends it with everything it started),
-    its output in ``logs/<name>.log`` and its pid in ``pids/<name>.pid``."""
+    its output in ``logs/<name>.log`` and its pid in ``pids/<name>.pid``. False when it was
+    running already (nothing started)."""
     pidfile = c.pids / f"{name}.pid"
     if pidfile.is_file() and _alive(int(pidfile.read_text())):
-        return
+        return False
     with open(c.logs / f"{name}.log", "ab") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                 cwd=REPO, start_new_session=True)
     pidfile.write_text(str(proc.pid))
+    return True
 
 
 def _alive(pid: int) -> bool:
@@ -296,38 +298,74 @@ def start_workers(c: Cluster, s: dict[str, str], env: dict[str, str], workers: i
     config.write_text(json.dumps({"execution": {"config": celery_config(s["QUADCORE_CELERY_BROKER"],
                                                                         s["QUADCORE_CELERY_BACKEND"])}}))
     names = [f"worker{i}" for i in range(1, workers + 1)]
-    for name in names:
-        spawn(c, name, [str(Path(sys.executable).with_name("dagster-celery")), "worker", "start", "-A",
-                        "dagster_celery.app", "-n", f"quadcore-{name}", "-y", str(config), "--", "--concurrency", "1"],
-              env)
-    for name in names:  # Celery prints "ready." once it consumes from the broker
-        log = c.logs / f"{name}.log"
-        _wait(lambda log=log: "ready." in log.read_text(errors="replace"), f"Celery {name}", log,
+    logs = {name: c.logs / f"{name}.log" for name in names}
+    # A worker's log is appended to: a worker started again (after a kill) is ready once its new
+    # part says so, not the "ready." of its earlier life.
+    seen = {name: _size(log) for name, log in logs.items()}
+    started = [name for name in names if spawn(c, name, [
+        str(Path(sys.executable).with_name("dagster-celery")), "worker", "start", "-A", "dagster_celery.app",
+        "-n", f"quadcore-{name}", "-y", str(config), "--", "--concurrency", "1"], env)]
+    for name in started:  # Celery prints "ready." once it consumes from the broker
+        _wait(lambda name=name: "ready." in _text_after(logs[name], seen[name]), f"Celery {name}", logs[name],
               pidfile=c.pids / f"{name}.pid")
 
 
 def start_dagster(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
-    """The daemon (queue, sensors, run retries) and the webserver (UI and GraphQL)."""
+    """The daemon (queue, sensors, run retries) and the webserver (UI and GraphQL); up once the
+    daemon's run coordinator beats."""
     workspace = str(CONFIG / "workspace.yaml")
     bindir = Path(sys.executable).parent
     # the instance's tables first: the daemon and the webserver would both create them at once
     _run([str(bindir / "dagster"), "instance", "migrate"], c, "dagster instance migrate", env=env)
-    daemon_log, daemon_pid = c.logs / "daemon.log", c.pids / "daemon.pid"
-    seen = daemon_log.stat().st_size if daemon_log.is_file() else 0
-    running = daemon_pid.is_file() and _alive(int(daemon_pid.read_text()))
-    spawn(c, "daemon", [str(bindir / "dagster-daemon"), "run", "-w", workspace], env)
+    t0 = time.time()
+    new_daemon = spawn(c, "daemon", [str(bindir / "dagster-daemon"), "run", "-w", workspace], env)
     port = int(s["QUADCORE_CLUSTER_WEB_PORT"])
     spawn(c, "webserver", [str(bindir / "dagster-webserver"), "-h", "127.0.0.1", "-p", str(port), "-w", workspace],
           env)
     _wait(lambda: _http_ok(f"{s['QUADCORE_CLUSTER_URL']}/server_info"), "dagster-webserver",
           c.logs / "webserver.log", pidfile=c.pids / "webserver.pid")
-    # A daemon started now: up once its run queue has gone round (its first round logs, and beats):
-    # a run queued before its first heartbeat is refused (launch.check_daemon), and on a loaded
-    # machine the daemon loads the code a minute after the webserver answers. A daemon already
-    # running has beaten (an idle queue logs nothing, so there is nothing new to wait for).
-    if not running:
-        _wait(lambda: "QueuedRunCoordinatorDaemon" in _text_after(daemon_log, seen), "dagster-daemon's run queue",
-              daemon_log, pidfile=daemon_pid)
+    wait_for_run_queue(c, since=t0 if new_daemon else None)
+
+
+def wait_for_run_queue(c: Cluster, since: float | None) -> None:
+    """Until the daemon's run coordinator has beaten after ``since`` (a daemon started then), or
+    within :data:`launch.DAEMON_SILENT_S` (``since`` None: one already running): the heartbeat
+    :func:`launch.check_daemon` reads before it accepts a queued run. The daemon loads the code
+    before its loops start (a minute after the webserver answers on a loaded machine), and a
+    heartbeat left in the instance by an earlier daemon is no sign of this one."""
+    import dagster as dg
+
+    from pipeline.cluster import launch
+
+    settings = c.settings()
+    with _environ({k: settings[k] for k in ("DAGSTER_HOME", "QUADCORE_CLUSTER_PG_URL")}), \
+            dg.DagsterInstance.get() as instance:
+        def beaten() -> bool:
+            beat = launch.daemon_beat(instance)
+            after = time.time() - launch.DAEMON_SILENT_S if since is None else since
+            return beat is not None and beat >= after
+
+        _wait(beaten, "dagster-daemon's run queue (its first heartbeat)", c.logs / "daemon.log",
+              pidfile=c.pids / "daemon.pid")
+
+
+@contextlib.contextmanager
+def _environ(values: dict[str, str]):
+    """This process's environment with ``values`` set, restored after."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _size(path: Path) -> int:
+    return path.stat().st_size if path.is_file() else 0
 
 
 def _text_after(log: Path, offset: int) -> str:
@@ -391,13 +429,14 @@ def down(log=print) -> None:
 
 
 def _stop_group(pid: int, group: bool = True) -> None:
+    """TERM, then after :data:`STOP_TIMEOUT_S` (or once ``pid`` is gone) KILL to whatever of its
+    group is left; returns once ``pid`` is gone (or :data:`STOP_TIMEOUT_S` after the KILL)."""
     kill = os.killpg if group else os.kill
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + STOP_TIMEOUT_S
-    while time.monotonic() < deadline and _alive(pid):
-        time.sleep(0.2)
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(pid, os.WNOHANG)
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        kill(pid, signal.SIGKILL)
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            kill(pid, sig)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        while time.monotonic() < deadline and _alive(pid):
+            time.sleep(0.2)
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, os.WNOHANG)
