@@ -1,28 +1,29 @@
-"""No import cycle among quadcore's and pipeline's modules, and function-level imports only on an allow-list.
+"""No import cycle among quadcore's and pipeline's modules, and imports inside functions only on an allow-list.
 
 The graph is read from the source with ast (tools/imports.py; nothing is imported), at any depth:
 module-level imports and imports inside function bodies alike (`if TYPE_CHECKING:` blocks are left out:
-they never run). A cycle is a strongly connected component of more than one module.
+they never run; a call `importlib.import_module(f"pkg.{name}")` counts as an import of every module of
+`pkg`). A cycle is a strongly connected component of more than one module. The import-linter contracts
+(pyproject.toml, make lint) hold the stage order and the packages' inner orders; this test holds the
+module level.
 
-What is allow-listed, honestly: the import-linter contracts (pyproject.toml, make lint) hold the stage
-order; this test holds the module level. Today it passes only because
+ALLOWED is every import made inside a function, of any module (the project's, a third-party package's, the
+standard library's), that may stay there: one entry per function, with the modules it may import and why
+(start-up time or an optional dependency). At most twelve.
 
-- the cycle inside quadcore.identify (the 7-module fitting/sufficient/profiles/evidence/regimes/
-  sessions/summaries circle) is listed in KNOWN_CYCLES, and every
-  function-level import inside identify is listed in IDENTIFY_RELAYOUT: both to be removed by the identify
-  re-layout (issue 23, docs/architecture.md);
-- STARTUP lists the imports made late for start-up time, each group with its reason: the CLI's (a command
-  imports only its own stage: `quadcore --help` stays fast), the report and picture steps' (matplotlib) and
-  `make ui`'s port check (before Dagster).
-
-A NEW cycle, or a function-level import of a (module, imported module) pair not listed, fails.
+Outside quadcore.identify both rules hold now. Inside it they hold once the identify re-layout of issue 23 is
+done (its 7-module cycle and its imports inside functions go with the twins): until then the two identify
+tests are expected to fail (xfail, strict: they fail the run the day they pass, so that the mark goes).
 """
 
 from __future__ import annotations
 
 import importlib.util
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+
+import pytest
 
 _PATH = Path(__file__).resolve().parents[1] / "tools" / "imports.py"
 _spec = importlib.util.spec_from_file_location("quadcore_tools_imports", _PATH)
@@ -31,67 +32,93 @@ graph = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = graph  # its dataclass looks itself up there
 _spec.loader.exec_module(graph)
 
-# ---- to be removed by the identify re-layout, issue 23 --------------------------------------------------
-KNOWN_CYCLES = [
-    {"quadcore.identify.evidence", "quadcore.identify.fitting", "quadcore.identify.profiles",
-     "quadcore.identify.regimes", "quadcore.identify.sessions", "quadcore.identify.sufficient",
-     "quadcore.identify.summaries"},
-]
-IDENTIFY_RELAYOUT = {
-    # discovery's writer needs the exporter's names of the on-board inputs (a knot: export sits above identify;
-    # at module level it would import export.c's package, and with it learn, on every discovery)
-    ("quadcore.identify.discovery.writer", "quadcore.export.c.inputs"),
-    ("quadcore.identify.evidence", "quadcore.identify.sufficient"),
-    ("quadcore.identify.fitting", "quadcore.effects"),
-    ("quadcore.identify.fitting", "quadcore.identify.model"),
-    ("quadcore.identify.fitting", "quadcore.identify.profiles"),
-    ("quadcore.identify.fitting", "quadcore.identify.sessions"),
-    ("quadcore.identify.fitting", "quadcore.identify.sufficient"),
-    ("quadcore.identify.model", "quadcore.store.store"),
-    ("quadcore.identify.profiles", "quadcore.identify.evidence"),
-    ("quadcore.identify.profiles", "quadcore.identify.fitting"),
-    ("quadcore.identify.profiles", "quadcore.identify.sufficient"),
-    ("quadcore.identify.sessions", "quadcore.effects"),
-    ("quadcore.identify.sessions", "quadcore.identify.model"),
-    ("quadcore.identify.sessions", "quadcore.identify.sufficient"),
-    ("quadcore.identify.sufficient", "quadcore.identify.evidence"),
-    ("quadcore.identify.sufficient", "quadcore.identify.fitting"),
-    ("quadcore.identify.sufficient", "quadcore.identify.summaries"),
-}
-# ---- end of the identify block ---------------------------------------------------------------------------
 
-# Start-up time: the CLI imports a command's stage inside the command; the workflows import a report or a
-# picture (matplotlib, ~0.5 s) only when one is written: workflows.learn's report.learning, workflows.identify's
-# report.diagnosis, workflows.plan's plan.output.
-STARTUP = {
-    # `make ui` says "port in use" in one line before Dagster (pipeline.resources) is imported
-    ("pipeline.run.ui", "pipeline.run.instance"),
-    ("pipeline.run.ui", "pipeline.resources"),
-    ("pipeline.run.ui", "quadcore.store.ownership"),
-    ("quadcore.workflows.identify", "quadcore.report.diagnosis"),
-    # scikit-learn (the identify.discovery package, ~0.7 s CPU) only for a discovery, not every fit and diagnosis
-    ("quadcore.workflows.identify", "quadcore.identify.discovery"),
-    ("quadcore.workflows.identify", "quadcore.identify.discovery.library_stats"),
-    ("quadcore.workflows.learn", "quadcore.report.learning"),
-    ("quadcore.workflows.plan", "quadcore.plan.output"),
-}
+@dataclass(frozen=True)
+class Lazy:
+    """``module.function`` may import ``targets`` (a name covers its submodules; ``pkg.*``: a dynamic import
+    of pkg's modules) inside its body, for ``reason``."""
 
-ALLOWED = IDENTIFY_RELAYOUT | STARTUP
+    module: str
+    function: str
+    targets: tuple[str, ...]
+    reason: str
+
+    def covers(self, e) -> bool:
+        return (e.source, e.function) == (self.module, self.function) and any(
+            e.target == t or e.target.startswith(t + ".") for t in self.targets)
 
 
-def test_no_new_import_cycle() -> None:
-    found = [set(c) for c in graph.cycles(graph.imports())]
-    new = [sorted(c) for c in found if c not in KNOWN_CYCLES]
-    assert not new, "new import cycles (break them; docs/architecture.md): " + "; ".join(" <-> ".join(c) for c in new)
+ALLOWED = (
+    Lazy("quadcore.cli", "_load", ("quadcore.cli.*",),
+         "start-up: a command group, with its stage and numpy/polars/scipy (0.5-1.6 s CPU), is imported when its "
+         "command runs, so that `quadcore --help` loads none of them (test below; docs/benchmarks.md)"),
+    Lazy("quadcore.effects", "_discover", ("quadcore.effects.*",),
+         "the effect library is the package's modules, found by listing it: a new effect is a new module, named "
+         "nowhere else"),
+    Lazy("quadcore.learn.backends", "backend", ("quadcore.learn.backends.*",),
+         "start-up and an optional dependency: torch and XGBoost take ~1.7 s of CPU each to import and load only "
+         "when a model of their kind is trained, read or run; torch is installed outside the package's dependencies"),
+    Lazy("quadcore.workflows.identify", "discover", ("quadcore.identify.discovery",),
+         "start-up: scikit-learn (~1.1 s CPU) only for a discovery, not for every fit and diagnosis"),
+    Lazy("quadcore.store.store", "as_root", ("upath",),
+         "optional dependency: universal-pathlib (the s3 extra), only for a data root in an object store"),
+    Lazy("pipeline.resources", "executor_from_env", ("dagster_celery", "dagster_k8s"),
+         "optional dependencies: the cluster's executors (the cluster extra; Kubernetes), only when "
+         "QUADCORE_EXECUTOR names one"),
+    Lazy("pipeline.cluster.services", "start_store", ("boto3",),
+         "optional dependency: boto3 (with moto, the dev extra) for the local cluster's S3 store only"),
+)
+MAX_ALLOWED = 12
+
+IDENTIFY = "quadcore.identify"
+IDENTIFY_RELAYOUT = "identify re-layout in progress"
 
 
-def test_function_level_imports_only_on_the_allow_list() -> None:
-    inner = graph.function_level(graph.imports())
-    assert inner, "the reader finds no function-level import at all: it is broken, not the code clean"
-    new = sorted({f"{e.source}:{e.line} imports {e.target} inside {e.function}()"
-                  for e in inner if (e.source, e.target) not in ALLOWED})
-    assert not new, ("function-level imports not on the allow-list (import at module level, or add the pair "
-                     "with its reason to tests/test_import_graph.py):\n" + "\n".join(new))
+def _inner() -> list:
+    inner = graph.inner_imports()
+    assert len(inner) > 5, "the reader finds (almost) no import inside a function: it is broken, not the code clean"
+    return inner
+
+
+def _not_allowed(inner: list) -> list[str]:
+    return sorted(f"{e.source}:{e.line} imports {e.target} inside {e.function}()"
+                  for e in inner if not any(lazy.covers(e) for lazy in ALLOWED))
+
+
+def test_the_allow_list_is_short_and_each_entry_says_why() -> None:
+    assert len(ALLOWED) <= MAX_ALLOWED, f"{len(ALLOWED)} entries: import at module level instead"
+    assert len({(a.module, a.function) for a in ALLOWED}) == len(ALLOWED)
+    assert all(len(a.reason) > 40 and a.targets for a in ALLOWED)
+
+
+def test_every_allowed_import_is_still_made() -> None:
+    """An entry no import inside its function needs any more goes (the list only shrinks)."""
+    inner = _inner()
+    stale = [f"{a.module}.{a.function}" for a in ALLOWED if not any(a.covers(e) for e in inner)]
+    assert not stale, f"allow-list entries no longer used (remove them): {stale}"
+
+
+def test_imports_inside_functions_only_on_the_allow_list_outside_identify() -> None:
+    new = _not_allowed([e for e in _inner() if not e.source.startswith(IDENTIFY)])
+    assert not new, ("imports inside functions not on the allow-list (import at module level, or add the function "
+                     "with its reason to ALLOWED in tests/test_import_graph.py):\n" + "\n".join(new))
+
+
+@pytest.mark.xfail(strict=True, reason=IDENTIFY_RELAYOUT)
+def test_imports_inside_functions_only_on_the_allow_list_in_identify() -> None:
+    new = _not_allowed([e for e in _inner() if e.source.startswith(IDENTIFY)])
+    assert not new, "imports inside functions in quadcore.identify not on the allow-list:\n" + "\n".join(new)
+
+
+def test_no_import_cycle_outside_identify() -> None:
+    found = [c for c in graph.cycles(graph.imports()) if not all(m.startswith(IDENTIFY) for m in c)]
+    assert not found, "import cycles (break them; docs/architecture.md): " + "; ".join(" <-> ".join(c) for c in found)
+
+
+@pytest.mark.xfail(strict=True, reason=IDENTIFY_RELAYOUT)
+def test_no_import_cycle_at_all() -> None:
+    found = graph.cycles(graph.imports())
+    assert not found, "import cycles: " + "; ".join(" <-> ".join(c) for c in found)
 
 
 def test_the_reader_sees_a_cycle_it_is_given(tmp_path: Path) -> None:
@@ -106,6 +133,23 @@ def test_the_reader_sees_a_cycle_it_is_given(tmp_path: Path) -> None:
     assert graph.cycles(edges) == [["quadcore.a", "quadcore.b"]]
     inner = [(e.source, e.target, e.function) for e in graph.function_level(edges)]
     assert inner == [("quadcore.b", "quadcore.a", "f")]
+
+
+def test_the_reader_sees_every_import_inside_a_function(tmp_path: Path) -> None:
+    """Third-party, standard-library and dynamic imports inside functions are listed too, and a dynamic
+    import of a package's modules is an edge to each of them (here closing a cycle)."""
+    pkg = tmp_path / "quadcore"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "sub" / "x.py").write_text("from quadcore import c\n")
+    (pkg / "c.py").write_text("import importlib\n\ndef g(n):\n    import json\n    import numpy.linalg\n"
+                              "    return importlib.import_module(f'quadcore.sub.{n}')\n")
+    (tmp_path / "pipeline").mkdir()
+    known = graph.modules(tmp_path)
+    inner = [(e.target, graph.kind(e.target)) for e in graph.inner_imports(known)]
+    assert inner == [("json", "stdlib"), ("numpy.linalg", "third-party"), ("quadcore.sub.*", "project")]
+    assert graph.cycles(graph.imports(known)) == [["quadcore.c", "quadcore.sub.x"]]
 
 
 def test_the_architecture_picture_is_the_codes() -> None:

@@ -1,6 +1,7 @@
 """The import graph of quadcore and pipeline, read from the source with ast (nothing is imported).
 
-`python tools/imports.py` prints the counts (modules, import cycles, function-level imports) and
+`python tools/imports.py` prints the counts (modules, import cycles) and every import made inside a function
+(of the project's modules, of third-party packages and of the standard library alike), and
 `python tools/imports.py --write-docs` writes the stage packages' graph as a mermaid diagram into
 docs/img/layers.mmd and into the mermaid block of docs/architecture.md. tests/test_import_graph.py
 uses the same functions.
@@ -8,6 +9,8 @@ uses the same functions.
 An import counts at any depth: module level, inside `if TYPE_CHECKING:` (excluded: never run),
 and inside function bodies (a "function-level import", listed separately). `from a import b` counts
 as an edge to `a.b` when `a.b` is a module, else to `a`; a package's `__init__` is its own node.
+A call `importlib.import_module(f"quadcore.cli.{name}")` inside a function is a function-level import of
+every module under its constant prefix (here `quadcore.cli.*`): it counts in the graph as an edge to each.
 """
 
 from __future__ import annotations
@@ -51,7 +54,33 @@ def _is_type_checking(node: ast.If) -> bool:
         isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def _walk(node: ast.AST, function: str) -> Iterator[tuple[ast.Import | ast.ImportFrom, str]]:
+def _dynamic_prefix(node: ast.Call, module: str = "") -> str | None:
+    """The known start of the module name an ``importlib.import_module(...)`` call in ``module`` imports
+    (``"quadcore.cli."`` for ``f"quadcore.cli.{name}"``, ``{__name__}`` read as ``module``; ``""``: not known),
+    or None if ``node`` is no such call."""
+    func = node.func
+    name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+    if name != "import_module" or not node.args:
+        return None
+    arg = node.args[0]
+    if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+        return arg.value
+    prefix = ""
+    for part in arg.values if isinstance(arg, ast.JoinedStr) else []:
+        if isinstance(part, ast.Constant):
+            prefix += str(part.value)
+        elif (isinstance(part, ast.FormattedValue) and isinstance(part.value, ast.Name)
+              and part.value.id == "__name__" and module):
+            prefix += module
+        else:
+            break
+    return prefix
+
+
+Statement = ast.Import | ast.ImportFrom | ast.Call
+
+
+def _walk(node: ast.AST, function: str) -> Iterator[tuple[Statement, str]]:
     for child in ast.iter_child_nodes(node):
         if isinstance(child, ast.If) and _is_type_checking(child):
             for sub in child.orelse:
@@ -59,6 +88,9 @@ def _walk(node: ast.AST, function: str) -> Iterator[tuple[ast.Import | ast.Impor
             continue
         if isinstance(child, ast.Import | ast.ImportFrom):
             yield child, function
+        elif isinstance(child, ast.Call) and _dynamic_prefix(child) is not None:
+            yield child, function
+            yield from _walk(child, function)
         elif isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
             yield from _walk(child, child.name if not function else f"{function}.{child.name}")
         else:
@@ -74,24 +106,61 @@ def _resolve(name: str, node: ast.ImportFrom, known: dict[str, Path]) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def imports(known: dict[str, Path] | None = None) -> list[Import]:
-    """Every import edge between two of the packages' modules."""
-    known = modules() if known is None else known
-    edges: list[Import] = []
+def _named(name: str, node: Statement, known: dict[str, Path]) -> list[str]:
+    """The module names an import statement names (a dynamic import: its constant prefix + ``*``)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if isinstance(node, ast.Call):
+        return [f"{_dynamic_prefix(node, name)}*"]
+    mod = _resolve(name, node, known)
+    return [f"{mod}.{a.name}" if f"{mod}.{a.name}" in known else mod for a in node.names]
+
+
+def _statements(known: dict[str, Path]) -> Iterator[tuple[str, Statement, str]]:
     for name, path in known.items():
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
         for node, function in _walk(tree, ""):
-            if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                mod = _resolve(name, node, known)
-                targets = [f"{mod}.{a.name}" if f"{mod}.{a.name}" in known else mod for a in node.names]
+            yield name, node, function
+
+
+def imports(known: dict[str, Path] | None = None) -> list[Import]:
+    """Every import edge between two of the packages' modules (a dynamic import: one to each module
+    under its prefix)."""
+    known = modules() if known is None else known
+    edges: list[Import] = []
+    for name, node, function in _statements(known):
+        for named in _named(name, node, known):
+            # a dynamic import: every module under its known prefix (none if nothing of it is known; never a
+            # __main__, which is run, not imported)
+            targets = ([m for m in known if named != "*" and m.startswith(named[:-1])
+                        and not m.endswith(".__main__")] if named.endswith("*") else [named])
             for target in targets:
                 while target and target not in known:
                     target = target.rpartition(".")[0]
                 if target and target != name:
                     edges.append(Import(name, target, node.lineno, function))
     return sorted(set(edges), key=lambda e: (e.source, e.line, e.target))
+
+
+def inner_imports(known: dict[str, Path] | None = None) -> list[Import]:
+    """Every import made inside a function, of any module: the project's, a third-party package's or
+    the standard library's (``target`` as written, absolute; a dynamic import's ends in ``*``)."""
+    known = modules() if known is None else known
+    found = {Import(name, target, node.lineno, function)
+             for name, node, function in _statements(known) if function
+             for target in _named(name, node, known) if target != "__future__"}
+    return sorted(found, key=lambda e: (e.source, e.line, e.target))
+
+
+def kind(target: str) -> str:
+    """``project``, ``stdlib``, ``third-party`` or ``unknown`` (a dynamic import whose module name is not
+    known before it runs): whose module an import names."""
+    if target == "*":
+        return "unknown"
+    top = target.split(".")[0]
+    if top in PACKAGES:
+        return "project"
+    return "stdlib" if top in sys.stdlib_module_names else "third-party"
 
 
 def cycles(edges: list[Import]) -> list[list[str]]:
@@ -189,20 +258,24 @@ def main() -> None:
                         help=f"write the stage graph to {MERMAID_FILE} and {ARCHITECTURE_PAGE}'s mermaid block")
     args = parser.parse_args()
     edges = imports()
-    found = cycles(edges)
-    inner = function_level(edges)
-    print(f"modules: {len(modules())}, import edges: {len(edges)}")
-    print(f"cycles: {len(found)} ({sum(map(len, found))} modules)")
-    for c in found:
-        print("  " + " <-> ".join(c))
-    print(f"function-level imports: {len(inner)} "
-          f"({sum(e.source.startswith('quadcore.identify') for e in inner)} in quadcore.identify)")
     if args.write_docs:
         text = mermaid(edges)
         (ROOT / MERMAID_FILE).write_text(text, encoding="utf-8")
         page = ROOT / ARCHITECTURE_PAGE
         page.write_text(with_block(page.read_text(encoding="utf-8"), text), encoding="utf-8")
         print(f"wrote {MERMAID_FILE} and {ARCHITECTURE_PAGE}")
+    found = cycles(edges)
+    print(f"modules: {len(modules())}, import edges: {len(edges)}")
+    print(f"cycles: {len(found)} ({sum(map(len, found))} modules)")
+    for c in found:
+        print("  " + " <-> ".join(c))
+    every = inner_imports()
+    counts = {k: sum(kind(e.target) == k for e in every) for k in ("project", "third-party", "stdlib", "unknown")}
+    in_identify = sum(e.source.startswith("quadcore.identify") for e in every)
+    print(f"imports inside functions: {len(every)} in {len({(e.source, e.function) for e in every})} functions "
+          f"({', '.join(f'{n} {k}' for k, n in counts.items())}; {in_identify} in quadcore.identify):")
+    for e in every:
+        print(f"  {e.source}.{e.function}:{e.line} imports {e.target} ({kind(e.target)})")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from urllib.parse import urlparse
 
 import dagster as dg
+from dagster_graphql import DagsterGraphQLClient
 
 from pipeline.resources import SettingError
 
@@ -73,8 +74,6 @@ class SubmittedRun:
 
 
 def _client():
-    from dagster_graphql import DagsterGraphQLClient
-
     url = urlparse(cluster_url() or "")
     return DagsterGraphQLClient(url.hostname or "127.0.0.1", port_number=url.port, timeout=120)
 

@@ -5,6 +5,9 @@ import os
 import sqlite3
 from pathlib import Path
 
+from sqlalchemy import event
+from sqlalchemy.engine import Engine
+
 from quadcore.store import store
 
 # Two cores: at most two runs at once; the others wait in the queue (``dg dev`` and the daemon
@@ -49,9 +52,6 @@ def unsynced_event_log(home: Path) -> None:
     hands every commit to the OS); only an OS crash or a power cut during a run could lose or
     corrupt its run records, as it could our own files (written by rename, not fsynced either).
     For the headless main job; the UI and its daemon keep SQLite's default."""
-    from sqlalchemy import event
-    from sqlalchemy.engine import Engine
-
     _UNSYNCED_HOMES.add(str(home.resolve()) + os.sep)
     if not event.contains(Engine, "connect", _unsynced_if_in_home):
         event.listen(Engine, "connect", _unsynced_if_in_home)

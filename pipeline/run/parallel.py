@@ -28,6 +28,7 @@ import numpy as np
 from dagster._core.instance.ref import InstanceRef
 from dagster._core.storage.tags import ASSET_PARTITION_RANGE_END_TAG, ASSET_PARTITION_RANGE_START_TAG
 from dagster._serdes import deserialize_value, serialize_value
+from threadpoolctl import threadpool_limits
 
 from pipeline.assets import EXPORT, FLEET, LEARNING, PER_FLIGHT
 from pipeline.cluster import launch
@@ -225,6 +226,4 @@ def _materialize_in_child(ref: str, homes: list[str], configs: dict, names: list
 def one_blas_thread():
     """One BLAS thread in each of the two processes while both work: two of OpenBLAS's threads
     per process on two cores wait for each other (see :func:`quadcore.identify.sufficient.one_blas_thread`)."""
-    from threadpoolctl import threadpool_limits
-
     return threadpool_limits(limits=1, user_api="blas")

@@ -26,6 +26,10 @@ import time
 import urllib.request
 from pathlib import Path
 
+from pipeline.resources import SettingError, choose_demo, data_root_from_env, make_command
+from pipeline.run.instance import ensure_dagster_home
+from quadcore.store import ownership
+
 REPO = Path(__file__).resolve().parents[2]
 # How long the services get to stop after an interrupt before they are killed.
 STOP_TIMEOUT_S = 20.0
@@ -40,8 +44,6 @@ def port_problem(host: str, port: int) -> str | None:
             sock.bind((host, port))
         except OSError as exc:
             if exc.errno == errno.EADDRINUSE:
-                from pipeline.resources import make_command
-
                 return f"port {port} on {host} is already in use; choose another: {make_command('ui', port + 1)}"
             return f"cannot serve on {host}:{port}: {exc.strerror}"
     return None
@@ -133,10 +135,6 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"make ui: error: {problem}", file=sys.stderr)
         return 2
-    from pipeline.resources import SettingError, choose_demo, data_root_from_env
-    from pipeline.run.instance import ensure_dagster_home
-    from quadcore.store import ownership
-
     try:  # what `make run` runs on: the demo's root while data/raw holds no logs
         choose_demo(False)
         root = data_root_from_env().root_path

@@ -16,6 +16,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import dagster_webserver.cli as cli
+from starlette.routing import Mount
+from starlette.staticfiles import StaticFiles
+
 from pipeline.plot_links import PLOTS_FOLDER, PLOTS_ROUTE
 from pipeline.resources import data_root_from_env
 
@@ -23,9 +27,6 @@ from pipeline.resources import data_root_from_env
 def with_plots(app, folder: Path):
     """``app`` (Dagster's Starlette application) with ``folder`` served read-only under
     :data:`PLOTS_ROUTE`, ahead of Dagster's catch-all route."""
-    from starlette.routing import Mount
-    from starlette.staticfiles import StaticFiles
-
     folder.mkdir(parents=True, exist_ok=True)
     app.router.routes.insert(0, Mount(PLOTS_ROUTE, app=StaticFiles(directory=str(folder), check_dir=False),
                                       name="quadcore-plots"))
@@ -33,8 +34,6 @@ def with_plots(app, folder: Path):
 
 
 def main() -> None:
-    import dagster_webserver.cli as cli
-
     folder = data_root_from_env().root_path / PLOTS_FOLDER
     create = cli.create_app_from_workspace_process_context
     cli.create_app_from_workspace_process_context = lambda *a, **k: with_plots(create(*a, **k), folder)

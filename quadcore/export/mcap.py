@@ -26,8 +26,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import foxglove
 import numpy as np
 import polars as pl
+from foxglove.mcap import MCAPWriteOptions
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
@@ -203,9 +205,6 @@ def write_mcap(table: pl.DataFrame, path: str | Path, start_ns: int,
                metadata: dict[str, str] | None = None) -> dict[str, int]:
     """Write a residual table as MCAP (protobuf messages, zstd chunks, written by the Foxglove
     SDK's MCAP writer); returns messages per topic. Log time of a sample = ``start_ns`` + its ``t_s``."""
-    import foxglove
-    from foxglove.mcap import MCAPWriteOptions
-
     t_ns = start_ns + np.round(table["t_s"].to_numpy() * 1e9).astype(np.int64)
     stamp = {"seconds": t_ns // 1_000_000_000, "nanos": t_ns % 1_000_000_000}
     times = t_ns.tolist()

@@ -8,7 +8,8 @@ One folder per model under ``<root>/learned/<run name>/``: ``model.ubj`` (XGBoos
     m = artefacts.load("data/learned/holdout-jana02__all__physics__xgboost-d6")
     f_N, tau_Nm = m.predict(table)        # (n, 3) each, body frame, SI
 
-torch and xgboost are imported inside functions, so importing this module is cheap.
+torch and xgboost are imported by :func:`quadcore.learn.backends.backend` when a model of their kind is
+read, run or saved, so importing this module is cheap.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import polars as pl
 
 from quadcore.identify import model as modelmod
 from quadcore.learn import features as feat
+from quadcore.learn.backends import backend
 from quadcore.learn.features import TARGETS, FeatureSet, Scaler
 from quadcore.learn.learners import LearnerSpec, LearningError
 from quadcore.learn.trees import CompiledForest
@@ -33,17 +35,6 @@ FORMAT = "quadcore-learned/1"
 
 
 PRED_COLUMNS = [f"f_learned_b_{a}_N" for a in "xyz"] + [f"tau_learned_b_{a}_Nm" for a in "xyz"]
-
-
-def mlp_module(n_in: int, hidden: tuple[int, ...], n_out: int):
-    import torch.nn as nn
-
-    layers, width = [], n_in
-    for h in hidden:
-        layers += [nn.Linear(width, h), nn.ReLU()]
-        width = h
-    layers.append(nn.Linear(width, n_out))
-    return nn.Sequential(*layers)
 
 
 class LearnedModel:
@@ -76,13 +67,7 @@ class LearnedModel:
     def predict_matrix(self, X: np.ndarray) -> np.ndarray:
         """Raw feature matrix (n, k) -> (n, 6) residual [f_x, f_y, f_z, tau_x, tau_y, tau_z], SI."""
         Z = self.x_scaler.transform(X)
-        if self.kind == "xgboost":
-            out = self.impl.inplace_predict(Z)
-        else:
-            import torch
-
-            with torch.no_grad():
-                out = self.impl(torch.from_numpy(Z)).numpy()
+        out = backend(self.kind).predict(self.impl, Z)
         return self.y_scaler.inverse(np.asarray(out).reshape(len(Z), -1))
 
     def predict_one(self, x: np.ndarray) -> np.ndarray:
@@ -94,10 +79,7 @@ class LearnedModel:
                 self._forest = CompiledForest(self.impl)
             y = self._forest.predict_one(z)
         else:
-            import torch
-
-            with torch.no_grad():
-                y = self.impl(torch.from_numpy(z[None, :]))[0].numpy()
+            y = backend(self.kind).predict(self.impl, z[None, :])[0]
         return y * self.y_scaler.std + self.y_scaler.mean
 
     def _feature_source(self, table: pl.DataFrame, flight: str | None = None) -> pl.DataFrame:
@@ -167,12 +149,7 @@ class LearnedModel:
         """The artefacts into the local folder ``folder``, the manifest last."""
         if predictions is not None:
             store.write_parquet(predictions, folder / "predictions.parquet", {"run": run})
-        if self.kind == "xgboost":
-            self.impl.save_model(str(folder / "model.ubj"))
-        else:
-            import torch
-
-            torch.save(self.impl.state_dict(), folder / "model.pt")
+        backend(self.kind).save(self.impl, folder)
         store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, folder / "scaler.json")
         store.write_json(self.feature_set.to_dict(), folder / "features.json")
         store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
@@ -214,16 +191,6 @@ def _load(folder: Path, mpath: Path, threads: int, torch_threads: int) -> Learne
     fs = FeatureSet.from_dict(json.loads((folder / "features.json").read_text()))
     sc = json.loads((folder / "scaler.json").read_text())
     xs, ys = Scaler.from_dict(sc["x"]), Scaler.from_dict(sc["y"])
-    if spec.kind == "xgboost":
-        import xgboost as xgb
-
-        impl = xgb.Booster(model_file=str(folder / "model.ubj"))
-        impl.set_param({"nthread": threads})
-    else:
-        import torch
-
-        torch.set_num_threads(torch_threads)
-        impl = mlp_module(len(fs.columns), spec.hidden, len(TARGETS))
-        impl.load_state_dict(torch.load(folder / "model.pt", weights_only=True))
-        impl.eval()
+    impl = backend(spec.kind).load(folder, spec, len(fs.columns), len(TARGETS),
+                                   threads if spec.kind == "xgboost" else torch_threads)
     return LearnedModel(spec, fs, xs, ys, impl, manifest)

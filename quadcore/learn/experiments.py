@@ -16,6 +16,7 @@ import polars as pl
 
 from quadcore.learn import features as feat
 from quadcore.learn.artefacts import FORMAT, PRED_COLUMNS, LearnedModel
+from quadcore.learn.backends import backend
 from quadcore.learn.features import TARGETS, FeatureSet
 from quadcore.learn.learners import KINDS, LearnerSpec, LearningError, TrainConfig, complexity_specs, default_spec
 from quadcore.learn.splits import MAX_LOFO_FOLDS, Split, holdout_split, lofo_splits
@@ -151,9 +152,8 @@ def train_experiments(experiments: list[Experiment], tables_by_set: Mapping[str,
     if config.lanes < 2 or len(kinds) < 2:
         done = [pair for k in kinds for pair in lane(k)]
     else:
-        import torch  # noqa: F401  (imported once here: two threads importing at once would wait on each other)
-        import xgboost  # noqa: F401
-
+        for k in kinds:  # imported once here: two threads importing at once would wait on each other
+            backend(k)
         with ThreadPoolExecutor(max_workers=len(kinds), thread_name_prefix="train") as pool:
             done = [pair for lane_result in pool.map(lane, kinds) for pair in lane_result]
     return [m for _, m in sorted(done, key=lambda pair: pair[0])]

@@ -46,6 +46,7 @@ inside the training function from the training flights it is given).
 from __future__ import annotations
 
 import csv
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -278,8 +279,6 @@ def replace_feature_tables(root: Path, residual_tables: Mapping[str, pl.DataFram
     two renames: a failure half-way leaves the previous tables whole, and readers never see a
     half-written set. In an object store (no renames) each table is replaced whole, in place,
     and the tables of sets and flights no longer there are removed."""
-    import shutil
-
     root = store.as_root(root)
     if store.is_remote(root):  # no folder renames in an object store: each table is replaced whole, in place
         written = write_feature_tables(root, residual_tables, sets, provenance)

@@ -1,6 +1,7 @@
 """Training: XGBoost (squared error, ``hist``, one model with six outputs, early stopping on the
 validation flights) and a PyTorch MLP (Adam on the mean squared error, mini-batches, the best
-epoch's weights kept), seeded and reproducible, and their prediction timings.
+epoch's weights kept), seeded and reproducible (each kind in :mod:`quadcore.learn.backends`), and their
+prediction timings.
 """
 
 from __future__ import annotations
@@ -11,68 +12,11 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import polars as pl
 
-from quadcore.learn.artefacts import LearnedModel, mlp_module
+from quadcore.learn.artefacts import LearnedModel
+from quadcore.learn.backends import backend
 from quadcore.learn.features import FeatureSet
 from quadcore.learn.learners import LearnerSpec, LearningError, TrainConfig
-from quadcore.learn.splits import TrainingData, training_data
-
-
-def _train_xgboost(spec: LearnerSpec, d: TrainingData, seed: int, threads: int):
-    import xgboost as xgb
-
-    params = {
-        "objective": "reg:squarederror", "tree_method": "hist", "max_depth": spec.max_depth,
-        "eta": spec.learning_rate, "subsample": spec.subsample, "min_child_weight": spec.min_child_weight,
-        "nthread": threads, "seed": seed, "multi_strategy": "one_output_per_tree",
-    }
-    dfit = xgb.QuantileDMatrix(d.X_fit, d.Y_fit, nthread=threads)
-    dval = xgb.QuantileDMatrix(d.X_val, d.Y_val, ref=dfit, nthread=threads)
-    booster = xgb.train(params, dfit, num_boost_round=spec.n_estimators, evals=[(dval, "val")],
-                        early_stopping_rounds=spec.early_stopping_rounds, verbose_eval=False)
-    best = int(booster.best_iteration)
-    booster = booster[: best + 1]  # keep the trees up to the best validation round
-    val_loss = float(np.mean((booster.inplace_predict(d.X_val) - d.Y_val) ** 2))
-    return booster, {"best_iteration": best, "trees_per_output": best + 1, "val_loss": val_loss}
-
-
-def _train_mlp(spec: LearnerSpec, d: TrainingData, seed: int, threads: int):
-    import torch
-
-    torch.set_num_threads(threads)
-    torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
-    net = mlp_module(d.X_fit.shape[1], spec.hidden, d.Y_fit.shape[1])
-    opt = torch.optim.Adam(net.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
-    xf, yf = torch.from_numpy(d.X_fit), torch.from_numpy(d.Y_fit.astype(np.float32))
-    xv, yv = torch.from_numpy(d.X_val), torch.from_numpy(d.Y_val.astype(np.float32))
-    n, bs = len(xf), max(1, spec.batch_size)
-    best, best_state, best_epoch, bad, epochs = float("inf"), None, -1, 0, 0
-    for epoch in range(spec.max_epochs):
-        net.train()
-        perm = torch.randperm(n, generator=gen)
-        for i in range(0, n, bs):
-            idx = perm[i: i + bs]
-            loss = torch.nn.functional.mse_loss(net(xf[idx]), yf[idx])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-        net.eval()
-        with torch.no_grad():
-            vl = float(torch.nn.functional.mse_loss(net(xv), yv))
-        epochs = epoch + 1
-        if vl < best:
-            best, best_epoch, bad = vl, epoch, 0
-            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        else:
-            bad += 1
-            if bad >= spec.patience:
-                break
-    if best_state is None:  # no epoch ran, or every validation loss was NaN (diverged)
-        raise LearningError(f"MLP {spec.label}: no epoch gave a finite validation loss "
-                            f"({epochs} epoch(s) run): raise max_epochs or lower lr")
-    net.load_state_dict(best_state)
-    net.eval()
-    return net, {"epochs": epochs, "best_epoch": best_epoch, "val_loss": best}
+from quadcore.learn.splits import training_data
 
 
 def train(spec: LearnerSpec, fs: FeatureSet, tables: Mapping[str, pl.DataFrame], train_flights: list[str],
@@ -86,17 +30,11 @@ def train(spec: LearnerSpec, fs: FeatureSet, tables: Mapping[str, pl.DataFrame],
     config = config or TrainConfig()
     if not train_flights:
         raise LearningError("no training flights")
-    if spec.kind == "xgboost":  # imported before the clock starts: the first import takes ~1 s
-        import xgboost  # noqa: F401
-    else:
-        import torch  # noqa: F401
+    kind = backend(spec.kind)  # imported before the clock starts: the first import takes ~1 s
     t0 = time.perf_counter()
     d = training_data(tables, fs, list(train_flights), config, kinds)
     t1 = time.perf_counter()
-    if spec.kind == "xgboost":
-        impl, info = _train_xgboost(spec, d, config.seed, config.threads)
-    else:
-        impl, info = _train_mlp(spec, d, config.seed, config.torch_threads)
+    impl, info = kind.train(spec, d, config.seed, config.threads if spec.kind == "xgboost" else config.torch_threads)
     t2 = time.perf_counter()
     manifest = {
         "physics_model": physics or {},

@@ -6,10 +6,11 @@ any event type in the file, so all tables of a flight share one clock.
 
 from __future__ import annotations
 
+import csv
 import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-from datetime import UTC
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -187,8 +188,6 @@ def read_flight_starts(path: str | Path | None) -> dict[str, int]:
     """Start times given by the user: the ``start_utc`` column (ISO 8601) of a flights file
     (``flights.csv``: columns ``flight``, ..., ``start_utc``); {} when absent. A bad time is a
     ``ValueError`` naming the flight."""
-    import csv
-
     if not path or not Path(path).is_file():
         return {}
     out = {}
@@ -205,8 +204,6 @@ def read_flight_starts(path: str | Path | None) -> dict[str, int]:
 
 def parse_start(text: str) -> int:
     """An ISO 8601 time (``2024-05-01T12:00:00Z``; no zone means UTC) as ns since the Unix epoch."""
-    from datetime import datetime
-
     try:
         when = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
     except ValueError:

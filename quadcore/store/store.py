@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Mapping
@@ -239,8 +240,6 @@ def remove_tree(path: Any) -> None:
         if path.exists():
             path.fs.rm(path.path, recursive=True)
     else:
-        import shutil
-
         shutil.rmtree(path, ignore_errors=True)
 
 

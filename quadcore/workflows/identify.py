@@ -5,6 +5,7 @@ the CLI was told to). The CLI and the assets call these; they only print or atta
 from __future__ import annotations
 
 import json
+import shlex
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -12,6 +13,7 @@ from typing import TYPE_CHECKING
 from quadcore.commands import quadcore_command
 from quadcore.identify import diagnosis, fitting, history, model, sufficient
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
+from quadcore.report import diagnosis as diagnosis_report
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
@@ -105,8 +107,6 @@ def discover_command(data, spec: ModelSpec, holdout: list[str]) -> str:
     """The ``quadcore discover`` command on the logs in ``data`` with the model ``spec`` (its
     file, or its effects) and ``holdout``: what a diagnosis points to when what is left is
     outside the library."""
-    import shlex
-
     parts = [quadcore_command(), "discover", str(data), "--json", "discovery.json"]
     if spec.source:
         parts += ["--model", spec.source]
@@ -141,8 +141,6 @@ def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file
     discovery kept beside it (:func:`discovery_for`) and, given the data ``root``, the error
     history; ``model_file``: the file its next step tells to edit, ``rerun``: the command it
     tells to run again. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
-    from quadcore.report import diagnosis as diagnosis_report
-
     hist = history.read(root) if root is not None else None
     return diagnosis_report.write(result.to_dict(), reports_dir, hist,
                                   discovery_for(reports_dir, list(result.effects_in_model)), model_file, rerun)

@@ -15,6 +15,7 @@ from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, splits
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.physics import decoded_store
+from quadcore.report.learning import make_plots, write_report
 from quadcore.store import store
 from quadcore.store.names import MAIN_EVENT
 from quadcore.workflows import identify
@@ -226,8 +227,6 @@ def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame]
     ``root_for_history``), plot and write the report (:mod:`quadcore.report.learning`).
     ``physics_trained_on``: the flights the physics model's effects were fitted on (default: as
     the index says). Returns (report, plots, paths)."""
-    from quadcore.report.learning import make_plots, write_report
-
     report = evaluation.evaluate(out_dir, residual_tables, vehicle, physics_trained_on)
     hist = None
     if root_for_history is not None:

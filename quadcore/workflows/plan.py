@@ -9,10 +9,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+import polars as pl
+
 from quadcore.identify.diagnosis.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
-from quadcore.plan import pieces, planner
+from quadcore.plan import output, pieces, planner
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, sessions_of
 
@@ -44,10 +47,6 @@ class Written:
 
 def plot_png(result: FlightPlan) -> bytes | None:
     """The picture of a plan (None when nothing was planned)."""
-    import numpy as np
-
-    from quadcore.plan import output
-
     if not result.planned or result.path is None:
         return None
     path = result.path
@@ -64,8 +63,6 @@ def plot_png(result: FlightPlan) -> bytes | None:
 def write(result: FlightPlan, json_path: Path, trajectory_path: Path | None, plot_path: Path | None = None) -> Written:
     """Write the CSV (where planned), the picture (beside the JSON as ``.png`` unless given) and
     the JSON, in that order: the JSON, written last, names only what exists."""
-    from quadcore.plan import output
-
     csv = None
     png = None
     if result.planned and result.trajectory is not None and trajectory_path is not None:
@@ -86,8 +83,6 @@ PLAN_JSON, PLAN_CSV, PLAN_PNG = "flight_plan.json", "flight_plan.csv", "flight_p
 def diagnosis_from_document(doc: dict, spec: ModelSpec) -> Diagnosis:
     """The typed diagnosis from its JSON document (``reports/diagnosis.json``): the parts the
     planner reads (candidates, model, evaluation, residual and noise levels); the tables empty."""
-    import polars as pl
-
     def rmse(d: dict) -> ResidualRmse:
         return ResidualRmse(tuple(d["force_rmse_N"]), tuple(d["torque_rmse_Nm"]))
 

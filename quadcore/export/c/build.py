@@ -15,6 +15,7 @@ import hashlib
 import shutil
 import subprocess
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -226,8 +227,6 @@ class HostModel:
     def seconds_per_call(self, rows: np.ndarray, chunk: int = 500, tries: int = 200) -> float:
         """Per call: the best of ``tries`` timed passes over ``chunk`` consecutive rows (a few ms
         each, so that some run without being preempted on a shared machine; outputs not copied)."""
-        import time
-
         rows = np.ascontiguousarray(rows, np.float32).reshape(len(rows), self.width)
         starts = np.arange(0, max(len(rows) - chunk, 0) + 1, chunk)
         best = float("inf")

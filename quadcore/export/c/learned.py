@@ -21,6 +21,7 @@ import numpy as np
 
 from quadcore.export.c.inputs import ExportError
 from quadcore.learn.artefacts import LearnedModel
+from quadcore.learn.backends import backend
 from quadcore.learn.trees import CompiledForest
 
 
@@ -228,9 +229,7 @@ static const unsigned short QC_CUT_START[QC_N_FEATURES + 1] = {{{", ".join(str(i
 
 def mlp_c(model: LearnedModel) -> tuple[str, dict]:
     """C for an MLP (weights, biases, the scalers) and figures about it."""
-    import torch.nn as nn
-
-    layers = [m for m in model.impl if isinstance(m, nn.Linear)]
+    layers = backend("mlp").linear_layers(model.impl)
     tables, widths = [], [layers[0].in_features]
     for k, layer in enumerate(layers):
         w = layer.weight.detach().numpy().astype(np.float64)
