@@ -19,6 +19,7 @@ from urllib.parse import urlparse
 import dagster as dg
 from dagster_graphql import DagsterGraphQLClient
 
+from pipeline.cluster.services import DAEMON_SILENT_S, daemon_beat
 from pipeline.resources import SettingError
 
 # Polling the instance for the runs' ends: a run of the main job takes seconds to minutes.
@@ -28,9 +29,6 @@ LOCATION = "quadcore"
 # The implicit job of all assets: a submission names the assets it materialises.
 ASSET_JOB = "__ASSET_JOB"
 ENDED = {dg.DagsterRunStatus.SUCCESS, dg.DagsterRunStatus.FAILURE, dg.DagsterRunStatus.CANCELED}
-# The daemon beats every few seconds; a run coordinator silent for longer is not running, and a
-# queued run would wait for it for ever.
-DAEMON_SILENT_S = 120.0
 # The longest the main job waits for its runs (QUADCORE_CLUSTER_TIMEOUT_S): a run that hangs
 # (a step whose worker never answers) would otherwise hold the data root's lock for ever. The
 # 100 simulated flights' slowest stage took minutes here (docs/benchmarks.md#local-cluster).
@@ -120,13 +118,6 @@ def wait(instance: dg.DagsterInstance, run_ids: Sequence[str], retries: bool = T
         elif time.monotonic() > deadline:
             give_up([r.run_id for r in runs if r is not None and r.status not in ENDED], limit)
         time.sleep(POLL_S)
-
-
-def daemon_beat(instance: dg.DagsterInstance) -> float | None:
-    """When the daemon's run coordinator (the loop that launches queued runs) last beat, in
-    seconds since the epoch; None when it never has."""
-    beat = instance.get_daemon_heartbeats().get("QUEUED_RUN_COORDINATOR")
-    return None if beat is None else float(beat.timestamp)
 
 
 def check_daemon(instance: dg.DagsterInstance) -> None:

@@ -34,6 +34,8 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
+import dagster as dg
+
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "deploy" / "local"
 BUCKET = "quadcore"
@@ -53,6 +55,18 @@ CELERY_SETTINGS = {
     "broker_transport_options": {"visibility_timeout": 30},
     "result_expires": 86400,
 }
+
+
+# The daemon beats every few seconds; a run coordinator silent for longer is not running, and a
+# queued run would wait for it for ever.
+DAEMON_SILENT_S = 120.0
+
+
+def daemon_beat(instance: dg.DagsterInstance) -> float | None:
+    """When the daemon's run coordinator (the loop that launches queued runs) last beat, in
+    seconds since the epoch; None when it never has."""
+    beat = instance.get_daemon_heartbeats().get("QUEUED_RUN_COORDINATOR")
+    return None if beat is None else float(beat.timestamp)
 
 
 def celery_config(broker: str, backend: str) -> dict:
@@ -329,20 +343,16 @@ def start_dagster(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
 
 def wait_for_run_queue(c: Cluster, since: float | None) -> None:
     """Until the daemon's run coordinator has beaten after ``since`` (a daemon started then), or
-    within :data:`launch.DAEMON_SILENT_S` (``since`` None: one already running): the heartbeat
-    :func:`launch.check_daemon` reads before it accepts a queued run. The daemon loads the code
+    within :data:`DAEMON_SILENT_S` (``since`` None: one already running): the heartbeat
+    :func:`pipeline.cluster.launch.check_daemon` reads before it accepts a queued run. The daemon loads the code
     before its loops start (a minute after the webserver answers on a loaded machine), and a
     heartbeat left in the instance by an earlier daemon is no sign of this one."""
-    import dagster as dg
-
-    from pipeline.cluster import launch
-
     settings = c.settings()
     with _environ({k: settings[k] for k in ("DAGSTER_HOME", "QUADCORE_CLUSTER_PG_URL")}), \
             dg.DagsterInstance.get() as instance:
         def beaten() -> bool:
-            beat = launch.daemon_beat(instance)
-            after = time.time() - launch.DAEMON_SILENT_S if since is None else since
+            beat = daemon_beat(instance)
+            after = time.time() - DAEMON_SILENT_S if since is None else since
             return beat is not None and beat >= after
 
         _wait(beaten, "dagster-daemon's run queue (its first heartbeat)", c.logs / "daemon.log",
