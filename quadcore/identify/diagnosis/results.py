@@ -71,7 +71,7 @@ class CandidateScore:
 
     @classmethod
     def from_dict(cls, row: Mapping[str, Any]) -> CandidateScore:
-        """From a candidate row as the diagnosis builds it (or as the JSON holds it)."""
+        """From its JSON object (a document as `quadcore diagnose --json` writes it)."""
         values = {name: row[name] for name in cls.__dataclass_fields__ if name != "active_bounds"}
         values["active_bounds"] = row.get("active_bounds", {})  # absent from documents written before it
         for name in ("force_rmse_N", "torque_rmse_Nm", "notes", "indistinguishable_from", "tied_with"):

@@ -27,12 +27,12 @@ from quadcore.identify.diagnosis.problem import (
 from quadcore.identify.diagnosis.results import (
     NO_EVIDENCE,
     NOTHING,
-    CandidateScore,
     Diagnosis,
     Evaluation,
     ResidualRmse,
     Stability,
 )
+from quadcore.identify.diagnosis.rows import CandidateRow
 from quadcore.identify.diagnosis.scoring import _beyond_the_best, _decide, _ev, _mark_alike, _rank, _score
 from quadcore.identify.diagnosis.sensitivity import sensitivity_basis
 from quadcore.identify.diagnosis.span import _SpanOverlap
@@ -79,7 +79,7 @@ def diagnose(
                                 if reuse and len(train_all) >= 3 else (folds.params, folds.free_params))
 
     held = _held_out(p, folds, settings)
-    rows: list[dict[str, Any]] = []
+    rows: list[CandidateRow] = []
     # every candidate's held-out sums at once (on statistics: one read of the Gram matrices)
     tests = evidence.held_out_sums(held.flights, held.resid, [held.cand_pred[c.name] for c in p.cands])
     for c, test_sums in zip(p.cands, tests):
@@ -99,7 +99,7 @@ def diagnose(
                      _stability(rows, splits, held, settings), settings)
 
 
-def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[dict],
+def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[CandidateRow],
               sensitivity: dict, disagree: list, outside: dict[str, Any] | None,
               stability: Stability, settings: DiagnosisSettings) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
@@ -124,7 +124,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         at_noise_level=held.at_noise,
         residual_to_noise={ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
                            else None for ch, sl in TARGET_CHANNELS.items()},
-        candidates=tuple(CandidateScore.from_dict(r) for r in rows),
+        candidates=tuple(r.frozen() for r in rows),
         sensitivity=sensitivity,
         sensitivity_basis=sensitivity_basis(p.cands, settings),
         verdict=text,
@@ -184,11 +184,11 @@ def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
     return summaries.tables(sums, from_rows, p.vehicle)
 
 
-def _session_disagreements(p: _Problem, rows: list[dict], sessions, log) -> list:
+def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions, log) -> list:
     """Parameters that differ between sessions: the model's effects, and the best candidate
     beside them (from the flights' statistics when they are linear, the best one perhaps
     profiled; otherwise fitted on each flight's rows)."""
-    best = [p.effect_of[rows[0]["effect"]]] if rows and rows[0]["useful"] else []
+    best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
     if all(e.linear for e in p.model_effects) and (not best or best[0].linear or p.from_profile(best[0])):
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
                                         log)
@@ -203,7 +203,8 @@ def _discover_placeholder(spec: ModelSpec) -> str:
     return f"quadcore discover LOGS {model_arg} --json discovery.json"
 
 
-def _outside_library(rows: list[dict], held: _HeldOut, command: str, library_share: float) -> dict[str, Any] | None:
+def _outside_library(rows: list[CandidateRow], held: _HeldOut, command: str, library_share: float
+                     ) -> dict[str, Any] | None:
     """Whether what the library finds is only a small part of what is left, per channel: the
     share of the held-out residual *above the sensor-noise floor* that the found candidates of
     that channel remove -- the best of them alone (held out), and in the best candidate's channel
@@ -215,34 +216,34 @@ def _outside_library(rows: list[dict], held: _HeldOut, command: str, library_sha
     held_out_p_value}, ...], "command"}``; None when the library explains most of what is
     above the floor (or there is nothing above it), ``{"channels": [], "command"}`` when nothing
     is found in a channel above the floor."""
-    found = [r for r in rows if r["found"]]
+    found = [r for r in rows if r.found]
     if not found:
         return {"channels": [], "command": command} if not all(held.at_noise.values()) else None
     top, out = found[0], []
     for ch, sl in TARGET_CHANNELS.items():
-        mine = [r for r in found if r["target"] == ch]
+        mine = [r for r in found if r.target == ch]
         before, floor = float(held.before[sl].sum()), float(held.noise_ss[sl].sum())
         if not mine or before <= floor:
             continue
         best = mine[0]
-        share = best["explained_above_noise"] + (sum(r["explained_after_top"] * before / (before - floor)
-                                                     for r in mine[1:] if r["status"] == "found")
+        share = best.explained_above_noise + (sum(r.explained_after_top * before / (before - floor)
+                                                     for r in mine[1:] if r.status == "found")
                                                  if best is top else 0.0)
         if share >= library_share:
             continue
         for r in mine:
-            r["found"] = r["useful"] = False
-            r["status"] = "partial"
-            r["reason"] = (f"the library's findings remove only {min(share, 1.0):.0%} of what lies above the noise "
-                           f"floor of the held-out {ch} residual: most of it is outside the library; " + r["reason"])
-        left = before * (1.0 - best["explained_variance"])
-        out.append({"channel": ch, "best": best["effect"], "explained_above_noise": float(min(share, 1.0)),
+            r.found = False
+            r.status = "partial"
+            r.reason = (f"the library's findings remove only {min(share, 1.0):.0%} of what lies above the noise "
+                           f"floor of the held-out {ch} residual: most of it is outside the library; " + r.reason)
+        left = before * (1.0 - best.explained_variance)
+        out.append({"channel": ch, "best": best.effect, "explained_above_noise": float(min(share, 1.0)),
                     "residual_to_noise_after": float(np.sqrt(max(left, 0.0) / floor)) if floor > 0 else None,
-                    "held_out_p_value": best["held_out_p_value"]})
+                    "held_out_p_value": best.held_out_p_value})
     return {"channels": out, "command": command} if out else None
 
 
-def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:
+def _fold_answer(rows: list[CandidateRow], held: _HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:
     """The answer of one fold (its test ``flights``): the physical candidate whose held-out
     prediction (fitted without them) removes the largest share of their residual, scored as the
     ranking scores (force and torque averaged, channels at the fleet's or the fold's noise floor
@@ -259,25 +260,25 @@ def _fold_answer(rows: list[dict], held: _HeldOut, flights: list[str], settings:
         return NO_EVIDENCE
     best, best_score, best_ev = NOTHING, 0.0, 0.0
     for r in rows:
-        if not r["physical"]:
+        if not r.physical:
             continue
-        pred = held.cand_pred[r["effect"]]
+        pred = held.cand_pred[r.effect]
         after = _total(_ss(held.resid[f] - pred[f], fd) for f, fd in zip(flights, fds))
         ev = [min(x, 0.0) if held.at_noise[ch] or at_noise[ch] else x
               for ch, x in ((ch, _ev(before, after, sl)) for ch, sl in TARGET_CHANNELS.items())]
         if 0.5 * sum(ev) > best_score:
-            best, best_score, best_ev = r["effect"], 0.5 * sum(ev), max(ev)
+            best, best_score, best_ev = r.effect, 0.5 * sum(ev), max(ev)
     return best if best_ev >= settings.min_explained else NOTHING
 
 
-def _stability(rows: list[dict], splits: list[tuple[list[str], list[str]]], held: _HeldOut,
+def _stability(rows: list[CandidateRow], splits: list[tuple[list[str], list[str]]], held: _HeldOut,
                settings: DiagnosisSettings) -> Stability:
     """How many folds agree on the top answer (:class:`quadcore.identify.diagnosis.results.Stability`): the
     cross-validation's folds, or with one split each held-out flight. From the held-out
     predictions the scores already hold: no refit."""
-    top = rows[0] if rows and rows[0]["found"] else None
-    answer = top["effect"] if top else NOTHING
-    group = (answer, *top["tied_with"]) if top else (NOTHING,)
+    top = rows[0] if rows and rows[0].found else None
+    answer = top.effect if top else NOTHING
+    group = (answer, *top.tied_with) if top else (NOTHING,)
     units, unit = (([test for _, test in splits], "fold") if len(splits) > 1
                    else ([[f] for f in held.ids], "held-out flight"))
     votes = Counter(_fold_answer(rows, held, flights, settings) for flights in units)

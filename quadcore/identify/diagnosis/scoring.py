@@ -6,7 +6,6 @@ The thresholds are in :mod:`quadcore.identify.evidence`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -18,9 +17,10 @@ from quadcore.identify.diagnosis.problem import (
     _ss,
     _total,
 )
+from quadcore.identify.diagnosis.rows import CandidateRow, HeldOutEvidence
 from quadcore.identify.diagnosis.sensitivity import detection_limits
 from quadcore.identify.diagnosis.span import _SpanOverlap
-from quadcore.identify.diagnosis.verdict import _ev_on, _other, rank_reasons
+from quadcore.identify.diagnosis.verdict import _other, rank_reasons
 from quadcore.identify.settings import DiagnosisSettings
 from quadcore.physics.dynamics import XYZ
 
@@ -44,7 +44,7 @@ def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
 
 
 def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict], list[dict]],
-           test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> dict[str, Any]:
+           test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> CandidateRow:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
     channel it explains, its parameters (``fit_c``: on all training flights, within the physical
     bounds) with their uncertainty (``fold_params``: per fold, for the spread, bounded and free)
@@ -68,50 +68,50 @@ def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict],
     # a parameter held at its bound: how well the data pin it is its free fit's error and spread
     std.update({k: max(std[k], free_spread.get(k, 0.0)) for k in active})
     sigma = _significance(c, params, std)
-    return {
-        "effect": c.name,
-        "target": target,
-        "acts_on": c.target,
-        "explained_variance": max(0.0, ev_f if target == "force" else ev_t),
-        "explained_variance_force": ev_f,
-        "explained_variance_torque": ev_t,
-        "explained_variance_raw": raw,
-        "score": 0.5 * (ev_f + ev_t),
-        "force_rmse_N": [float(np.sqrt(after[j] / held.n)) for j in range(3)],
-        "torque_rmse_Nm": [float(np.sqrt(after[3 + j] / held.n)) for j in range(3)],
-        "parameters": params,
-        "parameter_spread_between_flights": spread,
-        "parameter_std": std,
-        "n_parameters": len(c.parameters),
-        "explained_variance_per_axis": {
+    return CandidateRow(
+        effect=c.name,
+        target=target,
+        acts_on=c.target,
+        explained_variance=max(0.0, ev_f if target == "force" else ev_t),
+        explained_variance_force=ev_f,
+        explained_variance_torque=ev_t,
+        explained_variance_raw=raw,
+        score=0.5 * (ev_f + ev_t),
+        force_rmse_N=[float(np.sqrt(after[j] / held.n)) for j in range(3)],
+        torque_rmse_Nm=[float(np.sqrt(after[3 + j] / held.n)) for j in range(3)],
+        parameters=params,
+        parameter_spread_between_flights=spread,
+        parameter_std=std,
+        n_parameters=len(c.parameters),
+        explained_variance_per_axis={
             f"{q}_{a}": float(1 - after[i] / before[i]) if before[i] > 0 else 0.0
             for i, (q, a) in enumerate([("force", a) for a in XYZ] + [("torque", a) for a in XYZ])
         },
-        "physical": not bounds.unphysical,
-        "active_bounds": dict(active),
-        "significance_sigma": sigma,
-        "significant": sigma >= settings.min_sigma,
-        "notes": _parameter_notes(bounds, active, _at_bound(c, params, active), sigma, settings.min_sigma),
-        **_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
-                             before, after, held.noise_ss, target),
-    }
+        physical=not bounds.unphysical,
+        active_bounds=dict(active),
+        significance_sigma=sigma,
+        significant=sigma >= settings.min_sigma,
+        notes=_parameter_notes(bounds, active, _at_bound(c, params, active), sigma, settings.min_sigma),
+        evidence=_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
+                                    before, after, held.noise_ss, target),
+    )
 
 
 def _held_out_evidence(test: evidence.HeldOutTest, before: np.ndarray, after: np.ndarray,
-                       noise_ss: np.ndarray, target: str) -> dict:
+                       noise_ss: np.ndarray, target: str) -> HeldOutEvidence:
     """The held-out test of a candidate in its target channel, the share of the residual
     *above the noise floor* it removes, and the size of what it removes in noise floors (RMS)."""
     sl = TARGET_CHANNELS[target]
     floor = noise_ss[sl].sum()
     removed, excess = before[sl].sum() - after[sl].sum(), before[sl].sum() - floor
-    return {
-        "held_out_slope": test.beta,
-        "held_out_t": test.t,
-        "held_out_p_value": test.p_value,
-        "held_out_blocks": test.blocks,
-        "explained_above_noise": float(np.clip(removed / excess, 0.0, 1.0)) if excess > 0 else 0.0,
-        "signal_to_noise": float(np.sqrt(max(removed, 0.0) / floor)) if floor > 0 else 0.0,
-    }
+    return HeldOutEvidence(
+        held_out_slope=test.beta,
+        held_out_t=test.t,
+        held_out_p_value=test.p_value,
+        held_out_blocks=test.blocks,
+        explained_above_noise=float(np.clip(removed / excess, 0.0, 1.0)) if excess > 0 else 0.0,
+        signal_to_noise=float(np.sqrt(max(removed, 0.0) / floor)) if floor > 0 else 0.0,
+    )
 
 
 def _significance(effect, params: dict, std: dict) -> float:
@@ -193,28 +193,28 @@ def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[s
     return notes
 
 
-def _decide(r: dict, at_noise: dict[str, bool], n_candidates: int, settings: DiagnosisSettings) -> None:
-    """``found`` (alias ``useful``): physical, its parameters significant, confirmed on the
-    held-out flights (:func:`quadcore.identify.evidence.held_out_test`), removing some of a target
-    residual that stands above the noise floor. ``grade`` says how large it is."""
-    r["held_out_alpha"] = evidence.alpha_each(n_candidates, settings.alpha)
-    confirmed = r["held_out_p_value"] < r["held_out_alpha"] and r["held_out_slope"] > 0
-    r["found"] = bool(r["physical"] and r["significant"] and confirmed and r["explained_variance"] > 0
-                      and not at_noise[r["target"]])
-    r["useful"] = r["found"]
-    if not r["physical"]:
-        r["grade"] = "unphysical"
-    elif not r["found"]:
-        r["grade"] = "indistinguishable from noise"
-    elif r["signal_to_noise"] >= settings.large_snr:
-        r["grade"] = "large"
-    elif r["signal_to_noise"] >= 1.0:
-        r["grade"] = "clear"
+def _decide(r: CandidateRow, at_noise: dict[str, bool], n_candidates: int, settings: DiagnosisSettings) -> None:
+    """``found`` (the JSON's older name ``useful``): physical, its parameters significant,
+    confirmed on the held-out flights (:func:`quadcore.identify.evidence.held_out_test`),
+    removing some of a target residual that stands above the noise floor. ``grade`` says how
+    large it is."""
+    r.held_out_alpha = evidence.alpha_each(n_candidates, settings.alpha)
+    confirmed = r.held_out_p_value < r.held_out_alpha and r.held_out_slope > 0
+    r.found = bool(r.physical and r.significant and confirmed and r.explained_variance > 0
+                   and not at_noise[r.target])
+    if not r.physical:
+        r.grade = "unphysical"
+    elif not r.found:
+        r.grade = "indistinguishable from noise"
+    elif r.signal_to_noise >= settings.large_snr:
+        r.grade = "large"
+    elif r.signal_to_noise >= 1.0:
+        r.grade = "clear"
     else:
-        r["grade"] = "small but certain"
+        r.grade = "small but certain"
 
 
-def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem,
+def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p: _Problem,
                 settings: DiagnosisSettings) -> None:
     """Which candidates leave the same signature on the evaluated flights: per row, the physical
     ones that reproduce its prediction in its channel and it theirs (``indistinguishable_from``),
@@ -226,7 +226,7 @@ def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Proble
         """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the noise)."""
         return (evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], evidence_w).p_value
                 < settings.alpha)
-    by_name = {r["effect"]: r for r in rows}
+    by_name = {r.effect: r for r in rows}
 
     def can_mimic(a: str, b: str, ch: str) -> bool:
         """``b``, with physical parameter values, reproduces ``a``'s held-out prediction in ``ch``."""
@@ -240,65 +240,64 @@ def _mark_alike(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Proble
         return all(q.lower <= params[q.name] <= q.upper for q in e.parameters)
 
     for r in rows:
-        ch = r["target"]
+        ch = r.target
         alike = []
         for o in rows:
-            if (o is r or not o["physical"]
-                    or _ev_on(o, ch) < settings.min_explained and _ev_on(r, ch) < settings.min_explained):
+            if (o is r or not o.physical
+                    or o.explained_in(ch) < settings.min_explained and r.explained_in(ch) < settings.min_explained):
                 continue
-            if can_mimic(r["effect"], o["effect"], ch) and can_mimic(o["effect"], r["effect"], ch):
-                alike.append(o["effect"])
-        r["indistinguishable_from"] = alike
-        r["tied_with"] = [o for o in alike
-                          if abs(by_name[o]["score"] - r["score"]) < settings.tie_margin
-                          or not separated(r["effect"], o)]
+            if can_mimic(r.effect, o.effect, ch) and can_mimic(o.effect, r.effect, ch):
+                alike.append(o.effect)
+        r.indistinguishable_from = alike
+        r.tied_with = [o for o in alike
+                       if abs(by_name[o].score - r.score) < settings.tie_margin or not separated(r.effect, o)]
         # what separates alike candidates: the other channel when either acts there (for an
         # effect acting in both, through its joint fit), otherwise how well each fits this one
-        r["separated_by"] = {o: _other(ch) if "both" in (r["acts_on"], by_name[o]["acts_on"]) else ch
-                             for o in alike if o not in r["tied_with"]}
+        r.separated_by = {o: _other(ch) if "both" in (r.acts_on, by_name[o].acts_on) else ch
+                          for o in alike if o not in r.tied_with}
     for r in rows:  # a tie goes both ways
-        for o in r["tied_with"]:
-            if r["effect"] not in by_name[o]["tied_with"]:
-                by_name[o]["tied_with"].append(r["effect"])
-                by_name[o]["separated_by"].pop(r["effect"], None)
+        for name in r.tied_with:
+            if r.effect not in by_name[name].tied_with:
+                by_name[name].tied_with.append(r.effect)
+                by_name[name].separated_by.pop(r.effect, None)
 
 
-def _beyond_the_best(rows: list[dict], span: _SpanOverlap, held: _HeldOut, p: _Problem, settings: DiagnosisSettings
-                     ) -> dict[str, dict[str, float | None]]:
+def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p: _Problem,
+                     settings: DiagnosisSettings) -> dict[str, dict[str, float | None]]:
     """On the ranked rows: what each could still explain once the best one is in the model
     (``explained_after_top``), why each is ranked where it is, and how small an effect could
     hide in what is left then (``sensitivity``, also returned)."""
     for r in rows:
-        r["explained_after_top"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
-                                    else span.left_after(r["effect"], rows[0]["effect"], r["target"]))
+        r.explained_after_top = (r.explained_variance if r is rows[0] or held.at_noise[r.target]
+                                 else span.left_after(r.effect, rows[0].effect, r.target))
         # what it removes alone by the same screen (not its held-out share): the verdict compares the two
-        r["explained_alone_screen"] = (r["explained_variance"] if r is rows[0] or held.at_noise[r["target"]]
-                                       else span.left_after(r["effect"], None, r["target"]))
+        r.explained_alone_screen = (r.explained_variance if r is rows[0] or held.at_noise[r.target]
+                                    else span.left_after(r.effect, None, r.target))
     rank_reasons(rows, held.at_noise, settings)
-    left = ({f: held.resid[f] - held.cand_pred[rows[0]["effect"]][f] for f in held.ids}
-            if rows and rows[0]["found"] else held.resid)
+    left = ({f: held.resid[f] - held.cand_pred[rows[0].effect][f] for f in held.ids}
+            if rows and rows[0].found else held.resid)
     sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands), settings)
     for r in rows:
-        r["sensitivity"] = sensitivity[r["effect"]]
+        r.sensitivity = sensitivity[r.effect]
     return sensitivity
 
 
-def _tier(r: dict) -> int:
+def _tier(r: CandidateRow) -> int:
     """0: found (physical, significant, confirmed on held-out flights); 1: physical but not
     found; 2: unphysical (never an explanation, whatever it removes)."""
-    return 0 if r["found"] else (1 if r["physical"] else 2)
+    return 0 if r.found else (1 if r.physical else 2)
 
 
-def _rank(rows: list[dict]) -> list[dict]:
+def _rank(rows: list[CandidateRow]) -> list[CandidateRow]:
     """Best first: by tier, then by score (force and torque explained, averaged); among
     candidates the data cannot tell apart (``tied_with``) the one with fewer parameters
     comes first (parsimony), then the higher score."""
-    pending = sorted(rows, key=lambda r: (_tier(r), -r["score"]))
+    pending = sorted(rows, key=lambda r: (_tier(r), -r.score))
     ordered = []
     while pending:
         head = pending[0]
-        group = [r for r in pending if r is head or (r["effect"] in head["tied_with"] and _tier(r) == _tier(head))]
-        best = min(group, key=lambda r: (r["n_parameters"], -r["score"]))
+        group = [r for r in pending if r is head or (r.effect in head.tied_with and _tier(r) == _tier(head))]
+        best = min(group, key=lambda r: (r.n_parameters, -r.score))
         ordered.append(best)
         pending.remove(best)
     return ordered

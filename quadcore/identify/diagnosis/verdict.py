@@ -10,52 +10,53 @@ from typing import Any
 
 from quadcore import effects as effectlib
 from quadcore.identify.diagnosis.results import CandidateScore
+from quadcore.identify.diagnosis.rows import CandidateRow
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
-def _why_not(r: dict, at_noise: dict[str, bool], settings: DiagnosisSettings) -> tuple[str, str]:
+def _why_not(r: CandidateRow, at_noise: dict[str, bool], settings: DiagnosisSettings) -> tuple[str, str]:
     """(status, reason) of a candidate that is not found."""
-    ch = r["target"]
-    if not r["physical"]:
-        return "unphysical", "unphysical fit: " + "; ".join(n for n in r["notes"] if "outside" in n)
+    ch = r.target
+    if not r.physical:
+        return "unphysical", "unphysical fit: " + "; ".join(n for n in r.notes if "outside" in n)
     if at_noise[ch]:
         return "noise_level", (f"no evidence: the held-out {ch} residual is within {settings.noise_margin:.0%} "
                                "of the sensor-noise floor")
-    if r["explained_variance"] <= 0:
+    if r.explained_variance <= 0:
         return "no_gain", f"removes nothing from the held-out {ch} residual"
-    if r["significance_sigma"] >= settings.min_sigma:
+    if r.significance_sigma >= settings.min_sigma:
         return "not_significant", (f"indistinguishable from noise on held-out flights "
-                                   f"(p = {r['held_out_p_value']:.2g}, needs p < {r['held_out_alpha']:.2g})")
-    return "not_significant", f"its fit is within noise of 'no effect' ({r['significance_sigma']:.1f} σ)"
+                                   f"(p = {r.held_out_p_value:.2g}, needs p < {r.held_out_alpha:.2g})")
+    return "not_significant", f"its fit is within noise of 'no effect' ({r.significance_sigma:.1f} σ)"
 
 
-def rank_reasons(rows: list[dict], at_noise: dict[str, bool], settings: DiagnosisSettings = DEFAULT) -> None:
+def rank_reasons(rows: list[CandidateRow], at_noise: dict[str, bool], settings: DiagnosisSettings = DEFAULT) -> None:
     """Give every candidate (best first) a ``status`` and a ``reason``: why it is ranked where
     it is (found and how large; tied with; an alternative to the best one; unphysical; not
     significant; at the noise level)."""
-    top = rows[0] if rows and rows[0]["found"] else None
+    top = rows[0] if rows and rows[0].found else None
     for i, r in enumerate(rows):
-        if not r["found"]:
-            r["status"], r["reason"] = _why_not(r, at_noise, settings)
-            above = [o["effect"] for o in rows[:i] if o["effect"] in r.get("indistinguishable_from", [])]
-            if above and r["physical"]:
-                r["reason"] += f"; indistinguishable from {', '.join(above)}"
+        if not r.found:
+            r.status, r.reason = _why_not(r, at_noise, settings)
+            above = [o.effect for o in rows[:i] if o.effect in r.indistinguishable_from]
+            if above and r.physical:
+                r.reason += f"; indistinguishable from {', '.join(above)}"
             continue
-        size = (f"{r['grade']}: removes {_pct(r['explained_variance'])} of the held-out {r['target']} residual "
-                f"({_pct(r['explained_above_noise'])} of what lies above the noise floor), "
-                f"p = {r['held_out_p_value']:.2g}")
+        size = (f"{r.grade}: removes {_pct(r.explained_variance)} of the held-out {r.target} residual "
+                f"({_pct(r.explained_above_noise)} of what lies above the noise floor), "
+                f"p = {r.held_out_p_value:.2g}")
         assert top is not None  # rows are ranked: a found candidate never follows one not found
         if r is top:
-            r["status"], r["reason"] = "found", size
-        elif top["effect"] in r.get("tied_with", []):
-            r["status"] = "tied"
-            r["reason"] = (f"tied with {top['effect']} (held-out flights prefer neither), which has fewer or as "
-                           f"many parameters; {size}")
-        elif r.get("explained_after_top", 0.0) >= settings.min_explained:
-            r["status"], r["reason"] = "found", f"also missing beyond {top['effect']}; {size}"
+            r.status, r.reason = "found", size
+        elif top.effect in r.tied_with:
+            r.status = "tied"
+            r.reason = (f"tied with {top.effect} (held-out flights prefer neither), which has fewer or as "
+                        f"many parameters; {size}")
+        elif r.explained_after_top >= settings.min_explained:
+            r.status, r.reason = "found", f"also missing beyond {top.effect}; {size}"
         else:
-            r["status"] = "alternative"
-            r["reason"] = f"an alternative to {top['effect']} (explains the same residual, less well); {size}"
+            r.status = "alternative"
+            r.reason = f"an alternative to {top.effect} (explains the same residual, less well); {size}"
 
 
 def _below(p, v: float | None) -> str:
@@ -78,21 +79,18 @@ def sensitivity_text(sensitivity: dict, effects: list[str] | None = None) -> str
     return "; ".join(parts)
 
 
-def _ev_on(row: dict, channel: str) -> float:
-    return row["explained_variance_force"] if channel == "force" else row["explained_variance_torque"]
-
-
 def _other(channel: str) -> str:
     return "torque" if channel == "force" else "force"
 
 
-def _one_per_tie(rows: list[dict]) -> list[dict]:
+def _one_per_tie(rows: list[CandidateRow]) -> list[CandidateRow]:
     """The first of each group of candidates the data cannot tell apart (rows best first)."""
-    out, seen = [], set()
+    out: list[CandidateRow] = []
+    seen: set[str] = set()
     for r in rows:
-        if r["effect"] not in seen:
+        if r.effect not in seen:
             out.append(r)
-        seen |= {r["effect"], *r.get("tied_with", [])}
+        seen |= {r.effect, *r.tied_with}
     return out
 
 
@@ -105,118 +103,118 @@ def _search_with(outside: dict | None) -> str:
             "held out)." if outside else "")
 
 
-def _outside_library(rows: list[dict], part: dict, headline: bool) -> str:
+def _outside_library(rows: list[CandidateRow], part: dict, headline: bool) -> str:
     """What the library finds in a channel is a small part of what is left there (see
     :func:`quadcore.identify.diagnosis.run._outside_library`)."""
-    best = next(r for r in rows if r["effect"] == part["best"])
+    best = next(r for r in rows if r.effect == part["best"])
     ch, left = part["channel"], part.get("residual_to_noise_after")
     return (("Mostly outside the library: the best candidate, " if headline
              else f" The {ch} residual is mostly outside the library: its best candidate, ")
-            + f"{best['effect']} (confirmed on held-out flights, p = {best['held_out_p_value']:.2g}; {_params(best)}), "
-            f"removes only {best['explained_above_noise']:.0%} of what lies above the sensor-noise floor of the "
+            + f"{best.effect} (confirmed on held-out flights, p = {best.held_out_p_value:.2g}; {_params(best)}), "
+            f"removes only {best.explained_above_noise:.0%} of what lies above the sensor-noise floor of the "
             f"held-out {ch} residual"
             + (f" ({part['explained_above_noise']:.0%} with the library's other findings)"
-               if part["explained_above_noise"] > best["explained_above_noise"] + 0.005 else "")
+               if part["explained_above_noise"] > best.explained_above_noise + 0.005 else "")
             + (f", and the {ch} residual stays {left:.1f} times the noise floor (RMS) after it" if left else "")
             + ": what is missing there is mostly a physical effect the library does not have"
             + (", and a candidate that explains a small part of it is not called missing." if headline else "."))
 
 
-def _params(r: dict) -> str:
-    std = r["parameter_std"]
-    return ", ".join(f"{k} = {v:.4g} ± {std.get(k, float('nan')):.2g}" for k, v in r["parameters"].items())
+def _params(r: CandidateRow) -> str:
+    std = r.parameter_std
+    return ", ".join(f"{k} = {v:.4g} ± {std.get(k, float('nan')):.2g}" for k, v in r.parameters.items())
 
 
-def _nothing_found(rows: list[dict], at_noise: dict[str, bool] | None, missed: str, outside: dict | None,
+def _nothing_found(rows: list[CandidateRow], at_noise: dict[str, bool] | None, missed: str, outside: dict | None,
                    settings: DiagnosisSettings) -> str:
     if at_noise and all(at_noise.values()):
         return ("No effect of the library explains the residual on held-out flights: none improves it "
                 f"significantly, and it is within {settings.noise_margin:.0%} (RMS) of the sensor-noise floor in "
                 "force and in torque; there is nothing left to explain at what these flights can resolve." + missed)
     best = rows[0] if rows else None
-    tail = f" (best: {best['effect']}, {best.get('reason', best.get('grade', ''))})" if best else ""
+    tail = f" (best: {best.effect}, {best.reason})" if best else ""
     return ("No effect of the library explains the residual on held-out flights" + tail +
             ": what is left is a physical effect outside the library, or one below what these flights can "
             "detect." + _search_with(outside) + missed)
 
 
-def _most_likely(top: dict, settings: DiagnosisSettings) -> str:
+def _most_likely(top: CandidateRow, settings: DiagnosisSettings) -> str:
     """The best candidate found: how large, how sure, what it removes, its parameters."""
-    grade = top.get("grade", "clear")
+    grade = top.grade
     size = {"small but certain": "small but certain (weaker than the sensor noise, confirmed on held-out flights"}.get(
-        grade, grade + " (confirmed on held-out flights") + f", p = {top.get('held_out_p_value', 0.0):.2g})"
+        grade, grade + " (confirmed on held-out flights") + f", p = {top.held_out_p_value:.2g})"
     params = _params(top)
-    ch, other = top["target"], _other(top["target"])
-    text = (f"Most likely missing: {top['effect']}: {size}: it removes {top['explained_variance']:.0%} of the held-out "
-            f"{ch} residual ({_pct(top.get('explained_above_noise', top['explained_variance']))} of what lies above "
-            "the sensor-noise floor)")
-    if top["acts_on"] == "both" and _ev_on(top, other) >= settings.min_explained:
-        text += f" and {_ev_on(top, other):.0%} of the {other} residual"
+    ch, other = top.target, _other(top.target)
+    text = (f"Most likely missing: {top.effect}: {size}: it removes {top.explained_variance:.0%} of the held-out "
+            f"{ch} residual ({_pct(top.explained_above_noise)} of what lies above the sensor-noise floor)")
+    if top.acts_on == "both" and top.explained_in(other) >= settings.min_explained:
+        text += f" and {top.explained_in(other):.0%} of the {other} residual"
     text += f" ({params})."
-    if top["notes"]:
-        text += " Note: " + "; ".join(top["notes"]) + "."
+    if top.notes:
+        text += " Note: " + "; ".join(top.notes) + "."
     return text
 
 
-def _alike(top: dict, by_name: dict[str, dict], settings: DiagnosisSettings) -> str:
+def _alike(top: CandidateRow, by_name: dict[str, CandidateRow], settings: DiagnosisSettings) -> str:
     """What the data cannot tell apart from the best candidate, and what separates the others."""
     text = ""
-    ch = top["target"]
-    tied = top.get("tied_with", [])
+    ch = top.target
+    tied = top.tied_with
     if tied:
-        fewer = all(by_name[o]["n_parameters"] > top["n_parameters"] for o in tied if o in by_name)
+        fewer = all(by_name[o].n_parameters > top.n_parameters for o in tied if o in by_name)
         text += (f" This data cannot tell it apart from {', '.join(tied)}: they explain the held-out residual equally "
                  f"well, with nearly the same predictions wherever the residual is above the sensor noise; it is "
                  f"ranked first "
                  + ("because it needs fewer parameters" if fewer else "by a margin within noise")
                  + ". Flights that separate them are needed (or knowledge of the vehicle) before choosing.")
-    for o, by in top.get("separated_by", {}).items():
+    for o, by in top.separated_by.items():
         r = by_name.get(o)
         if r is None:
             continue
         if by == ch:
             text += (f" Its {ch} signature resembles that of {o}, which explains less of it "
-                     f"({_pct(_ev_on(r, ch))} against {_pct(_ev_on(top, ch))}).")
+                     f"({_pct(r.explained_in(ch))} against {_pct(top.explained_in(ch))}).")
             continue
         text += f" In {ch} alone it is indistinguishable from {o}; the {by} residual tells them apart: "
-        if _ev_on(top, by) >= settings.min_explained and _ev_on(top, by) - _ev_on(r, by) >= settings.tie_margin:
-            text += (f"{top['effect']} also removes {_pct(_ev_on(top, by))} of the held-out {by} residual, "
-                     f"{o} {_pct(_ev_on(r, by))}.")
+        if (top.explained_in(by) >= settings.min_explained
+                and top.explained_in(by) - r.explained_in(by) >= settings.tie_margin):
+            text += (f"{top.effect} also removes {_pct(top.explained_in(by))} of the held-out {by} residual, "
+                     f"{o} {_pct(r.explained_in(by))}.")
         else:
             text += (f"{o} cannot explain the {ch} residual without an error in {by} that is not there "
-                     f"(fitted to both, it removes only {_pct(_ev_on(r, ch))} of the {ch} residual).")
+                     f"(fitted to both, it removes only {_pct(r.explained_in(ch))} of the {ch} residual).")
     return text
 
 
-def _beyond_the_best(top: dict, found: list[dict], settings: DiagnosisSettings) -> str:
+def _beyond_the_best(top: CandidateRow, found: list[CandidateRow], settings: DiagnosisSettings) -> str:
     """The other found candidates: also missing (they explain more once the best is in), or alternatives."""
     text = ""
-    alike = set(top.get("indistinguishable_from", [])) | set(top.get("tied_with", []))
-    others = [r for r in found[1:] if r["effect"] not in alike]
-    independent = _one_per_tie([r for r in others if r.get("explained_after_top", 0.0) >= settings.min_explained])
-    overlapping = [r for r in others if r.get("explained_after_top", 0.0) < settings.min_explained]
+    alike = set(top.indistinguishable_from) | set(top.tied_with)
+    others = [r for r in found[1:] if r.effect not in alike]
+    independent = _one_per_tie([r for r in others if r.explained_after_top >= settings.min_explained])
+    overlapping = [r for r in others if r.explained_after_top < settings.min_explained]
     if independent:  # both shares from the same screen (least squares on the evaluated flights), not held-out
         text += (" Also missing, beyond it: "
-                 + ", ".join(f"{r['effect']} (removes {r['explained_after_top']:.0%} of the {r['target']} residual "
-                             f"on top of {top['effect']}, {r.get('explained_alone_screen', 0.0):.0%} alone"
-                             + (f"; indistinguishable from {', '.join(r['tied_with'])}" if r.get("tied_with") else "")
+                 + ", ".join(f"{r.effect} (removes {r.explained_after_top:.0%} of the {r.target} residual "
+                             f"on top of {top.effect}, {r.explained_alone_screen:.0%} alone"
+                             + (f"; indistinguishable from {', '.join(r.tied_with)}" if r.tied_with else "")
                              + ")" for r in independent[:3]) + " (both shares by one least-squares screen on the "
                  "evaluated flights).")
     if overlapping:
-        text += (f" Explaining the same residual as {top['effect']} (alternatives, nothing left for them once it is "
+        text += (f" Explaining the same residual as {top.effect} (alternatives, nothing left for them once it is "
                  "in the model): "
-                 + ", ".join(f"{r['effect']} ({r['explained_variance']:.0%})" for r in overlapping[:3])
+                 + ", ".join(f"{r.effect} ({r.explained_variance:.0%})" for r in overlapping[:3])
                  + ".")
     return text
 
 
-def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None,
+def verdict(rows: list[CandidateRow], at_noise: dict[str, bool] | None = None, sensitivity: dict | None = None,
             outside: dict | None = None, settings: DiagnosisSettings = DEFAULT) -> str:
     """One paragraph a person reads first: what is missing and how sure, or why nothing is (or
     why what the library finds is not what is missing: ``outside``, with the command that
     searches outside the library), and how small an effect these flights could have missed."""
-    found = [r for r in rows if r.get("found", r.get("useful", False))]
-    unseen = [r["effect"] for r in rows if r not in found[:1]]
+    found = [r for r in rows if r.found]
+    unseen = [r.effect for r in rows if r not in found[:1]]
     missed = (f" Smaller effects would go unnoticed on these flights ({settings.power:.0%} detection, "
               f"{settings.alpha:.0%} false alarms): " + sensitivity_text(sensitivity, unseen) + "."
               if sensitivity else "")
@@ -227,7 +225,7 @@ def verdict(rows: list[dict], at_noise: dict[str, bool] | None = None, sensitivi
     if not found:
         return outside_text.lstrip() + missed if parts else _nothing_found(rows, at_noise, missed, outside, settings)
     top = found[0]
-    by_name = {r["effect"]: r for r in rows}
+    by_name = {r.effect: r for r in rows}
     return (_most_likely(top, settings) + _alike(top, by_name, settings) + _beyond_the_best(top, found, settings)
             + outside_text + missed)
 
