@@ -152,13 +152,17 @@ def test_the_reader_sees_every_import_inside_a_function(tmp_path: Path) -> None:
     assert graph.cycles(graph.imports(known)) == [["quadcore.c", "quadcore.sub.x"]]
 
 
-def test_the_architecture_picture_is_the_codes() -> None:
-    """docs/img/layers.mmd and docs/architecture.md's mermaid block are what `python tools/imports.py
-    --write-docs` writes from the imports as they are now (re-run it after a change of layers)."""
-    text = graph.mermaid(graph.imports())
+def test_the_architecture_pictures_are_the_codes() -> None:
+    """docs/img/layers.mmd, docs/img/identify.mmd and docs/architecture.md's two mermaid blocks are what
+    `python tools/imports.py --write-docs` writes from the imports as they are now (re-run it after a change
+    of layers)."""
+    edges = graph.imports()
     root = Path(graph.ROOT)
-    assert (root / graph.MERMAID_FILE).read_text(encoding="utf-8") == text
-    assert graph.mermaid_block((root / graph.ARCHITECTURE_PAGE).read_text(encoding="utf-8")) == text
+    page = (root / graph.ARCHITECTURE_PAGE).read_text(encoding="utf-8")
+    for index, (path, package) in enumerate(graph.PICTURES):
+        text = graph.mermaid(edges, package)
+        assert (root / path).read_text(encoding="utf-8") == text, path
+        assert graph.mermaid_block(page, index) == text, f"{graph.ARCHITECTURE_PAGE}, mermaid block {index + 1}"
 
 
 def test_each_packages_all_names_what_it_holds() -> None:

@@ -44,7 +44,7 @@ __all__ = [
     "unregister",
 ]
 
-_NOT_EFFECTS = ("base", "ccode")  # modules of this package that define no effect
+_NOT_EFFECTS = ("base", "c_inputs", "ccode")  # modules of this package that define no effect
 _REGISTRY: dict[str, Effect] = {}
 _BUILTIN: list[str] = []  # names of the effects found in this package, in module order
 

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from quadcore.effects.c_inputs import ExportError, Field
 from quadcore.export.c.build import CompileError, Footprint, HostModel, check_strict, measure_footprint
 from quadcore.export.c.generate import HEADER, SOURCE, Generated, NoCFormError, generate
-from quadcore.export.c.inputs import ExportError, Field
 from quadcore.identify.model import PhysicsModel, check_plugins
 from quadcore.learn import artefacts, evaluation, experiments, learners
 from quadcore.spec.model import ModelFileError

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from quadcore.effects.c_inputs import ExportError
 from quadcore.export.c.generate import HEADER, OUTPUTS, SOURCE, Generated
-from quadcore.export.c.inputs import ExportError
 
 # The flags, plus what a float-only firmware build cares about (no silent double, no shadowing)
 STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion", "-Wshadow"]

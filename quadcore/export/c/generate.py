@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from quadcore.effects import UnknownEffectError, get as get_effect
-from quadcore.export.c import inputs
-from quadcore.export.c.inputs import Derived, ExportError, Field
+from quadcore.effects import UnknownEffectError, c_inputs as inputs, get as get_effect
+from quadcore.effects.c_inputs import Derived, ExportError, Field
 from quadcore.export.c.learned import learned_c
 from quadcore.identify.model import PhysicsModel
 from quadcore.learn.artefacts import LearnedModel

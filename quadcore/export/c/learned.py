@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from quadcore.export.c.inputs import ExportError
+from quadcore.effects.c_inputs import ExportError
 from quadcore.learn.artefacts import LearnedModel
 from quadcore.learn.backends import backend
 from quadcore.learn.trees import CompiledForest
