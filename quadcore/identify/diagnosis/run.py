@@ -5,13 +5,13 @@ with the evaluated flights' residual by regime, by flight, in time and in freque
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, sessions as sessionlib, spectrum, summaries
+from quadcore.identify import evidence, sessions as sessionlib, spectrum, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -39,8 +39,13 @@ from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import verdict
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
+from quadcore.identify.sessions import Disagreement
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.spec.model import ModelSpec
+
+Log = Callable[[str], None]  # progress, one line at a time
+Sessions = dict[str, list[str]] | None  # name -> flights (a sessions file), None: groups found from the data
+StoredStats = Callable[[str], sufficient.FlightStats | None] | None  # a flight's stored statistics, if current
 
 
 def diagnose(
@@ -49,9 +54,9 @@ def diagnose(
     holdout: list[str] | None = None,
     candidates: list[str] | None = None,
     settings: DiagnosisSettings = DEFAULT,
-    log=lambda msg: None,
-    sessions: dict[str, list[str]] | None = None,
-    stats=None,
+    log: Log = lambda msg: None,
+    sessions: Sessions = None,
+    stats: StoredStats = None,
     discover_command: str | None = None,
 ) -> Diagnosis:
     """Fit the model, score it on held-out flights, rank the missing effects, and find the
@@ -184,7 +189,8 @@ def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
     return summaries.tables(sums, from_rows, p.vehicle)
 
 
-def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions, log) -> list:
+def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sessions, log: Log
+                           ) -> list[Disagreement]:
     """Parameters that differ between sessions: the model's effects, and the best candidate
     beside them (from the flights' statistics when they are linear, the best one perhaps
     profiled; otherwise fitted on each flight's rows)."""

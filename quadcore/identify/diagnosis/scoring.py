@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from quadcore.effects import Effect
 from quadcore.identify import evidence, fitting
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
@@ -30,7 +31,7 @@ def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
     return float(1.0 - after[channels].sum() / b) if b > 0 else 0.0
 
 
-def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
+def _jackknife_std(fold_params: list[dict[str, float]]) -> dict[str, float]:
     """Grouped-jackknife standard error of each parameter from fits that each leave out one
     group of flights: ``sqrt((K-1)/K Σ_k (θ_k - θ̄)²)``; empty with fewer than two groups."""
     if len(fold_params) < 2:
@@ -43,7 +44,8 @@ def _jackknife_std(fold_params: list[dict]) -> dict[str, float]:
     return out
 
 
-def _score(c, held: _HeldOut, fit_c: fitting.Fit, fold_params: tuple[list[dict], list[dict]],
+def _score(c: Effect, held: _HeldOut, fit_c: fitting.Fit,
+           fold_params: tuple[list[dict[str, float]], list[dict[str, float]]],
            test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> CandidateRow:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
     channel it explains, its parameters (``fit_c``: on all training flights, within the physical
@@ -114,7 +116,7 @@ def _held_out_evidence(test: evidence.HeldOutTest, before: np.ndarray, after: np
     )
 
 
-def _significance(effect, params: dict, std: dict) -> float:
+def _significance(effect: Effect, params: dict[str, float], std: dict[str, float]) -> float:
     """How many standard errors the fitted effect is from 'no effect': the largest
     ``|p - default| / std`` over its parameters (inf when a parameter has zero std but moved)."""
     best = 0.0
@@ -128,7 +130,7 @@ def _significance(effect, params: dict, std: dict) -> float:
     return min(best, 1e6)  # finite, for JSON
 
 
-def _at_bound(c, params: dict[str, float], held: dict[str, float]) -> list[str]:
+def _at_bound(c: Effect, params: dict[str, float], held: dict[str, float]) -> list[str]:
     """The parameters a search left at a bound of their range (and moved from 'no effect'), but
     those the bounded fit holds there (``held``)."""
     bounds = {p.name: (p.lower, p.upper) for p in c.parameters}
@@ -158,7 +160,7 @@ class _Bounds:
         return self.beyond > self.bound_sigma
 
 
-def _bounds(c, fit_c: fitting.Fit, free_spread: dict[str, float], bound_sigma: float) -> _Bounds:
+def _bounds(c: Effect, fit_c: fitting.Fit, free_spread: dict[str, float], bound_sigma: float) -> _Bounds:
     free = fit_c.free or fit_c
     values, std = free.params[c.name], free.std[c.name]
     out = {}

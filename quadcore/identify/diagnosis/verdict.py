@@ -9,6 +9,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from quadcore import effects as effectlib
+from quadcore.effects import Parameter
 from quadcore.identify.diagnosis.results import CandidateScore
 from quadcore.identify.diagnosis.rows import CandidateRow
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
@@ -59,7 +60,7 @@ def rank_reasons(rows: list[CandidateRow], at_noise: dict[str, bool], settings: 
             r.reason = f"an alternative to {top.effect} (explains the same residual, less well); {size}"
 
 
-def _below(p, v: float | None) -> str:
+def _below(p: Parameter, v: float | None) -> str:
     """``k_x_s_per_m < 0.003 s/m`` or ``|scale - 1| < 0.006``: a deviation below ``v``."""
     if v is None:
         return f"{p.name} not detectable in its range"
@@ -67,7 +68,7 @@ def _below(p, v: float | None) -> str:
     return f"{name} < {v:.2g} {p.unit if p.unit != '1' else ''}".rstrip()
 
 
-def sensitivity_text(sensitivity: dict, effects: list[str] | None = None) -> str:
+def sensitivity_text(sensitivity: Mapping[str, Mapping[str, float | None]], effects: list[str] | None = None) -> str:
     """``rotor_drag k_x_s_per_m < 0.003 s/m, ...`` for the named effects (all by default)."""
     parts = []
     for name in effects or list(sensitivity):
@@ -98,7 +99,7 @@ def _pct(x: float) -> str:
     return f"{max(x, 0.0):.0%}"
 
 
-def _search_with(outside: dict | None) -> str:
+def _search_with(outside: Mapping[str, Any] | None) -> str:
     return (f" Search for its form with `{outside['command']}` (sparse regression over a library of terms, "
             "held out)." if outside else "")
 
