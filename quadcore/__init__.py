@@ -7,3 +7,5 @@ flight), ``physics`` (vehicle, dynamics, residuals), ``effects``, ``sim``, ``ide
 """
 
 __version__ = "0.1.0"
+
+__all__ = ["__version__"]

@@ -58,6 +58,9 @@ ALLOWED = (
     Lazy("quadcore.learn.backends", "backend", ("quadcore.learn.backends.*",),
          "start-up and an optional dependency: torch and XGBoost take ~1.7 s of CPU each to import and load only "
          "when a model of their kind is trained, read or run; torch is installed outside the package's dependencies"),
+    Lazy("quadcore.identify", "__getattr__", ("quadcore.identify", "quadcore.spec.model"),
+         "start-up: quadcore.identify's public names (fit_model, diagnose, discover, ...) load on first use, so "
+         "that importing one identify module loads neither all of them nor scikit-learn (discovery)"),
     Lazy("quadcore.workflows.identify", "discover", ("quadcore.identify.discovery",),
          "start-up: scikit-learn (~1.1 s CPU) only for a discovery, not for every fit and diagnosis"),
     Lazy("quadcore.store.store", "as_root", ("upath",),

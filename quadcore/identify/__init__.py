@@ -1,12 +1,50 @@
 """Stage 3, system identification: the physics model and its spec file (``model``), flight sessions
 (``sessions``), per-flight sufficient statistics (``sufficient``), fitting effect parameters
 (``fitting``), what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``:
-problem, scoring, verdict text, typed result) with its regime tables (``regimes``) and evidence
-(``evidence``), sparse term discovery (``discovery``, a package: terms, Gram matrices,
-stored statistics, selection, effect writer), residual spectra (``spectrum``) and the run
-history (``history``)."""
+problem, scoring, verdict text, typed result) with its regime tables (``regimes``), evidence
+(``evidence``) and settings (``settings``), sparse term discovery (``discovery``, a package: terms,
+Gram matrices, stored statistics, selection, effect writer), residual spectra (``spectrum``) and the
+run history (``history``).
 
-# The modules other packages import today (the identify re-layout of issue 23 narrows this to the
-# model, diagnosis and discovery; docs/architecture.md). Importing the package imports none of them.
-__all__ = ["diagnosis", "discovery", "evidence", "fitting", "history", "model", "regimes", "sessions",
-           "sufficient"]
+The public API is small (``__all__``): fit a model, diagnose it, discover what it lacks, and the
+types they take and give. Each name is loaded on first use (PEP 562 ``__getattr__``): importing
+one identify module must not load them all (discovery loads scikit-learn, ~0.7 s).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from quadcore.identify.diagnosis import CandidateScore, Diagnosis, diagnose
+    from quadcore.identify.discovery import Discovery, discover
+    from quadcore.identify.fitting import fit_model
+    from quadcore.identify.model import PhysicsModel
+    from quadcore.identify.settings import DiagnosisSettings
+    from quadcore.spec.model import ModelSpec
+
+__all__ = ["CandidateScore", "Diagnosis", "DiagnosisSettings", "Discovery", "ModelSpec", "PhysicsModel", "diagnose",
+           "discover", "fit_model"]
+
+
+def __getattr__(name: str) -> Any:
+    """A public name, imported when first asked for."""
+    if name in ("CandidateScore", "Diagnosis", "diagnose"):
+        from quadcore.identify import diagnosis
+        return getattr(diagnosis, name)
+    if name in ("Discovery", "discover"):
+        from quadcore.identify import discovery
+        return getattr(discovery, name)
+    if name == "fit_model":
+        from quadcore.identify import fitting
+        return fitting.fit_model
+    if name == "PhysicsModel":
+        from quadcore.identify import model
+        return model.PhysicsModel
+    if name == "DiagnosisSettings":
+        from quadcore.identify import settings
+        return settings.DiagnosisSettings
+    if name == "ModelSpec":
+        from quadcore.spec import model as spec_model
+        return spec_model.ModelSpec
+    raise AttributeError(f"module 'quadcore.identify' has no attribute {name!r}")
