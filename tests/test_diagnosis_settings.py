@@ -8,7 +8,7 @@ import json
 import pytest
 
 from quadcore.identify import evidence, regimes, sufficient
-from quadcore.identify.discovery import library_stats, results as discovery_results
+from quadcore.identify.discovery import library_stats
 from quadcore.identify.settings import DEFAULT, STATISTICS, DiagnosisSettings
 from quadcore.physics import vehicle
 from quadcore.spec import model
@@ -20,7 +20,7 @@ def test_the_module_constants_are_the_settings_defaults():
         DEFAULT.alpha, DEFAULT.min_sigma, DEFAULT.tie_margin, DEFAULT.noise_margin)
     assert (evidence.BLOCK_S, evidence.SECANT, sufficient.GRAM_STRIDE, library_stats.STRIDE) == (
         STATISTICS.block_s, STATISTICS.secant, STATISTICS.gram_stride, STATISTICS.library_stride)
-    assert regimes.HEIGHT_BINS == list(STATISTICS.height_bins_m) and discovery_results.MIN_GAIN == DEFAULT.min_gain
+    assert regimes.HEIGHT_BINS == list(STATISTICS.height_bins_m)
 
 
 def test_the_settings_go_to_json_and_back():
@@ -51,3 +51,17 @@ def test_the_diagnosis_obeys_and_records_its_settings(drag_fleet):
     doc = json.loads(identify.diagnosis_json(demanding))
     assert DiagnosisSettings.from_dict(doc["settings"]) == strict
     assert json.loads(identify.diagnosis_json(by_default))["settings"] == DEFAULT.to_dict()
+
+
+def test_discovery_obeys_and_records_its_settings(drag_fleet):
+    """Discovery on the shared fleet keeps terms with the defaults (rotor drag's v T explains over 99 % of
+    the held-out f_x); asked that a term add all of an axis' held-out variance, it keeps none, says so
+    with that share, and records the settings."""
+    veh = vehicle.load()
+    flights = fleetlib.fleet_from_logs([str(drag_fleet)], veh)
+    demanding = DiagnosisSettings(min_gain=1.0)
+    by_default = identify.discover(flights, model.spec_from(veh, []), ["sim003"])
+    strict = identify.discover(flights, model.spec_from(veh, []), ["sim003"], settings=demanding)
+    assert by_default.terms and not strict.terms
+    assert "at least 100% of an axis' variance" in strict.summary
+    assert DiagnosisSettings.from_dict(strict.to_dict()["settings"]) == demanding

@@ -1,6 +1,7 @@
 """The statistical settings of the identification, defaulted in one place: the diagnosis's
 thresholds and folds (:class:`DiagnosisSettings`, passed to
-:func:`quadcore.identify.diagnosis.diagnose` and recorded in its JSON document as ``settings``),
+:func:`quadcore.identify.diagnosis.diagnose` and :func:`quadcore.identify.discovery.discover` and
+recorded in their JSON documents as ``settings``),
 and how a flight is summed into its stored statistics (:class:`StatisticsSettings`: the held-out
 test's block length, the strides of the thinned Gram matrices, the unit wrenches' secant, the
 regime bins). The second are fixed: the stored statistics and summaries are made with them (a
@@ -8,7 +9,7 @@ change is a change of code, and the statistics' key, which digests this module's
 the stored ones stale), so they are recorded beside the thresholds, never passed in.
 
 The module constants other modules read (``evidence.MIN_SIGMA``, ``evidence.BLOCK_S``,
-``regimes.SPEED_BINS``, ``library_stats.STRIDE``, ``discovery.results.MIN_GAIN``, ...) are these
+``regimes.SPEED_BINS``, ``library_stats.STRIDE``, ...) are these
 defaults under their old names. Imports nothing from the project: every module may read it.
 """
 

@@ -180,10 +180,10 @@ MIN_DISCOVERY_TRAINING = 2  # discovery's folds are grouped by flight
 
 
 def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
-             where: str = "the decoded flights", root=None) -> Discovery:
+             where: str = "the decoded flights", root=None, settings: DiagnosisSettings = DEFAULT) -> Discovery:
     """:func:`quadcore.identify.discovery.discover` on the flights the diagnosis sees (:func:`diagnosis_flights`);
     with a data ``root``, from the flights' stored statistics there (:mod:`quadcore.identify.discovery.library_stats`).
-    Raises :class:`TooFewFlights` with fewer than two training flights."""
+    ``settings``: its folds and thresholds. Raises :class:`TooFewFlights` with fewer than two training flights."""
     # scikit-learn (the discovery package's selection): ~0.7 s CPU that fit and diagnose do not need
     from quadcore.identify import discovery
     from quadcore.identify.discovery import library_stats
@@ -196,7 +196,7 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
     if root is not None:
         stored, stats = library_stats.stored(root, spec), sufficient.stored(root, spec)
     return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
-                              stored=stored, stats=stats)
+                              stored=stored, stats=stats, settings=settings)
 
 
 def write_discovery(result: Discovery, path) -> Path:

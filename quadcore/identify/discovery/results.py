@@ -6,9 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from quadcore.identify.settings import DEFAULT
-
-MIN_GAIN = DEFAULT.min_gain  # a term must add this share of the held-out variance of its axis
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
 @dataclass(frozen=True)
@@ -84,6 +82,7 @@ class Discovery:
     evaluation: dict
     effects_in_model: tuple[str, ...]
     library_size: dict = field(default_factory=dict)
+    settings: DiagnosisSettings = DEFAULT  # the folds, min_gain and noise_margin it selected by
 
     def to_dict(self) -> dict:
         return {
@@ -91,7 +90,8 @@ class Discovery:
             "axes": [{"target": a.target, "explained_variance": a.explained_variance,
                       "at_noise_level": a.at_noise_level, "notes": list(a.notes)} for a in self.axes],
             "baseline": self.baseline, "after": self.after, "noise_floor": self.noise_floor,
-            "evaluation": self.evaluation, "effects_in_model": list(self.effects_in_model),
+            "evaluation": self.evaluation, "settings": self.settings.to_dict(),
+            "effects_in_model": list(self.effects_in_model),
             "library_size": self.library_size,
         }
 
@@ -100,7 +100,7 @@ class Discovery:
         """A paragraph a person reads first."""
         if not self.terms:
             return ("No term of the candidate library explains a stable share of the held-out residual "
-                    f"(at least {MIN_GAIN:.0%} of an axis' variance, in most folds).")
+                    f"(at least {self.settings.min_gain:.0%} of an axis' variance, in most folds).")
         lines = ["Terms the model lacks (held-out variance explained, stability over folds):"]
         lines += [f"  {t.formula}" + (f" [{t.literature}]" if t.literature else "") for t in self.terms]
         return "\n".join(lines)

@@ -9,16 +9,16 @@ flights), force and torque in the body frame (:mod:`quadcore.physics.residuals`)
 ``stride``-th usable sample): orthogonal matching pursuit (``sklearn.linear_model.
 orthogonal_mp_gram``, the greedy member of the LARS family) on each fold of a
 cross-validation grouped by flight, scored on the fold's flights. The number of terms is
-where one more term adds less than ``MIN_GAIN`` of the held-out variance. A term is kept
+where one more term adds less than ``min_gain`` of the held-out variance. A term is kept
 when it is selected in most folds (stability selection) and, refitted with the other kept
-terms, still adds ``MIN_GAIN`` of the held-out variance. **Competing forms**: the forms of a
+terms, still adds ``min_gain`` of the held-out variance. **Competing forms**: the forms of a
 velocity term (``v``, ``T v``, ``v|v|``, ``|v_b| v``: :data:`quadcore.identify.discovery.terms.VELOCITY_FORMS`)
 share one slot's votes in the stability selection, and the slot keeps the form with the best mean rank of
 held-out error over the folds, beside the other kept terms (:func:`_prefer_forms`; chosen on the
 folds, never on a holdout); every rival is reported with its held-out share, and the mechanism
 is named only when the kept form beats each rival in most folds (else "form undecided").
 An axis whose residual is within
-``evidence.NOISE_MARGIN`` (RMS) of the sensor-noise floor gets no terms, the same
+``noise_margin`` (RMS) of the sensor-noise floor gets no terms, the same
 margin the diagnosis uses.
 
 **Reported** per term: the formula with its SI coefficient and grouped-jackknife standard
@@ -40,11 +40,11 @@ from sklearn.linear_model import orthogonal_mp_gram
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import evidence, fitting, sufficient
+from quadcore.identify import fitting, sufficient
 from quadcore.identify.discovery import accumulate, library_stats
 from quadcore.identify.discovery.accumulate import LibrarySums
 from quadcore.identify.discovery.grams import Columns
-from quadcore.identify.discovery.results import MIN_GAIN, AxisResult, DiscoveredTerm, Discovery, Form
+from quadcore.identify.discovery.results import AxisResult, DiscoveredTerm, Discovery, Form
 from quadcore.identify.discovery.terms import (
     TARGETS,
     UNIT,
@@ -56,6 +56,7 @@ from quadcore.identify.discovery.terms import (
     mul_units,
     unit_text,
 )
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.physics import signals
 from quadcore.spec.model import ModelSpec
 
@@ -101,8 +102,8 @@ def _cv_ev(grams: list[tuple[np.ndarray, np.ndarray]], cols: list[int], y: int) 
     return 1.0 - sse / tot if tot > 0 else 0.0
 
 
-def _select(fold_grams, G_train, candidates: list[int], y: int, slot_of: Mapping[int, object] | None = None
-            ) -> tuple[list[int], dict[int, int]]:
+def _select(fold_grams, G_train, candidates: list[int], y: int, min_gain: float,
+            slot_of: Mapping[int, object] | None = None) -> tuple[list[int], dict[int, int]]:
     """Stable terms of one axis and how many folds selected each. Rival forms of one term
     (``slot_of`` maps a column to its slot: :func:`quadcore.identify.discovery.terms.form_family`) share
     their folds' votes: a slot is stable when most folds select one of its forms, and stands for them with its most
@@ -115,7 +116,7 @@ def _select(fold_grams, G_train, candidates: list[int], y: int, slot_of: Mapping
         tot = sum(te[y, y] for _, te in fold_grams)
         ev.append(1.0 - sse / tot)
     k = 0
-    while k < n_steps and ev[k + 1] - ev[k] >= MIN_GAIN:
+    while k < n_steps and ev[k + 1] - ev[k] >= min_gain:
         k += 1
     counts: dict[int, int] = {}
     slots: dict[object, set[int]] = {}  # slot -> the folds that selected one of its forms
@@ -131,18 +132,18 @@ def _select(fold_grams, G_train, candidates: list[int], y: int, slot_of: Mapping
             lead = max(members, key=lambda c: (counts[c], -c))
             counts[lead] = len(folds)
             stable.append(lead)
-    return _order_and_prune(fold_grams, stable, y), counts
+    return _order_and_prune(fold_grams, stable, y, min_gain), counts
 
 
-def _order_and_prune(fold_grams, stable: list[int], y: int) -> list[int]:
-    """Greedy order of the stable terms by held-out gain; drop those adding < MIN_GAIN."""
+def _order_and_prune(fold_grams, stable: list[int], y: int, min_gain: float) -> list[int]:
+    """Greedy order of the stable terms by held-out gain; drop those adding < ``min_gain``."""
     chosen: list[int] = []
     left = list(stable)
     base = 0.0
     while left:
         gains = [(_cv_ev(fold_grams, chosen + [c], y) - base, c) for c in left]
         gain, best = max(gains)
-        if gain < MIN_GAIN:
+        if gain < min_gain:
             break
         chosen.append(best)
         left.remove(best)
@@ -229,7 +230,7 @@ def _by_axis(rms: np.ndarray) -> dict:
 
 
 def _discover_axis(axis: int, target: str, lib: LibrarySums, fold_grams, G_train: np.ndarray, noise: np.ndarray,
-                   holdout: bool, model_effects, fx_effects: list[Effect]
+                   holdout: bool, model_effects, fx_effects: list[Effect], settings: DiagnosisSettings
                    ) -> tuple[AxisResult, list[DiscoveredTerm], tuple[list[int], np.ndarray] | None]:
     """One residual axis: nothing when its residual is at the sensor-noise floor; else the
     stable terms (:func:`_select`) fitted on all training flights, with their jackknife
@@ -237,14 +238,14 @@ def _discover_axis(axis: int, target: str, lib: LibrarySums, fold_grams, G_train
     cols, terms = lib.cols, lib.terms
     y = cols.target0 + axis
     rms = np.sqrt(G_train[y, y] / _rows(G_train))
-    if rms <= (1 + evidence.NOISE_MARGIN) * noise[axis]:
-        why = (f"residual RMS {rms:.3g} within {evidence.NOISE_MARGIN:.0%} of the "
+    if rms <= (1 + settings.noise_margin) * noise[axis]:
+        why = (f"residual RMS {rms:.3g} within {settings.noise_margin:.0%} of the "
                f"sensor-noise floor {noise[axis]:.3g}: nothing to discover")
         return AxisResult(target, 0.0, True, (why,)), [], None
     candidates = [cols.term_col(k, axis) for k, t in enumerate(terms)
                   if not excluded(t, target) and (k in cols.force if axis < 3 else k in cols.torque)]
     col_term = {cols.term_col(k, axis): t for k, t in enumerate(terms) if t in _usable(cols, axis, terms)}
-    chosen, counts = _select(fold_grams, G_train, candidates, y,
+    chosen, counts = _select(fold_grams, G_train, candidates, y, settings.min_gain,
                              {c: form_family(col_term[c].expression) or c for c in candidates})
     scored_on = [(G_train, lib.sums.held_out())] if holdout else fold_grams
     picked, forms = _prefer_forms(fold_grams, scored_on, chosen, y, {c: col_term[c] for c in candidates})
@@ -276,7 +277,7 @@ def discover(
     decoded: Mapping[str, pl.DataFrame],
     spec: ModelSpec,
     holdout: list[str] | None = None,
-    n_folds: int = 5,
+    settings: DiagnosisSettings = DEFAULT,
     stride: int = library_stats.STRIDE,
     log=lambda msg: None,
     sessions: dict[str, list[str]] | None = None,
@@ -299,14 +300,15 @@ def discover(
     model's effects are fitted from the sufficient statistics (``stats``:
     :func:`quadcore.identify.sufficient.stored`). The same sums in the same order as from rows, so
     the same terms and coefficients; the held-out RMSE after the terms is a quadratic form of the
-    flights' Gram matrices (equal to the rows' to rounding)."""
+    flights' Gram matrices (equal to the rows' to rounding). ``settings``: its folds, ``min_gain`` and
+    ``noise_margin`` (:class:`~quadcore.identify.settings.DiagnosisSettings`), recorded in the result."""
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
     train = [f for f in ids if f not in holdout]
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
     fx_effects = library_stats.fx_effects(spec)  # the effects the stored statistics hold
-    folds = fitting.folds(train, n_folds)
+    folds = fitting.folds(train, settings.n_folds)
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects))
     flight = None
@@ -317,7 +319,7 @@ def discover(
         flight = accumulate.residual_rows(spec, decoded, ids, train, sessions, log)
         lib = accumulate.from_rows(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
     noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
-    kept, axes, coefs = _discover_axes(lib, noise, bool(holdout), spec.effects, fx_effects)
+    kept, axes, coefs = _discover_axes(lib, noise, bool(holdout), spec.effects, fx_effects, settings)
     eval_ids = holdout or ids
     base, after = _held_out_errors(lib, coefs, folds, holdout, eval_ids, flight, spec.vehicle)
     return Discovery(
@@ -327,10 +329,11 @@ def discover(
          "folds": len(folds), "stride": stride,
          # with a holdout the model's effects never see it; without one they are fitted on all flights
          "model_effects_fitted_on": train},
-        tuple(spec.effects), {"force": len(lib.cols.force), "torque": len(lib.cols.torque)})
+        tuple(spec.effects), {"force": len(lib.cols.force), "torque": len(lib.cols.torque)}, settings)
 
 
-def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_effects, fx_effects: list[Effect]
+def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_effects, fx_effects: list[Effect],
+                   settings: DiagnosisSettings
                    ) -> tuple[list[DiscoveredTerm], list[AxisResult], dict[int, tuple[list[int], np.ndarray]]]:
     """Every residual axis through :func:`_discover_axis`: the kept terms, each axis' result, and the
     kept columns with their coefficients per axis that kept any."""
@@ -340,7 +343,7 @@ def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_eff
     coefs: dict[int, tuple[list[int], np.ndarray]] = {}
     for axis, target in enumerate(TARGETS):
         result, terms, coef = _discover_axis(axis, target, lib, fold_grams, G_train, noise, holdout,
-                                             model_effects, fx_effects)
+                                             model_effects, fx_effects, settings)
         axes.append(result)
         kept += terms
         if coef is not None:
