@@ -5,8 +5,9 @@ every process.
     nice -n 10 python benchmarks/bench_cluster.py [--flights 100] [--workers 1 2 4]
 
 In this order, so that the ratios are of one sitting on the shared machine: the main job without
-the cluster as it runs on one machine (our split over two processes, ``pipeline/run/parallel.py``)
-and in one process (``QUADCORE_EXECUTOR=in_process``); then for each number of workers a cluster
+the cluster in one process (``QUADCORE_EXECUTOR=in_process``) and as it runs on one machine (our
+split over two processes from 40 flights, ``pipeline/run/parallel.py``; ``--local 'one process'``
+leaves it out); then for each number of workers, in the order given, a cluster
 of its own (``python -m pipeline.cluster up --workers N`` in a fresh folder: PostgreSQL, Redis,
 moto's S3 server, the Celery workers, the daemon, the webserver), the main job through it
 (``python -m pipeline.cluster run``: runs through the daemon's queue, steps on the workers,
@@ -170,7 +171,9 @@ LOCAL = {"one machine (parallel.py)": {}, "one process": {"QUADCORE_EXECUTOR": "
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--flights", type=int, default=100)
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4], help="clusters, in this order")
+    parser.add_argument("--local", nargs="+", choices=list(LOCAL), default=list(LOCAL),
+                        help="the ways without the cluster to run first ('one process' always runs)")
     args = parser.parse_args()
     if ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
         print("prctl(PR_SET_CHILD_SUBREAPER) failed: the CPU of daemonised services would be lost")
@@ -183,7 +186,8 @@ def main() -> None:
           f"load average {load()}", flush=True)
     figures: list[Figure] = []
     try:
-        figures += [measure_local(way, extra, raw, base) for way, extra in LOCAL.items()]
+        ways = ["one process", *(way for way in args.local if way != "one process")]
+        figures += [measure_local(way, LOCAL[way], raw, base) for way in ways]
         figures += [f for n in args.workers if (f := measure_cluster(n, raw, base)) is not None]
         # the one-process job again: how far the shared machine's load drifted over the run
         figures.append(measure_local("one process, again", LOCAL["one process"], raw, base))

@@ -132,14 +132,17 @@ def test_the_main_job_on_the_cluster_equals_the_main_job_in_one_process(cluster)
                                        atol=1e-12, err_msg=name)
 
 
-def _submit(c: services.Cluster, assets_names: list[str], tags: dict[str, str]) -> str:
+def _submit(c: services.Cluster, assets_names: list[str], tags: dict[str, str], count: int = 1) -> list[str]:
+    """``count`` runs of the named assets submitted back to back (one process: a second or two
+    apart); their ids."""
     code = ("import sys, json; from pipeline.cluster import launch; from pipeline import assets as A; "
             "names = json.loads(sys.argv[1]); every = [*A.PER_FLIGHT, *A.FLEET, *A.LEARNING, *A.EXPORT]; "
-            "print(launch.submit([a for a in every if a.key.to_user_string() in names], json.loads(sys.argv[2])))")
-    done = subprocess.run([sys.executable, "-c", code, json.dumps(assets_names), json.dumps(tags)], cwd=REPO,
-                          env=c.environment(), text=True, capture_output=True, timeout=300)
+            "chosen = [a for a in every if a.key.to_user_string() in names]; "
+            "[print(launch.submit(chosen, json.loads(sys.argv[2]))) for _ in range(int(sys.argv[3]))]")
+    done = subprocess.run([sys.executable, "-c", code, json.dumps(assets_names), json.dumps(tags), str(count)],
+                          cwd=REPO, env=c.environment(), text=True, capture_output=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
-    return done.stdout.strip().splitlines()[-1]
+    return done.stdout.strip().splitlines()[-count:]
 
 
 def _instance(c: services.Cluster):
@@ -153,24 +156,40 @@ def _status(instance, run_id: str):
     return instance.get_run_by_id(run_id).status
 
 
+def _flight_range(c: services.Cluster, raw: Path) -> dict[str, str]:
+    """The tags of a run over every flight in ``raw``, its partitions registered (as the main job
+    registers them) so that a test also runs alone, without the main job's test before it."""
+    from pipeline.partitions import FLIGHTS_PARTITION
+
+    flights = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
+    instance = _instance(c)
+    known = set(instance.get_dynamic_partitions(FLIGHTS_PARTITION))
+    instance.add_dynamic_partitions(FLIGHTS_PARTITION, [f for f in flights if f not in known])
+    return {"dagster/asset_partition_range_start": flights[0], "dagster/asset_partition_range_end": flights[-1]}
+
+
 def test_a_second_job_started_meanwhile_queues_and_then_runs(cluster):
     import dagster as dg
 
     _, raw, c, _ = cluster
-    flights = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
-    tags = {"dagster/asset_partition_range_start": flights[0], "dagster/asset_partition_range_end": flights[-1]}
-    runs = [_submit(c, ["decoded_flight"], tags) for _ in range(3)]  # two slots: the third queues
+    tags = _flight_range(c, raw)
+    runs = _submit(c, ["decoded_flight"], tags, count=3)  # two slots: the third waits for one
     instance = _instance(c)
-    seen_queued = False
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while time.monotonic() < deadline:
         statuses = [_status(instance, r) for r in runs]
-        seen_queued |= dg.DagsterRunStatus.QUEUED in statuses and dg.DagsterRunStatus.STARTED in statuses
         if all(s in (dg.DagsterRunStatus.SUCCESS, dg.DagsterRunStatus.FAILURE) for s in statuses):
             break
         time.sleep(0.5)
     assert statuses == [dg.DagsterRunStatus.SUCCESS] * 3, statuses
-    assert seen_queued, "no run waited in the queue while others ran"
+    # From the run records, not from polling: the first two launched ran at once, and the third
+    # started only once one of them had ended (max_concurrent_runs: 2 in deploy/local/dagster.yaml).
+    records = sorted(instance.get_run_records(dg.RunsFilter(run_ids=runs)), key=lambda r: r.start_time)
+    first, second, third = records
+    assert second.start_time < first.end_time, "the first two runs did not run at once"
+    assert third.start_time >= min(first.end_time, second.end_time), "a third run started with two running"
+    assert third.create_timestamp.timestamp() < min(first.end_time, second.end_time), \
+        "the third run was submitted after a slot was free: nothing queued"
 
 
 def _tasks(log: Path, what: str) -> set[str]:
@@ -182,11 +201,10 @@ def test_a_worker_killed_mid_step_is_replaced_and_the_run_completes(cluster):
     import dagster as dg
 
     _, raw, c, env = cluster
-    flights = sorted(p.name for p in raw.iterdir() if not p.name.endswith(".json"))
-    tags = {"dagster/asset_partition_range_start": flights[0], "dagster/asset_partition_range_end": flights[-1]}
+    tags = _flight_range(c, raw)
     logs = sorted(c.logs.glob("worker*.log"))
     received = {log: _tasks(log, "received") for log in logs}
-    run = _submit(c, ["flight_statistics"], tags)
+    [run] = _submit(c, ["decoded_flight"], tags)
     instance = _instance(c)
     victim, task = None, None
     deadline = time.monotonic() + RUN_TIMEOUT_S
