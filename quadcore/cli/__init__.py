@@ -26,7 +26,7 @@ fit-thrust; ``sim``: simulate; ``export``: export, export-c; ``diagnose``; ``dis
 ``learn``: train), beside ``base`` (standard library only) and ``common`` (what several groups share).
 :func:`_load` is the one place a group is imported: by name, when its command runs, so that
 ``quadcore --help`` starts without numpy, polars, scipy, torch, XGBoost or Dagster
-(docs/benchmarks.md, "Start-up").
+(docs/benchmarks.md, "Start-up of the CLI").
 """
 
 from __future__ import annotations
