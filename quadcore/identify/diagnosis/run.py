@@ -233,15 +233,15 @@ def _outside_library(rows: list[CandidateRow], held: _HeldOut, command: str, lib
             continue
         best = mine[0]
         share = best.explained_above_noise + (sum(r.explained_after_top * before / (before - floor)
-                                                     for r in mine[1:] if r.status == "found")
-                                                 if best is top else 0.0)
+                                                  for r in mine[1:] if r.status == "found")
+                                              if best is top else 0.0)
         if share >= library_share:
             continue
         for r in mine:
             r.found = False
             r.status = "partial"
             r.reason = (f"the library's findings remove only {min(share, 1.0):.0%} of what lies above the noise "
-                           f"floor of the held-out {ch} residual: most of it is outside the library; " + r.reason)
+                        f"floor of the held-out {ch} residual: most of it is outside the library; " + r.reason)
         left = before * (1.0 - best.explained_variance)
         out.append({"channel": ch, "best": best.effect, "explained_above_noise": float(min(share, 1.0)),
                     "residual_to_noise_after": float(np.sqrt(max(left, 0.0) / floor)) if floor > 0 else None,
