@@ -149,6 +149,10 @@ class Effect(ABC):
     parameters: tuple[Parameter, ...] = ()
     acts_on_airspeed: ClassVar[bool] = False
     offered: ClassVar[bool] = True
+    # the effect re-times the rotors' commanded thrust (a lag, a delay): its regressor is built
+    # from the closed loop's commands, which react to the gyro noise the measured torque carries,
+    # so the diagnosis fits and compares it at the angular-rate level (quadcore.identify.rates)
+    retimes_thrust: ClassVar[bool] = False
     doc: str = ""
     # values of some parameters at which the others' sensitivity is stated, for parameters
     # that show only through another (a wind only through a drag); see quadcore.identify.evidence

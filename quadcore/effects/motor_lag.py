@@ -75,6 +75,7 @@ class MotorLag(Effect):
     name = "motor_lag"
     target = "both"
     linear = False
+    retimes_thrust = True
     parameters = (Parameter("tau_s", "s", 0.0, 0.0, 0.2, "first-order time constant of rotor thrust"),)
     doc = __doc__
 

@@ -56,6 +56,7 @@ class ThrustDelay(Effect):
     name = "thrust_delay"
     target = "both"
     linear = False
+    retimes_thrust = True
     parameters = (Parameter("t_d_s", "s", 0.0, 0.0, 0.1, "transport delay from logged input to rotor thrust"),)
     doc = __doc__
 

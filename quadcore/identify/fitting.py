@@ -596,13 +596,15 @@ def _scalar_search(nonlin, lin, flights, ys, w, vehicle):
     return np.array([best]), np.array([[var]])
 
 
-def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: float) -> tuple[float, float]:
+def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: float,
+                   samples_per_independent: int = SAMPLES_PER_INDEPENDENT) -> tuple[float, float]:
     """The minimum of ``J`` (a weighted sum of squares over ``n`` values) over ``[lower, upper]``
     and the variance of its position: ``J`` on the geometric grid
     (:func:`quadcore.identify.profiles.search_grid`), then Brent's method between the grid
     neighbours of the best point (``xatol`` 5e-4 of the span); the variance from the profile of
     ``J`` itself, not its curvature: the standard error is the larger distance from the optimum
-    at which ``J`` has risen by ``s² W`` (``s² = J/(n - 1)``, ``W = SAMPLES_PER_INDEPENDENT``) --
+    at which ``J`` has risen by ``s² W`` (``s² = J/(n - 1)``, ``W = samples_per_independent``: the
+    smoother's window for a smoothed residual, 1 for a white one) --
     the likelihood-ratio interval, which for a quadratic ``J`` is the curvature's
     ``2 s² W / J''`` and stays right where ``J`` is not quadratic (a lag's kink at the first
     sample, a delay's ripple, a minimum on a bound). No rise within the bounds on either side:
@@ -620,7 +622,7 @@ def scalar_minimum(J: Callable[[float], float], n: int, lower: float, upper: flo
         if res.fun <= costs[i]:
             best = float(res.x)
     j0 = J(best)
-    level = j0 + j0 / max(n - 1, 1) * SAMPLES_PER_INDEPENDENT
+    level = j0 + j0 / max(n - 1, 1) * samples_per_independent
     sides = [_rise(J, best, edge, level, span) for edge in (lower, upper)]
     widths = [abs(v - best) for v in sides if v is not None]
     return best, float(max(widths) ** 2) if widths else float(np.inf)

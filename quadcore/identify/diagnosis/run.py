@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, sessions as sessionlib, spectrum, sufficient, summaries
+from quadcore.identify import evidence, rates, sessions as sessionlib, spectrum, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -95,13 +95,16 @@ def diagnose(
         _decide(r, held.at_noise, len(rows), settings)
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)
     _mark_alike(rows, span, held, p, settings)
-    rows = _rank(rows)
+    # a lag, a delay: fitted and compared at the angular-rate level, which the closed loop does not bias
+    rows, timing = rates.judge(_rank(rows), p.cands, p.fl.rows, model, splits, train_all, settings)
+    for f in p.ids:
+        p.fl.release(f)
     sensitivity = _beyond_the_best(rows, span, held, p, settings)
     outside = _outside_library(rows, held, discover_command or _discover_placeholder(spec), settings.library_share)
     disagree = _session_disagreements(p, rows, sessions, log)
     evaluation = Evaluation(mode, len(splits), tuple(train_all), tuple(held.ids), held.n)
     return _assemble(p, held, model, evaluation, rows, sensitivity, disagree, outside,
-                     _stability(rows, splits, held, settings), settings)
+                     _stability(rows, splits, held, timing, settings), settings)
 
 
 def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[CandidateRow],
@@ -278,14 +281,15 @@ def _fold_answer(rows: list[CandidateRow], held: _HeldOut, flights: list[str], s
 
 
 def _stability(rows: list[CandidateRow], splits: list[tuple[list[str], list[str]]], held: _HeldOut,
-               settings: DiagnosisSettings) -> Stability:
+               timing: rates.Judged, settings: DiagnosisSettings) -> Stability:
     """How many folds agree on the top answer (:class:`quadcore.identify.diagnosis.results.Stability`): the
     cross-validation's folds, or with one split each held-out flight. From the held-out
-    predictions the scores already hold: no refit."""
+    predictions the scores already hold: no refit; between timing candidates, as the rate level
+    prefers on those flights (``timing``)."""
     top = rows[0] if rows and rows[0].found else None
     answer = top.effect if top else NOTHING
     group = (answer, *top.tied_with) if top else (NOTHING,)
     units, unit = (([test for _, test in splits], "fold") if len(splits) > 1
                    else ([[f] for f in held.ids], "held-out flight"))
-    votes = Counter(_fold_answer(rows, held, flights, settings) for flights in units)
+    votes = Counter(timing.answer(_fold_answer(rows, held, flights, settings), flights) for flights in units)
     return Stability(answer, tuple(group), unit, dict(votes.most_common()), len(units))

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify import evidence, fitting
+from quadcore.identify import evidence, fitting, rates
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _HeldOut,
@@ -191,7 +191,7 @@ def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[s
         notes = []
     notes += [f"{', '.join(at_bound)} at the bound of its range"] if at_bound else []
     if sigma < min_sigma:
-        notes.append(f"not significant: the fit is only {sigma:.1f} standard errors from 'no effect'")
+        notes.append(f"{rates.NOT_SIGNIFICANT} the fit is only {sigma:.1f} standard errors from 'no effect'")
     return notes
 
 

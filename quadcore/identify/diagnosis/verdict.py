@@ -12,6 +12,7 @@ from quadcore import effects as effectlib
 from quadcore.effects import Parameter
 from quadcore.identify.diagnosis.results import CandidateScore
 from quadcore.identify.diagnosis.rows import CandidateRow
+from quadcore.identify.rates import RATE_LEVEL
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
@@ -171,6 +172,11 @@ def _alike(top: CandidateRow, by_name: dict[str, CandidateRow], settings: Diagno
     for o, by in top.separated_by.items():
         r = by_name.get(o)
         if r is None:
+            continue
+        if by == RATE_LEVEL:
+            text += (f" In {ch} alone it is indistinguishable from {o}; on the held-out flights' angular rates, "
+                     f"where the closed loop does not bias a timing fit (docs/timing.md), {top.effect} fits "
+                     f"better.")
             continue
         if by == ch:
             text += (f" Its {ch} signature resembles that of {o}, which explains less of it "

@@ -1,0 +1,340 @@
+"""Rotor timing (a lag, a delay) fitted and compared at the angular-rate level, where the closed
+loop does not bias it.
+
+**Why not at the torque level.** The torque residual is ``J D[ω + ε] − M[A f]`` (docs/timing.md):
+the gyro's noise ``ε`` enters through the derivative filter ``D``, which spans the samples on
+both sides of ``t_k``. The commands ``f`` come from a controller that reads the same noisy gyro,
+so ``f_j`` reacts to ``ε_i`` for every ``i <= j``. A timing effect's regressor is built from the
+commands (``A (f(t - t_d) - f(t))``, through ``M``), and ``D[ε]_k`` holds ``ε_(k-15)``, which
+every command in the window reacts to: regressor and noise are correlated (errors in variables
+in closed loop) and the fit absorbs a few milliseconds of it. Measured on this project's
+simulator (three 8 s hover flights, 10 ms delay true, seeds 0-2): ``t_d`` = 14.8-15.1 ± 0.2 ms
+on the torque channels; the same flights with the gyro noise added to the log only (the
+controller flying on the true rates) give 10.2-11.6 ± 0.5 ms.
+
+**The rate level.** Summing the torque equation over the sample intervals undoes the
+derivative: per interval ``[t_(k-1), t_k]``
+
+    d_k = J (ω_k − ω_(k−1)) + ∫ ω × J ω dt − ∫ A f dt − ∫ τ_model dt      (N m s, body frame)
+
+(the integrals with the thrust source's hold, :func:`quadcore.physics.signals.interval_integrals`),
+and its running sum ``R_k = Σ_(i<=k) d_i`` holds the gyro noise as ``J (ε_k − ε_0)``: white,
+plus a constant. A candidate's running sum ``C_k(θ) = Σ ∫ τ_e(θ) dt`` depends on the commands
+up to ``t_(k−1)`` only (a command acts from the instant it is logged, so the interval ending at
+``t_k`` holds commands set before it), which are predetermined with respect to ``ε_k``. Over blocks
+``b`` of :data:`~quadcore.identify.evidence.BLOCK_S` with a free offset each (which takes the
+``ε_0`` of the block's start and any drift before it)
+
+    J_rate(θ) = Σ_b Σ_(k∈b) Σ_axis w_a (R_ka − C_ka(θ) − c_ba)²,   w_a = 1 / σ_a²
+
+is the prediction-error criterion with the right noise model (the torque noise is differenced
+white gyro noise; its whitening filter is the running sum). The offsets make the regressor and
+the noise correlated only through the block mean, a bias of order one sample per block. Same
+flights: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's standard error is the profile's
+(:func:`quadcore.identify.fitting.scalar_minimum` with one sample per independent one: the
+residual is white here), the comparison of two candidates the held-out difference of their
+``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
+
+Used by :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
+commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters and how they
+rank against each other come from here (docs/diagnosis.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import stats
+
+from quadcore.effects import Effect, get as get_effect
+from quadcore.identify import evidence, fitting
+from quadcore.identify.fitting import FlightData
+from quadcore.physics import dynamics, signals
+from quadcore.physics.vehicle import Vehicle
+
+if TYPE_CHECKING:  # the diagnosis imports this module: its types only for the annotations
+    from quadcore.identify.diagnosis.rows import CandidateRow
+    from quadcore.identify.settings import DiagnosisSettings
+
+RATE_LEVEL = "angular rate"  # what separates two timing candidates (a row's ``separated_by``)
+NOT_SIGNIFICANT = "not significant:"  # how a row's note on its significance begins (quadcore.identify.diagnosis)
+
+
+@dataclass(frozen=True)
+class RateFlight:
+    """One flight at the rate level: the increments ``d_k`` (m, 3) over its sample intervals
+    (N m s, body frame, the model's torque removed) and each interval's block (-1: not used)."""
+
+    fd: FlightData
+    vehicle: Vehicle
+    increments: np.ndarray
+    block: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int((self.block >= 0).sum())
+
+
+def rate_flight(fd: FlightData, vehicle: Vehicle, model_tau_b_Nm: np.ndarray | None = None,
+                skip_s: float = 0.0) -> RateFlight:
+    """The increments ``J Δω + ∫ ω × J ω − ∫ (A f + τ_model)`` of a flight; intervals across a
+    gap (the commands in it unknown), near the filters' edges and within ``skip_s`` of the first
+    sample (where an effect with memory predicts nothing) belong to no block."""
+    st = fd.state
+    t, om = st.t_s, st.omega_b_radps
+    J = np.asarray(vehicle.inertia_kgm2, float)
+    tau = dynamics.wrench_from_thrusts(vehicle, st.f_rotor_N)[1]
+    if model_tau_b_Nm is not None:
+        tau = tau + model_tau_b_Nm
+    inc = (np.diff(om, axis=0) @ J.T + signals.interval_integrals(np.cross(om, om @ J.T), t, 0.0)
+           - signals.interval_integrals(tau, t, st.thrust_hold_s))
+    dt = np.diff(t)
+    ok = (dt < 1.5 * np.median(dt)) & fd.mask[1:] & (t[1:] - t[0] >= skip_s)
+    block = np.full(len(inc), -1)
+    block[ok] = _runs(ok, ((t[1:] - t[0]) // evidence.BLOCK_S).astype(int))[ok]
+    return RateFlight(fd, vehicle, inc, block)
+
+
+def _runs(ok: np.ndarray, period: np.ndarray) -> np.ndarray:
+    """Numbered runs of ``ok`` intervals, cut where ``period`` changes (0, 1, ... in time order)."""
+    start = ok & np.concatenate([[True], ~ok[:-1] | (np.diff(period) != 0)])
+    return np.cumsum(start) - 1
+
+
+def _deviations(rf: RateFlight, effect: Effect | None, params: dict[str, float] | None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``R_k − C_k − mean_b`` (used intervals, 3) for ``effect`` at ``params`` (None: the model's
+    residual alone), and each used interval's block."""
+    d = rf.increments
+    if effect is not None and params is not None:
+        st = rf.fd.state
+        d = d - signals.interval_integrals(effect.wrench(st, rf.vehicle, params)[1], st.t_s, st.thrust_hold_s)
+    use = rf.block >= 0
+    R, b = np.cumsum(d, axis=0)[use], rf.block[use]
+    if not len(b):
+        return R, b
+    size = np.bincount(b).astype(float)
+    mean = np.stack([np.bincount(b, R[:, a]) for a in range(3)], axis=1) / size[:, None]
+    return R - mean[b], b
+
+
+def _per_block(x: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(blocks, 3) sums of ``x`` (used intervals, 3) per block."""
+    if not len(b):
+        return np.zeros((0, 3))
+    return np.stack([np.bincount(b, x[:, a]) for a in range(3)], axis=1)
+
+
+def block_costs(rf: RateFlight, effect: Effect | None, params: dict[str, float] | None) -> np.ndarray:
+    """(blocks, 3) ``Σ_(k∈b) (R_k − C_k − mean_b)²`` per block and axis, for ``effect`` at
+    ``params`` (None: the model's residual alone)."""
+    dev, b = _deviations(rf, effect, params)
+    return _per_block(dev**2, b)
+
+
+def weights(flights: Sequence[RateFlight]) -> np.ndarray:
+    """(3,) per axis ``1 / σ²`` from the torque channels' sensor-noise floor (the gyro noise
+    through ``J``: the same per axis up to a common factor at every level)."""
+    n = np.array([max(rf.fd.n, 1) for rf in flights], float)
+    ms = sum(rf.fd.noise[3:] ** 2 * k for rf, k in zip(flights, n)) / n.sum()
+    return 1.0 / np.where(ms > 0, ms, 1.0)
+
+
+@dataclass(frozen=True)
+class RateFit:
+    """A timing effect's one parameter fitted at the rate level: value, standard error, and the
+    weighted cost at it over ``n`` intervals."""
+
+    effect: str
+    parameter: str
+    value: float
+    std: float
+    cost: float
+    n: int
+
+
+def fit(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray) -> RateFit:
+    """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module)."""
+    (p,) = effect.parameters
+    memo: dict[float, float] = {}
+
+    def J(v: float) -> float:
+        v = float(min(max(v, p.lower), p.upper))
+        if v not in memo:
+            memo[v] = float(sum(block_costs(rf, effect, {p.name: v}).sum(axis=0) @ w for rf in flights))
+        return memo[v]
+
+    n = sum(rf.n for rf in flights) * 3
+    best, var = fitting.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
+    return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
+
+
+def block_differences(flights: Sequence[RateFlight], a: Effect, pa: dict[str, float], b: Effect,
+                      pb: dict[str, float], w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per block of ``flights``: ``g``, ``b``'s weighted ``J_rate`` minus ``a``'s (> 0: ``a`` fits
+    better), and ``D``, the weighted ``Σ (C_a − C_b)²`` (block means removed) that ``g`` is made of:
+    with ``e = R − (C_a + C_b)/2``, ``g = 2 Σ (C_a − C_b) e`` and, if ``a`` is the truth,
+    ``E g = D``; if ``b`` is, ``−D``."""
+    g, D = [], []
+    for rf in flights:
+        dev_a, blocks = _deviations(rf, a, pa)
+        dev_b, _ = _deviations(rf, b, pb)
+        g.append(_per_block(dev_b**2 - dev_a**2, blocks) @ w)
+        D.append(_per_block((dev_b - dev_a) ** 2, blocks) @ w)
+    return np.concatenate(g), np.concatenate(D)
+
+
+def difference_test(g: np.ndarray, D: np.ndarray) -> evidence.HeldOutTest:
+    """Which of two candidates the blocks prefer: the slope ``β = Σ g / Σ D`` of the residual on
+    the direction from ``b``'s prediction to ``a``'s (+1: ``a`` is right, −1: ``b`` is, 0: neither
+    fits better), its standard error from the blocks' scores ``g − β D`` (blocks as independent
+    clusters, as :func:`quadcore.identify.evidence.held_out_test_of` takes them), two-sided
+    (``t > 0``: ``a`` fits better). A t-test of the mean of ``g`` instead would count the spread
+    of ``D`` between blocks (a manoeuvre's blocks against a hover's) as noise."""
+    n, den = len(g), float(D.sum())
+    if n < 3 or den <= 0:
+        return evidence.NO_TEST
+    beta = float(g.sum() / den)
+    se = float(np.sqrt(n / (n - 1) * np.sum((g - beta * D) ** 2)) / den)
+    t = beta / se if se > 0 else (np.inf if beta > 0 else -np.inf if beta < 0 else 0.0)
+    t = float(np.clip(t, -1e6, 1e6))
+    return evidence.HeldOutTest(beta, t, float(2 * stats.t.sf(abs(t), n - 1)), n)
+
+
+# ---------------------------------------------------------------------------------------
+# In the diagnosis
+# ---------------------------------------------------------------------------------------
+
+def _model_torque(model, flight: str, fd: FlightData) -> tuple[Vehicle, np.ndarray | None]:
+    """The vehicle of ``flight`` and the torque (n, 3) of the model's effects there (unfiltered)."""
+    m = model.for_flight(flight)
+    if not m.terms:
+        return m.vehicle, None
+    tau = np.zeros((fd.state.n, 3))
+    for t in m.terms:
+        tau += get_effect(t.name).wrench(fd.state, m.vehicle, t.params)[1]
+    return m.vehicle, tau
+
+
+@dataclass(frozen=True)
+class Judged:
+    """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
+    per-block :func:`block_differences` (> 0: ``a`` fits better)."""
+
+    differences: dict[tuple[str, str], dict[str, np.ndarray]]
+
+    def answer(self, effect: str, flights: Sequence[str]) -> str:
+        """``effect``, or the timing rival that fits ``flights`` better at the rate level."""
+        for (a, b), per_flight in self.differences.items():
+            if effect in (a, b):
+                total = sum(float(per_flight[f].sum()) for f in flights if f in per_flight)
+                if total != 0:
+                    return a if total > 0 else b
+        return effect
+
+
+def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData], model,
+          splits: Sequence[tuple[list[str], list[str]]], train_all: list[str], settings: DiagnosisSettings
+          ) -> tuple[list[CandidateRow], Judged]:
+    """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
+    :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
+    one's parameter, standard error (the larger of the profile's and the spread between the
+    folds' fits) and significance from :func:`fit` on the training flights, and, per pair, the
+    held-out :func:`difference_test` over the folds' test flights (each candidate fitted on the
+    fold's training flights): significant at ``settings.alpha``, the better one ranks above the
+    other (within its tier) and the two are no longer tied; not, they are tied when either is
+    found (undecided, whatever the torque level says). Every candidate on the same intervals
+    (after the longest memory of them). The model's effects at their values fitted on all
+    training flights."""
+    timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
+    if not timing:
+        return rows, Judged({})
+    skip = evidence.memory_blocks(timing) * evidence.BLOCK_S
+    ids = sorted({f for tr, te in splits for f in (*tr, *te)})
+    flights = {}
+    for f in ids:
+        fd = rows_of(f)
+        vehicle, tau = _model_torque(model, f, fd)
+        flights[f] = rate_flight(fd, vehicle, tau, skip)
+    w = weights(list(flights.values()))
+    by_name = {r.effect: r for r in rows}
+    folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
+    # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
+    groups = ([[f for f in train_all if f not in g] for g in fitting.folds(train_all, settings.n_folds)]
+              if len(train_all) >= 3 else [])
+    for c in timing:
+        spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
+        _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
+    rows = sorted(rows, key=_tier)  # a candidate no longer significant follows the found ones (stable)
+    differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+    for i, a in enumerate(timing):
+        for b in timing[i + 1:]:
+            ra, rb = by_name[a.name], by_name[b.name]
+            if not (ra.physical and rb.physical):
+                continue
+            per_flight = {
+                f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
+                for (_, te), fa, fb in zip(splits, folds[a.name], folds[b.name]) for f in te}
+            differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
+            test = difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
+            if test.p_value < settings.alpha:
+                rows = _prefer(rows, *((ra, rb) if test.t > 0 else (rb, ra)))
+            elif ra.found or rb.found:
+                _tie(ra, rb)
+    return rows, Judged(differences)
+
+
+def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], min_sigma: float) -> None:
+    """A candidate row with its parameter from the rate level (the torque level's in a note),
+    its standard error the larger of the profile's and the grouped jackknife's over ``folds``
+    (fits that each leave out a group of flights)."""
+    (p,) = c.parameters
+    values = np.array([f.value for f in folds])
+    k = len(values)
+    spread = float(np.sqrt((k - 1) / k * np.sum((values - values.mean()) ** 2))) if k > 1 else 0.0
+    std = max(rf.std, spread)
+    torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
+    r.parameters = {p.name: rf.value}
+    r.parameter_std = {p.name: std}
+    r.parameter_spread_between_flights = {p.name: spread}
+    sigma = abs(rf.value - p.default) / std if std > 0 else (np.inf if rf.value != p.default else 0.0)
+    r.significance_sigma = float(min(sigma, 1e6))
+    r.significant = r.significance_sigma >= min_sigma
+    r.notes = [n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)] + [
+        f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
+        f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)"]
+    if not r.significant:
+        r.notes.append(f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
+                       "'no effect'")
+    if r.found and not r.significant:
+        r.found = False
+        r.grade = "indistinguishable from noise"
+
+
+def _tier(r: CandidateRow) -> int:
+    """As the diagnosis ranks: found, then physical, then unphysical."""
+    return 0 if r.found else (1 if r.physical else 2)
+
+
+def _prefer(rows: list[CandidateRow], better: CandidateRow, worse: CandidateRow) -> list[CandidateRow]:
+    """``better`` separated from ``worse`` by the rate level, and ranked above it in its tier."""
+    for r, o in ((better, worse), (worse, better)):
+        r.tied_with = [x for x in r.tied_with if x != o.effect]
+        r.separated_by = {**r.separated_by, o.effect: RATE_LEVEL}
+    i, j = rows.index(better), rows.index(worse)
+    if j < i and _tier(better) == _tier(worse):
+        rows = [*rows[:j], better, *[r for r in rows[j:] if r is not better]]
+    return rows
+
+
+def _tie(a: CandidateRow, b: CandidateRow) -> None:
+    """``a`` and ``b`` tied: the rate level prefers neither."""
+    for r, o in ((a, b), (b, a)):
+        if o.effect not in r.tied_with:
+            r.tied_with = [*r.tied_with, o.effect]
+        if o.effect not in r.indistinguishable_from:
+            r.indistinguishable_from = [*r.indistinguishable_from, o.effect]
+        r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}
