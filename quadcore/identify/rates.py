@@ -30,9 +30,10 @@ up to ``t_(k−1)`` only (a command acts from the instant it is logged, so the i
 is the prediction-error criterion with the right noise model (the torque noise is differenced
 white gyro noise; its whitening filter is the running sum). The offsets make the regressor and
 the noise correlated only through the block mean, a bias of order one sample per block. Same
-flights: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's standard error is the profile's
-(:func:`quadcore.identify.fitting.scalar_minimum` with one sample per independent one: the
-residual is white here), the comparison of two candidates the held-out difference of their
+flights: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's standard error is the larger of the
+profile's (:func:`quadcore.identify.fitting.scalar_minimum` with one sample per independent one:
+right for a white residual) and the blocks-as-clusters one (:func:`_clustered_variance`, right
+when the model's error within a block is not white), the comparison of two candidates the held-out difference of their
 ``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
 
 Used by :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
@@ -169,7 +170,32 @@ def fit(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray) -> RateFit
 
     n = sum(rf.n for rf in flights) * 3
     best, var = fitting.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
+    var = max(var, _clustered_variance(effect, flights, w, best, var, J(best) / max(n - 1, 1)))
     return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
+
+
+def _clustered_variance(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray, best: float, var: float,
+                        s2: float) -> float:
+    """The variance of the fitted value with the blocks as independent clusters (the sandwich
+    ``Σ_b (∂J_b/∂θ)² / H²``, ``H = 2 s² / var`` the profile's curvature), which the profile's
+    variance, right for a white residual, understates where the residual within a block is not
+    white (the effect's form only close to the physics, a torque the model lacks); each block's
+    slope by central differences over half a sample period, one-sided at a bound."""
+    (p,) = effect.parameters
+    if not np.isfinite(var) or var <= 0:
+        return var
+    h = 0.25 * min(float(np.median(np.diff(rf.fd.state.t_s))) for rf in flights)
+    lo, hi = max(best - h, p.lower), min(best + h, p.upper)
+    if hi <= lo:
+        return 0.0
+
+    def per_block(v: float) -> np.ndarray:
+        return np.concatenate([block_costs(rf, effect, {p.name: v}) @ w for rf in flights])
+
+    slopes = (per_block(hi) - per_block(lo)) / (hi - lo)
+    k = len(slopes)
+    curvature = 2.0 * s2 / var
+    return float(k / max(k - 1, 1) * np.sum(slopes**2) / curvature**2)
 
 
 def block_differences(flights: Sequence[RateFlight], a: Effect, pa: dict[str, float], b: Effect,
