@@ -263,8 +263,8 @@ class Judged:
 
 
 def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData], model,
-          splits: Sequence[tuple[list[str], list[str]]], train_all: list[str], settings: DiagnosisSettings
-          ) -> tuple[list[CandidateRow], Judged]:
+          splits: Sequence[tuple[list[str], list[str]]], train_all: list[str], settings: DiagnosisSettings,
+          decide: Callable[[CandidateRow], None]) -> tuple[list[CandidateRow], Judged]:
     """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
     :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
     one's parameter, standard error (the larger of the profile's and the spread between the
@@ -274,7 +274,8 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     other (within its tier) and the two are no longer tied; not, they are tied when either is
     found (undecided, whatever the torque level says). Every candidate on the same intervals
     (after the longest memory of them). The model's effects at their values fitted on all
-    training flights."""
+    training flights. ``decide``: the diagnosis's decision (found, grade), taken again on a row
+    whose significance changed."""
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
@@ -294,7 +295,8 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     for c in timing:
         spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
         _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
-    rows = sorted(rows, key=_tier)  # a candidate no longer significant follows the found ones (stable)
+        decide(by_name[c.name])
+    rows = sorted(rows, key=_tier)  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
@@ -335,9 +337,6 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     if not r.significant:
         r.notes.append(f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
                        "'no effect'")
-    if r.found and not r.significant:
-        r.found = False
-        r.grade = "indistinguishable from noise"
 
 
 def _tier(r: CandidateRow) -> int:
