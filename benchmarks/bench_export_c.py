@@ -27,7 +27,7 @@ from _common import logs_folder
 
 from quadcore.export import c as export_c
 from quadcore.export.c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
-from quadcore.identify import fitting
+from quadcore.identify import model_fit
 from quadcore.learn import artefacts, features as feat, learners, trainers, trees
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle
@@ -114,7 +114,7 @@ def main() -> None:
         sys.exit(0)
     train = sorted(f for f in decoded if f != HOLDOUT)
     t0 = time.perf_counter()
-    physics = fitting.fit_model(spec_from(veh, EFFECTS), decoded, train)
+    physics = model_fit.fit_model(spec_from(veh, EFFECTS), decoded, train)
     print(f"physics model {physics.label} fitted on {len(train)} flights in {time.perf_counter() - t0:.0f} s; "
           f"held out {HOLDOUT}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     res = {f: physics.residual_table(df) for f, df in decoded.items()}

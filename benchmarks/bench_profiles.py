@@ -63,7 +63,7 @@ def compare(label: str, fds: dict[str, fitting.FlightData]) -> None:
         rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
         t_rows = time.perf_counter() - t0
         t0 = time.perf_counter()
-        prof = fitting.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+        prof = sufficient.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
         t_prof = time.perf_counter() - t0
         a, b = rows.params[name][p.name], prof.params[name][p.name]
         print(f"{name:>13} {a:10.6f} {b:10.6f} {(b - a) / (5e-4 * (p.upper - p.lower)):10.2f} {(b - a) / dt_s:8.3f} "

@@ -41,7 +41,7 @@ def synthetic(flight: str, seconds: int, layout: sufficient.Layout, rng: np.rand
 
 def fleet_fit(stats: list[sufficient.FlightStats]) -> fitting.Fit:
     es = [effects.get("rotor_drag"), effects.get("thrust_scale")]
-    return fitting.fit_effects(es, stats, [s.layout.target() for s in stats], VEHICLE)
+    return sufficient.fit_effects(es, stats, [s.layout.target() for s in stats], VEHICLE)
 
 
 def held_out(stats: list[sufficient.FlightStats], fit: fitting.Fit) -> evidence.HeldOutTest:

@@ -20,7 +20,7 @@ import pytest
 import snapshot
 
 from quadcore import cli, effects
-from quadcore.identify import diagnosis, evidence, fitting, model
+from quadcore.identify import diagnosis, evidence, fitting, model, model_fit
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -193,7 +193,7 @@ def test_lag_and_delay_fits_on_flights_starting_mid_manoeuvre_cover_the_truth(si
     row = d["candidates"][0]
     assert row["effect"] == name and row["found"], d["verdict"]
     assert abs(row["parameters"][param] - true) <= 3 * row["parameter_std"][param], row
-    fitted = fitting.fit_model(spec_from(VEHICLE, [name]), tables, sorted(tables)).terms[0]
+    fitted = model_fit.fit_model(spec_from(VEHICLE, [name]), tables, sorted(tables)).terms[0]
     assert abs(fitted.params[param] - true) <= 3 * fitted.std[param], (fitted.params, fitted.std)
 
 
@@ -588,7 +588,7 @@ def test_plugin_is_a_candidate_and_is_fitted(sim_sets, tmp_path, forget_linear_d
         f'vehicle = "crazyflie21"\neffects = ["linear_drag"]\nplugins = ["{LINEAR_DRAG.as_posix()}"]\n')
     spec = load_model_file(model_file)
     assert spec.effects == ["linear_drag"]
-    fitted = fitting.fit_model(spec, tables, sorted(tables))
+    fitted = model_fit.fit_model(spec, tables, sorted(tables))
     _assert_recovered({"parameters": fitted.terms[0].params}, LINEAR_DRAG_TRUTH, list(LINEAR_DRAG_TRUTH),
                       "linear_drag")
 
@@ -750,7 +750,7 @@ def test_a_model_file_fits_a_parameter_per_session(two_sessions, tmp_path):
     path = tmp_path / "model.toml"
     path.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
     spec = load_model_file(path)
-    fitted = fitting.fit_model(spec, tables, sorted(tables))
+    fitted = model_fit.fit_model(spec, tables, sorted(tables))
     term = fitted.terms[0]
     assert sorted(fitted.sessions.values()) == [["sim000", "sim001", "sim002"], ["sim003", "sim004", "sim005"]]
     for session, flights in fitted.sessions.items():
@@ -794,7 +794,7 @@ def test_a_session_can_switch_thrust_maps(two_sessions, tmp_path):
     spec = load_model_file(path)
     assert spec.vehicle_for("sim004").thrust_map_kind == "motor_speed"
     assert spec.vehicle_for("sim001").thrust_map_kind == spec.vehicle.thrust_map_kind == "pwm_vbat"
-    fitted = fitting.fit_model(spec, tables, sorted(tables))
+    fitted = model_fit.fit_model(spec, tables, sorted(tables))
     scales = {s: v["scale"] for s, v in fitted.terms[0].per_session.items()}
     assert scales["monday"] == pytest.approx(SESSION_SCALES["early"], rel=0.02)
     assert scales["tuesday"] == pytest.approx(1.0, abs=0.02)

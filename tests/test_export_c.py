@@ -19,7 +19,7 @@ import pytest
 from quadcore import cli, effects
 from quadcore.export import c as export_c
 from quadcore.export.c.learned import raw_thresholds
-from quadcore.identify import fitting, model
+from quadcore.identify import model, model_fit
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, trainers
 from quadcore.logs import flight
@@ -113,7 +113,7 @@ def test_all_effects_together_and_the_struct_carries_what_they_read(decoded, tmp
 def test_fitted_physics_model_through_the_cli(decoded, tmp_path):
     spec = spec_from(VEHICLE, ["rotor_drag", "com_offset", "motor_lag"])
     train = [f for f in decoded if f != HOLDOUT]
-    fitted = fitting.fit_model(spec, decoded, train)
+    fitted = model_fit.fit_model(spec, decoded, train)
     path = model.save(fitted, tmp_path / "models" / "physics_model.json", train, spec)
     out_dir = tmp_path / "c"
     stdout = io.StringIO()
@@ -138,7 +138,7 @@ def data_root(decoded, tmp_path_factory) -> tuple[Path, PhysicsModel]:
     root = tmp_path_factory.mktemp("root")
     train = [f for f in decoded if f != HOLDOUT]
     spec = spec_from(VEHICLE, ["com_offset"])
-    physics = fitting.fit_model(spec, decoded, train)
+    physics = model_fit.fit_model(spec, decoded, train)
     model.save(physics, root / "models" / "physics_model.json", train, spec)
     res = {f: physics.residual_table(df) for f, df in decoded.items()}
     sets = feat.parse("physics,vel_rate,full_state")

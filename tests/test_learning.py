@@ -19,7 +19,7 @@ import polars as pl
 import pytest
 
 from quadcore import cli
-from quadcore.identify import fitting, history, model
+from quadcore.identify import history, model, model_fit
 from quadcore.learn import (
     artefacts,
     evaluation,
@@ -367,7 +367,7 @@ def test_history_rows_are_written(report_run):
 def test_nominal_baseline_with_effects_in_the_model(decoded, residual_tables):
     """With effects in the physics model, 'zero' is the nominal model's residual, exactly."""
     train = [f for f in decoded if f != HOLDOUT]
-    fitted = fitting.fit_model(spec_from(VEHICLE, ["rotor_drag"]), decoded, train)
+    fitted = model_fit.fit_model(spec_from(VEHICLE, ["rotor_drag"]), decoded, train)
     with_drag = fitted.residual_table(decoded[HOLDOUT])
     np.testing.assert_allclose(metrics.nominal_residual(with_drag, VEHICLE),
                                feat.targets(residual_tables[HOLDOUT]), atol=1e-9)

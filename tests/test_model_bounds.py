@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from quadcore.identify import fitting, model
+from quadcore.identify import fitting, model, model_fit
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.report import diagnosis as report
@@ -43,7 +43,7 @@ def test_a_parameter_beyond_its_bound_is_held_there_and_said(pushed_fleet):
     0, its free fit is the truth within 3 sigma and lies many sigma beyond the bound, so the term
     says the effect's form does not fit the data; k_x, k_y are fitted as without the bound."""
     spec = spec_from(VEHICLE, ["rotor_drag"])
-    term = fitting.fit_model(spec, pushed_fleet, sorted(pushed_fleet)).terms[0]
+    term = model_fit.fit_model(spec, pushed_fleet, sorted(pushed_fleet)).terms[0]
     assert term.params["k_z_s_per_m"] == 0.0
     assert set(term.held) == {"k_z_s_per_m"}, term.held
     held = term.held["k_z_s_per_m"]
@@ -64,7 +64,7 @@ def test_a_parameter_beyond_its_bound_is_held_there_and_said(pushed_fleet):
 
 def test_a_fit_within_its_bounds_holds_nothing(pushed_fleet):
     """Without an axial term in the model (thrust_scale alone), nothing is held: no note, no key."""
-    term = fitting.fit_model(spec_from(VEHICLE, ["thrust_scale"]), pushed_fleet, sorted(pushed_fleet)).terms[0]
+    term = model_fit.fit_model(spec_from(VEHICLE, ["thrust_scale"]), pushed_fleet, sorted(pushed_fleet)).terms[0]
     assert term.held == {} and "held_at_bound" not in term.to_dict()
 
 
@@ -81,7 +81,7 @@ def test_the_real_session_model_holds_its_axial_drag_at_its_bound_and_says_why(r
     fl = fleet.fleet_from_logs([str(real_logs)], spec.vehicle, lambda m: None)
     train = sorted(f for f in fl.tables if f[:5] in ("jana0", "jana1") and f != "jana02")
     assert len(train) == 8, train
-    pm = fitting.fit_model(spec, fl.tables, train)
+    pm = model_fit.fit_model(spec, fl.tables, train)
     for t in pm.terms:
         bounds = {p.name: (p.lower, p.upper) for p in t.effect.parameters}
         for k, v in t.params.items():

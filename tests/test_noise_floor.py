@@ -1,4 +1,4 @@
-"""The sensor-noise floor (:func:`quadcore.identify.fitting.sensor_noise_floor`) against a known
+"""The sensor-noise floor (:func:`quadcore.identify.flightdata.sensor_noise_floor`) against a known
 answer: a vehicle at rest in hover whose logged accelerometer, gyro and rotor speeds carry only
 white noise. Its nominal residual is then noise and nothing else, so its RMS per channel is the
 floor. With the motor-speed map the noise of the logged rotor speeds reaches the modelled
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from quadcore.identify import fitting
+from quadcore.identify import flightdata
 from quadcore.logs.units import G0_MPS2
 from quadcore.physics import dynamics, residuals, signals, vehicle
 
@@ -47,7 +47,7 @@ def _residual_rms(state: dynamics.FlightState, thrust_map: str) -> tuple[np.ndar
     keep = np.zeros(state.n, dtype=bool)
     keep[4 * signals.WINDOW:-4 * signals.WINDOW] = True
     both = np.concatenate([r["f_res_b"], r["tau_res_b"]], axis=1)[keep]
-    return np.sqrt(np.mean(both**2, axis=0)), fitting.sensor_noise_floor(state, veh, keep)
+    return np.sqrt(np.mean(both**2, axis=0)), flightdata.sensor_noise_floor(state, veh, keep)
 
 
 @pytest.mark.parametrize("rate_hz", (500.0, 100.0))
@@ -63,7 +63,7 @@ def test_the_floor_is_the_residual_of_pure_noise(thrust_map, rate_hz):
 @pytest.mark.parametrize("thrust_map", ("motor_speed", "pwm_vbat"))
 def test_the_floor_holds_on_the_samples_the_statistics_count(thrust_map, rate_hz):
     """On 400 short flights (150 samples each, so the filters' edge fits are a fifth of them):
-    over the samples every residual statistic counts (``fitting.usable_samples``: edges left
+    over the samples every residual statistic counts (``flightdata.usable_samples``: edges left
     out) the residual's RMS is the floor (pooled over the flights, the floor's default samples)
     within 4 % on every channel (measured: within 2.7 %). The edge rows themselves pass more
     noise than the floor counts (the derivative's first row 3.9 times the interior gain): with
@@ -74,9 +74,9 @@ def test_the_floor_holds_on_the_samples_the_statistics_count(thrust_map, rate_hz
         state = _hover(rate_hz, thrust_map, rpm_noise=15.0, seed=seed, n=150)
         r = residuals.residual_arrays(state, veh)
         sq = np.concatenate([r["f_res_b"], r["tau_res_b"]], axis=1) ** 2
-        used = fitting.usable_samples(state.t_s)
+        used = flightdata.usable_samples(state.t_s)
         used_ss, all_ss = used_ss + sq[used].sum(axis=0), all_ss + sq.sum(axis=0)
-        floor_ss += used.sum() * fitting.sensor_noise_floor(state, veh) ** 2
+        floor_ss += used.sum() * flightdata.sensor_noise_floor(state, veh) ** 2
         n_used, n_all = n_used + int(used.sum()), n_all + state.n
     assert n_used == 400 * (150 - 2 * (signals.WINDOW // 2))
     ratio = np.sqrt(used_ss / floor_ss)
@@ -89,8 +89,8 @@ def test_pwm_floor_ignores_rotor_speeds():
     """PWM commands are not measurements: the logged rotor speeds do not move the PWM floor."""
     quiet = _hover(500.0, "pwm_vbat", rpm_noise=0.0)
     noisy = _hover(500.0, "pwm_vbat", rpm_noise=15.0)
-    np.testing.assert_allclose(fitting.sensor_noise_floor(noisy, VEHICLE.with_thrust_map("pwm_vbat")),
-                               fitting.sensor_noise_floor(quiet, VEHICLE.with_thrust_map("pwm_vbat")), rtol=1e-12)
+    np.testing.assert_allclose(flightdata.sensor_noise_floor(noisy, VEHICLE.with_thrust_map("pwm_vbat")),
+                               flightdata.sensor_noise_floor(quiet, VEHICLE.with_thrust_map("pwm_vbat")), rtol=1e-12)
 
 
 def test_rotor_speed_noise_raises_the_motor_speed_floor_where_it_acts():
@@ -98,7 +98,7 @@ def test_rotor_speed_noise_raises_the_motor_speed_floor_where_it_acts():
     most the roll and pitch torques (rotor arm x thrust noise against a gyro derivative that is
     quiet at 100 Hz), and not the body x-y force: no rotor thrust acts there."""
     veh = VEHICLE.with_thrust_map("motor_speed")
-    quiet = fitting.sensor_noise_floor(_hover(100.0, "motor_speed", rpm_noise=0.0), veh)
-    noisy = fitting.sensor_noise_floor(_hover(100.0, "motor_speed", rpm_noise=15.0), veh)
+    quiet = flightdata.sensor_noise_floor(_hover(100.0, "motor_speed", rpm_noise=0.0), veh)
+    noisy = flightdata.sensor_noise_floor(_hover(100.0, "motor_speed", rpm_noise=15.0), veh)
     np.testing.assert_allclose(noisy[:2], quiet[:2], rtol=1e-12)
     assert np.all(noisy[2:] > quiet[2:]) and np.all(noisy[3:5] > 2 * quiet[3:5]), (quiet, noisy)

@@ -249,7 +249,7 @@ def test_rotor_inertia_shows_up_as_its_wrench(tmp_path):
     opposite sign (it would cancel at J_r = 1e-8 with this lag), so the sum is checked. The yaw
     torque is small (1.3e-5 N m RMS): the gyro's noise floor is an eighth of it, so the
     difference allowed is a fifth of the wrench and the noise floor in quadrature."""
-    from quadcore.identify.fitting import sensor_noise_floor
+    from quadcore.identify.flightdata import sensor_noise_floor
 
     effs = {"motor_lag": {"tau_s": 0.02}, "rotor_inertia": {"J_r_kgm2": 3e-8}}
     sim, fl, _ = _fly(tmp_path, _random(15, speed_min_mps=0.8), effs)

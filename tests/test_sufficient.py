@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, sessions, sufficient
+from quadcore.identify import evidence, fitting, model_fit, sessions, sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -42,7 +42,7 @@ def test_combined_fit_equals_the_row_fit(fleet, names):
     ids = sorted(fds)
     es = [effects.get(n) for n in names]
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-    combined = fitting.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     # a joint fit's normal equations are worse conditioned (a CoM offset of 1e-8 m beside a drag, a
     # vertical drag beside the thrust scale): the same rounding of the sums moves its solution more,
     # so it is compared in its own standard errors (a millionth of one)
@@ -63,7 +63,7 @@ def test_fixed_effects_are_subtracted_alike(fleet):
     es = [effects.get("rotor_drag"), effects.get("thrust_scale")]
     fixed = {"thrust_scale": {"scale": 0.97}}
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
-    combined = fitting.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
+    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     _close(rows.params, combined.params)
 
@@ -76,7 +76,8 @@ def test_per_session_fit_from_statistics_equals_the_row_fit(fleet):
     groups = {"a": ids[:2], "b": ids[2:]}
     targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
     rows = sessions.fit_per_session(spec, fds, targets, ids, groups)
-    combined = sessions.fit_per_session(spec, stats, {f: stats[f].layout.target() for f in ids}, ids, groups)
+    combined = sessions.fit_per_session(spec, stats, {f: stats[f].layout.target() for f in ids}, ids, groups,
+                                        fit=sufficient.fit_effects)
     for a, b in zip(rows.terms, combined.terms):
         _close({a.name: a.params}, {b.name: b.params})
         for s in a.per_session:
@@ -153,7 +154,7 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
     e = effects.get(name)
     (p,) = e.parameters
     rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-    combined = fitting.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+    combined = sufficient.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     dt_s = float(np.median(np.diff(fds[ids[0]].state.t_s)))
     tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 10
     assert abs(rows.params[name][p.name] - combined.params[name][p.name]) <= tolerance
@@ -170,7 +171,7 @@ def test_a_profiled_effect_beside_linear_ones_is_fitted_as_the_rows_fit_it(lagge
     es = [effects.get("thrust_scale"), effects.get("motor_lag"), effects.get("com_offset")]
     fixed = {"com_offset": {"x_c_m": 0.001, "y_c_m": 0.0}}
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
-    combined = fitting.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
+    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     assert abs(rows.params["motor_lag"]["tau_s"] - combined.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
     assert combined.std["motor_lag"]["tau_s"] == pytest.approx(rows.std["motor_lag"]["tau_s"], rel=0.05)
@@ -211,7 +212,7 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
         layout = sufficient.layout_of([e])
         stats = [sufficient.flight_stats(fds[f], VEHICLE, layout) for f in ids]
         rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-        combined = fitting.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
+        combined = sufficient.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
         assert abs(rows.params["slow_thrust"]["k"] - combined.params["slow_thrust"]["k"]) <= 5e-4 * 0.5
         assert combined.params["slow_thrust"]["k"] > 0.1  # a lag is found as late thrust
     finally:
@@ -287,7 +288,7 @@ def test_several_nonlinear_effects_are_refused(fleet):
     _, stats = fleet
     s = list(stats.values())
     with pytest.raises(sufficient.StatsError, match="nonlinear"):
-        fitting.fit_effects([effects.get("motor_lag"), effects.get("thrust_delay")], s,
+        sufficient.fit_effects([effects.get("motor_lag"), effects.get("thrust_delay")], s,
                             [x.layout.target() for x in s], VEHICLE)
 
 
@@ -296,7 +297,7 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     ids = sorted(fds)
     spec = spec_from(VEHICLE, ["rotor_drag", "thrust_scale"])
     no_rows = {f: None for f in ids}  # any look at a flight's decoded table would fail
-    fitted = fitting.fit_model(spec, no_rows, ids, stats=stats.get)
+    fitted = model_fit.fit_model(spec, no_rows, ids, stats=stats.get)
     es = [effects.get(n) for n in spec.effects]
     # the model is fitted within its parameters' bounds (rotor_drag's k_z, ~0 here, falls on either side)
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE,
@@ -308,7 +309,7 @@ def test_a_model_with_a_lag_is_fitted_from_stored_profiles_without_reading_rows(
     fds, stats = lagged_fleet
     ids = sorted(fds)
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
-    fitted = fitting.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
+    fitted = model_fit.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
     es = [effects.get(n) for n in spec.effects]
     rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
     got = {t.name: t.params for t in fitted.terms}
@@ -467,7 +468,7 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
     assert rows.params[name][first.name] == first.lower
     assert all(p.lower <= rows.params[name][p.name] <= p.upper for p in e.parameters)
     targets = [stats[f].layout.target() + delta * stats[f].layout.unit(stats[f].layout.cols(name)[0]) for f in ids]
-    combined = fitting.fit_effects([e], [stats[f] for f in ids], targets, VEHICLE, bounded=True)
+    combined = sufficient.fit_effects([e], [stats[f] for f in ids], targets, VEHICLE, bounded=True)
     assert combined.active == rows.active
     _close(rows.params, combined.params, rel=1e-6)
     _close(rows.std, combined.std, rel=1e-6)

@@ -225,5 +225,5 @@ def _materialize_in_child(ref: str, homes: list[str], configs: dict, names: list
 
 def one_blas_thread():
     """One BLAS thread in each of the two processes while both work: two of OpenBLAS's threads
-    per process on two cores wait for each other (see :func:`quadcore.identify.sufficient.one_blas_thread`)."""
+    per process on two cores wait for each other (see :func:`quadcore.identify.flightdata.one_blas_thread`)."""
     return threadpool_limits(limits=1, user_api="blas")

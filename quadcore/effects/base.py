@@ -169,7 +169,7 @@ class Effect(ABC):
         """How long after a log's first sample the wrench still depends on the flight before it
         (a filter settling from an initial state it cannot know, a delay's history): within
         this time the fits, held-out tests and predictions of the identification take no part of
-        it (:func:`quadcore.identify.fitting.prediction`), so a flight whose log starts in a
+        it (:func:`quadcore.identify.flightdata.prediction`), so a flight whose log starts in a
         manoeuvre does not bias them. The same for every parameter value (a fit compares values
         on the same samples): take the longest the parameter's range allows. 0, the default,
         for memoryless effects."""

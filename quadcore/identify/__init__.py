@@ -1,10 +1,10 @@
 """Stage 3, system identification: the physics model and its spec file (``model``), flight sessions
-(``sessions``), per-flight sufficient statistics (``sufficient``), fitting effect parameters
-(``fitting``), what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``:
-problem, scoring, verdict text, typed result) with its regime tables (``regimes``), evidence
-(``evidence``) and settings (``settings``), sparse term discovery (``discovery``, a package: terms,
-Gram matrices, stored statistics, selection, effect writer), residual spectra (``spectrum``) and the
-run history (``history``).
+(``sessions``), a flight's rows (``flightdata``), per-flight sufficient statistics (``sufficient``,
+their file format ``binfile``), fitting effect parameters (``fitting``; the model's fit, ``model_fit``),
+what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``: problem, scoring,
+verdict text, typed result) with its regime tables (``regimes``), evidence (``evidence``) and settings
+(``settings``), sparse term discovery (``discovery``, a package: terms, Gram matrices, stored
+statistics, selection, effect writer), residual spectra (``spectrum``) and the run history (``history``).
 
 The public API is small (``__all__``): fit a model, diagnose it, discover what it lacks, and the
 types they take and give. Each name is loaded on first use (PEP 562 ``__getattr__``): importing
@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from quadcore.identify.diagnosis import CandidateScore, Diagnosis, diagnose
     from quadcore.identify.discovery import Discovery, discover
-    from quadcore.identify.fitting import fit_model
     from quadcore.identify.model import PhysicsModel
+    from quadcore.identify.model_fit import fit_model
     from quadcore.identify.settings import DiagnosisSettings
     from quadcore.spec.model import ModelSpec
 
@@ -36,8 +36,8 @@ def __getattr__(name: str) -> Any:
         from quadcore.identify import discovery
         return getattr(discovery, name)
     if name == "fit_model":
-        from quadcore.identify import fitting
-        return fitting.fit_model
+        from quadcore.identify import model_fit
+        return model_fit.fit_model
     if name == "PhysicsModel":
         from quadcore.identify import model
         return model.PhysicsModel

@@ -14,7 +14,7 @@ blocks). Unlike a fixed share of the residual, this does not care how small the 
 next to the noise, only whether the held-out data confirm it.
 
 **The noise floor.** A channel whose held-out residual RMS is within ``NOISE_MARGIN`` of
-its sensor-noise floor (:func:`quadcore.identify.fitting.sensor_noise_floor`) holds no evidence
+its sensor-noise floor (:func:`quadcore.identify.flightdata.sensor_noise_floor`) holds no evidence
 *for* any effect. This is not a threshold on size but on what the data can say: the
 controller closes its loop on the same noisy gyro the torque residual is computed from, so
 commanded rotor torques correlate with the gyro noise in the "measured" torque (errors in
@@ -45,24 +45,27 @@ much shorter than a sample cannot be fitted).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
-from quadcore.identify import fitting, ranges
-from quadcore.identify.fitting import FlightData
-from quadcore.identify.settings import DEFAULT, STATISTICS, DiagnosisSettings
+from quadcore.identify import flightdata, ranges
+from quadcore.identify.flightdata import (  # noqa: F401  (BLOCK_S, SECANT, unit_wrench: read from here too)
+    BLOCK_S,
+    SECANT,
+    Flight,
+    Signals,
+    unit_wrench,
+)
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
-if TYPE_CHECKING:
-    from quadcore.identify.sufficient import Flights, Signals
+Flights = Sequence[Flight]
 
 # The defaults of quadcore.identify.settings (their meaning there) under the names the code reads;
 # the diagnosis takes its own DiagnosisSettings.
 ALPHA = DEFAULT.alpha
 POWER = DEFAULT.power
-BLOCK_S = STATISTICS.block_s
 NOISE_MARGIN = DEFAULT.noise_margin
 MIN_EXPLAINED = DEFAULT.min_explained
 MIN_SIGMA = DEFAULT.min_sigma
@@ -70,7 +73,6 @@ LIBRARY_SHARE = DEFAULT.library_share
 SAME_SIGNATURE = DEFAULT.same_signature
 TIE_MARGIN = DEFAULT.tie_margin
 LARGE_SNR = DEFAULT.large_snr
-SECANT = STATISTICS.secant
 CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
 
 
@@ -100,57 +102,24 @@ def channel_mask(channels) -> np.ndarray:
     return m
 
 
-def _blocks(fd: FlightData) -> np.ndarray:
-    """Block index of each usable sample of a flight (blocks of ``BLOCK_S`` seconds), numbered
-    over the blocks that hold samples: a gap in the log makes no empty cluster (which would
-    count as a block with a zero score in the test's degrees of freedom and spread)."""
-    t = fd.state.t_s[fd.mask]
-    if not len(t):
-        return np.zeros(0, dtype=int)
-    return np.unique(((t - t[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
-
-
 def memory_blocks(effects) -> int:
     """How many of a flight's first blocks (of ``BLOCK_S``) lie within the longest
     :meth:`~quadcore.effects.Effect.memory_s` of ``effects``: where an effect with memory predicts
-    nothing (:func:`quadcore.identify.fitting.prediction`) and a memoryless one, or one with a
+    nothing (:func:`quadcore.identify.flightdata.prediction`) and a memoryless one, or one with a
     shorter memory, does. Comparing candidates on the samples after them compares them on the
     same samples (the diagnosis's evaluation, the planner's objective)."""
     memory = max((e.memory_s() for e in effects), default=0.0)
     return int(np.ceil(memory / BLOCK_S - 1e-9))
 
 
-def after_blocks(fd: FlightData, k: int) -> FlightData:
-    """A flight's rows without its first ``k`` blocks (numbered as :func:`_blocks` numbers them):
-    its usable samples from there on; the cached sums and designs, taken over the usable
-    samples, start afresh."""
-    if k <= 0:
-        return fd
-    keep = fd.mask.copy()
-    keep[np.flatnonzero(fd.mask)[_blocks(fd) < k]] = False
-    return replace(fd, mask=keep, _sums={}, _designs={})
-
-
 def block_channel_sums(flights: Flights, pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:
-    """Per pair ``(a, b)`` of signals (flight -> (n, 6)): (blocks of every flight, 6) ``Σ_i a_ic b_ic``
-    per block and channel over its usable samples. On flights'
-    :class:`quadcore.identify.sufficient.FlightStats` with signal vectors, the same from their Gram
-    matrices (:func:`quadcore.identify.sufficient.block_channel_sums`: pairs with the same ``b``
-    read them once)."""
-    from quadcore.identify import sufficient
-
-    if sufficient.are_stats(flights):
-        return sufficient.block_channel_sums(flights, pairs)
-    return [_row_block_sums(flights, a, b) for a, b in pairs]
-
-
-def _row_block_sums(flights: Sequence[FlightData], a: Signals, b: Signals) -> np.ndarray:
-    out = []
-    for fd in flights:
-        prod, blocks = a[fd.flight][fd.mask] * b[fd.flight][fd.mask], _blocks(fd)
-        out.append(np.stack([np.bincount(blocks, weights=prod[:, c], minlength=blocks.max(initial=-1) + 1)
-                             for c in range(6)], axis=1))
-    return np.concatenate(out) if out else np.zeros((0, 6))
+    """Per pair ``(a, b)`` of signals (flight -> signal): (blocks of every flight, 6) ``Σ_i a_ic b_ic``
+    per block and channel over its usable samples (:meth:`Flight.block_channel_sums`: on
+    statistics from their Gram matrices, each flight's read once for all the pairs)."""
+    with flightdata.one_blas_thread():  # G [b, ...] with many columns is a matrix product OpenBLAS would thread
+        per_flight = [fd.block_channel_sums(pairs) for fd in flights]
+    return [np.concatenate([sums[k] for sums in per_flight]) if per_flight else np.zeros((0, 6))
+            for k in range(len(pairs))]
 
 
 def block_sums(flights: Flights, a: Signals, b: Signals, weights: np.ndarray) -> np.ndarray:
@@ -212,17 +181,6 @@ def critical_t(blocks: int, n_candidates: int = 1, alpha: float = ALPHA) -> floa
     return float(stats.t.isf(alpha_each(n_candidates, alpha), max(blocks - 1, 1)))
 
 
-def unit_wrench(effect, param, fd: FlightData, vehicle) -> np.ndarray:
-    """(n, 6) smoothed wrench per unit of ``param`` away from 'no effect' (a secant)."""
-    step = SECANT * (param.upper - param.lower)
-    params = {**effect.defaults(), **effect.sensitivity_reference}
-    if param.name in effect.sensitivity_reference:
-        params[param.name] = param.default
-    base = fitting.prediction(effect, params, fd, vehicle)
-    params[param.name] += step if param.default + step <= param.upper else -step
-    return (fitting.prediction(effect, params, fd, vehicle) - base) / step
-
-
 def alpha_each(n_candidates: int, alpha: float = ALPHA) -> float:
     """Per-candidate level of the held-out test: ``alpha`` for the whole library (Bonferroni)."""
     return alpha / max(n_candidates, 1)
@@ -270,7 +228,7 @@ def _limit(ur_c: np.ndarray, uu_c: np.ndarray, rr_c: np.ndarray, n: int, floor_s
         Q = len(ur) / (len(ur) - 1) * float(np.sum((ur - beta * uu) ** 2))
         v_test = (critical_t(len(ur), n_candidates, settings.alpha) + z_power) * np.sqrt(Q) / S
         ms = max(R - beta**2 * S, 0.0) / (3 * n)
-        v_sigma = (settings.min_sigma + z_power) * np.sqrt(ms * fitting.SAMPLES_PER_INDEPENDENT / S)
+        v_sigma = (settings.min_sigma + z_power) * np.sqrt(ms * flightdata.SAMPLES_PER_INDEPENDENT / S)
         v_floor = np.sqrt(max(0.0, (1 + settings.noise_margin) ** 2 * F - R) / S)
         v_share = np.sqrt(ask.min_share * (R + ask.base_ss) / S)
         best = min(best, max(v_test, v_sigma, v_floor, v_share))

@@ -24,6 +24,7 @@ from quadcore.physics import dynamics, residuals
 from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
 from quadcore.spec.model import ModelFileError, ModelSpec
+from quadcore.store import store
 
 
 @dataclass(frozen=True)
@@ -233,8 +234,6 @@ class FittedModel:
 def save(model: PhysicsModel, path: Path, trained_on: list[str], spec: ModelSpec) -> Path:
     """Write a fitted model with the digest of the ``spec`` it was fitted for (see :func:`fitted_for`)
     and its plugin modules."""
-    from quadcore.store import store
-
     return store.write_json(FittedModel.of(model, spec, trained_on).to_dict(), path)
 
 
@@ -284,8 +283,6 @@ def check_plugins(saved: dict, where: str = "the fitted model") -> None:
 def load_fitted(path: Path, vehicle: Vehicle) -> PhysicsModel:
     """A fitted model saved by :func:`save`, on the given vehicle (its plugins checked, never
     loaded from it: :func:`check_plugins`)."""
-    import json
-
     saved = json.loads(Path(path).read_text())
     check_plugins(saved, str(path))
     return PhysicsModel.from_dict(saved, vehicle)

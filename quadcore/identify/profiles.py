@@ -3,7 +3,7 @@ from a flight's statistics, without its rows.
 
 A nonlinear effect ``e`` with one parameter ``v`` (``motor_lag``'s τ, ``thrust_delay``'s t_d, a
 plugin's) predicts ``p_ic(v)`` (smoothed force and torque, body frame, as
-:func:`quadcore.identify.fitting.prediction`). Every sum its fit and its held-out test take of
+:func:`quadcore.identify.flightdata.prediction`). Every sum its fit and its held-out test take of
 ``p`` against a signal ``s = z·u`` of the flight's statistics (:mod:`quadcore.identify.sufficient`)
 is ``Σ_i p_ic(v) z_ic·u`` or ``Σ_i p_ic(v)²``. So, per flight, on a fixed grid ``v_g`` of the
 parameter (:func:`profile_grid`: the search's 17 points, :func:`search_grid`, and
@@ -15,7 +15,7 @@ per 1 s block (float32: the held-out test's clusters), over the flight (float64:
 over every ``GRAM_STRIDE``-th sample (the signature comparison); and between two profiled
 effects ``a``, ``b`` the cross sums ``Σ_i p_a(v_g)·p_b(v_h)`` per channel over those strided
 samples (float32), all the signature comparison asks of two predictions. The columns ``z``
-include, per profiled effect, its unit wrench (:func:`quadcore.identify.evidence.unit_wrench`,
+include, per profiled effect, its unit wrench (:func:`quadcore.identify.flightdata.unit_wrench`,
 ``unit:<effect>:<parameter>``) and its prediction at the sensitivity reference (``ref:<effect>``)
 when it has one: fixed signals, so the detection limits take them as any other column.
 
@@ -63,10 +63,12 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect, Parameter
+from quadcore.identify.binfile import StatsError
+from quadcore.identify.fitting import search_grid
+from quadcore.identify.flightdata import FlightData, prediction, unit_wrench
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
-    from quadcore.identify.fitting import Fit, FlightData
     from quadcore.identify.sufficient import FlightStats, Layout
 
 GRID_DENSITY = 2  # intervals of the profile's grid per interval of the search's grid
@@ -75,12 +77,6 @@ GRID_DENSITY = 2  # intervals of the profile's grid per interval of the search's
 def profiled(effect: Effect) -> bool:
     """Whether an effect's fit and held-out test can come from profiles: nonlinear, one parameter."""
     return not effect.linear and len(effect.parameters) == 1
-
-
-def search_grid(lower: float, upper: float) -> np.ndarray:
-    """The row search's grid: the lower bound and 16 geometric points up to the upper one."""
-    span = upper - lower
-    return np.unique(np.concatenate([[lower], lower + span * np.geomspace(1e-3, 1.0, 16)]))
 
 
 @lru_cache(maxsize=64)
@@ -127,14 +123,12 @@ def fixed_columns(effect: Effect) -> list[str]:
 
 def fixed_signals(names: Sequence[str], fd: FlightData, vehicle: Vehicle) -> dict[str, np.ndarray]:
     """(n, 6) the fixed columns of the profiled effects ``names`` on a flight."""
-    from quadcore.identify import evidence, fitting
-
     out = {}
     for name in names:
         e = effectlib.get(name)
-        out.update({f"unit:{name}:{p.name}": evidence.unit_wrench(e, p, fd, vehicle) for p in e.parameters})
+        out.update({f"unit:{name}:{p.name}": unit_wrench(e, p, fd, vehicle) for p in e.parameters})
         if e.sensitivity_reference:
-            out[f"ref:{name}"] = fitting.prediction(e, {**e.defaults(), **e.sensitivity_reference}, fd, vehicle)
+            out[f"ref:{name}"] = prediction(e, {**e.defaults(), **e.sensitivity_reference}, fd, vehicle)
     return out
 
 
@@ -178,13 +172,11 @@ def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarra
             stride: int) -> Profiles:
     """The profiles of ``names`` on a flight: ``Z`` (m, 6, W) its augmented design on the usable
     samples, ``starts`` (B + 1,) where each block starts in them."""
-    from quadcore.identify import fitting
-
     preds, by_effect = {}, {}
     for name in names:
         e = effectlib.get(name)
         (p,) = e.parameters
-        P = np.stack([fitting.prediction(e, {**e.defaults(), p.name: float(v)}, fd, vehicle)[fd.mask]
+        P = np.stack([prediction(e, {**e.defaults(), p.name: float(v)}, fd, vehicle)[fd.mask]
                       for v in profile_grid(p.lower, p.upper)], axis=2)  # (m, 6, G)
         preds[name] = P
         blocks = np.stack([_sums(P[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) if len(starts) > 1 \
@@ -214,7 +206,6 @@ def of_flight(s: FlightStats) -> Profiles:
     """A flight's profiles; a :class:`quadcore.identify.sufficient.StatsError` if its statistics hold none
     (:func:`covers` says whether they do)."""
     if s.profiles is None:
-        from quadcore.identify.sufficient import StatsError
         raise StatsError("these statistics hold no profiles (their layout profiles no effect)")
     return s.profiles
 
@@ -222,89 +213,6 @@ def of_flight(s: FlightStats) -> Profiles:
 def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
     """Whether every flight's statistics hold a profile of ``effect``."""
     return profiled(effect) and all(s.profiles is not None and effect.name in s.profiles.by_effect for s in stats)
-
-
-def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
-    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
-    targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
-    effect's parameter by the row search's grid, Brent refinement and profile interval
-    (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
-    effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
-    ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
-    the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
-    :func:`quadcore.identify.fitting.solved_linear`). Those named in ``fixed`` (linear) are
-    subtracted first."""
-    from quadcore.identify import fitting, sufficient
-
-    fixed = fixed or {}
-    (nonlinear,) = [e for e in effects if not e.linear]
-    (p,) = nonlinear.parameters
-    params, std = fitting.fixed_values(effects, fixed)
-    us = [np.asarray(u, dtype=float) for u in targets]
-    w = sufficient.channel_weights(stats, us)
-    for e in effects:
-        if e.name in fixed:
-            us = [u - s.layout.coefficients(e, params[e.name], vehicle) for s, u in zip(stats, us)]
-    lin = [e for e in effects if e.linear and e.name not in fixed]
-    sums = _Sums.of(nonlinear.name, lin, stats, us, w)
-
-    def J(v: float) -> float:
-        return sums.rss(weights(p.lower, p.upper, v))[0]
-
-    best, var = fitting.scalar_minimum(J, sums.n, p.lower, p.upper)
-    params[nonlinear.name] = {p.name: best}
-    std[nonlinear.name] = {p.name: float(np.sqrt(max(var, 0.0)))}
-    if lin:
-        b, yy = sums.normal(weights(p.lower, p.upper, best))
-        return fitting.solved_linear(lin, sums.A, b, yy, sums.n, vehicle, params, std, w, bounded)
-    return fitting.Fit(params, std, w)
-
-
-@dataclass(frozen=True)
-class _Sums:
-    """The combined sums of a variable-projection fit (see :func:`fit_effects`): ``yy(v) = const
-    - 2 ω·S + ω·Q``, ``b(v) = b0 - B ω``, over ``n`` values."""
-
-    const: float
-    S: np.ndarray
-    Q: np.ndarray
-    A: np.ndarray
-    b0: np.ndarray
-    B: np.ndarray
-    n: int
-
-    @classmethod
-    def of(cls, name: str, lin: list[Effect], stats: Sequence[FlightStats], us: list[np.ndarray],
-           w: np.ndarray) -> _Sums:
-        k = sum(len(e.parameters) for e in lin)
-        const, S, Q, A, b0, B, n = 0.0, 0.0, 0.0, np.zeros((k, k)), np.zeros(k), 0.0, 0
-        for s, u in zip(stats, us):
-            cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
-            Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
-            prof = of_flight(s).by_effect[name].total
-            Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
-            const += float(u @ Gw @ u)
-            S = S + Pw @ u
-            Q = Q + prof[:, :, -1] @ w
-            A += Gw[np.ix_(cols, cols)]
-            b0 += Gw[cols] @ u
-            B = B + Pw[:, cols].T
-            n += 6 * s.n
-        return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
-
-    def normal(self, om: np.ndarray) -> tuple[np.ndarray, float]:
-        """``(b, yy)`` of the linear effects' normal equations (their ``A`` is :attr:`A`) on what
-        the profiled effect leaves at weights ``om``."""
-        return self.b0 - self.B @ om, self.const - 2 * float(om @ self.S) + float(om @ self.Q)
-
-    def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
-        """The residual sum of squares at weights ``om`` and the linear coordinates there."""
-        b, yy = self.normal(om)
-        if not len(self.b0):
-            return max(yy, 0.0), np.zeros(0)
-        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
-        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
 
 
 # ---------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from quadcore.identify.fitting import FlightData
+from quadcore.identify.flightdata import FlightData
 from quadcore.identify.settings import STATISTICS
 from quadcore.physics import rotations, signals
 from quadcore.physics.dynamics import GRAVITY_W_MPS2, XYZ

@@ -25,13 +25,22 @@ be right there, and the disagreement says so (a map error, not physics).
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify import fitting
+from quadcore.identify.flightdata import Flight
+from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.physics.vehicle import Vehicle
+
+# a joint fit of effects to targets on flights: fitting.fit_effects (rows) or
+# sufficient.fit_effects (statistics), as whoever holds the flights chose by the effects' kinds
+FitEffects = Callable[..., fitting.Fit]
 
 SPLIT_SIGMA = 5.0
 DISTINCT = 3.0
@@ -84,9 +93,9 @@ def session_of(flight: str, sessions: dict[str, list[str]]) -> str | None:
 
 
 def per_flight_fits(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehicle,
-                    fixed: dict | None = None) -> dict[str, fitting.Fit]:
-    """The effects fitted on each flight alone."""
-    return {f: fitting.fit_effects(effects, [fds[f]], [targets[f]], vehicle, fixed) for f in sorted(fds)}
+                    fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, fitting.Fit]:
+    """The effects fitted on each flight alone (``fit``: on the flights' rows or statistics)."""
+    return {f: fit(effects, [fds[f]], [targets[f]], vehicle, fixed) for f in sorted(fds)}
 
 
 def _group_sd(values: np.ndarray, stds: np.ndarray) -> float:
@@ -133,7 +142,7 @@ def split_by_value(values: dict[str, float], stds: dict[str, float]) -> list[lis
 
 def stuck_voltage_flights(fds: dict) -> list[str]:
     """Flights whose logged battery voltage does not move in flight (a stuck log variable);
-    ``fds``: :class:`quadcore.identify.fitting.FlightData` or :class:`quadcore.identify.sufficient.FlightStats`."""
+    ``fds``: :class:`quadcore.identify.flightdata.FlightData` or :class:`quadcore.identify.sufficient.FlightStats`."""
     return sorted(f for f, fd in fds.items() if fd.vbat_std_V < STUCK_VBAT_V)
 
 
@@ -158,7 +167,7 @@ def _map_note(groups: list[ParameterGroup], fds: dict, vehicle: Vehicle) -> list
 
 def disagreements(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehicle,
                   fixed: dict | None = None, sessions: dict[str, list[str]] | None = None,
-                  log=lambda msg: None) -> list[Disagreement]:
+                  log=lambda msg: None, fit: FitEffects = fitting.fit_effects) -> list[Disagreement]:
     """Parameters of ``effects`` (fitted jointly, per flight and per group) that differ
     between groups of flights: from the data, or between the given ``sessions``."""
     fixed = fixed or {}
@@ -166,7 +175,7 @@ def disagreements(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehi
     if not free or len(fds) < 2:
         return []
     log(f"fitting {', '.join(e.name for e in effects)} on each of {len(fds)} flights")
-    per_flight = per_flight_fits(effects, fds, targets, vehicle, fixed)
+    per_flight = per_flight_fits(effects, fds, targets, vehicle, fixed, fit)
     out = []
     for effect, name in free:
         values = {f: fit.params[effect.name][name] for f, fit in per_flight.items()}
@@ -186,9 +195,9 @@ def disagreements(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehi
             continue
         groups = []
         for k, (members, (vals, sds)) in enumerate(zip(found, arrays)):
-            fit = fitting.fit_effects(effects, [fds[f] for f in members], [targets[f] for f in members], vehicle, fixed)
-            std = max(fit.std[effect.name][name], _group_se(vals, sds))
-            groups.append(ParameterGroup(tuple(sorted(members)), float(fit.params[effect.name][name]), float(std),
+            fit_g = fit(effects, [fds[f] for f in members], [targets[f] for f in members], vehicle, fixed)
+            std = max(fit_g.std[effect.name][name], _group_se(vals, sds))
+            groups.append(ParameterGroup(tuple(sorted(members)), float(fit_g.params[effect.name][name]), float(std),
                                          labels[k] if labels else ""))
         groups.sort(key=lambda g: g.value)
         notes = _map_note(groups, fds, vehicle)
@@ -214,10 +223,10 @@ ROUNDS = 3  # alternations between the per-session and the shared parameters
 
 
 def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: list[str], vehicle: Vehicle,
-                   fixed: dict | None = None) -> dict[str, list[str]]:
+                   fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, list[str]]:
     """Sessions as the data show them: the groups of the per-flight values of the first
     parameter of ``effects`` (named ``group1``, ``group2``, ... by increasing value)."""
-    fits = per_flight_fits(effects, {f: fds[f] for f in flights}, targets, vehicle, fixed)
+    fits = per_flight_fits(effects, {f: fds[f] for f in flights}, targets, vehicle, fixed, fit)
     e, name = effects[0], effects[0].parameters[0].name
     values = {f: fit.params[e.name][name] for f, fit in fits.items()}
     stds = {f: fit.std[e.name][name] for f, fit in fits.items()}
@@ -226,7 +235,8 @@ def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: lis
 
 
 def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
-                    sessions: dict[str, list[str]] | None = None, log=lambda msg: None):
+                    sessions: dict[str, list[str]] | None = None, log=lambda msg: None,
+                    fit: FitEffects = fitting.fit_effects) -> PhysicsModel:
     """Fit ``spec`` (a :class:`quadcore.spec.model.ModelSpec` with ``per_session`` effects) on the
     ``train`` flights: the per-session effects on each session's flights, the others on all,
     alternating ``ROUNDS`` times, every fit within the parameters' physical bounds (a parameter
@@ -234,17 +244,13 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     ``sessions``, else the model file's, else the groups the data show. Returns a
     :class:`quadcore.identify.model.PhysicsModel` whose per-session terms carry the fleet value (for
     flights of no session) and one value per session."""
-    from quadcore import effects as effectlib
-    from quadcore.identify.model import EffectTerm, PhysicsModel
-
     vehicle = spec.vehicle
     every = [effectlib.get(n) for n in spec.effects]
     split = [e for e in every if e.name in spec.per_session]
     shared = [e for e in every if e.name not in spec.per_session]
-    fleet = fitting.fit_effects(every, [fds[f] for f in train], [targets[f] for f in train], vehicle, spec.fixed,
-                                bounded=True)
+    fleet = fit(every, [fds[f] for f in train], [targets[f] for f in train], vehicle, spec.fixed, bounded=True)
     if sessions is None:
-        sessions = spec.sessions_of(sorted(fds)) or found_sessions(split, fds, targets, train, vehicle, spec.fixed)
+        sessions = spec.sessions_of(sorted(fds)) or found_sessions(split, fds, targets, train, vehicle, spec.fixed, fit)
     members = {s: [f for f in fl if f in train] for s, fl in sessions.items()}
     empty = sorted(s for s, fl in members.items() if not fl)
     members = {s: fl for s, fl in members.items() if fl}
@@ -260,15 +266,15 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     session_of = {f: s for s, fl in members.items() for f in fl}
     for _ in range(ROUNDS):
         for s, fl in members.items():
-            by_session[s] = fitting.fit_effects(every, [fds[f] for f in fl], [targets[f] for f in fl], vehicle,
-                                                {**spec.fixed, **shared_params}, bounded=True)
+            by_session[s] = fit(every, [fds[f] for f in fl], [targets[f] for f in fl], vehicle,
+                                {**spec.fixed, **shared_params}, bounded=True)
         if not shared or all(e.name in spec.fixed for e in shared):
             break
         ys = []
         for f in train:
             source = by_session[session_of[f]] if f in session_of else fleet
             ys.append(targets[f] - source.predict(split, fds[f], vehicle))
-        shared_fit = fitting.fit_effects(shared, [fds[f] for f in train], ys, vehicle, spec.fixed, bounded=True)
+        shared_fit = fit(shared, [fds[f] for f in train], ys, vehicle, spec.fixed, bounded=True)
         shared_params, shared_std = shared_fit.params, shared_fit.std
     terms = []
     for e in every:
@@ -285,23 +291,14 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                         dict(spec.session_patterns))
 
 
-def model_prediction(pm, fd: fitting.FlightData, log=lambda msg: None) -> np.ndarray:
-    """(n, 6) the smoothed wrench of a fitted model on one flight, with its session's values
-    (the fleet value, said in ``log``, for a flight of no fitted session); on a flight's
-    :class:`quadcore.identify.sufficient.FlightStats`, the same as a signal vector."""
-    import warnings
-
+def model_prediction(pm: PhysicsModel, fd: Flight, log=lambda msg: None) -> np.ndarray:
+    """The smoothed wrench of a fitted model on one flight, with its session's values and thrust
+    map (the fleet value, said in ``log``, for a flight of no fitted session):
+    :meth:`~quadcore.identify.flightdata.Flight.predict`, (n, 6) on its rows, a signal vector on
+    its statistics."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = pm.for_flight(fd.flight)
     for w in caught:
         log(str(w.message))
-    if not isinstance(fd, fitting.FlightData):  # statistics: the prediction as a signal vector
-        from quadcore.identify import sufficient
-
-        return sufficient.prediction([t.effect for t in model.terms], {t.name: t.params for t in model.terms}, fd,
-                                     model.vehicle)
-    out = np.zeros((fd.state.n, 6))
-    for t in model.terms:
-        out += fitting.prediction(t.effect, t.params, fd, model.vehicle)  # its session's thrust map
-    return out
+    return fd.predict([t.effect for t in model.terms], {t.name: t.params for t in model.terms}, model.vehicle)

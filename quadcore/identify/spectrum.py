@@ -60,7 +60,7 @@ def _spectra(meas: np.ndarray, model: np.ndarray, fs: float):
 def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
     """The residual by frequency band and the coherence of model and measurement (JSON-ready).
 
-    ``flights`` are :class:`quadcore.identify.fitting.FlightData`, ``resid[flight]`` their (n, 6)
+    ``flights`` are :class:`quadcore.identify.flightdata.FlightData`, ``resid[flight]`` their (n, 6)
     residual under the evaluated model (force N, torque N m)."""
     sums = SpectrumSums(float(np.median([sample_rate_hz(fd.state.t_s) for fd in flights])), vehicle)
     for fd in flights:

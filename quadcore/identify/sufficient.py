@@ -13,12 +13,12 @@ map), and ``e`` extra signals: the unit wrench (and sensitivity reference) of ea
 nonlinear effect of the layout, then any added for a held-out flight (a nonlinear effect's
 prediction there). Those effects' fits and predictions come from their per-flight profiles
 (:mod:`quadcore.identify.profiles`), stored beside the Gram matrices.
-Per block ``b`` of :data:`quadcore.identify.evidence.BLOCK_S` seconds (the clusters of the held-out
+Per block ``b`` of :data:`quadcore.identify.flightdata.BLOCK_S` seconds (the clusters of the held-out
 test), per channel, the statistics are the Gram matrix and the sample count
 
     G_bc = Σ_{i∈b} z_ic z_icᵀ,        n_b = |b|,
 
-with the flight's sensor-noise floor (:func:`quadcore.identify.fitting.sensor_noise_floor`) and the
+with the flight's sensor-noise floor (:func:`quadcore.identify.flightdata.sensor_noise_floor`) and the
 Gram matrix of every ``GRAM_STRIDE``-th usable sample (the diagnosis's signature comparison).
 
 **Signals are vectors.** Any per-flight signal that is a combination of the columns is a
@@ -48,40 +48,41 @@ import hashlib
 import importlib.util
 import inspect
 import json
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeAlias, TypeVar
+from typing import Any
 
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.effects import Effect
-from quadcore.identify import profiles
-from quadcore.identify.settings import STATISTICS
+from quadcore.effects import Effect, Parameter
+from quadcore.identify import fitting, profiles, summaries
+from quadcore.identify.binfile import (  # noqa: F401  (the file format, read from here too)
+    StatsError,
+    decode,
+    decode_header,
+    encode,
+    packed,
+    read_array,
+    read_file,
+    read_if_present,
+    require_format,
+    stats_path,
+    unpacked,
+    upper_indices,
+    write_file,
+)
+from quadcore.identify.fitting import Fit
+from quadcore.identify.flightdata import GRAM_STRIDE, SECANT, FlightData, Signals, block_index, flight_data
+from quadcore.identify.summaries import FlightSummary
 from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import Vehicle
 from quadcore.store import store
-from quadcore.store.names import check_component
-
-if TYPE_CHECKING:
-    from typing_extensions import TypeIs  # typing's own from Python 3.13
-
-    from quadcore.identify.fitting import FlightData
-    from quadcore.identify.summaries import FlightSummary
-
-Record = TypeVar("Record")  # what a per-flight record file is read as
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
-# every 4th usable sample for the signature Gram (see quadcore.identify.diagnosis.span._SpanOverlap)
-GRAM_STRIDE = STATISTICS.gram_stride
-
-
-class StatsError(ValueError):
-    """Statistics that cannot serve a request (an effect missing from their layout, a nonlinear
-    effect asked of them, a file that is not a statistics file)."""
 
 
 @dataclass(frozen=True)
@@ -211,15 +212,61 @@ class FlightStats:
     def blocks(self) -> int:
         return len(self.rows)
 
+    # --- the Flight protocol (quadcore.identify.flightdata.Flight): signals are vectors over the columns
 
-# What the fits and held-out tests take: flights' rows, or their statistics (linear effects only).
-Flights: TypeAlias = "Sequence[FlightData] | Sequence[FlightStats]"
+    def predict(self, effects: Sequence[Effect], params: Mapping[str, dict], vehicle: Vehicle) -> np.ndarray:
+        """The signal vector of the linear ``effects``' summed prediction at ``params``."""
+        return prediction(list(effects), dict(params), self, vehicle)
 
+    def sum_of_squares(self, v: np.ndarray) -> np.ndarray:
+        """(6,) per channel: the sum of squares of the signal ``z·v`` over the flight."""
+        return channel_sums(self.total, v, v)
 
-def are_stats(flights: Flights) -> TypeIs[Sequence[FlightStats]]:
-    """Whether ``flights`` are flights' statistics rather than their rows: what the fits and the
-    held-out tests take either of (an empty list counts as rows)."""
-    return bool(flights) and isinstance(flights[0], FlightStats)
+    def unit_signal(self, effect: Effect, param: Parameter, vehicle: Vehicle) -> np.ndarray:
+        """The unit wrench (:func:`quadcore.identify.flightdata.unit_wrench`) as a signal vector: of a
+        linear effect from its coordinates, of a profiled one its stored column."""
+        if effect.linear:
+            return unit_vector(effect, param, self, vehicle, SECANT)
+        return self.layout.unit(self.layout.extra(f"unit:{effect.name}:{param.name}"))
+
+    def reference_ss(self, effect: Effect, vehicle: Vehicle) -> float:
+        """Energy of the effect's prediction at its sensitivity reference over the flight."""
+        ref = {**effect.defaults(), **effect.sensitivity_reference}
+        v = (self.layout.coefficients(effect, ref, vehicle) if effect.linear
+             else self.layout.unit(self.layout.extra(f"ref:{effect.name}")))
+        return float(self.sum_of_squares(v).sum())
+
+    def after_blocks(self, k: int) -> FlightStats:
+        """The statistics without the first ``k`` blocks."""
+        if k <= 0:
+            return self
+        gram = self.gram[k:]
+        return replace(self, total=gram.sum(axis=0), rows=self.rows[k:], blocks_source=lambda: gram)
+
+    def block_channel_sums(self, pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:
+        """Per pair ``(a, b)`` of signals (flight -> vector): (blocks, 6) ``a_fᵀ G_bc b_f`` per block
+        and channel. The Gram matrices are read once for all the pairs: ``G [b, b', ...]`` (one
+        BLAS product with a column per distinct right-hand signal), then the dots with the
+        left-hand ones. Reading ``G`` is what costs (a thousand flights' blocks are ~230 MB), so
+        pairs sharing ``b`` cost one pass (run it under :func:`quadcore.identify.flightdata.one_blas_thread`)."""
+        rights = list({id(b): b for _, b in pairs}.values())
+        column = {id(b): k for k, b in enumerate(rights)}
+        G = np.ascontiguousarray(self.gram)
+        width = G.shape[-1]
+        V = np.stack([b[self.flight] for b in rights], axis=1)
+        GV = (G.reshape(-1, width) @ V).reshape(*G.shape[:-1], len(rights))
+        return [GV[..., column[id(b)]] @ a[self.flight] for a, b in pairs]
+
+    def basis_columns(self, effect: Effect, vehicle: Vehicle) -> list[np.ndarray]:
+        """The unit vectors of a linear effect's coordinates."""
+        return [self.layout.unit(i) for i in self.layout.cols(effect.name)]
+
+    def strided_grams(self, columns: Sequence[np.ndarray], w: np.ndarray,
+                      groups: Mapping[str, slice]) -> dict[str, np.ndarray]:
+        """Per channel group: ``Tᵀ (Σ_c w_c G_c) T`` of the columns ``T`` (signal vectors), ``G`` the
+        strided Gram matrix (every ``GRAM_STRIDE``-th usable sample)."""
+        T = np.stack(columns, axis=1)
+        return {ch: T.T @ np.tensordot(w[sl], self.strided[sl], axes=1) @ T for ch, sl in groups.items()}
 
 
 def from_blocks(flight: str, layout: Layout, key: str, gram: np.ndarray, rows: np.ndarray, strided: np.ndarray,
@@ -238,19 +285,9 @@ def design_rows(fd, vehicle: Vehicle, layout: Layout, extras: dict[str, np.ndarr
     return np.concatenate(parts, axis=2)
 
 
-def block_index(t_s: np.ndarray) -> np.ndarray:
-    """Block of each usable sample (times ``t_s`` of the usable samples), numbered over the
-    blocks that hold samples (:data:`quadcore.identify.evidence.BLOCK_S`)."""
-    from quadcore.identify.evidence import BLOCK_S
-
-    if not len(t_s):
-        return np.zeros(0, dtype=int)
-    return np.unique(((t_s - t_s[0]) // BLOCK_S).astype(int), return_inverse=True)[1].reshape(-1)
-
-
 def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
                  extras: dict[str, np.ndarray] | None = None) -> FlightStats:
-    """The statistics of a :class:`quadcore.identify.fitting.FlightData` (its rows read once),
+    """The statistics of a :class:`quadcore.identify.flightdata.FlightData` (its rows read once),
     with the profiles of the layout's profiled effects (their fixed columns computed here)."""
     extras = {**profiles.fixed_signals(layout.profiled, fd, vehicle), **(extras or {})}
     return _stats_of_rows(fd, vehicle, layout, key, design_rows(fd, vehicle, layout, extras))
@@ -284,47 +321,6 @@ def channel_sums(G: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (np.ascontiguousarray(G).reshape(-1, width) @ v).reshape(G.shape[:-1]) @ u
 
 
-Signals: TypeAlias = "dict[str, np.ndarray]"  # flight -> its signal's (W,) vector
-
-
-def block_channel_sums(stats: Sequence[FlightStats],
-                       pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:
-    """Per pair ``(a, b)``: (blocks of every flight, 6) ``a_fᵀ G_bc b_f`` per block and channel (as
-    :func:`quadcore.identify.evidence.block_channel_sums`). Each flight's Gram matrices are read
-    once for all the pairs: ``G [b, b', ...]`` (one BLAS product with a column per distinct
-    right-hand signal), then the dots with the left-hand ones. Reading ``G`` is what costs (a
-    thousand flights' blocks are ~230 MB), so pairs sharing ``b`` cost one pass."""
-    rights = list({id(b): b for _, b in pairs}.values())
-    column = {id(b): k for k, b in enumerate(rights)}
-    out: list[list[np.ndarray]] = [[] for _ in pairs]
-    with one_blas_thread():  # G [b, ...] with many columns is a matrix product OpenBLAS would thread
-        for s in stats:
-            G = np.ascontiguousarray(s.gram)
-            width = G.shape[-1]
-            V = np.stack([b[s.flight] for b in rights], axis=1)
-            GV = (G.reshape(-1, width) @ V).reshape(*G.shape[:-1], len(rights))
-            for sums, (a, b) in zip(out, pairs):
-                sums.append(GV[..., column[id(b)]] @ a[s.flight])
-    return [np.concatenate(sums) if sums else np.zeros((0, 6)) for sums in out]
-
-
-def one_blas_thread():
-    """One BLAS thread for the per-flight products: the same numbers (each product is one
-    thread's sum either way), and with the two cores shared by other work, OpenBLAS's second
-    thread waiting for a core made a 6,000-sample Gram product ten times slower (0.38 s against
-    0.03 s at load average 5), and the held-out sums of the detection limits (a product with
-    a column per parameter) 6.6 s against 0.4 s at 1,000 flights."""
-    return _blas_controller().limit(limits=1, user_api="blas")
-
-
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """The process's thread pools, found once (finding them costs about 10 ms a time)."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
 def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
     """(6,) per channel: the sum of squares of the signal ``z·v`` over the flight."""
     return channel_sums(s.total, v, v)
@@ -333,8 +329,6 @@ def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
 def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> np.ndarray:
     """:func:`quadcore.identify.fitting.channel_weights` of the targets ``z·v_f``: 1/σ² for the force
     and the torque channels from their mean squares."""
-    from quadcore.identify import fitting
-
     # per flight: stacking the totals (a copy of ~23 MB at 1,000 flights) costs 5x these products
     ss = sum((sum_of_squares(s, v) for s, v in zip(stats, targets)), np.zeros(6))
     return fitting.weights_from_sums(ss, sum(s.n for s in stats))
@@ -378,12 +372,10 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     the targets ``z·v_f`` (normal equations, see the module); those named in ``fixed`` keep
     their values and are subtracted first; ``bounded``: within the parameters' physical bounds
     (:func:`quadcore.identify.fitting.solved_linear`). Returns a :class:`quadcore.identify.fitting.Fit`."""
-    from quadcore.identify import fitting
-
     fixed = fixed or {}
     nonlinear = [e for e in effects if not e.linear]
     if len(nonlinear) == 1 and nonlinear[0].name not in fixed and profiles.covers(nonlinear[0], stats):
-        return profiles.fit_effects(effects, stats, targets, vehicle, fixed, bounded)
+        return profiled_fit(effects, stats, targets, vehicle, fixed, bounded)
     if nonlinear:
         raise StatsError(f"nonlinear effect(s) {', '.join(e.name for e in nonlinear)}: fitted from rows, not "
                          "statistics (but one with a profile in every flight's statistics)")
@@ -400,6 +392,87 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     return fitting.Fit(params, std, w)
 
 
+def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
+    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
+    targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
+    effect's parameter by the row search's grid, Brent refinement and profile interval
+    (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
+    effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
+    ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
+    the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
+    :func:`quadcore.identify.fitting.solved_linear`). Those named in ``fixed`` (linear) are
+    subtracted first."""
+    fixed = fixed or {}
+    (nonlinear,) = [e for e in effects if not e.linear]
+    (p,) = nonlinear.parameters
+    params, std = fitting.fixed_values(effects, fixed)
+    us = [np.asarray(u, dtype=float) for u in targets]
+    w = channel_weights(stats, us)
+    for e in effects:
+        if e.name in fixed:
+            us = [u - s.layout.coefficients(e, params[e.name], vehicle) for s, u in zip(stats, us)]
+    lin = [e for e in effects if e.linear and e.name not in fixed]
+    sums = _Sums.of(nonlinear.name, lin, stats, us, w)
+
+    def J(v: float) -> float:
+        return sums.rss(profiles.weights(p.lower, p.upper, v))[0]
+
+    best, var = fitting.scalar_minimum(J, sums.n, p.lower, p.upper)
+    params[nonlinear.name] = {p.name: best}
+    std[nonlinear.name] = {p.name: float(np.sqrt(max(var, 0.0)))}
+    if lin:
+        b, yy = sums.normal(profiles.weights(p.lower, p.upper, best))
+        return fitting.solved_linear(lin, sums.A, b, yy, sums.n, vehicle, params, std, w, bounded)
+    return fitting.Fit(params, std, w)
+
+
+@dataclass(frozen=True)
+class _Sums:
+    """The combined sums of a variable-projection fit (see :func:`fit_effects`): ``yy(v) = const
+    - 2 ω·S + ω·Q``, ``b(v) = b0 - B ω``, over ``n`` values."""
+
+    const: float
+    S: np.ndarray
+    Q: np.ndarray
+    A: np.ndarray
+    b0: np.ndarray
+    B: np.ndarray
+    n: int
+
+    @classmethod
+    def of(cls, name: str, lin: list[Effect], stats: Sequence[FlightStats], us: list[np.ndarray],
+           w: np.ndarray) -> _Sums:
+        k = sum(len(e.parameters) for e in lin)
+        const, S, Q, A, b0, B, n = 0.0, 0.0, 0.0, np.zeros((k, k)), np.zeros(k), 0.0, 0
+        for s, u in zip(stats, us):
+            cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
+            Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
+            prof = profiles.of_flight(s).by_effect[name].total
+            Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
+            const += float(u @ Gw @ u)
+            S = S + Pw @ u
+            Q = Q + prof[:, :, -1] @ w
+            A += Gw[np.ix_(cols, cols)]
+            b0 += Gw[cols] @ u
+            B = B + Pw[:, cols].T
+            n += 6 * s.n
+        return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
+
+    def normal(self, om: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(b, yy)`` of the linear effects' normal equations (their ``A`` is :attr:`A`) on what
+        the profiled effect leaves at weights ``om``."""
+        return self.b0 - self.B @ om, self.const - 2 * float(om @ self.S) + float(om @ self.Q)
+
+    def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
+        """The residual sum of squares at weights ``om`` and the linear coordinates there."""
+        b, yy = self.normal(om)
+        if not len(self.b0):
+            return max(yy, 0.0), np.zeros(0)
+        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
+        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
+
+
 def prediction(effects: list[Effect], params: dict[str, dict[str, float]], s: FlightStats,
                vehicle: Vehicle) -> np.ndarray:
     """The signal vector of the linear ``effects``' summed prediction at ``params``."""
@@ -407,7 +480,7 @@ def prediction(effects: list[Effect], params: dict[str, dict[str, float]], s: Fl
 
 
 def unit_vector(effect: Effect, param, s: FlightStats, vehicle: Vehicle, secant: float) -> np.ndarray:
-    """:func:`quadcore.identify.evidence.unit_wrench` of a linear effect as a signal vector: the secant
+    """:func:`quadcore.identify.flightdata.unit_wrench` of a linear effect as a signal vector: the secant
     of its prediction over ``secant`` of the parameter's range."""
     step = secant * (param.upper - param.lower)
     params = {**effect.defaults(), **effect.sensitivity_reference}
@@ -438,10 +511,8 @@ def compute(spec, flight: str, decoded, layout: Layout, source: str = "", summar
     ``source``: the SHA-256 of the log the table was decoded from (its provenance); ``summarize``:
     with the flight's :class:`quadcore.identify.summaries.FlightSummary` (what the diagnosis
     describes the evaluated flights from); ``fd``: the table's
-    :func:`quadcore.identify.fitting.flight_data` when the caller has it (its bases are cached there)."""
-    from quadcore.identify import fitting, summaries
-
-    fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    :func:`quadcore.identify.flightdata.flight_data` when the caller has it (its bases are cached there)."""
+    fd = fd if fd is not None else flight_data(flight, decoded, spec.vehicle_for(flight))
     extras = profiles.fixed_signals(layout.profiled, fd, spec.vehicle)
     rows = design_rows(fd, spec.vehicle, layout, extras)
     s = _stats_of_rows(fd, spec.vehicle, layout, stats_key(spec.vehicle, spec.vehicle_for(flight), layout), rows)
@@ -473,11 +544,12 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 
 # The code a flight's statistics come from besides the effects' own classes: the state and the
 # nominal residual (dynamics, residuals, signals), the usable mask, noise floor and voltage
-# (fitting.flight_data), the blocks and strides (settings.STATISTICS), the bases' helpers, this module and
-# the summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
+# (flightdata.flight_data), the blocks and strides (settings.STATISTICS), the bases' helpers, this module and the
+# summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
 CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quadcore.physics.residuals",
-                "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.fitting",
-                "quadcore.identify.evidence",
+                "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.flightdata",
+                "quadcore.identify.binfile",
+                "quadcore.identify.fitting", "quadcore.identify.evidence",
                 "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles",
                 "quadcore.identify.summaries", "quadcore.identify.regimes", "quadcore.identify.spectrum")
 
@@ -520,109 +592,10 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def stats_path(root: Any, flight: str) -> Any:
-    return store.as_root(root) / "stats" / f"flight={check_component(flight, 'flight id')}" / "stats.bin"
-
-
-@functools.lru_cache(maxsize=64)
-def upper_indices(width: int) -> tuple[np.ndarray, np.ndarray]:
-    """The upper triangle's indices of a width × width matrix (cached: every flight asks for the
-    same few; read only)."""
-    return np.triu_indices(width)
-
-
-def packed(G: np.ndarray) -> np.ndarray:
-    """The upper triangles of symmetric (..., W, W) matrices, (..., W (W + 1) / 2)."""
-    return G[(..., *upper_indices(G.shape[-1]))]
-
-
-def _unpacked(P: np.ndarray, width: int) -> np.ndarray:
-    i, j = upper_indices(width)
-    G = np.zeros((*P.shape[:-1], width, width))
-    G[..., i, j] = P
-    G[..., j, i] = P
-    return G
-
-
-MAGIC = b"QCSTATS\n"
-_HEAD = len(MAGIC) + 8  # the magic, then the JSON header's length
-
-
-# The one file format of the per-flight records (stats.bin here, library.bin of
-# :mod:`quadcore.identify.discovery.library_stats`, summary.bin of :mod:`quadcore.identify.summaries`).
-
-def encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each
-    array's dtype, shape and offset), then the arrays' bytes: read back without a parser."""
-    offset, parts, index = 0, [], {}
-    for name, a in arrays.items():
-        a = np.ascontiguousarray(a)
-        index[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
-        parts.append(a.tobytes())
-        offset += a.nbytes
-    text = json.dumps({**header, "arrays": index}).encode()
-    return MAGIC + len(text).to_bytes(8, "little") + text + b"".join(parts)
-
-
-def decode_header(raw: bytes) -> tuple[dict, int]:
-    """The header of an :func:`encode` file and the byte where its arrays start (``raw``: the
-    file, or its first bytes up to the arrays, :func:`read_file`'s ``header_only``)."""
-    if not raw.startswith(MAGIC):
-        raise ValueError("no statistics header")
-    start = _HEAD + int.from_bytes(raw[len(MAGIC): _HEAD], "little")
-    return json.loads(raw[_HEAD: start]), start
-
-
-def read_array(raw: bytes, start: int, name: str, spec: dict) -> np.ndarray:
-    """The array ``name`` of an :func:`encode` file (``spec``: its header entry, ``start``: where
-    the arrays start), a view of ``raw``; a ValueError when the file is cut short of it."""
-    count = int(np.prod(spec["shape"]))
-    end = start + spec["offset"] + count * np.dtype(spec["dtype"]).itemsize
-    if end > len(raw):
-        raise ValueError(f"cut short: array {name!r} ends at byte {end}, the file has {len(raw)}")
-    return np.frombuffer(raw, np.dtype(spec["dtype"]), count, start + spec["offset"]).reshape(spec["shape"])
-
-
-def decode(raw: bytes) -> tuple[dict, Callable[[str], np.ndarray]]:
-    """The header of an :func:`encode` file and ``array(name)``, after checking every array is
-    whole (before any is read lazily)."""
-    header, start = decode_header(raw)
-    for name, spec in header["arrays"].items():
-        read_array(raw, start, name, spec)
-
-    def array(name: str) -> np.ndarray:
-        return read_array(raw, start, name, header["arrays"][name])
-
-    return header, array
-
-
-def require_format(header: dict, fmt: int) -> None:
-    """A ValueError unless the header is of the format ``fmt`` this code reads."""
-    if header.get("format") != fmt:
-        raise ValueError(f"format {header.get('format')}, this code reads {fmt}")
-
-
-def write_file(path: Any, header: dict, arrays: dict[str, np.ndarray]) -> Any:
-    """:func:`encode` written to ``path`` atomically (an object store too)."""
-    data = encode(header, arrays)
-    return store.atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
-
-
-def read_file(path: Any, header_only: bool = False) -> bytes:
-    """An :func:`encode` file's bytes (an object store's too); ``header_only``: up to its arrays."""
-    if not header_only:
-        return path.read_bytes() if store.is_remote(path) else Path(path).read_bytes()
-    with path.open("rb") as fh:
-        head = fh.read(_HEAD)
-        return head + fh.read(int.from_bytes(head[len(MAGIC):], "little"))
-
-
 def save(s: FlightStats, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically; an object store too), its
     summary first (:func:`quadcore.identify.summaries.save`, when it has one). The symmetric
     matrices are stored as their upper triangles."""
-    from quadcore.identify import summaries
-
     summary = s.summary()
     if summary is not None:
         summaries.save(summary, root, s.key, s.source)
@@ -636,8 +609,6 @@ def save(s: FlightStats, root: Any) -> Any:
 def load(root: Any, flight: str) -> FlightStats:
     """A flight's stored statistics (the per-block matrices unpacked when first asked for);
     :class:`StatsError` when the file is not one."""
-    from quadcore.identify import summaries
-
     path = stats_path(root, flight)
     raw = read_file(path)
     try:
@@ -647,9 +618,9 @@ def load(root: Any, flight: str) -> FlightStats:
         layout = Layout(tuple(lay["effects"]), tuple(lay["sizes"]), tuple(lay["extras"]), tuple(lay["profiled"]))
         width = layout.width
         key, source = header["key"], str(header.get("source", ""))
-        return FlightStats(header["flight"], layout, key, _unpacked(array("total"), width), array("rows"),
-                           _unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
-                           float(header["vbat_median_V"]), lambda: _unpacked(array("gram"), width), source,
+        return FlightStats(header["flight"], layout, key, unpacked(array("total"), width), array("rows"),
+                           unpacked(array("strided"), width), array("noise"), float(header["vbat_std_V"]),
+                           float(header["vbat_median_V"]), lambda: unpacked(array("gram"), width), source,
                            profiles.from_arrays(layout, array), lambda: summaries.load(root, flight, key, source))
     except (ValueError, KeyError, TypeError) as exc:
         raise StatsError(f"{path}: not a statistics file ({exc})") from None
@@ -683,17 +654,6 @@ def stored(root: Any, spec) -> Callable[[str], FlightStats | None]:
         return s if s is not None and s.source == decoded_source(root, flight) else None
 
     return current
-
-
-def read_if_present(path: Any, read: Callable[[], Record]) -> Record | None:
-    """``read()`` of the record file at ``path``, or None when it is missing or not one
-    (:class:`StatsError`)."""
-    if not path.exists():
-        return None
-    try:
-        return read()
-    except StatsError:
-        return None
 
 
 def load_current(root: Any, flight: str, key: str) -> FlightStats | None:

@@ -50,13 +50,13 @@ import numpy as np
 import polars as pl
 from scipy import signal
 
-from quadcore.identify import regimes, spectrum, sufficient
+from quadcore.identify import binfile, regimes, spectrum
 from quadcore.identify.regimes import LABELS, REGIMES, RMSE_COLUMNS
 from quadcore.physics import residuals, signals
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
-    from quadcore.identify.fitting import FlightData
+    from quadcore.identify.flightdata import FlightData
 
 FORMAT = 1
 FILE_NAME = "summary.bin"
@@ -82,7 +82,7 @@ class Packing:
 
     def pack(self, G: Sequence[np.ndarray]) -> np.ndarray:
         """``G[c]`` (..., k_c, k_c) per channel -> (..., Σ sizes)."""
-        return np.concatenate([sufficient.packed(g) for g in G], axis=-1)
+        return np.concatenate([binfile.packed(g) for g in G], axis=-1)
 
     def weights(self, a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
         """(Σ sizes, channels) such that ``packed @ W`` is ``a_cᵀ G_c b_c`` per channel (``a[c]``,
@@ -91,7 +91,7 @@ class Packing:
         W = np.zeros((sum(self.sizes()[: len(a)]), len(a)))
         start = 0
         for c, (x, y) in enumerate(zip(a, b)):
-            i, j = sufficient.upper_indices(len(x))
+            i, j = binfile.upper_indices(len(x))
             W[start: start + len(i), c] = np.where(i == j, x[i] * y[j], x[i] * y[j] + x[j] * y[i])
             start += len(i)
         return W
@@ -187,7 +187,7 @@ class FlightSummary:
     def residual(self, v: np.ndarray) -> ResidualSums:
         """The sums of the residual ``r = z·v`` (``v`` over the flight's columns, :meth:`describes`)."""
         if not self.describes(v):
-            raise sufficient.StatsError(f"{self.flight}: a signal on columns the summary does not hold")
+            raise binfile.StatsError(f"{self.flight}: a signal on columns the summary does not hold")
         P, S = self.packing, self.spectral
         vs = [v[c] for c in P.cols]
         Wv = P.weights(vs, vs)
@@ -251,7 +251,7 @@ class ResidualSums:
 
 
 def summarize(fd: FlightData, vehicle: Vehicle, Z: np.ndarray, top_bin: int | None = None) -> FlightSummary:
-    """A flight's summary from its rows: ``fd`` a :class:`quadcore.identify.fitting.FlightData`,
+    """A flight's summary from its rows: ``fd`` a :class:`quadcore.identify.flightdata.FlightData`,
     ``Z`` (n, 6, W) its columns on every sample, ``vehicle`` the model's (thrust-to-weight, the
     measured signal). ``top_bin``: the last spectral bin kept one by one (default: from
     ``MARGIN`` at the flight's rate)."""
@@ -385,7 +385,7 @@ def tables(sums: list[ResidualSums], redo: Callable[[str], ResidualSums], vehicl
 # ---------------------------------------------------------------------------------------
 
 def path(root: Any, flight: str) -> Any:
-    return sufficient.stats_path(root, flight).parent / FILE_NAME
+    return binfile.stats_path(root, flight).parent / FILE_NAME
 
 
 def save(summary: FlightSummary, root: Any, key: str, source: str) -> Any:
@@ -394,7 +394,7 @@ def save(summary: FlightSummary, root: Any, key: str, source: str) -> Any:
     header = {"flight": summary.flight, "key": key, "source": source, "format": FORMAT, "fs_hz": summary.fs_hz,
               "n": summary.n, "width": summary.width, "cols": [c.tolist() for c in summary.packing.cols],
               "spectrum_rows": summary.spectrum_rows}
-    return sufficient.write_file(path(root, summary.flight), header, summary.arrays())
+    return binfile.write_file(path(root, summary.flight), header, summary.arrays())
 
 
 def load(root: Any, flight: str, key: str, source: str) -> FlightSummary | None:
@@ -403,9 +403,9 @@ def load(root: Any, flight: str, key: str, source: str) -> FlightSummary | None:
     p = path(root, flight)
     if not p.exists():
         return None
-    raw = sufficient.read_file(p)
+    raw = binfile.read_file(p)
     try:
-        header, array = sufficient.decode(raw)
+        header, array = binfile.decode(raw)
         if (header.get("format"), header.get("key"), header.get("source")) != (FORMAT, key, source):
             return None
         packing = Packing(tuple(np.asarray(c, dtype=int) for c in header["cols"]))

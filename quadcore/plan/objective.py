@@ -11,7 +11,7 @@ cannot reproduce, ``d = y - η_B``, per 1 s block ``b`` gives the expected score
 diagnosis's comparison of the two (:func:`quadcore.identify.evidence.compare`: ``2 (a - b)·(r -
 (a + b)/2)`` summed per block, t-tested over the blocks): mean ``μ_b = ½ Σ_{i∈b} w_c d²``, noise
 variance ``2 W μ_b`` (``W`` samples per independent one,
-:data:`quadcore.identify.fitting.SAMPLES_PER_INDEPENDENT`), and its expected t is
+:data:`quadcore.identify.flightdata.SAMPLES_PER_INDEPENDENT`), and its expected t is
 ``Σ μ_b / sqrt(n/(n-1) Σ (μ_b - μ̄)² + 2 W Σ μ_b)`` (:func:`t_statistic`): the blocks' spread
 counts, so a difference confined to a few blocks separates less than its energy suggests. The
 same with B true; the design must work whichever is true: its separation is the smaller.
@@ -45,11 +45,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quadcore.identify import evidence, fitting
+from quadcore.identify import evidence, fitting, flightdata
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan.signatures import Explanation, predict, unit_wrench
 
-W = fitting.SAMPLES_PER_INDEPENDENT
+W = flightdata.SAMPLES_PER_INDEPENDENT
 SIGMA_GOAL = 3.0  # beyond the comparison's two-sided critical value (~2.6 at ALPHA = 0.01)
 GAP_GOAL = 2 * evidence.TIE_MARGIN
 GRID_POINTS = 25  # values of a one-parameter nonlinear rival tried when it is refitted
@@ -69,7 +69,7 @@ def _grid(expl: Explanation) -> np.ndarray:
 
 
 def blocks(fd: fitting.FlightData) -> np.ndarray:
-    """Block index (blocks of :data:`quadcore.identify.evidence.BLOCK_S`) of each usable sample."""
+    """Block index (blocks of :data:`quadcore.identify.flightdata.BLOCK_S`) of each usable sample."""
     t = fd.state.t_s[fd.mask]
     return ((t - t[0]) // evidence.BLOCK_S).astype(int) if len(t) else np.zeros(0, dtype=int)
 

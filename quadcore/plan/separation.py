@@ -81,7 +81,7 @@ def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, 
             fit = fitting.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)
             for f in held:
                 out[f] = fit.predict([e], fds[f], vehicle)
-    flights = [evidence.after_blocks(fds[f], skip) for f in ids]
+    flights = [fds[f].after_blocks(skip) for f in ids]
     before = sum((resid[fd.flight][fd.mask] ** 2).sum(axis=0) for fd in flights)
     floor = sum((fd.noise ** 2 * fd.n for fd in flights), np.zeros(6))
     quiet = evidence.at_noise_level(before, floor)

@@ -3,7 +3,7 @@
 An explanation is an effect of the library with the parameters the diagnosis fitted on the
 flights already logged (:class:`Explanation`). Along a planned trajectory its wrench is
 ``effect.wrench`` evaluated on the flat state (:mod:`quadcore.plan.flatness`) and passed
-through the residual's filters (:func:`quadcore.identify.fitting.prediction`: force through
+through the residual's filters (:func:`quadcore.identify.flightdata.prediction`: force through
 the smoother, torque through the gyro derivative's filter), exactly as it would appear in the
 residual of the flight once flown and logged.
 """

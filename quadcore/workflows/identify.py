@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.commands import quadcore_command
-from quadcore.identify import diagnosis, fitting, history, model, sufficient
+from quadcore.identify import diagnosis, history, model, model_fit, sufficient
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.report import diagnosis as diagnosis_report
 from quadcore.store import store
@@ -42,7 +42,7 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, st
     train = [f for f in fleet.tables if f not in held]
     log(f"fitting {spec.effects or 'no effects'} on {len(train)} flights"
         + (f" (held out: {', '.join(held)})" if held else " (every flight: nothing held out)"))
-    fitted = fitting.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log, stats)
+    fitted = model_fit.fit_model(spec, fleet.tables, train, sessions_of(spec, fleet.ids), log, stats)
     return model.FittedModel.of(fitted, spec, train, held)
 
 

@@ -6,8 +6,8 @@ cross-fit of the model and of every candidate on each fold's training flights
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -15,7 +15,7 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
-from quadcore.identify.fitting import FlightData
+from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
 from quadcore.spec.model import ModelSpec
@@ -28,17 +28,9 @@ def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
     return functools.reduce(np.add, parts)
 
 
-def _ss(resid: np.ndarray, flight) -> np.ndarray:
-    """Sum of squares per channel (6,) on usable samples (of a signal vector: from statistics)."""
-    if resid.ndim == 1:
-        return sufficient.sum_of_squares(flight, resid)
-    return (resid[flight.mask] ** 2).sum(axis=0)
-
-
-def _weights(flights: list, signals: list[np.ndarray]) -> np.ndarray:
-    if signals and signals[0].ndim == 1:
-        return sufficient.channel_weights(flights, signals)
-    return fitting.channel_weights([y[fd.mask] for fd, y in zip(flights, signals)])
+def _ss(resid: np.ndarray, flight: Flight) -> np.ndarray:
+    """Sum of squares per channel (6,) on usable samples (:meth:`Flight.sum_of_squares`)."""
+    return flight.sum_of_squares(resid)
 
 
 class _Flights:
@@ -47,7 +39,7 @@ class _Flights:
     A model of linear effects is scored from the flights' sufficient statistics
     (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
     every residual and linear prediction a signal vector); a model with a nonlinear effect
-    from rows (``flight(f)`` a :class:`~quadcore.identify.fitting.FlightData`, signals (n, 6) arrays).
+    from rows (``flight(f)`` a :class:`~quadcore.identify.flightdata.FlightData`, signals (n, 6) arrays).
     Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): the evaluated
     flights' tables and spectra, and candidates with several nonlinear parameters (a
     one-parameter nonlinear candidate comes from the flights' profiles,
@@ -59,6 +51,11 @@ class _Flights:
         self._rates: dict[str, float] = {}  # each flight's sample rate, kept when its rows go
         self.linear = all(effectlib.get(n).linear for n in spec.effects)
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
+        # the fits and weights of the form the flights are held in, chosen here by the model's
+        # effects' kinds (never by the type of what a function is given)
+        self.fit_effects: sessionlib.FitEffects = sufficient.fit_effects if self.linear else fitting.fit_effects
+        self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = (
+            sufficient.channel_weights if self.linear else fitting.weights_of)
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
@@ -94,7 +91,7 @@ class _Flights:
 
     def signal_rows(self, f: str, signal: np.ndarray) -> np.ndarray:
         """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are)."""
-        if self.stats is None or signal.ndim == 2:
+        if self.stats is None:
             return signal
         layout = self.stats[f].layout  # the evaluated flights' extra columns are no part of a residual
         if np.any(signal[layout.width:]):
@@ -133,7 +130,7 @@ class _Problem:
         if self.by_rows[c.name]:
             return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
                                        [self._row_resid(f, resid) for f in flights], self.vehicle, bounded=True)
-        return fitting.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle,
+        return self.fl.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle,
                                    bounded=True)
 
     def _row_resid(self, f: str, resid: dict) -> np.ndarray:
@@ -186,10 +183,10 @@ def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, l
     fds, targets = p.fds, p.targets
     tr = [fds[f] for f in train]
     if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
-        pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log)
+        pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log, p.fl.fit_effects)
         return pm, {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
-    fit_m = fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
-                                bounded=True)  # the model within its bounds, as fit_model
+    fit_m = p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
+                             bounded=True)  # the model within its bounds, as fit_model
     return fit_m, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in {*train, *test}}
 
 
@@ -244,11 +241,11 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
     tr = [fds[f] for f in train_all]
     if spec.per_session:
         model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
-                                                                                 sessions, log)
+                                                                                 sessions, log, p.fl.fit_effects)
         return model, {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
     fit_m = (fold_fit if fold_fit is not None
-             else fitting.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
-                                      bounded=True))
+             else p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
+                                   bounded=True))
     model = PhysicsModel(p.vehicle, fitting.model_terms(p.model_effects, fit_m, spec.fixed),
                          spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
     return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
@@ -297,7 +294,7 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldO
     # holds no evidence FOR an effect (only against one that would add error there).
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
-    w = _weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
+    w = p.fl.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
     return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
 
 
@@ -340,10 +337,10 @@ def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> suffi
     return s
 
 
-def _on_common_samples(flights: list, effects) -> list:
+def _on_common_samples(flights: list[Flight], effects) -> list[Flight]:
     """The evaluated flights without the first blocks (of ``BLOCK_S``, numbered as the held-out
     test numbers them) within the longest :meth:`~quadcore.effects.Effect.memory_s` of
-    ``effects``: an effect with memory predicts nothing there (:func:`quadcore.identify.fitting.prediction`),
+    ``effects``: an effect with memory predicts nothing there (:func:`quadcore.identify.flightdata.prediction`),
     so a score over the whole flight would count that start against it and not against a
     memoryless candidate, or a shorter memory. Every candidate, the model's residual and the
     noise floor are scored on the same samples; whole blocks, so that the statistics (per-block
@@ -352,13 +349,5 @@ def _on_common_samples(flights: list, effects) -> list:
     k = evidence.memory_blocks(effects)
     if k <= 0:
         return flights
-    out = [_after_blocks(fd, k) for fd in flights]
+    out = [fd.after_blocks(k) for fd in flights]
     return out if sum(fd.n for fd in out) > 0 else flights
-
-
-def _after_blocks(fd, k: int):
-    """A flight's rows (:class:`FlightData`) or statistics without its first ``k`` blocks."""
-    if isinstance(fd, FlightData):
-        return evidence.after_blocks(fd, k)
-    gram = fd.gram[k:]
-    return replace(fd, total=gram.sum(axis=0), rows=fd.rows[k:], blocks_source=lambda: gram)

@@ -201,7 +201,7 @@ def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sess
     best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
     if all(e.linear for e in p.model_effects) and (not best or best[0].linear or p.from_profile(best[0])):
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
-                                        log)
+                                        log, p.fl.fit_effects)
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
                                     {f: p.fl.signal_rows(f, p.targets[f]) for f in p.ids}, p.vehicle, p.spec.fixed,
                                     sessions, log)

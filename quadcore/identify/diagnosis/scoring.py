@@ -278,7 +278,8 @@ def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOu
     rank_reasons(rows, held.at_noise, settings)
     left = ({f: held.resid[f] - held.cand_pred[rows[0].effect][f] for f in held.ids}
             if rows and rows[0].found else held.resid)
-    sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands), settings)
+    sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands), settings,
+                                   all_at_once=p.fl.stats is not None)
     for r in rows:
         r.sensitivity = sensitivity[r.effect]
     return sensitivity

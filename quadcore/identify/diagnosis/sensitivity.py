@@ -3,26 +3,28 @@ the evaluated flights (:func:`detection_limits`) and what those values mean (:fu
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-from quadcore.identify import evidence, fitting, sufficient
-from quadcore.identify.fitting import FlightData
+from quadcore.identify import evidence
+from quadcore.identify.flightdata import Flight
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 
-def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.ndarray], noise_ss: np.ndarray,
-                     vehicle, n_candidates: int, settings: DiagnosisSettings = DEFAULT
+def detection_limits(cands, flights: Sequence[Flight], resid: dict[str, np.ndarray], noise_ss: np.ndarray,
+                     vehicle, n_candidates: int, settings: DiagnosisSettings = DEFAULT, all_at_once: bool = False
                      ) -> dict[str, dict[str, float | None]]:
     """Per candidate and parameter: the smallest |deviation from 'no effect'| these flights
     would detect (:func:`quadcore.identify.evidence.detection_limits`); None when no value within the
     parameter's range would be. A parameter stated at a reference point of the others (a
     wind, at a rotor drag) must also lift the score by ``2 tie_margin`` above the simpler
-    effect it then resembles (a wind above rotor drag), or the two are a tie."""
+    effect it then resembles (a wind above rotor drag), or the two are a tie. ``all_at_once``:
+    every parameter's sums in one pass over the flights (statistics: one read of their Gram
+    matrices), else one unit wrench at a time (rows: one signal per flight in memory)."""
     jobs = [(c, p) for c in cands for p in c.parameters]
-    base_ss = {c.name: sum(_reference_ss(c, fd, vehicle) for fd in flights) for c in cands if c.sensitivity_reference}
-    # statistics: every parameter's sums from one read of the Gram matrices; rows: one unit
-    # wrench (a signal per flight) in memory at a time
-    batch = max(len(jobs), 1) if sufficient.are_stats(flights) else 1
+    base_ss = {c.name: sum(fd.reference_ss(c, vehicle) for fd in flights) for c in cands if c.sensitivity_reference}
+    batch = max(len(jobs), 1) if all_at_once else 1
     out: dict[str, dict[str, float | None]] = {c.name: {} for c in cands}
     for start in range(0, len(jobs), batch):
         part = jobs[start: start + batch]
@@ -35,32 +37,14 @@ def detection_limits(cands, flights: sufficient.Flights, resid: dict[str, np.nda
     return out
 
 
-def _limit_ask(c, p, flights: sufficient.Flights, vehicle, base_ss: float, tie_margin: float) -> evidence.LimitAsk:
+def _limit_ask(c, p, flights: Sequence[Flight], vehicle, base_ss: float, tie_margin: float) -> evidence.LimitAsk:
     """A parameter's detection limit to find: stated at a reference point of the others (a wind,
     at a rotor drag), it must also lift the score by ``2 tie_margin`` above the effect it then
     resembles."""
-    unit = {fd.flight: _unit(c, p, fd, vehicle) for fd in flights}
+    unit = {fd.flight: fd.unit_signal(c, p, vehicle) for fd in flights}
     if c.sensitivity_reference and p.name not in c.sensitivity_reference:
         return evidence.LimitAsk(unit, 2 * tie_margin, base_ss)
     return evidence.LimitAsk(unit)
-
-
-def _unit(c, p, fd, vehicle) -> np.ndarray:
-    """:func:`quadcore.identify.evidence.unit_wrench` on rows, or as a signal vector on statistics."""
-    if isinstance(fd, FlightData):
-        return evidence.unit_wrench(c, p, fd, vehicle)
-    if c.linear:
-        return sufficient.unit_vector(c, p, fd, vehicle, evidence.SECANT)
-    return fd.layout.unit(fd.layout.extra(f"unit:{c.name}:{p.name}"))
-
-
-def _reference_ss(c, fd, vehicle) -> float:
-    """Energy of a candidate's prediction at its sensitivity reference on a flight's usable samples."""
-    ref = {**c.defaults(), **c.sensitivity_reference}
-    if isinstance(fd, FlightData):
-        return float((fitting.prediction(c, ref, fd, vehicle)[fd.mask] ** 2).sum())
-    v = (fd.layout.coefficients(c, ref, vehicle) if c.linear else fd.layout.unit(fd.layout.extra(f"ref:{c.name}")))
-    return float(sufficient.sum_of_squares(fd, v).sum())
 
 
 def sensitivity_basis(cands, settings: DiagnosisSettings = DEFAULT) -> dict:

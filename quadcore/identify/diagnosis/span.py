@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from quadcore.identify import sufficient
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
 )
-from quadcore.identify.fitting import FlightData
 
 
 class _SpanOverlap:
@@ -35,32 +33,13 @@ class _SpanOverlap:
             n_basis = len(c.parameters) if c.linear else 1
             self.cols[c.name] = list(range(k, k + n_basis))
             k += n_basis
-        sw = np.sqrt(w)
         self.gram = {"force": np.zeros((k, k)), "torque": np.zeros((k, k))}
-        for fd in flights:
-            if not isinstance(fd, FlightData):  # statistics: the same Gram from the strided one
-                self._add_stats(fd, cands, cand_pred, resid, w, vehicle)
-                continue
-            # every GRAM_STRIDE-th usable sample: the signals are smoothed over a 31-sample
-            # window, so the thinned sums give the same energy ratios at a fraction of the cost
-            m = np.flatnonzero(fd.mask)[::sufficient.GRAM_STRIDE]
-            blocks = [resid[fd.flight][m][:, :, None]] + [cand_pred[c.name][fd.flight][m][:, :, None] for c in cands]
+        for fd in flights:  # rows or statistics alike (Flight.strided_grams)
+            cols = [resid[fd.flight]] + [cand_pred[c.name][fd.flight] for c in cands]
             for c in cands:
-                blocks.append(fd.basis(c, vehicle)[m] if c.linear else cand_pred[c.name][fd.flight][m][:, :, None])
-            Z = np.concatenate(blocks, axis=2) * sw[None, :, None]  # (m, 6, k)
-            for ch, sl in TARGET_CHANNELS.items():
-                self.gram[ch] += np.einsum("nci,ncj->ij", Z[:, sl, :], Z[:, sl, :])
-
-    def _add_stats(self, s, cands, cand_pred, resid, w, vehicle) -> None:
-        """One flight's part from its statistics: the columns above as signal vectors ``T``,
-        ``Tᵀ (Σ_c w_c G_c) T`` per channel group, ``G`` the strided Gram matrix."""
-        cols = [resid[s.flight]] + [cand_pred[c.name][s.flight] for c in cands]
-        for c in cands:
-            cols += ([s.layout.unit(i) for i in s.layout.cols(c.name)] if c.linear
-                     else [cand_pred[c.name][s.flight]])
-        T = np.stack(cols, axis=1)
-        for ch, sl in TARGET_CHANNELS.items():
-            self.gram[ch] += T.T @ np.tensordot(w[sl], s.strided[sl], axes=1) @ T
+                cols += fd.basis_columns(c, vehicle) if c.linear else [cand_pred[c.name][fd.flight]]
+            for ch, G in fd.strided_grams(cols, w, TARGET_CHANNELS).items():
+                self.gram[ch] += G
 
     def _G(self, channel: str | None) -> np.ndarray:
         return self.gram[channel] if channel else self.gram["force"] + self.gram["torque"]

@@ -17,6 +17,7 @@ from quadcore.identify import fitting, sessions as sessionlib, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
+from quadcore.identify.model_fit import fit_model
 from quadcore.physics.vehicle import Vehicle
 from quadcore.spec.model import ModelSpec
 
@@ -106,7 +107,7 @@ def from_statistics(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: M
         full.add(f, H)
         samples[f], noise_of[f], y0_squares[f] = lib.samples, lib.noise, lib.y0_squares
     if spec.effects:
-        model = fitting.fit_model(spec, decoded, train, sessions, log, stats)
+        model = fit_model(spec, decoded, train, sessions, log, stats)
         T = _residual_transform(cols, model, spec.vehicle)
         sums.transformed(T)
         full.transformed(T)

@@ -3,7 +3,7 @@ flight's matrices (:func:`flight_grams`), and their sums over the flights of the
 of each cross-validation fold and of the holdout (:class:`GramSums`).
 
 **Every term goes through the residual's own filter** (force: the smoother; torque: the
-gyro derivative's filter, :func:`quadcore.identify.fitting.smoothed_wrench`), so a coefficient found
+gyro derivative's filter, :func:`quadcore.identify.flightdata.smoothed_wrench`), so a coefficient found
 here is exactly the parameter of a linear effect with that term as its basis
 (:func:`quadcore.identify.discovery.writer.write_effect`). On a flight's samples the design row is
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects.base import Effect
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import fitting, flightdata
 from quadcore.identify.discovery.terms import Term, evaluate
 from quadcore.physics import dynamics, signals
 from quadcore.physics.dynamics import FlightState
@@ -84,7 +84,7 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_
     T_N, tau_rotor = dynamics.wrench_from_thrusts(vehicle, s.f_rotor_N)
     f_model = np.zeros((s.n, 3))
     f_model[:, 2] = T_N
-    model = fitting.smoothed_wrench(f_model, tau_rotor, s)
+    model = flightdata.smoothed_wrench(f_model, tau_rotor, s)
     blocks = [F, Tq, resid, model]
     for e in fx_effects:
         cached = fd.basis_if_cached(e) if e.linear else None  # the same columns: smoothed_wrench of e.basis
@@ -92,7 +92,7 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_
             blocks += [cached[:, axis, :] for axis in range(6)]
             continue
         try:
-            basis = [fitting.smoothed_wrench(f, t, s) for f, t in _effect_basis(e, s, vehicle)]
+            basis = [flightdata.smoothed_wrench(f, t, s) for f, t in _effect_basis(e, s, vehicle)]
         # a user's effect failing here: not matched
         except (ValueError, TypeError, KeyError, IndexError, ArithmeticError):
             basis = [np.zeros((s.n, 6)) for _ in e.parameters]
@@ -102,7 +102,7 @@ def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_
 
 def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
     Z = np.concatenate([b[rows] for b in blocks], axis=1)
-    with sufficient.one_blas_thread():
+    with flightdata.one_blas_thread():
         return Z.T @ Z
 
 
@@ -124,7 +124,7 @@ def flight_grams(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_ef
     H = np.zeros((cols.n_total, cols.n_total))
     for group in channel_groups(cols.labels()):
         Zg = Z[:, group]
-        with sufficient.one_blas_thread():
+        with flightdata.one_blas_thread():
             H[np.ix_(group, group)] = Zg.T @ Zg
     return _gram(blocks, rows[::stride]), H
 

@@ -121,7 +121,7 @@ def version(spec, flight: str) -> str:
 
 def compute(spec, flight: str, decoded, source: str = "", fd: fitting.FlightData | None = None) -> FlightLibrary:
     """A flight's statistics from its decoded table (its rows read once); ``fd``: the table's
-    :func:`quadcore.identify.fitting.flight_data` when the caller has it (the effects' bases
+    :func:`quadcore.identify.flightdata.flight_data` when the caller has it (the effects' bases
     cached there are not computed again)."""
     fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
     vars_ = variables(fd.state, spec.vehicle)

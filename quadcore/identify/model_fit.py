@@ -1,0 +1,58 @@
+"""The model a spec names, fitted (:func:`fit_model`): from the flights' statistics where its
+effects' kinds allow (linear ones, and one effect with a single nonlinear parameter beside them,
+from its profiles), from their rows otherwise; per session where the spec asks. Above the fits
+on rows (:mod:`quadcore.identify.fitting`), on statistics (:mod:`quadcore.identify.sufficient`)
+and per session (:mod:`quadcore.identify.sessions`): the one place that chooses between them, by
+the effects' kinds."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+from quadcore import effects as effectlib
+from quadcore.effects import Effect
+from quadcore.identify import fitting, profiles, sessions as sessionlib, sufficient
+from quadcore.identify.flightdata import flight_data, targets_of
+from quadcore.identify.model import PhysicsModel
+from quadcore.spec.model import ModelSpec
+
+
+def from_statistics(spec: ModelSpec, effects: list[Effect]) -> bool:
+    """Whether :func:`fit_model` fits ``effects`` from the flights' statistics: linear effects, and
+    one profiled nonlinear effect (not fixed) beside them, unless fitted per session."""
+    nonlinear = [e for e in effects if not e.linear]
+    return not nonlinear or (len(nonlinear) == 1 and profiles.profiled(nonlinear[0]) and not spec.per_session
+                             and nonlinear[0].name not in spec.fixed)
+
+
+def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None,
+              log: Callable[[str], None] | None = None, stats=None) -> PhysicsModel:
+    """Fit the effects a :class:`quadcore.spec.model.ModelSpec` names on the ``train`` flights (its
+    ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`), within
+    their parameters' physical bounds; a parameter held at a bound says so in its term
+    (:func:`quadcore.identify.fitting.held_bounds`: its free value, and whether that is within
+    noise of the bound).
+
+    A model of linear effects, and one effect with a single nonlinear parameter (not fixed) beside
+    them, is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`, the
+    nonlinear one from its profiles: :func:`quadcore.identify.sufficient.profiled_fit`): ``stats(flight)``
+    gives a flight's stored ones (None: computed from its decoded table); any other model (per-session
+    effects beside a nonlinear one included) reads every training flight's rows."""
+    effect_list = [effectlib.get(n) for n in spec.effects]
+    maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
+            else ({}, {}, {}))
+    if not effect_list:
+        return PhysicsModel(spec.vehicle, [], *maps)
+    if from_statistics(spec, effect_list):
+        by_id: dict = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
+        targets = {f: s.layout.target() for f, s in by_id.items()}
+        fit: sessionlib.FitEffects = sufficient.fit_effects
+    else:
+        by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
+        targets = dict(zip(train, targets_of([by_id[f] for f in train])))
+        fit = fitting.fit_effects
+    if spec.per_session:
+        return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None), fit)
+    fitted = fit(effect_list, [by_id[f] for f in train], [targets[f] for f in train], spec.vehicle, spec.fixed,
+                 bounded=True)
+    return PhysicsModel(spec.vehicle, fitting.model_terms(effect_list, fitted, spec.fixed), *maps)
