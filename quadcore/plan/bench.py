@@ -9,8 +9,10 @@ plan that merely favours one side fails half the seeds):
   timescale (one speed, ~0.6 m/s): at one speed ``k T v`` and ``c v²`` are the same force.
 * ``mass``: thrust scale against added mass, on three hover flights: the rotors' torques are
   trims below the gyro noise, and the force of a weak thrust map is a payload's.
-* ``lag``: motor lag against thrust delay, on three hover flights: the controller's small thrust
-  corrections are too slow to tell a first-order lag from a pure delay.
+* ``lag``: motor lag against thrust delay, on three hover flights: on the torque channels the
+  closed loop biased both fits and ranked the delay first; fitted and compared at the angular-rate
+  level (:mod:`quadcore.identify.rates`) the hover flights decide it already, and the planned
+  flight must keep it decided.
 
 Used by ``benchmarks/bench_plan.py`` (all seeds) and ``tests/test_plan.py`` (a few).
 """
