@@ -117,10 +117,16 @@ class Figure:
     ok: bool
 
 
+def own_environment() -> dict[str, str]:
+    """This process's environment without settings of the project, Dagster or AWS: each way
+    gets only its own."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
+
+
 def measure_cluster(workers: int, raw: Path, base: Path) -> Figure | None:
     home = base / f"cluster{workers}"
     shutil.rmtree(home, ignore_errors=True)
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
+    env = own_environment()
     env.update(QUADCORE_CLUSTER_DIR=str(home), QUADCORE_AUTOMATION="off", QUADCORE_LEARN_ROWS=SIM_LEARN_ROWS)
     t0, c0 = time.perf_counter(), cpu_now()
     up = cli(env, "up", "--workers", str(workers), "--raw", str(raw))
@@ -150,7 +156,7 @@ def measure_local(way: str, extra: dict[str, str], raw: Path, base: Path) -> Fig
     """The main job on this machine without the cluster (``python -m pipeline``, no service)."""
     root = base / "local"
     shutil.rmtree(root, ignore_errors=True)
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("QUADCORE_", "DAGSTER_", "AWS_"))}
+    env = own_environment()
     before = load()
     run = run_main_job(root, raw, env={**env, "QUADCORE_LEARN_ROWS": SIM_LEARN_ROWS, **extra})
     shutil.rmtree(root, ignore_errors=True)
