@@ -288,7 +288,10 @@ def start_store(c: Cluster, s: dict[str, str], env: dict[str, str]) -> None:
     """moto's S3 server on 127.0.0.1 and the bucket the data root lives in."""
     port = int(s["QUADCORE_CLUSTER_S3_PORT"])
     spawn(c, "s3", [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], env)
-    _wait(lambda: _port_open(port), "the S3 server", c.logs / "s3.log")
+    # Up once it answers a request (the bucket listing), not once its port is open: under load its
+    # first request, sent as the port opened, was closed unanswered and failed `up` (26 Nov).
+    _wait(lambda: _http_ok(f"{s['AWS_ENDPOINT_URL']}/"), "the S3 server", c.logs / "s3.log",
+          pidfile=c.pids / "s3.pid")
     import boto3  # type: ignore[import-untyped]  # moto's dependency; only the cluster needs it
 
     client = boto3.client("s3", endpoint_url=s["AWS_ENDPOINT_URL"], aws_access_key_id=s["AWS_ACCESS_KEY_ID"],
