@@ -48,6 +48,7 @@ class LearnedModel:
         self.x_scaler = x_scaler
         self.y_scaler = y_scaler
         self.impl = impl  # xgboost.Booster or torch.nn.Module
+        self._backend = backend(spec.kind)  # its kind's module (loaded with impl already), held for predict_one
         self.manifest = manifest or {}
         self._forest: CompiledForest | None = None
 
@@ -67,7 +68,7 @@ class LearnedModel:
     def predict_matrix(self, X: np.ndarray) -> np.ndarray:
         """Raw feature matrix (n, k) -> (n, 6) residual [f_x, f_y, f_z, tau_x, tau_y, tau_z], SI."""
         Z = self.x_scaler.transform(X)
-        out = backend(self.kind).predict(self.impl, Z)
+        out = self._backend.predict(self.impl, Z)
         return self.y_scaler.inverse(np.asarray(out).reshape(len(Z), -1))
 
     def predict_one(self, x: np.ndarray) -> np.ndarray:
@@ -79,7 +80,7 @@ class LearnedModel:
                 self._forest = CompiledForest(self.impl)
             y = self._forest.predict_one(z)
         else:
-            y = backend(self.kind).predict(self.impl, z[None, :])[0]
+            y = self._backend.predict(self.impl, z[None, :])[0]
         return y * self.y_scaler.std + self.y_scaler.mean
 
     def _feature_source(self, table: pl.DataFrame, flight: str | None = None) -> pl.DataFrame:
@@ -149,7 +150,7 @@ class LearnedModel:
         """The artefacts into the local folder ``folder``, the manifest last."""
         if predictions is not None:
             store.write_parquet(predictions, folder / "predictions.parquet", {"run": run})
-        backend(self.kind).save(self.impl, folder)
+        self._backend.save(self.impl, folder)
         store.write_json({"x": self.x_scaler.to_dict(), "y": self.y_scaler.to_dict()}, folder / "scaler.json")
         store.write_json(self.feature_set.to_dict(), folder / "features.json")
         store.write_json({"format": FORMAT, **self.manifest, "kind": self.kind, "spec": self.spec.to_dict(),
