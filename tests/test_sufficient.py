@@ -349,10 +349,12 @@ def test_the_diagnosis_reads_only_the_held_out_rows_for_linear_effects(drag_flee
 
 
 
-def test_a_hidden_lag_is_diagnosed_from_stored_profiles_without_training_rows(lagged_fleet, tmp_path):
-    """The nonlinear candidates' folds, held-out tests and sensitivity come from the flights'
-    stored profiles: only the held-out flight's rows are read (its regime tables and spectra),
-    and the hidden lag is found at its value."""
+def test_a_hidden_lag_is_diagnosed_from_stored_profiles_and_the_rate_level(lagged_fleet, tmp_path):
+    """The nonlinear candidates' torque-level folds, held-out tests and sensitivity come from the
+    flights' stored profiles; their timing fit and comparison come from the angular-rate level
+    (quadcore.identify.rates, docs/timing.md), which is not in the stored statistics: it reads each
+    flight's rows (a training flight's once). Without a timing candidate, only the held-out flight's rows are read (its
+    regime tables and spectra). The hidden lag is found at its value."""
     from quadcore.identify import diagnosis
 
     fds, stats = lagged_fleet
@@ -362,17 +364,29 @@ def test_a_hidden_lag_is_diagnosed_from_stored_profiles_without_training_rows(la
     assert all(set(s.profiles.by_effect) == {"motor_lag", "thrust_delay"} for s in loaded.values())
     tables = {f: "rows" for f in fds}
     held = sorted(tables)[-1]
-    read = []
     spec = spec_from(VEHICLE, [])
-    with pytest.MonkeyPatch.context() as m:
-        m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
-        result = diagnosis.diagnose(tables, spec, [held], ["motor_lag", "thrust_delay", "thrust_scale"],
-                                    stats=loaded.get).to_dict()
-    assert set(read) == {held}
+
+    def diagnose(candidates: list[str]) -> tuple[dict, list[str]]:
+        read: list[str] = []
+
+        def rows_of(f: str, decoded: object, veh: object) -> fitting.FlightData:
+            read.append(f)
+            return fds[f]
+
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(fitting, "flight_data", rows_of)
+            result = diagnosis.diagnose(tables, spec, [held], candidates, stats=loaded.get).to_dict()
+        return result, read
+
+    result, read = diagnose(["motor_lag", "thrust_delay", "thrust_scale"])
+    assert set(read) == set(fds)  # every flight's rows (the rate level) ...
+    assert all(read.count(f) == 1 for f in fds if f != held)  # ... the training flights' once each
     top = result["candidates"][0]
     assert top["effect"] == "motor_lag" and top["found"], result["verdict"]
     assert top["parameters"]["tau_s"] == pytest.approx(0.03, rel=0.15)
     assert result["sensitivity"]["motor_lag"]["tau_s"] is not None
+    _, read = diagnose(["thrust_scale", "rotor_drag"])
+    assert set(read) == {held}
 
 
 def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(drag_fleet, tmp_path):

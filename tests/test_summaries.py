@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from quadcore import effects
-from quadcore.identify import diagnosis, fitting, regimes, spectrum, sufficient, summaries
+from quadcore.identify import diagnosis, fitting, rates, regimes, spectrum, sufficient, summaries
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -176,6 +176,22 @@ def test_summaries_are_stored_beside_the_statistics_and_follow_them(stored_root)
     assert summaries.load(root, "cut", s.key, s.source) is None
 
 
+def _timing_reads_rows(judge, tables: dict):
+    """``rates.judge`` given the flights' rows (read from ``tables``), whatever it is handed."""
+
+    def with_rows(rows, cands, rows_of, *args, **kwargs):
+        read: dict = {}
+
+        def own_rows(f: str):
+            if f not in read:
+                read[f] = fitting.flight_data(f, tables[f], VEHICLE)
+            return read[f]
+
+        return judge(rows, cands, own_rows, *args, **kwargs)
+
+    return with_rows
+
+
 class _NoRows(dict):
     """Decoded tables whose rows may not be read."""
 
@@ -198,13 +214,20 @@ def test_a_diagnosis_on_stored_statistics_reads_no_rows_and_equals_the_rows(stor
     _close(stored.to_dict(), from_rows.to_dict())
 
 
-def test_with_every_candidate_the_evaluated_flights_tables_read_no_rows(stored_root):
-    """The library's candidates, the one-parameter nonlinear ones too (from their profiles): the
-    evaluated flights' tables and spectra still come from their summaries, equal to the rows'."""
+def test_with_every_candidate_the_evaluated_flights_tables_come_from_their_summaries(stored_root):
+    """The library's candidates, the one-parameter nonlinear ones too: the evaluated flights'
+    tables and spectra still come from their summaries, equal to the rows'. The timing candidates'
+    rate level reads the flights' rows (it is not in the stored statistics: docs/timing.md), and
+    only it: without a timing candidate nothing reads a row."""
     root, spec, tables = stored_root
     library = [n for n in effects.builtin_names() if n not in spec.effects and effects.get(n).offered]
-    stored = diagnosis.diagnose(_NoRows(tables), spec, candidates=library,
-                                stats=lambda f: sufficient.load(root, f)).to_dict()
+    untimed = [n for n in library if not effects.get(n).retimes_thrust]
+    assert untimed != library
+    diagnosis.diagnose(_NoRows(tables), spec, candidates=untimed, stats=lambda f: sufficient.load(root, f))
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(rates, "judge", _timing_reads_rows(rates.judge, tables))
+        stored = diagnosis.diagnose(_NoRows(tables), spec, candidates=library,
+                                    stats=lambda f: sufficient.load(root, f)).to_dict()
     from_rows = diagnosis.diagnose(tables, spec, candidates=library).to_dict()
     for key in ("regimes", "flights", "worst_segments", "frequency", "baseline"):
         _close(stored[key], from_rows[key], key)
