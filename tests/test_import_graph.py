@@ -11,10 +11,8 @@ ALLOWED is every import made inside a function, of any module (the project's, a 
 standard library's), that may stay there: one entry per function, with the modules it may import and why
 (start-up time or an optional dependency). At most twelve.
 
-No import cycle anywhere (quadcore.identify's 7-module cycle went with the type dispatch, issue 23). Imports
-inside functions: the allow-list holds outside quadcore.identify; inside it, the test is expected to fail
-until discovery's writer takes the C names from below (xfail, strict: it fails the run the day it passes,
-so that the mark goes).
+No import cycle anywhere (quadcore.identify's 7-module cycle went with the type dispatch, issue 23), and
+every import inside a function, in quadcore.identify too, on the allow-list.
 """
 
 from __future__ import annotations
@@ -23,8 +21,6 @@ import importlib.util
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-
-import pytest
 
 _PATH = Path(__file__).resolve().parents[1] / "tools" / "imports.py"
 _spec = importlib.util.spec_from_file_location("quadcore_tools_imports", _PATH)
@@ -78,7 +74,6 @@ ALLOWED = (
 MAX_ALLOWED = 12
 
 IDENTIFY = "quadcore.identify"
-IDENTIFY_RELAYOUT = "identify re-layout in progress"
 
 
 def _inner() -> list:
@@ -111,7 +106,6 @@ def test_imports_inside_functions_only_on_the_allow_list_outside_identify() -> N
                      "with its reason to ALLOWED in tests/test_import_graph.py):\n" + "\n".join(new))
 
 
-@pytest.mark.xfail(strict=True, reason=IDENTIFY_RELAYOUT)
 def test_imports_inside_functions_only_on_the_allow_list_in_identify() -> None:
     new = _not_allowed([e for e in _inner() if e.source.startswith(IDENTIFY)])
     assert not new, "imports inside functions in quadcore.identify not on the allow-list:\n" + "\n".join(new)

@@ -14,6 +14,7 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect, Parameter
+from quadcore.effects.c_inputs import ExportError, feature_expression
 from quadcore.effects.ccode import CCode
 from quadcore.identify.discovery.results import DiscoveredTerm, Discovery
 from quadcore.identify.discovery.terms import MIN_HEIGHT_M, TARGETS, evaluate
@@ -75,8 +76,6 @@ class DiscoveredEffect(Effect):
 def c_term(expression: str, vehicle: Vehicle) -> str | None:
     """A term of :func:`quadcore.identify.discovery.terms.variables` as a C expression (names of
     :mod:`quadcore.export.ccode`), or None."""
-    from quadcore.export.c.inputs import ExportError, feature_expression
-
     h = f"(p_w_m[2] > {MIN_HEIGHT_M!r}f ? p_w_m[2] : {MIN_HEIGHT_M!r}f)"
     special = {
         "1": "1.0f",
