@@ -55,7 +55,7 @@ ALLOWED = (
     Lazy("quadcore.learn.backends", "backend", ("quadcore.learn.backends.*",),
          "start-up and an optional dependency: torch and XGBoost take ~1.7 s of CPU each to import and load only "
          "when a model of their kind is trained, read or run; torch is installed outside the package's dependencies"),
-    Lazy("quadcore.identify", "__getattr__", ("quadcore.identify", "quadcore.spec.model"),
+    Lazy("quadcore.identify", "__getattr__", ("quadcore.identify.*",),
          "start-up: quadcore.identify's public names (fit_model, diagnose, discover, ...) load on first use, so "
          "that importing one identify module loads neither all of them nor scikit-learn (discovery)"),
     Lazy("quadcore.identify.profiles", "_spline", ("scipy.interpolate",),

@@ -13,6 +13,7 @@ one identify module must not load them all (discovery loads scikit-learn, ~0.7 s
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -27,24 +28,14 @@ __all__ = ["CandidateScore", "Diagnosis", "DiagnosisSettings", "Discovery", "Mod
            "discover", "fit_model"]
 
 
+# each public name and the identify module it is taken from (ModelSpec: quadcore.spec.model's, as the model imports it)
+_WHERE = {"CandidateScore": "diagnosis", "Diagnosis": "diagnosis", "diagnose": "diagnosis", "Discovery": "discovery",
+          "discover": "discovery", "fit_model": "model_fit", "PhysicsModel": "model", "ModelSpec": "model",
+          "DiagnosisSettings": "settings"}
+
+
 def __getattr__(name: str) -> Any:
     """A public name, imported when first asked for."""
-    if name in ("CandidateScore", "Diagnosis", "diagnose"):
-        from quadcore.identify import diagnosis
-        return getattr(diagnosis, name)
-    if name in ("Discovery", "discover"):
-        from quadcore.identify import discovery
-        return getattr(discovery, name)
-    if name == "fit_model":
-        from quadcore.identify import model_fit
-        return model_fit.fit_model
-    if name == "PhysicsModel":
-        from quadcore.identify import model
-        return model.PhysicsModel
-    if name == "DiagnosisSettings":
-        from quadcore.identify import settings
-        return settings.DiagnosisSettings
-    if name == "ModelSpec":
-        from quadcore.spec import model as spec_model
-        return spec_model.ModelSpec
-    raise AttributeError(f"module 'quadcore.identify' has no attribute {name!r}")
+    if name not in _WHERE:
+        raise AttributeError(f"module 'quadcore.identify' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)

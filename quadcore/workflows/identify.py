@@ -186,7 +186,6 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
     ``settings``: its folds and thresholds. Raises :class:`TooFewFlights` with fewer than two training flights."""
     # scikit-learn (the discovery package's selection): ~0.7 s CPU that fit and diagnose do not need
     from quadcore.identify import discovery
-    from quadcore.identify.discovery import library_stats
 
     seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     if len(seen.tables) - len(holdout or []) < MIN_DISCOVERY_TRAINING:
@@ -194,7 +193,7 @@ def discover(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log =
                             "are grouped by flight)")
     stored = stats = None
     if root is not None:
-        stored, stats = library_stats.stored(root, spec), sufficient.stored(root, spec)
+        stored, stats = discovery.library_stats.stored(root, spec), sufficient.stored(root, spec)
     return discovery.discover(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
                               stored=stored, stats=stats, settings=settings)
 
