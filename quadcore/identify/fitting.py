@@ -447,6 +447,19 @@ def _vector_search(nonlin, lin, flights, ys, w, vehicle):
     return sol.x, cov
 
 
+def jackknife_std(fold_params: list[dict[str, float]]) -> dict[str, float]:
+    """Grouped-jackknife standard error of each parameter from fits that each leave out one
+    group of flights: ``sqrt((K-1)/K Σ_k (θ_k - θ̄)²)``; empty with fewer than two groups."""
+    if len(fold_params) < 2:
+        return {}
+    k = len(fold_params)
+    out = {}
+    for name in fold_params[0]:
+        vals = np.array([p[name] for p in fold_params])
+        out[name] = float(np.sqrt((k - 1) / k * np.sum((vals - vals.mean()) ** 2)))
+    return out
+
+
 def folds(flight_ids: list[str], k: int = 5) -> list[list[str]]:
     """Deterministic folds over flights (round robin over the sorted ids)."""
     ids = sorted(flight_ids)

@@ -296,7 +296,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
         _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
         decide(by_name[c.name])
-    rows = sorted(rows, key=_tier)  # found ones first, as ranked (stable)
+    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
@@ -320,9 +320,7 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     its standard error the larger of the profile's and the grouped jackknife's over ``folds``
     (fits that each leave out a group of flights)."""
     (p,) = c.parameters
-    values = np.array([f.value for f in folds])
-    k = len(values)
-    spread = float(np.sqrt((k - 1) / k * np.sum((values - values.mean()) ** 2))) if k > 1 else 0.0
+    spread = fitting.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
     std = max(rf.std, spread)
     torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
     r.parameters = {p.name: rf.value}
@@ -339,18 +337,13 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
                        "'no effect'")
 
 
-def _tier(r: CandidateRow) -> int:
-    """As the diagnosis ranks: found, then physical, then unphysical."""
-    return 0 if r.found else (1 if r.physical else 2)
-
-
 def _prefer(rows: list[CandidateRow], better: CandidateRow, worse: CandidateRow) -> list[CandidateRow]:
     """``better`` separated from ``worse`` by the rate level, and ranked above it in its tier."""
     for r, o in ((better, worse), (worse, better)):
         r.tied_with = [x for x in r.tied_with if x != o.effect]
         r.separated_by = {**r.separated_by, o.effect: RATE_LEVEL}
     i, j = rows.index(better), rows.index(worse)
-    if j < i and _tier(better) == _tier(worse):
+    if j < i and better.tier() == worse.tier():
         rows = [*rows[:j], better, *[r for r in rows[j:] if r is not better]]
     return rows
 

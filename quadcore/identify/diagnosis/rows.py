@@ -90,6 +90,11 @@ class CandidateRow:
     def signal_to_noise(self) -> float:
         return self.evidence.signal_to_noise
 
+    def tier(self) -> int:
+        """0: found (physical, significant, confirmed on held-out flights); 1: physical but not
+        found; 2: unphysical (never an explanation, whatever it removes)."""
+        return 0 if self.found else (1 if self.physical else 2)
+
     def explained_in(self, channel: str) -> float:
         """The share of the held-out ``channel`` residual it removes (clipped at the noise floor)."""
         return self.explained_variance_force if channel == "force" else self.explained_variance_torque

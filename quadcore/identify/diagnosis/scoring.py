@@ -31,19 +31,6 @@ def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
     return float(1.0 - after[channels].sum() / b) if b > 0 else 0.0
 
 
-def _jackknife_std(fold_params: list[dict[str, float]]) -> dict[str, float]:
-    """Grouped-jackknife standard error of each parameter from fits that each leave out one
-    group of flights: ``sqrt((K-1)/K Σ_k (θ_k - θ̄)²)``; empty with fewer than two groups."""
-    if len(fold_params) < 2:
-        return {}
-    k = len(fold_params)
-    out = {}
-    for name in fold_params[0]:
-        vals = np.array([p[name] for p in fold_params])
-        out[name] = float(np.sqrt((k - 1) / k * np.sum((vals - vals.mean()) ** 2)))
-    return out
-
-
 def _score(c: Effect, held: _HeldOut, fit_c: fitting.Fit,
            fold_params: tuple[list[dict[str, float]], list[dict[str, float]]],
            test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> CandidateRow:
@@ -60,11 +47,11 @@ def _score(c: Effect, held: _HeldOut, fit_c: fitting.Fit,
     ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
     target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
     params = fit_c.params[c.name]
-    spread = _jackknife_std(fold_params[0])
+    spread = fitting.jackknife_std(fold_params[0])
     # the larger of the sample-based error and the spread between groups of flights: flights
     # differ (battery, propellers, a stuck log variable) more than samples within a flight do
     std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
-    free_spread = _jackknife_std(fold_params[1])
+    free_spread = fitting.jackknife_std(fold_params[1])
     bounds = _bounds(c, fit_c, free_spread, settings.bound_sigma)
     active = fit_c.active.get(c.name, {})
     # a parameter held at its bound: how well the data pin it is its free fit's error and spread
@@ -285,21 +272,15 @@ def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOu
     return sensitivity
 
 
-def _tier(r: CandidateRow) -> int:
-    """0: found (physical, significant, confirmed on held-out flights); 1: physical but not
-    found; 2: unphysical (never an explanation, whatever it removes)."""
-    return 0 if r.found else (1 if r.physical else 2)
-
-
 def _rank(rows: list[CandidateRow]) -> list[CandidateRow]:
     """Best first: by tier, then by score (force and torque explained, averaged); among
     candidates the data cannot tell apart (``tied_with``) the one with fewer parameters
     comes first (parsimony), then the higher score."""
-    pending = sorted(rows, key=lambda r: (_tier(r), -r.score))
+    pending = sorted(rows, key=lambda r: (r.tier(), -r.score))
     ordered = []
     while pending:
         head = pending[0]
-        group = [r for r in pending if r is head or (r.effect in head.tied_with and _tier(r) == _tier(head))]
+        group = [r for r in pending if r is head or (r.effect in head.tied_with and r.tier() == head.tier())]
         best = min(group, key=lambda r: (r.n_parameters, -r.score))
         ordered.append(best)
         pending.remove(best)
