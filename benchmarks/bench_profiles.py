@@ -24,7 +24,7 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import effects
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import fit as fitlib, fitting, flightdata, sufficient
 from quadcore.logs import flight
 from quadcore.physics import gate, vehicle
 from quadcore.sim import simulation
@@ -33,13 +33,13 @@ VEHICLE = vehicle.load()
 NAMES = ("motor_lag", "thrust_delay")
 
 
-def flights(folder: Path) -> dict[str, fitting.FlightData]:
+def flights(folder: Path) -> dict[str, flightdata.FlightData]:
     tables = {p.name: flight.decode_flight(p).tables.get("fixedFrequency") for p in flight.discover_logs(folder)}
     good, _ = gate.usable_flights({f: t for f, t in tables.items() if t is not None}, VEHICLE)
-    return {f: fitting.flight_data(f, tables[f], VEHICLE) for f in good}
+    return {f: flightdata.flight_data(f, tables[f], VEHICLE) for f in good}
 
 
-def compare(label: str, fds: dict[str, fitting.FlightData]) -> None:
+def compare(label: str, fds: dict[str, flightdata.FlightData]) -> None:
     ids = sorted(fds)
     t0 = time.perf_counter()
     stats = {f: sufficient.flight_stats(fds[f], VEHICLE, sufficient.library_layout()) for f in ids}
@@ -60,10 +60,10 @@ def compare(label: str, fds: dict[str, fitting.FlightData]) -> None:
         e = effects.get(name)
         (p,) = e.parameters
         t0 = time.perf_counter()
-        rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+        rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
         t_rows = time.perf_counter() - t0
         t0 = time.perf_counter()
-        prof = sufficient.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+        prof = fitlib.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
         t_prof = time.perf_counter() - t0
         a, b = rows.params[name][p.name], prof.params[name][p.name]
         print(f"{name:>13} {a:10.6f} {b:10.6f} {(b - a) / (5e-4 * (p.upper - p.lower)):10.2f} {(b - a) / dt_s:8.3f} "

@@ -23,7 +23,8 @@ import numpy as np
 from _common import best_of
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, sufficient
+from quadcore.identify import evidence, fit as fitlib, sufficient
+from quadcore.identify.fit import solve
 from quadcore.physics import vehicle
 
 VEHICLE = vehicle.load()
@@ -39,12 +40,12 @@ def synthetic(flight: str, seconds: int, layout: sufficient.Layout, rng: np.rand
                                   gram.sum(axis=0) / 4, np.full(6, 1e-3), 0.02, 3.9)
 
 
-def fleet_fit(stats: list[sufficient.FlightStats]) -> fitting.Fit:
+def fleet_fit(stats: list[sufficient.FlightStats]) -> solve.Fit:
     es = [effects.get("rotor_drag"), effects.get("thrust_scale")]
-    return sufficient.fit_effects(es, stats, [s.layout.target() for s in stats], VEHICLE)
+    return fitlib.fit_effects(es, stats, [s.layout.target() for s in stats], VEHICLE)
 
 
-def held_out(stats: list[sufficient.FlightStats], fit: fitting.Fit) -> evidence.HeldOutTest:
+def held_out(stats: list[sufficient.FlightStats], fit: solve.Fit) -> evidence.HeldOutTest:
     e = effects.get("rotor_drag")
     resid = {s.flight: s.layout.target() for s in stats}
     pred = {s.flight: fit.predict([e], s, VEHICLE) for s in stats}

@@ -24,7 +24,7 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import workflows
-from quadcore.identify import fitting, sufficient, summaries
+from quadcore.identify import flightdata, sufficient, summaries
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -38,7 +38,7 @@ def per_flight() -> None:
     columns = sufficient.Layout(layout.effects, layout.sizes)  # what a summary holds: no profiles' extras
     stats_s, summary_s, sizes, seconds = [], [], [], []
     for log in logs:
-        fd = fitting.flight_data(log.name, flight.decode_flight(log).tables["fixedFrequency"], veh)
+        fd = flightdata.flight_data(log.name, flight.decode_flight(log).tables["fixedFrequency"], veh)
         t0 = time.perf_counter()
         sufficient.flight_stats(fd, veh, layout)
         t1 = time.perf_counter()

@@ -20,7 +20,7 @@ import pytest
 import snapshot
 
 from quadcore import cli, effects
-from quadcore.identify import diagnosis, evidence, fitting, model, model_fit
+from quadcore.identify import diagnosis, evidence, flightdata, model, model_fit
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -820,7 +820,7 @@ def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):
     simulation.simulate_set(tmp_path, [SimConfig(kind="random", duration_s=8.0, seed=5)], {}, VEHICLE)
     (table,) = _decode(tmp_path).values()
     holed = table.filter((pl.col("t_s") < 2.0) | (pl.col("t_s") >= 5.0))
-    fd = fitting.flight_data("sim000", holed, VEHICLE)
+    fd = flightdata.flight_data("sim000", holed, VEHICLE)
     resid = {"sim000": np.concatenate([fd.r_f, fd.r_tau], axis=1)}
     sums = evidence.block_sums([fd], resid, resid, np.ones(6))
     t = fd.state.t_s[fd.mask]

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from quadcore.identify import fitting, model, model_fit
+from quadcore.identify import model, model_fit
+from quadcore.identify.fit import solve
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.report import diagnosis as report
@@ -48,7 +49,7 @@ def test_a_parameter_beyond_its_bound_is_held_there_and_said(pushed_fleet):
     assert set(term.held) == {"k_z_s_per_m"}, term.held
     held = term.held["k_z_s_per_m"]
     assert held.bound == 0.0 and abs(held.free - TRUTH["k_z_s_per_m"]) <= 3 * held.free_std, held
-    assert held.beyond_sigma > fitting.BOUND_SIGMA and "form does not fit the data" in held.note, held
+    assert held.beyond_sigma > solve.BOUND_SIGMA and "form does not fit the data" in held.note, held
     for k in ("k_x_s_per_m", "k_y_s_per_m"):
         assert abs(term.params[k] - TRUTH[k]) <= 0.15 * TRUTH[k], term.params
     # the fitted model's JSON carries it, and reads back
@@ -89,5 +90,5 @@ def test_the_real_session_model_holds_its_axial_drag_at_its_bound_and_says_why(r
         for k, h in t.held.items():
             assert t.params[k] == h.bound and not bounds[k][0] <= h.free <= bounds[k][1], (t.name, k, h)
     held = next(t for t in pm.terms if t.name == "rotor_drag").held["k_z_s_per_m"]
-    assert held.bound == 0.0 and held.free < 0 and held.beyond_sigma > fitting.BOUND_SIGMA, held
+    assert held.bound == 0.0 and held.free < 0 and held.beyond_sigma > solve.BOUND_SIGMA, held
     assert "form does not fit the data" in held.note

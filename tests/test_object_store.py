@@ -123,12 +123,12 @@ def test_flight_statistics_round_trip_through_s3(s3_url, drag_fleet):
     as the fleet fit reads them from an s3:// data root."""
     import numpy as np
 
-    from quadcore.identify import fitting, sufficient
+    from quadcore.identify import flightdata, sufficient
     from quadcore.logs import flight
     from quadcore.physics import vehicle
 
     veh = vehicle.load()
-    fd = fitting.flight_data("sim000", flight.decode_flight(drag_fleet / "sim000").tables["fixedFrequency"], veh)
+    fd = flightdata.flight_data("sim000", flight.decode_flight(drag_fleet / "sim000").tables["fixedFrequency"], veh)
     layout = sufficient.library_layout()
     s = sufficient.flight_stats(fd, veh, layout, sufficient.stats_key(veh, veh, layout))
     sufficient.save(s, s3_url)

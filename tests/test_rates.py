@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, rates
+from quadcore.identify import evidence, fitting, flightdata, rates
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -27,7 +27,7 @@ TRUE_S = 0.01
 TIMING = ("thrust_delay", "motor_lag")
 
 
-def _flights(folder: Path, name: str, open_loop_noise: bool = False) -> list[fitting.FlightData]:
+def _flights(folder: Path, name: str, open_loop_noise: bool = False) -> list[flightdata.FlightData]:
     """Three hover flights with ``name`` at 10 ms; with ``open_loop_noise`` the controller reads
     the true rates and only the log carries the gyro noise."""
     configs = [SimConfig(kind="hover", duration_s=8.0, seed=k) for k in range(3)]
@@ -41,7 +41,7 @@ def _flights(folder: Path, name: str, open_loop_noise: bool = False) -> list[fit
         simulation.simulate_set(folder, configs, {name: {effects.get(name).parameters[0].name: TRUE_S}}, VEHICLE)
     finally:
         simulation._fly = fly
-    return [fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    return [flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
             for p in flight.discover_logs(folder)]
 
 

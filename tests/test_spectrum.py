@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from quadcore.identify import fitting, spectrum
+from quadcore.identify import flightdata, spectrum
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -18,7 +18,7 @@ def long_flight(real_logs):
 
 
 def _view(tables: dict) -> dict:
-    fds = [fitting.flight_data(fid, t, VEH) for fid, t in tables.items()]
+    fds = [flightdata.flight_data(fid, t, VEH) for fid, t in tables.items()]
     return spectrum.frequency_view(fds, {fd.flight: np.concatenate([fd.r_f, fd.r_tau], axis=1) for fd in fds}, VEH)
 
 
@@ -85,7 +85,7 @@ def test_a_channel_the_model_predicts_nothing_on_is_n_a_from_rows_and_from_its_s
     model spectrum is there a quadratic form that cancels to rounding: on main it gave 1e+253)."""
     from quadcore.identify import sufficient, summaries
 
-    fd = fitting.flight_data("jana01", long_flight, VEH)
+    fd = flightdata.flight_data("jana01", long_flight, VEH)
     lib = sufficient.library_layout()
     layout = sufficient.Layout(lib.effects, lib.sizes)
     summary = summaries.summarize(fd, VEH, sufficient.design_rows(fd, VEH, layout)).residual(layout.target())

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, model_fit, sessions, sufficient
+from quadcore.identify import evidence, fit as fitlib, fitting, flightdata, model_fit, sessions, sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -19,7 +19,7 @@ REL = 1e-9
 @pytest.fixture(scope="module")
 def fleet(drag_fleet):
     """The shared simulated fleet as FlightData, and the statistics of every linear effect."""
-    fds = {p.name: fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    fds = {p.name: flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
            for p in flight.discover_logs(drag_fleet)}
     layout = sufficient.library_layout()
     key = sufficient.stats_key(VEHICLE, VEHICLE, layout)
@@ -41,8 +41,8 @@ def test_combined_fit_equals_the_row_fit(fleet, names):
     fds, stats = fleet
     ids = sorted(fds)
     es = [effects.get(n) for n in names]
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     # a joint fit's normal equations are worse conditioned (a CoM offset of 1e-8 m beside a drag, a
     # vertical drag beside the thrust scale): the same rounding of the sums moves its solution more,
     # so it is compared in its own standard errors (a millionth of one)
@@ -62,8 +62,8 @@ def test_fixed_effects_are_subtracted_alike(fleet):
     ids = sorted(fds)
     es = [effects.get("rotor_drag"), effects.get("thrust_scale")]
     fixed = {"thrust_scale": {"scale": 0.97}}
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
-    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
+    combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     _close(rows.params, combined.params)
 
@@ -74,10 +74,10 @@ def test_per_session_fit_from_statistics_equals_the_row_fit(fleet):
     spec = spec_from(VEHICLE, ["thrust_scale", "rotor_drag"])
     spec.per_session = ["thrust_scale"]
     groups = {"a": ids[:2], "b": ids[2:]}
-    targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
+    targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
     rows = sessions.fit_per_session(spec, fds, targets, ids, groups)
     combined = sessions.fit_per_session(spec, stats, {f: stats[f].layout.target() for f in ids}, ids, groups,
-                                        fit=sufficient.fit_effects)
+                                        fit=fitlib.fit_effects)
     for a, b in zip(rows.terms, combined.terms):
         _close({a.name: a.params}, {b.name: b.params})
         for s in a.per_session:
@@ -89,7 +89,7 @@ def test_held_out_test_from_statistics_equals_the_rows(fleet):
     ids = sorted(fds)
     train, test = ids[:3], ids[3:]
     e = effects.get("rotor_drag")
-    fit = fitting.fit_effects([e], [fds[f] for f in train], fitting.targets_of([fds[f] for f in train]), VEHICLE)
+    fit = fitting.fit_effects([e], [fds[f] for f in train], flightdata.targets_of([fds[f] for f in train]), VEHICLE)
     w = evidence.channel_mask(["force"])
     resid_rows = {f: np.concatenate([fds[f].r_f, fds[f].r_tau], axis=1) for f in test}
     pred_rows = {f: fit.predict([e], fds[f], VEHICLE) for f in test}
@@ -134,7 +134,7 @@ def lagged_fleet(tmp_path_factory):
     folder = tmp_path_factory.mktemp("lagged")
     configs = [simulation.SimConfig(kind="random", duration_s=4.0, seed=s, speed_min_mps=0.8) for s in (31, 32, 33)]
     simulation.simulate_set(folder, configs, {"motor_lag": {"tau_s": 0.03}}, VEHICLE)
-    fds = {p.name: fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    fds = {p.name: flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
            for p in flight.discover_logs(folder)}
     layout = sufficient.library_layout()
     return fds, {f: sufficient.flight_stats(fd, VEHICLE, layout) for f, fd in fds.items()}
@@ -153,8 +153,8 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
     ids = sorted(fds)
     e = effects.get(name)
     (p,) = e.parameters
-    rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-    combined = sufficient.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
+    rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    combined = fitlib.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     dt_s = float(np.median(np.diff(fds[ids[0]].state.t_s)))
     tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 10
     assert abs(rows.params[name][p.name] - combined.params[name][p.name]) <= tolerance
@@ -170,8 +170,8 @@ def test_a_profiled_effect_beside_linear_ones_is_fitted_as_the_rows_fit_it(lagge
     ids = sorted(fds)
     es = [effects.get("thrust_scale"), effects.get("motor_lag"), effects.get("com_offset")]
     fixed = {"com_offset": {"x_c_m": 0.001, "y_c_m": 0.0}}
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
-    combined = sufficient.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
+    combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     assert abs(rows.params["motor_lag"]["tau_s"] - combined.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
     assert combined.std["motor_lag"]["tau_s"] == pytest.approx(rows.std["motor_lag"]["tau_s"], rel=0.05)
@@ -211,8 +211,8 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
         ids = sorted(fds)
         layout = sufficient.layout_of([e])
         stats = [sufficient.flight_stats(fds[f], VEHICLE, layout) for f in ids]
-        rows = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
-        combined = sufficient.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
+        rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+        combined = fitlib.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
         assert abs(rows.params["slow_thrust"]["k"] - combined.params["slow_thrust"]["k"]) <= 5e-4 * 0.5
         assert combined.params["slow_thrust"]["k"] > 0.1  # a lag is found as late thrust
     finally:
@@ -253,7 +253,7 @@ def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_pr
         held = sorted(fds)[-1]
         read = []
         with pytest.MonkeyPatch.context() as m:
-            m.setattr(fitting, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
+            m.setattr(flightdata, "flight_data", lambda f, decoded, veh: read.append(f) or fds[f])
             result = diagnosis.diagnose({f: "rows" for f in fds}, spec_from(VEHICLE, []), [held],
                                         ["motor_lag", "scaled_lag"], stats=stats.get).to_dict()
         assert set(read) == set(fds)  # the two-parameter candidate's training rows, the held-out flight's
@@ -274,8 +274,8 @@ def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     e = effects.get("motor_lag")
     v = float(profiles.profile_grid(0.0, 0.2)[20])
     s = profiles.with_predictions(stats[f], {"motor_lag": v})
-    pred = fitting.prediction(e, {"tau_s": v}, fds[f], VEHICLE)
-    y = fitting.targets_of([fds[f]])[0]
+    pred = flightdata.prediction(e, {"tau_s": v}, fds[f], VEHICLE)
+    y = flightdata.targets_of([fds[f]])[0]
     col = s.layout.unit(s.layout.extra("pred:motor_lag"))
     target = s.layout.pad(stats[f].layout.target())
     np.testing.assert_allclose(sufficient.channel_sums(s.total, col, target),
@@ -288,7 +288,7 @@ def test_several_nonlinear_effects_are_refused(fleet):
     _, stats = fleet
     s = list(stats.values())
     with pytest.raises(sufficient.StatsError, match="nonlinear"):
-        sufficient.fit_effects([effects.get("motor_lag"), effects.get("thrust_delay")], s,
+        fitlib.fit_effects([effects.get("motor_lag"), effects.get("thrust_delay")], s,
                             [x.layout.target() for x in s], VEHICLE)
 
 
@@ -300,7 +300,7 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     fitted = model_fit.fit_model(spec, no_rows, ids, stats=stats.get)
     es = [effects.get(n) for n in spec.effects]
     # the model is fitted within its parameters' bounds (rotor_drag's k_z, ~0 here, falls on either side)
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE,
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
                                bounded=True)
     _close({t.name: t.params for t in fitted.terms}, rows.params, rel=1e-7)
 
@@ -311,7 +311,7 @@ def test_a_model_with_a_lag_is_fitted_from_stored_profiles_without_reading_rows(
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
     fitted = model_fit.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
     es = [effects.get(n) for n in spec.effects]
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     got = {t.name: t.params for t in fitted.terms}
     assert abs(got["motor_lag"]["tau_s"] - rows.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
     assert got["thrust_scale"]["scale"] == pytest.approx(rows.params["thrust_scale"]["scale"], rel=1e-6)
@@ -369,12 +369,12 @@ def test_a_hidden_lag_is_diagnosed_from_stored_profiles_and_the_rate_level(lagge
     def diagnose(candidates: list[str]) -> tuple[dict, list[str]]:
         read: list[str] = []
 
-        def rows_of(f: str, decoded: object, veh: object) -> fitting.FlightData:
+        def rows_of(f: str, decoded: object, veh: object) -> flightdata.FlightData:
             read.append(f)
             return fds[f]
 
         with pytest.MonkeyPatch.context() as m:
-            m.setattr(fitting, "flight_data", rows_of)
+            m.setattr(flightdata, "flight_data", rows_of)
             result = diagnosis.diagnose(tables, spec, [held], candidates, stats=loaded.get).to_dict()
         return result, read
 
@@ -436,7 +436,7 @@ def test_statistics_made_by_other_code_are_stale(tmp_path, monkeypatch):
     smoothing, the usable mask and noise floor, the blocks), not only the effects' classes: a
     change there makes every stored statistic stale instead of silently mixing old sums with
     new rows."""
-    assert {"quadcore.physics.dynamics", "quadcore.physics.signals", "quadcore.identify.fitting",
+    assert {"quadcore.physics.dynamics", "quadcore.physics.signals", "quadcore.identify.flightdata",
             "quadcore.identify.sufficient"} <= set(sufficient.CODE_MODULES)
     (tmp_path / "qc_probe_code.py").write_text("SCALE = 1.0\n")
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -471,10 +471,11 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
     squares of their own columns (the oracle, by hand)."""
     fds, stats = fleet
     ids, e = sorted(fds), effects.get(name)
-    free = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    free = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     # the free fit is linear in the target: add the first column to move its first coordinate
     delta = shift[0] - e.to_linear(free.params[name], VEHICLE)[0]
-    ys = [y + delta * fds[f].basis(e, VEHICLE)[:, :, 0] for f, y in zip(ids, fitting.targets_of([fds[f] for f in ids]))]
+    targets = flightdata.targets_of([fds[f] for f in ids])
+    ys = [y + delta * fds[f].basis(e, VEHICLE)[:, :, 0] for f, y in zip(ids, targets)]
     rows = fitting.fit_effects([e], [fds[f] for f in ids], ys, VEHICLE, bounded=True)
     first = e.parameters[0]
     assert rows.free is not None and rows.free.params[name][first.name] < first.lower
@@ -482,7 +483,7 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
     assert rows.params[name][first.name] == first.lower
     assert all(p.lower <= rows.params[name][p.name] <= p.upper for p in e.parameters)
     targets = [stats[f].layout.target() + delta * stats[f].layout.unit(stats[f].layout.cols(name)[0]) for f in ids]
-    combined = sufficient.fit_effects([e], [stats[f] for f in ids], targets, VEHICLE, bounded=True)
+    combined = fitlib.fit_effects([e], [stats[f] for f in ids], targets, VEHICLE, bounded=True)
     assert combined.active == rows.active
     _close(rows.params, combined.params, rel=1e-6)
     _close(rows.std, combined.std, rel=1e-6)
@@ -498,11 +499,11 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
 def test_a_fit_inside_its_bounds_is_the_free_fit(fleet):
     fds, stats = fleet
     ids, e = sorted(fds), effects.get("thrust_scale")
-    free = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE)
+    free = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     for p in e.parameters:  # inside its bounds by far more than its noise (not by chance)
         value, std = free.params[e.name][p.name], free.std[e.name][p.name]
         assert p.lower + 10 * std < value < p.upper - 10 * std, (p.name, value, std)
-    bounded = fitting.fit_effects([e], [fds[f] for f in ids], fitting.targets_of([fds[f] for f in ids]), VEHICLE,
+    bounded = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
                                   bounded=True)
     assert bounded.free is None and bounded.active == {}
     assert bounded.params == free.params and bounded.std == free.std

@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from quadcore import effects
-from quadcore.identify import diagnosis, fitting, rates, regimes, spectrum, sufficient, summaries
+from quadcore.identify import diagnosis, flightdata, rates, regimes, spectrum, sufficient, summaries
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -87,7 +87,7 @@ def _residual(layout: sufficient.Layout) -> np.ndarray:
 def _compare(tables: dict) -> None:
     """The tables of each flight's summary against the rows' on ``tables`` (flight -> decoded table)."""
     layout = _layout()
-    fds = {f: fitting.flight_data(f, t, VEHICLE) for f, t in tables.items()}
+    fds = {f: flightdata.flight_data(f, t, VEHICLE) for f, t in tables.items()}
     for v in (layout.target(), _residual(layout)):  # the nominal residual, and one after a fit
         rows = {f: sufficient.signal_rows(fd, VEHICLE, layout, v) for f, fd in fds.items()}
         long = regimes.long_table(list(fds.values()), rows, VEHICLE)
@@ -118,7 +118,7 @@ def test_tables_from_summaries_equal_the_rows_on_real_flights(real_logs):
 def test_a_residual_given_as_rows_summarises_alike(drag_fleet):
     """A residual that is no combination of columns (a nonlinear model's) as its own column."""
     p = flight.discover_logs(drag_fleet)[0]
-    fd = fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    fd = flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
     r = sufficient.signal_rows(fd, VEHICLE, _layout(), _residual(_layout()))
     got = summaries.tables([summaries.of_rows(fd, r, VEHICLE).residual(np.ones(1))], None, VEHICLE)
     long = regimes.long_table([fd], {fd.flight: r}, VEHICLE)
@@ -130,7 +130,7 @@ def test_a_summary_with_too_few_spectral_bins_for_the_fleet_takes_its_rows(drag_
     """A flight whose summary stops below the bins the fleet's sample rate needs (a fast log among
     slow ones) is described from its rows, to the same view."""
     p = flight.discover_logs(drag_fleet)[0]
-    fd = fitting.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
+    fd = flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
     layout = _layout()
     v = _residual(layout)
     short = summaries.summarize(fd, VEHICLE, sufficient.design_rows(fd, VEHICLE, layout), top_bin=40).residual(v)
@@ -184,7 +184,7 @@ def _timing_reads_rows(judge, tables: dict):
 
         def own_rows(f: str):
             if f not in read:
-                read[f] = fitting.flight_data(f, tables[f], VEHICLE)
+                read[f] = flightdata.flight_data(f, tables[f], VEHICLE)
             return read[f]
 
         return judge(rows, cands, own_rows, *args, **kwargs)
@@ -242,7 +242,7 @@ def test_one_flight_data_for_all_three_stores_the_same_files(stored_root, tmp_pa
 
     _, spec, tables = stored_root
     f = sorted(tables)[0]
-    shared = fitting.flight_data(f, tables[f], spec.vehicle_for(f))
+    shared = flightdata.flight_data(f, tables[f], spec.vehicle_for(f))
     apart, together = tmp_path / "apart", tmp_path / "together"
     sufficient.save(sufficient.compute_current(spec, f, tables[f], "log"), apart)
     library_stats.save(library_stats.compute(spec, f, tables[f], "log"), apart)
@@ -252,7 +252,7 @@ def test_one_flight_data_for_all_three_stores_the_same_files(stored_root, tmp_pa
         a, b = (sufficient.stats_path(root, f).parent / name for root in (apart, together))
         _same_file(a, b)
     layout = sufficient.spec_layout(spec)
-    own = fitting.flight_data(f, tables[f], spec.vehicle_for(f))
+    own = flightdata.flight_data(f, tables[f], spec.vehicle_for(f))
     rows = sufficient.design_rows(own, spec.vehicle, sufficient.Layout(layout.effects, layout.sizes))
     afresh = summaries.summarize(own, spec.vehicle, rows)
     stored = sufficient.load(together, f).summary()

@@ -8,7 +8,7 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import STATS_REFRESH, STATS_VERSION
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import flightdata, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.physics import dynamics
 from quadcore.store import store
@@ -35,7 +35,7 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
         try:
             source = sufficient.decoded_source(data_root.root_path, fid) or ""
             decoded = store.read_parquet(path)
-            fd = fitting.flight_data(fid, decoded, spec.vehicle_for(fid))  # once for both (and its cached bases)
+            fd = flightdata.flight_data(fid, decoded, spec.vehicle_for(fid))  # once for both (and its cached bases)
             s = sufficient.compute_current(spec, fid, decoded, source, fd)
             library = library_stats.compute(spec, fid, decoded, source, fd)
         except dynamics.UnusableFlightError as exc:

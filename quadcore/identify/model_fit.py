@@ -11,7 +11,8 @@ from collections.abc import Callable, Mapping
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import fitting, profiles, sessions as sessionlib, sufficient
+from quadcore.identify import fit as fitlib, fitting, profiles, sessions as sessionlib, sufficient
+from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import flight_data, targets_of
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
@@ -30,12 +31,12 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     """Fit the effects a :class:`quadcore.spec.model.ModelSpec` names on the ``train`` flights (its
     ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`), within
     their parameters' physical bounds; a parameter held at a bound says so in its term
-    (:func:`quadcore.identify.fitting.held_bounds`: its free value, and whether that is within
+    (:func:`quadcore.identify.fit.solve.held_bounds`: its free value, and whether that is within
     noise of the bound).
 
     A model of linear effects, and one effect with a single nonlinear parameter (not fixed) beside
     them, is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`, the
-    nonlinear one from its profiles: :func:`quadcore.identify.sufficient.profiled_fit`): ``stats(flight)``
+    nonlinear one from its profiles: :func:`quadcore.identify.fit.profiled.profiled_fit`): ``stats(flight)``
     gives a flight's stored ones (None: computed from its decoded table); any other model (per-session
     effects beside a nonlinear one included) reads every training flight's rows."""
     effect_list = [effectlib.get(n) for n in spec.effects]
@@ -46,7 +47,7 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     if from_statistics(spec, effect_list):
         by_id: dict = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
         targets = {f: s.layout.target() for f, s in by_id.items()}
-        fit: sessionlib.FitEffects = sufficient.fit_effects
+        fit: sessionlib.FitEffects = fitlib.fit_effects
     else:
         by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
         targets = dict(zip(train, targets_of([by_id[f] for f in train])))
@@ -55,4 +56,4 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
         return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None), fit)
     fitted = fit(effect_list, [by_id[f] for f in train], [targets[f] for f in train], spec.vehicle, spec.fixed,
                  bounded=True)
-    return PhysicsModel(spec.vehicle, fitting.model_terms(effect_list, fitted, spec.fixed), *maps)
+    return PhysicsModel(spec.vehicle, solve.model_terms(effect_list, fitted, spec.fixed), *maps)

@@ -23,7 +23,7 @@ when it has one: fixed signals, so the detection limits take them as any other c
 not-a-knot cubic spline in ``log(v - lower)`` over the grid's points above the lower bound,
 linear in ``v`` between the lower bound and the first point above it (``motor_lag`` jumps there:
 any τ > 0 delays the thrust by a whole sample). So, with weights ``ω(v)``, the fit's objective
-(:func:`quadcore.identify.fitting.fit_effects`, weights ``w_c``, residual ``r_f = z·u_f``) is
+(:func:`quadcore.identify.fit.fit_effects`, weights ``w_c``, residual ``r_f = z·u_f``) is
 
     J(v) = Σ_f Σ_c w_c [u_fᵀ G_fc u_f - 2 ω(v)·(P_f·c[:W] u_f) + ω(v)·P_f·c[W]],
 
@@ -64,7 +64,6 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects import Effect, Parameter
 from quadcore.identify.binfile import StatsError
-from quadcore.identify.fitting import search_grid
 from quadcore.identify.flightdata import FlightData, prediction, unit_wrench
 from quadcore.physics.vehicle import Vehicle
 
@@ -72,6 +71,13 @@ if TYPE_CHECKING:
     from quadcore.identify.sufficient import FlightStats, Layout
 
 GRID_DENSITY = 2  # intervals of the profile's grid per interval of the search's grid
+
+
+def search_grid(lower: float, upper: float) -> np.ndarray:
+    """The one-parameter search's grid (:func:`quadcore.identify.fit.solve.scalar_minimum`): the lower
+    bound and 16 geometric points up to the upper one; the profiles hold every flight's sums on it."""
+    span = upper - lower
+    return np.unique(np.concatenate([[lower], lower + span * np.geomspace(1e-3, 1.0, 16)]))
 
 
 def profiled(effect: Effect) -> bool:

@@ -31,7 +31,7 @@ is the prediction-error criterion with the right noise model (the torque noise i
 white gyro noise; its whitening filter is the running sum). The offsets make the regressor and
 the noise correlated only through the block mean, a bias of order one sample per block. Same
 flights: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's standard error is the larger of the
-profile's (:func:`quadcore.identify.fitting.scalar_minimum` with one sample per independent one:
+profile's (:func:`quadcore.identify.fit.solve.scalar_minimum` with one sample per independent one:
 right for a white residual) and the blocks-as-clusters one (:func:`_clustered_variance`, right
 when the model's error within a block is not white), the comparison of two candidates the held-out difference of their
 ``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
@@ -51,8 +51,9 @@ import numpy as np
 from scipy import stats
 
 from quadcore.effects import Effect, get as get_effect
-from quadcore.identify import evidence, fitting
-from quadcore.identify.fitting import FlightData
+from quadcore.identify import evidence
+from quadcore.identify.fit import solve
+from quadcore.identify.flightdata import FlightData
 from quadcore.physics import dynamics, signals
 from quadcore.physics.vehicle import Vehicle
 
@@ -169,7 +170,7 @@ def fit(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray) -> RateFit
         return memo[v]
 
     n = sum(rf.n for rf in flights) * 3
-    best, var = fitting.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
+    best, var = solve.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
     var = max(var, _clustered_variance(effect, flights, w, best, var, J(best) / max(n - 1, 1)))
     return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
 
@@ -290,7 +291,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     by_name = {r.effect: r for r in rows}
     folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
     # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
-    groups = ([[f for f in train_all if f not in g] for g in fitting.folds(train_all, settings.n_folds)]
+    groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
               if len(train_all) >= 3 else [])
     for c in timing:
         spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
@@ -320,7 +321,7 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     its standard error the larger of the profile's and the grouped jackknife's over ``folds``
     (fits that each leave out a group of flights)."""
     (p,) = c.parameters
-    spread = fitting.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
+    spread = solve.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
     std = max(rf.std, spread)
     torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
     r.parameters = {p.name: rf.value}

@@ -34,13 +34,14 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify import fitting
+from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import Flight
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.physics.vehicle import Vehicle
 
 # a joint fit of effects to targets on flights: fitting.fit_effects (rows) or
-# sufficient.fit_effects (statistics), as whoever holds the flights chose by the effects' kinds
-FitEffects = Callable[..., fitting.Fit]
+# quadcore.identify.fit.fit_effects (statistics), as whoever holds the flights chose by the effects' kinds
+FitEffects = Callable[..., solve.Fit]
 
 SPLIT_SIGMA = 5.0
 DISTINCT = 3.0
@@ -93,7 +94,7 @@ def session_of(flight: str, sessions: dict[str, list[str]]) -> str | None:
 
 
 def per_flight_fits(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehicle,
-                    fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, fitting.Fit]:
+                    fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, solve.Fit]:
     """The effects fitted on each flight alone (``fit``: on the flights' rows or statistics)."""
     return {f: fit(effects, [fds[f]], [targets[f]], vehicle, fixed) for f in sorted(fds)}
 
@@ -240,7 +241,7 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     """Fit ``spec`` (a :class:`quadcore.spec.model.ModelSpec` with ``per_session`` effects) on the
     ``train`` flights: the per-session effects on each session's flights, the others on all,
     alternating ``ROUNDS`` times, every fit within the parameters' physical bounds (a parameter
-    held at one says so in its term: :func:`quadcore.identify.fitting.held_bounds`). Sessions:
+    held at one says so in its term: :func:`quadcore.identify.fit.solve.held_bounds`). Sessions:
     ``sessions``, else the model file's, else the groups the data show. Returns a
     :class:`quadcore.identify.model.PhysicsModel` whose per-session terms carry the fleet value (for
     flights of no session) and one value per session."""
@@ -262,7 +263,7 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
     shared_params = {e.name: fleet.params[e.name] for e in shared}
     shared_std = {e.name: fleet.std[e.name] for e in shared}
     shared_fit = fleet
-    by_session: dict[str, fitting.Fit] = {}
+    by_session: dict[str, solve.Fit] = {}
     session_of = {f: s for s, fl in members.items() for f in fl}
     for _ in range(ROUNDS):
         for s, fl in members.items():
@@ -282,11 +283,11 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
             terms.append(EffectTerm(e.name, fleet.params[e.name], fleet.std[e.name], False,
                                     {s: fit.params[e.name] for s, fit in by_session.items()},
                                     {s: fit.std[e.name] for s, fit in by_session.items()},
-                                    fitting.held_bounds(fleet, e),
-                                    {s: h for s, fit in by_session.items() if (h := fitting.held_bounds(fit, e))}))
+                                    solve.held_bounds(fleet, e),
+                                    {s: h for s, fit in by_session.items() if (h := solve.held_bounds(fit, e))}))
         else:
             terms.append(EffectTerm(e.name, shared_params[e.name], shared_std[e.name], e.name in spec.fixed,
-                                    held=fitting.held_bounds(shared_fit, e)))
+                                    held=solve.held_bounds(shared_fit, e)))
     return PhysicsModel(vehicle, terms, {s: sorted(fl) for s, fl in sessions.items()}, dict(spec.session_maps),
                         dict(spec.session_patterns))
 

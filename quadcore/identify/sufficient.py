@@ -58,7 +58,7 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect, Parameter
-from quadcore.identify import fitting, profiles, summaries
+from quadcore.identify import profiles, summaries
 from quadcore.identify.binfile import (  # noqa: F401  (the file format, read from here too)
     StatsError,
     decode,
@@ -74,7 +74,6 @@ from quadcore.identify.binfile import (  # noqa: F401  (the file format, read fr
     upper_indices,
     write_file,
 )
-from quadcore.identify.fitting import Fit
 from quadcore.identify.flightdata import GRAM_STRIDE, SECANT, FlightData, Signals, block_index, flight_data
 from quadcore.identify.summaries import FlightSummary
 from quadcore.physics import decoded_store
@@ -326,14 +325,6 @@ def sum_of_squares(s: FlightStats, v: np.ndarray) -> np.ndarray:
     return channel_sums(s.total, v, v)
 
 
-def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> np.ndarray:
-    """:func:`quadcore.identify.fitting.channel_weights` of the targets ``z·v_f``: 1/σ² for the force
-    and the torque channels from their mean squares."""
-    # per flight: stacking the totals (a copy of ~23 MB at 1,000 flights) costs 5x these products
-    ss = sum((sum_of_squares(s, v) for s, v in zip(stats, targets)), np.zeros(6))
-    return fitting.weights_from_sums(ss, sum(s.n for s in stats))
-
-
 def one_layout(stats: Sequence[FlightStats]) -> bool:
     """Whether the flights' statistics share one layout (their vectors then stack)."""
     return bool(stats) and all(s.layout == stats[0].layout for s in stats)
@@ -364,113 +355,6 @@ def normal_equations(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]
         b += Gw[cols] @ v
         yy += float(v @ Gw @ v)
     return A, b, yy
-
-
-def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False):
-    """:func:`quadcore.identify.fitting.fit_effects` from statistics: jointly fit linear ``effects`` to
-    the targets ``z·v_f`` (normal equations, see the module); those named in ``fixed`` keep
-    their values and are subtracted first; ``bounded``: within the parameters' physical bounds
-    (:func:`quadcore.identify.fitting.solved_linear`). Returns a :class:`quadcore.identify.fitting.Fit`."""
-    fixed = fixed or {}
-    nonlinear = [e for e in effects if not e.linear]
-    if len(nonlinear) == 1 and nonlinear[0].name not in fixed and profiles.covers(nonlinear[0], stats):
-        return profiled_fit(effects, stats, targets, vehicle, fixed, bounded)
-    if nonlinear:
-        raise StatsError(f"nonlinear effect(s) {', '.join(e.name for e in nonlinear)}: fitted from rows, not "
-                         "statistics (but one with a profile in every flight's statistics)")
-    vs = [np.asarray(v, dtype=float) for v in targets]
-    w = channel_weights(stats, vs)
-    params, std = fitting.fixed_values(effects, fixed)
-    for e in effects:
-        if e.name in fixed:
-            vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
-    lin = [e for e in effects if e.name not in fixed]
-    if lin:
-        A, b, yy = normal_equations(stats, vs, w, lambda lay: np.concatenate([lay.cols(e.name) for e in lin]))
-        return fitting.solved_linear(lin, A, b, yy, 6 * sum(s.n for s in stats), vehicle, params, std, w, bounded)
-    return fitting.Fit(params, std, w)
-
-
-def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
-    """:func:`quadcore.identify.fitting.fit_effects` of one profiled effect and linear ones to the
-    targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
-    effect's parameter by the row search's grid, Brent refinement and profile interval
-    (:func:`quadcore.identify.fitting.scalar_minimum`) on ``J(v)`` of the module with the linear
-    effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
-    ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
-    the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
-    :func:`quadcore.identify.fitting.solved_linear`). Those named in ``fixed`` (linear) are
-    subtracted first."""
-    fixed = fixed or {}
-    (nonlinear,) = [e for e in effects if not e.linear]
-    (p,) = nonlinear.parameters
-    params, std = fitting.fixed_values(effects, fixed)
-    us = [np.asarray(u, dtype=float) for u in targets]
-    w = channel_weights(stats, us)
-    for e in effects:
-        if e.name in fixed:
-            us = [u - s.layout.coefficients(e, params[e.name], vehicle) for s, u in zip(stats, us)]
-    lin = [e for e in effects if e.linear and e.name not in fixed]
-    sums = _Sums.of(nonlinear.name, lin, stats, us, w)
-
-    def J(v: float) -> float:
-        return sums.rss(profiles.weights(p.lower, p.upper, v))[0]
-
-    best, var = fitting.scalar_minimum(J, sums.n, p.lower, p.upper)
-    params[nonlinear.name] = {p.name: best}
-    std[nonlinear.name] = {p.name: float(np.sqrt(max(var, 0.0)))}
-    if lin:
-        b, yy = sums.normal(profiles.weights(p.lower, p.upper, best))
-        return fitting.solved_linear(lin, sums.A, b, yy, sums.n, vehicle, params, std, w, bounded)
-    return fitting.Fit(params, std, w)
-
-
-@dataclass(frozen=True)
-class _Sums:
-    """The combined sums of a variable-projection fit (see :func:`fit_effects`): ``yy(v) = const
-    - 2 ω·S + ω·Q``, ``b(v) = b0 - B ω``, over ``n`` values."""
-
-    const: float
-    S: np.ndarray
-    Q: np.ndarray
-    A: np.ndarray
-    b0: np.ndarray
-    B: np.ndarray
-    n: int
-
-    @classmethod
-    def of(cls, name: str, lin: list[Effect], stats: Sequence[FlightStats], us: list[np.ndarray],
-           w: np.ndarray) -> _Sums:
-        k = sum(len(e.parameters) for e in lin)
-        const, S, Q, A, b0, B, n = 0.0, 0.0, 0.0, np.zeros((k, k)), np.zeros(k), 0.0, 0
-        for s, u in zip(stats, us):
-            cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
-            Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
-            prof = profiles.of_flight(s).by_effect[name].total
-            Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
-            const += float(u @ Gw @ u)
-            S = S + Pw @ u
-            Q = Q + prof[:, :, -1] @ w
-            A += Gw[np.ix_(cols, cols)]
-            b0 += Gw[cols] @ u
-            B = B + Pw[:, cols].T
-            n += 6 * s.n
-        return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
-
-    def normal(self, om: np.ndarray) -> tuple[np.ndarray, float]:
-        """``(b, yy)`` of the linear effects' normal equations (their ``A`` is :attr:`A`) on what
-        the profiled effect leaves at weights ``om``."""
-        return self.b0 - self.B @ om, self.const - 2 * float(om @ self.S) + float(om @ self.Q)
-
-    def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
-        """The residual sum of squares at weights ``om`` and the linear coordinates there."""
-        b, yy = self.normal(om)
-        if not len(self.b0):
-            return max(yy, 0.0), np.zeros(0)
-        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
-        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
 
 
 def prediction(effects: list[Effect], params: dict[str, dict[str, float]], s: FlightStats,
@@ -549,7 +433,7 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quadcore.physics.residuals",
                 "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.flightdata",
                 "quadcore.identify.binfile",
-                "quadcore.identify.fitting", "quadcore.identify.evidence",
+                "quadcore.identify.evidence",
                 "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles",
                 "quadcore.identify.summaries", "quadcore.identify.regimes", "quadcore.identify.spectrum")
 

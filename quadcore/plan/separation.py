@@ -1,6 +1,6 @@
 """The measured separation of two explanations on flights: the diagnosis's held-out comparison.
 
-Cross-validation over flights (:func:`quadcore.identify.fitting.folds`, as the diagnosis): in
+Cross-validation over flights (:func:`quadcore.identify.fit.solve.folds`, as the diagnosis): in
 each fold both candidates are fitted (:func:`quadcore.identify.fitting.fit_effects`) on the
 training flights' residual of the model and predict the test flights; then
 :func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks, which of the two
@@ -27,6 +27,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fitting, sessions
 from quadcore.identify.diagnosis.results import Diagnosis
+from quadcore.identify.fit import solve
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
@@ -75,7 +76,7 @@ def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, 
     ea, eb = effectlib.get(a), effectlib.get(b)
     pred_a: dict[str, np.ndarray] = {}
     pred_b: dict[str, np.ndarray] = {}
-    for held in fitting.folds(ids, n_folds):
+    for held in solve.folds(ids, n_folds):
         train = [f for f in ids if f not in held] or ids
         for e, out in ((ea, pred_a), (eb, pred_b)):
             fit = fitting.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)

@@ -14,7 +14,17 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fitting, profiles, sessions as sessionlib, spectrum, sufficient
+from quadcore.identify import (
+    evidence,
+    fit as fitlib,
+    fitting,
+    flightdata,
+    profiles,
+    sessions as sessionlib,
+    spectrum,
+    sufficient,
+)
+from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
@@ -53,13 +63,13 @@ class _Flights:
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
         # the fits and weights of the form the flights are held in, chosen here by the model's
         # effects' kinds (never by the type of what a function is given)
-        self.fit_effects: sessionlib.FitEffects = sufficient.fit_effects if self.linear else fitting.fit_effects
+        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if self.linear else fitting.fit_effects
         self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = (
-            sufficient.channel_weights if self.linear else fitting.weights_of)
+            fitlib.channel_weights if self.linear else fitting.weights_of)
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
-            self._rows[f] = fitting.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
+            self._rows[f] = flightdata.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
             self._rates[f] = spectrum.sample_rate_hz(self._rows[f].state.t_s)
         return self._rows[f]
 
@@ -124,7 +134,7 @@ class _Problem:
         # residual are held, not one per fold; the residual is kept so its id cannot be reused
         self._row_resid_of: tuple[dict, dict[str, np.ndarray]] = ({}, {})
 
-    def fit_candidate(self, c, flights: list[str], resid: dict) -> fitting.Fit:
+    def fit_candidate(self, c, flights: list[str], resid: dict) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
         parameters' physical bounds (the free fit, when it left them, kept as ``free``)."""
         if self.by_rows[c.name]:
@@ -172,7 +182,7 @@ def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
     if holdout:
         train_all = [f for f in ids if f not in holdout]
         return [(train_all, holdout)], train_all, "holdout"
-    splits = ([([f for f in ids if f not in fold], fold) for fold in fitting.folds(ids, n_folds)]
+    splits = ([([f for f in ids if f not in fold], fold) for fold in solve.folds(ids, n_folds)]
               if len(ids) > 1 else [(ids, ids)])
     return splits, ids, "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
 
@@ -203,7 +213,7 @@ class _Folds:
     values: dict[str, dict[str, float]]
     params: dict[str, list[dict]]
     free_params: dict[str, list[dict]]
-    fits: dict[str, fitting.Fit]
+    fits: dict[str, solve.Fit]
     model_fit: Any
 
 
@@ -212,7 +222,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     flights, and their residual and predictions on the test flights."""
     eval_resid: dict[str, np.ndarray] = {}
     cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
-    fold_fits: dict[str, fitting.Fit] = {}
+    fold_fits: dict[str, solve.Fit] = {}
     fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     values: dict[str, dict[str, float]] = {}
@@ -246,7 +256,7 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
     fit_m = (fold_fit if fold_fit is not None
              else p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
                                    bounded=True))
-    model = PhysicsModel(p.vehicle, fitting.model_terms(p.model_effects, fit_m, spec.fixed),
+    model = PhysicsModel(p.vehicle, solve.model_terms(p.model_effects, fit_m, spec.fixed),
                          spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
     return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
 
@@ -258,7 +268,7 @@ def _group_spread(p: _Problem, train_all: list[str], resid_train: dict, n_folds:
     free."""
     fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
-    for group in fitting.folds(train_all, n_folds):
+    for group in solve.folds(train_all, n_folds):
         sub = [f for f in train_all if f not in group]
         for c in p.cands:
             fit = p.fit_candidate(c, sub, resid_train)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify import evidence, fitting, rates
+from quadcore.identify import evidence, rates
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _HeldOut,
@@ -22,6 +22,7 @@ from quadcore.identify.diagnosis.rows import CandidateRow, HeldOutEvidence
 from quadcore.identify.diagnosis.sensitivity import detection_limits
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import _other, rank_reasons
+from quadcore.identify.fit import solve
 from quadcore.identify.settings import DiagnosisSettings
 from quadcore.physics.dynamics import XYZ
 
@@ -31,7 +32,7 @@ def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
     return float(1.0 - after[channels].sum() / b) if b > 0 else 0.0
 
 
-def _score(c: Effect, held: _HeldOut, fit_c: fitting.Fit,
+def _score(c: Effect, held: _HeldOut, fit_c: solve.Fit,
            fold_params: tuple[list[dict[str, float]], list[dict[str, float]]],
            test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> CandidateRow:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
@@ -47,11 +48,11 @@ def _score(c: Effect, held: _HeldOut, fit_c: fitting.Fit,
     ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
     target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
     params = fit_c.params[c.name]
-    spread = fitting.jackknife_std(fold_params[0])
+    spread = solve.jackknife_std(fold_params[0])
     # the larger of the sample-based error and the spread between groups of flights: flights
     # differ (battery, propellers, a stuck log variable) more than samples within a flight do
     std = {k: max(v, spread.get(k, 0.0)) for k, v in fit_c.std[c.name].items()}
-    free_spread = fitting.jackknife_std(fold_params[1])
+    free_spread = solve.jackknife_std(fold_params[1])
     bounds = _bounds(c, fit_c, free_spread, settings.bound_sigma)
     active = fit_c.active.get(c.name, {})
     # a parameter held at its bound: how well the data pin it is its free fit's error and spread
@@ -147,7 +148,7 @@ class _Bounds:
         return self.beyond > self.bound_sigma
 
 
-def _bounds(c: Effect, fit_c: fitting.Fit, free_spread: dict[str, float], bound_sigma: float) -> _Bounds:
+def _bounds(c: Effect, fit_c: solve.Fit, free_spread: dict[str, float], bound_sigma: float) -> _Bounds:
     free = fit_c.free or fit_c
     values, std = free.params[c.name], free.std[c.name]
     out = {}

@@ -13,7 +13,7 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import fitting, sessions as sessionlib, sufficient
+from quadcore.identify import fitting, flightdata, sessions as sessionlib, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
@@ -37,7 +37,7 @@ class LibrarySums:
 
 
 # ``flight(f, quiet=False) -> (its rows, its residual under the model)``; quiet: without the model's progress
-RowsOf = Callable[..., tuple[fitting.FlightData, np.ndarray]]
+RowsOf = Callable[..., tuple[flightdata.FlightData, np.ndarray]]
 
 
 def from_rows(ids: list[str], flight: RowsOf, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
@@ -128,8 +128,8 @@ def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, de
         lib = library_stats.compute(spec, f, decoded[f])
         if set(labels) <= set(lib.labels):
             return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
-    fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))
-    G, H = flight_grams(fd, fitting.targets_of([fd])[0], cols, fx_effects, spec.vehicle, library_stats.STRIDE)
+    fd = flightdata.flight_data(f, decoded[f], spec.vehicle_for(f))
+    G, H = flight_grams(fd, flightdata.targets_of([fd])[0], cols, fx_effects, spec.vehicle, library_stats.STRIDE)
     return G, H, lib
 
 
@@ -153,9 +153,9 @@ def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: lis
     under the model's effects, fitted here on the training flights (:func:`model_fit`)."""
     predict = model_fit(spec, decoded, ids, train, sessions, log)
 
-    def flight(f: str, quiet: bool = False) -> tuple[fitting.FlightData, np.ndarray]:
-        fd = fitting.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
-        target = fitting.targets_of([fd])[0]
+    def flight(f: str, quiet: bool = False) -> tuple[flightdata.FlightData, np.ndarray]:
+        fd = flightdata.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
+        target = flightdata.targets_of([fd])[0]
         return fd, target if predict is None else target - predict(fd, (lambda msg: None) if quiet else log)
 
     return flight
@@ -167,14 +167,14 @@ def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[st
     flights (per session for per-session effects), or None for a model without effects."""
     model_effects = [effectlib.get(n) for n in spec.effects]
     if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
-        fds = {f: fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
-        targets = dict(zip(ids, fitting.targets_of([fds[f] for f in ids])))
+        fds = {f: flightdata.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
+        targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
         pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
         return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
     if not model_effects:
         return None
     log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
-    fds_train = [fitting.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
-    fit = fitting.fit_effects(model_effects, fds_train, fitting.targets_of(fds_train), spec.vehicle, spec.fixed,
+    fds_train = [flightdata.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
+    fit = fitting.fit_effects(model_effects, fds_train, flightdata.targets_of(fds_train), spec.vehicle, spec.fixed,
                               bounded=True)
     return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)

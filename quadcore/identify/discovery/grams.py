@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects.base import Effect
-from quadcore.identify import fitting, flightdata
+from quadcore.identify import flightdata
 from quadcore.identify.discovery.terms import Term, evaluate
 from quadcore.physics import dynamics, signals
 from quadcore.physics.dynamics import FlightState
@@ -74,7 +74,7 @@ def _effect_basis(effect: Effect, state: FlightState, vehicle: Vehicle) -> list[
     return out
 
 
-def _flight_blocks(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle) -> list:
+def _flight_blocks(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle) -> list:
     """The Gram columns of one flight on all its samples, in blocks: filtered terms (force,
     torque), residual targets, modelled sides, the effects' bases per axis."""
     s = fd.state
@@ -106,13 +106,13 @@ def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
         return Z.T @ Z
 
 
-def flight_gram(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle, stride: int):
+def flight_gram(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle, stride: int):
     """Gram matrix of one flight's filtered terms, residual targets, modelled sides and the
     effects' bases, on every ``stride``-th usable sample."""
     return _gram(_flight_blocks(fd, resid, cols, fx_effects, vehicle), np.flatnonzero(fd.mask)[::stride])
 
 
-def flight_grams(fd: fitting.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle,
+def flight_grams(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle,
                  stride: int) -> tuple[np.ndarray, np.ndarray]:
     """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix
     on every usable sample: the held-out RMSE's) of one flight (see :mod:`quadcore.identify.discovery.library_stats`).

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import flightdata, sufficient
 from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
 from quadcore.identify.discovery.terms import library, variables
 from quadcore.identify.settings import STATISTICS
@@ -119,15 +119,15 @@ def version(spec, flight: str) -> str:
     return f"{sufficient.current_key(spec, flight)}+{library_key(spec, flight)}"
 
 
-def compute(spec, flight: str, decoded, source: str = "", fd: fitting.FlightData | None = None) -> FlightLibrary:
+def compute(spec, flight: str, decoded, source: str = "", fd: flightdata.FlightData | None = None) -> FlightLibrary:
     """A flight's statistics from its decoded table (its rows read once); ``fd``: the table's
     :func:`quadcore.identify.flightdata.flight_data` when the caller has it (the effects' bases
     cached there are not computed again)."""
-    fd = fd if fd is not None else fitting.flight_data(flight, decoded, spec.vehicle_for(flight))
+    fd = fd if fd is not None else flightdata.flight_data(flight, decoded, spec.vehicle_for(flight))
     vars_ = variables(fd.state, spec.vehicle)
     effects = fx_effects(spec)
     cols = library_columns(library(vars_), effects)
-    y0 = fitting.targets_of([fd])[0]
+    y0 = flightdata.targets_of([fd])[0]
     G, H = flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE)
     described = tuple((name, tuple(v.unit), tuple(v.sources), v.channel) for name, v in vars_.items())
     return FlightLibrary(flight, library_key(spec, flight), source, described, cols.labels(), fd.n,

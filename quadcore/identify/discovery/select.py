@@ -40,7 +40,7 @@ from sklearn.linear_model import orthogonal_mp_gram
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import fitting, sufficient
+from quadcore.identify import sufficient
 from quadcore.identify.discovery import accumulate, library_stats
 from quadcore.identify.discovery.accumulate import LibrarySums
 from quadcore.identify.discovery.grams import Columns
@@ -56,6 +56,7 @@ from quadcore.identify.discovery.terms import (
     mul_units,
     unit_text,
 )
+from quadcore.identify.fit import solve
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.physics import signals
 from quadcore.spec.model import ModelSpec
@@ -308,7 +309,7 @@ def discover(
     if len(train) < 2:
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
     fx_effects = library_stats.fx_effects(spec)  # the effects the stored statistics hold
-    folds = fitting.folds(train, settings.n_folds)
+    folds = solve.folds(train, settings.n_folds)
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects))
     flight = None

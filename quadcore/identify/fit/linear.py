@@ -1,0 +1,58 @@
+"""The linear effects fitted from the flights' statistics (:mod:`quadcore.identify.sufficient`):
+normal equations summed over flights, then the solve every fit shares
+(:func:`quadcore.identify.fit.solve.solved_linear`).
+
+For a target ``y_f = z·v_f`` per flight (a signal vector over the flight's augmented design ``z``)
+and the fitted effects' coordinates ``K``::
+
+    A = Σ_f Σ_c w_c G_fc[K, K],   b = Σ_f Σ_c w_c G_fc[K, :] v_f,   yy = Σ_f Σ_c w_c v_fᵀ G_fc v_f
+
+and ``θ = A⁻¹ b`` (least squares), the residual sum of squares ``yy - 2 θᵀb + θᵀAθ``. A fit costs
+a sum over flights of small matrices: it does not grow with the rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from quadcore.effects import Effect
+from quadcore.identify.fit.solve import Fit, fixed_values, solved_linear, weights_from_sums
+from quadcore.identify.sufficient import FlightStats, normal_equations, sum_of_squares
+from quadcore.physics.vehicle import Vehicle
+
+
+def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> np.ndarray:
+    """1/σ² for the force and the torque channels from the mean squares of the targets ``z·v_f``
+    (:func:`quadcore.identify.fit.solve.weights_from_sums`)."""
+    # per flight: stacking the totals (a copy of ~23 MB at 1,000 flights) costs 5x these products
+    ss = sum((sum_of_squares(s, v) for s, v in zip(stats, targets)), np.zeros(6))
+    return weights_from_sums(ss, sum(s.n for s in stats))
+
+
+def subtract_fixed(effects: list[Effect], fixed: dict[str, dict[str, float]], stats: Sequence[FlightStats],
+                   targets: Sequence[np.ndarray], vehicle: Vehicle) -> tuple[list[np.ndarray], dict, dict]:
+    """The targets minus the predictions of the linear effects named in ``fixed`` (at their given
+    values), and the fixed effects' (parameters, standard errors) (:func:`fixed_values`)."""
+    params, std = fixed_values(effects, fixed)
+    vs = [np.asarray(v, dtype=float) for v in targets]
+    for e in effects:
+        if e.name in fixed:
+            vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
+    return vs, params, std
+
+
+def fit_linear(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
+               vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
+    """Jointly fit the linear ``effects`` to the targets ``z·v_f`` (normal equations, see the
+    module); those named in ``fixed`` keep their values and are subtracted first; ``bounded``:
+    within the parameters' physical bounds (:func:`quadcore.identify.fit.solve.solved_linear`)."""
+    fixed = fixed or {}
+    w = channel_weights(stats, [np.asarray(v, dtype=float) for v in targets])
+    vs, params, std = subtract_fixed(effects, fixed, stats, targets, vehicle)
+    lin = [e for e in effects if e.name not in fixed]
+    if lin:
+        A, b, yy = normal_equations(stats, vs, w, lambda lay: np.concatenate([lay.cols(e.name) for e in lin]))
+        return solved_linear(lin, A, b, yy, 6 * sum(s.n for s in stats), vehicle, params, std, w, bounded)
+    return Fit(params, std, w)
