@@ -507,3 +507,106 @@ def test_a_fit_inside_its_bounds_is_the_free_fit(fleet):
                                   bounded=True)
     assert bounded.free is None and bounded.active == {}
     assert bounded.params == free.params and bounded.std == free.std
+
+
+def test_a_models_profiled_prediction_as_a_column_equals_the_rows(lagged_fleet):
+    """A model's one-parameter nonlinear effect predicts as an extra column of the flight's
+    statistics, from its profile (profiles.with_predictions): on a grid point, its sums with every
+    column, and the other profiled effects' sums against it (a thrust_delay candidate fitted to a
+    residual that holds the model's motor_lag), equal those of the column made from the rows."""
+    from quadcore.identify import profiles
+    from quadcore.identify.flightdata import prediction
+
+    fds, stats = lagged_fleet
+    f = sorted(fds)[0]
+    lag = effects.get("motor_lag")
+    (p,) = lag.parameters
+    tau = float(profiles.profile_grid(p.lower, p.upper)[12])
+    grown = profiles.with_predictions(stats[f], {"motor_lag": tau})
+    extra = {"pred:motor_lag": prediction(lag, {p.name: tau}, fds[f], VEHICLE)}
+    rows = sufficient.flight_stats(fds[f], VEHICLE, stats[f].layout.with_extras(list(extra)), extras=extra)
+    assert grown.layout == rows.layout
+    scale = np.abs(rows.total).max()
+    np.testing.assert_allclose(grown.total, rows.total, rtol=1e-9, atol=1e-12 * scale)
+    assert grown.profiles is not None and set(grown.profiles.by_effect) == {"thrust_delay"}
+    want = rows.profiles.by_effect["thrust_delay"].total
+    np.testing.assert_allclose(grown.profiles.by_effect["thrust_delay"].total, want, rtol=1e-9,
+                               atol=1e-12 * np.abs(want).max())
+    # the strided sums hold the strided cross in float32
+    want = rows.profiles.by_effect["thrust_delay"].strided
+    np.testing.assert_allclose(grown.profiles.by_effect["thrust_delay"].strided, want, rtol=1e-5,
+                               atol=1e-6 * np.abs(want).max())
+
+
+def _diagnose_counting_rows(monkeypatch_target, fds, tables, spec, held, candidates, stored):
+    """A diagnosis whose flights' rows are the given FlightData, and the flights whose rows it read."""
+    from quadcore.identify import diagnosis
+
+    read: list[str] = []
+
+    def rows_of(f: str, decoded: object, veh: object) -> fitting.FlightData:
+        read.append(f)
+        return fds[f]
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(flightdata, "flight_data", rows_of)
+        if monkeypatch_target is not None:
+            monkeypatch_target(m)
+        result = diagnosis.diagnose(tables, spec, [held], candidates, stats=stored).to_dict()
+    return result, read
+
+
+def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_flights_rows(lagged_fleet,
+                                                                                             tmp_path):
+    """The committed real model's kind (linear effects and motor_lag): its fit in the fold, its
+    residual, the candidates' fits, held-out tests, sensitivity and disagreements come from the
+    flights' stored statistics and profiles, the model's lag as an extra column; only the held-out
+    flight's rows are read (its regime tables and spectra), without a timing candidate (the rate
+    level reads every flight's: docs/timing.md). The model is the one fit_model fits."""
+    fds, stats = lagged_fleet
+    for s in stats.values():
+        sufficient.save(s, tmp_path)
+    loaded = {f: sufficient.load(tmp_path, f) for f in stats}
+    tables = {f: "rows" for f in fds}
+    held = sorted(tables)[-1]
+    spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    result, read = _diagnose_counting_rows(None, fds, tables, spec, held, ["rotor_drag", "com_offset"], loaded.get)
+    assert set(read) == {held}
+    train = [f for f in sorted(fds) if f != held]
+    fitted = model_fit.fit_model(spec, {f: None for f in train}, train, stats=loaded.get)
+    got = {e["name"]: e["params"] for e in result["model"]["effects"]}
+    _close({t.name: t.params for t in fitted.terms}, got, rel=1e-12)
+    assert got["motor_lag"]["tau_s"] == pytest.approx(0.03, rel=0.15)
+
+
+def test_a_model_with_a_lag_diagnosed_from_statistics_agrees_with_its_rows(lagged_fleet):
+    """The same diagnosis with the model scored from rows (the reference: the row search of the
+    lag, the row tables; what a model the statistics cannot express still takes) and from
+    statistics (the lag from its profile, interpolated between grid points). Measured on these
+    flights: the lag 1.9e-6 s apart (1 % of its σ), its σ 0.15 %, the held-out residual's RMS
+    1.2e-4 relative, the candidates' scores 3e-4 (a delay's row objective ripples with the sample
+    period: its trough against the smooth curve's minimum, profiles' docstring). Tolerances: the
+    row search's own (xatol, 5e-4 of the span) for the lag, 4 % for its σ (the profile interval's,
+    benchmarks/bench_profiles.py), 1e-3 for the RMS and for a score (a fiftieth of min_explained)."""
+    from quadcore.identify.diagnosis import problem
+
+    fds, stats = lagged_fleet
+    tables = {f: "rows" for f in fds}
+    held = sorted(tables)[-1]
+    spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    cands = ["rotor_drag", "com_offset", "thrust_delay"]
+    got, _ = _diagnose_counting_rows(None, fds, tables, spec, held, cands, stats.get)
+    ref, _ = _diagnose_counting_rows(lambda m: m.setattr(problem.model_fit, "from_statistics", lambda *a: False),
+                                     fds, tables, spec, held, cands, stats.get)
+    lag, lag_ref = ({d["name"]: d for d in r["model"]["effects"]}["motor_lag"] for r in (got, ref))
+    span = effects.get("motor_lag").parameters[0].upper - effects.get("motor_lag").parameters[0].lower
+    assert abs(lag["params"]["tau_s"] - lag_ref["params"]["tau_s"]) <= 5e-4 * span
+    assert lag["std"]["tau_s"] == pytest.approx(lag_ref["std"]["tau_s"], rel=0.04)
+    for k in ("force_rmse_N", "torque_rmse_Nm"):
+        np.testing.assert_allclose(got["baseline"][k], ref["baseline"][k], rtol=1e-3)
+    scores = {r["effect"]: r["score"] for r in ref["candidates"]}
+    for r in got["candidates"]:
+        assert r["score"] == pytest.approx(scores[r["effect"]], abs=1e-3), r["effect"]
+    assert {r["effect"] for r in got["candidates"] if r["found"]} == {r["effect"] for r in ref["candidates"]
+                                                                      if r["found"]}
+    assert got["verdict"].split(". ")[0] == ref["verdict"].split(". ")[0]

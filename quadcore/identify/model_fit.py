@@ -18,12 +18,19 @@ from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
 
+def expressible(effects: list[Effect], fixed: Mapping[str, object]) -> bool:
+    """Whether a joint fit of ``effects`` comes from the flights' statistics
+    (:func:`quadcore.identify.fit.fit_effects`): linear effects, and one profiled nonlinear
+    effect (not in ``fixed``) beside them."""
+    nonlinear = [e for e in effects if not e.linear]
+    return not nonlinear or (len(nonlinear) == 1 and profiles.profiled(nonlinear[0])
+                             and nonlinear[0].name not in fixed)
+
+
 def from_statistics(spec: ModelSpec, effects: list[Effect]) -> bool:
     """Whether :func:`fit_model` fits ``effects`` from the flights' statistics: linear effects, and
     one profiled nonlinear effect (not fixed) beside them, unless fitted per session."""
-    nonlinear = [e for e in effects if not e.linear]
-    return not nonlinear or (len(nonlinear) == 1 and profiles.profiled(nonlinear[0]) and not spec.per_session
-                             and nonlinear[0].name not in spec.fixed)
+    return expressible(effects, spec.fixed) and (all(e.linear for e in effects) or not spec.per_session)
 
 
 def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None,

@@ -14,7 +14,9 @@ parameter (:func:`profile_grid`: the search's 17 points, :func:`search_grid`, an
 per 1 s block (float32: the held-out test's clusters), over the flight (float64: the fits), and
 over every ``GRAM_STRIDE``-th sample (the signature comparison); and between two profiled
 effects ``a``, ``b`` the cross sums ``Σ_i p_a(v_g)·p_b(v_h)`` per channel over those strided
-samples (float32), all the signature comparison asks of two predictions. The columns ``z``
+samples (float32), all the signature comparison asks of two predictions, and over every usable
+sample (float64, ``cross_total``, with each effect against itself, ``a = b``): what a residual
+that holds a model's profiled prediction asks of it and of a profiled candidate. The columns ``z``
 include, per profiled effect, its unit wrench (:func:`quadcore.identify.flightdata.unit_wrench`,
 ``unit:<effect>:<parameter>``) and its prediction at the sensitivity reference (``ref:<effect>``)
 when it has one: fixed signals, so the detection limits take them as any other column.
@@ -33,10 +35,18 @@ error run on it); beside linear effects, these are solved inside it (:func:`fit_
 prediction at the fitted ``v`` is an extra column whose sums with every other column are
 ``ω(v)·P`` per block: exact on a grid point (to float32 rounding per block), interpolated between
 as the search's objective is; the unit wrench and the reference are exact (stored columns).
-A cross between two profiled effects' predictions is known on the strided samples only:
-over the flight it is taken as that times the samples' ratio, per block shared out in
-proportion to ``sqrt(aa_b bb_b)``; no score reads those two (the comparison of two predictions
-cancels their cross exactly).
+A cross between two profiled effects' predictions over the flight is ``ω_a·C_ab·ω_b`` of the
+whole-flight cross sums, per block shared out in proportion to ``sqrt(aa_b bb_b)`` (per-block
+cross sums are not held: the comparison of two candidates' predictions cancels their cross
+exactly, and a candidate against a model's prediction reads it only summed over the blocks).
+
+**A model's prediction** (a model of linear effects and one profiled effect, diagnosed from
+statistics) is such a column too, subtracted in its residual; its own energy is then that of the
+interpolated signal ``p̃ = Σ_g ω_g p(v_g)``, ``ω·C_aa·ω`` (``signals`` of :func:`with_predictions`),
+not the interpolated energy ``ω·P[W]``: the residual ``y - p̃`` is small beside ``y`` and ``p̃``, and
+the interpolated energy's error (~1e-5 of ``Σ p²``) would be 1-2 % of the residual's energy on a
+simulated lag at the noise floor, the signal's ~1e-4 (the residual's Gram matrix stays one).
+The fits' objective keeps the interpolated energy (``quadcore.identify.sufficient.profiled_fit``).
 
 **Accuracy** (``benchmarks/bench_profiles.py``, all flights fitted at once): for ``motor_lag``
 the profile search lands within 0.02 of the row search's own tolerance (``xatol``, 5e-4 of the
@@ -54,7 +64,7 @@ flight and strided (float64); with the library's 2 profiled effects and 22 colum
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property, lru_cache, partial
 from typing import TYPE_CHECKING
@@ -165,13 +175,15 @@ class Profile:
 
 @dataclass(frozen=True)
 class Profiles:
-    """A flight's profiles, by effect, and the strided cross sums of each pair of them, by
-    ``(a, b)`` in the layout's order: (Ga, Gb, 6); ``thinning``: the usable samples over the
-    strided ones."""
+    """A flight's profiles, by effect, and the cross sums of each pair of them, by ``(a, b)`` in
+    the layout's order, (Ga, Gb, 6): ``cross`` over the strided samples (float32), ``cross_total``
+    over every usable sample (float64: a residual that holds one profiled effect's prediction,
+    a model's, against another's profile); ``thinning``: the usable samples over the strided ones."""
 
     by_effect: Mapping[str, Profile]
     cross: Mapping[tuple[str, str], np.ndarray]
     thinning: float
+    cross_total: Mapping[tuple[str, str], np.ndarray]
 
 
 def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarray, starts: np.ndarray,
@@ -189,9 +201,15 @@ def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarra
             else np.zeros((0, P.shape[2], 6, Z.shape[2] + 1))
         stored = blocks.astype(np.float32)  # as the file holds them
         by_effect[name] = Profile(name, blocks.sum(axis=0), _sums(P[::stride], Z[::stride]), _given(stored))
-    cross = {(a, b): np.einsum("ncg,nch->ghc", preds[a][::stride], preds[b][::stride]).astype(np.float32)
-             for i, a in enumerate(names) for b in names[i + 1:]}
-    return Profiles(by_effect, cross, len(Z) / max(len(Z[::stride]), 1))
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    cross = {(a, b): _cross_sums(preds[a][::stride], preds[b][::stride]).astype(np.float32) for a, b in pairs}
+    cross_total = {(a, b): _cross_sums(preds[a], preds[b]) for a, b in [*((n, n) for n in names), *pairs]}
+    return Profiles(by_effect, cross, len(Z) / max(len(Z[::stride]), 1), cross_total)
+
+
+def _cross_sums(Pa: np.ndarray, Pb: np.ndarray) -> np.ndarray:
+    """(Ga, Gb, 6) ``Σ_i p_a(v_g)·p_b(v_h)`` per channel of two effects' predictions (m, 6, G)."""
+    return np.stack([Pa[:, c, :].T @ Pb[:, c, :] for c in range(Pa.shape[1])], axis=2)
 
 
 def _given(a: np.ndarray) -> Callable[[], np.ndarray]:
@@ -225,9 +243,14 @@ def covers(effect: Effect, stats: Sequence[FlightStats]) -> bool:
 # Held-out predictions as extra columns
 # ---------------------------------------------------------------------------------------
 
-def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats:
+def with_predictions(s: FlightStats, values: Mapping[str, float], signals: Collection[str] = ()) -> FlightStats:
     """A flight's statistics with, per profiled effect in ``values`` (name -> its parameter's
-    value), its prediction there as an extra column ``pred:<effect>`` (see the module)."""
+    value), its prediction there as an extra column ``pred:<effect>`` (see the module), and the
+    profiles of its other profiled effects grown by those columns (their whole-flight and strided
+    sums against them from the cross sums: a candidate fitted to a residual that holds a model's
+    profiled prediction; not per block). ``signals``: the effects whose column's own energy is that
+    of the interpolated signal (a model's, which a residual subtracts; see the module), not the
+    interpolated energy."""
     names = list(values)
     base = s.layout.width
     layout = s.layout.with_extras([f"pred:{n}" for n in names])
@@ -235,8 +258,8 @@ def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats
     om = {n: prof.by_effect[n].at(values[n]) for n in names}
     pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
 
-    def grown(G: np.ndarray, part: Callable[[str], np.ndarray], cross_scale: float) -> np.ndarray:
-        """``G`` with the predictions' rows and columns (their crosses times ``cross_scale``)."""
+    def grown(G: np.ndarray, part: Callable[[str], np.ndarray], cross: Mapping | None) -> np.ndarray:
+        """``G`` with the predictions' rows and columns (their crosses from ``cross``, None: zero)."""
         out = np.zeros((*G.shape[:-2], layout.width, layout.width))
         out[..., :base, :base] = G
         for i, n in enumerate(names):
@@ -244,15 +267,23 @@ def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats
             out[..., base + i, :base] = out[..., :base, base + i] = row[..., :base]
             out[..., base + i, base + i] = row[..., base]
         for i, j in pairs:
-            cross = cross_scale * _cross(prof.cross, names[i], names[j], om)
-            out[..., base + i, base + j] = out[..., base + j, base + i] = cross
+            if cross is not None:
+                c = _cross(cross, names[i], names[j], om)
+                out[..., base + i, base + j] = out[..., base + j, base + i] = c
         return out
 
-    total = grown(s.total, lambda n: prof.by_effect[n].total, prof.thinning)
-    strided = grown(s.strided, lambda n: prof.by_effect[n].strided, 1.0)
+    total = grown(s.total, lambda n: prof.by_effect[n].total, prof.cross_total)
+    mine = [i for i, n in enumerate(names) if n in signals]
+    for i in mine:  # the energy of the interpolated signal itself (see the module)
+        total[:, base + i, base + i] = _cross(prof.cross_total, names[i], names[i], om)
+    strided = grown(s.strided, lambda n: prof.by_effect[n].strided, prof.cross)
 
     def gram() -> np.ndarray:
-        blocks = grown(s.gram, lambda n: prof.by_effect[n].blocks.astype(float), 0.0)
+        blocks = grown(s.gram, lambda n: prof.by_effect[n].blocks.astype(float), None)
+        for i in mine:  # each block's energy in proportion to its interpolated one
+            k = base + i
+            held = blocks[:, :, k, k].sum(axis=0)
+            blocks[:, :, k, k] *= np.where(held > 0, total[:, k, k] / np.where(held > 0, held, 1.0), 1.0)
         for i, j in pairs:  # the flight's cross shared out over its blocks
             a, b = base + i, base + j
             share = np.sqrt(np.abs(blocks[:, :, a, a] * blocks[:, :, b, b]))
@@ -260,13 +291,40 @@ def with_predictions(s: FlightStats, values: Mapping[str, float]) -> FlightStats
             blocks[:, :, a, b] = blocks[:, :, b, a] = share * total[:, a, b]
         return blocks
 
-    return replace(s, layout=layout, total=total, strided=strided, blocks_source=gram, profiles=None)
+    return replace(s, layout=layout, total=total, strided=strided, blocks_source=gram,
+                   profiles=_others_grown(prof, om))
+
+
+def _others_grown(prof: Profiles, om: Mapping[str, np.ndarray]) -> Profiles | None:
+    """The profiles of the effects not predicted (not in ``om``), each grown by the predictions'
+    columns (before its ``Σ p²``): ``Σ p_e(v_g) p_n(v_n)`` from the cross sums, over the flight
+    and the strided samples; their per-block sums are not held (a held-out test takes the
+    predictions, not the profiles)."""
+    kept = [n for n in prof.by_effect if n not in om]
+    if not kept:
+        return None
+
+    def with_columns(P: np.ndarray, e: str, cross: Mapping) -> np.ndarray:
+        cols = [np.einsum("ghc,h->gc", _pair(cross, e, n).astype(float), w)[:, :, None] for n, w in om.items()]
+        return np.concatenate([P[:, :, :-1], *cols, P[:, :, -1:]], axis=2)
+
+    def no_blocks() -> np.ndarray:
+        raise StatsError("a grown profile holds no per-block sums")
+
+    by_effect = {e: Profile(e, with_columns(prof.by_effect[e].total, e, prof.cross_total),
+                            with_columns(prof.by_effect[e].strided, e, prof.cross), no_blocks) for e in kept}
+    return Profiles(by_effect, {k: C for k, C in prof.cross.items() if k[0] in kept and k[1] in kept},
+                    prof.thinning, {k: C for k, C in prof.cross_total.items() if k[0] in kept and k[1] in kept})
+
+
+def _pair(cross: Mapping, a: str, b: str) -> np.ndarray:
+    """(Ga, Gb, 6) the cross sums of ``a`` and ``b`` (stored once per pair, in the layout's order)."""
+    return cross[a, b] if (a, b) in cross else np.swapaxes(cross[b, a], 0, 1)
 
 
 def _cross(cross: Mapping, a: str, b: str, om: Mapping) -> np.ndarray:
-    """(6,) the strided ``Σ p_a(v_a)·p_b(v_b)`` per channel."""
-    C = cross[a, b] if (a, b) in cross else np.swapaxes(cross[b, a], 0, 1)
-    return np.einsum("g,ghc,h->c", om[a], C.astype(float), om[b])
+    """(6,) ``Σ p_a(v_a)·p_b(v_b)`` per channel, from the cross sums ``cross`` (whole flight or strided)."""
+    return np.einsum("g,ghc,h->c", om[a], _pair(cross, a, b).astype(float), om[b])
 
 
 # ---------------------------------------------------------------------------------------
@@ -284,6 +342,8 @@ def arrays(profiles: Profiles | None) -> dict[str, np.ndarray]:
         out[f"profile:{name}:blocks"] = prof.blocks
     for (a, b), C in profiles.cross.items():
         out[f"cross:{a}:{b}"] = C
+    for (a, b), C in profiles.cross_total.items():
+        out[f"cross_total:{a}:{b}"] = C
     out["profile_thinning"] = np.array([profiles.thinning])
     return out
 
@@ -297,4 +357,5 @@ def from_arrays(layout: Layout, array: Callable[[str], np.ndarray]) -> Profiles 
                             partial(array, f"profile:{n}:blocks")) for n in names}
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
     return Profiles(by_effect, {k: array(f"cross:{k[0]}:{k[1]}") for k in pairs},
-                    float(array("profile_thinning")[0]))
+                    float(array("profile_thinning")[0]),
+                    {k: array(f"cross_total:{k[0]}:{k[1]}") for k in [*((n, n) for n in names), *pairs]})

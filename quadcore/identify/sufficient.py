@@ -363,6 +363,20 @@ def prediction(effects: list[Effect], params: dict[str, dict[str, float]], s: Fl
     return sum((s.layout.coefficients(e, params[e.name], vehicle) for e in effects), np.zeros(s.layout.width))
 
 
+def predicted(effects: list[Effect], params: Mapping[str, dict[str, float]], s: FlightStats,
+              vehicle: Vehicle) -> tuple[FlightStats, np.ndarray]:
+    """The summed prediction of ``effects`` at ``params`` on a flight's statistics: the linear
+    effects' coordinates, and each profiled nonlinear effect's prediction at its value as an extra
+    column ``pred:<effect>`` from its profile (:func:`quadcore.identify.profiles.with_predictions`):
+    the statistics grown by those columns (in the order of ``effects``) and the signal vector there."""
+    values = {e.name: params[e.name][e.parameters[0].name] for e in effects if not e.linear}
+    grown = profiles.with_predictions(s, values, signals=list(values)) if values else s
+    v = prediction([e for e in effects if e.linear], dict(params), grown, vehicle)
+    for name in values:
+        v[grown.layout.extra(f"pred:{name}")] = 1.0
+    return grown, v
+
+
 def unit_vector(effect: Effect, param, s: FlightStats, vehicle: Vehicle, secant: float) -> np.ndarray:
     """:func:`quadcore.identify.flightdata.unit_wrench` of a linear effect as a signal vector: the secant
     of its prediction over ``secant`` of the parameter's range."""

@@ -19,6 +19,7 @@ from quadcore.identify import (
     fit as fitlib,
     fitting,
     flightdata,
+    model_fit,
     profiles,
     sessions as sessionlib,
     spectrum,
@@ -43,15 +44,30 @@ def _ss(resid: np.ndarray, flight: Flight) -> np.ndarray:
     return flight.sum_of_squares(resid)
 
 
+@dataclass(frozen=True)
+class _Residual:
+    """The model's residual on some flights: per flight its ``signal`` and the flight it is a
+    signal of (``on``: from statistics, grown by the model's profiled prediction as an extra
+    column, :func:`quadcore.identify.sufficient.predicted`), and the values of the model's
+    profiled effects it was taken at (name -> value; empty for a model of linear effects)."""
+
+    signal: dict[str, np.ndarray]
+    on: dict[str, Any]
+    values: dict[str, float]
+
+
 class _Flights:
     """The diagnosis's flights, in one of two forms, and the rows where they are needed.
 
-    A model of linear effects is scored from the flights' sufficient statistics
+    A model the statistics express (:func:`quadcore.identify.model_fit.from_statistics`, the rule
+    :func:`~quadcore.identify.model_fit.fit_model` fits by: linear effects, and one profiled
+    nonlinear effect beside them) is scored from the flights' sufficient statistics
     (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
-    every residual and linear prediction a signal vector); a model with a nonlinear effect
-    from rows (``flight(f)`` a :class:`~quadcore.identify.flightdata.FlightData`, signals (n, 6) arrays).
-    Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`): the evaluated
-    flights' tables and spectra, and candidates with several nonlinear parameters (a
+    every residual and prediction a signal vector, the nonlinear one's an extra column from its
+    profile); any other (two nonlinear effects, one with several parameters, a nonlinear one per
+    session or fixed) from rows (``flight(f)`` a :class:`~quadcore.identify.flightdata.FlightData`,
+    signals (n, 6) arrays). Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`):
+    the evaluated flights' tables and spectra, and candidates with several nonlinear parameters (a
     one-parameter nonlinear candidate comes from the flights' profiles,
     :mod:`quadcore.identify.profiles`)."""
 
@@ -59,13 +75,13 @@ class _Flights:
         self.decoded, self.spec, self.ids = decoded, spec, ids
         self._rows: dict[str, FlightData] = {}
         self._rates: dict[str, float] = {}  # each flight's sample rate, kept when its rows go
-        self.linear = all(effectlib.get(n).linear for n in spec.effects)
-        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if self.linear else None
+        from_stats = model_fit.from_statistics(spec, [effectlib.get(n) for n in spec.effects])
+        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if from_stats else None
         # the fits and weights of the form the flights are held in, chosen here by the model's
         # effects' kinds (never by the type of what a function is given)
-        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if self.linear else fitting.fit_effects
+        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if from_stats else fitting.fit_effects
         self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = (
-            fitlib.channel_weights if self.linear else fitting.weights_of)
+            fitlib.channel_weights if from_stats else fitting.weights_of)
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
@@ -99,14 +115,38 @@ class _Flights:
         fd = self.rows(f)
         return np.concatenate([fd.r_f, fd.r_tau], axis=1)
 
-    def signal_rows(self, f: str, signal: np.ndarray) -> np.ndarray:
-        """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are)."""
+    def signal_rows(self, f: str, signal: np.ndarray, values: Mapping[str, float] | None = None) -> np.ndarray:
+        """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are);
+        ``values``: the model's profiled effects' values, whose predictions (``pred:<effect>``, on
+        the rows) follow the flight's own columns in the signal's layout."""
         if self.stats is None:
             return signal
-        layout = self.stats[f].layout  # the evaluated flights' extra columns are no part of a residual
+        values = values or {}
+        fd, vehicle = self.rows(f), self.spec.vehicle
+        # the evaluated flights' extra columns of candidates are no part of a residual
+        layout = self.stats[f].layout.with_extras([f"pred:{n}" for n in values])
         if np.any(signal[layout.width:]):
             raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
-        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width])
+        extras = {}
+        for name, v in values.items():
+            e = effectlib.get(name)
+            extras[f"pred:{name}"] = flightdata.prediction(e, {**e.defaults(), e.parameters[0].name: v}, fd, vehicle)
+        return sufficient.signal_rows(fd, vehicle, layout, signal[: layout.width], extras)
+
+    def residual(self, effects: list, fit: Any, targets: Mapping[str, np.ndarray], flights) -> _Residual:
+        """The residual of ``effects`` fitted (``fit``: a :class:`~quadcore.identify.fit.solve.Fit`)
+        on ``flights``: from statistics, in each flight's statistics grown by the profiled
+        effects' predictions (:func:`quadcore.identify.sufficient.predicted`)."""
+        vehicle = self.spec.vehicle
+        if self.stats is None:
+            return _Residual({f: targets[f] - fit.predict(effects, self.rows(f), vehicle) for f in flights},
+                             {f: self.rows(f) for f in flights}, {})
+        signal, on = {}, {}
+        for f in flights:
+            on[f], v = sufficient.predicted(effects, fit.params, self.stats[f], vehicle)
+            signal[f] = on[f].layout.pad(targets[f]) - v
+        values = {e.name: fit.params[e.name][e.parameters[0].name] for e in effects if not e.linear}
+        return _Residual(signal, on, values)
 
 
 class _Problem:
@@ -132,28 +172,28 @@ class _Problem:
         # the latest residual turned into rows once for all nonlinear candidates (a fold's
         # candidates share it; later fits never come back to an older one), so rows of one
         # residual are held, not one per fold; the residual is kept so its id cannot be reused
-        self._row_resid_of: tuple[dict, dict[str, np.ndarray]] = ({}, {})
+        self._row_resid_of: tuple[_Residual | None, dict[str, np.ndarray]] = (None, {})
 
-    def fit_candidate(self, c, flights: list[str], resid: dict) -> solve.Fit:
+    def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
         parameters' physical bounds (the free fit, when it left them, kept as ``free``)."""
         if self.by_rows[c.name]:
             return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
                                        [self._row_resid(f, resid) for f in flights], self.vehicle, bounded=True)
-        return self.fl.fit_effects([c], [self.fds[f] for f in flights], [resid[f] for f in flights], self.vehicle,
-                                   bounded=True)
+        return self.fl.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
+                                   self.vehicle, bounded=True)
 
-    def _row_resid(self, f: str, resid: dict) -> np.ndarray:
+    def _row_resid(self, f: str, resid: _Residual) -> np.ndarray:
         if self._row_resid_of[0] is not resid:
             self._row_resid_of = (resid, {})
         rows = self._row_resid_of[1]
         if f not in rows:
-            rows[f] = self.fl.signal_rows(f, resid[f])
+            rows[f] = self.fl.signal_rows(f, resid.signal[f], resid.values)
         return rows[f]
 
     def forget_row_resid(self) -> None:
         """Drop the residual rows the nonlinear candidates' fits kept (after the last fit)."""
-        self._row_resid_of = ({}, {})
+        self._row_resid_of = (None, {})
 
     def from_profile(self, c) -> bool:
         """Whether ``c`` is fitted and predicted from the flights' profiles."""
@@ -187,17 +227,19 @@ def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
     return splits, ids, "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
 
 
-def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, log) -> tuple[Any, dict]:
+def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, log) -> tuple[Any, _Residual]:
     """The model fitted on ``train`` (per session for a model with per-session effects), and its
     residual (target minus prediction) on the ``train`` and ``test`` flights."""
     fds, targets = p.fds, p.targets
     tr = [fds[f] for f in train]
     if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
         pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log, p.fl.fit_effects)
-        return pm, {f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in {*train, *test}}
+        both = sorted({*train, *test})
+        return pm, _Residual({f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in both},
+                             {f: fds[f] for f in both}, {})
     fit_m = p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
                              bounded=True)  # the model within its bounds, as fit_model
-    return fit_m, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in {*train, *test}}
+    return fit_m, p.fl.residual(p.model_effects, fit_m, targets, sorted({*train, *test}))
 
 
 @dataclass(frozen=True)
@@ -215,6 +257,7 @@ class _Folds:
     free_params: dict[str, list[dict]]
     fits: dict[str, solve.Fit]
     model_fit: Any
+    model_values: dict[str, dict[str, float]]  # per test flight: its fold's model's profiled values
 
 
 def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log) -> _Folds:
@@ -226,6 +269,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     fold_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     values: dict[str, dict[str, float]] = {}
+    model_values: dict[str, dict[str, float]] = {}
     model_fit = None
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
@@ -240,11 +284,11 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
                 else:
                     cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
-            eval_resid[f] = resid[f]
-    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit)
+            eval_resid[f], model_values[f] = resid.signal[f], resid.values
+    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit, model_values)
 
 
-def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, dict]:
+def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, _Residual]:
     """The model fitted on all training flights (the parameters reported; ``fold_fit``, the only
     fold's fit, when it is that one) and its residual on them."""
     fds, targets, spec = p.fds, p.targets, p.spec
@@ -252,16 +296,17 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
     if spec.per_session:
         model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
                                                                                  sessions, log, p.fl.fit_effects)
-        return model, {f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all}
+        return model, _Residual({f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all},
+                                {f: fds[f] for f in train_all}, {})
     fit_m = (fold_fit if fold_fit is not None
              else p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
                                    bounded=True))
     model = PhysicsModel(p.vehicle, solve.model_terms(p.model_effects, fit_m, spec.fixed),
                          spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
-    return model, {f: targets[f] - fit_m.predict(p.model_effects, fds[f], p.vehicle) for f in train_all}
+    return model, p.fl.residual(p.model_effects, fit_m, targets, train_all)
 
 
-def _group_spread(p: _Problem, train_all: list[str], resid_train: dict, n_folds: int
+def _group_spread(p: _Problem, train_all: list[str], resid_train: _Residual, n_folds: int
                   ) -> tuple[dict[str, list[dict]], dict[str, list[dict]]]:
     """One split only: each candidate refitted leaving out groups of training flights, for the
     spread, in place of its fit on all of them: its parameters per group, within the bounds and
@@ -293,6 +338,7 @@ class _HeldOut:
     noise_ss: np.ndarray
     at_noise: dict[str, bool]
     w: np.ndarray
+    model_values: dict[str, dict[str, float]]  # per flight: the model's profiled values in ``resid``
 
 
 def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldOut:
@@ -305,7 +351,8 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldO
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
     w = p.fl.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
-    return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w)
+    return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w,
+                    folds.model_values)
 
 
 def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
@@ -319,18 +366,34 @@ def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
     if fl.stats is None:
         return [fl.rows(f) for f in eval_ids]
     by_rows = [c for c in p.cands if p.by_rows[c.name]]
-    if not by_rows and not folds.values:
+    if not by_rows and not folds.values and not any(folds.model_values.values()):
         return [fl.stats[f] for f in eval_ids]
     out = []
     for f in eval_ids:
         s = _with_row_predictions(fl, f, by_rows, cand_pred) if by_rows else fl.stats[f]
-        if folds.values:
-            s = profiles.with_predictions(s, {c: values[f] for c, values in folds.values.items()})
-        eval_resid[f] = s.layout.pad(eval_resid[f])
+        model = folds.model_values[f]  # the residual's own columns: the model's profiled predictions
+        values = {**model, **{c: values[f] for c, values in folds.values.items()}}
+        if values:
+            s = profiles.with_predictions(s, values, signals=list(model))
+        eval_resid[f] = _moved(eval_resid[f], fl.stats[f].layout.with_extras([f"pred:{n}" for n in model]),
+                               s.layout)
         for c in p.cands:
             cand_pred[c.name][f] = (s.layout.unit(s.layout.extra(f"pred:{c.name}")) if not c.linear
                                     else s.layout.pad(cand_pred[c.name][f]))
         out.append(s)
+    return out
+
+
+def _moved(v: np.ndarray, source: sufficient.Layout, to: sufficient.Layout) -> np.ndarray:
+    """A signal vector of the layout ``source`` in the layout ``to`` (which holds every column of
+    ``source`` it uses, by name)."""
+    out = np.zeros(to.width)
+    for name in source.effects:
+        out[to.cols(name)] = v[source.cols(name)]
+    out[to.y0] = v[source.y0]
+    for name in source.extras:
+        if v[source.extra(name)]:
+            out[to.extra(name)] = v[source.extra(name)]
     return out
 
 

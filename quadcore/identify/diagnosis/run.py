@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, rates, sessions as sessionlib, spectrum, sufficient, summaries
+from quadcore.identify import evidence, model_fit, rates, sessions as sessionlib, spectrum, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -168,7 +168,7 @@ def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
     sums = spectrum.SpectrumSums(float(np.median([p.fl.sample_rate_hz(f) for f in held.ids])), p.vehicle)
     frames = []
     for f in held.ids:
-        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f])
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f))
         frames.append(long_frame(fd, r, p.vehicle))
         sums.add(fd, r)
         p.fl.release(f)
@@ -181,7 +181,7 @@ def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
     the residual, a signal vector, summed as quadratic forms of each flight's summary; a flight
     without one (missing or stale) from its rows, one at a time."""
     def from_rows(f: str) -> summaries.ResidualSums:
-        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f])
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f))
         out = summaries.of_rows(fd, r, p.vehicle).residual(np.ones(1))
         p.fl.release(f)
         return out
@@ -199,7 +199,7 @@ def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sess
     beside them (from the flights' statistics when they are linear, the best one perhaps
     profiled; otherwise fitted on each flight's rows)."""
     best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
-    if all(e.linear for e in p.model_effects) and (not best or best[0].linear or p.from_profile(best[0])):
+    if p.fl.stats is not None and model_fit.expressible(p.model_effects + best, p.spec.fixed):
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
                                         log, p.fl.fit_effects)
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
