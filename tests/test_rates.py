@@ -16,21 +16,23 @@ import numpy as np
 import pytest
 
 from quadcore import effects
-from quadcore.identify import evidence, fitting, flightdata, rates
+from quadcore.identify import diagnosis, evidence, fitting, flightdata, rates
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
+from quadcore.spec.model import spec_from
 
 VEHICLE = vehicle.load()
 TRUE_S = 0.01
 TIMING = ("thrust_delay", "motor_lag")
 
 
-def _flights(folder: Path, name: str, open_loop_noise: bool = False) -> list[flightdata.FlightData]:
-    """Three hover flights with ``name`` at 10 ms; with ``open_loop_noise`` the controller reads
-    the true rates and only the log carries the gyro noise."""
-    configs = [SimConfig(kind="hover", duration_s=8.0, seed=k) for k in range(3)]
+def _flights(folder: Path, name: str, open_loop_noise: bool = False, rate_hz: float = 500.0
+             ) -> list[flightdata.FlightData]:
+    """Three hover flights with ``name`` at 10 ms, logged at ``rate_hz``; with ``open_loop_noise``
+    the controller reads the true rates and only the log carries the gyro noise."""
+    configs = [SimConfig(kind="hover", duration_s=8.0, seed=k, log_rate_hz=rate_hz) for k in range(3)]
     fly = simulation._fly
     if open_loop_noise:
         def quiet(config, veh, ref, body, noise, t):
@@ -83,6 +85,28 @@ def test_without_the_noise_in_the_loop_the_torque_channels_are_unbiased(tmp_path
     opened, opened_std = _torque_fit(e, _flights(tmp_path / "open", e.name, open_loop_noise=True))
     assert closed - TRUE_S > 5 * closed_std
     assert abs(opened - TRUE_S) < 3 * opened_std, (opened, opened_std)
+
+
+@pytest.mark.slow
+def test_below_the_command_rate_the_rate_level_does_not_decide_lag_against_delay(tmp_path):
+    """At 100 Hz the log holds one command in five: the firmware's others (each reacting to a
+    fresh gyro sample) are missing, and a lag, which smooths the logged commands' jitter away,
+    fits better than the truth. The cause, measured: a 10 ms delay is true and the lag's rate-level
+    fit runs to its upper bound. So the diagnosis does not decide the pair there: tied, and says why."""
+    folder = tmp_path / "logs"
+    fds = _flights(folder, "thrust_delay", rate_hz=100.0)
+    assert all(rates.below_command_rate(fd) for fd in fds)
+    lag = effects.get("motor_lag")
+    rfs = _rate_flights(fds)
+    assert rates.fit(lag, rfs, rates.weights(rfs)).value == pytest.approx(lag.parameters[0].upper)
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
+    rows = {c.effect: c for c in diagnosis.diagnose(tables, spec_from(VEHICLE, [])).candidates}
+    a, b = rows["motor_lag"], rows["thrust_delay"]
+    for r, o in ((a, b), (b, a)):
+        assert rates.RATE_LEVEL not in r.separated_by.values(), r.separated_by
+        assert any("not compared with the other timing candidates" in n for n in r.notes), r.notes
+        if r.found or o.found:
+            assert o.effect in r.tied_with
 
 
 def test_blocks_are_runs_of_usable_intervals_cut_every_block():

@@ -287,8 +287,11 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         fd = rows_of(f)
         vehicle, tau = _model_torque(model, f, fd)
         flights[f] = rate_flight(fd, vehicle, tau, skip)
-    w = weights(list(flights.values()))
     by_name = {r.effect: r for r in rows}
+    slow = sorted(f for f, rf in flights.items() if below_command_rate(rf.fd))
+    if slow:
+        return _undecided(rows, [by_name[c.name] for c in timing], slow, flights[slow[0]].fd), Judged({})
+    w = weights(list(flights.values()))
     folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
     # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
     groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
@@ -314,6 +317,35 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             elif ra.found or rb.found:
                 _tie(ra, rb)
     return rows, Judged(differences)
+
+
+def below_command_rate(fd: FlightData) -> bool:
+    """True when ``fd`` logs a held command (PWM) less often than the firmware sets it: the
+    commands between two samples are not in the log."""
+    hold = fd.state.thrust_hold_s
+    return hold > 0 and float(np.median(np.diff(fd.state.t_s))) > 1.5 * hold
+
+
+def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], fd: FlightData
+               ) -> list[CandidateRow]:
+    """The timing candidates of a fleet with flights :func:`below_command_rate`: not fitted or
+    compared at the rate level (their parameters stay the torque level's), and tied where either
+    is found. Between two log samples the firmware sets commands the log does not hold, each
+    reacting to a fresh gyro sample; the interval integral gives the logged command's jitter
+    the whole interval where it acted for one command period, and a lag (which smooths it
+    away) fits that better than the truth (docs/timing.md: on simulated 100 Hz hover flights a
+    lag came out at its 0.2 s bound whether a 10 ms lag or a 10 ms delay was true)."""
+    dt = float(np.median(np.diff(fd.state.t_s)))
+    note = (f"not compared with the other timing candidates at the angular-rate level: {', '.join(slow)} "
+            f"log{'s' if len(slow) == 1 else ''} the commands every {dt * 1e3:.3g} ms, the firmware sets them "
+            f"every {fd.state.thrust_hold_s * 1e3:.3g} ms, and the commands between samples read as a lag "
+            "(docs/timing.md); the parameter is the torque level's, which the closed loop biases")
+    for i, a in enumerate(timing):
+        a.notes = [*a.notes, note]
+        for b in timing[i + 1:]:
+            if a.physical and b.physical and (a.found or b.found):
+                _tie(a, b)
+    return rows
 
 
 def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], min_sigma: float) -> None:
