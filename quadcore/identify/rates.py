@@ -341,7 +341,7 @@ def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[
             f"every {fd.state.thrust_hold_s * 1e3:.3g} ms, and the commands between samples read as a lag "
             "(docs/timing.md); the parameter is the torque level's, which the closed loop biases")
     for i, a in enumerate(timing):
-        a.notes = [*a.notes, note]
+        a.notes = (*a.notes, note)
         for b in timing[i + 1:]:
             if a.physical and b.physical and (a.found or b.found):
                 _tie(a, b)
@@ -362,18 +362,18 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     sigma = abs(rf.value - p.default) / std if std > 0 else (np.inf if rf.value != p.default else 0.0)
     r.significance_sigma = float(min(sigma, 1e6))
     r.significant = r.significance_sigma >= min_sigma
-    r.notes = [n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)] + [
-        f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
-        f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)"]
+    r.notes = (*(n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)),
+               f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
+               f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)")
     if not r.significant:
-        r.notes.append(f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
-                       "'no effect'")
+        r.notes = (*r.notes, f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
+                             "'no effect'")
 
 
 def _prefer(rows: list[CandidateRow], better: CandidateRow, worse: CandidateRow) -> list[CandidateRow]:
     """``better`` separated from ``worse`` by the rate level, and ranked above it in its tier."""
     for r, o in ((better, worse), (worse, better)):
-        r.tied_with = [x for x in r.tied_with if x != o.effect]
+        r.tied_with = tuple(x for x in r.tied_with if x != o.effect)
         r.separated_by = {**r.separated_by, o.effect: RATE_LEVEL}
     i, j = rows.index(better), rows.index(worse)
     if j < i and better.tier() == worse.tier():
@@ -385,7 +385,7 @@ def _tie(a: CandidateRow, b: CandidateRow) -> None:
     """``a`` and ``b`` tied: the rate level prefers neither."""
     for r, o in ((a, b), (b, a)):
         if o.effect not in r.tied_with:
-            r.tied_with = [*r.tied_with, o.effect]
+            r.tied_with = (*r.tied_with, o.effect)
         if o.effect not in r.indistinguishable_from:
-            r.indistinguishable_from = [*r.indistinguishable_from, o.effect]
+            r.indistinguishable_from = (*r.indistinguishable_from, o.effect)
         r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}

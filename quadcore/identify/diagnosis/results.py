@@ -6,7 +6,7 @@ the JSON boundary (:meth:`Diagnosis.to_dict`), in the key order of the ``quadcor
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from quadcore.identify.model import VEHICLE_DIGEST
@@ -19,14 +19,14 @@ if TYPE_CHECKING:
     from quadcore.identify.sessions import Disagreement
 
 
-@dataclass(frozen=True)
-class CandidateScore:
-    """A candidate effect fitted on the training flights and scored on held-out ones: how much
-    of the residual it removes (raw, per channel and axis, above the noise floor), its fitted
-    parameters with their uncertainty, the held-out test, the decision (``found``, ``grade``,
-    ``status``, ``reason``), the candidates the data cannot tell it from, and the smallest
-    value of each parameter these flights would detect."""
+@dataclass(eq=False)
+class CandidateFields:
+    """Every field of a candidate's row, once, in the key order of its JSON object: the result's
+    :class:`CandidateScore` and the row the diagnosis builds it as
+    (:class:`~quadcore.identify.diagnosis.rows.CandidateRow`) both take them from here. The
+    fields the later steps set start at "not yet decided" values."""
 
+    # scored (diagnosis.scoring._score)
     effect: str
     target: str  # the channel it explains: "force" or "torque"
     acts_on: str  # the channel(s) the effect acts in: "force", "torque" or "both"
@@ -47,22 +47,37 @@ class CandidateScore:
     significance_sigma: float
     significant: bool
     notes: tuple[str, ...]
+    # the held-out test in its target channel (evidence.held_out_test_of), the share of the
+    # residual above the noise floor it removes, and the size of what it removes in noise floors (RMS)
     held_out_slope: float
     held_out_t: float
     held_out_p_value: float
     held_out_blocks: int
     explained_above_noise: float
     signal_to_noise: float
-    held_out_alpha: float
-    found: bool
-    grade: str
-    indistinguishable_from: tuple[str, ...]
-    tied_with: tuple[str, ...]
-    separated_by: Mapping[str, str]
-    explained_after_top: float
-    status: str
-    reason: str
-    sensitivity: Mapping[str, float | None]
+    # decided (_decide; _outside_library may make a found one partial)
+    held_out_alpha: float = 0.0
+    found: bool = False
+    grade: str = ""
+    # compared (_mark_alike)
+    indistinguishable_from: tuple[str, ...] = ()
+    tied_with: tuple[str, ...] = ()
+    separated_by: Mapping[str, str] = field(default_factory=dict)
+    # ranked (_beyond_the_best, verdict.rank_reasons)
+    explained_after_top: float = 0.0
+    status: str = ""
+    reason: str = ""
+    sensitivity: Mapping[str, float | None] = field(default_factory=dict)
+
+
+@dataclass
+class CandidateScore(CandidateFields):
+    """A candidate effect fitted on the training flights and scored on held-out ones: how much
+    of the residual it removes (raw, per channel and axis, above the noise floor), its fitted
+    parameters with their uncertainty, the held-out test, the decision (``found``, ``grade``,
+    ``status``, ``reason``), the candidates the data cannot tell it from, and the smallest
+    value of each parameter these flights would detect (fields: :class:`CandidateFields`).
+    Compared by value; not changed once the diagnosis returns it."""
 
     @property
     def useful(self) -> bool:

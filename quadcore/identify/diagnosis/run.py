@@ -133,7 +133,7 @@ def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Eval
         at_noise_level=held.at_noise,
         residual_to_noise={ch: float(np.sqrt(before[sl].sum() / noise_ss[sl].sum())) if noise_ss[sl].sum() > 0
                            else None for ch, sl in TARGET_CHANNELS.items()},
-        candidates=tuple(r.frozen() for r in rows),
+        candidates=tuple(r.result() for r in rows),
         sensitivity=sensitivity,
         sensitivity_basis=sensitivity_basis(p.cands, settings),
         verdict=text,

@@ -18,7 +18,7 @@ from quadcore.identify.diagnosis.problem import (
     _ss,
     _total,
 )
-from quadcore.identify.diagnosis.rows import CandidateRow, HeldOutEvidence
+from quadcore.identify.diagnosis.rows import CandidateRow
 from quadcore.identify.diagnosis.sensitivity import detection_limits
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import _other, rank_reasons
@@ -58,6 +58,8 @@ def _score(c: Effect, held: _HeldOut, fit_c: solve.Fit,
     # a parameter held at its bound: how well the data pin it is its free fit's error and spread
     std.update({k: max(std[k], free_spread.get(k, 0.0)) for k in active})
     sigma = _significance(c, params, std)
+    test = evidence.held_out_test_of(test_sums, evidence.channel_mask([target]))
+    above_noise, signal_to_noise = _above_noise(before, after, held.noise_ss, target)
     return CandidateRow(
         effect=c.name,
         target=target,
@@ -67,8 +69,8 @@ def _score(c: Effect, held: _HeldOut, fit_c: solve.Fit,
         explained_variance_torque=ev_t,
         explained_variance_raw=raw,
         score=0.5 * (ev_f + ev_t),
-        force_rmse_N=[float(np.sqrt(after[j] / held.n)) for j in range(3)],
-        torque_rmse_Nm=[float(np.sqrt(after[3 + j] / held.n)) for j in range(3)],
+        force_rmse_N=tuple(float(np.sqrt(after[j] / held.n)) for j in range(3)),
+        torque_rmse_Nm=tuple(float(np.sqrt(after[3 + j] / held.n)) for j in range(3)),
         parameters=params,
         parameter_spread_between_flights=spread,
         parameter_std=std,
@@ -81,27 +83,24 @@ def _score(c: Effect, held: _HeldOut, fit_c: solve.Fit,
         active_bounds=dict(active),
         significance_sigma=sigma,
         significant=sigma >= settings.min_sigma,
-        notes=_parameter_notes(bounds, active, _at_bound(c, params, active), sigma, settings.min_sigma),
-        evidence=_held_out_evidence(evidence.held_out_test_of(test_sums, evidence.channel_mask([target])),
-                                    before, after, held.noise_ss, target),
-    )
-
-
-def _held_out_evidence(test: evidence.HeldOutTest, before: np.ndarray, after: np.ndarray,
-                       noise_ss: np.ndarray, target: str) -> HeldOutEvidence:
-    """The held-out test of a candidate in its target channel, the share of the residual
-    *above the noise floor* it removes, and the size of what it removes in noise floors (RMS)."""
-    sl = TARGET_CHANNELS[target]
-    floor = noise_ss[sl].sum()
-    removed, excess = before[sl].sum() - after[sl].sum(), before[sl].sum() - floor
-    return HeldOutEvidence(
+        notes=tuple(_parameter_notes(bounds, active, _at_bound(c, params, active), sigma, settings.min_sigma)),
         held_out_slope=test.beta,
         held_out_t=test.t,
         held_out_p_value=test.p_value,
         held_out_blocks=test.blocks,
-        explained_above_noise=float(np.clip(removed / excess, 0.0, 1.0)) if excess > 0 else 0.0,
-        signal_to_noise=float(np.sqrt(max(removed, 0.0) / floor)) if floor > 0 else 0.0,
+        explained_above_noise=above_noise,
+        signal_to_noise=signal_to_noise,
     )
+
+
+def _above_noise(before: np.ndarray, after: np.ndarray, noise_ss: np.ndarray, target: str) -> tuple[float, float]:
+    """In a candidate's target channel: the share of the residual *above the noise floor* it
+    removes, and the size of what it removes in noise floors (RMS)."""
+    sl = TARGET_CHANNELS[target]
+    floor = noise_ss[sl].sum()
+    removed, excess = before[sl].sum() - after[sl].sum(), before[sl].sum() - floor
+    return (float(np.clip(removed / excess, 0.0, 1.0)) if excess > 0 else 0.0,
+            float(np.sqrt(max(removed, 0.0) / floor)) if floor > 0 else 0.0)
 
 
 def _significance(effect: Effect, params: dict[str, float], std: dict[str, float]) -> float:
@@ -238,18 +237,19 @@ def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p:
                 continue
             if can_mimic(r.effect, o.effect, ch) and can_mimic(o.effect, r.effect, ch):
                 alike.append(o.effect)
-        r.indistinguishable_from = alike
-        r.tied_with = [o for o in alike
-                       if abs(by_name[o].score - r.score) < settings.tie_margin or not separated(r.effect, o)]
+        r.indistinguishable_from = tuple(alike)
+        r.tied_with = tuple(o for o in alike
+                            if abs(by_name[o].score - r.score) < settings.tie_margin or not separated(r.effect, o))
         # what separates alike candidates: the other channel when either acts there (for an
         # effect acting in both, through its joint fit), otherwise how well each fits this one
         r.separated_by = {o: _other(ch) if "both" in (r.acts_on, by_name[o].acts_on) else ch
                           for o in alike if o not in r.tied_with}
     for r in rows:  # a tie goes both ways
         for name in r.tied_with:
-            if r.effect not in by_name[name].tied_with:
-                by_name[name].tied_with.append(r.effect)
-                by_name[name].separated_by.pop(r.effect, None)
+            o = by_name[name]
+            if r.effect not in o.tied_with:
+                o.tied_with = (*o.tied_with, r.effect)
+                o.separated_by = {k: v for k, v in o.separated_by.items() if k != r.effect}
 
 
 def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p: _Problem,
