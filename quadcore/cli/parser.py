@@ -25,6 +25,22 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--thrust-map", default=None, metavar="KIND",
                        help="override the vehicle file's thrust map (pwm_vbat or motor_speed)")
 
+    def model_and_flights_args(p, json_help: str):
+        # what diagnose, discover and plan start from (quadcore.cli.common.model_and_flights), one definition each
+        p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
+        p.add_argument("--json", required=True, metavar="OUT.json", help=json_help)
+        p.add_argument("--model", default=None, metavar="MODEL.toml",
+                       help="a model file (vehicle, effects, plugins) to start from")
+        p.add_argument("--effects", default="", metavar="e1,e2,...",
+                       help="effects in the model, instead of the model file's (default: the file's, else none)")
+        p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
+                       "cross-validation over flights)")
+        p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="groups of flights ([sessions] "
+                       "NAME = [\"flight\", \"pattern*\"]) whose parameters may differ (default: the model file's, "
+                       "else groups found from the data)")
+        p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+        vehicle_args(p)
+
     p = sub.add_parser("vehicle", help="a vehicle file of your own: write one from the commented template, or "
                        "check one")
     p.add_argument("action", choices=["new", "check"], help="new: write a template; check: load and summarise FILE")
@@ -79,41 +95,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(group="export", command="cmd_export_c")
 
     p = sub.add_parser("diagnose", help="where the model fails and which effect is missing (JSON report)")
-    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
-    p.add_argument("--json", required=True, metavar="OUT.json")
-    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (default: none, "
-                   "or the model file's)")
-    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file (vehicle, effects, plugins)")
-    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
-                   "cross-validation over flights)")
+    model_and_flights_args(p, "the diagnosis")
     p.add_argument("--report", default=None, metavar="DIR", help="also write diagnosis.md and diagnosis.html")
-    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="groups of flights ([sessions] NAME = "
-                   "[\"flight\", \"pattern*\"]) whose parameters may differ (default: groups found from the data)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    vehicle_args(p)
     p.set_defaults(group="diagnose", command="cmd_diagnose")
 
     p = sub.add_parser("discover", help="terms the effect library lacks: sparse regression on the residual (JSON)")
-    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
-    p.add_argument("--json", required=True, metavar="OUT.json")
-    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file: discover on top of its effects")
-    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (instead of the file's)")
-    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="score on these flights (default: "
-                   "cross-validation over flights)")
+    model_and_flights_args(p, "the terms found, on top of the model's effects")
     p.add_argument("--write-effect", default=None, metavar="DIR/NAME.py",
                    help="write the kept terms as a linear effect plugin module NAME")
-    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="groups of flights for the model's "
-                   "per-session effects, as in diagnose (default: the model file's, else found from the data)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    vehicle_args(p)
     p.set_defaults(group="discover", command="cmd_discover")
 
     p = sub.add_parser("plan", help="the next flight: a trajectory that separates what the data cannot tell apart")
-    p.add_argument("data", metavar="DATA", help="a folder of raw uSD logs")
-    p.add_argument("--json", required=True, metavar="OUT.json", help="the plan (and OUT.png, its picture)")
+    model_and_flights_args(p, "the plan (and OUT.png, its picture)")
     p.add_argument("--trajectory", required=True, metavar="OUT.csv", help="the trajectory in the lab's format")
-    p.add_argument("--model", default=None, metavar="MODEL.toml", help="a model file (vehicle, effects, plugins)")
-    p.add_argument("--effects", default="", metavar="e1,e2,...", help="effects in the model (instead of the file's)")
     p.add_argument("--between", default="", metavar="A,B", help="separate these two candidates")
     p.add_argument("--parameter", default="", metavar="EFFECT.NAME", help="pin down this parameter")
     p.add_argument("--arena", default="", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
@@ -121,12 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=20.0, metavar="S", help="manoeuvre time, s (default 20)")
     p.add_argument("--max-speed", type=float, default=1.5, metavar="MPS", help="default 1.5 m/s")
     p.add_argument("--max-tilt", type=float, default=25.0, metavar="DEG", help="default 25 degrees")
-    p.add_argument("--holdout", default="", metavar="FLIGHT,...", help="as in diagnose")
-    p.add_argument("--sessions", default=None, metavar="SESSIONS.toml", help="as in diagnose")
     p.add_argument("--no-proof", action="store_true", help="skip flying the plan in the simulator")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="the proof's simulator seed")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    vehicle_args(p)
     p.set_defaults(group="plan", command="cmd_plan")
 
     p = sub.add_parser("train", help="learn the residual the physics model leaves (XGBoost, MLP) and report")
