@@ -3,6 +3,10 @@ rows give (to float rounding), and they survive a round trip through the data ro
 
 from __future__ import annotations
 
+import copy
+import gc
+import weakref
+
 import numpy as np
 import pytest
 
@@ -353,8 +357,10 @@ def test_a_hidden_lag_is_diagnosed_from_stored_profiles_and_the_rate_level(lagge
     """The nonlinear candidates' torque-level folds, held-out tests and sensitivity come from the
     flights' stored profiles; their timing fit and comparison come from the angular-rate level
     (quadcore.identify.rates, docs/timing.md), which is not in the stored statistics: it reads each
-    flight's rows (a training flight's once). Without a timing candidate, only the held-out flight's rows are read (its
-    regime tables and spectra). The hidden lag is found at its value."""
+    flight's rows once (a training flight's only then) and reduces them to the flight's rate-level
+    sums, so no flight's rows are held when the next one's are read, nor after the diagnosis.
+    Without a timing candidate, only the held-out flight's rows are read (its regime tables and
+    spectra). The hidden lag is found at its value."""
     from quadcore.identify import diagnosis
 
     fds, stats = lagged_fleet
@@ -366,26 +372,37 @@ def test_a_hidden_lag_is_diagnosed_from_stored_profiles_and_the_rate_level(lagge
     held = sorted(tables)[-1]
     spec = spec_from(VEHICLE, [])
 
-    def diagnose(candidates: list[str]) -> tuple[dict, list[str]]:
+    def diagnose(candidates: list[str]) -> tuple[dict, list[str], list[int]]:
         read: list[str] = []
+        refs: list[weakref.ref] = []
+        alive: list[int] = []  # at each read, and at the end: how many rows read before are alive
+
+        def count() -> None:
+            gc.collect()
+            alive.append(sum(r() is not None for r in refs))
 
         def rows_of(f: str, decoded: object, veh: object) -> flightdata.FlightData:
+            count()
             read.append(f)
-            return fds[f]
+            fd = copy.copy(fds[f])  # the diagnosis's own object (the fixture keeps its own)
+            refs.append(weakref.ref(fd))
+            return fd
 
         with pytest.MonkeyPatch.context() as m:
             m.setattr(flightdata, "flight_data", rows_of)
             result = diagnosis.diagnose(tables, spec, [held], candidates, stats=loaded.get).to_dict()
-        return result, read
+        count()
+        return result, read, alive
 
-    result, read = diagnose(["motor_lag", "thrust_delay", "thrust_scale"])
+    result, read, alive = diagnose(["motor_lag", "thrust_delay", "thrust_scale"])
     assert set(read) == set(fds)  # every flight's rows (the rate level) ...
     assert all(read.count(f) == 1 for f in fds if f != held)  # ... the training flights' once each
+    assert not any(alive), alive  # ... and none held beside another's, nor after
     top = result["candidates"][0]
     assert top["effect"] == "motor_lag" and top["found"], result["verdict"]
     assert top["parameters"]["tau_s"] == pytest.approx(0.03, rel=0.15)
     assert result["sensitivity"]["motor_lag"]["tau_s"] is not None
-    _, read = diagnose(["thrust_scale", "rotor_drag"])
+    _, read, _ = diagnose(["thrust_scale", "rotor_drag"])
     assert set(read) == {held}
 
 

@@ -5,7 +5,9 @@ model of linear effects on stored statistics reads no evaluated flight's rows.""
 
 from __future__ import annotations
 
+import gc
 import math
+import weakref
 
 import numpy as np
 import polars as pl
@@ -176,18 +178,26 @@ def test_summaries_are_stored_beside_the_statistics_and_follow_them(stored_root)
     assert summaries.load(root, "cut", s.key, s.source) is None
 
 
-def _timing_reads_rows(judge, tables: dict):
-    """``rates.judge`` given the flights' rows (read from ``tables``), whatever it is handed."""
+def _timing_reads_rows(judge, tables: dict, held: list[int]):
+    """``rates.judge`` given the flights' rows (read from ``tables``), whatever it is handed;
+    ``held`` gets, at each read, how many flights' rows read before are still alive."""
 
     def with_rows(rows, cands, rows_of, *args, **kwargs):
-        read: dict = {}
+        refs: list[weakref.ref] = []
+
+        def alive() -> int:
+            gc.collect()
+            return sum(r() is not None for r in refs)
 
         def own_rows(f: str):
-            if f not in read:
-                read[f] = flightdata.flight_data(f, tables[f], VEHICLE)
-            return read[f]
+            held.append(alive())
+            fd = flightdata.flight_data(f, tables[f], VEHICLE)
+            refs.append(weakref.ref(fd))
+            return fd
 
-        return judge(rows, cands, own_rows, *args, **kwargs)
+        out = judge(rows, cands, own_rows, *args, **kwargs)
+        held.append(alive())
+        return out
 
     return with_rows
 
@@ -217,17 +227,21 @@ def test_a_diagnosis_on_stored_statistics_reads_no_rows_and_equals_the_rows(stor
 def test_with_every_candidate_the_evaluated_flights_tables_come_from_their_summaries(stored_root):
     """The library's candidates, the one-parameter nonlinear ones too: the evaluated flights'
     tables and spectra still come from their summaries, equal to the rows'. The timing candidates'
-    rate level reads the flights' rows (it is not in the stored statistics: docs/timing.md), and
-    only it: without a timing candidate nothing reads a row."""
+    rate level reads each flight's rows once (it is not in the stored statistics: docs/timing.md),
+    and only it (without a timing candidate nothing reads a row), one flight at a time: each
+    flight's rows are reduced to its rate-level sums and let go before the next is read, and none
+    is held after it."""
     root, spec, tables = stored_root
     library = [n for n in effects.builtin_names() if n not in spec.effects and effects.get(n).offered]
     untimed = [n for n in library if not effects.get(n).retimes_thrust]
     assert untimed != library
     diagnosis.diagnose(_NoRows(tables), spec, candidates=untimed, stats=lambda f: sufficient.load(root, f))
+    held: list[int] = []
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(rates, "judge", _timing_reads_rows(rates.judge, tables))
+        m.setattr(rates, "judge", _timing_reads_rows(rates.judge, tables, held))
         stored = diagnosis.diagnose(_NoRows(tables), spec, candidates=library,
                                     stats=lambda f: sufficient.load(root, f)).to_dict()
+    assert len(held) == len(tables) + 1 and not any(held), held  # every flight read once, none held
     from_rows = diagnosis.diagnose(tables, spec, candidates=library).to_dict()
     for key in ("regimes", "flights", "worst_segments", "frequency", "baseline"):
         _close(stored[key], from_rows[key], key)

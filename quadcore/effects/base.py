@@ -153,6 +153,11 @@ class Effect(ABC):
     # from the closed loop's commands, which react to the gyro noise the measured torque carries,
     # so the diagnosis fits and compares it at the angular-rate level (quadcore.identify.rates)
     retimes_thrust: ClassVar[bool] = False
+    # the wrench is linear in the one parameter between its multiples of the sample period (a
+    # delay interpolated between samples): the rate level's sums take those multiples as their
+    # grid (quadcore.identify.rates.rate_grid), exact between them where a smooth interpolant
+    # of a coarser grid would round off the kinks
+    linear_between_samples: ClassVar[bool] = False
     doc: str = ""
     # values of some parameters at which the others' sensitivity is stated, for parameters
     # that show only through another (a wind only through a drag); see quadcore.identify.evidence

@@ -57,6 +57,7 @@ class ThrustDelay(Effect):
     target = "both"
     linear = False
     retimes_thrust = True
+    linear_between_samples = True  # delayed(): linear in t_d between whole samples
     parameters = (Parameter("t_d_s", "s", 0.0, 0.0, 0.1, "transport delay from logged input to rotor thrust"),)
     doc = __doc__
 

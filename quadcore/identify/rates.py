@@ -36,6 +36,15 @@ right for a white residual) and the blocks-as-clusters one (:func:`_clustered_va
 when the model's error within a block is not white), the comparison of two candidates the held-out difference of their
 ``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
 
+**From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
+sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
+point of a grid of its parameter, block-demeaned, are taken in one pass over a flight's rows,
+which then go. Between grid points the candidate's running sums are interpolated (linear
+between whole sample periods for a delay, which is exact; the profiles' spline for a lag), so
+the fit, its standard errors and the comparison come from the sums: on three hover flights
+with 10 ms of either, within 0.001 standard errors of the row evaluation, the comparison's
+``t`` within 1e-4 (tests/test_rates.py holds the row evaluation as the reference).
+
 Used by :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
 commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters and how they
 rank against each other come from here (docs/diagnosis.md).
@@ -51,7 +60,7 @@ import numpy as np
 from scipy import stats
 
 from quadcore.effects import Effect, get as get_effect
-from quadcore.identify import evidence
+from quadcore.identify import evidence, profiles
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData
 from quadcore.physics import dynamics, signals
@@ -106,42 +115,127 @@ def _runs(ok: np.ndarray, period: np.ndarray) -> np.ndarray:
     return np.cumsum(start) - 1
 
 
-def _deviations(rf: RateFlight, effect: Effect | None, params: dict[str, float] | None
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """``R_k − C_k − mean_b`` (used intervals, 3) for ``effect`` at ``params`` (None: the model's
-    residual alone), and each used interval's block."""
-    d = rf.increments
-    if effect is not None and params is not None:
-        st = rf.fd.state
-        d = d - signals.interval_integrals(effect.wrench(st, rf.vehicle, params)[1], st.t_s, st.thrust_hold_s)
+@dataclass(frozen=True)
+class RateSums:
+    """One flight at the rate level as sufficient sums, its rows no longer needed: per block
+    ``b`` and axis ``a`` the Gram ``G_ba = Σ_(k∈b) x̃_k x̃_kᵀ`` of the block-demeaned running sums
+    ``x_k = [R_k, C_k(v_1), …]``: the residual's and, per timing effect (its columns
+    :attr:`slots`), its candidate's at each point ``v_g`` of its grid (:func:`rate_grid`). With
+    the grid's interpolation weights ``ω(v)`` (:func:`grid_weights`) and ``u = [1, −ω(v)]`` in
+    the effect's columns, ``Σ_(k∈b) (R̃_ka − C̃_ka(v))² = uᵀ G_ba u = a − 2 ω·s + ωᵀ Q ω`` (the
+    variable-projection form of the torque level's profiles): exact on a grid point, the
+    candidate's running sums interpolated between. Stored as each Gram's upper triangle,
+    :attr:`blocks` (B, 3, P) in float32 (the held-out tests' clusters, as the profiles' blocks)
+    and :attr:`total` (3, P) over the flight in float64 (the fits). ``noise`` (3,) the torque
+    channels' sensor-noise RMS over ``samples`` usable samples (:func:`weights`), ``dt_s`` the
+    median sample period, ``n`` the used intervals."""
+
+    grids: dict[str, np.ndarray]
+    slots: dict[str, slice]
+    blocks: np.ndarray
+    total: np.ndarray
+    noise: np.ndarray
+    samples: int
+    dt_s: float
+    n: int
+
+    def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
+        """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
+        residual alone)."""
+        u = np.zeros(1 + sum(len(g) for g in self.grids.values()))
+        u[0] = 1.0
+        if effect is not None:
+            u[self.slots[effect.name]] = -grid_weights(effect, self.grids[effect.name], value)
+        return u
+
+    def cost(self, effect: Effect, value: float, w: np.ndarray) -> float:
+        """``Σ_a w_a Σ_k (R̃_ka − C̃_ka(value))²`` over the flight."""
+        return float(w @ (self.total @ _packed_square(self.direction(effect, value))))
+
+    def costs(self, effect: Effect, value: float) -> np.ndarray:
+        """(blocks, 3) ``Σ_(k∈b) (R̃_ka − C̃_ka(value))²`` per block and axis."""
+        return self._forms(self.direction(effect, value))
+
+    def differences(self, a: Effect, va: float, b: Effect, vb: float) -> tuple[np.ndarray, np.ndarray]:
+        """(blocks, 3) each: ``b``'s cost minus ``a``'s, and ``Σ (C̃_a(va) − C̃_b(vb))²``."""
+        ua, ub = self.direction(a, va), self.direction(b, vb)
+        return self._forms(ub) - self._forms(ua), self._forms(ub - ua)
+
+    def _forms(self, u: np.ndarray) -> np.ndarray:
+        """(blocks, 3) ``uᵀ G_ba u``."""
+        return self.blocks.astype(float) @ _packed_square(u)
+
+
+def _packed_square(u: np.ndarray) -> np.ndarray:
+    """(P,) the coefficients of a packed upper triangle in ``uᵀ G u``: ``u_i u_j`` (twice off
+    the diagonal)."""
+    i, j = np.triu_indices(len(u))
+    return u[i] * u[j] * np.where(i == j, 1.0, 2.0)
+
+
+def rate_grid(effect: Effect, dt_s: float) -> np.ndarray:
+    """The values of ``effect``'s one parameter the rate level's sums are taken at, on a flight
+    of median sample period ``dt_s``: the profile grid
+    (:func:`quadcore.identify.profiles.profile_grid`), or, for an effect linear in it between
+    whole sample periods (:attr:`~quadcore.effects.Effect.linear_between_samples`, a delay),
+    every multiple of ``dt_s`` within its bounds and the bounds: the interpolation between
+    them is then exact, where a smooth one through the profile grid rounds off the kinks (a
+    delay fitted 0.9 σ from the rows' minimum on three hover flights)."""
+    (p,) = effect.parameters
+    if not effect.linear_between_samples:
+        return profiles.profile_grid(p.lower, p.upper)
+    steps = np.arange(np.ceil(p.lower / dt_s), np.floor(p.upper / dt_s) + 1) * dt_s
+    return np.unique(np.concatenate([[p.lower], steps[(steps > p.lower) & (steps < p.upper)], [p.upper]]))
+
+
+def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
+    """(G,) the interpolation weights at ``v`` of :func:`rate_grid`'s ``grid``: linear between
+    its points for an effect linear between samples, else the profiles' spline
+    (:func:`quadcore.identify.profiles.weights`)."""
+    (p,) = effect.parameters
+    if not effect.linear_between_samples:
+        return profiles.weights(p.lower, p.upper, v)
+    v = float(min(max(v, grid[0]), grid[-1]))
+    i = int(np.clip(np.searchsorted(grid, v, side="right") - 1, 0, len(grid) - 2))
+    t = (v - grid[i]) / (grid[i + 1] - grid[i])
+    out = np.zeros(len(grid))
+    out[i], out[i + 1] = 1.0 - t, t
+    return out
+
+
+def rate_sums(rf: RateFlight, timing: Sequence[Effect]) -> RateSums:
+    """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
+    its rows: each effect's interval integrals of its torque at every point of its grid, with
+    the flight's thrust hold (as the model's torque in the increments)."""
+    st = rf.fd.state
     use = rf.block >= 0
-    R, b = np.cumsum(d, axis=0)[use], rf.block[use]
-    if not len(b):
-        return R, b
-    size = np.bincount(b).astype(float)
-    mean = np.stack([np.bincount(b, R[:, a]) for a in range(3)], axis=1) / size[:, None]
-    return R - mean[b], b
+    dt_s = float(np.median(np.diff(st.t_s)))
+    cols, grids, slots, k = [np.cumsum(rf.increments, axis=0)[use][:, :, None]], {}, {}, 1
+    for e in timing:
+        (p,) = e.parameters
+        grids[e.name] = grid = rate_grid(e, dt_s)
+        cols.append(np.stack([np.cumsum(signals.interval_integrals(
+            e.wrench(st, rf.vehicle, {p.name: float(v)})[1], st.t_s, st.thrust_hold_s), axis=0)[use]
+            for v in grid], axis=2))
+        slots[e.name] = slice(k, k + len(grid))
+        k += len(grid)
+    X = np.concatenate(cols, axis=2)  # (m, 3, K)
+    b = rf.block[use]
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
+    iu = np.triu_indices(k)
+    blocks = np.zeros((len(starts) - 1, 3, len(iu[0])))
+    for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):
+        x = X[lo:hi] - X[lo:hi].mean(axis=0)
+        blocks[i] = np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
+    return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0), rf.fd.noise[3:].copy(),
+                    max(rf.fd.n, 1), dt_s, rf.n)
 
 
-def _per_block(x: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(blocks, 3) sums of ``x`` (used intervals, 3) per block."""
-    if not len(b):
-        return np.zeros((0, 3))
-    return np.stack([np.bincount(b, x[:, a]) for a in range(3)], axis=1)
-
-
-def block_costs(rf: RateFlight, effect: Effect | None, params: dict[str, float] | None) -> np.ndarray:
-    """(blocks, 3) ``Σ_(k∈b) (R_k − C_k − mean_b)²`` per block and axis, for ``effect`` at
-    ``params`` (None: the model's residual alone)."""
-    dev, b = _deviations(rf, effect, params)
-    return _per_block(dev**2, b)
-
-
-def weights(flights: Sequence[RateFlight]) -> np.ndarray:
+def weights(flights: Sequence[RateSums]) -> np.ndarray:
     """(3,) per axis ``1 / σ²`` from the torque channels' sensor-noise floor (the gyro noise
     through ``J``: the same per axis up to a common factor at every level)."""
-    n = np.array([max(rf.fd.n, 1) for rf in flights], float)
-    ms = sum(rf.fd.noise[3:] ** 2 * k for rf, k in zip(flights, n)) / n.sum()
+    n = np.array([s.samples for s in flights], float)
+    ms = sum(s.noise ** 2 * k for s, k in zip(flights, n)) / n.sum()
     return 1.0 / np.where(ms > 0, ms, 1.0)
 
 
@@ -158,7 +252,7 @@ class RateFit:
     n: int
 
 
-def fit(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray) -> RateFit:
+def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
     """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module)."""
     (p,) = effect.parameters
     memo: dict[float, float] = {}
@@ -166,16 +260,16 @@ def fit(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray) -> RateFit
     def J(v: float) -> float:
         v = float(min(max(v, p.lower), p.upper))
         if v not in memo:
-            memo[v] = float(sum(block_costs(rf, effect, {p.name: v}).sum(axis=0) @ w for rf in flights))
+            memo[v] = sum(s.cost(effect, v, w) for s in flights)
         return memo[v]
 
-    n = sum(rf.n for rf in flights) * 3
+    n = sum(s.n for s in flights) * 3
     best, var = solve.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
     var = max(var, _clustered_variance(effect, flights, w, best, var, J(best) / max(n - 1, 1)))
     return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
 
 
-def _clustered_variance(effect: Effect, flights: Sequence[RateFlight], w: np.ndarray, best: float, var: float,
+def _clustered_variance(effect: Effect, flights: Sequence[RateSums], w: np.ndarray, best: float, var: float,
                         s2: float) -> float:
     """The variance of the fitted value with the blocks as independent clusters (the sandwich
     ``Σ_b (∂J_b/∂θ)² / H²``, ``H = 2 s² / var`` the profile's curvature), which the profile's
@@ -185,13 +279,13 @@ def _clustered_variance(effect: Effect, flights: Sequence[RateFlight], w: np.nda
     (p,) = effect.parameters
     if not np.isfinite(var) or var <= 0:
         return var
-    h = 0.25 * min(float(np.median(np.diff(rf.fd.state.t_s))) for rf in flights)
+    h = 0.25 * min(s.dt_s for s in flights)
     lo, hi = max(best - h, p.lower), min(best + h, p.upper)
     if hi <= lo:
         return 0.0
 
     def per_block(v: float) -> np.ndarray:
-        return np.concatenate([block_costs(rf, effect, {p.name: v}) @ w for rf in flights])
+        return np.concatenate([s.costs(effect, v) @ w for s in flights])
 
     slopes = (per_block(hi) - per_block(lo)) / (hi - lo)
     k = len(slopes)
@@ -199,18 +293,17 @@ def _clustered_variance(effect: Effect, flights: Sequence[RateFlight], w: np.nda
     return float(k / max(k - 1, 1) * np.sum(slopes**2) / curvature**2)
 
 
-def block_differences(flights: Sequence[RateFlight], a: Effect, pa: dict[str, float], b: Effect,
+def block_differences(flights: Sequence[RateSums], a: Effect, pa: dict[str, float], b: Effect,
                       pb: dict[str, float], w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per block of ``flights``: ``g``, ``b``'s weighted ``J_rate`` minus ``a``'s (> 0: ``a`` fits
     better), and ``D``, the weighted ``Σ (C_a − C_b)²`` (block means removed) that ``g`` is made of:
     with ``e = R − (C_a + C_b)/2``, ``g = 2 Σ (C_a − C_b) e`` and, if ``a`` is the truth,
     ``E g = D``; if ``b`` is, ``−D``."""
     g, D = [], []
-    for rf in flights:
-        dev_a, blocks = _deviations(rf, a, pa)
-        dev_b, _ = _deviations(rf, b, pb)
-        g.append(_per_block(dev_b**2 - dev_a**2, blocks) @ w)
-        D.append(_per_block((dev_b - dev_a) ** 2, blocks) @ w)
+    for s in flights:
+        gs, Ds = s.differences(a, pa[a.parameters[0].name], b, pb[b.parameters[0].name])
+        g.append(gs @ w)
+        D.append(Ds @ w)
     return np.concatenate(g), np.concatenate(D)
 
 
@@ -263,9 +356,9 @@ class Judged:
         return effect
 
 
-def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData], model,
-          splits: Sequence[tuple[list[str], list[str]]], train_all: list[str], settings: DiagnosisSettings,
-          decide: Callable[[CandidateRow], None]) -> tuple[list[CandidateRow], Judged]:
+def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],
+          release: Callable[[str], None], model, splits: Sequence[tuple[list[str], list[str]]], train_all: list[str],
+          settings: DiagnosisSettings, decide: Callable[[CandidateRow], None]) -> tuple[list[CandidateRow], Judged]:
     """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
     :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
     one's parameter, standard error (the larger of the profile's and the spread between the
@@ -275,22 +368,34 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     other (within its tier) and the two are no longer tied; not, they are tied when either is
     found (undecided, whatever the torque level says). Every candidate on the same intervals
     (after the longest memory of them). The model's effects at their values fitted on all
-    training flights. ``decide``: the diagnosis's decision (found, grade), taken again on a row
-    whose significance changed."""
+    training flights. Each flight's rows (``rows_of``) are read once, reduced to its
+    :class:`RateSums` and let go (``release``). ``decide``: the diagnosis's decision (found,
+    grade), taken again on a row whose significance changed."""
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
     skip = evidence.memory_blocks(timing) * evidence.BLOCK_S
     ids = sorted({f for tr, te in splits for f in (*tr, *te)})
-    flights = {}
-    for f in ids:
+
+    slow: dict[str, tuple[float, float]] = {}  # flights below the command rate: their log period and hold
+
+    def reduced(f: str) -> RateSums | None:  # one flight's rows at a time, let go once its sums are taken
         fd = rows_of(f)
-        vehicle, tau = _model_torque(model, f, fd)
-        flights[f] = rate_flight(fd, vehicle, tau, skip)
+        out = None
+        if below_command_rate(fd):
+            slow[f] = (float(np.median(np.diff(fd.state.t_s))), fd.state.thrust_hold_s)
+        else:
+            vehicle, tau = _model_torque(model, f, fd)
+            out = rate_sums(rate_flight(fd, vehicle, tau, skip), timing)
+        release(f)
+        return out
+
+    reduced_flights = {f: reduced(f) for f in ids}
     by_name = {r.effect: r for r in rows}
-    slow = sorted(f for f, rf in flights.items() if below_command_rate(rf.fd))
     if slow:
-        return _undecided(rows, [by_name[c.name] for c in timing], slow, flights[slow[0]].fd), Judged({})
+        first = sorted(slow)[0]
+        return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
+    flights = {f: s for f, s in reduced_flights.items() if s is not None}
     w = weights(list(flights.values()))
     folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
     # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
@@ -326,7 +431,7 @@ def below_command_rate(fd: FlightData) -> bool:
     return hold > 0 and float(np.median(np.diff(fd.state.t_s))) > 1.5 * hold
 
 
-def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], fd: FlightData
+def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], dt: float, hold_s: float
                ) -> list[CandidateRow]:
     """The timing candidates of a fleet with flights :func:`below_command_rate`: not fitted or
     compared at the rate level (their parameters stay the torque level's), and tied where either
@@ -335,10 +440,9 @@ def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[
     the whole interval where it acted for one command period, and a lag (which smooths it
     away) fits that better than the truth (docs/timing.md: on simulated 100 Hz hover flights a
     lag came out at its 0.2 s bound whether a 10 ms lag or a 10 ms delay was true)."""
-    dt = float(np.median(np.diff(fd.state.t_s)))
     note = (f"not compared with the other timing candidates at the angular-rate level: {', '.join(slow)} "
             f"log{'s' if len(slow) == 1 else ''} the commands every {dt * 1e3:.3g} ms, the firmware sets them "
-            f"every {fd.state.thrust_hold_s * 1e3:.3g} ms, and the commands between samples read as a lag "
+            f"every {hold_s * 1e3:.3g} ms, and the commands between samples read as a lag "
             "(docs/timing.md); the parameter is the torque level's, which the closed loop biases")
     for i, a in enumerate(timing):
         a.notes = (*a.notes, note)

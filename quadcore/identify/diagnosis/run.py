@@ -96,7 +96,7 @@ def diagnose(
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)
     _mark_alike(rows, span, held, p, settings)
     # a lag, a delay: fitted and compared at the angular-rate level, which the closed loop does not bias
-    rows, timing = rates.judge(_rank(rows), p.cands, p.fl.rows, model, splits, train_all, settings,
+    rows, timing = rates.judge(_rank(rows), p.cands, p.fl.rows, p.fl.release, model, splits, train_all, settings,
                                lambda r: _decide(r, held.at_noise, len(rows), settings))
     for f in p.ids:
         p.fl.release(f)
