@@ -578,8 +578,9 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
     """The committed real model's kind (linear effects and motor_lag): its fit in the fold, its
     residual, the candidates' fits, held-out tests, sensitivity and disagreements come from the
     flights' stored statistics and profiles, the model's lag as an extra column; only the held-out
-    flight's rows are read (its regime tables and spectra), without a timing candidate (the rate
-    level reads every flight's: docs/timing.md). The model is the one fit_model fits."""
+    flight's rows are read (its residual's summary: regime tables and spectra), without a timing
+    candidate (the rate level reads every flight's: docs/timing.md). The model is the one fit_model
+    fits."""
     fds, stats = lagged_fleet
     for s in stats.values():
         sufficient.save(s, tmp_path)
@@ -587,8 +588,15 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
     tables = {f: "rows" for f in fds}
     held = sorted(tables)[-1]
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
-    result, read = _diagnose_counting_rows(None, fds, tables, spec, held, ["rotor_drag", "com_offset"], loaded.get)
+    def no_row_tables(m: pytest.MonkeyPatch) -> None:  # the tables come from summaries, not polars row tables
+        from quadcore.identify import regimes
+
+        m.setattr(regimes, "long_frame", lambda *a: pytest.fail("a row table was made"))
+
+    result, read = _diagnose_counting_rows(no_row_tables, fds, tables, spec, held, ["rotor_drag", "com_offset"],
+                                           loaded.get)
     assert set(read) == {held}
+    assert [r["flight"] for r in result["flights"]] == [held] and result["regimes"] and result["worst_segments"]
     train = [f for f in sorted(fds) if f != held]
     fitted = model_fit.fit_model(spec, {f: None for f in train}, train, stats=loaded.get)
     got = {e["name"]: e["params"] for e in result["model"]["effects"]}

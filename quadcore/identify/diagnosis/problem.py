@@ -22,8 +22,8 @@ from quadcore.identify import (
     model_fit,
     profiles,
     sessions as sessionlib,
-    spectrum,
     sufficient,
+    summaries,
 )
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import Flight, FlightData
@@ -74,7 +74,6 @@ class _Flights:
     def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
         self.decoded, self.spec, self.ids = decoded, spec, ids
         self._rows: dict[str, FlightData] = {}
-        self._rates: dict[str, float] = {}  # each flight's sample rate, kept when its rows go
         from_stats = model_fit.from_statistics(spec, [effectlib.get(n) for n in spec.effects])
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if from_stats else None
         # the fits and weights of the form the flights are held in, chosen here by the model's
@@ -86,7 +85,6 @@ class _Flights:
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
             self._rows[f] = flightdata.flight_data(f, self.decoded[f], self.spec.vehicle_for(f))
-            self._rates[f] = spectrum.sample_rate_hz(self._rows[f].state.t_s)
         return self._rows[f]
 
     def release(self, f: str) -> None:
@@ -94,17 +92,15 @@ class _Flights:
         if self.stats is not None:
             self._rows.pop(f, None)
 
-    def sample_rate_hz(self, f: str) -> float:
-        if f not in self._rates:
-            self.rows(f)
-            self.release(f)
-        return self._rates[f]
-
     def statistics(self, f: str) -> sufficient.FlightStats:
-        """A flight's statistics (only a model of linear effects is scored from them)."""
+        """A flight's statistics (a model the statistics express is scored from them)."""
         if self.stats is None:
-            raise sufficient.StatsError(f"{f}: a model with a nonlinear effect is scored from rows, not statistics")
+            raise sufficient.StatsError(f"{f}: this model is scored from rows, not statistics")
         return self.stats[f]
+
+    def summary(self, f: str) -> summaries.FlightSummary | None:
+        """A flight's stored summary (:mod:`quadcore.identify.summaries`), if its statistics have one."""
+        return self.stats[f].summary() if self.stats is not None else None
 
     def flight(self, f: str):
         return self.stats[f] if self.stats is not None else self.rows(f)

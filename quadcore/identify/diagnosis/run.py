@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, model_fit, rates, sessions as sessionlib, spectrum, sufficient, summaries
+from quadcore.identify import evidence, model_fit, rates, sessions as sessionlib, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -38,7 +38,6 @@ from quadcore.identify.diagnosis.sensitivity import sensitivity_basis
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import verdict
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.regimes import flight_table, long_frame, regime_table, worst_segments
 from quadcore.identify.sessions import Disagreement
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.spec.model import ModelSpec
@@ -155,31 +154,17 @@ def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
 
 
 def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
-    """The evaluated flights' residual by regime, by flight, in time and in frequency: from their
-    stored summaries where they have them (:func:`_from_summaries`), else from their long table
-    (:func:`~quadcore.identify.regimes.long_table`) and spectra, one flight's rows at a time:
-    each flight's rows go once its part of both is taken, so the tables after it do not sit
-    beside every flight's rows."""
+    """The evaluated flights' residual by regime, by flight, in time and in frequency, from their
+    summaries (:mod:`quadcore.identify.summaries`): the residual, a signal vector, summed as
+    quadratic forms of each flight's stored summary; a flight whose summary cannot describe it
+    (missing or stale, or a residual with an extra column: a model's profiled prediction, or a
+    residual on rows) from the summary of its residual's rows (:func:`quadcore.identify.summaries.of_rows`,
+    the one place rows become summaries), one flight at a time: each flight's rows go once its
+    sums are taken."""
     p.forget_row_resid()
     for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates
         p.fl.release(f)
-    if p.fl.stats is not None and any(p.fl.stats[f].summary_source is not None for f in held.ids):
-        return _from_summaries(p, held)
-    sums = spectrum.SpectrumSums(float(np.median([p.fl.sample_rate_hz(f) for f in held.ids])), p.vehicle)
-    frames = []
-    for f in held.ids:
-        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f))
-        frames.append(long_frame(fd, r, p.vehicle))
-        sums.add(fd, r)
-        p.fl.release(f)
-    long = pl.concat(frames)
-    return summaries.Tables(regime_table(long), flight_table(long), worst_segments(long), sums.view())
 
-
-def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
-    """The same tables from the evaluated flights' summaries (:mod:`quadcore.identify.summaries`):
-    the residual, a signal vector, summed as quadratic forms of each flight's summary; a flight
-    without one (missing or stale) from its rows, one at a time."""
     def from_rows(f: str) -> summaries.ResidualSums:
         fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f))
         out = summaries.of_rows(fd, r, p.vehicle).residual(np.ones(1))
@@ -188,7 +173,7 @@ def _from_summaries(p: _Problem, held: _HeldOut) -> summaries.Tables:
 
     sums = []
     for f in held.ids:
-        summary, v = p.fl.statistics(f).summary(), held.resid[f]
+        summary, v = p.fl.summary(f), held.resid[f]
         sums.append(summary.residual(v) if summary is not None and summary.describes(v) else from_rows(f))
     return summaries.tables(sums, from_rows, p.vehicle)
 
