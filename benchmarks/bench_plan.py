@@ -1,11 +1,11 @@
 """Does one planned flight decide what the logged flights leave open, and better than a flight of
 the same length from the lab's trajectory files?
 
-    python benchmarks/bench_plan.py [--seeds N] [--first S] [--scenarios drag,mass,lag]
+    python benchmarks/bench_plan.py [--seeds N] [--first S] [--scenarios drag,mass,lag,lag_small]
 
 Per scenario of :mod:`quadcore.plan.bench` (rotor vs parasitic drag on flights at one speed;
-thrust scale vs added mass in hover; motor lag vs thrust delay in hover) and seed: three flights
-simulated with the hidden truth (alternating between the two sides with the seed), diagnosed;
+thrust scale vs added mass in hover; motor lag vs thrust delay in hover, at 10 ms and at 2 ms)
+and seed: three flights simulated with the hidden truth (alternating between the two sides with the seed), diagnosed;
 ``quadcore plan``'s planner asked to separate the two (``--between``, 10 s manoeuvre, default
 limits); the plan flown in the simulator with the truth and added to the old flights; and, for
 comparison, each of the lab's files (figure8, circle0, yaw0) flown for the same time instead.
