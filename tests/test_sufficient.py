@@ -573,14 +573,15 @@ def _diagnose_counting_rows(monkeypatch_target, fds, tables, spec, held, candida
     return result, read
 
 
-def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_flights_rows(lagged_fleet,
-                                                                                             tmp_path):
+@pytest.mark.parametrize("per_session", [[], ["thrust_scale"]])
+def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_flights_rows(lagged_fleet, tmp_path,
+                                                                                             per_session):
     """The committed real model's kind (linear effects and motor_lag): its fit in the fold, its
     residual, the candidates' fits, held-out tests, sensitivity and disagreements come from the
     flights' stored statistics and profiles, the model's lag as an extra column; only the held-out
     flight's rows are read (its residual's summary: regime tables and spectra), without a timing
     candidate (the rate level reads every flight's: docs/timing.md). The model is the one fit_model
-    fits."""
+    fits; with a per-session thrust scale beside the lag (the committed real model's kind) too."""
     fds, stats = lagged_fleet
     for s in stats.values():
         sufficient.save(s, tmp_path)
@@ -588,6 +589,8 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
     tables = {f: "rows" for f in fds}
     held = sorted(tables)[-1]
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    spec.per_session = per_session
+
     def no_row_tables(m: pytest.MonkeyPatch) -> None:  # the tables come from summaries, not polars row tables
         from quadcore.identify import regimes
 
@@ -635,3 +638,28 @@ def test_a_model_with_a_lag_diagnosed_from_statistics_agrees_with_its_rows(lagge
     assert {r["effect"] for r in got["candidates"] if r["found"]} == {r["effect"] for r in ref["candidates"]
                                                                       if r["found"]}
     assert got["verdict"].split(". ")[0] == ref["verdict"].split(". ")[0]
+
+
+def test_a_per_session_model_beside_a_lag_is_fitted_from_statistics_as_the_rows_fit_it(lagged_fleet):
+    """The committed real model's kind (a per-session thrust scale beside a shared motor_lag):
+    fit_model fits it from statistics (the lag fixed at its shared value in the per-session fits is
+    its column at that value), no table read, as the rows fit it: the lag within the row search's
+    own tolerance (xatol, 5e-4 of the span), every value within a tenth of its standard error."""
+    fds, stats = lagged_fleet
+    ids = sorted(fds)
+    spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
+    spec.per_session = ["thrust_scale"]
+    groups = {"a": ids[:2], "b": ids[2:]}
+    assert model_fit.from_statistics(spec, [effects.get(n) for n in spec.effects])
+    targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
+    rows = sessions.fit_per_session(spec, fds, targets, ids, groups)
+    got = model_fit.fit_model(spec, {f: None for f in ids}, ids, groups, stats=stats.get)
+    span = effects.get("motor_lag").parameters[0].upper
+    lag, lag_rows = (next(t for t in m.terms if t.name == "motor_lag") for m in (got, rows))
+    assert abs(lag.params["tau_s"] - lag_rows.params["tau_s"]) <= 5e-4 * span
+    for a, b in zip(rows.terms, got.terms):
+        for k, v in a.params.items():
+            assert abs(b.params[k] - v) <= 0.1 * a.std[k], f"{a.name}.{k}"
+        for s in a.per_session:
+            for k, v in a.per_session[s].items():
+                assert abs(b.per_session[s][k] - v) <= 0.1 * a.per_session_std[s][k], f"{a.name}.{k}[{s}]"

@@ -20,17 +20,18 @@ from quadcore.spec.model import ModelSpec
 
 def expressible(effects: list[Effect], fixed: Mapping[str, object]) -> bool:
     """Whether a joint fit of ``effects`` comes from the flights' statistics
-    (:func:`quadcore.identify.fit.fit_effects`): linear effects, and one profiled nonlinear
-    effect (not in ``fixed``) beside them."""
+    (:func:`quadcore.identify.fit.fit_effects`): linear effects, profiled nonlinear ones (one
+    parameter each), at most one of them not in ``fixed``."""
     nonlinear = [e for e in effects if not e.linear]
-    return not nonlinear or (len(nonlinear) == 1 and profiles.profiled(nonlinear[0])
-                             and nonlinear[0].name not in fixed)
+    return all(profiles.profiled(e) for e in nonlinear) and sum(e.name not in fixed for e in nonlinear) <= 1
 
 
 def from_statistics(spec: ModelSpec, effects: list[Effect]) -> bool:
     """Whether :func:`fit_model` fits ``effects`` from the flights' statistics: linear effects, and
-    one profiled nonlinear effect (not fixed) beside them, unless fitted per session."""
-    return expressible(effects, spec.fixed) and (all(e.linear for e in effects) or not spec.per_session)
+    one profiled nonlinear effect beside them (fixed ones too), not itself fitted per session
+    (the shared fits of a per-session model hold the per-session effects' predictions)."""
+    return expressible(effects, spec.fixed) and not any(not e.linear and e.name in spec.per_session
+                                                        for e in effects)
 
 
 def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None,
@@ -41,11 +42,13 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     (:func:`quadcore.identify.fit.solve.held_bounds`: its free value, and whether that is within
     noise of the bound).
 
-    A model of linear effects, and one effect with a single nonlinear parameter (not fixed) beside
-    them, is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`, the
-    nonlinear one from its profiles: :func:`quadcore.identify.fit.profiled.profiled_fit`): ``stats(flight)``
-    gives a flight's stored ones (None: computed from its decoded table); any other model (per-session
-    effects beside a nonlinear one included) reads every training flight's rows."""
+    A model of linear effects, and one effect with a single nonlinear parameter beside them (also
+    beside per-session linear effects, where the per-session fits hold it at its shared value: its
+    column there), is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`,
+    the nonlinear one from its profiles: :func:`quadcore.identify.fit.profiled.profiled_fit`):
+    ``stats(flight)`` gives a flight's stored ones (None: computed from its decoded table); any other
+    model (:func:`from_statistics`: two nonlinear effects, one with several parameters, a nonlinear
+    one per session) reads every training flight's rows."""
     effect_list = [effectlib.get(n) for n in spec.effects]
     maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
             else ({}, {}, {}))

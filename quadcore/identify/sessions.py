@@ -297,9 +297,16 @@ def model_prediction(pm: PhysicsModel, fd: Flight, log=lambda msg: None) -> np.n
     map (the fleet value, said in ``log``, for a flight of no fitted session):
     :meth:`~quadcore.identify.flightdata.Flight.predict`, (n, 6) on its rows, a signal vector on
     its statistics."""
+    model = flight_model(pm, fd.flight, log)
+    return fd.predict([t.effect for t in model.terms], {t.name: t.params for t in model.terms}, model.vehicle)
+
+
+def flight_model(pm: PhysicsModel, flight: str, log=lambda msg: None) -> PhysicsModel:
+    """The fitted model of one flight (:meth:`~quadcore.identify.model.PhysicsModel.for_flight`: its
+    session's values and thrust map), a flight of no fitted session said in ``log``."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        model = pm.for_flight(fd.flight)
+        model = pm.for_flight(flight)
     for w in caught:
         log(str(w.message))
-    return fd.predict([t.effect for t in model.terms], {t.name: t.params for t in model.terms}, model.vehicle)
+    return model

@@ -48,12 +48,12 @@ def _ss(resid: np.ndarray, flight: Flight) -> np.ndarray:
 class _Residual:
     """The model's residual on some flights: per flight its ``signal`` and the flight it is a
     signal of (``on``: from statistics, grown by the model's profiled prediction as an extra
-    column, :func:`quadcore.identify.sufficient.predicted`), and the values of the model's
-    profiled effects it was taken at (name -> value; empty for a model of linear effects)."""
+    column, :func:`quadcore.identify.sufficient.predicted`), and per flight the values of the
+    model's profiled effects it was taken at (name -> value; empty for a model of linear effects)."""
 
     signal: dict[str, np.ndarray]
     on: dict[str, Any]
-    values: dict[str, float]
+    values: dict[str, dict[str, float]]
 
 
 class _Flights:
@@ -129,19 +129,24 @@ class _Flights:
             extras[f"pred:{name}"] = flightdata.prediction(e, {**e.defaults(), e.parameters[0].name: v}, fd, vehicle)
         return sufficient.signal_rows(fd, vehicle, layout, signal[: layout.width], extras)
 
-    def residual(self, effects: list, fit: Any, targets: Mapping[str, np.ndarray], flights) -> _Residual:
-        """The residual of ``effects`` fitted (``fit``: a :class:`~quadcore.identify.fit.solve.Fit`)
-        on ``flights``: from statistics, in each flight's statistics grown by the profiled
-        effects' predictions (:func:`quadcore.identify.sufficient.predicted`)."""
-        vehicle = self.spec.vehicle
-        if self.stats is None:
-            return _Residual({f: targets[f] - fit.predict(effects, self.rows(f), vehicle) for f in flights},
-                             {f: self.rows(f) for f in flights}, {})
-        signal, on = {}, {}
+    def residual(self, model_of: Callable[[str], tuple[list, Mapping[str, dict], Any]],
+                 targets: Mapping[str, np.ndarray], flights: Iterable[str]) -> _Residual:
+        """The residual of a fitted model on ``flights`` (``model_of(flight)``: its effects, their
+        parameters and the vehicle there): from statistics, in each flight's statistics grown by
+        the profiled effects' predictions (:func:`quadcore.identify.sufficient.predicted`)."""
+        signal: dict[str, np.ndarray] = {}
+        on: dict[str, Any] = {}
+        values: dict[str, dict[str, float]] = {}
         for f in flights:
-            on[f], v = sufficient.predicted(effects, fit.params, self.stats[f], vehicle)
-            signal[f] = on[f].layout.pad(targets[f]) - v
-        values = {e.name: fit.params[e.name][e.parameters[0].name] for e in effects if not e.linear}
+            effects, params, vehicle = model_of(f)
+            if self.stats is None:
+                on[f] = self.rows(f)
+                signal[f] = targets[f] - on[f].predict(effects, params, vehicle)
+            else:
+                on[f], v = sufficient.predicted(effects, params, self.stats[f], vehicle)
+                signal[f] = on[f].layout.pad(targets[f]) - v
+            values[f] = ({e.name: params[e.name][e.parameters[0].name] for e in effects if not e.linear}
+                         if self.stats is not None else {})
         return _Residual(signal, on, values)
 
 
@@ -184,7 +189,7 @@ class _Problem:
             self._row_resid_of = (resid, {})
         rows = self._row_resid_of[1]
         if f not in rows:
-            rows[f] = self.fl.signal_rows(f, resid.signal[f], resid.values)
+            rows[f] = self.fl.signal_rows(f, resid.signal[f], resid.values[f])
         return rows[f]
 
     def forget_row_resid(self) -> None:
@@ -230,12 +235,20 @@ def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, l
     tr = [fds[f] for f in train]
     if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
         pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log, p.fl.fit_effects)
-        both = sorted({*train, *test})
-        return pm, _Residual({f: targets[f] - sessionlib.model_prediction(pm, fds[f], log) for f in both},
-                             {f: fds[f] for f in both}, {})
+        return pm, p.fl.residual(_session_terms(pm, log), targets, sorted({*train, *test}))
     fit_m = p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
                              bounded=True)  # the model within its bounds, as fit_model
-    return fit_m, p.fl.residual(p.model_effects, fit_m, targets, sorted({*train, *test}))
+    return fit_m, p.fl.residual(lambda f: (p.model_effects, fit_m.params, p.vehicle), targets,
+                                sorted({*train, *test}))
+
+
+def _session_terms(pm: PhysicsModel, log) -> Callable[[str], tuple[list, dict, Any]]:
+    """A per-session model's effects, parameters and vehicle on a flight (its session's)."""
+    def of(f: str) -> tuple[list, dict, Any]:
+        model = sessionlib.flight_model(pm, f, log)
+        return [t.effect for t in model.terms], {t.name: t.params for t in model.terms}, model.vehicle
+
+    return of
 
 
 @dataclass(frozen=True)
@@ -280,7 +293,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
                 else:
                     cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
-            eval_resid[f], model_values[f] = resid.signal[f], resid.values
+            eval_resid[f], model_values[f] = resid.signal[f], resid.values[f]
     return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit, model_values)
 
 
@@ -292,14 +305,13 @@ def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) 
     if spec.per_session:
         model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
                                                                                  sessions, log, p.fl.fit_effects)
-        return model, _Residual({f: targets[f] - sessionlib.model_prediction(model, fds[f]) for f in train_all},
-                                {f: fds[f] for f in train_all}, {})
+        return model, p.fl.residual(_session_terms(model, lambda msg: None), targets, train_all)
     fit_m = (fold_fit if fold_fit is not None
              else p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
                                    bounded=True))
     model = PhysicsModel(p.vehicle, solve.model_terms(p.model_effects, fit_m, spec.fixed),
                          spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
-    return model, p.fl.residual(p.model_effects, fit_m, targets, train_all)
+    return model, p.fl.residual(lambda f: (p.model_effects, fit_m.params, p.vehicle), targets, train_all)
 
 
 def _group_spread(p: _Problem, train_all: list[str], resid_train: _Residual, n_folds: int

@@ -33,13 +33,16 @@ def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray])
 
 def subtract_fixed(effects: list[Effect], fixed: dict[str, dict[str, float]], stats: Sequence[FlightStats],
                    targets: Sequence[np.ndarray], vehicle: Vehicle) -> tuple[list[np.ndarray], dict, dict]:
-    """The targets minus the predictions of the linear effects named in ``fixed`` (at their given
-    values), and the fixed effects' (parameters, standard errors) (:func:`fixed_values`)."""
+    """The targets minus the predictions of the effects named in ``fixed`` (at their given values:
+    a linear one's coordinates, a profiled one's column ``pred:<effect>`` the statistics were grown
+    by, :func:`quadcore.identify.sufficient.predicted`), and the fixed effects' (parameters,
+    standard errors) (:func:`fixed_values`)."""
     params, std = fixed_values(effects, fixed)
     vs = [np.asarray(v, dtype=float) for v in targets]
     for e in effects:
         if e.name in fixed:
-            vs = [v - s.layout.coefficients(e, params[e.name], vehicle) for s, v in zip(stats, vs)]
+            vs = [v - (s.layout.coefficients(e, params[e.name], vehicle) if e.linear
+                       else s.layout.unit(s.layout.extra(f"pred:{e.name}"))) for s, v in zip(stats, vs)]
     return vs, params, std
 
 
