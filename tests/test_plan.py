@@ -183,6 +183,21 @@ def test_nothing_to_separate_plans_nothing(tmp_path):
     assert "nothing to plan" in stdout
 
 
+def test_lag_against_delay_from_logs_below_the_command_rate_plans_nothing_and_says_to_log_faster(tmp_path):
+    """At 100 Hz the log misses four commands in five and no flight logged so tells a lag from a
+    delay (docs/timing.md): asked to separate them, the planner plans nothing and says why."""
+    folder = tmp_path / "slow"
+    configs = [SimConfig(kind="hover", duration_s=6.0, seed=s, log_rate_hz=100.0) for s in (4, 5)]
+    simulation.simulate_set(folder, configs, {"thrust_delay": {"t_d_s": 0.01}}, VEHICLE)
+    code, stdout, err = _run(["plan", str(folder), "--json", str(tmp_path / "p.json"), "--trajectory",
+                              str(tmp_path / "p.csv"), "--between", "motor_lag,thrust_delay", "--quiet"])
+    assert code == 0, err
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["question"] == {"kind": "none"} and doc["trajectory"] is None
+    assert not (tmp_path / "p.csv").exists()
+    assert "nothing to plan" in stdout and "every 10 ms" in stdout and "500 Hz" in stdout, stdout
+
+
 # The full benchmark (benchmarks/bench_plan.py) runs 10 seeds per scenario and the lab's files
 # beside the plan; CI runs the first two seeds (one per truth) of the two scenarios the logged
 # flights leave open, without the files. The third, a 10 ms motor lag against a thrust delay in

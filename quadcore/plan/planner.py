@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from quadcore.identify import fitting
+from quadcore import effects as effectlib
+from quadcore.identify import fitting, rates
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, separation, signatures
@@ -166,10 +167,32 @@ def _choose_rival(q: Question, diag: Diagnosis, old, vehicle, limits: Limits, du
                                 "is rotor drag); knowledge of the vehicle or the room must decide")
 
 
+def _unlogged_timing(q: Question, flights: Mapping[str, fitting.FlightData]) -> Question | None:
+    """Nothing to plan when both sides re-time the rotors' thrust and flights log the commands
+    less often than the firmware sets them: the diagnosis does not compare the two there, and
+    no flight logged the same way would tell them apart (docs/timing.md)."""
+    if not all(effectlib.get(n).retimes_thrust for n in q.candidates):
+        return None
+    slow = sorted(f for f, fd in flights.items() if rates.below_command_rate(fd))
+    if not slow:
+        return None
+    st = flights[slow[0]].state
+    dt_ms, hold_ms = float(np.median(np.diff(st.t_s))) * 1e3, st.thrust_hold_s * 1e3
+    return Question("none", why=(
+        f"{' and '.join(q.candidates)} both re-time the rotors' thrust, and {', '.join(slow)} log the commands "
+        f"every {dt_ms:.3g} ms where the firmware sets them every {hold_ms:.3g} ms: no flight logged so tells "
+        f"the two apart (docs/timing.md). Log at the command rate ({1e3 / hold_ms:.0f} Hz): there hover flights "
+        "decide a lag or delay of 10 ms (docs/flight-planning.md)"))
+
+
 def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, sessions,
               log) -> FlightPlan:
     vehicle, limits = spec.vehicle, request.limits
-    old = list(fitting_flights(tables, spec).values())
+    flights = fitting_flights(tables, spec)
+    old = list(flights.values())
+    unlogged = _unlogged_timing(q, flights)
+    if unlogged:
+        return FlightPlan(unlogged, limits, request.duration_s)
     if request.between is None:
         q = _choose_rival(q, diag, old, vehicle, limits, request.duration_s, log)
         if q.kind == "none":
