@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -342,6 +343,32 @@ def test_hidden_rotor_inertia_is_found_beside_a_motor_lag(sim_sets):
     _assert_recovered(top, truth, ["J_r_kgm2"], "rotor_inertia")
     assert result["model"]["effects"][0]["params"]["tau_s"] == pytest.approx(0.02, rel=0.15)
 
+
+
+@pytest.mark.slow  # the scenario above, diagnosed twice
+def test_a_lag_model_diagnosed_from_statistics_ranks_as_from_rows(sim_sets, monkeypatch):
+    """The same scenario with the lag in the model diagnosed from statistics (the lag's prediction a
+    column from its profile) and from rows (the reference, forced): the same ranking and verdict
+    (its figures aside), the found candidate's parameter within a tenth of its standard error, the lag within
+    the row search's tolerance (xatol, 5e-4 of the span)."""
+    truth = {"J_r_kgm2": 3e-8}
+    _, tables = sim_sets("rotor_inertia", STANDARD, {"motor_lag": {"tau_s": 0.02}, "rotor_inertia": truth})
+    cands = ["rotor_inertia", "rotor_drag", "com_offset", "thrust_scale"]
+    got = _diagnose(tables, ["motor_lag"], candidates=cands)
+    monkeypatch.setattr(model_fit, "from_statistics", lambda *a: False)
+    ref = _diagnose(tables, ["motor_lag"], candidates=cands)
+    assert [r["effect"] for r in got["candidates"]] == [r["effect"] for r in ref["candidates"]]
+    assert [r["found"] for r in got["candidates"]] == [r["found"] for r in ref["candidates"]]
+    def words(text: str) -> str:  # the verdict without its figures
+        return re.sub(r"\d[\d.]*(e[-+]?\d+)?", "#", text)
+
+    assert words(got["verdict"]) == words(ref["verdict"])
+    top, top_ref = got["candidates"][0], ref["candidates"][0]
+    assert abs(top["parameters"]["J_r_kgm2"] - top_ref["parameters"]["J_r_kgm2"]) <= 0.1 * top_ref["parameter_std"][
+        "J_r_kgm2"]
+    assert top["score"] == pytest.approx(top_ref["score"], abs=1e-3)
+    lag, lag_ref = (r["model"]["effects"][0]["params"]["tau_s"] for r in (got, ref))
+    assert abs(lag - lag_ref) <= 5e-4 * effects.get("motor_lag").parameters[0].upper
 
 # ---------------------------------------------------------------------------------------
 # Two hidden effects, and none
