@@ -1,19 +1,23 @@
-"""The model a spec names, fitted (:func:`fit_model`): from the flights' statistics where its
-effects' kinds allow (linear ones, and one effect with a single nonlinear parameter beside them,
-from its profiles), from their rows otherwise; per session where the spec asks. Above the fits
-on rows (:mod:`quadcore.identify.fitting`), on statistics (:mod:`quadcore.identify.sufficient`)
-and per session (:mod:`quadcore.identify.sessions`): the one place that chooses between them, by
-the effects' kinds."""
+"""The model a spec names, fitted (:func:`fit_model`) from the flights' statistics, per session
+where the spec asks: linear effects from the normal equations, one effect with a single nonlinear
+parameter from its profiles, any other nonlinear effects by the search whose predictions are made
+on the training flights' rows (:mod:`quadcore.identify.fit`, chosen there by the effects' kinds).
+Above the fits (:mod:`quadcore.identify.fit`) and per session (:mod:`quadcore.identify.sessions`).
+One case still fits on rows: a per-session effect that is nonlinear (its per-session prediction
+is no signal vector of the statistics). :func:`from_statistics`: whether the statistics alone, no
+row read, express a model (the diagnosis holds its flights as statistics then; a fixed profiled
+effect beside per-session ones is subtracted as its column)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify import fit as fitlib, fitting, profiles, sessions as sessionlib, sufficient
 from quadcore.identify.fit import solve
-from quadcore.identify.flightdata import flight_data, targets_of
+from quadcore.identify.flightdata import FlightData, flight_data, targets_of
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
@@ -34,6 +38,12 @@ def from_statistics(spec: ModelSpec, effects: list[Effect]) -> bool:
                                                         for e in effects)
 
 
+def rows_of(spec: ModelSpec, decoded: Mapping) -> Callable[[str], FlightData]:
+    """``rows(flight)``: a flight's rows (its session's thrust map), made once when first asked for
+    (the search's nonlinear predictions)."""
+    return functools.cache(lambda f: flight_data(f, decoded[f], spec.vehicle_for(f)))
+
+
 def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None,
               log: Callable[[str], None] | None = None, stats=None) -> PhysicsModel:
     """Fit the effects a :class:`quadcore.spec.model.ModelSpec` names on the ``train`` flights (its
@@ -42,22 +52,20 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     (:func:`quadcore.identify.fit.solve.held_bounds`: its free value, and whether that is within
     noise of the bound).
 
-    A model of linear effects, and one effect with a single nonlinear parameter beside them (also
-    beside per-session linear effects, where the per-session fits hold it at its shared value: its
-    column there), is fitted from the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`,
-    the nonlinear one from its profiles: :func:`quadcore.identify.fit.profiled.profiled_fit`):
-    ``stats(flight)`` gives a flight's stored ones (None: computed from its decoded table); any other
-    model (:func:`from_statistics`: two nonlinear effects, one with several parameters, a nonlinear
-    one per session) reads every training flight's rows."""
+    From the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`; ``stats(flight)``
+    gives a flight's stored ones, None: computed from its decoded table) by
+    :func:`quadcore.identify.fit.fit_effects`: a nonlinear effect with one parameter from its profiles,
+    other nonlinear effects by the search, which reads the training flights' rows for their
+    predictions. A nonlinear effect fitted per session reads every training flight's rows."""
     effect_list = [effectlib.get(n) for n in spec.effects]
     maps = ((spec.sessions_of(sorted(decoded)), spec.session_maps, spec.session_patterns) if spec.session_maps
             else ({}, {}, {}))
     if not effect_list:
         return PhysicsModel(spec.vehicle, [], *maps)
-    if from_statistics(spec, effect_list):
+    if all(e.linear for e in effect_list if e.name in spec.per_session):
         by_id: dict = sufficient.for_flights(spec, decoded, train, sufficient.layout_of(effect_list), stats)
         targets = {f: s.layout.target() for f, s in by_id.items()}
-        fit: sessionlib.FitEffects = fitlib.fit_effects
+        fit: sessionlib.FitEffects = functools.partial(fitlib.fit_effects, rows=rows_of(spec, decoded))
     else:
         by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
         targets = dict(zip(train, targets_of([by_id[f] for f in train])))

@@ -197,10 +197,10 @@ def compute(names: Sequence[str], fd: FlightData, vehicle: Vehicle, Z: np.ndarra
         P = np.stack([prediction(e, {**e.defaults(), p.name: float(v)}, fd, vehicle)[fd.mask]
                       for v in profile_grid(p.lower, p.upper)], axis=2)  # (m, 6, G)
         preds[name] = P
-        blocks = np.stack([_sums(P[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) if len(starts) > 1 \
+        blocks = np.stack([sums(P[a:b], Z[a:b]) for a, b in zip(starts[:-1], starts[1:])]) if len(starts) > 1 \
             else np.zeros((0, P.shape[2], 6, Z.shape[2] + 1))
         stored = blocks.astype(np.float32)  # as the file holds them
-        by_effect[name] = Profile(name, blocks.sum(axis=0), _sums(P[::stride], Z[::stride]), _given(stored))
+        by_effect[name] = Profile(name, blocks.sum(axis=0), sums(P[::stride], Z[::stride]), _given(stored))
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
     cross = {(a, b): _cross_sums(preds[a][::stride], preds[b][::stride]).astype(np.float32) for a, b in pairs}
     cross_total = {(a, b): _cross_sums(preds[a], preds[b]) for a, b in [*((n, n) for n in names), *pairs]}
@@ -217,7 +217,7 @@ def _given(a: np.ndarray) -> Callable[[], np.ndarray]:
     return lambda: a
 
 
-def _sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
+def sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
     """(G, 6, W + 1): ``Σ p·z`` per column and ``Σ p·p``, per grid point and channel."""
     return np.concatenate([np.einsum("ncg,ncw->gcw", P, Z), np.einsum("ncg,ncg->gc", P, P)[:, :, None]], axis=2)
 

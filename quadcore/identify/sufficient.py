@@ -284,6 +284,33 @@ def design_rows(fd, vehicle: Vehicle, layout: Layout, extras: dict[str, np.ndarr
     return np.concatenate(parts, axis=2)
 
 
+def extra_column(fd, vehicle: Vehicle, layout: Layout, columns: np.ndarray,
+                 extras: Mapping[str, np.ndarray] | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """``sums(e)``: the row of the flight's augmented Gram matrix that an extra column ``e`` ((n, 6)
+    on every sample: a nonlinear effect's prediction, say) adds, on the layout's ``columns`` (effects'
+    coordinates, ``y0``, and extras whose rows ``extras`` gives by name): per channel ``c``,
+    ``[Σ_i z_ic[columns] e_ic | Σ_i e_ic²]`` over the usable samples, (6, len(columns) + 1), the
+    columns in increasing order. Those columns of the design (:func:`design_rows`) are made once,
+    here, from the flight's rows and kept for every ``e`` asked for; the sums are the profiles'
+    (:func:`quadcore.identify.profiles.sums`)."""
+    want = sorted({int(c) for c in columns})
+    extras = extras or {}
+    missing = [n for n in layout.extras if layout.extra(n) in want and n not in extras]
+    if missing:
+        raise StatsError(f"{fd.flight}: the extra column(s) {', '.join(missing)} of the statistics have no rows here")
+    parts = []  # the design's columns in the layout's order (only the bases asked for are made)
+    for name in layout.effects:
+        cols = layout.cols(name)
+        keep = [j for j, c in enumerate(cols) if c in want]
+        if keep:
+            parts.append(fd.basis(effectlib.get(name), vehicle)[:, :, keep])
+    if layout.y0 in want:
+        parts.append(np.concatenate([fd.r_f, fd.r_tau], axis=1)[:, :, None])
+    parts += [np.asarray(extras[n])[:, :, None] for n in layout.extras if layout.extra(n) in want]
+    Z = np.concatenate(parts, axis=2)[fd.mask] if parts else np.zeros((fd.n, 6, 0))
+    return lambda e: profiles.sums(np.asarray(e)[fd.mask][:, :, None], Z)[0]
+
+
 def flight_stats(fd, vehicle: Vehicle, layout: Layout, key: str = "",
                  extras: dict[str, np.ndarray] | None = None) -> FlightStats:
     """The statistics of a :class:`quadcore.identify.flightdata.FlightData` (its rows read once),

@@ -118,16 +118,22 @@ class _Flights:
         if self.stats is None:
             return signal
         values = values or {}
-        fd, vehicle = self.rows(f), self.spec.vehicle
         # the evaluated flights' extra columns of candidates are no part of a residual
         layout = self.stats[f].layout.with_extras([f"pred:{n}" for n in values])
         if np.any(signal[layout.width:]):
             raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
-        extras = {}
+        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width],
+                                      self.model_columns(f, values))
+
+    def model_columns(self, f: str, values: Mapping[str, float]) -> dict[str, np.ndarray]:
+        """(n, 6) on the flight's rows, the extra columns ``pred:<effect>`` of the model's profiled
+        effects at ``values`` (name -> value)."""
+        fd, out = self.rows(f), {}
         for name, v in values.items():
             e = effectlib.get(name)
-            extras[f"pred:{name}"] = flightdata.prediction(e, {**e.defaults(), e.parameters[0].name: v}, fd, vehicle)
-        return sufficient.signal_rows(fd, vehicle, layout, signal[: layout.width], extras)
+            out[f"pred:{name}"] = flightdata.prediction(e, {**e.defaults(), e.parameters[0].name: v}, fd,
+                                                        self.spec.vehicle)
+        return out
 
     def residual(self, model_of: Callable[[str], tuple[list, Mapping[str, dict], Any]],
                  targets: Mapping[str, np.ndarray], flights: Iterable[str]) -> _Residual:
@@ -170,31 +176,18 @@ class _Problem:
         # (quadcore.identify.profiles); one with several nonlinear parameters from rows
         self.by_rows = {c.name: self.fl.stats is not None and not c.linear and not profiles.profiled(c)
                         for c in self.cands}
-        # the latest residual turned into rows once for all nonlinear candidates (a fold's
-        # candidates share it; later fits never come back to an older one), so rows of one
-        # residual are held, not one per fold; the residual is kept so its id cannot be reused
-        self._row_resid_of: tuple[_Residual | None, dict[str, np.ndarray]] = (None, {})
 
     def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
-        parameters' physical bounds (the free fit, when it left them, kept as ``free``)."""
+        parameters' physical bounds (the free fit, when it left them, kept as ``free``); a candidate
+        without a profile (``by_rows``) from the statistics too, its predictions made on the
+        training flights' rows (:func:`quadcore.identify.fit.search.search_fit`)."""
         if self.by_rows[c.name]:
-            return fitting.fit_effects([c], [self.fl.rows(f) for f in flights],
-                                       [self._row_resid(f, resid) for f in flights], self.vehicle, bounded=True)
+            return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
+                                      self.vehicle, bounded=True, rows=self.fl.rows,
+                                      extras=lambda f: self.fl.model_columns(f, resid.values[f]))
         return self.fl.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
                                    self.vehicle, bounded=True)
-
-    def _row_resid(self, f: str, resid: _Residual) -> np.ndarray:
-        if self._row_resid_of[0] is not resid:
-            self._row_resid_of = (resid, {})
-        rows = self._row_resid_of[1]
-        if f not in rows:
-            rows[f] = self.fl.signal_rows(f, resid.signal[f], resid.values[f])
-        return rows[f]
-
-    def forget_row_resid(self) -> None:
-        """Drop the residual rows the nonlinear candidates' fits kept (after the last fit)."""
-        self._row_resid_of = (None, {})
 
     def from_profile(self, c) -> bool:
         """Whether ``c`` is fitted and predicted from the flights' profiles."""

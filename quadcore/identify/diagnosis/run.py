@@ -4,6 +4,7 @@ with the evaluated flights' residual by regime, by flight, in time and in freque
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -11,7 +12,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, model_fit, rates, sessions as sessionlib, sufficient, summaries
+from quadcore.identify import evidence, fit as fitlib, rates, sessions as sessionlib, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -161,7 +162,6 @@ def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
     residual on rows) from the summary of its residual's rows (:func:`quadcore.identify.summaries.of_rows`,
     the one place rows become summaries), one flight at a time: each flight's rows go once its
     sums are taken."""
-    p.forget_row_resid()
     for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates
         p.fl.release(f)
 
@@ -181,12 +181,13 @@ def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
 def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sessions, log: Log
                            ) -> list[Disagreement]:
     """Parameters that differ between sessions: the model's effects, and the best candidate
-    beside them (from the flights' statistics when they are linear, the best one perhaps
-    profiled; otherwise fitted on each flight's rows)."""
+    beside them (from the flights' statistics when the model's effects are linear, a nonlinear
+    candidate from its profiles or by the search on the flights' rows; otherwise fitted on each
+    flight's rows)."""
     best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
-    if p.fl.stats is not None and model_fit.expressible(p.model_effects + best, p.spec.fixed):
+    if p.fl.stats is not None:
         return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
-                                        log, p.fl.fit_effects)
+                                        log, functools.partial(fitlib.fit_effects, rows=p.fl.rows))
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
                                     {f: p.fl.signal_rows(f, p.targets[f]) for f in p.ids}, p.vehicle, p.spec.fixed,
                                     sessions, log)

@@ -13,7 +13,7 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import fitting, flightdata, sessions as sessionlib, sufficient
+from quadcore.identify import flightdata, sessions as sessionlib, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
@@ -163,18 +163,15 @@ def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: lis
 
 def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
               sessions: dict[str, list[str]] | None, log) -> Callable | None:
-    """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training
-    flights (per session for per-session effects), or None for a model without effects."""
-    model_effects = [effectlib.get(n) for n in spec.effects]
-    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
-        fds = {f: flightdata.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in ids}
-        targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
-        pm = sessionlib.fit_per_session(spec, fds, targets, train, sessions, log)
-        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
-    if not model_effects:
+    """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training flights
+    from their statistics (:func:`quadcore.identify.model_fit.fit_model`; per session for per-session
+    effects) and predicted on a flight's rows, or None for a model without effects."""
+    if not spec.effects:
         return None
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        pm = fit_model(spec, decoded, train, sessions, log)
+        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
     log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
-    fds_train = [flightdata.flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train]
-    fit = fitting.fit_effects(model_effects, fds_train, flightdata.targets_of(fds_train), spec.vehicle, spec.fixed,
-                              bounded=True)
-    return lambda fd, say: fit.predict(model_effects, fd, spec.vehicle)
+    pm = fit_model(spec, decoded, train, sessions, log)
+    effects, params = [t.effect for t in pm.terms], {t.name: t.params for t in pm.terms}
+    return lambda fd, say: fd.predict(effects, params, spec.vehicle)
