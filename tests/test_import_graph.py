@@ -63,6 +63,9 @@ ALLOWED = (
          "their grid points, in a fit or held-out test from statistics"),
     Lazy("quadcore.workflows.identify", "discover", ("quadcore.identify.discovery",),
          "start-up: scikit-learn (~1.1 s CPU) only for a discovery, not for every fit and diagnosis"),
+    Lazy("quadcore.workflows.reports", "__getattr__", ("quadcore.report.*",),
+         "start-up: the report modules import matplotlib (~0.5 s CPU); a workflow loads them when it writes a "
+         "report, so that diagnose without --report, discover and plan start without them (docs/benchmarks.md)"),
     Lazy("quadcore.store.store", "as_root", ("upath",),
          "optional dependency: universal-pathlib (the s3 extra), only for a data root in an object store"),
     Lazy("pipeline.resources", "executor_from_env", ("dagster_celery", "dagster_k8s"),
@@ -193,3 +196,16 @@ def test_the_cli_starts_without_the_numerical_libraries() -> None:
     code = f"import sys, quadcore.cli; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert loaded == [], f"import quadcore.cli loads {loaded}: import them in the command group that needs them"
+
+
+def test_diagnose_and_discover_start_without_matplotlib_and_a_report_loads_it() -> None:
+    """The report modules (matplotlib) load when a report is written (quadcore.workflows.reports), not when
+    the diagnose or discover command group is imported; asked for, ``reports.diagnosis`` is the module."""
+    import subprocess
+
+    code = ("import sys, quadcore.cli.diagnose, quadcore.cli.discover, quadcore.cli.learn; "
+            "before = 'matplotlib' in sys.modules; "
+            "from quadcore.workflows import reports; "
+            "print(before, reports.diagnosis is sys.modules['quadcore.report.diagnosis'], 'matplotlib' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "True", "True"]

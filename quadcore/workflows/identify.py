@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 from quadcore.commands import quadcore_command
 from quadcore.identify import diagnosis, history, model, model_fit, sufficient
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
-from quadcore.report import diagnosis as diagnosis_report
 from quadcore.store import store
+from quadcore.workflows import reports
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
 
 if TYPE_CHECKING:
@@ -142,7 +142,7 @@ def write_diagnosis_report(result: Diagnosis, reports_dir, root=None, model_file
     history; ``model_file``: the file its next step tells to edit, ``rerun``: the command it
     tells to run again. The one report path of ``quadcore diagnose --report`` and ``model_diagnosis``."""
     hist = history.read(root) if root is not None else None
-    return diagnosis_report.write(result.to_dict(), reports_dir, hist,
+    return reports.diagnosis.write(result.to_dict(), reports_dir, hist,
                                   discovery_for(reports_dir, list(result.effects_in_model)), model_file, rerun)
 
 

@@ -15,10 +15,9 @@ from quadcore.identify.model import PLUGINS, SPEC_DIGEST
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, splits
 from quadcore.learn.learners import DEFAULT_ROW_BUDGET
 from quadcore.physics import decoded_store
-from quadcore.report.learning import make_plots, write_report
 from quadcore.store import store
 from quadcore.store.names import MAIN_EVENT
-from quadcore.workflows import identify
+from quadcore.workflows import identify, reports
 from quadcore.workflows.fleet import Fleet, WorkflowError, _subset, duplicates, held_out
 
 if TYPE_CHECKING:
@@ -232,8 +231,8 @@ def full_report(out_dir: str | Path, residual_tables: Mapping[str, pl.DataFrame]
     if root_for_history is not None:
         report["history_files"] = [str(p) for p in evaluation.record_history(root_for_history, report)]
         hist = history.read(root_for_history)
-    pngs = make_plots(report, out_dir, residual_tables, vehicle, hist)
-    paths = write_report(report, pngs, report_dir)
+    pngs = reports.learning.make_plots(report, out_dir, residual_tables, vehicle, hist)
+    paths = reports.learning.write_report(report, pngs, report_dir)
     return report, pngs, paths
 
 
