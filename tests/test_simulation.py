@@ -147,6 +147,40 @@ def test_statistics_look_like_the_real_logs(hover):
     assert abs(z.mean() - 0.5) < 0.01
 
 
+def _gyro_noise_lag_one(fl) -> np.ndarray:
+    """Per axis, the lag-one autocorrelation of the logged gyro minus its trend, where the vehicle
+    turns slowly (below 20 deg/s) away from gaps and the ends: white noise gives ~0."""
+    df = fl.tables["fixedFrequency"]
+    t, g = df["t_s"].to_numpy(), df.select(dynamics.cols("omega_b", "radps")).to_numpy() * 180 / np.pi
+    ok = ~signals.near_gap(t) & (np.linalg.norm(signals.smooth(g), axis=1) < 20.0)
+    ok[:40] = ok[-40:] = False
+    res, pair = g - signals.smooth(g), ok[:-1] & ok[1:]
+    return np.array([np.corrcoef(res[:-1][pair, i], res[1:][pair, i])[0, 1] for i in range(3)])
+
+
+def test_the_firmwares_low_pass_colours_the_gyro_noise_as_on_the_real_logs(tmp_path, hover, real_logs):
+    """The real gyro noise is the firmware's 80 Hz low-pass of it (lag-one autocorrelation ~+0.7
+    on jana04 and jana20); the simulator's is white unless ``SensorNoise.lowpass_hz`` says so, and
+    its size stays the measured one."""
+    real = np.concatenate([_gyro_noise_lag_one(flight.decode_flight(real_logs / f)) for f in ("jana04", "jana20")])
+    assert np.all(real > 0.6), real
+    white = _gyro_noise_lag_one(hover[1])
+    assert np.all(np.abs(white) < 0.15), white
+    config = SimConfig(kind="hover", duration_s=6.0, seed=11, noise=simulation.SensorNoise(lowpass_hz=80.0))
+    _, fl, _ = _fly(tmp_path, config)
+    coloured = _gyro_noise_lag_one(fl)
+    assert np.all(np.abs(coloured - real.mean()) < 0.1), (coloured, real)
+    size, white_size = _gyro_noise_size(fl), _gyro_noise_size(hover[1])
+    assert np.all(size < white_size) and np.all(size > 0.85 * white_size), (size, white_size)  # the trend takes more
+
+
+def _gyro_noise_size(fl) -> np.ndarray:
+    """Per axis, the standard deviation of the logged gyro (deg/s) minus its trend, after the take-off."""
+    df = fl.tables["fixedFrequency"]
+    x = df.select(dynamics.cols("omega_b", "radps")).to_numpy()[df["t_s"].to_numpy() > 2.5] * 180 / np.pi
+    return (x - signals.smooth(x)).std(axis=0)
+
+
 def test_actuation_chain_is_reproduced_by_the_log(hover):
     sim, fl, _ = hover
     df = fl.tables["fixedFrequency"]

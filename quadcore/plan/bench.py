@@ -18,6 +18,9 @@ plan that merely favours one side fails half the seeds):
   no timing candidate is found, before or after any added flight (docs/flight-planning.md: no
   realistic lag/delay tie at the command rate; below it the rate level does not decide,
   :func:`quadcore.identify.rates.below_command_rate`).
+* ``lag_firmware``: the ``lag`` scenario with the sensor noise the Crazyflie's firmware leaves
+  (``SensorNoise.lowpass_hz`` = 80 Hz, as the real logs' gyro noise is coloured): every flight,
+  the old ones and the added one.
 
 Used by ``benchmarks/bench_plan.py`` (all seeds) and ``tests/test_plan.py`` (a few).
 """
@@ -26,7 +29,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,11 +41,12 @@ from quadcore.physics import vehicle as vehiclelib
 from quadcore.plan import pieces, planner, signatures
 from quadcore.plan.limits import Limits
 from quadcore.sim import simulation
-from quadcore.sim.simulation import SimConfig
+from quadcore.sim.simulation import SensorNoise, SimConfig
 from quadcore.spec.model import spec_from
 
 FILES = ("figure8", "circle0", "yaw0")  # the lab's trajectory files (the simulator's built-in plans)
 PLAN_S = 10.0  # the planned manoeuvre; flown with 2 s take-off, 1 s hover before and 1 s after
+FIRMWARE_LOWPASS_HZ = 80.0  # the Crazyflie firmware's gyro low-pass (SensorNoise.lowpass_hz)
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class Scenario:
     pair: tuple[str, str]
     truths: tuple[dict[str, float], dict[str, float]]  # parameters of pair[0], pair[1]
     old: Callable[[int], list[SimConfig]]
+    noise: SensorNoise = SensorNoise()  # every flight's sensor noise, the old ones' and the added one's
 
 
 def _circles(seed: int) -> list[SimConfig]:
@@ -67,6 +72,8 @@ SCENARIOS = {
     "mass": Scenario(("thrust_scale", "added_mass"), ({"scale": 0.92}, {"m_p_kg": 0.003}), _hover),
     "lag": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.01}, {"t_d_s": 0.01}), _hover),
     "lag_small": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.002}, {"t_d_s": 0.002}), _hover),
+    "lag_firmware": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.01}, {"t_d_s": 0.01}), _hover,
+                             SensorNoise(lowpass_hz=FIRMWARE_LOWPASS_HZ)),
 }
 
 
@@ -124,7 +131,7 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
     spec = spec_from(veh, [])
     with tempfile.TemporaryDirectory(prefix="quadcore-plan-bench-") as tmp:
         root = Path(tmp)
-        simulation.simulate_set(root / "old", sc.old(seed), effects, veh)
+        simulation.simulate_set(root / "old", [replace(c, noise=sc.noise) for c in sc.old(seed)], effects, veh)
         old = _decode(root / "old")
         before = diagnosislib.diagnose(old, spec)
         plan = planner.plan(old, spec, before, planner.PlanRequest(sc.pair, None, Limits(), PLAN_S, prove=False,
@@ -138,8 +145,9 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
         start = plan.trajectory.evaluate(np.zeros(1))[0]
         total = plan.trajectory.duration_s + 4.0  # take-off 2 s, hover 1 s, end hover 1 s
         configs = {"planned": SimConfig(kind="plan", plan_file=str(csv), height_m=float(start[2]),
-                                        seed=1000 + seed, name=signatures.PLANNED)}
-        configs.update({f: SimConfig(kind=f, duration_s=total, seed=1000 + seed, name=f) for f in files})
+                                        seed=1000 + seed, name=signatures.PLANNED, noise=sc.noise)}
+        configs.update({f: SimConfig(kind=f, duration_s=total, seed=1000 + seed, name=f, noise=sc.noise)
+                        for f in files})
         for label, cfg in configs.items():
             simulation.write_flight(simulation.simulate(cfg, veh, effects), root / "new" / label / label)
             tables = {**old, label: _decode(root / "new" / label)[label]}

@@ -381,7 +381,7 @@ def log_bytes(trace: Trace, rate_hz: int, seed: int, battery: Battery | None = N
     rng_noise, rng_drop, rng_mocap, rng_clock, rng_vbat = (
         np.random.default_rng(s) for s in np.random.SeedSequence([seed, rate_hz]).spawn(5))
     config = SimConfig(log_rate_hz=float(rate_hz), seed=seed)
-    noise = _draw_noise(rng_noise, config.noise, len(t))
+    noise = _draw_noise(rng_noise, config.noise, len(t), float(rate_hz))  # white: no low-pass asked
     vbat_V = battery.ocv_V + battery.rate_V_per_s * t - battery.sag_V_per_N * f_act.sum(axis=1) \
         + rng_vbat.normal(0.0, config.noise.vbat_V, len(t))
     vbat_mV = np.rint(vbat_V * 1000.0).astype(np.int64)
