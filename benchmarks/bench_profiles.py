@@ -5,8 +5,8 @@ the profiles are on disk.
     python benchmarks/bench_profiles.py [LOGS]     (default: the 19 real logs)
 
 Per effect (``motor_lag``, ``thrust_delay``), fitted alone to the nominal residual of all the
-flights: the row search (:func:`quadcore.identify.fitting.fit_effects` on FlightData: grid, Brent,
-curvature on every flight's rows) and the same search from the flights' statistics. The
+flights: the row search (:func:`quadcore.identify.fit.fit_rows`, the one-parameter search on every
+flight's rows: grid, Brent, profile interval) and the same search from the flights' statistics. The
 difference is given in units of the search's own tolerance ``xatol`` (5e-4 of the span) and in
 sample periods. Then the same on simulated flights with a hidden ``motor_lag`` of 30 ms.
 "Profile" is the time to compute every flight's statistics with the profiles (once per flight,
@@ -24,7 +24,7 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import effects
-from quadcore.identify import fit as fitlib, fitting, flightdata, sufficient
+from quadcore.identify import fit as fitlib, flightdata, sufficient
 from quadcore.logs import flight
 from quadcore.physics import gate, vehicle
 from quadcore.sim import simulation
@@ -60,7 +60,7 @@ def compare(label: str, fds: dict[str, flightdata.FlightData]) -> None:
         e = effects.get(name)
         (p,) = e.parameters
         t0 = time.perf_counter()
-        rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+        rows = fitlib.fit_rows([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
         t_rows = time.perf_counter() - t0
         t0 = time.perf_counter()
         prof = fitlib.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)

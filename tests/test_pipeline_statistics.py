@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dagster as dg
 import pytest
+from reference import rows as reference
 
 from pipeline.assets.decode import decoded_flight
 from pipeline.assets.discovery import term_discovery
@@ -15,7 +16,7 @@ from pipeline.freshness import STATS_VERSION, versions_used
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.run import main as job
 from quadcore import effects
-from quadcore.identify import fitting, flightdata, sufficient
+from quadcore.identify import flightdata, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.logs import flight
 from quadcore.physics import vehicle
@@ -59,7 +60,7 @@ def test_statistics_asset_feeds_the_fleet_fit(drag_fleet, tmp_path, monkeypatch)
         fds = [flightdata.flight_data(f, flight.decode_flight(drag_fleet / f).tables["fixedFrequency"], veh)
                for f in train]
         # the model is fitted within its bounds (rotor_drag's k_z, ~0 here, is held at 0)
-        rows = fitting.fit_effects([effects.get("rotor_drag")], fds, flightdata.targets_of(fds), veh, bounded=True)
+        rows = reference.fit_effects([effects.get("rotor_drag")], fds, flightdata.targets_of(fds), veh, bounded=True)
         got = fitted["effects"][0]["params"]
         for k, v in rows.params["rotor_drag"].items():
             assert got[k] == pytest.approx(v, rel=1e-9)

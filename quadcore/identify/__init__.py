@@ -1,6 +1,6 @@
 """Stage 3, system identification: the physics model and its spec file (``model``), flight sessions
 (``sessions``), a flight's rows (``flightdata``), per-flight sufficient statistics (``sufficient``,
-their file format ``binfile``), fitting effect parameters (``fitting``; the model's fit, ``model_fit``),
+their file format ``binfile``), fitting effect parameters (``fit``, a package; the model's fit, ``model_fit``),
 what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``: problem, scoring,
 verdict text, typed result) with its regime tables (``regimes``), evidence (``evidence``) and settings
 (``settings``), sparse term discovery (``discovery``, a package: terms, Gram matrices, stored

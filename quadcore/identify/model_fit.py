@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import fit as fitlib, fitting, profiles, sessions as sessionlib, sufficient
+from quadcore.identify import fit as fitlib, profiles, sessions as sessionlib, sufficient
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData, flight_data, targets_of
 from quadcore.identify.model import PhysicsModel
@@ -69,7 +69,7 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     else:
         by_id = {f: flight_data(f, decoded[f], spec.vehicle_for(f)) for f in train}
         targets = dict(zip(train, targets_of([by_id[f] for f in train])))
-        fit = fitting.fit_effects
+        fit = fitlib.fit_rows
     if spec.per_session:
         return sessionlib.fit_per_session(spec, by_id, targets, train, sessions, log or (lambda msg: None), fit)
     fitted = fit(effect_list, [by_id[f] for f in train], [targets[f] for f in train], spec.vehicle, spec.fixed,

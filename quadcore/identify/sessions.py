@@ -33,13 +33,12 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import fitting
-from quadcore.identify.fit import solve
+from quadcore.identify.fit import fit_effects, solve
 from quadcore.identify.flightdata import Flight
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.physics.vehicle import Vehicle
 
-# a joint fit of effects to targets on flights: fitting.fit_effects (rows) or
+# a joint fit of effects to targets on flights: quadcore.identify.fit.fit_rows (rows) or
 # quadcore.identify.fit.fit_effects (statistics), as whoever holds the flights chose by the effects' kinds
 FitEffects = Callable[..., solve.Fit]
 
@@ -94,7 +93,7 @@ def session_of(flight: str, sessions: dict[str, list[str]]) -> str | None:
 
 
 def per_flight_fits(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehicle,
-                    fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, solve.Fit]:
+                    fixed: dict | None = None, fit: FitEffects = fit_effects) -> dict[str, solve.Fit]:
     """The effects fitted on each flight alone (``fit``: on the flights' rows or statistics)."""
     return {f: fit(effects, [fds[f]], [targets[f]], vehicle, fixed) for f in sorted(fds)}
 
@@ -168,7 +167,7 @@ def _map_note(groups: list[ParameterGroup], fds: dict, vehicle: Vehicle) -> list
 
 def disagreements(effects: list[Effect], fds: dict, targets: dict, vehicle: Vehicle,
                   fixed: dict | None = None, sessions: dict[str, list[str]] | None = None,
-                  log=lambda msg: None, fit: FitEffects = fitting.fit_effects) -> list[Disagreement]:
+                  log=lambda msg: None, fit: FitEffects = fit_effects) -> list[Disagreement]:
     """Parameters of ``effects`` (fitted jointly, per flight and per group) that differ
     between groups of flights: from the data, or between the given ``sessions``."""
     fixed = fixed or {}
@@ -224,7 +223,7 @@ ROUNDS = 3  # alternations between the per-session and the shared parameters
 
 
 def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: list[str], vehicle: Vehicle,
-                   fixed: dict | None = None, fit: FitEffects = fitting.fit_effects) -> dict[str, list[str]]:
+                   fixed: dict | None = None, fit: FitEffects = fit_effects) -> dict[str, list[str]]:
     """Sessions as the data show them: the groups of the per-flight values of the first
     parameter of ``effects`` (named ``group1``, ``group2``, ... by increasing value)."""
     fits = per_flight_fits(effects, {f: fds[f] for f in flights}, targets, vehicle, fixed, fit)
@@ -237,7 +236,7 @@ def found_sessions(effects: list[Effect], fds: dict, targets: dict, flights: lis
 
 def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                     sessions: dict[str, list[str]] | None = None, log=lambda msg: None,
-                    fit: FitEffects = fitting.fit_effects) -> PhysicsModel:
+                    fit: FitEffects = fit_effects) -> PhysicsModel:
     """Fit ``spec`` (a :class:`quadcore.spec.model.ModelSpec` with ``per_session`` effects) on the
     ``train`` flights: the per-session effects on each session's flights, the others on all,
     alternating ``ROUNDS`` times, every fit within the parameters' physical bounds (a parameter

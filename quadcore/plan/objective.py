@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quadcore.identify import evidence, fitting, flightdata
+from quadcore.identify import evidence, flightdata
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan.signatures import Explanation, predict, unit_wrench
 
@@ -68,13 +68,13 @@ def _grid(expl: Explanation) -> np.ndarray:
     return np.unique(np.clip(values, p.lower, p.upper))
 
 
-def blocks(fd: fitting.FlightData) -> np.ndarray:
+def blocks(fd: flightdata.FlightData) -> np.ndarray:
     """Block index (blocks of :data:`quadcore.identify.flightdata.BLOCK_S`) of each usable sample."""
     t = fd.state.t_s[fd.mask]
     return ((t - t[0]) // evidence.BLOCK_S).astype(int) if len(t) else np.zeros(0, dtype=int)
 
 
-def compared(fd: fitting.FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
+def compared(fd: flightdata.FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
     """The usable samples the diagnosis compares candidates on (all but the first ``skip``
     blocks; a boolean over the usable samples) and their blocks, numbered from 0."""
     b = blocks(fd)
@@ -95,7 +95,7 @@ class Direction:
     the rival fitted on old and planned flights together. Each flight's part is kept per 1 s
     block and channel (the comparison's clusters), the old flights' computed once."""
 
-    def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
+    def __init__(self, truth: Explanation, rival: Explanation, old: Sequence[flightdata.FlightData], vehicle: Vehicle,
                  w: np.ndarray, skip: int = 0):
         self.truth, self.rival, self.vehicle, self.skip = truth, rival, vehicle, skip
         e = rival.effect
@@ -113,7 +113,7 @@ class Direction:
             self.old = self.old[self.near]
             self.on_old = best - int(self.near[0])
 
-    def sums(self, fd: fitting.FlightData):
+    def sums(self, fd: flightdata.FlightData):
         """One flight's part per block and channel: the Gram sums of the rival's basis and the
         truth's prediction (linear rival), or the squared mismatch at each grid value
         ((values, blocks, 6))."""
@@ -128,7 +128,7 @@ class Direction:
         name = self.rival.effect.parameters[0].name
         out = []
         for v in self.values if self.values is not None else ():
-            pred = fitting.prediction(self.rival.effect, {**self.rival.params, name: float(v)}, fd, self.vehicle)
+            pred = flightdata.prediction(self.rival.effect, {**self.rival.params, name: float(v)}, fd, self.vehicle)
             out.append(_per_block((y - pred[fd.mask][keep]) ** 2, b))
         return np.stack(out)
 
@@ -188,7 +188,7 @@ class SeparationObjective:
     compared) and the noise ``sigma`` (6,); ``skip``: the first blocks of each flight the
     diagnosis leaves out of its comparison (see the module)."""
 
-    def __init__(self, a: Explanation, b: Explanation, old: Sequence[fitting.FlightData], vehicle: Vehicle,
+    def __init__(self, a: Explanation, b: Explanation, old: Sequence[flightdata.FlightData], vehicle: Vehicle,
                  sigma: np.ndarray, old_energy: np.ndarray, skip: int = 0):
         self.a, self.b, self.vehicle, self.skip = a, b, vehicle, skip
         self.sigma = np.maximum(np.asarray(sigma, float), 1e-12)
@@ -196,7 +196,7 @@ class SeparationObjective:
         self.old_energy = np.asarray(old_energy, float)
         self.directions = [Direction(a, b, old, vehicle, self.w, skip), Direction(b, a, old, vehicle, self.w, skip)]
 
-    def evaluate(self, new: fitting.FlightData | None = None) -> Separation:
+    def evaluate(self, new: flightdata.FlightData | None = None) -> Separation:
         by_truth = {}
         for d in self.directions:
             per_block = d.held_out(self.w, d.sums(new) if new is not None else None)
@@ -214,7 +214,7 @@ class SeparationObjective:
         value = min(min(s / SIGMA_GOAL, g / GAP_GOAL) for s, g in by_truth.values())
         return Separation(sigma, gap, value, by_truth)
 
-    def value(self, new: fitting.FlightData) -> float:
+    def value(self, new: flightdata.FlightData) -> float:
         return self.evaluate(new).value
 
 
@@ -227,12 +227,12 @@ class InformationObjective:
         self.std_before = float(std_before)
         self.w = 1.0 / np.maximum(np.asarray(sigma, float), 1e-12) ** 2
 
-    def std_after(self, new: fitting.FlightData) -> float:
+    def std_after(self, new: flightdata.FlightData) -> float:
         u = unit_wrench(self.expl, self.parameter, new, self.vehicle)[new.mask]
         info = float((u**2).sum(axis=0) @ self.w) / W
         prior = 1.0 / self.std_before**2 if self.std_before > 0 and np.isfinite(self.std_before) else 0.0
         return float(1.0 / np.sqrt(prior + info)) if prior + info > 0 else float("inf")
 
-    def value(self, new: fitting.FlightData) -> float:
+    def value(self, new: flightdata.FlightData) -> float:
         after = self.std_after(new)
         return self.std_before / after if np.isfinite(after) and after > 0 and np.isfinite(self.std_before) else 0.0

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import fitting, rates
+from quadcore.identify import flightdata, rates
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, separation, signatures
@@ -115,7 +115,7 @@ def old_energy(diag: Diagnosis) -> np.ndarray:
     return base**2 * diag.evaluation.samples
 
 
-def _differ_separate(a: Explanation, b: Explanation, fd: fitting.FlightData, vehicle: Vehicle,
+def _differ_separate(a: Explanation, b: Explanation, fd: flightdata.FlightData, vehicle: Vehicle,
                      sigma: np.ndarray) -> np.ndarray:
     d = signatures.predict(a, fd, vehicle) - signatures.predict(b, fd, vehicle)
     return (d**2) @ (1.0 / sigma**2)
@@ -134,11 +134,11 @@ def plan(tables: Mapping, spec: ModelSpec, diag: Diagnosis, request: PlanRequest
     return _parameter(q, tables, spec, diag, request, spec.vehicle, sessions, log)
 
 
-def fitting_flights(tables: Mapping, spec: ModelSpec) -> dict[str, fitting.FlightData]:
+def fitting_flights(tables: Mapping, spec: ModelSpec) -> dict[str, flightdata.FlightData]:
     return separation.flights_of(tables, spec)
 
 
-def _probe(limits: Limits, duration_s: float, vehicle: Vehicle, loop: np.ndarray) -> fitting.FlightData | None:
+def _probe(limits: Limits, duration_s: float, vehicle: Vehicle, loop: np.ndarray) -> flightdata.FlightData | None:
     """A middle member of the family, to tell a rival a flight can separate from one it cannot."""
     half = limits.half_extent_m
     m = family.Manoeuvre("figure8", 0.3, 2.0, float(min(half[0], half[1])), 0.6 * half[2], limits.centre_m,
@@ -167,7 +167,7 @@ def _choose_rival(q: Question, diag: Diagnosis, old, vehicle, limits: Limits, du
                                 "is rotor drag); knowledge of the vehicle or the room must decide")
 
 
-def _unlogged_timing(q: Question, flights: Mapping[str, fitting.FlightData]) -> Question | None:
+def _unlogged_timing(q: Question, flights: Mapping[str, flightdata.FlightData]) -> Question | None:
     """Nothing to plan when both sides re-time the rotors' thrust and flights log the commands
     less often than the firmware sets them: the diagnosis does not compare the two there, and
     no flight logged the same way would tell them apart (docs/timing.md)."""

@@ -1,7 +1,7 @@
 """The measured separation of two explanations on flights: the diagnosis's held-out comparison.
 
 Cross-validation over flights (:func:`quadcore.identify.fit.solve.folds`, as the diagnosis): in
-each fold both candidates are fitted (:func:`quadcore.identify.fitting.fit_effects`) on the
+each fold both candidates are fitted (:func:`quadcore.identify.fit.fit_rows`) on the
 training flights' residual of the model and predict the test flights; then
 :func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks, which of the two
 fits the residual better, in the channels above the sensor-noise floor. Its ``t`` is the
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fitting, sessions
+from quadcore.identify import evidence, fit as fitlib, flightdata, sessions
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.fit import solve
 from quadcore.identify.model import PhysicsModel
@@ -50,9 +50,9 @@ class Comparison:
         return self.t if truth == self.a else -self.t
 
 
-def flights_of(tables: Mapping, spec: ModelSpec) -> dict[str, fitting.FlightData]:
+def flights_of(tables: Mapping, spec: ModelSpec) -> dict[str, flightdata.FlightData]:
     """Each decoded table as the fits take it (its session's thrust map)."""
-    return {f: fitting.flight_data(f, tables[f], spec.vehicle_for(f)) for f in sorted(tables)}
+    return {f: flightdata.flight_data(f, tables[f], spec.vehicle_for(f)) for f in sorted(tables)}
 
 
 def compared_blocks(diag: Diagnosis) -> int:
@@ -62,7 +62,7 @@ def compared_blocks(diag: Diagnosis) -> int:
     return evidence.memory_blocks([effectlib.get(n) for n in names])
 
 
-def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, b: str,
+def compare(fds: Mapping[str, flightdata.FlightData], model: PhysicsModel, a: str, b: str,
             n_folds: int = N_FOLDS, skip: int = 0) -> Comparison:
     """The held-out comparison of candidates ``a`` and ``b`` on ``fds``, each flight without its
     first ``skip`` blocks (see the module)."""
@@ -79,14 +79,14 @@ def compare(fds: Mapping[str, fitting.FlightData], model: PhysicsModel, a: str, 
     for held in solve.folds(ids, n_folds):
         train = [f for f in ids if f not in held] or ids
         for e, out in ((ea, pred_a), (eb, pred_b)):
-            fit = fitting.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)
+            fit = fitlib.fit_rows([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)
             for f in held:
                 out[f] = fit.predict([e], fds[f], vehicle)
     flights = [fds[f].after_blocks(skip) for f in ids]
     before = sum((resid[fd.flight][fd.mask] ** 2).sum(axis=0) for fd in flights)
     floor = sum((fd.noise ** 2 * fd.n for fd in flights), np.zeros(6))
     quiet = evidence.at_noise_level(before, floor)
-    w = fitting.channel_weights([resid[fd.flight][fd.mask] for fd in flights])
+    w = fitlib.row_weights(flights, [resid[fd.flight] for fd in flights])
     w = w * evidence.channel_mask([ch for ch, q in quiet.items() if not q])
     test = evidence.compare(flights, resid, pred_a, pred_b, w)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import fitting
+from quadcore.identify import flightdata
 from quadcore.physics import signals
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import flatness
@@ -39,7 +39,7 @@ class Explanation:
         return self.effect.name
 
 
-def activity(old: Sequence[fitting.FlightData], seconds: float = ACTIVITY_S) -> np.ndarray:
+def activity(old: Sequence[flightdata.FlightData], seconds: float = ACTIVITY_S) -> np.ndarray:
     """(n, rotors) the closed loop's own rotor-thrust activity on the logged flights: each rotor's
     thrust minus its smoothed course (what the attitude controller does against sensor noise
     and small disturbances, broadband up to the log rate), ``seconds`` of the first flights'
@@ -56,7 +56,7 @@ def activity(old: Sequence[fitting.FlightData], seconds: float = ACTIVITY_S) -> 
 
 
 def planned_flight(traj: PolyTrajectory, vehicle: Vehicle, closed_loop: np.ndarray | None = None,
-                   rate_hz: float = flatness.LOG_RATE_HZ) -> fitting.FlightData:
+                   rate_hz: float = flatness.LOG_RATE_HZ) -> flightdata.FlightData:
     """The planned flight as the fits take a flight: its noise-free flat state (plus, given, the
     closed loop's rotor-thrust ``activity`` repeated along it), a zero residual, every sample usable."""
     state = flatness.flight_state(flatness.flat_path(traj, vehicle, rate_hz), vehicle)
@@ -64,21 +64,21 @@ def planned_flight(traj: PolyTrajectory, vehicle: Vehicle, closed_loop: np.ndarr
         reps = int(np.ceil(state.n / len(closed_loop)))
         state.f_rotor_N = state.f_rotor_N + np.tile(closed_loop, (reps, 1))[: state.n]
     zeros = np.zeros((state.n, 3))
-    return fitting.FlightData(PLANNED, state, zeros, zeros.copy(), np.ones(state.n, dtype=bool))
+    return flightdata.FlightData(PLANNED, state, zeros, zeros.copy(), np.ones(state.n, dtype=bool))
 
 
-def predict(expl: Explanation, fd: fitting.FlightData, vehicle: Vehicle) -> np.ndarray:
+def predict(expl: Explanation, fd: flightdata.FlightData, vehicle: Vehicle) -> np.ndarray:
     """(n, 6) the explanation's wrench as it appears in the residual (N, N m; body frame)."""
-    return fitting.prediction(expl.effect, dict(expl.params), fd, vehicle)
+    return flightdata.prediction(expl.effect, dict(expl.params), fd, vehicle)
 
 
-def unit_wrench(expl: Explanation, parameter: str, fd: fitting.FlightData, vehicle: Vehicle) -> np.ndarray:
+def unit_wrench(expl: Explanation, parameter: str, fd: flightdata.FlightData, vehicle: Vehicle) -> np.ndarray:
     """(n, 6) the change of the prediction per unit of ``parameter`` at the fitted values (a
     secant over 1 % of the parameter's range, inward from a bound)."""
     p = next(q for q in expl.effect.parameters if q.name == parameter)
     step = 0.01 * (p.upper - p.lower)
     params = dict(expl.params)
-    base = fitting.prediction(expl.effect, params, fd, vehicle)
+    base = flightdata.prediction(expl.effect, params, fd, vehicle)
     step = step if params[parameter] + step <= p.upper else -step
     params[parameter] += step
-    return (fitting.prediction(expl.effect, params, fd, vehicle) - base) / step
+    return (flightdata.prediction(expl.effect, params, fd, vehicle) - base) / step

@@ -17,7 +17,6 @@ from quadcore import effects as effectlib
 from quadcore.identify import (
     evidence,
     fit as fitlib,
-    fitting,
     flightdata,
     model_fit,
     profiles,
@@ -78,9 +77,9 @@ class _Flights:
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if from_stats else None
         # the fits and weights of the form the flights are held in, chosen here by the model's
         # effects' kinds (never by the type of what a function is given)
-        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if from_stats else fitting.fit_effects
+        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if from_stats else fitlib.fit_rows
         self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = (
-            fitlib.channel_weights if from_stats else fitting.weights_of)
+            fitlib.channel_weights if from_stats else fitlib.row_weights)
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state

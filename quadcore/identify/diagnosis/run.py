@@ -190,7 +190,7 @@ def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sess
                                         log, functools.partial(fitlib.fit_effects, rows=p.fl.rows))
     return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
                                     {f: p.fl.signal_rows(f, p.targets[f]) for f in p.ids}, p.vehicle, p.spec.fixed,
-                                    sessions, log)
+                                    sessions, log, fitlib.fit_rows)
 
 
 def _discover_placeholder(spec: ModelSpec) -> str:

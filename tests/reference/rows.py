@@ -1,4 +1,7 @@
-"""The fits on a flight's rows (the statistics' fits: :mod:`quadcore.identify.fit`).
+"""The reference the fits from statistics (:mod:`quadcore.identify.fit`) are tested against: the
+same fits written on the flights' rows, sample by sample, as readable as the mathematics. Nothing
+in quadcore uses them; the equality tests (tests/test_sufficient.py, tests/test_search.py, ...)
+compare against them, each with the tolerance it states.
 
 Targets are the residual force (N) and torque (N m) of each flight, body frame, on
 samples away from logging gaps. Force and torque are weighted by the inverse of their
@@ -22,7 +25,7 @@ state the filter cannot know.
 
 The flights' rows, the smoothed prediction of an effect and why the model torque goes through
 the gyro derivative's own filter: :mod:`quadcore.identify.flightdata`. The same fits from the
-flights' statistics: :mod:`quadcore.identify.sufficient`.
+flights' statistics: :mod:`quadcore.identify.fit`.
 """
 
 from __future__ import annotations
@@ -42,13 +45,7 @@ from quadcore.identify.fit.solve import (
     solved_linear,
     weights_from_sums,
 )
-from quadcore.identify.flightdata import (  # noqa: F401  (flight_data, prediction: the rows' API, read here too)
-    SAMPLES_PER_INDEPENDENT,
-    FlightData,
-    flight_data,
-    prediction,
-    targets_of,
-)
+from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
 from quadcore.physics.vehicle import Vehicle
 
 

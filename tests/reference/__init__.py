@@ -1,0 +1,1 @@
+"""Readable reference implementations the tests compare the project's code against."""
