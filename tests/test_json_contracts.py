@@ -45,3 +45,22 @@ def test_the_pinned_documents_compare_numbers_to_a_tolerance_and_text_exactly():
     assert same({**doc, "k": 0.15 * (1 + 1e-5)}, doc) == [".k: 0.1500015 != 0.15"]
     assert same({**doc, "n": 5}, doc) and same({**doc, "verdict": "Most likely missing: wind"}, doc)
     assert same({**doc, "ev": [1e-16, 0.0]}, doc) and same(dict(reversed(doc.items())), doc)
+
+
+def test_a_pinned_documents_candidates_read_back_as_typed_rows_that_stay_as_read():
+    """Each candidate of a pinned diagnosis document read back (CandidateScore.from_dict, as the plan
+    and the report read one) gives its JSON object again, key for key and in order, and the typed row
+    is read-only: a field assigned after it is made is an error, not a silent change."""
+    import dataclasses
+    import json
+
+    from quadcore.identify.diagnosis import CandidateScore
+
+    doc = json.loads((snapshot.FOLDER / "diagnose_drag_fleet_holdout.json").read_text())
+    assert len(doc["candidates"]) >= 10
+    for row in doc["candidates"]:
+        score = CandidateScore.from_dict(row)
+        assert list(score.to_dict().items()) == list(row.items())
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            score.found = not score.found
+        assert score.found == row["found"]

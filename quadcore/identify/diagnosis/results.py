@@ -6,7 +6,7 @@ the JSON boundary (:meth:`Diagnosis.to_dict`), in the key order of the ``quadcor
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import FrozenInstanceError, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from quadcore.identify.model import VEHICLE_DIGEST
@@ -77,7 +77,14 @@ class CandidateScore(CandidateFields):
     parameters with their uncertainty, the held-out test, the decision (``found``, ``grade``,
     ``status``, ``reason``), the candidates the data cannot tell it from, and the smallest
     value of each parameter these flights would detect (fields: :class:`CandidateFields`).
-    Compared by value; not changed once the diagnosis returns it."""
+    Compared by value. Read-only: a field is set once, when it is made (a frozen dataclass cannot
+    share its fields with the mutable :class:`~quadcore.identify.diagnosis.rows.CandidateRow`,
+    so the guard is :meth:`__setattr__`'s)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in self.__dict__:
+            raise FrozenInstanceError(f"cannot assign to field {name!r} of a CandidateScore")
+        super().__setattr__(name, value)
 
     @property
     def useful(self) -> bool:
