@@ -27,7 +27,7 @@ from _common import logs_folder
 
 from quadcore.export import c as export_c
 from quadcore.export.c.build import STM32F405_FLASH_BYTES, STM32F405_RAM_BYTES
-from quadcore.identify import model_fit
+from quadcore.identify.fit import model_fit
 from quadcore.learn import artefacts, features as feat, learners, trainers, trees
 from quadcore.logs import flight
 from quadcore.physics import dynamics, vehicle

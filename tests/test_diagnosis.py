@@ -21,7 +21,8 @@ import pytest
 import snapshot
 
 from quadcore import cli, effects
-from quadcore.identify import diagnosis, evidence, flightdata, model, model_fit
+from quadcore.identify import diagnosis, evidence, flightdata, model
+from quadcore.identify.fit import model_fit
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation

@@ -19,7 +19,8 @@ import pytest
 from quadcore import cli, effects
 from quadcore.export import c as export_c
 from quadcore.export.c.learned import raw_thresholds
-from quadcore.identify import model, model_fit
+from quadcore.identify import model
+from quadcore.identify.fit import model_fit
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.learn import artefacts, evaluation, experiments, features as feat, learners, trainers
 from quadcore.logs import flight

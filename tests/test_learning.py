@@ -19,7 +19,8 @@ import polars as pl
 import pytest
 
 from quadcore import cli
-from quadcore.identify import history, model, model_fit
+from quadcore.identify import history, model
+from quadcore.identify.fit import model_fit
 from quadcore.learn import (
     artefacts,
     evaluation,

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from quadcore.identify import model, model_fit
-from quadcore.identify.fit import solve
+from quadcore.identify import model
+from quadcore.identify.fit import model_fit, solve
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.report import diagnosis as report

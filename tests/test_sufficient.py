@@ -12,7 +12,8 @@ import pytest
 from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import evidence, fit as fitlib, flightdata, model_fit, sessions, sufficient
+from quadcore.identify import evidence, fit as fitlib, flightdata, sufficient
+from quadcore.identify.fit import model_fit, sessions
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from

@@ -1,6 +1,7 @@
-"""Stage 3, system identification: the physics model and its spec file (``model``), flight sessions
-(``sessions``), a flight's rows (``flightdata``), per-flight sufficient statistics (``sufficient``,
-their file format ``binfile``), fitting effect parameters (``fit``, a package; the model's fit, ``model_fit``),
+"""Stage 3, system identification: the physics model and its spec file (``model``), a flight's rows
+(``flightdata``), per-flight sufficient statistics (``sufficient``, their file format ``binfile``),
+fitting effect parameters (``fit``, a package: the fits, per flight and per session ``fit.sessions``,
+the model's fit ``fit.model_fit``),
 what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``: problem, scoring,
 verdict text, typed result) with its regime tables (``regimes``), evidence (``evidence``) and settings
 (``settings``), sparse term discovery (``discovery``, a package: terms, Gram matrices, stored
@@ -19,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from quadcore.identify.diagnosis import CandidateScore, Diagnosis, diagnose
     from quadcore.identify.discovery import Discovery, discover
+    from quadcore.identify.fit.model_fit import fit_model
     from quadcore.identify.model import PhysicsModel
-    from quadcore.identify.model_fit import fit_model
     from quadcore.identify.settings import DiagnosisSettings
     from quadcore.spec.model import ModelSpec
 
@@ -30,7 +31,7 @@ __all__ = ["CandidateScore", "Diagnosis", "DiagnosisSettings", "Discovery", "Mod
 
 # each public name and the identify module it is taken from (ModelSpec: quadcore.spec.model's, as the model imports it)
 _WHERE = {"CandidateScore": "diagnosis", "Diagnosis": "diagnosis", "diagnose": "diagnosis", "Discovery": "discovery",
-          "discover": "discovery", "fit_model": "model_fit", "PhysicsModel": "model", "ModelSpec": "model",
+          "discover": "discovery", "fit_model": "fit.model_fit", "PhysicsModel": "model", "ModelSpec": "model",
           "DiagnosisSettings": "settings"}
 
 

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fit as fitlib, flightdata, sessions
+from quadcore.identify import evidence, fit as fitlib, flightdata
 from quadcore.identify.diagnosis.results import Diagnosis
-from quadcore.identify.fit import solve
+from quadcore.identify.fit import sessions, solve
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 

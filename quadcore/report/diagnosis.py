@@ -20,9 +20,10 @@ import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
 from quadcore.commands import quadcore_command  # noqa: E402
-from quadcore.identify import history, sessions  # noqa: E402
+from quadcore.identify import history
 from quadcore.identify.diagnosis import verdict  # noqa: E402
 from quadcore.identify.diagnosis.results import CandidateScore  # noqa: E402
+from quadcore.identify.fit import sessions  # noqa: E402
 from quadcore.identify.history import RMSE_COLUMNS  # noqa: E402
 from quadcore.report import plots, render  # noqa: E402
 from quadcore.store import store  # noqa: E402

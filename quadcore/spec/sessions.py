@@ -1,6 +1,6 @@
 """A sessions file: which flights form a session of flights (TOML, ``[sessions] NAME = ["jana00",
 "jana1*", ...]``, shell patterns allowed; ``--sessions``, ``QUADCORE_SESSIONS``). What the sessions
-change in a fit is :mod:`quadcore.identify.sessions`.
+change in a fit is :mod:`quadcore.identify.fit.sessions`.
 """
 
 from __future__ import annotations

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.commands import quadcore_command
-from quadcore.identify import diagnosis, history, model, model_fit, sufficient
+from quadcore.identify import diagnosis, history, model, sufficient
+from quadcore.identify.fit import model_fit
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.store import store
 from quadcore.workflows import reports

@@ -14,17 +14,8 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import (
-    evidence,
-    fit as fitlib,
-    flightdata,
-    model_fit,
-    profiles,
-    sessions as sessionlib,
-    sufficient,
-    summaries,
-)
-from quadcore.identify.fit import solve
+from quadcore.identify import evidence, fit as fitlib, flightdata, profiles, sufficient, summaries
+from quadcore.identify.fit import model_fit, sessions as sessionlib, solve
 from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
@@ -58,8 +49,8 @@ class _Residual:
 class _Flights:
     """The diagnosis's flights, in one of two forms, and the rows where they are needed.
 
-    A model the statistics express (:func:`quadcore.identify.model_fit.from_statistics`, the rule
-    :func:`~quadcore.identify.model_fit.fit_model` fits by: linear effects, and one profiled
+    A model the statistics express (:func:`quadcore.identify.fit.model_fit.from_statistics`, the rule
+    :func:`~quadcore.identify.fit.model_fit.fit_model` fits by: linear effects, and one profiled
     nonlinear effect beside them) is scored from the flights' sufficient statistics
     (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
     every residual and prediction a signal vector, the nonlinear one's an extra column from its

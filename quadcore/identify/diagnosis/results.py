@@ -15,8 +15,8 @@ from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 if TYPE_CHECKING:
     import polars as pl
 
+    from quadcore.identify.fit.sessions import Disagreement
     from quadcore.identify.model import PhysicsModel
-    from quadcore.identify.sessions import Disagreement
 
 
 @dataclass(eq=False)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, fit as fitlib, rates, sessions as sessionlib, sufficient, summaries
+from quadcore.identify import evidence, fit as fitlib, rates, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -38,8 +38,9 @@ from quadcore.identify.diagnosis.scoring import _beyond_the_best, _decide, _ev, 
 from quadcore.identify.diagnosis.sensitivity import sensitivity_basis
 from quadcore.identify.diagnosis.span import _SpanOverlap
 from quadcore.identify.diagnosis.verdict import verdict
+from quadcore.identify.fit import sessions as sessionlib
+from quadcore.identify.fit.sessions import Disagreement
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.sessions import Disagreement
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.spec.model import ModelSpec
 

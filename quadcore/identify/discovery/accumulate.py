@@ -13,11 +13,12 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import flightdata, sessions as sessionlib, sufficient
+from quadcore.identify import flightdata, sufficient
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
-from quadcore.identify.model_fit import fit_model
+from quadcore.identify.fit import sessions as sessionlib
+from quadcore.identify.fit.model_fit import fit_model
 from quadcore.physics.vehicle import Vehicle
 from quadcore.spec.model import ModelSpec
 
@@ -164,7 +165,7 @@ def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: lis
 def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
               sessions: dict[str, list[str]] | None, log) -> Callable | None:
     """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training flights
-    from their statistics (:func:`quadcore.identify.model_fit.fit_model`; per session for per-session
+    from their statistics (:func:`quadcore.identify.fit.model_fit.fit_model`; per session for per-session
     effects) and predicted on a flight's rows, or None for a model without effects."""
     if not spec.effects:
         return None

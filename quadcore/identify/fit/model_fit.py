@@ -2,7 +2,7 @@
 where the spec asks: linear effects from the normal equations, one effect with a single nonlinear
 parameter from its profiles, any other nonlinear effects by the search whose predictions are made
 on the training flights' rows (:mod:`quadcore.identify.fit`, chosen there by the effects' kinds).
-Above the fits (:mod:`quadcore.identify.fit`) and per session (:mod:`quadcore.identify.sessions`).
+Above the fits (:mod:`quadcore.identify.fit`) and per session (:mod:`quadcore.identify.fit.sessions`).
 One case still fits on rows: a per-session effect that is nonlinear (its per-session prediction
 is no signal vector of the statistics). :func:`from_statistics`: whether the statistics alone, no
 row read, express a model (the diagnosis holds its flights as statistics then; a fixed profiled
@@ -15,8 +15,8 @@ from collections.abc import Callable, Mapping
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import fit as fitlib, profiles, sessions as sessionlib, sufficient
-from quadcore.identify.fit import solve
+from quadcore.identify import fit as fitlib, profiles, sufficient
+from quadcore.identify.fit import sessions as sessionlib, solve
 from quadcore.identify.flightdata import FlightData, flight_data, targets_of
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
@@ -47,7 +47,7 @@ def rows_of(spec: ModelSpec, decoded: Mapping) -> Callable[[str], FlightData]:
 def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dict[str, list[str]] | None = None,
               log: Callable[[str], None] | None = None, stats=None) -> PhysicsModel:
     """Fit the effects a :class:`quadcore.spec.model.ModelSpec` names on the ``train`` flights (its
-    ``per_session`` effects per session: :func:`quadcore.identify.sessions.fit_per_session`), within
+    ``per_session`` effects per session: :func:`quadcore.identify.fit.sessions.fit_per_session`), within
     their parameters' physical bounds; a parameter held at a bound says so in its term
     (:func:`quadcore.identify.fit.solve.held_bounds`: its free value, and whether that is within
     noise of the bound).
