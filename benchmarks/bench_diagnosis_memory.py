@@ -1,37 +1,46 @@
 """Peak memory of the fleet diagnosis against the number of flights (issue 13: peak < 4 GB).
 
-    nice -n 10 python benchmarks/bench_diagnosis_memory.py [N ...]     (default: 40 100 300)
+    nice -n 10 python benchmarks/bench_diagnosis_memory.py [--without-timing] [N ...]     (default: 40 100 300)
 
 For each N, in a fresh process: the diagnosis as ``model_diagnosis`` runs it
 (:func:`quadcore.workflows.identify.diagnose` on every usable decoded flight under the data root,
 the default held-out flight left out, 5-fold cross-validation over the others, the nominal model,
-every offered candidate, the flights' stored sufficient statistics) on N flights: bench_scale's
+every offered candidate, or with ``--without-timing`` those that do not re-time the rotors'
+thrust (no ``motor_lag``, ``thrust_delay``: no rate level, docs/timing.md), the flights' stored
+sufficient statistics) on N flights: bench_scale's
 pool of 20 simulated 10 s flights decoded once and linked under N ids. The statistics are
-computed first, in that process too, untimed. Prints seconds and peak resident memory per N, and
-the growth in MB a flight between consecutive N. A report, not a test: exits 0 either way.
+computed first, in that process too, untimed. Prints seconds and peak resident memory per N
+(the process's resident peak, and the diagnosis's own: the peak of what it allocates, numpy's
+arrays included, traced by tracemalloc, which the allocator's keeping of freed memory does not
+blur), and the growth of the diagnosis's own peak in MB a flight between consecutive N. The
+pool holds 20 distinct flights: under more ids they are copies, which the fleet uses once. A
+report, not a test: exits 0 either way.
 """
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
 import sys
 import time
+import tracemalloc
 
 import bench_scale
 from _jobs import REPO
 
 sys.path.insert(0, str(REPO))
 
-from quadcore import workflows  # noqa: E402
-from quadcore.identify import sufficient  # noqa: E402
+from quadcore import effects, workflows  # noqa: E402
+from quadcore.identify import diagnosis, sufficient  # noqa: E402
 from quadcore.store import store  # noqa: E402
 from quadcore.workflows import fleet, identify  # noqa: E402
 
 
-def measure(n: int) -> None:
-    """In the child: the statistics, then the diagnosis; prints one JSON line."""
+def measure(n: int, timing: bool) -> None:
+    """In the child: the statistics, then the diagnosis (without the timing candidates unless
+    ``timing``); prints one JSON line."""
     root, _ = bench_scale.fleet_root(n)
     spec = workflows.resolve_model(None)
     for i in range(n):
@@ -39,28 +48,37 @@ def measure(n: int) -> None:
         decoded = store.read_decoded(root, store.MAIN_EVENT, f)
         sufficient.save(sufficient.compute_current(spec, f, decoded, sufficient.decoded_source(root, f) or ""), root)
     del decoded
+    gc.collect()
+    tracemalloc.start()
     t0 = time.perf_counter()
-    result = identify.diagnose(fleet.fleet_from_store(root, spec.vehicle), spec, [],
-                               stats=sufficient.stored(root, spec))
+    seen, holdout = identify.diagnosis_flights(fleet.fleet_from_store(root, spec.vehicle), [], "the data root")
+    candidates = None if timing else [n for n in effects.builtin_names() if n not in spec.effects
+                                      and effects.get(n).offered and not effects.get(n).retimes_thrust]
+    result = diagnosis.diagnose(seen.tables, spec, holdout, candidates, sessions=fleet.sessions_of(spec, seen.ids),
+                                stats=sufficient.stored(root, spec))
     print(json.dumps({"flights": n, "evaluated": len(result.evaluation.eval_flights),
-                      "seconds": round(time.perf_counter() - t0, 1), "peak_mb": round(bench_scale.peak_mb())}))
+                      "seconds": round(time.perf_counter() - t0, 1), "peak_mb": round(bench_scale.peak_mb()),
+                      "diagnosis_mb": round(tracemalloc.get_traced_memory()[1] / 2**20, 1)}))
 
 
 def main() -> None:
     if sys.argv[1:2] == ["--child"]:
-        measure(int(sys.argv[2]))
+        measure(int(sys.argv[2]), sys.argv[3:4] != ["--without-timing"])
         return
-    sizes = [int(a) for a in sys.argv[1:]] or [40, 100, 300]
+    flags = [a for a in sys.argv[1:] if a == "--without-timing"]
+    sizes = [int(a) for a in sys.argv[1:] if a not in flags] or [40, 100, 300]
     rows = []
     for n in sizes:
-        out = subprocess.run([sys.executable, __file__, "--child", str(n)], stdout=subprocess.PIPE, text=True,
+        out = subprocess.run([sys.executable, __file__, "--child", str(n), *flags], stdout=subprocess.PIPE, text=True,
                              env={**os.environ, "PYTHONPATH": str(REPO)}, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    print("| flights | evaluated | diagnosis s | peak MB | growth MB/flight |")
-    print("|---|---|---|---|---|")
+    print("| flights | evaluated | diagnosis s | peak MB | the diagnosis's own peak MB | its growth MB/flight |")
+    print("|---|---|---|---|---|---|")
     for prev, r in zip([None, *rows], rows):
-        growth = f"{(r['peak_mb'] - prev['peak_mb']) / (r['flights'] - prev['flights']):.1f}" if prev else ""
-        print(f"| {r['flights']} | {r['evaluated']} | {r['seconds']} | {r['peak_mb']} | {growth} |")
+        growth = (f"{(r['diagnosis_mb'] - prev['diagnosis_mb']) / (r['flights'] - prev['flights']):.2f}"
+                  if prev else "")
+        print(f"| {r['flights']} | {r['evaluated']} | {r['seconds']} | {r['peak_mb']} | {r['diagnosis_mb']} "
+              f"| {growth} |")
 
 
 if __name__ == "__main__":

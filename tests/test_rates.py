@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from reference import rows as reference
+from reference.rates import RowRates
 
 from quadcore import effects
 from quadcore.identify import diagnosis, evidence, flightdata, rates
 from quadcore.logs import flight
-from quadcore.physics import signals, vehicle
+from quadcore.physics import vehicle
 from quadcore.sim import simulation
 from quadcore.sim.simulation import SimConfig
 from quadcore.spec.model import spec_from
@@ -59,40 +60,6 @@ def _torque_fit(e, fds) -> tuple[float, float]:
 def _rate_flights(fds) -> list[rates.RateFlight]:
     skip = evidence.memory_blocks([effects.get(n) for n in TIMING]) * evidence.BLOCK_S
     return [rates.rate_flight(fd, VEHICLE, None, skip) for fd in fds]
-
-
-class RowRates:
-    """The exact row evaluation of the rate level, the reference :class:`rates.RateSums` is
-    checked against: every cost recomputes the candidate's torque on the flight's rows
-    (``R_k − C_k(v) − mean_b``, docs/timing.md), the interface of the sums."""
-
-    def __init__(self, rf: rates.RateFlight):
-        self.rf, self.n = rf, rf.n
-        self.dt_s = float(np.median(np.diff(rf.fd.state.t_s)))
-
-    def _deviations(self, effect, value: float) -> tuple[np.ndarray, np.ndarray]:
-        st, (p,) = self.rf.fd.state, effect.parameters
-        c = signals.interval_integrals(effect.wrench(st, self.rf.vehicle, {p.name: value})[1], st.t_s,
-                                       st.thrust_hold_s)
-        use = self.rf.block >= 0
-        R, b = np.cumsum(self.rf.increments - c, axis=0)[use], self.rf.block[use]
-        mean = np.stack([np.bincount(b, R[:, a]) for a in range(3)], axis=1) / np.bincount(b)[:, None]
-        return R - mean[b], b
-
-    @staticmethod
-    def _per_block(x: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.stack([np.bincount(b, x[:, a]) for a in range(3)], axis=1)
-
-    def costs(self, effect, value: float) -> np.ndarray:
-        dev, b = self._deviations(effect, value)
-        return self._per_block(dev**2, b)
-
-    def cost(self, effect, value: float, w: np.ndarray) -> float:
-        return float(self.costs(effect, value).sum(axis=0) @ w)
-
-    def differences(self, a, va: float, b, vb: float) -> tuple[np.ndarray, np.ndarray]:
-        (dev_a, blocks), (dev_b, _) = self._deviations(a, va), self._deviations(b, vb)
-        return self._per_block(dev_b**2 - dev_a**2, blocks), self._per_block((dev_b - dev_a) ** 2, blocks)
 
 
 def _fit_and_test(flights, e, rival, w) -> tuple[rates.RateFit, evidence.HeldOutTest]:

@@ -43,7 +43,7 @@ which then go. Between grid points the candidate's running sums are interpolated
 between whole sample periods for a delay, which is exact; the profiles' spline for a lag), so
 the fit, its standard errors and the comparison come from the sums: on three hover flights
 with 10 ms of either, within 0.001 standard errors of the row evaluation, the comparison's
-``t`` within 1e-4 (tests/test_rates.py holds the row evaluation as the reference).
+``t`` within 1e-4 (tests/reference/rates.py holds the row evaluation as the reference).
 
 Used by :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
 commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters and how they
@@ -210,16 +210,18 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect]) -> RateSums:
     st = rf.fd.state
     use = rf.block >= 0
     dt_s = float(np.median(np.diff(st.t_s)))
-    cols, grids, slots, k = [np.cumsum(rf.increments, axis=0)[use][:, :, None]], {}, {}, 1
+    grids = {e.name: rate_grid(e, dt_s) for e in timing}
+    k, slots = 1, {}
+    for e in timing:
+        slots[e.name] = slice(k, k + len(grids[e.name]))
+        k += len(grids[e.name])
+    X = np.empty((int(use.sum()), 3, k))  # (m, 3, K), filled one column at a time (one flight's, the largest)
+    X[:, :, 0] = np.cumsum(rf.increments, axis=0)[use]
     for e in timing:
         (p,) = e.parameters
-        grids[e.name] = grid = rate_grid(e, dt_s)
-        cols.append(np.stack([np.cumsum(signals.interval_integrals(
-            e.wrench(st, rf.vehicle, {p.name: float(v)})[1], st.t_s, st.thrust_hold_s), axis=0)[use]
-            for v in grid], axis=2))
-        slots[e.name] = slice(k, k + len(grid))
-        k += len(grid)
-    X = np.concatenate(cols, axis=2)  # (m, 3, K)
+        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
+            tau = e.wrench(st, rf.vehicle, {p.name: float(v)})[1]
+            X[:, :, j] = np.cumsum(signals.interval_integrals(tau, st.t_s, st.thrust_hold_s), axis=0)[use]
     b = rf.block[use]
     starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
     iu = np.triu_indices(k)

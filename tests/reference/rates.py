@@ -1,0 +1,44 @@
+"""The reference the rate level's sums (:class:`quadcore.identify.rates.RateSums`) are tested
+against: every cost evaluated on the flight's rows, recomputing the candidate's torque
+(``R_k − C_k(v) − mean_b`` per block, docs/timing.md), with the sums' interface (``cost``,
+``costs``, ``differences``, ``n``, ``dt_s``), so that :func:`quadcore.identify.rates.fit` and
+:func:`~quadcore.identify.rates.block_differences` run on either. Nothing in quadcore uses it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadcore.identify import rates
+from quadcore.physics import signals
+
+
+class RowRates:
+    """One flight's rate level evaluated on its rows (the module)."""
+
+    def __init__(self, rf: rates.RateFlight):
+        self.rf, self.n = rf, rf.n
+        self.dt_s = float(np.median(np.diff(rf.fd.state.t_s)))
+
+    def _deviations(self, effect, value: float) -> tuple[np.ndarray, np.ndarray]:
+        st, (p,) = self.rf.fd.state, effect.parameters
+        c = signals.interval_integrals(effect.wrench(st, self.rf.vehicle, {p.name: value})[1], st.t_s,
+                                       st.thrust_hold_s)
+        use = self.rf.block >= 0
+        R, b = np.cumsum(self.rf.increments - c, axis=0)[use], self.rf.block[use]
+        mean = np.stack([np.bincount(b, R[:, a]) for a in range(3)], axis=1) / np.bincount(b)[:, None]
+        return R - mean[b], b
+
+    @staticmethod
+    def _per_block(x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.stack([np.bincount(b, x[:, a]) for a in range(3)], axis=1)
+
+    def costs(self, effect, value: float) -> np.ndarray:
+        dev, b = self._deviations(effect, value)
+        return self._per_block(dev**2, b)
+
+    def cost(self, effect, value: float, w: np.ndarray) -> float:
+        return float(self.costs(effect, value).sum(axis=0) @ w)
+
+    def differences(self, a, va: float, b, vb: float) -> tuple[np.ndarray, np.ndarray]:
+        (dev_a, blocks), (dev_b, _) = self._deviations(a, va), self._deviations(b, vb)
+        return self._per_block(dev_b**2 - dev_a**2, blocks), self._per_block((dev_b - dev_a) ** 2, blocks)
