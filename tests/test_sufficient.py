@@ -612,8 +612,8 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
 
 
 def test_a_model_with_a_lag_diagnosed_from_statistics_agrees_with_its_rows(lagged_fleet):
-    """The same diagnosis with the model scored from rows (the reference: the row search of the
-    lag, the row tables; what a model the statistics cannot express still takes) and from
+    """The same diagnosis with the model fitted on rows (the reference: the row search of the lag,
+    its prediction made on the rows, what a model the statistics cannot express still takes) and from
     statistics (the lag from its profile, interpolated between grid points). Measured on these
     flights: the lag 1.9e-6 s apart (1 % of its σ), its σ 0.15 %, the held-out residual's RMS
     1.2e-4 relative, the candidates' scores 3e-4 (a delay's row objective ripples with the sample

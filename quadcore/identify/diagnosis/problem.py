@@ -22,6 +22,7 @@ from quadcore.identify.settings import DiagnosisSettings
 from quadcore.spec.model import ModelSpec
 
 TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
+MODEL_COLUMN = "pred:model"  # a model fitted on rows: its prediction as a column of the statistics
 
 
 def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
@@ -39,38 +40,29 @@ class _Residual:
     """The model's residual on some flights: per flight its ``signal`` and the flight it is a
     signal of (``on``: from statistics, grown by the model's profiled prediction as an extra
     column, :func:`quadcore.identify.sufficient.predicted`), and per flight the values of the
-    model's profiled effects it was taken at (name -> value; empty for a model of linear effects)."""
+    model's profiled effects it was taken at (name -> value; empty for a model of linear effects),
+    or the rows of its prediction (a model fitted on rows, :func:`_model_on_rows`)."""
 
     signal: dict[str, np.ndarray]
     on: dict[str, Any]
     values: dict[str, dict[str, float]]
+    extras: dict[str, dict[str, np.ndarray]]  # per flight: the rows of its extra columns known only on rows
 
 
 class _Flights:
-    """The diagnosis's flights, in one of two forms, and the rows where they are needed.
-
-    A model the statistics express (:func:`quadcore.identify.fit.model_fit.from_statistics`, the rule
-    :func:`~quadcore.identify.fit.model_fit.fit_model` fits by: linear effects, and one profiled
-    nonlinear effect beside them) is scored from the flights' sufficient statistics
-    (:mod:`quadcore.identify.sufficient`: ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`,
-    every residual and prediction a signal vector, the nonlinear one's an extra column from its
-    profile); any other (two nonlinear effects, one with several parameters, a nonlinear one per
-    session or fixed) from rows (``flight(f)`` a :class:`~quadcore.identify.flightdata.FlightData`,
-    signals (n, 6) arrays). Rows are read only when asked for (:meth:`rows`, :meth:`signal_rows`):
-    the evaluated flights' tables and spectra, and candidates with several nonlinear parameters (a
-    one-parameter nonlinear candidate comes from the flights' profiles,
-    :mod:`quadcore.identify.profiles`)."""
+    """The diagnosis's flights as their sufficient statistics (:mod:`quadcore.identify.sufficient`:
+    ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`, every residual and
+    prediction a signal vector), and their rows where those are needed (:meth:`rows`,
+    :meth:`signal_rows`): the evaluated flights' residual summaries where the stored ones cannot
+    describe the residual, the rate level of timing candidates, and what the statistics cannot
+    express yet (:func:`_model_on_rows`)."""
 
     def __init__(self, decoded, spec: ModelSpec, ids: list[str], layout, stored):
         self.decoded, self.spec, self.ids = decoded, spec, ids
         self._rows: dict[str, FlightData] = {}
-        from_stats = model_fit.from_statistics(spec, [effectlib.get(n) for n in spec.effects])
-        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored) if from_stats else None
-        # the fits and weights of the form the flights are held in, chosen here by the model's
-        # effects' kinds (never by the type of what a function is given)
-        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects if from_stats else fitlib.fit_rows
-        self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = (
-            fitlib.channel_weights if from_stats else fitlib.row_weights)
+        self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored)
+        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects
+        self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = fitlib.channel_weights
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
@@ -78,42 +70,33 @@ class _Flights:
         return self._rows[f]
 
     def release(self, f: str) -> None:
-        """Let a flight's rows go (from statistics; from rows the flight is the statistics)."""
-        if self.stats is not None:
-            self._rows.pop(f, None)
+        """Let a flight's rows go."""
+        self._rows.pop(f, None)
 
     def statistics(self, f: str) -> sufficient.FlightStats:
-        """A flight's statistics (a model the statistics express is scored from them)."""
-        if self.stats is None:
-            raise sufficient.StatsError(f"{f}: this model is scored from rows, not statistics")
         return self.stats[f]
 
     def summary(self, f: str) -> summaries.FlightSummary | None:
         """A flight's stored summary (:mod:`quadcore.identify.summaries`), if its statistics have one."""
-        return self.stats[f].summary() if self.stats is not None else None
+        return self.stats[f].summary()
 
     def flight(self, f: str):
-        return self.stats[f] if self.stats is not None else self.rows(f)
+        return self.stats[f]
 
     def target(self, f: str) -> np.ndarray:
-        if self.stats is not None:
-            return self.stats[f].layout.target()
-        fd = self.rows(f)
-        return np.concatenate([fd.r_f, fd.r_tau], axis=1)
+        return self.stats[f].layout.target()
 
-    def signal_rows(self, f: str, signal: np.ndarray, values: Mapping[str, float] | None = None) -> np.ndarray:
-        """(n, 6) a signal on the flight's samples (a vector turned into rows; rows as they are);
-        ``values``: the model's profiled effects' values, whose predictions (``pred:<effect>``, on
-        the rows) follow the flight's own columns in the signal's layout."""
-        if self.stats is None:
-            return signal
-        values = values or {}
+    def signal_rows(self, f: str, signal: np.ndarray, values: Mapping[str, float] | None = None,
+                    extras: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """(n, 6) a signal vector on the flight's samples; ``values``: the model's profiled
+        effects' values, whose predictions (``pred:<effect>``, made on the rows), then ``extras``
+        (name -> (n, 6) rows), follow the flight's own columns in the signal's layout."""
+        columns = {**self.model_columns(f, values or {}), **(extras or {})}
         # the evaluated flights' extra columns of candidates are no part of a residual
-        layout = self.stats[f].layout.with_extras([f"pred:{n}" for n in values])
+        layout = self.stats[f].layout.with_extras(list(columns))
         if np.any(signal[layout.width:]):
             raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
-        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width],
-                                      self.model_columns(f, values))
+        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width], columns)
 
     def model_columns(self, f: str, values: Mapping[str, float]) -> dict[str, np.ndarray]:
         """(n, 6) on the flight's rows, the extra columns ``pred:<effect>`` of the model's profiled
@@ -135,22 +118,40 @@ class _Flights:
         values: dict[str, dict[str, float]] = {}
         for f in flights:
             effects, params, vehicle = model_of(f)
-            if self.stats is None:
-                on[f] = self.rows(f)
-                signal[f] = targets[f] - on[f].predict(effects, params, vehicle)
-            else:
-                on[f], v = sufficient.predicted(effects, params, self.stats[f], vehicle)
-                signal[f] = on[f].layout.pad(targets[f]) - v
-            values[f] = ({e.name: params[e.name][e.parameters[0].name] for e in effects if not e.linear}
-                         if self.stats is not None else {})
-        return _Residual(signal, on, values)
+            on[f], v = sufficient.predicted(effects, params, self.stats[f], vehicle)
+            signal[f] = on[f].layout.pad(targets[f]) - v
+            values[f] = {e.name: params[e.name][e.parameters[0].name] for e in effects if not e.linear}
+        return _Residual(signal, on, values, {f: {} for f in signal})
+
+    def residual_of_rows(self, model_of: Callable[[str], tuple[list, Mapping[str, dict], Any]],
+                         targets: Mapping[str, np.ndarray], flights: Iterable[str]) -> _Residual:
+        """The residual of a model the statistics cannot express, fitted on rows: its prediction on
+        each flight's rows as an extra column ``pred:model`` of the flight's statistics, made where
+        rows become statistics (:func:`quadcore.identify.sufficient.flight_stats`: the profiles of the
+        candidates against it too); the prediction's rows kept (the residual's rows)."""
+        signal: dict[str, np.ndarray] = {}
+        on: dict[str, Any] = {}
+        extras: dict[str, dict[str, np.ndarray]] = {}
+        for f in flights:
+            effects, params, vehicle = model_of(f)
+            fd, base = self.rows(f), self.stats[f]
+            extras[f] = {MODEL_COLUMN: fd.predict(effects, params, vehicle)}
+            on[f] = sufficient.flight_stats(fd, self.spec.vehicle, base.layout.with_extras([MODEL_COLUMN]), base.key,
+                                            extras[f])
+            fd.forget_bases()
+            signal[f] = on[f].layout.pad(targets[f]) - on[f].layout.unit(on[f].layout.extra(MODEL_COLUMN))
+        return _Residual(signal, on, {f: {} for f in signal}, extras)
 
 
 class _Problem:
-    """One diagnosis's flights in the form it scores them (:class:`_Flights`), their targets, the
-    model's effects and the candidates, and how a candidate is fitted: from the flights'
-    statistics, or (``by_rows``: a nonlinear candidate beside statistics) from its training
-    flights' rows."""
+    """One diagnosis's flights (:class:`_Flights`), their targets, the model's effects and the
+    candidates, and how the model and a candidate are fitted and predict: from the flights'
+    statistics (``in_statistics``: the model's prediction from its profiles,
+    :func:`quadcore.identify.model_fit.from_statistics`; otherwise made on the rows and entering
+    the statistics as a column, :meth:`_Flights.residual_of_rows`), a nonlinear effect without a
+    profile (``by_rows``, or in the model) by the search, its predictions made on the training
+    flights' rows (:func:`quadcore.identify.fit.search.search_fit`); a model with a nonlinear
+    effect per session on rows (:func:`_model_on_rows`)."""
 
     def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats):
         self.spec, self.vehicle = spec, spec.vehicle
@@ -162,10 +163,13 @@ class _Problem:
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
         self.fds = {f: self.fl.flight(f) for f in self.ids}
         self.targets = {f: self.fl.target(f) for f in self.ids}
-        # from statistics, a nonlinear candidate is fitted and predicted from its profiles
-        # (quadcore.identify.profiles); one with several nonlinear parameters from rows
-        self.by_rows = {c.name: self.fl.stats is not None and not c.linear and not profiles.profiled(c)
-                        for c in self.cands}
+        self.in_statistics = model_fit.from_statistics(spec, self.model_effects)
+        self.search_fit = functools.partial(fitlib.fit_effects, rows=self.fl.rows)  # as fit_model fits
+        # a nonlinear effect fitted per session: from rows, as fit_model fits it
+        self.per_session_nonlinear = any(not e.linear for e in self.model_effects if e.name in spec.per_session)
+        # a nonlinear candidate is fitted and predicted from its profiles (quadcore.identify.profiles);
+        # one with several nonlinear parameters from rows
+        self.by_rows = {c.name: not c.linear and not profiles.profiled(c) for c in self.cands}
 
     def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
@@ -175,13 +179,13 @@ class _Problem:
         if self.by_rows[c.name]:
             return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
                                       self.vehicle, bounded=True, rows=self.fl.rows,
-                                      extras=lambda f: self.fl.model_columns(f, resid.values[f]))
+                                      extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
         return self.fl.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
                                    self.vehicle, bounded=True)
 
     def from_profile(self, c) -> bool:
         """Whether ``c`` is fitted and predicted from the flights' profiles."""
-        return self.fl.stats is not None and profiles.profiled(c)
+        return profiles.profiled(c)
 
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
@@ -211,18 +215,64 @@ def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
     return splits, ids, "cross-validation" if len(ids) > 1 else "in-sample (one flight only)"
 
 
+ModelOf = Callable[[str], tuple[list, dict, Any]]  # a fitted model's effects, parameters and vehicle on a flight
+
+
 def _model_residuals(p: _Problem, train: list[str], test: list[str], sessions, log) -> tuple[Any, _Residual]:
     """The model fitted on ``train`` (per session for a model with per-session effects), and its
     residual (target minus prediction) on the ``train`` and ``test`` flights."""
-    fds, targets = p.fds, p.targets
-    tr = [fds[f] for f in train]
-    if p.spec.per_session:  # the model's per-session effects fitted per session of the training flights
-        pm = sessionlib.fit_per_session(p.spec, fds, targets, train, sessions, log, p.fl.fit_effects)
-        return pm, p.fl.residual(_session_terms(pm, log), targets, sorted({*train, *test}))
-    fit_m = p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train], p.vehicle, p.spec.fixed,
-                             bounded=True)  # the model within its bounds, as fit_model
-    return fit_m, p.fl.residual(lambda f: (p.model_effects, fit_m.params, p.vehicle), targets,
-                                sorted({*train, *test}))
+    fit_m, model_of = _fit_model(p, train, sessions, log)
+    return fit_m, _residual(p, model_of, sorted({*train, *test}))
+
+
+def _fit_model(p: _Problem, train: list[str], sessions, log) -> tuple[Any, ModelOf]:
+    """The model fitted on ``train`` within its bounds, as fit_model fits it (its per-session
+    effects per session of the training flights): the fit (a per-session model: a
+    :class:`~quadcore.identify.model.PhysicsModel`) and the model on each flight."""
+    if p.per_session_nonlinear:
+        return _model_on_rows(p, train, sessions, log)
+    if p.spec.per_session:
+        pm = sessionlib.fit_per_session(p.spec, p.fds, p.targets, train, sessions, log, p.search_fit)
+        return pm, _session_terms(pm, log)
+    fit_m = p.search_fit(p.model_effects, [p.fds[f] for f in train], [p.targets[f] for f in train], p.vehicle,
+                         p.spec.fixed, bounded=True)
+    return fit_m, _fit_terms(p, fit_m)
+
+
+def _fit_terms(p: _Problem, fit: solve.Fit) -> ModelOf:
+    return lambda f: (p.model_effects, fit.params, p.vehicle)
+
+
+def _residual(p: _Problem, model_of: ModelOf, flights: list[str]) -> _Residual:
+    """The fitted model's residual on ``flights``, as signals of the flights' statistics."""
+    of = p.fl.residual if p.in_statistics else p.fl.residual_of_rows
+    return of(model_of, p.targets, flights)
+
+
+# ---------------------------------------------------------------------------------------
+# What the statistics cannot fit yet: a nonlinear effect per session, on rows
+# ---------------------------------------------------------------------------------------
+
+def _fit_on_rows(effects: list, flights: Sequence[FlightData], targets: Sequence[np.ndarray], vehicle,
+                 fixed: dict | None = None, bounded: bool = False) -> solve.Fit:
+    """The diagnosis's one fit of targets held as rows (:func:`quadcore.identify.fit.fit_rows`: each
+    flight's rows made into statistics with the target as a column), for a model with a nonlinear
+    effect per session (:func:`_model_on_rows`; its prediction then enters the statistics as a
+    column), as fit_model fits it."""
+    return fitlib.fit_rows(effects, flights, targets, vehicle, fixed, bounded=bounded)
+
+
+def _model_on_rows(p: _Problem, train: list[str], sessions, log) -> tuple[Any, ModelOf]:
+    """:func:`_fit_model` on the flights' rows (:func:`_fit_on_rows`), for a model with a nonlinear
+    effect per session, as fit_model fits it."""
+    rows = {f: p.fl.rows(f) for f in p.ids}
+    targets = dict(zip(p.ids, flightdata.targets_of([rows[f] for f in p.ids])))
+    if p.spec.per_session:
+        pm = sessionlib.fit_per_session(p.spec, rows, targets, train, sessions, log, _fit_on_rows)
+        return pm, _session_terms(pm, log)
+    fit_m = _fit_on_rows(p.model_effects, [rows[f] for f in train], [targets[f] for f in train], p.vehicle,
+                         p.spec.fixed, bounded=True)
+    return fit_m, _fit_terms(p, fit_m)
 
 
 def _session_terms(pm: PhysicsModel, log) -> Callable[[str], tuple[list, dict, Any]]:
@@ -250,6 +300,8 @@ class _Folds:
     fits: dict[str, solve.Fit]
     model_fit: Any
     model_values: dict[str, dict[str, float]]  # per test flight: its fold's model's profiled values
+    eval_on: dict[str, Any]  # per test flight: the statistics its residual is a signal of
+    eval_extras: dict[str, dict[str, np.ndarray]]  # per test flight: its residual's extra columns' rows
 
 
 def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log) -> _Folds:
@@ -262,6 +314,8 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     free_params: dict[str, list[dict]] = {c.name: [] for c in p.cands}
     values: dict[str, dict[str, float]] = {}
     model_values: dict[str, dict[str, float]] = {}
+    eval_on: dict[str, Any] = {}
+    eval_extras: dict[str, dict[str, np.ndarray]] = {}
     model_fit = None
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
@@ -277,24 +331,22 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
                     cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
         for f in test:
             eval_resid[f], model_values[f] = resid.signal[f], resid.values[f]
-    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit, model_values)
+            eval_on[f], eval_extras[f] = resid.on[f], resid.extras[f]
+    return _Folds(eval_resid, cand_pred, values, fold_params, free_params, fold_fits, model_fit, model_values,
+                  eval_on, eval_extras)
 
 
 def _training_model(p: _Problem, fold_fit, train_all: list[str], sessions, log) -> tuple[PhysicsModel, _Residual]:
     """The model fitted on all training flights (the parameters reported; ``fold_fit``, the only
     fold's fit, when it is that one) and its residual on them."""
-    fds, targets, spec = p.fds, p.targets, p.spec
-    tr = [fds[f] for f in train_all]
-    if spec.per_session:
-        model = fold_fit if fold_fit is not None else sessionlib.fit_per_session(spec, fds, targets, train_all,
-                                                                                 sessions, log, p.fl.fit_effects)
-        return model, p.fl.residual(_session_terms(model, lambda msg: None), targets, train_all)
-    fit_m = (fold_fit if fold_fit is not None
-             else p.fl.fit_effects(p.model_effects, tr, [targets[f] for f in train_all], p.vehicle, spec.fixed,
-                                   bounded=True))
-    model = PhysicsModel(p.vehicle, solve.model_terms(p.model_effects, fit_m, spec.fixed),
-                         spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
-    return model, p.fl.residual(lambda f: (p.model_effects, fit_m.params, p.vehicle), targets, train_all)
+    spec = p.spec
+    fit_m, model_of = ((fold_fit, _session_terms(fold_fit, lambda msg: None) if spec.per_session
+                        else _fit_terms(p, fold_fit)) if fold_fit is not None
+                       else _fit_model(p, train_all, sessions, log))
+    model = fit_m if spec.per_session else PhysicsModel(
+        p.vehicle, solve.model_terms(p.model_effects, fit_m, spec.fixed),
+        spec.sessions_of(p.ids) if spec.session_maps else {}, spec.session_maps)
+    return model, _residual(p, model_of, train_all)
 
 
 def _group_spread(p: _Problem, train_all: list[str], resid_train: _Residual, n_folds: int
@@ -330,6 +382,7 @@ class _HeldOut:
     at_noise: dict[str, bool]
     w: np.ndarray
     model_values: dict[str, dict[str, float]]  # per flight: the model's profiled values in ``resid``
+    extras: dict[str, dict[str, np.ndarray]]  # per flight: the rows of ``resid``'s columns known only on rows
 
 
 def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldOut:
@@ -343,7 +396,7 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldO
     at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
     w = p.fl.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
     return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w,
-                    folds.model_values)
+                    folds.model_values, folds.eval_extras)
 
 
 def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
@@ -352,22 +405,23 @@ def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
     statistics: from its profile at the fitted value (:func:`quadcore.identify.profiles.with_predictions`,
     no rows read), or, for a candidate without one (several nonlinear parameters), from the
     flight's rows with its unit wrenches (:func:`detection_limits`; ``unit:``, ``ref:``); the
-    signals of ``cand_pred`` and ``eval_resid`` are moved into that layout."""
+    signals of ``cand_pred`` and ``eval_resid`` are moved into that layout. The residual's own
+    columns (the model's prediction) come first: its profiled effects' at the fold's values, from
+    their profiles with the candidates' in one go, or a model fitted on rows: the statistics the
+    fold made with its prediction (their profiles hold the candidates' sums against it)."""
     fl, cand_pred, eval_resid = p.fl, folds.cand_pred, folds.eval_resid
-    if fl.stats is None:
-        return [fl.rows(f) for f in eval_ids]
     by_rows = [c for c in p.cands if p.by_rows[c.name]]
-    if not by_rows and not folds.values and not any(folds.model_values.values()):
+    if not by_rows and not folds.values and all(folds.eval_on[f] is fl.stats[f] for f in eval_ids):
         return [fl.stats[f] for f in eval_ids]
     out = []
     for f in eval_ids:
-        s = _with_row_predictions(fl, f, by_rows, cand_pred) if by_rows else fl.stats[f]
-        model = folds.model_values[f]  # the residual's own columns: the model's profiled predictions
+        model = folds.model_values[f]  # the model's profiled predictions, made again below
+        base = fl.stats[f] if model else folds.eval_on[f]
+        s = _with_row_predictions(fl, f, by_rows, cand_pred, base, folds.eval_extras[f]) if by_rows else base
         values = {**model, **{c: values[f] for c, values in folds.values.items()}}
         if values:
             s = profiles.with_predictions(s, values, signals=list(model))
-        eval_resid[f] = _moved(eval_resid[f], fl.stats[f].layout.with_extras([f"pred:{n}" for n in model]),
-                               s.layout)
+        eval_resid[f] = _moved(eval_resid[f], folds.eval_on[f].layout, s.layout)
         for c in p.cands:
             cand_pred[c.name][f] = (s.layout.unit(s.layout.extra(f"pred:{c.name}")) if not c.linear
                                     else s.layout.pad(cand_pred[c.name][f]))
@@ -388,15 +442,17 @@ def _moved(v: np.ndarray, source: sufficient.Layout, to: sufficient.Layout) -> n
     return out
 
 
-def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict) -> sufficient.FlightStats:
-    """A flight's statistics with the held-out predictions of ``cands`` (no profile) and their
-    unit wrenches as extra columns, from its rows (read once)."""
-    vehicle, fd, base = fl.spec.vehicle, fl.rows(f), fl.statistics(f)
-    extras = {}
+def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict, base: sufficient.FlightStats,
+                          base_extras: Mapping[str, np.ndarray]) -> sufficient.FlightStats:
+    """A flight's statistics ``base`` (its own columns, then ``base_extras``: name -> rows) with the
+    held-out predictions of ``cands`` (no profile) and their unit wrenches as extra columns, from
+    its rows (read once)."""
+    vehicle, fd = fl.spec.vehicle, fl.rows(f)
+    extras = dict(base_extras)
     for c in cands:  # its prediction, then its unit wrenches and reference as a profiled effect has them
         extras[f"pred:{c.name}"] = cand_pred[c.name][f]
         extras.update(profiles.fixed_signals([c.name], fd, vehicle))
-    s = sufficient.flight_stats(fd, vehicle, base.layout.with_extras(list(extras)), base.key, extras)
+    s = sufficient.flight_stats(fd, vehicle, fl.statistics(f).layout.with_extras(list(extras)), base.key, extras)
     fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
     return s
 

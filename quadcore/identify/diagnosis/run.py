@@ -4,7 +4,6 @@ with the evaluated flights' residual by regime, by flight, in time and in freque
 
 from __future__ import annotations
 
-import functools
 from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -12,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, fit as fitlib, rates, sufficient, summaries
+from quadcore.identify import evidence, rates, sufficient, summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -167,7 +166,7 @@ def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
         p.fl.release(f)
 
     def from_rows(f: str) -> summaries.ResidualSums:
-        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f))
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f), held.extras.get(f))
         out = summaries.of_rows(fd, r, p.vehicle).residual(np.ones(1))
         p.fl.release(f)
         return out
@@ -182,16 +181,11 @@ def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
 def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sessions, log: Log
                            ) -> list[Disagreement]:
     """Parameters that differ between sessions: the model's effects, and the best candidate
-    beside them (from the flights' statistics when the model's effects are linear, a nonlinear
-    candidate from its profiles or by the search on the flights' rows; otherwise fitted on each
-    flight's rows)."""
+    beside them, fitted per flight and per group from the flights' statistics (a nonlinear effect
+    from its profiles, or by the search on the flights' rows)."""
     best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
-    if p.fl.stats is not None:
-        return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
-                                        log, functools.partial(fitlib.fit_effects, rows=p.fl.rows))
-    return sessionlib.disagreements(p.model_effects + best, {f: p.fl.rows(f) for f in p.ids},
-                                    {f: p.fl.signal_rows(f, p.targets[f]) for f in p.ids}, p.vehicle, p.spec.fixed,
-                                    sessions, log, fitlib.fit_rows)
+    return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
+                                    log, p.search_fit)
 
 
 def _discover_placeholder(spec: ModelSpec) -> str:

@@ -267,7 +267,7 @@ def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOu
     left = ({f: held.resid[f] - held.cand_pred[rows[0].effect][f] for f in held.ids}
             if rows and rows[0].found else held.resid)
     sensitivity = detection_limits(p.cands, held.flights, left, held.noise_ss, p.vehicle, len(p.cands), settings,
-                                   all_at_once=p.fl.stats is not None)
+                                   all_at_once=True)  # the flights are statistics
     for r in rows:
         r.sensitivity = sensitivity[r.effect]
     return sensitivity
