@@ -356,7 +356,11 @@ def test_a_lag_model_diagnosed_from_statistics_ranks_as_from_rows(sim_sets, monk
     _, tables = sim_sets("rotor_inertia", STANDARD, {"motor_lag": {"tau_s": 0.02}, "rotor_inertia": truth})
     cands = ["rotor_inertia", "rotor_drag", "com_offset", "thrust_scale"]
     got = _diagnose(tables, ["motor_lag"], candidates=cands)
-    monkeypatch.setattr(model_fit, "from_statistics", lambda *a: False)
+    from quadcore.identify.diagnosis import problem
+
+    monkeypatch.setattr(model_fit, "from_statistics", lambda *a: False)  # the model's prediction made on rows
+    monkeypatch.setattr(problem, "_fit_model", lambda p, train, sessions, log: problem._model_on_rows(
+        p, train, sessions, log))  # and its fit: the row search
     ref = _diagnose(tables, ["motor_lag"], candidates=cands)
     assert [r["effect"] for r in got["candidates"]] == [r["effect"] for r in ref["candidates"]]
     assert [r["found"] for r in got["candidates"]] == [r["found"] for r in ref["candidates"]]

@@ -611,6 +611,15 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
     assert got["motor_lag"]["tau_s"] == pytest.approx(0.03, rel=0.15)
 
 
+def _model_on_rows(m: pytest.MonkeyPatch) -> None:
+    """The diagnosis's model fitted as one with a nonlinear effect per session is (on the rows: the
+    row search, fit.fit_rows) and predicting on the rows (its prediction a column of the statistics)."""
+    from quadcore.identify.diagnosis import problem
+
+    m.setattr(problem.model_fit, "from_statistics", lambda *a: False)
+    m.setattr(problem, "_fit_model", lambda p, train, sessions, log: problem._model_on_rows(p, train, sessions, log))
+
+
 def test_a_model_with_a_lag_diagnosed_from_statistics_agrees_with_its_rows(lagged_fleet):
     """The same diagnosis with the model fitted on rows (the reference: the row search of the lag,
     its prediction made on the rows, what a model the statistics cannot express still takes) and from
@@ -620,16 +629,13 @@ def test_a_model_with_a_lag_diagnosed_from_statistics_agrees_with_its_rows(lagge
     period: its trough against the smooth curve's minimum, profiles' docstring). Tolerances: the
     row search's own (xatol, 5e-4 of the span) for the lag, 4 % for its σ (the profile interval's,
     benchmarks/bench_profiles.py), 1e-3 for the RMS and for a score (a fiftieth of min_explained)."""
-    from quadcore.identify.diagnosis import problem
-
     fds, stats = lagged_fleet
     tables = {f: "rows" for f in fds}
     held = sorted(tables)[-1]
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
     cands = ["rotor_drag", "com_offset", "thrust_delay"]
     got, _ = _diagnose_counting_rows(None, fds, tables, spec, held, cands, stats.get)
-    ref, _ = _diagnose_counting_rows(lambda m: m.setattr(problem.model_fit, "from_statistics", lambda *a: False),
-                                     fds, tables, spec, held, cands, stats.get)
+    ref, _ = _diagnose_counting_rows(_model_on_rows, fds, tables, spec, held, cands, stats.get)
     lag, lag_ref = ({d["name"]: d for d in r["model"]["effects"]}["motor_lag"] for r in (got, ref))
     span = effects.get("motor_lag").parameters[0].upper - effects.get("motor_lag").parameters[0].lower
     assert abs(lag["params"]["tau_s"] - lag_ref["params"]["tau_s"]) <= 5e-4 * span
