@@ -135,3 +135,32 @@ def test_targets_given_as_rows_become_statistics_and_fit_as_the_rows_do(lagged, 
     for e, k in _params(rows):
         assert combined.params[e][k] == pytest.approx(rows.params[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"
         assert combined.std[e][k] == pytest.approx(rows.std[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"
+
+
+def test_a_target_on_a_profiled_models_column_reads_that_column_on_the_rows(lagged):
+    """The diagnosis's residual beside a model with a profiled lag is a vector on the statistics
+    grown by the model's column ``pred:motor_lag`` (sufficient.predicted); a candidate the profiles
+    cannot carry (two parameters) is fitted to it by the search, which makes that column on the
+    rows (``extras``). At a value on the profile's grid (the column exact there) it meets the fit on
+    rows to the residual made on rows as the search meets the row search above (0.01 σ)."""
+    from quadcore.identify import profiles
+
+    ids = sorted(lagged)
+    lag = effects.get("motor_lag")
+    tau = float(profiles.profile_grid(lag.parameters[0].lower, lag.parameters[0].upper)[9])
+    model = {"motor_lag": {"tau_s": tau}}
+    stats, targets, columns = [], [], {}
+    for f in ids:
+        grown, v = sufficient.predicted([lag], model, sufficient.flight_stats(lagged[f], VEHICLE,
+                                                                              sufficient.library_layout()), VEHICLE)
+        stats.append(grown)
+        targets.append(grown.layout.target() - v)
+        columns[f] = {"pred:motor_lag": flightdata.prediction(lag, model["motor_lag"], lagged[f], VEHICLE)}
+    ys = [y - columns[f]["pred:motor_lag"] for f, y in zip(ids, flightdata.targets_of([lagged[f] for f in ids]))]
+    es = [effects.get("scaled_lag"), effects.get("thrust_scale")]
+    rows = reference.fit_effects(es, [lagged[f] for f in ids], ys, VEHICLE, bounded=True)
+    combined = fitlib.fit_effects(es, stats, targets, VEHICLE, bounded=True, rows=lambda f: lagged[f],
+                                  extras=lambda f: columns[f])
+    for e, k in _params(rows):
+        a, b, s = rows.params[e][k], combined.params[e][k], rows.std[e][k]
+        assert s > 0 and abs(a - b) < 0.01 * s, f"{e}.{k}: rows {a} ± {s}, statistics {b}"
