@@ -147,7 +147,7 @@ class _Problem:
     """One diagnosis's flights (:class:`_Flights`), their targets, the model's effects and the
     candidates, and how the model and a candidate are fitted and predict: from the flights'
     statistics (``in_statistics``: the model's prediction from its profiles,
-    :func:`quadcore.identify.model_fit.from_statistics`; otherwise made on the rows and entering
+    :func:`quadcore.identify.fit.model_fit.from_statistics`; otherwise made on the rows and entering
     the statistics as a column, :meth:`_Flights.residual_of_rows`), a nonlinear effect without a
     profile (``by_rows``, or in the model) by the search, its predictions made on the training
     flights' rows (:func:`quadcore.identify.fit.search.search_fit`); a model with a nonlinear
