@@ -37,6 +37,22 @@ def one_blas_thread():
         yield
 
 
+@pytest.fixture(autouse=True)
+def no_plugin_effect_outlives_its_test():
+    """Forget the plugin effects a test registered (a model file's ``plugins``, ``load_plugin``)
+    when it ends. The registry is process-wide: a plugin left behind changed what a later test in
+    the same worker saw (``sufficient.library_layout`` lists every registered effect), and a later
+    ``unregister`` of the same name broke a layout built in between, so a test passed or failed
+    with the order pytest-xdist gave it. Plugins a module- or session-scoped fixture registered
+    are already there when this snapshot is taken, and stay for the fixture's life."""
+    from quadcore import effects
+
+    before = set(effects.registry())
+    yield
+    for name in set(effects.registry()) - before:
+        effects.unregister(name)
+
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """Under ``--dist loadscope`` (make test): the tests of a group on one worker
