@@ -27,24 +27,7 @@ from quadcore.physics import vehicle
 
 VEHICLE = vehicle.load()
 
-SCALED_LAG = """
-from quadcore.effects.base import Effect, Parameter, rotor_wrench
-from quadcore.effects.motor_lag import first_order_lag
-
-
-class ScaledLag(Effect):
-    name = "scaled_lag"
-    target = "both"
-    parameters = (Parameter("tau_s", "s", 0.0, 0.0, 0.2, "time constant"),
-                  Parameter("share", "1", 0.0, 0.0, 2.0, "share of the thrust that lags"))
-
-    def wrench(self, state, vehicle, params):
-        lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
-        return rotor_wrench(vehicle, params["share"] * (lagged - state.f_rotor_N))
-
-
-EFFECT = ScaledLag()
-"""
+SCALED_LAG = Path(__file__).resolve().parent / "plugins" / "scaled_lag.py"  # two nonlinear parameters
 
 
 @pytest.fixture(scope="module")
@@ -58,9 +41,7 @@ def lagged(tmp_path_factory):
     simulation.simulate_set(folder, configs, {"motor_lag": {"tau_s": 0.03}}, VEHICLE)
     fds = {p.name: flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
            for p in flight.discover_logs(folder)}
-    path = folder / "scaled_lag.py"
-    path.write_text(SCALED_LAG)
-    effects.load_plugin(Path(path))
+    effects.load_plugin(SCALED_LAG)
     yield fds
     effects.unregister("scaled_lag")
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import gc
 import weakref
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -227,24 +228,7 @@ def test_a_plugin_with_one_nonlinear_parameter_is_profiled(lagged_fleet, tmp_pat
         effects.unregister("slow_thrust")
 
 
-SCALED_LAG = """
-from quadcore.effects.base import Effect, Parameter, rotor_wrench
-from quadcore.effects.motor_lag import first_order_lag
-
-
-class ScaledLag(Effect):
-    name = "scaled_lag"
-    target = "both"
-    parameters = (Parameter("tau_s", "s", 0.0, 0.0, 0.2, "time constant"),
-                  Parameter("share", "1", 0.0, 0.0, 2.0, "share of the thrust that lags"))
-
-    def wrench(self, state, vehicle, params):
-        lagged = first_order_lag(state.f_rotor_N, state.t_s, params["tau_s"])
-        return rotor_wrench(vehicle, params["share"] * (lagged - state.f_rotor_N))
-
-
-EFFECT = ScaledLag()
-"""
+SCALED_LAG = Path(__file__).resolve().parent / "plugins" / "scaled_lag.py"  # two nonlinear parameters
 
 
 def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_profiled_ones(lagged_fleet, tmp_path):
@@ -253,9 +237,7 @@ def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_pr
     profiled candidates' columns: all of them scored on the same flights."""
     from quadcore.identify import diagnosis
 
-    path = tmp_path / "scaled_lag.py"
-    path.write_text(SCALED_LAG)
-    effects.load_plugin(path)
+    effects.load_plugin(SCALED_LAG)
     try:
         fds, stats = lagged_fleet
         held = sorted(fds)[-1]
