@@ -39,10 +39,10 @@ from scipy.optimize import least_squares
 from quadcore.effects import Effect
 from quadcore.identify.fit.solve import (
     Fit,
-    _unpack,
     fixed_values,
     scalar_minimum,
     solved_linear,
+    unpack,
     weights_from_sums,
 )
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
@@ -122,7 +122,7 @@ def fit_effects(
         n_nonlin = sum(len(e.parameters) for e in nonlin)
         search = _scalar_search if n_nonlin == 1 else _vector_search
         x, cov = search(nonlin, lin, flights, ys, w, vehicle)
-        nl = _unpack(nonlin, x)
+        nl = unpack(nonlin, x)
         i = 0
         for e in nonlin:
             params[e.name] = nl[e.name]
@@ -153,12 +153,12 @@ def _objective(nonlin, lin, flights, ys, w, vehicle, x, keys=None) -> tuple[floa
     Without linear effects, from each flight's cached sums of squares (:meth:`FlightData.cached_sums`,
     ``keys`` the targets' digests): the same sums, added in the same order."""
     if not lin and keys is not None:
-        nl, yy, n = _unpack(nonlin, x), 0.0, 0
+        nl, yy, n = unpack(nonlin, x), 0.0, 0
         for fd, y, key in zip(flights, ys, keys):
             yy += float(fd.cached_sums(nonlin, nl, y, key, vehicle) @ w)
             n += int(fd.mask.sum()) * y.shape[1]
         return max(yy, 0.0), n
-    ys2 = _after(nonlin, _unpack(nonlin, x), flights, ys, vehicle)
+    ys2 = _after(nonlin, unpack(nonlin, x), flights, ys, vehicle)
     _, _, rss, n = _linear_solve(lin, flights, ys2, w, vehicle)
     return rss, n
 
@@ -189,7 +189,7 @@ def _vector_search(nonlin, lin, flights, ys, w, vehicle):
     sw = np.sqrt(w)
 
     def resid(x):
-        ys2 = _after(nonlin, _unpack(nonlin, x), flights, ys, vehicle)
+        ys2 = _after(nonlin, unpack(nonlin, x), flights, ys, vehicle)
         theta = _linear_solve(lin, flights, ys2, w, vehicle)[0]
         return np.concatenate([((y - _linear_prediction(lin, theta, fd, vehicle))[fd.mask] * sw).reshape(-1)
                                for fd, y in zip(flights, ys2)])

@@ -51,7 +51,7 @@ from quadcore.effects import Effect
 from quadcore.identify import sufficient
 from quadcore.identify.binfile import StatsError
 from quadcore.identify.fit.linear import channel_weights, subtract_fixed
-from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear
+from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, unpack
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
 from quadcore.identify.sufficient import FlightStats, normal_equations
 from quadcore.physics.vehicle import Vehicle
@@ -119,7 +119,7 @@ class _Search:
                 up, down = min(x[a] + steps[a], hi[a]), max(x[a] - steps[a], lo[a])
                 xu, xd = x.copy(), x.copy()
                 xu[a], xd[a] = up, down
-                D.append((self.column(self._unpack(xu), fd, base) - self.column(self._unpack(xd), fd, base))
+                D.append((self.column(self.values(xu), fd, base) - self.column(self.values(xd), fd, base))
                          / (up - down))
             S = [self.w @ sums(d) for d in D]  # Σ_c w_c [d_a·z | d_a·d_a]
             for a in range(k):
@@ -133,12 +133,9 @@ class _Search:
             M -= C @ np.linalg.pinv(self.A) @ C.T
         return M
 
-    def _unpack(self, x: np.ndarray) -> dict[str, dict[str, float]]:
-        out, i = {}, 0
-        for e in self.nonlin:
-            out[e.name] = {p.name: float(x[i + j]) for j, p in enumerate(e.parameters)}
-            i += len(e.parameters)
-        return out
+    def values(self, x: np.ndarray) -> dict[str, dict[str, float]]:
+        """The nonlinear effects' parameters at the stacked values ``x``."""
+        return unpack(self.nonlin, x)
 
 
 def _cols(layout: sufficient.Layout, lin: list[Effect]) -> np.ndarray:
@@ -174,7 +171,7 @@ def search_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Seq
         def J(v: float) -> float:
             v = float(min(max(v, lo[0]), hi[0]))
             if v not in memo:
-                memo[v] = search.rss(search._unpack(np.array([v])))
+                memo[v] = search.rss(search.values(np.array([v])))
             return memo[v]
 
         best, var = scalar_minimum(J, search.n, float(lo[0]), float(hi[0]))
@@ -183,7 +180,7 @@ def search_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Seq
         x, cov = _vector_minimum(search, lo, hi)
     else:
         x, cov = np.zeros(0), np.zeros((0, 0))
-    nl = search._unpack(x)
+    nl = search.values(x)
     i = 0
     for e in nonlin:
         params[e.name] = nl[e.name]
@@ -199,15 +196,15 @@ def _vector_minimum(search: _Search, lo: np.ndarray, hi: np.ndarray) -> tuple[np
     """Several nonlinear parameters: the bounded minimum of ``J`` and its Gauss-Newton covariance
     (see the module)."""
     span = hi - lo
-    scale = search.rss(search._unpack(lo + START * span)) or 1.0  # J of order one for the minimiser's tolerances
+    scale = search.rss(search.values(lo + START * span)) or 1.0  # J of order one for the minimiser's tolerances
 
     def J(z: np.ndarray) -> float:
-        return search.rss(search._unpack(lo + np.clip(z, 0.0, 1.0) * span)) / scale
+        return search.rss(search.values(lo + np.clip(z, 0.0, 1.0) * span)) / scale
 
     sol = minimize(J, np.full(len(lo), START), method="L-BFGS-B", jac="3-point", bounds=[(0.0, 1.0)] * len(lo),
                    options={"ftol": 1e-12, "gtol": 1e-9, "maxiter": 500, "finite_diff_rel_step": 1e-4})
     x = lo + np.clip(sol.x, 0.0, 1.0) * span
-    j = search.rss(search._unpack(x))
+    j = search.rss(search.values(x))
     s2 = j / max(search.n - len(lo), 1)
     try:
         cov = np.linalg.inv(search.gauss_newton(x, lo, hi)) * s2 * SAMPLES_PER_INDEPENDENT

@@ -227,7 +227,8 @@ def linear_parameters(lin: list[Effect], theta: np.ndarray, A: np.ndarray, rss: 
         i += k
 
 
-def _unpack(nonlin: list[Effect], x: np.ndarray) -> dict[str, dict[str, float]]:
+def unpack(nonlin: list[Effect], x: np.ndarray) -> dict[str, dict[str, float]]:
+    """The nonlinear effects' parameters (by effect) from their stacked values ``x``."""
     out, i = {}, 0
     for e in nonlin:
         out[e.name] = {p.name: float(x[i + j]) for j, p in enumerate(e.parameters)}
