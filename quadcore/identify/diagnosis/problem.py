@@ -125,8 +125,9 @@ class _Flights:
 
     def residual_of_rows(self, model_of: Callable[[str], tuple[list, Mapping[str, dict], Any]],
                          targets: Mapping[str, np.ndarray], flights: Iterable[str]) -> _Residual:
-        """The residual of a model the statistics cannot express, fitted on rows: its prediction on
-        each flight's rows as an extra column ``pred:model`` of the flight's statistics, made where
+        """The residual of a model whose prediction the profiles cannot carry (two nonlinear effects,
+        several parameters, a nonlinear one per session): its prediction made on each flight's rows
+        as an extra column ``pred:model`` of the flight's statistics, made where
         rows become statistics (:func:`quadcore.identify.sufficient.flight_stats`: the profiles of the
         candidates against it too); the prediction's rows kept (the residual's rows)."""
         signal: dict[str, np.ndarray] = {}
