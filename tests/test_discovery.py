@@ -214,22 +214,7 @@ def test_no_hidden_term_nothing_discovered_and_no_effect_written(tmp_path):
     assert code == 2 and "no term was kept" in err and not (tmp_path / "fx" / "nothing.py").exists()
 
 
-@pytest.fixture
-def memoryless_candidates(monkeypatch):
-    """The diagnosis offering only the candidates without memory. The diagnosis scores its
-    held-out flights after their first blocks within the longest memory of its effects and
-    candidates (motor_lag's 1 s: every candidate on the same samples), discovery on every usable
-    sample; with no candidate with memory both score the same samples, so the residual they
-    start from can be compared number for number."""
-    from quadcore import effects as effectlib
-    from quadcore.identify import diagnosis
-
-    everything = diagnosis.default_candidates
-    monkeypatch.setattr(diagnosis.problem, "default_candidates",
-                        lambda spec: [n for n in everything(spec) if effectlib.get(n).memory_s() == 0])
-
-
-def test_discover_on_a_model_with_per_session_effects(hidden_flights, tmp_path, memoryless_candidates):
+def test_discover_on_a_model_with_per_session_effects(hidden_flights, tmp_path):
     """A model file fitting thrust_scale per session: discovery starts from each flight's
     residual under its session's values and still finds the hidden terms."""
     model_file = tmp_path / "model.toml"
@@ -250,7 +235,7 @@ def test_discover_on_a_model_with_per_session_effects(hidden_flights, tmp_path, 
         np.testing.assert_allclose(d["baseline"][key], g[key], rtol=1e-6)
 
 
-def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path, memoryless_candidates):
+def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path):
     """A session switched to the motor-speed map ([session_thrust_map]): discovery's flights
     carry that map's rotor thrusts, as the diagnosis's do, so both start from the same residual."""
     model_file = tmp_path / "model.toml"
@@ -268,7 +253,7 @@ def test_discover_uses_each_sessions_thrust_map(hidden_flights, tmp_path, memory
 
 
 @pytest.mark.slow  # test_cli_discover_and_diagnose_share_a_sessions_file checks the same groups through the CLI
-def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path, memoryless_candidates):
+def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights, tmp_path):
     """With sessions from a sessions file (QUADCORE_SESSIONS, --sessions), discovery fits the
     per-session effects on those groups, as the diagnosis does: the same starting residual."""
     from quadcore.identify import diagnosis
@@ -287,7 +272,7 @@ def test_discover_groups_per_session_effects_by_the_sessions_file(hidden_flights
         np.testing.assert_allclose(found.baseline[key], diagnosed["baseline"][key], rtol=1e-6)
 
 
-def test_cli_discover_and_diagnose_share_a_sessions_file(hidden_flights, tmp_path, memoryless_candidates):
+def test_cli_discover_and_diagnose_share_a_sessions_file(hidden_flights, tmp_path):
     model_file = tmp_path / "model.toml"
     model_file.write_text('effects = ["thrust_scale"]\n[per_session]\nthrust_scale = ["scale"]\n')
     sessions_file = tmp_path / "sessions.toml"

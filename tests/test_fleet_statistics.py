@@ -134,9 +134,27 @@ def test_discovery_under_a_linear_model_subtracts_its_fit_from_the_stored_sums(s
     assert stored["axes"] == rows["axes"] and stored["noise_floor"] == rows["noise_floor"]
 
 
+def test_discovery_scores_the_samples_the_diagnosis_scores(stats_root, monkeypatch):
+    """Under rotor_drag with sim003 held out (the default candidates: motor_lag's 1 s memory), the
+    diagnosis scores sim003 after its first block; discovery, from rows and from the stored
+    statistics, starts from the same held-out residual on the same samples."""
+    from quadcore.identify import diagnosis, evidence
+    from quadcore.spec.model import spec_from
+
+    rows, stored, _ = _discoveries(stats_root, ["rotor_drag"], ["sim003"], monkeypatch)
+    spec = spec_from(vehicle.load(), ["rotor_drag"])
+    tables = fleet.fleet_from_store(stats_root, spec.vehicle).tables
+    diagnosed = diagnosis.diagnose(dict(tables), spec, ["sim003"]).to_dict()["baseline"]
+    assert evidence.scored_after_blocks(spec) == 1
+    for key in ("force_rmse_N", "torque_rmse_Nm"):
+        assert rows["baseline"][key] == pytest.approx(diagnosed[key], rel=1e-9)
+        assert stored["baseline"][key] == pytest.approx(diagnosed[key], rel=1e-9)
+
+
 def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, monkeypatch):
-    """A flight decoded again from other bytes (another SHA-256 in its footer) or whose file is
-    cut short is not trusted: its rows are read, and the result is unchanged."""
+    """A flight decoded again from other bytes (another SHA-256 in its footer), whose file is
+    cut short, or written in an earlier format (without the sums after the first blocks) is not
+    trusted: its rows are read, and the result is unchanged."""
     import dataclasses
     import shutil
 
@@ -152,8 +170,15 @@ def test_stale_or_cut_statistics_are_computed_from_rows(stats_root, tmp_path, mo
     other_log = dataclasses.replace(library_stats.load(root, "sim002"), source="0" * 64)
     library_stats.save(other_log, root)
     assert library_stats.stored(root, spec)("sim002") is None
+    current = library_stats.load(root, "sim000")
+    monkeypatch.setattr(library_stats, "FORMAT", library_stats.FORMAT - 1)
+    library_stats.save(dataclasses.replace(current, key=library_stats.library_key(spec, "sim000")), root)
+    monkeypatch.undo()
+    with pytest.raises(library_stats.sufficient.StatsError, match="format"):
+        library_stats.load(root, "sim000")
+    assert library_stats.stored(root, spec)("sim000") is None
     rows, stored, reads = _discoveries(root, [], ["sim003"], monkeypatch)
-    assert sorted(p.parent.name for p in reads) == ["flight=sim001", "flight=sim002"]
+    assert sorted(p.parent.name for p in reads) == ["flight=sim000", "flight=sim001", "flight=sim002"]
     rows.pop("after"), stored.pop("after")
     assert stored == rows
 

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from quadcore import effects as effectlib
 from quadcore.identify import flightdata, ranges
 from quadcore.identify.flightdata import (  # noqa: F401  (BLOCK_S, SECANT, unit_wrench: read from here too)
     BLOCK_S,
@@ -59,6 +60,7 @@ from quadcore.identify.flightdata import (  # noqa: F401  (BLOCK_S, SECANT, unit
     unit_wrench,
 )
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
+from quadcore.spec.model import ModelSpec
 
 Flights = Sequence[Flight]
 
@@ -110,6 +112,25 @@ def memory_blocks(effects) -> int:
     same samples (the diagnosis's evaluation, the planner's objective)."""
     memory = max((e.memory_s() for e in effects), default=0.0)
     return int(np.ceil(memory / BLOCK_S - 1e-9))
+
+
+def default_candidates(spec: ModelSpec) -> list[str]:
+    """The effects a diagnosis offers when not told which: the library's built-in effects, then
+    the plugin effects of the spec's own model file (its ``plugins``), each offered and not
+    already in the model. Not every effect this process has loaded: a long-lived process (the
+    Dagster UI, a test run) keeps the plugins of every model file it ever read, and another
+    model's plugin is no candidate for this one."""
+    own = [src.effect for src in effectlib.plugins_from(spec.plugins)]
+    return [n for n in (*effectlib.builtin_names(), *own) if n not in spec.effects and effectlib.get(n).offered]
+
+
+def scored_after_blocks(spec: ModelSpec, candidates: list[str] | None = None) -> int:
+    """How many first blocks of each evaluated flight a diagnosis of ``spec`` leaves out of its
+    scores (:func:`quadcore.identify.diagnosis.problem._on_common_samples`): those within the longest
+    memory (:func:`memory_blocks`) of the model's effects and the candidates (None: :func:`default_candidates`).
+    Term discovery's held-out RMSE leaves out the same, so both score the same samples."""
+    names = candidates if candidates is not None else default_candidates(spec)
+    return memory_blocks([effectlib.get(n) for n in (*spec.effects, *names)])
 
 
 def block_channel_sums(flights: Flights, pairs: Sequence[tuple[Signals, Signals]]) -> list[np.ndarray]:

@@ -15,6 +15,7 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, fit as fitlib, flightdata, profiles, sufficient, summaries
+from quadcore.identify.evidence import default_candidates, scored_after_blocks
 from quadcore.identify.fit import model_fit, sessions as sessionlib, solve
 from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
@@ -160,6 +161,7 @@ class _Problem:
         self.model_effects = [effectlib.get(n) for n in spec.effects]
         names = candidates if candidates is not None else default_candidates(spec)
         self.cands = [effectlib.get(n) for n in names]
+        self.skip = scored_after_blocks(spec, names)
         self.effect_of = {c.name: c for c in self.cands}
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
         self.fds = {f: self.fl.flight(f) for f in self.ids}
@@ -191,16 +193,6 @@ class _Problem:
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
         return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
-
-
-def default_candidates(spec: ModelSpec) -> list[str]:
-    """The effects a diagnosis offers when not told which: the library's built-in effects, then
-    the plugin effects of the spec's own model file (its ``plugins``), each offered and not
-    already in the model. Not every effect this process has loaded: a long-lived process (the
-    Dagster UI, a test run) keeps the plugins of every model file it ever read, and another
-    model's plugin is no candidate for this one."""
-    own = [src.effect for src in effectlib.plugins_from(spec.plugins)]
-    return [n for n in (*effectlib.builtin_names(), *own) if n not in spec.effects and effectlib.get(n).offered]
 
 
 def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
@@ -388,7 +380,7 @@ class _HeldOut:
 
 def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldOut:
     eval_ids = sorted(folds.eval_resid)
-    eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.model_effects + p.cands)
+    eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.skip)
     before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
     # The sensor-noise floor: a channel whose residual is within settings.noise_margin of it
@@ -458,16 +450,16 @@ def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict, base: su
     return s
 
 
-def _on_common_samples(flights: list[Flight], effects) -> list[Flight]:
-    """The evaluated flights without the first blocks (of ``BLOCK_S``, numbered as the held-out
-    test numbers them) within the longest :meth:`~quadcore.effects.Effect.memory_s` of
-    ``effects``: an effect with memory predicts nothing there (:func:`quadcore.identify.flightdata.prediction`),
+def _on_common_samples(flights: list[Flight], k: int) -> list[Flight]:
+    """The evaluated flights without the first ``k`` blocks (of ``BLOCK_S``, numbered as the held-out
+    test numbers them): those within the longest :meth:`~quadcore.effects.Effect.memory_s` of the
+    model's effects and the candidates (:func:`quadcore.identify.evidence.scored_after_blocks`):
+    an effect with memory predicts nothing there (:func:`quadcore.identify.flightdata.prediction`),
     so a score over the whole flight would count that start against it and not against a
     memoryless candidate, or a shorter memory. Every candidate, the model's residual and the
-    noise floor are scored on the same samples; whole blocks, so that the statistics (per-block
-    Gram matrices) and the rows leave out the same. Flights too short to keep any sample
-    after it are evaluated whole (nothing would be left to compare)."""
-    k = evidence.memory_blocks(effects)
+    noise floor are scored on the same samples (and term discovery's held-out RMSE); whole blocks,
+    so that the statistics (per-block Gram matrices) and the rows leave out the same. Flights too
+    short to keep any sample after it are evaluated whole (nothing would be left to compare)."""
     if k <= 0:
         return flights
     out = [fd.after_blocks(k) for fd in flights]

@@ -35,6 +35,9 @@ class LibrarySums:
     noise_of: dict[str, np.ndarray]
     full: GramSums | None = None  # from statistics: the same sums on every usable sample
     y0_squares: dict[str, np.ndarray] | None = None  # from statistics, a model without effects: Σ y0² per flight
+    after: GramSums | None = None  # from statistics: ``full``'s sums after each flight's first blocks
+    samples_after: dict[str, int] | None = None  # from statistics: the usable samples there per flight
+    y0_squares_after: dict[str, np.ndarray] | None = None  # as ``y0_squares``, there
 
 
 # ``flight(f, quiet=False) -> (its rows, its residual under the model)``; quiet: without the model's progress
@@ -98,26 +101,34 @@ def from_statistics(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: M
     missing = [f for f in ids if found[f] is None]
     log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; combining "
         f"{len(ids) - len(missing)} flights' stored statistics" + (f", computing {len(missing)}" if missing else ""))
-    sums, full = GramSums(folds, holdout), GramSums(folds, holdout, scored_only=True)
+    sums, full, after = (GramSums(folds, holdout), GramSums(folds, holdout, scored_only=True),
+                         GramSums(folds, holdout, scored_only=True))
     samples: dict[str, int] = {}
     noise_of: dict[str, np.ndarray] = {}
     y0_squares: dict[str, np.ndarray] = {}
+    samples_after: dict[str, int] = {}
+    y0_after: dict[str, np.ndarray] = {}
     for f in ids:
-        G, H, lib = _flight_statistics(f, found[f] if f != ids[0] else first, labels, spec, decoded, cols, fx_effects)
+        G, H, H_after, lib = _flight_statistics(f, found[f] if f != ids[0] else first, labels, spec, decoded, cols,
+                                               fx_effects)
         sums.add(f, G)
         full.add(f, H)
+        after.add(f, H_after)
         samples[f], noise_of[f], y0_squares[f] = lib.samples, lib.noise, lib.y0_squares
+        samples_after[f], y0_after[f] = lib.samples_after, lib.y0_squares_after
     if spec.effects:
         model = fit_model(spec, decoded, train, sessions, log, stats)
         T = _residual_transform(cols, model, spec.vehicle)
-        sums.transformed(T)
-        full.transformed(T)
-    return LibrarySums(terms, cols, sums, samples, noise_of, full, None if spec.effects else y0_squares)
+        for g in (sums, full, after):
+            g.transformed(T)
+    bare = not spec.effects  # a model without effects: the residual is y0, its squares summed as the rows sum them
+    return LibrarySums(terms, cols, sums, samples, noise_of, full, y0_squares if bare else None, after,
+                       samples_after, y0_after if bare else None)
 
 
 def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, decoded, cols: Columns,
-                       fx_effects) -> tuple[np.ndarray, np.ndarray, library_stats.FlightLibrary]:
-    """(G, H, the statistics) of one flight in the columns ``labels``: the stored ones (``lib``),
+                       fx_effects) -> tuple[np.ndarray, np.ndarray, np.ndarray, library_stats.FlightLibrary]:
+    """(G, H, H_after, the statistics) of one flight in the columns ``labels``: the stored ones (``lib``),
     else computed from its rows; from its rows with ``cols`` when they lack a column (an effect
     loaded since)."""
     if lib is not None and set(labels) <= set(lib.labels):
@@ -130,8 +141,9 @@ def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, de
         if set(labels) <= set(lib.labels):
             return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
     fd = flightdata.flight_data(f, decoded[f], spec.vehicle_for(f))
-    G, H = flight_grams(fd, flightdata.targets_of([fd])[0], cols, fx_effects, spec.vehicle, library_stats.STRIDE)
-    return G, H, lib
+    G, H, H_after = flight_grams(fd, flightdata.targets_of([fd])[0], cols, fx_effects, spec.vehicle,
+                                library_stats.STRIDE, lib.head_blocks)
+    return G, H, H_after, lib
 
 
 def _picked(M: np.ndarray, have: tuple[str, ...], want: tuple[str, ...]) -> np.ndarray:

@@ -113,20 +113,27 @@ def flight_gram(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_
 
 
 def flight_grams(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle,
-                 stride: int) -> tuple[np.ndarray, np.ndarray]:
+                 stride: int, head_blocks: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix
-    on every usable sample: the held-out RMSE's) of one flight (see :mod:`quadcore.identify.discovery.library_stats`).
-    The second holds only the products within the force columns and within the torque columns
-    (:func:`channel_groups`; zero between them): a force axis' RMSE never takes a torque term."""
+    on every usable sample: the held-out RMSE's, and that one on the usable samples after the first
+    ``head_blocks`` blocks: the RMSE's of a score that leaves them out) of one flight (see
+    :mod:`quadcore.identify.discovery.library_stats`). The last two hold only the products within the
+    force columns and within the torque columns (:func:`channel_groups`; zero between them): a force
+    axis' RMSE never takes a torque term."""
     blocks = _flight_blocks(fd, resid, cols, fx_effects, vehicle)
     rows = np.flatnonzero(fd.mask)
     Z = np.concatenate([b[rows] for b in blocks], axis=1)
+    return _gram(blocks, rows[::stride]), _grouped(Z, cols), _grouped(Z[fd.blocks() >= head_blocks], cols)
+
+
+def _grouped(Z: np.ndarray, cols: Columns) -> np.ndarray:
+    """``ZᵀZ`` within the force columns and within the torque columns (zero between them)."""
     H = np.zeros((cols.n_total, cols.n_total))
     for group in channel_groups(cols.labels()):
         Zg = Z[:, group]
         with flightdata.one_blas_thread():
             H[np.ix_(group, group)] = Zg.T @ Zg
-    return _gram(blocks, rows[::stride]), H
+    return H
 
 
 def channel_groups(labels: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:

@@ -16,8 +16,13 @@ model file's plugins). Per flight we store
 (``H`` only within the force axes' columns and within the torque axes': the held-out RMSE of a
 force axis never takes a torque column; half the products), the usable samples ``n``, the
 sensor-noise floor (6,), ``Σ_{i ∈ usable} y0_i²`` (6,) exactly as the rows give it, and the
-variables the library is built from (names, units, sources). About 0.6 MB per flight (313
-columns with the built-in effects: ``benchmarks/bench_discover_stats.py``).
+variables the library is built from (names, units, sources). And ``H``, ``n`` and ``Σ y0²`` once
+more over the usable samples after the flight's first ``K`` blocks (:func:`head_blocks`: the
+longest memory of the effects the statistics hold, 1 block with the built-in ones): the diagnosis
+scores an evaluated flight there (:func:`quadcore.identify.evidence.scored_after_blocks`),
+and so does discovery (the model's transform below is linear, so it carries over to them).
+About 0.9 MB per flight (331 columns with the built-in effects, 0.67 MB before the sums after the first
+blocks: ``benchmarks/bench_discover_stats.py``).
 
 **A model with linear effects.** Discovery works on the residual the model leaves,
 ``r_a = y0_a - Σ_k θ_k B_{a,k}`` on axis ``a`` (``θ`` the effects' linear coordinates,
@@ -49,12 +54,12 @@ from typing import Any
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import flightdata, sufficient
+from quadcore.identify import evidence, flightdata, sufficient
 from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
 from quadcore.identify.discovery.terms import library, variables
 from quadcore.identify.settings import STATISTICS
 
-FORMAT = 2  # bump when what the statistics mean changes: stored ones become stale
+FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = STATISTICS.library_stride  # discovery's default: every 4th usable sample in the selection's Gram matrix
 # the modules the statistics are computed by (with the sufficient statistics' code: sufficient.code_digest)
 _MODULES = ("quadcore.identify.discovery.terms", "quadcore.identify.discovery.grams",
@@ -75,10 +80,14 @@ class FlightLibrary:
     samples: int
     noise: np.ndarray  # (6,)
     y0_squares: np.ndarray  # (6,) Σ over usable samples of y0²
-    grams_source: Callable[[], tuple[np.ndarray, np.ndarray]]
+    head_blocks: int  # K: the first blocks the "after" sums leave out (head_blocks())
+    samples_after: int  # the usable samples after them
+    y0_squares_after: np.ndarray  # (6,) Σ of y0² over those
+    grams_source: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
-    def grams(self) -> tuple[np.ndarray, np.ndarray]:
-        """(G, H): every ``STRIDE``-th usable sample's, every usable sample's."""
+    def grams(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(G, H, H_after): every ``STRIDE``-th usable sample's, every usable sample's, and the
+        usable samples' after the first ``head_blocks`` blocks."""
         return self.grams_source()
 
     @property
@@ -91,6 +100,13 @@ def fx_effects(spec) -> list[effectlib.Effect]:
     plugins (the order of :func:`quadcore.effects.registry`)."""
     builtin = effectlib.builtin_names()
     return [effectlib.get(n) for n in [*builtin, *sorted(n for n in spec.effects if n not in builtin)]]
+
+
+def head_blocks(spec) -> int:
+    """``K``, the first blocks of a flight whose sums the statistics also hold apart: within the
+    longest memory of the effects they hold (:func:`quadcore.identify.evidence.memory_blocks` of
+    :func:`fx_effects`), as many as a diagnosis offering them leaves out of its scores."""
+    return evidence.memory_blocks(fx_effects(spec))
 
 
 @functools.lru_cache(maxsize=1)
@@ -128,10 +144,13 @@ def compute(spec, flight: str, decoded, source: str = "", fd: flightdata.FlightD
     effects = fx_effects(spec)
     cols = library_columns(library(vars_), effects)
     y0 = flightdata.targets_of([fd])[0]
-    G, H = flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE)
+    k = head_blocks(spec)
+    G, H, H_after = flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE, k)
+    after = np.flatnonzero(fd.mask)[fd.blocks() >= k]
     described = tuple((name, tuple(v.unit), tuple(v.sources), v.channel) for name, v in vars_.items())
     return FlightLibrary(flight, library_key(spec, flight), source, described, cols.labels(), fd.n,
-                         np.asarray(fd.noise, dtype=float), (y0[fd.mask] ** 2).sum(axis=0), lambda: (G, H))
+                         np.asarray(fd.noise, dtype=float), (y0[fd.mask] ** 2).sum(axis=0), k, len(after),
+                         (y0[after] ** 2).sum(axis=0), lambda: (G, H, H_after))
 
 
 def library_path(root: Any, flight: str) -> Any:
@@ -141,14 +160,18 @@ def library_path(root: Any, flight: str) -> Any:
 def save(lib: FlightLibrary, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically); the Gram matrices as their
     upper triangles (``H``: its force and its torque block)."""
-    G, H = lib.grams()
+    G, H, H_after = lib.grams()
     header = {"format": FORMAT, "flight": lib.flight, "key": lib.key, "source": lib.source,
               "variables": [list(v) for v in lib.variables], "labels": list(lib.labels), "samples": lib.samples,
-              "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist()}  # floats round-trip exactly
+              "noise": lib.noise.tolist(), "y0_squares": lib.y0_squares.tolist(),  # floats round-trip exactly
+              "head_blocks": lib.head_blocks, "samples_after": lib.samples_after,
+              "y0_squares_after": lib.y0_squares_after.tolist()}
     force, torque = channel_groups(lib.labels)
-    return sufficient.write_file(library_path(root, lib.flight), header,
-                                 {"G": sufficient.packed(G), "H_force": sufficient.packed(H[np.ix_(force, force)]),
-                                  "H_torque": sufficient.packed(H[np.ix_(torque, torque)])})
+    arrays = {"G": sufficient.packed(G)}
+    for name, M in (("H", H), ("H_after", H_after)):
+        arrays[f"{name}_force"] = sufficient.packed(M[np.ix_(force, force)])
+        arrays[f"{name}_torque"] = sufficient.packed(M[np.ix_(torque, torque)])
+    return sufficient.write_file(library_path(root, lib.flight), header, arrays)
 
 
 def load(root: Any, flight: str) -> FlightLibrary:
@@ -162,19 +185,21 @@ def load(root: Any, flight: str) -> FlightLibrary:
         labels = tuple(header["labels"])
         arrays = header["arrays"]
 
-        def grams() -> tuple[np.ndarray, np.ndarray]:
+        def grams() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             data = sufficient.read_file(path)
             try:
-                G, H_force, H_torque = (sufficient.read_array(data, start, name, arrays[name])
-                                        for name in ("G", "H_force", "H_torque"))
+                G, H_force, H_torque, Ha_force, Ha_torque = (
+                    sufficient.read_array(data, start, name, arrays[name])
+                    for name in ("G", "H_force", "H_torque", "H_after_force", "H_after_torque"))
             except (ValueError, KeyError) as exc:
                 raise sufficient.StatsError(f"{path}: {exc}") from None
-            return _unpacked(labels, G), _unpacked(labels, H_force, H_torque)
+            return _unpacked(labels, G), _unpacked(labels, H_force, H_torque), _unpacked(labels, Ha_force, Ha_torque)
 
         variables = tuple((str(n), tuple(u), tuple(s), str(c)) for n, u, s, c in header["variables"])
         return FlightLibrary(header["flight"], header["key"], header["source"], variables, labels,
                              int(header["samples"]), np.array(header["noise"], dtype=float),
-                             np.array(header["y0_squares"], dtype=float), grams)
+                             np.array(header["y0_squares"], dtype=float), int(header["head_blocks"]),
+                             int(header["samples_after"]), np.array(header["y0_squares_after"], dtype=float), grams)
     except (ValueError, KeyError, TypeError) as exc:
         raise sufficient.StatsError(f"{path}: not a discovery statistics file ({exc})") from None
 

@@ -56,6 +56,7 @@ from quadcore.identify.discovery.terms import (
     mul_units,
     unit_text,
 )
+from quadcore.identify.evidence import scored_after_blocks
 from quadcore.identify.fit import solve
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.physics import signals
@@ -199,16 +200,19 @@ def _form_label(expression: str, forms: tuple[Form, ...], channel: str) -> str:
 
 
 def _rmse_from_sums(lib: LibrarySums, coefs: dict, pairs: list[tuple[np.ndarray, np.ndarray]],
-                    eval_ids: list[str]) -> tuple[dict, dict]:
+                    eval_ids: list[str], cut: bool) -> tuple[dict, dict]:
     """:func:`_held_out_rmse` from statistics: per pair (the Gram matrix the terms are fitted on,
     the sum of ``H`` of the flights scored with them), the residual's sum of squares after the
     terms, ``Σ r² - 2 βᵀXᵀr + βᵀXᵀXβ`` (:func:`_sse`); before them, ``Σ r²`` (a model without
-    effects: the flights' own sums of ``y0²``, as the rows give them)."""
+    effects: the flights' own sums of ``y0²``, as the rows give them). ``cut``: the pairs' ``H`` are
+    over the samples after each flight's first blocks, and so are the sums of ``y0²`` and the samples
+    counted here."""
     cols = lib.cols
-    if lib.y0_squares is not None:
+    squares = lib.y0_squares_after if cut else lib.y0_squares
+    if squares is not None:
         before = np.zeros(6)
         for f in eval_ids:
-            before += lib.y0_squares[f]
+            before += squares[f]
     else:
         before = np.array([sum(float(H[y, y]) for _, H in pairs) for y in range(cols.target0, cols.target0 + 6)])
     after = before.copy()
@@ -216,8 +220,14 @@ def _rmse_from_sums(lib: LibrarySums, coefs: dict, pairs: list[tuple[np.ndarray,
         if chosen:
             y = cols.target0 + axis
             after[axis] = max(sum(_sse(H, chosen, y, _ols(G, chosen, y)) for G, H in pairs), 0.0)
-    n = sum(lib.samples[f] for f in eval_ids)
+    n = _scored_samples(lib, eval_ids, cut)
     return _rmse(before, n), _rmse(after, n)
+
+
+def _scored_samples(lib: LibrarySums, eval_ids: list[str], cut: bool) -> int:
+    """The evaluated flights' usable samples; ``cut``: after their first blocks (from statistics)."""
+    samples = lib.samples_after if cut and lib.samples_after is not None else lib.samples
+    return sum(samples[f] for f in eval_ids)
 
 
 def _rmse(ss: np.ndarray, n: int) -> dict:
@@ -310,8 +320,10 @@ def discover(
         raise ValueError("discovery needs at least two training flights (folds are grouped by flight)")
     fx_effects = library_stats.fx_effects(spec)  # the effects the stored statistics hold
     folds = solve.folds(train, settings.n_folds)
+    skip = scored_after_blocks(spec)  # the first blocks of an evaluated flight the diagnosis does not score
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
-                  and all(effectlib.get(n).linear for n in spec.effects))
+                  and all(effectlib.get(n).linear for n in spec.effects)
+                  and skip in (0, library_stats.head_blocks(spec)))
     flight = None
     if combinable:
         lib = accumulate.from_statistics(ids, decoded, spec, fx_effects, folds, holdout, train, stored, stats,
@@ -322,7 +334,7 @@ def discover(
     noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
     kept, axes, coefs = _discover_axes(lib, noise, bool(holdout), spec.effects, fx_effects, settings)
     eval_ids = holdout or ids
-    base, after = _held_out_errors(lib, coefs, folds, holdout, eval_ids, flight, spec.vehicle)
+    base, after = _held_out_errors(lib, coefs, folds, holdout, eval_ids, flight, spec.vehicle, skip)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         _by_axis(noise),
@@ -353,21 +365,25 @@ def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_eff
 
 
 def _held_out_errors(lib: LibrarySums, coefs: dict, folds: list[list[str]], holdout: list[str], eval_ids: list[str],
-                     flight: accumulate.RowsOf | None, vehicle) -> tuple[dict, dict]:
+                     flight: accumulate.RowsOf | None, vehicle, skip: int) -> tuple[dict, dict]:
     """The RMSE per axis on the evaluated flights before and after the kept terms (``coefs``), each
     flight scored with the terms fitted on its fold's training flights (a holdout: on every training
     flight): from the sums when the library was combined from statistics (:func:`_rmse_from_sums`),
-    else from the flights' rows read again (``flight``, :func:`_held_out_rmse`)."""
+    else from the flights' rows read again (``flight``, :func:`_held_out_rmse`); on the usable samples
+    after each evaluated flight's first ``skip`` blocks, the samples the diagnosis scores."""
     fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
     if lib.full is not None:
-        pairs = [(G_train, lib.full.held_out())] if holdout else [
-            (tr, inside) for (tr, _), inside in zip(fold_grams, lib.full.own_sums())]
-        return _rmse_from_sums(lib, coefs, pairs, eval_ids)
+        # as the diagnosis (problem._on_common_samples): after the first blocks, unless nothing is left there
+        cut = skip > 0 and lib.after is not None and _scored_samples(lib, eval_ids, True) > 0
+        scored = lib.after if cut and lib.after is not None else lib.full
+        pairs = [(G_train, scored.held_out())] if holdout else [
+            (tr, inside) for (tr, _), inside in zip(fold_grams, scored.own_sums())]
+        return _rmse_from_sums(lib, coefs, pairs, eval_ids, cut)
     assert flight is not None, "sums made from rows (no lib.full) come with the rows' reader"
     train_gram = {f: G_train for f in eval_ids} if holdout else {
         f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
     return _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms, coefs,
-                          vehicle)
+                          vehicle, skip)
 
 
 def _usable(cols: Columns, axis: int, terms: list[Term]) -> list[Term]:
@@ -433,14 +449,15 @@ def _modelled_side_note(G, cols: Columns, chosen, beta, axis: int, target: str) 
             f"the controller holds off), not a new mechanism by itself"),)
 
 
-def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
-    """RMSE per axis on the evaluated flights (every usable sample) before and after the
-    discovered terms (fitted on training flights: ``train_gram[f]``, the Gram matrix flight
-    ``f`` is scored with, of its fold's training flights without a holdout). ``flight(f)``
-    gives a flight's rows and residual, read one flight at a time."""
-    before = np.zeros(6)
-    after = np.zeros(6)
-    n = 0
+def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle, skip: int):
+    """RMSE per axis on the evaluated flights before and after the discovered terms (fitted on
+    training flights: ``train_gram[f]``, the Gram matrix flight ``f`` is scored with, of its fold's
+    training flights without a holdout), on the usable samples after each flight's first ``skip``
+    blocks, the samples the diagnosis scores (:func:`quadcore.identify.evidence.scored_after_blocks`;
+    on every usable sample when no evaluated flight keeps one after them, as the diagnosis does).
+    ``flight(f)`` gives a flight's rows and residual, read one flight at a time."""
+    ss = np.zeros((2, 2, 6))  # (after the first blocks, every usable sample) x (before, after the terms)
+    n = np.zeros(2, dtype=int)
     for f in eval_ids:
         fd, r = flight(f)
         pred = np.zeros_like(r)
@@ -455,9 +472,9 @@ def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle):
             filt = signals.smooth(raw) if axis < 3 else \
                 signals.matched_to_derivative(raw, fd.state.t_s, fd.state.thrust_hold_s)
             pred[:, axis] = filt @ beta
-        m = fd.mask
-        before += (r[m] ** 2).sum(axis=0)
-        after += ((r - pred)[m] ** 2).sum(axis=0)
-        n += int(m.sum())
-
-    return _rmse(before, n), _rmse(after, n)
+        for i, m in enumerate((fd.after_blocks(skip).mask, fd.mask)):
+            ss[i, 0] += (r[m] ** 2).sum(axis=0)
+            ss[i, 1] += ((r - pred)[m] ** 2).sum(axis=0)
+            n[i] += int(m.sum())
+    i = 0 if n[0] > 0 else 1
+    return _rmse(ss[i, 0], int(n[i])), _rmse(ss[i, 1], int(n[i]))
