@@ -70,8 +70,10 @@ def fit_rows(effects: list[Effect], flights: Sequence[FlightData], targets: Sequ
     the nonlinear effects' predictions made on the same rows (:func:`search_fit`; a profile is no
     cheaper than the search's own predictions for one fit). For what holds rows, not statistics: a
     planned flight's separation, a model fitted per session with a nonlinear per-session effect."""
-    layout = layout_of([e for e in effects if e.linear]).with_extras([TARGET])
     by_id = {fd.flight: fd for fd in flights}
+    if len(by_id) != len(flights):  # the search finds a flight's rows by its id
+        raise ValueError(f"fit_rows: two of the flights share an id ({', '.join(fd.flight for fd in flights)})")
+    layout = layout_of([e for e in effects if e.linear]).with_extras([TARGET])
     columns = {fd.flight: {TARGET: np.asarray(y)} for fd, y in zip(flights, targets)}
     stats = [flight_stats(fd, vehicle, layout, extras=columns[fd.flight]) for fd in flights]
     return fit_effects(effects, stats, [layout.unit(layout.extra(TARGET)) for _ in stats], vehicle, fixed, bounded,
