@@ -145,8 +145,10 @@ def delayed_hover(tmp_path_factory) -> list[rates.RateFlight]:
 def test_the_rate_sums_give_the_rows_costs(delayed_hover):
     """A flight's rate-level sums, taken in one pass over its rows, give the costs the rows give:
     the delay's at any value (its grid holds every whole sample period, between which it is
-    linear), the lag's on its grid points and within 1e-5 between them; per block to float32
-    rounding; the pair's held-out differences likewise."""
+    linear), the lag's on its grid points, both to the float32 rounding of the block-demeaned
+    running sums (the measured 1e-9 relative against 4e-16 with them in float64), and the lag's
+    within 1e-5 between its grid points; per block to the float32 rounding of the blocks' Grams;
+    the pair's held-out differences likewise."""
     (rf,) = delayed_hover
     delay, lag = effects.get("thrust_delay"), effects.get("motor_lag")
     sums, rows = rates.rate_sums(rf, [delay, lag]), RowRates(rf)
@@ -154,10 +156,10 @@ def test_the_rate_sums_give_the_rows_costs(delayed_hover):
     assert sums.n == rows.n > 0
     dt = sums.dt_s
     for v in (0.0, dt, 2.5 * dt, 0.0101, 0.0137, 0.1):
-        assert sums.cost(delay, v, w) == pytest.approx(rows.cost(delay, v, w), rel=1e-9)
+        assert sums.cost(delay, v, w) == pytest.approx(rows.cost(delay, v, w), rel=1e-7)
         assert sums.costs(delay, v) == pytest.approx(rows.costs(delay, v), rel=1e-5)
     for v in sums.grids["motor_lag"][::4]:
-        assert sums.cost(lag, v, w) == pytest.approx(rows.cost(lag, v, w), rel=1e-9)
+        assert sums.cost(lag, v, w) == pytest.approx(rows.cost(lag, v, w), rel=1e-7)
     for v in (0.0063, 0.0117, 0.045):
         assert sums.cost(lag, v, w) == pytest.approx(rows.cost(lag, v, w), rel=1e-5)
     for got, want in zip(sums.differences(delay, 0.0101, lag, 0.0117), rows.differences(delay, 0.0101, lag, 0.0117)):

@@ -215,19 +215,28 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect]) -> RateSums:
     for e in timing:
         slots[e.name] = slice(k, k + len(grids[e.name]))
         k += len(grids[e.name])
-    X = np.empty((int(use.sum()), 3, k))  # (m, 3, K), filled one column at a time (one flight's, the largest)
-    X[:, :, 0] = np.cumsum(rf.increments, axis=0)[use]
+    b = rf.block[use]
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
+    size = np.diff(starts).astype(float)
+
+    def demeaned(running: np.ndarray) -> np.ndarray:
+        """(m, 3) running sums less their block's mean (which the block's offset takes)."""
+        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None], np.diff(starts),
+                                   axis=0) if len(b) else running
+
+    # (m, 3, K) block-demeaned, filled one column at a time; float32 (one flight's, the largest array here):
+    # the rounding perturbs each value by 6e-8 of itself, a residual by that of the values, not of their Gram
+    X = np.empty((len(b), 3, k), np.float32)
+    X[:, :, 0] = demeaned(np.cumsum(rf.increments, axis=0)[use])
     for e in timing:
         (p,) = e.parameters
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
             tau = e.wrench(st, rf.vehicle, {p.name: float(v)})[1]
-            X[:, :, j] = np.cumsum(signals.interval_integrals(tau, st.t_s, st.thrust_hold_s), axis=0)[use]
-    b = rf.block[use]
-    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
+            X[:, :, j] = demeaned(np.cumsum(signals.interval_integrals(tau, st.t_s, st.thrust_hold_s), axis=0)[use])
     iu = np.triu_indices(k)
     blocks = np.zeros((len(starts) - 1, 3, len(iu[0])))
     for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):
-        x = X[lo:hi] - X[lo:hi].mean(axis=0)
+        x = X[lo:hi].astype(float)
         blocks[i] = np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
     return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0), rf.fd.noise[3:].copy(),
                     max(rf.fd.n, 1), dt_s, rf.n)
