@@ -90,7 +90,7 @@ def main() -> None:
         per_flight = (time.perf_counter() - t0) / len(real)
         sizes = [library_stats.save(lib, root).stat().st_size for lib in libs.values()]
         width = len(next(iter(libs.values())).labels)
-        print(f"per real flight: {width} columns, {sum(sizes) / len(sizes) / 1e6:.2f} MB on disk (two float64 "
+        print(f"per real flight: {width} columns, {sum(sizes) / len(sizes) / 1e6:.2f} MB on disk (float64 "
               f"upper triangles), computed in {per_flight:.3f} s")
         holdout = ["jana02"] if "jana02" in decoded else []
         t0 = time.perf_counter()
