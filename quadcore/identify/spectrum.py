@@ -31,10 +31,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy import signal
 
 from quadcore.identify import ranges
-from quadcore.physics import residuals, signals
 from quadcore.physics.dynamics import XYZ
 
 BANDS_HZ = ((0.0, 0.5), (0.5, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
@@ -46,37 +44,17 @@ CHANNELS = tuple([f"force_{a}" for a in XYZ] + [f"torque_{a}" for a in XYZ])
 BAND_KEYS = ("residual_rms", "measured_rms", "modelled_rms", "coherence", "gain", "phase_deg")  # a list per channel
 
 
-def _spectra(meas: np.ndarray, model: np.ndarray, fs: float):
-    """Frequencies and (n_freq, 6) auto/cross spectra of model p, measurement m and residual."""
-    n = min(SEGMENT, len(meas))
-    kw = {"fs": fs, "nperseg": n, "axis": 0, "detrend": "constant"}  # each segment's mean is reported apart
-    f, s_pp = signal.welch(model, **kw)
-    _, s_mm = signal.welch(meas, **kw)
-    _, s_rr = signal.welch(meas - model, **kw)
-    _, s_pm = signal.csd(model, meas, **kw)
-    return f, s_pp, s_mm, s_rr, s_pm
-
-
-def frequency_view(flights, resid: dict[str, np.ndarray], vehicle) -> dict:
-    """The residual by frequency band and the coherence of model and measurement (JSON-ready).
-
-    ``flights`` are :class:`quadcore.identify.flightdata.FlightData`, ``resid[flight]`` their (n, 6)
-    residual under the evaluated model (force N, torque N m)."""
-    sums = SpectrumSums(float(np.median([sample_rate_hz(fd.state.t_s) for fd in flights])), vehicle)
-    for fd in flights:
-        sums.add(fd, resid[fd.flight])
-    return sums.view()
-
-
 def sample_rate_hz(t_s: np.ndarray) -> float:
     """A flight's sample rate: 1 / the median interval between samples."""
     return 1.0 / np.median(np.diff(t_s))
 
 
 class SpectrumSums:
-    """:func:`frequency_view` with the flights added one at a time (:meth:`add`), so a caller
-    can let each flight's rows go once they are added; ``fs_hz``: the evaluated flights' median
-    :func:`sample_rate_hz`, the spectra's common frequency grid."""
+    """The evaluated flights' spectra, summed flight by flight (:meth:`add_spectra`, from each
+    flight's stored summary) on a common frequency grid, and the view of them (:meth:`view`);
+    ``fs_hz``: the evaluated flights' median :func:`sample_rate_hz`. The same sums computed on a
+    flight's rows with ``scipy.signal.welch``, the reference they are tested against:
+    tests/reference/spectra.py."""
 
     def __init__(self, fs_hz: float, vehicle):
         self.fs, self.vehicle = fs_hz, vehicle
@@ -85,30 +63,13 @@ class SpectrumSums:
                     for k in ("pp", "mm", "rr", "pm")}
         self.weight = 0.0
         self.mean_sq = np.zeros(6)  # per-flight mean of the residual, squared (what no spectrum shows)
-        self.rr_above = np.zeros(6)  # residual power of bins added as a sum (add_spectra), not bin by bin
-
-    def add(self, fd, resid: np.ndarray) -> None:
-        """One flight (a FlightData) and its (n, 6) residual."""
-        # Welch segments must not straddle a gap in the log: each gap-free stretch is its own signal
-        stretches = [p for p in signals.segments(fd.state.t_s) if p.stop - p.start >= 2 * SEGMENT]
-        if not stretches:
-            return  # too short to resolve the slow bands
-        arrays = residuals.residual_arrays(fd.state, self.vehicle)
-        meas = np.concatenate([arrays["f_meas_b"], arrays["tau_meas_b"]], axis=1)
-        model = meas - resid
-        for part in stretches:
-            _, *specs = _spectra(meas[part], model[part], self.fs)
-            for key, s in zip(("pp", "mm", "rr", "pm"), specs):
-                self.acc[key] += (part.stop - part.start) * s
-        n = sum(p.stop - p.start for p in stretches)
-        self.mean_sq += n * resid[fd.mask].mean(axis=0) ** 2
-        self.weight += n
+        self.rr_above = np.zeros(6)  # residual power of bins added as a sum, not bin by bin
 
     def add_spectra(self, spectra: dict[str, np.ndarray], rr_above: np.ndarray, weight: float,
                     mean_sq: np.ndarray) -> None:
-        """One flight's sums as :meth:`add` takes them, from elsewhere (a flight's stored summary,
-        :mod:`quadcore.identify.summaries`): ``spectra[key]`` (K, 6) its stretches' spectra at
-        bins 1..K, weighted by their samples, with a unit sample rate (divided by ``fs_hz`` here);
+        """One flight's sums (from its stored summary, :mod:`quadcore.identify.summaries`):
+        ``spectra[key]`` (K, 6) its stretches' spectra at bins 1..K, weighted by their samples,
+        with a unit sample rate (divided by ``fs_hz`` here);
         ``rr_above`` (6,) the residual's above bin K summed; ``weight`` its stretches' samples;
         ``mean_sq`` (6,) ``weight`` × its mean residual squared."""
         for key, s in spectra.items():

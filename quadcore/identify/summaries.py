@@ -1,5 +1,5 @@
 """Per-flight summaries of the diagnosis's descriptive part: the residual by regime, by flight, in
-time (worst segments) and in frequency (:mod:`quadcore.identify.regimes`,
+time (worst segments) and in frequency (the bins: :mod:`quadcore.identify.regimes`; the bands:
 :mod:`quadcore.identify.spectrum`), as quadratic forms of the flight's columns, computed once per
 flight and stored beside its statistics (``<root>/stats/flight=<id>/summary.bin``), so that a
 diagnosis of a model of linear effects reads no evaluated flight's rows.
@@ -28,16 +28,18 @@ sum), symmetric matrices as their upper triangles.
       C_c(f) = Σ_stretch L · (2 / (N_s Σ h²)) Σ_s conj(F_s(f)) F_s(f)ᵀ       (Hermitian)
 
   so that any Welch cross spectrum of signals ``a = u·α``, ``b = u·β`` (real vectors) over the
-  flight, weighted as ``SpectrumSums.add`` weights it, is ``αᵀ C β / f_s``: the measurement
-  ``e_m``, the residual ``[v; 0]``, the model ``[−v; 1]`` (``p = m − r``). ``S_pp``, ``S_mm``,
-  ``S_rr`` need ``Re C`` only; ``S_pm = αᵀ Re C e_m + i αᵀ Im C e_m`` also the column
-  ``Im C[:, m]``. Kept bin by bin up to ``MARGIN`` × the top band edge at the flight's own
-  sample rate (the bands and coherence; a fleet whose median rate needs more bins takes that
-  flight's rows), with ``Re C`` summed above (the residual's total power). The flight's mean
-  residual (reported apart from the spectra) is ``(Σ_i z_ic)·v / n`` over usable samples.
+  flight, each stretch weighted by its samples (as the row reference tests/reference/spectra.py
+  weights them), is ``αᵀ C β / f_s``: the measurement ``e_m``, the residual ``[v; 0]``, the model
+  ``[−v; 1]`` (``p = m − r``). ``S_pp``, ``S_mm``, ``S_rr`` need ``Re C`` only;
+  ``S_pm = αᵀ Re C e_m + i αᵀ Im C e_m`` also the column ``Im C[:, m]``. Kept bin by bin up to
+  ``MARGIN`` × the top band edge at the flight's own sample rate (the bands and coherence; a fleet whose median rate
+  needs more bins takes that flight's rows), with ``Re C`` summed above (the residual's total
+  power). The flight's mean residual (reported apart from the spectra) is ``(Σ_i z_ic)·v / n``
+  over usable samples.
 
-All are sums over the same samples as the rows' tables, in another order: they agree to float
-rounding (~1e-12 relative).
+All are sums over the same samples as the tables made on the rows (the row reference,
+tests/reference/tables.py and tests/reference/spectra.py, which tests/test_summaries.py compares
+against), in another order: they agree to float rounding (~1e-12 relative).
 """
 
 from __future__ import annotations
@@ -278,8 +280,9 @@ def _regime_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray])
 
 def _window_sums(Zm: np.ndarray, packing: Packing, codes: dict[str, np.ndarray],
                  t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per window (usable samples at ``t_s``, grouped as :func:`quadcore.identify.regimes.worst_segments`
-    groups the rows): first and last time, samples, modal labels, the force channels' packed Gram."""
+    """Per window (usable samples at ``t_s``, grouped as the row reference's ``worst_segments``
+    in tests/reference/tables.py groups the rows): first and last time, samples, modal labels, the
+    force channels' packed Gram."""
     _, window = np.unique(t_s // regimes.WINDOW_S, return_inverse=True)
     window = window.reshape(-1)
     n_w = int(window.max()) + 1 if len(window) else 0
@@ -309,7 +312,7 @@ def of_rows(fd: FlightData, residual_rows: np.ndarray, vehicle: Vehicle) -> Flig
 
 
 # ---------------------------------------------------------------------------------------
-# The tables, from the flights' sums (as regimes.regime_table & co. make them from rows)
+# The tables, from the flights' sums (as tests/reference/tables.py makes them from rows)
 # ---------------------------------------------------------------------------------------
 
 def _rmse_columns(ss: np.ndarray, rows: np.ndarray) -> dict[str, np.ndarray]:
@@ -318,7 +321,8 @@ def _rmse_columns(ss: np.ndarray, rows: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def regime_table(sums: Sequence[ResidualSums]) -> pl.DataFrame:
-    """:func:`quadcore.identify.regimes.regime_table` of the flights' sums."""
+    """Residual RMSE per axis in every bin of every regime variable, and the share of samples, of the
+    flights' sums (the row reference: ``regime_table`` in tests/reference/tables.py)."""
     rows = np.sum([s.bin_rows for s in sums], axis=0)
     ss = np.sum([s.bin_ss for s in sums], axis=0)
     total = int(rows[: BIN_OFFSETS[1]].sum())
@@ -334,14 +338,16 @@ def regime_table(sums: Sequence[ResidualSums]) -> pl.DataFrame:
 
 
 def flight_table(sums: Sequence[ResidualSums]) -> pl.DataFrame:
-    """:func:`quadcore.identify.regimes.flight_table` of the flights' sums."""
+    """Residual RMSE per axis of each flight, and its samples, of the flights' sums (the row
+    reference: ``flight_table`` in tests/reference/tables.py)."""
     rows = np.array([s.n for s in sums])
     return pl.DataFrame({"flight": [s.flight for s in sums], "samples": rows.astype(np.uint32),
                          **_rmse_columns(np.stack([s.ss for s in sums]), rows)}).sort("flight")
 
 
 def worst_segments(sums: Sequence[ResidualSums], top: int = regimes.TOP_SEGMENTS) -> pl.DataFrame:
-    """:func:`quadcore.identify.regimes.worst_segments` of the flights' sums."""
+    """The ``top`` windows (non-overlapping, per flight) with the largest force-residual RMS, of the
+    flights' sums (the row reference: ``worst_segments`` in tests/reference/tables.py)."""
     frame = {"flight": np.concatenate([np.full(len(s.window_rows), s.flight) for s in sums]),
              "t_start_s": np.concatenate([s.window_t_s[:, 0] for s in sums]),
              "t_end_s": np.concatenate([s.window_t_s[:, 1] for s in sums]),
@@ -353,7 +359,9 @@ def worst_segments(sums: Sequence[ResidualSums], top: int = regimes.TOP_SEGMENTS
 
 
 def frequency_view(sums: Sequence[ResidualSums], fs_hz: float, vehicle: Vehicle) -> dict:
-    """:func:`quadcore.identify.spectrum.frequency_view` of the flights' sums (at the fleet's rate ``fs_hz``)."""
+    """The residual by frequency band and the coherence of model and measurement (JSON-ready,
+    :mod:`quadcore.identify.spectrum`) of the flights' sums, at the fleet's rate ``fs_hz`` (the row
+    reference: ``frequency_view`` in tests/reference/spectra.py)."""
     acc = spectrum.SpectrumSums(fs_hz, vehicle)
     for s in sums:
         if s.spectrum_rows:
