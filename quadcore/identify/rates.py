@@ -36,6 +36,16 @@ right for a white residual) and the blocks-as-clusters one (:func:`_clustered_va
 when the model's error within a block is not white), the comparison of two candidates the held-out difference of their
 ``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
 
+**The noise model.** The argument needs the gyro noise white. The real logs' is not (the
+firmware's 80 Hz low-pass: lag-one autocorrelation +0.7), and ``ε_k`` then correlates with the
+``ε_(k−1)`` the commands react to: on three hover flights with that noise (simulated) a 10 ms delay
+came out 9.2-9.7 ms, a lag 11.0-11.9 ms, the delay preferred when the lag was true. Each flight's
+running sums (``R`` and every ``C``) go through a whitening filter ``x_k − Σ_i φ_i x_(k−i)``
+per axis (:func:`noise_model`: AR of order ≤ 8 by BIC, 0 on white noise, fitted by Yule-Walker
+with a 10 % white floor to the residual of the best-fitting candidate), so that the filtered
+residual's noise is the innovation, unpredictable from the past; the fit stays a quadratic form
+of the filtered sums. Same flights: 9.9-10.2 ms and 10.2-11.6 ms, the truth preferred (docs/timing.md).
+
 **From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
 sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
 point of a grid of its parameter, block-demeaned, are taken in one pass over a flight's rows,
@@ -57,7 +67,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import stats
+from scipy import linalg, stats
 
 from quadcore.effects import Effect, get as get_effect
 from quadcore.identify import evidence, profiles
@@ -203,10 +213,12 @@ def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     return out
 
 
-def rate_sums(rf: RateFlight, timing: Sequence[Effect]) -> RateSums:
+def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = True) -> RateSums:
     """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
     its rows: each effect's interval integrals of its torque at every point of its grid, with
-    the flight's thrust hold (as the model's torque in the increments)."""
+    the flight's thrust hold (as the model's torque in the increments), and every running sum
+    through the flight's whitening filter (:func:`noise_model`; ``whiten`` False: none, the
+    running sums as they are)."""
     st = rf.fd.state
     use = rf.block >= 0
     dt_s = float(np.median(np.diff(st.t_s)))
@@ -233,13 +245,110 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect]) -> RateSums:
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
             tau = e.wrench(st, rf.vehicle, {p.name: float(v)})[1]
             X[:, :, j] = demeaned(np.cumsum(signals.interval_integrals(tau, st.t_s, st.thrust_hold_s), axis=0)[use])
+    ar, share = noise_model(X, starts, rf.fd.noise[3:]) if whiten else (np.zeros((3, 0)), np.ones(3))
+    lags = ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((len(starts) - 1, 3, len(iu[0])))
     for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):
-        x = X[lo:hi].astype(float)
+        x = whitened(X[lo:hi].astype(float), ar)
+        if not len(x):
+            continue
+        x -= x.mean(axis=0)
         blocks[i] = np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
-    return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0), rf.fd.noise[3:].copy(),
-                    max(rf.fd.n, 1), dt_s, rf.n)
+    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
+    return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0),
+                    rf.fd.noise[3:] * np.sqrt(share), max(rf.fd.n, 1), dt_s, used)
+
+
+# The rate level's noise model (noise_model, docs/timing.md "The noise model")
+MAX_AR_ORDER = 8  # its largest AR order (the real logs' and the simulator's coloured gyro noise take all 8)
+NOISE_MODEL_PASSES = 3  # fits of it, each on the residual of the column the last one's whitening prefers
+WHITE_FLOOR = 0.1  # its white floor, a share of the residual's variance (Yule-Walker's lag-0 loading)
+
+
+def whitened(x: np.ndarray, ar: np.ndarray) -> np.ndarray:
+    """(m - p, 3, ...) ``x_k − Σ_i φ_ai x_(k−i)`` per axis ``a`` of one block's consecutive
+    intervals ``x`` (m, 3, ...), ``ar`` (3, p) the coefficients ``φ``; the first ``p`` intervals,
+    whose past is outside the block, go."""
+    p, m = ar.shape[1], len(x)
+    out = x[p:].copy()
+    if m <= p:
+        return out
+    for i in range(1, p + 1):
+        out -= ar[:, i - 1].reshape((1, 3) + (1,) * (x.ndim - 2)) * x[p - i:m - i]
+    return out
+
+
+def _lagged(e: np.ndarray, starts: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) targets ``e_k`` and (n, 3, p) their pasts ``e_(k−1..k−p)``, for every ``k`` of a
+    block with ``MAX_AR_ORDER`` earlier intervals in it (the same samples whatever ``p``)."""
+    ks = np.concatenate([np.zeros(0, int),
+                         *(np.arange(lo + MAX_AR_ORDER, hi) for lo, hi in zip(starts[:-1], starts[1:]))])
+    return e[ks], np.stack([e[ks - i] for i in range(1, p + 1)], axis=2) if p else np.zeros((len(ks), 3, 0))
+
+
+def noise_model(X: np.ndarray, starts: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis the AR(p) coefficients (3, p) of a flight's running sums' noise and the share (3,)
+    of its variance the whitening leaves (the innovation's), fitted (:func:`_ar_fit`) to the
+    block-demeaned residual ``e = R − C`` of the column of ``X`` (a timing candidate at a point
+    of its grid, or none) that fits the flight best, first unwhitened, then whitened with the
+    model fitted so far, until that column stays (at most :data:`NOISE_MODEL_PASSES` passes).
+    ``X`` (m, 3, K) the block-demeaned running sums, ``starts`` the blocks' first rows and the
+    end, ``noise`` (3,) the torque floor (the axes' weights in choosing the column)."""
+    none = (np.zeros((3, 0)), np.ones(3))
+    y, _ = _lagged(X[:, :, 0], starts, MAX_AR_ORDER)
+    if len(y) <= 10 * MAX_AR_ORDER:
+        return none
+    w = 1.0 / np.where(noise > 0, noise, 1.0) ** 2
+    ar, share, column = none[0], none[1], -1
+    for _ in range(NOISE_MODEL_PASSES):
+        best = int(np.argmin(_column_costs(X, starts, ar) @ w))
+        if best == column:
+            break
+        column = best
+        e = X[:, :, 0].astype(float) - (X[:, :, column] if column else 0.0)
+        ar, share = _ar_fit(*_lagged(e, starts, MAX_AR_ORDER))
+    return ar, share
+
+
+def _column_costs(X: np.ndarray, starts: np.ndarray, ar: np.ndarray) -> np.ndarray:
+    """(K, 3) per column ``j`` of ``X`` and axis ``Σ (F[R] − F[X_j])²`` (block means removed, ``F``
+    the whitening of ``ar``; column 0: ``R`` alone)."""
+    out = np.zeros((X.shape[2], 3))
+    for lo, hi in zip(starts[:-1], starts[1:]):
+        x = whitened(X[lo:hi].astype(float), ar)
+        if not len(x):
+            continue
+        d = x[:, :, :1] - x
+        d[:, :, 0] = x[:, :, 0]
+        d -= d.mean(axis=0)
+        out += np.einsum("kaj,kaj->ja", d, d)
+    return out
+
+
+def _ar_fit(y: np.ndarray, past: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3, p) AR coefficients per axis of targets ``y`` (n, 3) on their pasts (n, 3, MAX_AR_ORDER)
+    and (3,) the share of ``y``'s variance the innovation keeps. The order ``p`` by BIC of the
+    least-squares fits (the largest over the axes; 0 for white noise); the coefficients by
+    Yule-Walker with the variance raised by :data:`WHITE_FLOOR` (a white floor under the noise's
+    spectrum, which bounds the whitening's gain where the spectrum has almost nothing, near the
+    log's Nyquist frequency: without it the fit follows what the filter amplifies there,
+    docs/timing.md)."""
+    n = len(y)
+    bic = np.zeros((MAX_AR_ORDER + 1, 3))
+    for p in range(MAX_AR_ORDER + 1):
+        for a in range(3):
+            A = past[:, a, :p]
+            r = y[:, a] - A @ np.linalg.lstsq(A, y[:, a], rcond=None)[0] if p else y[:, a]
+            bic[p, a] = n * np.log(max(float(r @ r) / n, 1e-300)) + p * np.log(n)
+    p = int(np.argmin(bic, axis=0).max())
+    if p == 0:
+        return np.zeros((3, 0)), np.ones(3)
+    gamma = np.concatenate([(y**2).mean(axis=0)[:, None], np.einsum("na,nak->ak", y, past[:, :, :p]) / n], axis=1)
+    ar = np.array([linalg.solve_toeplitz(np.concatenate([[g[0] * (1 + WHITE_FLOOR)], g[1:p]]), g[1:p + 1])
+                   for g in gamma])
+    innovation = y - np.einsum("nap,ap->na", past[:, :, :p], ar)
+    return ar, (innovation**2).sum(axis=0) / np.maximum((y**2).sum(axis=0), 1e-300)
 
 
 def weights(flights: Sequence[RateSums]) -> np.ndarray:
