@@ -93,4 +93,3 @@ LABELS = {"speed": bin_labels(SPEED_BINS, "m/s"), "height": bin_labels(HEIGHT_BI
 RMSE_COLUMNS = [f"force_rmse_{a}_N" for a in XYZ] + [f"torque_rmse_{a}_Nm" for a in XYZ]
 WINDOW_S = 0.5  # the worst segments' windows
 TOP_SEGMENTS = 10  # the worst segments the diagnosis lists
-
