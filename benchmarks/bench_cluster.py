@@ -12,9 +12,9 @@ of its own (``python -m pipeline.cluster up --workers N`` in a fresh folder: Pos
 moto's S3 server, the Celery workers, the daemon, the webserver), the main job through it
 (``python -m pipeline.cluster run``: runs through the daemon's queue, steps on the workers,
 outputs in the S3 store), then ``down --purge``; last the one-process job again, to show how far
-the machine's load drifted meanwhile. The fleet is bench_scale.py's pool of 20 simulated 10 s
-flights hard-linked under N ids, the learning stage capped at ``QUADCORE_LEARN_ROWS=20000`` rows
-as in bench_executors.py. Ends with a table: each way's wall and CPU seconds and their ratios to
+the machine's load drifted meanwhile. The fleet is N distinct simulated 10 s flights from
+bench_scale.py's pool, hard-linked, the learning stage capped at ``QUADCORE_LEARN_ROWS=20000``
+rows as in bench_executors.py. Ends with a table: each way's wall and CPU seconds and their ratios to
 the first one-process job.
 
 CPU seconds: this script makes itself the subreaper of everything it starts (``prctl

@@ -7,13 +7,12 @@ For each N, in a fresh process: the diagnosis as ``model_diagnosis`` runs it
 the default held-out flight left out, 5-fold cross-validation over the others, the nominal model,
 every offered candidate, or with ``--without-timing`` those that do not re-time the rotors'
 thrust (no ``motor_lag``, ``thrust_delay``: no rate level, docs/timing.md), the flights' stored
-sufficient statistics) on N flights: bench_scale's
-pool of 20 simulated 10 s flights decoded once and linked under N ids. The statistics are
-computed first, in that process too, untimed. Prints seconds and peak resident memory per N
+sufficient statistics) on N distinct flights: bench_scale's pool of simulated 10 s flights
+(each its own seed), decoded once and linked. The statistics are computed first, in that
+process too, untimed. Prints seconds and peak resident memory per N
 (the process's resident peak, and the diagnosis's own: the peak of what it allocates, numpy's
 arrays included, traced by tracemalloc, which the allocator's keeping of freed memory does not
-blur), and the growth of the diagnosis's own peak in MB a flight between consecutive N. The
-pool holds 20 distinct flights: under more ids they are copies, which the fleet uses once. A
+blur), and the growth of the diagnosis's own peak in MB a flight between consecutive N. A
 report, not a test: exits 0 either way.
 """
 

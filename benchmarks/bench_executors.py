@@ -11,10 +11,10 @@ process each time), in turn, A B A B ..., so that a drift of the shared machine'
 - B, ``QUADCORE_EXECUTOR=multiprocess``: no split of ours; each run through Dagster's multiprocess
   executor, every step in a process of its own, at most two at once (``max_concurrent: 2``).
 
-On the 19 real flights (read in place) and on ``--flights`` simulated ones (bench_scale.py's pool
-of 20 simulated 10 s flights, hard-linked under N ids). On the simulated fleet the learning stage
-is capped at ``QUADCORE_LEARN_ROWS=20000`` rows: it is one step either way, and the pool's copies
-make its early stopping never stop (bench_scale.py), which would only add the same minutes to both.
+On the 19 real flights (read in place) and on ``--flights`` distinct simulated 10 s flights
+(bench_scale.py's pool, hard-linked). On the simulated fleet the learning stage is capped at
+``QUADCORE_LEARN_ROWS=20000`` rows: it is one step either way, and more rows would only add the
+same minutes to both.
 
 Prints, per run: wall seconds, CPU seconds (user + system of the job and every process it
 waited for), peak memory of the largest process, seconds per stage, the load average before and
@@ -33,7 +33,7 @@ from pathlib import Path
 
 from _common import REAL_LOGS
 from _jobs import JobRun, run_main_job
-from bench_scale import fid, pool_log
+from bench_scale import fid, pool_logs
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_executors"
 WAYS = {"A parallel.py": {}, "B multiprocess": {"QUADCORE_EXECUTOR": "multiprocess"}}
@@ -41,12 +41,12 @@ SIM_LEARN_ROWS = "20000"
 
 
 def simulated_fleet(n: int, folder: Path) -> Path:
-    """A raw folder of ``n`` simulated flights: the pool's logs hard-linked under ``n`` ids (a
-    symbolic link out of the raw folder is refused by the decoder)."""
+    """A raw folder of ``n`` distinct simulated flights: the pool's logs hard-linked (a symbolic
+    link out of the raw folder is refused by the decoder)."""
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
-    for i in range(n):
-        os.link(pool_log(i), folder / fid(i))
+    for i, log in enumerate(pool_logs(n)):
+        os.link(log, folder / fid(i))
     return folder
 
 

@@ -6,9 +6,12 @@ after one more flight.
     nice -n 10 python benchmarks/bench_scale.py --fleet [N ...]         fleet stages (default: 10 100 1000)
     nice -n 10 python benchmarks/bench_scale.py --learning [N ...]      learning stage (default: 10 100)
 
-N flights: a pool of 20 simulated flights (random go-to flights, 10 s each, simulated once and
-cached under $TMPDIR/quadcore_bench_scale), linked under N flight ids (flight ``sim0042`` is pool
-flight 42 mod 20: same bytes, its own partition and outputs).
+N flights: N distinct simulated flights, each a random go-to flight of 10 s with its own seed
+(flight ``sim0042``: seed 1042), so each has its own log bytes and the fleet stages and the
+learning use every one (the workflows use a log whose bytes repeat another's once:
+``quadcore.workflows.fleet.duplicates``). Each is simulated once and cached under
+$TMPDIR/quadcore_bench_scale/pool (its own $TMPDIR for a benchmark of your own: the cache is
+shared), in runs of 20 that print the seconds a simulated flight took; raw folders link to it.
 
 - Main job: for each N, ``python -m pipeline`` on an empty data root (a fresh process: wall time,
   peak resident memory, seconds per stage), then one more flight and the job again: the refit +
@@ -22,9 +25,7 @@ flight 42 mod 20: same bytes, its own partition and outputs).
 - ``--learning``: only the learning stage and the C export (the main job's stage 4) in a fresh
   process, on the residual tables ``--per-flight N`` left. Above the row budget
   (``QUADCORE_LEARN_ROWS``, 250,000 rows: 50 of these flights) every training run holds the same
-  number of rows. The pool's flights repeat under several ids beyond 20 flights, so the
-  validation and held-out flights are copies of training flights: early stopping then never
-  stops and every model trains to its cap (1,000 trees per output, 200 epochs), the worst case.
+  number of rows.
 
 Each prints a table and, with two N or more, writes a plot of time per flight and peak memory
 against N (``quadcore.report.plots.scaling``) beside the cache: scale_main.png, scale_per_flight.png,
@@ -58,32 +59,44 @@ from quadcore.sim import simulation  # noqa: E402
 from quadcore.store import store  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "quadcore_bench_scale"
-POOL = 20
+CHUNK = 20  # flights simulated per run
 EVENTS = ("fixedFrequency", "estPose")
 
 
-def pool_log(i: int) -> Path:
-    """Pool flight ``i mod POOL`` (simulating the pool once)."""
+def pool_logs(n: int) -> list[Path]:
+    """The logs of simulated flights 0 .. n-1 (flight ``k``: seed 1000 + k), each simulated once
+    and cached: the missing ones in runs of ``CHUNK``, each moved into the pool when written
+    (truth first, its log last: a log in the pool is a whole flight), so a killed run keeps what
+    it finished."""
     pool = CACHE / "pool"
     pool.mkdir(parents=True, exist_ok=True)
-    have = len([p for p in pool.iterdir() if not p.suffix])
-    if have < POOL:
-        configs = [simulation.SimConfig(kind="random", duration_s=10.0, seed=1000 + k) for k in range(have, POOL)]
+    missing = [k for k in range(n) if not (pool / fid(k)).is_file()]
+    for start in range(0, len(missing), CHUNK):
+        ks = missing[start:start + CHUNK]
+        configs = [simulation.SimConfig(kind="random", duration_s=10.0, seed=1000 + k) for k in ks]
         tmp = Path(tempfile.mkdtemp(dir=CACHE))
-        for (log, truth), k in zip(simulation.simulate_set(tmp, configs), range(have, POOL)):
-            log.rename(pool / f"sim{k:04d}")
-            truth.rename(pool / f"sim{k:04d}{simulation.TRUTH_SUFFIX}")
+        t0 = time.perf_counter()
+        for (log, truth), k in zip(simulation.simulate_set(tmp, configs), ks):
+            truth.rename(pool / f"{fid(k)}{simulation.TRUTH_SUFFIX}")
+            log.rename(pool / fid(k))
         shutil.rmtree(tmp)
-    return pool / f"sim{i % POOL:04d}"
+        print(f"simulated {len(ks)} flights ({fid(ks[0])}..{fid(ks[-1])}): "
+              f"{(time.perf_counter() - t0) / len(ks):.2f} s a flight", flush=True)
+    return [pool / fid(k) for k in range(n)]
+
+
+def pool_log(i: int) -> Path:
+    """Simulated flight ``i`` (simulated once, cached)."""
+    return pool_logs(i + 1)[i]
 
 
 def simulated(n: int) -> Path:
-    """A raw folder with ``n`` flights (links into the pool)."""
+    """A raw folder with ``n`` distinct flights (links into the pool)."""
     raw = CACHE / f"raw{n}"
     shutil.rmtree(raw, ignore_errors=True)
     raw.mkdir()
-    for i in range(n):
-        (raw / f"sim{i:04d}").symlink_to(pool_log(i))
+    for i, log in enumerate(pool_logs(n)):
+        (raw / fid(i)).symlink_to(log)
     return raw
 
 
@@ -203,27 +216,27 @@ def per_flight_main(sizes: list[int]) -> None:
 
 # -- fleet stages --------------------------------------------------------------------------------
 
-def decoded_pool() -> Path:
-    """The pool's flights decoded once (their tables are linked under every id that uses them);
-    again when decoded by older code (no physics facts in the main table's footer: the fleet
-    stages would then read every table to judge it)."""
+def decoded_pool(n: int) -> Path:
+    """The pool's flights 0 .. n-1 decoded once (their tables are linked under the data roots that
+    use them); again when decoded by older code (no physics facts in the main table's footer: the
+    fleet stages would then read every table to judge it)."""
     from quadcore.logs import flight
 
     root = CACHE / "decoded_pool"
-    for i in range(POOL):
+    for i, log in enumerate(pool_logs(n)):
         main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
         if not main.is_file() or decoded_store.recorded_physics_facts(main) is None:
-            decoded_store.write_decoded(root, flight.decode_flight(pool_log(i)))
+            decoded_store.write_decoded(root, flight.decode_flight(log))
     return root
 
 
 def fleet_root(n: int) -> tuple[Path, Path]:
-    """(data root with n decoded flights linked from the pool, raw folder of n + 1 flights)."""
-    pool, raw, root = decoded_pool(), simulated(n + 1), CACHE / f"fleet{n}"
+    """(data root with n distinct decoded flights linked from the pool, raw folder of n + 1 flights)."""
+    pool, raw, root = decoded_pool(n), simulated(n + 1), CACHE / f"fleet{n}"
     shutil.rmtree(root, ignore_errors=True)
     for i in range(n):
         for event in EVENTS:
-            src = store.decoded_path(pool, event, fid(i % POOL))
+            src = store.decoded_path(pool, event, fid(i))
             if src.is_file():
                 dest = store.decoded_path(root, event, fid(i))
                 dest.parent.mkdir(parents=True)
