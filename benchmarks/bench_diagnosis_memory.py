@@ -32,7 +32,8 @@ from _jobs import REPO
 sys.path.insert(0, str(REPO))
 
 from quadcore import effects, workflows  # noqa: E402
-from quadcore.identify import diagnosis, sufficient  # noqa: E402
+from quadcore.identify import diagnosis
+from quadcore.identify.stats import sufficient
 from quadcore.store import store  # noqa: E402
 from quadcore.workflows import fleet, identify  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""One-parameter nonlinear candidates from per-flight profiles (:mod:`quadcore.identify.profiles`)
+"""One-parameter nonlinear candidates from per-flight profiles (:mod:`quadcore.identify.stats.profiles`)
 against the row search they replace: where each lands, its error, what each costs, and how big
 the profiles are on disk.
 
@@ -24,7 +24,8 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import effects
-from quadcore.identify import fit as fitlib, flightdata, sufficient
+from quadcore.identify import fit as fitlib, flightdata
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import gate, vehicle
 from quadcore.sim import simulation

@@ -1,4 +1,4 @@
-"""Combining per-flight sufficient statistics (:mod:`quadcore.identify.sufficient`): the cost of a fleet
+"""Combining per-flight sufficient statistics (:mod:`quadcore.identify.stats.sufficient`): the cost of a fleet
 fit and of a held-out test from statistics, at 19, 100 and 1,000 flights, for short and ten
 times longer flights.
 
@@ -23,8 +23,9 @@ import numpy as np
 from _common import best_of
 
 from quadcore import effects
-from quadcore.identify import evidence, fit as fitlib, sufficient
+from quadcore.identify import evidence, fit as fitlib
 from quadcore.identify.fit import solve
+from quadcore.identify.stats import sufficient
 from quadcore.physics import vehicle
 
 VEHICLE = vehicle.load()

@@ -1,11 +1,11 @@
 """The per-flight summaries behind the diagnosis's regime, flight, segment and frequency tables
-(:mod:`quadcore.identify.summaries`): their size and compute time on the real logs, and the
+(:mod:`quadcore.identify.describe.summaries`): their size and compute time on the real logs, and the
 diagnosis that reads them.
 
     python benchmarks/bench_summaries.py [LOGS_FOLDER]
     python benchmarks/bench_summaries.py --diagnose DATA_ROOT
 
-The first: per real flight, the sufficient statistics (:func:`quadcore.identify.sufficient.flight_stats`)
+The first: per real flight, the sufficient statistics (:func:`quadcore.identify.stats.sufficient.flight_stats`)
 and the summary computed from its rows (the nominal model's layout, as ``flight_statistics``
 stores them), their times (median and largest) and the summary's size. The second: the
 diagnosis as ``model_diagnosis`` runs it on a data root the main job made (nominal model, every
@@ -24,7 +24,9 @@ import numpy as np
 from _common import logs_folder
 
 from quadcore import workflows
-from quadcore.identify import flightdata, sufficient, summaries
+from quadcore.identify import flightdata
+from quadcore.identify.describe import summaries
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from

@@ -7,9 +7,11 @@ import json
 
 import pytest
 
-from quadcore.identify import evidence, regimes, sufficient
+from quadcore.identify import evidence
+from quadcore.identify.describe import regimes
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.settings import DEFAULT, STATISTICS, DiagnosisSettings
+from quadcore.identify.stats import sufficient
 from quadcore.physics import vehicle
 from quadcore.spec import model
 from quadcore.workflows import fleet as fleetlib, identify

@@ -51,6 +51,6 @@ def test_every_documented_name_exists():
     assert not missing, "names that no longer exist:\n" + "\n".join(missing)
 
 
-@pytest.mark.parametrize("name", ["quadcore.identify.sufficient.nonexistent", "quadcore.nowhere.thing"])
+@pytest.mark.parametrize("name", ["quadcore.identify.stats.sufficient.nonexistent", "quadcore.nowhere.thing"])
 def test_a_name_that_is_gone_is_caught(name):
     assert not _resolves(name)

@@ -84,8 +84,8 @@ def test_facts_answer_for_another_vehicles_columns(decoded_root):
 def stats_root(drag_fleet, tmp_path_factory):
     """drag_fleet decoded, with every flight's sufficient and discovery statistics stored (what
     the flight_statistics asset writes)."""
-    from quadcore.identify import sufficient
     from quadcore.identify.discovery import library_stats
+    from quadcore.identify.stats import sufficient
     from quadcore.spec.model import spec_from
 
     root = tmp_path_factory.mktemp("stats_root")

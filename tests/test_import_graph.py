@@ -58,7 +58,7 @@ ALLOWED = (
     Lazy("quadcore.identify", "__getattr__", ("quadcore.identify.*",),
          "start-up: quadcore.identify's public names (fit_model, diagnose, discover, ...) load on first use, so "
          "that importing one identify module loads neither all of them nor scikit-learn (discovery)"),
-    Lazy("quadcore.identify.profiles", "_spline", ("scipy.interpolate",),
+    Lazy("quadcore.identify.stats.profiles", "_spline", ("scipy.interpolate",),
          "start-up: scipy.interpolate takes ~0.4 s to import; the profiles' spline is needed only between "
          "their grid points, in a fit or held-out test from statistics"),
     Lazy("quadcore.workflows.identify", "discover", ("quadcore.identify.discovery",),

@@ -123,7 +123,8 @@ def test_flight_statistics_round_trip_through_s3(s3_url, drag_fleet):
     as the fleet fit reads them from an s3:// data root."""
     import numpy as np
 
-    from quadcore.identify import flightdata, sufficient
+    from quadcore.identify import flightdata
+    from quadcore.identify.stats import sufficient
     from quadcore.logs import flight
     from quadcore.physics import vehicle
 

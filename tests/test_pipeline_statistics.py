@@ -16,8 +16,9 @@ from pipeline.freshness import STATS_VERSION, versions_used
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.run import main as job
 from quadcore import effects
-from quadcore.identify import flightdata, sufficient
+from quadcore.identify import flightdata
 from quadcore.identify.discovery import library_stats
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.store import store

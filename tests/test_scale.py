@@ -15,7 +15,7 @@ from pipeline.definitions import process_flight_job
 from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.run import main, parallel
-from quadcore.identify import sufficient
+from quadcore.identify.stats import sufficient
 from quadcore.sim import simulation
 from quadcore.store import store
 from quadcore.workflows import learn

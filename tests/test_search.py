@@ -20,8 +20,9 @@ import pytest
 from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import fit as fitlib, flightdata, sufficient
+from quadcore.identify import fit as fitlib, flightdata
 from quadcore.identify.binfile import StatsError
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -124,7 +125,7 @@ def test_a_target_on_a_profiled_models_column_reads_that_column_on_the_rows(lagg
     cannot carry (two parameters) is fitted to it by the search, which makes that column on the
     rows (``extras``). At a value on the profile's grid (the column exact there) it meets the fit on
     rows to the residual made on rows as the search meets the row search above (0.01 σ)."""
-    from quadcore.identify import profiles
+    from quadcore.identify.stats import profiles
 
     ids = sorted(lagged)
     lag = effects.get("motor_lag")

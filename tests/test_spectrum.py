@@ -1,4 +1,4 @@
-"""The frequency view of the residual (quadcore.identify.spectrum) on a real flight with a gap."""
+"""The frequency view of the residual (quadcore.identify.describe.spectrum) on a real flight with a gap."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from reference import spectra as row_spectra
 
-from quadcore.identify import flightdata, spectrum
+from quadcore.identify import flightdata
+from quadcore.identify.describe import spectrum
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 
@@ -84,7 +85,8 @@ def test_a_channel_the_model_predicts_nothing_on_is_n_a_from_rows_and_from_its_s
     """The nominal model has no horizontal force: force x and y have no coherence, gain or phase
     (None, 'n/a' in the reports), from the rows and from the flight's stored summary alike (its
     model spectrum is there a quadratic form that cancels to rounding: on main it gave 1e+253)."""
-    from quadcore.identify import sufficient, summaries
+    from quadcore.identify.describe import summaries
+    from quadcore.identify.stats import sufficient
 
     fd = flightdata.flight_data("jana01", long_flight, VEH)
     lib = sufficient.library_layout()

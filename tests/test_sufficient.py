@@ -13,8 +13,9 @@ import pytest
 from reference import rows as reference
 
 from quadcore import effects
-from quadcore.identify import evidence, fit as fitlib, flightdata, sufficient
+from quadcore.identify import evidence, fit as fitlib, flightdata
 from quadcore.identify.fit import model_fit, sessions
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -257,7 +258,7 @@ def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_pr
 
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
-    from quadcore.identify import profiles
+    from quadcore.identify.stats import profiles
 
     fds, stats = lagged_fleet
     f = sorted(fds)[0]
@@ -440,7 +441,7 @@ def test_statistics_made_by_other_code_are_stale(tmp_path, monkeypatch):
     change there makes every stored statistic stale instead of silently mixing old sums with
     new rows."""
     assert {"quadcore.physics.dynamics", "quadcore.physics.signals", "quadcore.identify.flightdata",
-            "quadcore.identify.sufficient"} <= set(sufficient.CODE_MODULES)
+            "quadcore.identify.stats.sufficient"} <= set(sufficient.CODE_MODULES)
     (tmp_path / "qc_probe_code.py").write_text("SCALE = 1.0\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(sufficient, "CODE_MODULES", (*sufficient.CODE_MODULES, "qc_probe_code"))
@@ -517,8 +518,8 @@ def test_a_models_profiled_prediction_as_a_column_equals_the_rows(lagged_fleet):
     statistics, from its profile (profiles.with_predictions): on a grid point, its sums with every
     column, and the other profiled effects' sums against it (a thrust_delay candidate fitted to a
     residual that holds the model's motor_lag), equal those of the column made from the rows."""
-    from quadcore.identify import profiles
     from quadcore.identify.flightdata import prediction
+    from quadcore.identify.stats import profiles
 
     fds, stats = lagged_fleet
     f = sorted(fds)[0]

@@ -15,7 +15,9 @@ import pytest
 from reference import spectra as row_spectra, tables as row_tables
 
 from quadcore import effects
-from quadcore.identify import diagnosis, flightdata, rates, sufficient, summaries
+from quadcore.identify import diagnosis, flightdata, rates
+from quadcore.identify.describe import summaries
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.spec.model import spec_from
@@ -59,7 +61,7 @@ def _same_array(a: np.ndarray, b: np.ndarray, name: str) -> None:
 
 
 def _same_file(a, b) -> None:
-    """Two files of :func:`quadcore.identify.sufficient.encode`: the same header, the same arrays
+    """Two files of :func:`quadcore.identify.stats.sufficient.encode`: the same header, the same arrays
     (:func:`_same_array`)."""
     (head_a, array_a), (head_b, array_b) = (sufficient.decode(p.read_bytes()) for p in (a, b))
     assert head_a == head_b, a.name

@@ -13,9 +13,10 @@ from pipeline.freshness import MODEL_VERSION, ModelFileChanged, model_version
 from pipeline.plot_links import number, plot_md
 from pipeline.resources import DataRoot, ModelConfig, SettingError, make_command
 from quadcore import workflows
-from quadcore.identify import history, sufficient
+from quadcore.identify import history
 from quadcore.identify.diagnosis import verdict
 from quadcore.identify.fit import sessions
+from quadcore.identify.stats import sufficient
 from quadcore.learn import learners
 from quadcore.report import diagnosis as diagnosis_report, render
 from quadcore.workflows import Fleet, fleet, identify

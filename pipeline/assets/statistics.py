@@ -1,4 +1,4 @@
-"""Stage 1b: each flight's sufficient statistics of the linear effects (:mod:`quadcore.identify.sufficient`),
+"""Stage 1b: each flight's sufficient statistics of the linear effects (:mod:`quadcore.identify.stats.sufficient`),
 one partition per flight. The fleet fit and the diagnosis combine them instead of re-reading
 every flight's rows: a new flight costs its own statistics plus a combine."""
 
@@ -8,8 +8,9 @@ from pipeline.assets.decode import decoded_flight
 from pipeline.freshness import STATS_REFRESH, STATS_VERSION
 from pipeline.partitions import ONE_RUN, flights, for_each_flight
 from pipeline.resources import DataRoot, ModelConfig
-from quadcore.identify import flightdata, sufficient
+from quadcore.identify import flightdata
 from quadcore.identify.discovery import library_stats
+from quadcore.identify.stats import sufficient
 from quadcore.physics import dynamics
 from quadcore.store import store
 from quadcore.workflows.fleet import MAIN_EVENT
@@ -24,7 +25,7 @@ def flight_statistics(context: dg.AssetExecutionContext, data_root: DataRoot,
     its folds and the held-out tests need of this flight (``stats/flight=<id>/stats.bin``); and
     the Gram matrices of term discovery's candidate library (``library.bin``,
     :mod:`quadcore.identify.discovery.library_stats`); and its summary (``summary.bin``,
-    :mod:`quadcore.identify.summaries`): what the diagnosis's regime, flight, segment and
+    :mod:`quadcore.identify.describe.summaries`): what the diagnosis's regime, flight, segment and
     frequency tables need of it as an evaluated flight."""
     spec = model.spec()
 

@@ -47,8 +47,8 @@ from pipeline.resources import (
 from pipeline.run import parallel
 from pipeline.run.instance import ensure_dagster_home, unsynced_event_log
 from pipeline.run.parallel import failure_reason, halves, log_sizes, materialize, materialize_ranges
-from quadcore.identify import sufficient
 from quadcore.identify.discovery import library_stats
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
 from quadcore.physics import decoded_store
 from quadcore.store import ownership, safewrite, store

@@ -1,11 +1,11 @@
-"""Stage 3, system identification: the physics model and its spec file (``model``), a flight's rows
-(``flightdata``), per-flight sufficient statistics (``sufficient``, their file format ``binfile``),
-fitting effect parameters (``fit``, a package: the fits, per flight and per session ``fit.sessions``,
-the model's fit ``fit.model_fit``),
-what physics is missing (``diagnosis``, a package explained in ``docs/diagnosis.md``: problem, scoring,
-verdict text, typed result) with its regime tables (``regimes``), evidence (``evidence``) and settings
-(``settings``), sparse term discovery (``discovery``, a package: terms, Gram matrices, stored
-statistics, selection, effect writer), residual spectra (``spectrum``) and the run history (``history``).
+"""Stage 3, system identification, laid out by concept (bottom to top, docs/architecture.md): the
+diagnosis's settings (``settings``); a flight's rows (``flightdata``), the statistics' record format
+(``binfile``), the physics model and its file (``model``), the range checks (``ranges``); what a residual
+looks like (``describe``: regimes, spectrum, summaries); a flight's statistics, the one place its rows
+become sums (``stats``: profiles, sufficient); the fits from statistics (``fit``: solve, linear, profiled,
+search, sessions, model_fit); the held-out test and detection limits (``evidence``); rotor timing at the
+angular-rate level (``rates``); what physics is missing (``diagnosis``, a package explained in
+``docs/diagnosis.md``), sparse term discovery (``discovery``) and the run history (``history``).
 
 The public API is small (``__all__``): fit a model, diagnose it, discover what it lacks, and the
 types they take and give. Each name is loaded on first use (PEP 562 ``__getattr__``): importing

@@ -1,6 +1,6 @@
-"""The one file format of the per-flight records (``stats.bin`` of :mod:`quadcore.identify.sufficient`,
+"""The one file format of the per-flight records (``stats.bin`` of :mod:`quadcore.identify.stats.sufficient`,
 ``library.bin`` of :mod:`quadcore.identify.discovery.library_stats`, ``summary.bin`` of
-:mod:`quadcore.identify.summaries`), where they are stored, and the error a record that cannot
+:mod:`quadcore.identify.describe.summaries`), where they are stored, and the error a record that cannot
 serve a request raises (:class:`StatsError`). Below every module that reads or writes one."""
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ _HEAD = len(MAGIC) + 8  # the magic, then the JSON header's length
 
 
 # The one file format of the per-flight records (stats.bin here, library.bin of
-# :mod:`quadcore.identify.discovery.library_stats`, summary.bin of :mod:`quadcore.identify.summaries`).
+# :mod:`quadcore.identify.discovery.library_stats`, summary.bin of :mod:`quadcore.identify.describe.summaries`).
 
 def encode(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
     """``MAGIC``, the JSON header's length (8 bytes, little endian), the header (with each

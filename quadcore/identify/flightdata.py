@@ -1,7 +1,7 @@
 """A flight's rows ready for fitting (:class:`FlightData`): its state, the nominal residual,
 the usable samples, the sensor-noise floor, and what every fit, test and description asks of a
 flight (the :class:`Flight` protocol, which a flight's statistics,
-:class:`quadcore.identify.sufficient.FlightStats`, answer from their Gram matrices).
+:class:`quadcore.identify.stats.sufficient.FlightStats`, answer from their Gram matrices).
 
 The bottom of the identification: the smoothed prediction of one effect on rows
 (:func:`prediction`), its unit wrench (:func:`unit_wrench`), the blocks of the held-out test
@@ -53,7 +53,7 @@ Signals = Mapping[str, np.ndarray]  # flight -> its signal: (n, 6) on rows, a (W
 class Flight(Protocol):
     """What the fits, held-out tests and descriptions ask of one flight: its rows
     (:class:`FlightData`, signals (n, 6) arrays) or its statistics
-    (:class:`quadcore.identify.sufficient.FlightStats`, signals vectors over its columns)
+    (:class:`quadcore.identify.stats.sufficient.FlightStats`, signals vectors over its columns)
     answer alike; which one a diagnosis holds is chosen once, by its effects' kinds."""
 
     @property

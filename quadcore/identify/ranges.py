@@ -11,7 +11,7 @@ import math
 
 # How far above 1 rounding may carry a coherence computed from sums of products (the summaries'
 # quadratic forms agree with the rows' to ~1e-12 relative; near the resolution limit of a band's
-# power, RESOLVED in quadcore.identify.spectrum, to ~1e-7): beyond it, the value is a defect.
+# power, RESOLVED in quadcore.identify.describe.spectrum, to ~1e-7): beyond it, the value is a defect.
 ROUNDING = 1e-6
 
 

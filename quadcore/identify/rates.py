@@ -70,9 +70,10 @@ import numpy as np
 from scipy import linalg, stats
 
 from quadcore.effects import Effect, get as get_effect
-from quadcore.identify import evidence, profiles
+from quadcore.identify import evidence
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData
+from quadcore.identify.stats import profiles
 from quadcore.physics import dynamics, signals
 from quadcore.physics.vehicle import Vehicle
 
@@ -186,7 +187,7 @@ def _packed_square(u: np.ndarray) -> np.ndarray:
 def rate_grid(effect: Effect, dt_s: float) -> np.ndarray:
     """The values of ``effect``'s one parameter the rate level's sums are taken at, on a flight
     of median sample period ``dt_s``: the profile grid
-    (:func:`quadcore.identify.profiles.profile_grid`), or, for an effect linear in it between
+    (:func:`quadcore.identify.stats.profiles.profile_grid`), or, for an effect linear in it between
     whole sample periods (:attr:`~quadcore.effects.Effect.linear_between_samples`, a delay),
     every multiple of ``dt_s`` within its bounds and the bounds: the interpolation between
     them is then exact, where a smooth one through the profile grid rounds off the kinks (a
@@ -201,7 +202,7 @@ def rate_grid(effect: Effect, dt_s: float) -> np.ndarray:
 def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     """(G,) the interpolation weights at ``v`` of :func:`rate_grid`'s ``grid``: linear between
     its points for an effect linear between samples, else the profiles' spline
-    (:func:`quadcore.identify.profiles.weights`)."""
+    (:func:`quadcore.identify.stats.profiles.weights`)."""
     (p,) = effect.parameters
     if not effect.linear_between_samples:
         return profiles.weights(p.lower, p.upper, v)

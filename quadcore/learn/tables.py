@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import regimes
+from quadcore.identify.describe import regimes
 from quadcore.learn import artefacts, features as feat
 from quadcore.learn.metrics import AXES, BASELINES, _yp, baseline_predictions, mae, metrics, r2
 from quadcore.physics.dynamics import XYZ

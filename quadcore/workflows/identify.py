@@ -11,9 +11,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from quadcore.commands import quadcore_command
-from quadcore.identify import diagnosis, history, model, sufficient
+from quadcore.identify import diagnosis, history, model
 from quadcore.identify.fit import model_fit
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
+from quadcore.identify.stats import sufficient
 from quadcore.store import store
 from quadcore.workflows import reports
 from quadcore.workflows.fleet import Fleet, WorkflowError, held_out, sessions_of
@@ -35,7 +36,7 @@ def fit(fleet: Fleet, spec: ModelSpec, holdout: list[str], log: Log = _quiet, st
     """The spec's effects fitted on every flight of the fleet but the named held-out ones
     (:func:`quadcore.workflows.fleet.held_out`: by default none), per session where the spec asks
     (sessions from its sessions file, its model file, or the data). ``stats``: the flights' stored
-    sufficient statistics (:func:`quadcore.identify.sufficient.stored`), combined for linear
+    sufficient statistics (:func:`quadcore.identify.stats.sufficient.stored`), combined for linear
     effects instead of reading rows."""
     if not fleet.tables:
         raise WorkflowError("fitting needs at least one usable decoded flight")

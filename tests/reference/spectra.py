@@ -1,7 +1,7 @@
 """The reference the frequency view from stored summaries
-(:func:`quadcore.identify.summaries.frequency_view`) is tested against: the same spectra computed
+(:func:`quadcore.identify.describe.summaries.frequency_view`) is tested against: the same spectra computed
 on the flights' rows with ``scipy.signal.welch`` / ``csd``, stretch by stretch, summed into a
-:class:`quadcore.identify.spectrum.SpectrumSums` as the module's docstring defines them. Nothing in
+:class:`quadcore.identify.describe.spectrum.SpectrumSums` as the module's docstring defines them. Nothing in
 quadcore uses it; tests/test_summaries.py and tests/test_spectrum.py compare against it."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
+from quadcore.identify.describe.spectrum import SEGMENT, SpectrumSums, sample_rate_hz
 from quadcore.identify.flightdata import FlightData
-from quadcore.identify.spectrum import SEGMENT, SpectrumSums, sample_rate_hz
 from quadcore.physics import residuals, signals
 
 

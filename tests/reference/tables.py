@@ -1,9 +1,9 @@
 """The reference the diagnosis's descriptive tables from stored summaries
-(:func:`quadcore.identify.summaries.regime_table`, :func:`~quadcore.identify.summaries.flight_table`,
-:func:`~quadcore.identify.summaries.worst_segments`) are tested against: the same tables written on
+(:func:`quadcore.identify.describe.summaries.regime_table`, :func:`~quadcore.identify.describe.summaries.flight_table`,
+:func:`~quadcore.identify.describe.summaries.worst_segments`) are tested against: the same tables written on
 the flights' rows, one polars row per usable sample (:func:`long_table`), grouped and aggregated
 as readably as the definitions. Nothing in quadcore uses them; tests/test_summaries.py compares
-against them. The bins, labels and regime codes both read: :mod:`quadcore.identify.regimes`."""
+against them. The bins, labels and regime codes both read: :mod:`quadcore.identify.describe.regimes`."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ import operator
 import numpy as np
 import polars as pl
 
-from quadcore.identify.flightdata import FlightData
-from quadcore.identify.regimes import (
+from quadcore.identify.describe.regimes import (
     ACCEL_BINS,
     HEIGHT_BINS,
     LABELS,
@@ -30,6 +29,7 @@ from quadcore.identify.regimes import (
     bin_labels,
     regime_columns,
 )
+from quadcore.identify.flightdata import FlightData
 from quadcore.physics.dynamics import XYZ
 
 RESIDUAL_COLUMNS = [f"f_res_b_{a}_N" for a in XYZ] + [f"tau_res_b_{a}_Nm" for a in XYZ]
@@ -37,7 +37,7 @@ RMSE_EXPRS = [(pl.col(r) ** 2).mean().sqrt().alias(name) for r, name in zip(RESI
 
 
 def _bin_labels(x: np.ndarray, edges: list[float], unit: str) -> np.ndarray:
-    """Label each value with its bin (see :func:`quadcore.identify.regimes.bin_labels`)."""
+    """Label each value with its bin (see :func:`quadcore.identify.describe.regimes.bin_labels`)."""
     return np.asarray(bin_labels(edges, unit))[bin_codes(x, edges)]
 
 
@@ -48,7 +48,7 @@ def long_table(flights: list[FlightData], resid: dict[str, np.ndarray], vehicle)
 
 def long_frame(fd: FlightData, r: np.ndarray, vehicle) -> pl.DataFrame:
     """One flight's part of :func:`long_table` (``r``: its (n, 6) residual); its labels' codes are
-    :func:`quadcore.identify.regimes.regime_codes`."""
+    :func:`quadcore.identify.describe.regimes.regime_codes`."""
     rc = regime_columns(fd, vehicle)
     m = fd.mask
     frame = {

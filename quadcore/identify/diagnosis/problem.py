@@ -14,12 +14,14 @@ import numpy as np
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fit as fitlib, flightdata, profiles, sufficient, summaries
+from quadcore.identify import evidence, fit as fitlib, flightdata
+from quadcore.identify.describe import summaries
 from quadcore.identify.evidence import default_candidates, scored_after_blocks
 from quadcore.identify.fit import model_fit, sessions as sessionlib, solve
 from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
+from quadcore.identify.stats import profiles, sufficient
 from quadcore.spec.model import ModelSpec
 
 TARGET_CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
@@ -40,7 +42,7 @@ def _ss(resid: np.ndarray, flight: Flight) -> np.ndarray:
 class _Residual:
     """The model's residual on some flights: per flight its ``signal`` and the flight it is a
     signal of (``on``: from statistics, grown by the model's profiled prediction as an extra
-    column, :func:`quadcore.identify.sufficient.predicted`), and per flight the values of the
+    column, :func:`quadcore.identify.stats.sufficient.predicted`), and per flight the values of the
     model's profiled effects it was taken at (name -> value; empty for a model of linear effects),
     or the rows of its prediction (a model fitted on rows, :func:`_model_on_rows`)."""
 
@@ -51,8 +53,8 @@ class _Residual:
 
 
 class _Flights:
-    """The diagnosis's flights as their sufficient statistics (:mod:`quadcore.identify.sufficient`:
-    ``flight(f)`` a :class:`~quadcore.identify.sufficient.FlightStats`, every residual and
+    """The diagnosis's flights as their sufficient statistics (:mod:`quadcore.identify.stats.sufficient`:
+    ``flight(f)`` a :class:`~quadcore.identify.stats.sufficient.FlightStats`, every residual and
     prediction a signal vector), and their rows where those are needed (:meth:`rows`,
     :meth:`signal_rows`): the evaluated flights' residual summaries where the stored ones cannot
     describe the residual, the rate level of timing candidates, and what the statistics cannot
@@ -78,7 +80,7 @@ class _Flights:
         return self.stats[f]
 
     def summary(self, f: str) -> summaries.FlightSummary | None:
-        """A flight's stored summary (:mod:`quadcore.identify.summaries`), if its statistics have one."""
+        """A flight's stored summary (:mod:`quadcore.identify.describe.summaries`), if its statistics have one."""
         return self.stats[f].summary()
 
     def flight(self, f: str):
@@ -113,7 +115,7 @@ class _Flights:
                  targets: Mapping[str, np.ndarray], flights: Iterable[str]) -> _Residual:
         """The residual of a fitted model on ``flights`` (``model_of(flight)``: its effects, their
         parameters and the vehicle there): from statistics, in each flight's statistics grown by
-        the profiled effects' predictions (:func:`quadcore.identify.sufficient.predicted`)."""
+        the profiled effects' predictions (:func:`quadcore.identify.stats.sufficient.predicted`)."""
         signal: dict[str, np.ndarray] = {}
         on: dict[str, Any] = {}
         values: dict[str, dict[str, float]] = {}
@@ -129,7 +131,7 @@ class _Flights:
         """The residual of a model whose prediction the profiles cannot carry (two nonlinear effects,
         several parameters, a nonlinear one per session): its prediction made on each flight's rows
         as an extra column ``pred:model`` of the flight's statistics, made where
-        rows become statistics (:func:`quadcore.identify.sufficient.flight_stats`: the profiles of the
+        rows become statistics (:func:`quadcore.identify.stats.sufficient.flight_stats`: the profiles of the
         candidates against it too); the prediction's rows kept (the residual's rows)."""
         signal: dict[str, np.ndarray] = {}
         on: dict[str, Any] = {}
@@ -170,7 +172,7 @@ class _Problem:
         self.search_fit = functools.partial(fitlib.fit_effects, rows=self.fl.rows)  # as fit_model fits
         # a nonlinear effect fitted per session: from rows, as fit_model fits it
         self.per_session_nonlinear = any(not e.linear for e in self.model_effects if e.name in spec.per_session)
-        # a nonlinear candidate is fitted and predicted from its profiles (quadcore.identify.profiles);
+        # a nonlinear candidate is fitted and predicted from its profiles (quadcore.identify.stats.profiles);
         # one with several nonlinear parameters from rows
         self.by_rows = {c.name: not c.linear and not profiles.profiled(c) for c in self.cands}
 
@@ -395,7 +397,7 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldO
 def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
     """The evaluated flights as the scores take them. From statistics, a nonlinear candidate's
     held-out prediction is an extra column ``pred:`` + its name of the evaluated flights'
-    statistics: from its profile at the fitted value (:func:`quadcore.identify.profiles.with_predictions`,
+    statistics: from its profile at the fitted value (:func:`quadcore.identify.stats.profiles.with_predictions`,
     no rows read), or, for a candidate without one (several nonlinear parameters), from the
     flight's rows with its unit wrenches (:func:`detection_limits`; ``unit:``, ``ref:``); the
     signals of ``cand_pred`` and ``eval_resid`` are moved into that layout. The residual's own

@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from quadcore.identify import evidence, rates, sufficient, summaries
+from quadcore.identify import evidence, rates
+from quadcore.identify.describe import summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     _cross_fit,
@@ -41,6 +42,7 @@ from quadcore.identify.fit import sessions as sessionlib
 from quadcore.identify.fit.sessions import Disagreement
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
+from quadcore.identify.stats import sufficient
 from quadcore.spec.model import ModelSpec
 
 Log = Callable[[str], None]  # progress, one line at a time
@@ -66,9 +68,9 @@ def diagnose(
     With a model of linear effects, fits, folds and held-out tests combine the flights'
     sufficient statistics (``stats(flight)``: stored ones, None to compute them from the
     decoded table), one-parameter nonlinear candidates from the flights' profiles
-    (:mod:`quadcore.identify.profiles`; a candidate with several nonlinear parameters reads its
+    (:mod:`quadcore.identify.stats.profiles`; a candidate with several nonlinear parameters reads its
     training flights' rows), and the evaluated flights' stored summaries
-    (:mod:`quadcore.identify.summaries`) give the regime tables and spectra (their rows where a
+    (:mod:`quadcore.identify.describe.summaries`) give the regime tables and spectra (their rows where a
     flight has no current summary, and for every flight of a model with a nonlinear effect).
     ``discover_command``: the ``quadcore discover`` command the verdict points to when what is
     left is outside the library (None: one with placeholders for the logs and the model file).
@@ -156,10 +158,10 @@ def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
 
 def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
     """The evaluated flights' residual by regime, by flight, in time and in frequency, from their
-    summaries (:mod:`quadcore.identify.summaries`): the residual, a signal vector, summed as
+    summaries (:mod:`quadcore.identify.describe.summaries`): the residual, a signal vector, summed as
     quadratic forms of each flight's stored summary; a flight whose summary cannot describe it
     (missing or stale, or a residual with an extra column: a model's profiled prediction, or a
-    residual on rows) from the summary of its residual's rows (:func:`quadcore.identify.summaries.of_rows`,
+    residual on rows) from the summary of its residual's rows (:func:`quadcore.identify.describe.summaries.of_rows`,
     the one place rows become summaries), one flight at a time: each flight's rows go once its
     sums are taken."""
     for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates

@@ -13,12 +13,13 @@ import polars as pl
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import flightdata, sufficient
+from quadcore.identify import flightdata
 from quadcore.identify.discovery import library_stats
 from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
 from quadcore.identify.fit import sessions as sessionlib
 from quadcore.identify.fit.model_fit import fit_model
+from quadcore.identify.stats import sufficient
 from quadcore.physics.vehicle import Vehicle
 from quadcore.spec.model import ModelSpec
 

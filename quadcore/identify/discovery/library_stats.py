@@ -36,7 +36,7 @@ whole): the stored matrices serve every fit of linear effects. A model
 with a nonlinear effect, or effects fitted per session, is read from rows.
 
 Stored under ``<root>/stats/flight=<id>/library.bin`` (the format of
-:mod:`quadcore.identify.sufficient`, upper triangles in float64) with the :func:`library_key` they were
+:mod:`quadcore.identify.stats.sufficient`, upper triangles in float64) with the :func:`library_key` they were
 computed for and the SHA-256 of the log the decoded table came from.
 """
 
@@ -54,10 +54,11 @@ from typing import Any
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, flightdata, sufficient
+from quadcore.identify import evidence, flightdata
 from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
 from quadcore.identify.discovery.terms import library, variables
 from quadcore.identify.settings import STATISTICS
+from quadcore.identify.stats import sufficient
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = STATISTICS.library_stride  # discovery's default: every 4th usable sample in the selection's Gram matrix
@@ -112,7 +113,7 @@ def head_blocks(spec) -> int:
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
     """The sufficient statistics' code digest and the source of the modules the discovery statistics
-    are computed by (once per process, as :func:`quadcore.identify.sufficient.code_digest`)."""
+    are computed by (once per process, as :func:`quadcore.identify.stats.sufficient.code_digest`)."""
     digest = hashlib.sha256(sufficient.code_digest().encode())
     for name in _MODULES:
         found = importlib.util.find_spec(name)
@@ -176,7 +177,7 @@ def save(lib: FlightLibrary, root: Any) -> Any:
 
 def load(root: Any, flight: str) -> FlightLibrary:
     """A flight's stored statistics (the header read now, the matrices when asked for);
-    :class:`quadcore.identify.sufficient.StatsError` when the file is not one (from :meth:`FlightLibrary.grams`:
+    :class:`quadcore.identify.stats.sufficient.StatsError` when the file is not one (from :meth:`FlightLibrary.grams`:
     when its matrices are cut short)."""
     path = library_path(root, flight)
     try:

@@ -40,7 +40,6 @@ from sklearn.linear_model import orthogonal_mp_gram
 
 from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
-from quadcore.identify import sufficient
 from quadcore.identify.discovery import accumulate, library_stats
 from quadcore.identify.discovery.accumulate import LibrarySums
 from quadcore.identify.discovery.grams import Columns
@@ -59,6 +58,7 @@ from quadcore.identify.discovery.terms import (
 from quadcore.identify.evidence import scored_after_blocks
 from quadcore.identify.fit import solve
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
+from quadcore.identify.stats import sufficient
 from quadcore.physics import signals
 from quadcore.spec.model import ModelSpec
 
@@ -309,7 +309,7 @@ def discover(
     :func:`quadcore.identify.discovery.library_stats.stored`) for a model without effects or of linear effects
     fitted fleet-wide, at the default ``stride``: no flight with stored statistics is read; the
     model's effects are fitted from the sufficient statistics (``stats``:
-    :func:`quadcore.identify.sufficient.stored`). The same sums in the same order as from rows, so
+    :func:`quadcore.identify.stats.sufficient.stored`). The same sums in the same order as from rows, so
     the same terms and coefficients; the held-out RMSE after the terms is a quadratic form of the
     flights' Gram matrices (equal to the rows' to rounding). ``settings``: its folds, ``min_gain`` and
     ``noise_margin`` (:class:`~quadcore.identify.settings.DiagnosisSettings`), recorded in the result."""

@@ -1,4 +1,4 @@
-"""The fits, from the flights' statistics (:mod:`quadcore.identify.sufficient`), laid out by
+"""The fits, from the flights' statistics (:mod:`quadcore.identify.stats.sufficient`), laid out by
 concept and importing only downward: what every fit shares (:mod:`.solve`: the result, the
 weights, the linear solve free and within bounds, the one-parameter search, the folds), the
 linear effects (:mod:`.linear`), one nonlinear effect with one parameter from its profiles
@@ -16,14 +16,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify import profiles, sufficient
 from quadcore.identify.binfile import StatsError
 from quadcore.identify.fit.linear import channel_weights, fit_linear
 from quadcore.identify.fit.profiled import profiled_fit
 from quadcore.identify.fit.search import Extras, Rows, search_fit
 from quadcore.identify.fit.solve import Fit, fixed_values, weights_from_sums
 from quadcore.identify.flightdata import FlightData
-from quadcore.identify.sufficient import FlightStats, flight_stats, layout_of
+from quadcore.identify.stats import profiles, sufficient
+from quadcore.identify.stats.sufficient import FlightStats, flight_stats, layout_of
 from quadcore.physics.vehicle import Vehicle
 
 __all__ = ["Extras", "Fit", "Rows", "channel_weights", "fit_effects", "fit_linear", "fit_rows", "profiled_fit",
@@ -41,7 +41,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     :func:`fit_linear`; one nonlinear effect with one parameter (not fixed) beside them, profiled in
     every flight's statistics: :func:`profiled_fit`. A fixed profiled effect (a per-session fit
     beside a shared lag) is subtracted as its prediction's column at its value
-    (:func:`quadcore.identify.sufficient.predicted`), the weights still of the targets as given. Any
+    (:func:`quadcore.identify.stats.sufficient.predicted`), the weights still of the targets as given. Any
     other nonlinear effects (several parameters, several effects, one without a profile):
     :func:`search_fit`, their predictions made on the flights' rows (``rows(flight)``;
     ``extras(flight)``: the rows of the extra columns of its statistics a target reads)."""
@@ -65,7 +65,7 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
 def fit_rows(effects: list[Effect], flights: Sequence[FlightData], targets: Sequence[np.ndarray], vehicle: Vehicle,
              fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
     """:func:`fit_effects` of targets given as rows ((n, 6) per flight, on every sample): each flight's
-    rows become statistics where rows become statistics (:func:`quadcore.identify.sufficient.flight_stats`:
+    rows become statistics where rows become statistics (:func:`quadcore.identify.stats.sufficient.flight_stats`:
     the linear effects' columns, ``y0`` and the target as an extra column), then the fit from them,
     the nonlinear effects' predictions made on the same rows (:func:`search_fit`; a profile is no
     cheaper than the search's own predictions for one fit). For what holds rows, not statistics: a

@@ -1,4 +1,4 @@
-"""The linear effects fitted from the flights' statistics (:mod:`quadcore.identify.sufficient`):
+"""The linear effects fitted from the flights' statistics (:mod:`quadcore.identify.stats.sufficient`):
 normal equations summed over flights, then the solve every fit shares
 (:func:`quadcore.identify.fit.solve.solved_linear`).
 
@@ -19,7 +19,7 @@ import numpy as np
 
 from quadcore.effects import Effect
 from quadcore.identify.fit.solve import Fit, fixed_values, solved_linear, weights_from_sums
-from quadcore.identify.sufficient import FlightStats, normal_equations, sum_of_squares
+from quadcore.identify.stats.sufficient import FlightStats, normal_equations, sum_of_squares
 from quadcore.physics.vehicle import Vehicle
 
 
@@ -35,7 +35,7 @@ def subtract_fixed(effects: list[Effect], fixed: dict[str, dict[str, float]], st
                    targets: Sequence[np.ndarray], vehicle: Vehicle) -> tuple[list[np.ndarray], dict, dict]:
     """The targets minus the predictions of the effects named in ``fixed`` (at their given values:
     a linear one's coordinates, a profiled one's column ``pred:<effect>`` the statistics were grown
-    by, :func:`quadcore.identify.sufficient.predicted`), and the fixed effects' (parameters,
+    by, :func:`quadcore.identify.stats.sufficient.predicted`), and the fixed effects' (parameters,
     standard errors) (:func:`fixed_values`)."""
     params, std = fixed_values(effects, fixed)
     vs = [np.asarray(v, dtype=float) for v in targets]

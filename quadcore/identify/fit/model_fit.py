@@ -15,10 +15,11 @@ from collections.abc import Callable, Mapping
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import fit as fitlib, profiles, sufficient
+from quadcore.identify import fit as fitlib
 from quadcore.identify.fit import sessions as sessionlib, solve
 from quadcore.identify.flightdata import FlightData, flight_data, targets_of
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.stats import profiles, sufficient
 from quadcore.spec.model import ModelSpec
 
 
@@ -52,7 +53,7 @@ def fit_model(spec: ModelSpec, decoded: Mapping, train: list[str], sessions: dic
     (:func:`quadcore.identify.fit.solve.held_bounds`: its free value, and whether that is within
     noise of the bound).
 
-    From the flights' sufficient statistics (:mod:`quadcore.identify.sufficient`; ``stats(flight)``
+    From the flights' sufficient statistics (:mod:`quadcore.identify.stats.sufficient`; ``stats(flight)``
     gives a flight's stored ones, None: computed from its decoded table) by
     :func:`quadcore.identify.fit.fit_effects`: a nonlinear effect with one parameter from its profiles,
     other nonlinear effects by the search, which reads the training flights' rows for their

@@ -1,9 +1,9 @@
 """One nonlinear effect with one parameter (``motor_lag``'s τ, ``thrust_delay``'s t_d, a plugin's)
 and linear effects beside it, fitted from the flights' statistics and the effect's profiles
-(:mod:`quadcore.identify.profiles`): variable projection, the nonlinear parameter searched with the
+(:mod:`quadcore.identify.stats.profiles`): variable projection, the nonlinear parameter searched with the
 linear ones solved inside.
 
-With the profile's interpolation weights ``ω = ω(v)`` (:func:`quadcore.identify.profiles.weights`),
+With the profile's interpolation weights ``ω = ω(v)`` (:func:`quadcore.identify.stats.profiles.weights`),
 per flight the target's sums with the effect's prediction are ``ω·P_f`` and so, summed over
 flights with the channel weights ``w_c``::
 
@@ -13,7 +13,7 @@ flights with the channel weights ``w_c``::
 
 ``J`` is searched as the rows search it (:func:`quadcore.identify.fit.solve.scalar_minimum`: the
 grid, Brent's refinement, the profile-likelihood interval). Its accuracy against the row search:
-:mod:`quadcore.identify.profiles`.
+:mod:`quadcore.identify.stats.profiles`.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify import profiles
 from quadcore.identify.fit.linear import channel_weights, subtract_fixed
 from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear
-from quadcore.identify.sufficient import FlightStats
+from quadcore.identify.stats import profiles
+from quadcore.identify.stats.sufficient import FlightStats
 from quadcore.physics.vehicle import Vehicle
 
 

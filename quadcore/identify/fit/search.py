@@ -5,7 +5,7 @@ or one whose profile the statistics do not hold.
 At each trial value ``x`` of the nonlinear parameters their effects' summed prediction ``e_f(x)``
 ((n, 6), smoothed force and torque, body frame) is made on each flight's rows and enters the flight's
 statistics as an extra column, where rows become statistics
-(:func:`quadcore.identify.sufficient.extra_column`): its row of the augmented Gram matrix on the
+(:func:`quadcore.identify.stats.sufficient.extra_column`): its row of the augmented Gram matrix on the
 columns the fit reads (the fitted linear effects' ``K`` and the target's), ``c_fc(x) = Σ_i z_ic
 e_ic``, and ``q_fc(x) = Σ_i e_ic²``. The residual is the target ``u_f`` (a signal vector) minus
 ``e``; with the linear effects solved inside (variable projection, weights ``w_c``)::
@@ -48,12 +48,12 @@ from scipy.optimize import minimize
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
-from quadcore.identify import sufficient
 from quadcore.identify.binfile import StatsError
 from quadcore.identify.fit.linear import channel_weights, subtract_fixed
 from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, unpack
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
-from quadcore.identify.sufficient import FlightStats, normal_equations
+from quadcore.identify.stats import sufficient
+from quadcore.identify.stats.sufficient import FlightStats, normal_equations
 from quadcore.physics.vehicle import Vehicle
 
 Rows = Callable[[str], FlightData]  # a flight's rows by its id (the statistics' ``flight``)

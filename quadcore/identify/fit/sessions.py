@@ -142,7 +142,8 @@ def split_by_value(values: dict[str, float], stds: dict[str, float]) -> list[lis
 
 def stuck_voltage_flights(fds: dict) -> list[str]:
     """Flights whose logged battery voltage does not move in flight (a stuck log variable);
-    ``fds``: :class:`quadcore.identify.flightdata.FlightData` or :class:`quadcore.identify.sufficient.FlightStats`."""
+    ``fds``: :class:`quadcore.identify.flightdata.FlightData` or
+    :class:`quadcore.identify.stats.sufficient.FlightStats`."""
     return sorted(f for f, fd in fds.items() if fd.vbat_std_V < STUCK_VBAT_V)
 
 

@@ -31,8 +31,8 @@ from scipy.optimize import brentq, lsq_linear, minimize, minimize_scalar
 from quadcore.effects import Effect
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, Flight
 from quadcore.identify.model import EffectTerm, HeldBound
-from quadcore.identify.profiles import search_grid
 from quadcore.identify.settings import DEFAULT
+from quadcore.identify.stats.profiles import search_grid
 from quadcore.physics.vehicle import Vehicle
 
 # a free fit beyond a physical bound by more than this many standard errors is unphysical (the settings' default)

@@ -1,10 +1,10 @@
 """Per-flight summaries of the diagnosis's descriptive part: the residual by regime, by flight, in
-time (worst segments) and in frequency (the bins: :mod:`quadcore.identify.regimes`; the bands:
-:mod:`quadcore.identify.spectrum`), as quadratic forms of the flight's columns, computed once per
+time (worst segments) and in frequency (the bins: :mod:`quadcore.identify.describe.regimes`; the bands:
+:mod:`quadcore.identify.describe.spectrum`), as quadratic forms of the flight's columns, computed once per
 flight and stored beside its statistics (``<root>/stats/flight=<id>/summary.bin``), so that a
 diagnosis of a model of linear effects reads no evaluated flight's rows.
 
-**Columns.** Those of :func:`quadcore.identify.sufficient.design_rows`, on every sample:
+**Columns.** Those of :func:`quadcore.identify.stats.sufficient.design_rows`, on every sample:
 ``z_ic`` (channel ``c``: force x, y, z in N, torque x, y, z in N m, body frame) = the linear
 coordinates of every linear effect, then ``y0``. A residual after a model of linear effects is
 a signal vector ``v``: ``r_ic = z_ic·v``. Per channel only the columns not identically zero
@@ -16,11 +16,11 @@ sum), symmetric matrices as their upper triangles.
   of one regime hold every usable sample once: their sum is the flight's (the flight table).
 * **Worst segments** (windows ``w = ⌊t / WINDOW_S⌋`` of usable samples): the window's first and
   last time, samples, its most frequent phase, speed and height bin (they do not depend on the
-  model; a tie goes to the first in :data:`quadcore.identify.regimes.LABELS` order, where the rows'
+  model; a tie goes to the first in :data:`quadcore.identify.describe.regimes.LABELS` order, where the rows'
   polars ``mode().first()`` picks either), and ``G_wc`` for the force channels:
   ``Σ_{i∈w} |f_res_i|² = Σ_{c<3} vᵀ G_wc v``. A window's Gram is not cheaper than this: the
   ranking needs every window's energy under any ``v``.
-* **Spectra** (:class:`quadcore.identify.spectrum.SpectrumSums`): with the measured signal ``m_ic``
+* **Spectra** (:class:`quadcore.identify.describe.spectrum.SpectrumSums`): with the measured signal ``m_ic``
   as one more column, ``u = [z_{K_c} | m]``, per gap-free stretch of ``L ≥ 2 SEGMENT`` samples and
   Welch segment ``s`` (Hann window ``h``, each column's mean removed) the FFT ``F_s(f)`` of each
   column, and per frequency bin the cross-spectral matrix (one-sided, unit sample rate)
@@ -52,8 +52,9 @@ import numpy as np
 import polars as pl
 from scipy import signal
 
-from quadcore.identify import binfile, regimes, spectrum
-from quadcore.identify.regimes import LABELS, REGIMES, RMSE_COLUMNS
+from quadcore.identify import binfile
+from quadcore.identify.describe import regimes, spectrum
+from quadcore.identify.describe.regimes import LABELS, REGIMES, RMSE_COLUMNS
 from quadcore.physics import residuals, signals
 from quadcore.physics.vehicle import Vehicle
 
@@ -222,7 +223,7 @@ class FlightSummary:
 class ResidualSums:
     """One flight's sums of one residual: per regime bin the samples and the sum of squares per
     channel (N_bins, 6); per window its times, samples, modal labels and force sum of squares;
-    its spectra at bins 1..K as :meth:`quadcore.identify.spectrum.SpectrumSums.add_spectra` takes
+    its spectra at bins 1..K as :meth:`quadcore.identify.describe.spectrum.SpectrumSums.add_spectra` takes
     them."""
 
     flight: str
@@ -360,7 +361,7 @@ def worst_segments(sums: Sequence[ResidualSums], top: int = regimes.TOP_SEGMENTS
 
 def frequency_view(sums: Sequence[ResidualSums], fs_hz: float, vehicle: Vehicle) -> dict:
     """The residual by frequency band and the coherence of model and measurement (JSON-ready,
-    :mod:`quadcore.identify.spectrum`) of the flights' sums, at the fleet's rate ``fs_hz`` (the row
+    :mod:`quadcore.identify.describe.spectrum`) of the flights' sums, at the fleet's rate ``fs_hz`` (the row
     reference: ``frequency_view`` in tests/reference/spectra.py)."""
     acc = spectrum.SpectrumSums(fs_hz, vehicle)
     for s in sums:

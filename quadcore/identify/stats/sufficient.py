@@ -12,7 +12,7 @@ the :class:`Layout` (:meth:`quadcore.effects.Effect.basis`, as :meth:`FlightData
 map), and ``e`` extra signals: the unit wrench (and sensitivity reference) of each one-parameter
 nonlinear effect of the layout, then any added for a held-out flight (a nonlinear effect's
 prediction there). Those effects' fits and predictions come from their per-flight profiles
-(:mod:`quadcore.identify.profiles`), stored beside the Gram matrices.
+(:mod:`quadcore.identify.stats.profiles`), stored beside the Gram matrices.
 Per block ``b`` of :data:`quadcore.identify.flightdata.BLOCK_S` seconds (the clusters of the held-out
 test), per channel, the statistics are the Gram matrix and the sample count
 
@@ -58,7 +58,6 @@ import numpy as np
 
 from quadcore import effects as effectlib
 from quadcore.effects import Effect, Parameter
-from quadcore.identify import profiles, summaries
 from quadcore.identify.binfile import (  # noqa: F401  (the file format, read from here too)
     StatsError,
     decode,
@@ -74,8 +73,10 @@ from quadcore.identify.binfile import (  # noqa: F401  (the file format, read fr
     upper_indices,
     write_file,
 )
+from quadcore.identify.describe import summaries
+from quadcore.identify.describe.summaries import FlightSummary
 from quadcore.identify.flightdata import GRAM_STRIDE, SECANT, FlightData, Signals, block_index, flight_data
-from quadcore.identify.summaries import FlightSummary
+from quadcore.identify.stats import profiles
 from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import Vehicle
 from quadcore.store import store
@@ -88,7 +89,7 @@ Y0 = "y0"
 class Layout:
     """Which column is which: the linear coordinates of each effect (in order), then ``y0``,
     then named extra signals; ``profiled``: the one-parameter nonlinear effects whose profiles
-    the statistics hold (:mod:`quadcore.identify.profiles`)."""
+    the statistics hold (:mod:`quadcore.identify.stats.profiles`)."""
 
     effects: tuple[str, ...]
     sizes: tuple[int, ...]
@@ -161,7 +162,7 @@ def library_layout() -> Layout:
 def spec_layout(spec) -> Layout:
     """What the per-flight asset stores for a :class:`quadcore.identify.model.ModelSpec`: every
     built-in linear effect, then the linear plugin effects the spec's model uses, and the
-    profiles of the one-parameter nonlinear ones of both (:mod:`quadcore.identify.profiles`). Decided by the
+    profiles of the one-parameter nonlinear ones of both (:mod:`quadcore.identify.stats.profiles`). Decided by the
     spec alone, not by the plugins this process happens to have loaded (a long-lived process
     keeps every plugin it ever loaded); a plugin candidate outside the model is computed from
     rows where needed (:func:`for_flights`)."""
@@ -190,12 +191,12 @@ class FlightStats:
     blocks_source: Callable[[], np.ndarray]
     source: str = ""  # the SHA-256 of the log the decoded table came from (stale once it is re-decoded)
     profiles: profiles.Profiles | None = None  # of the layout's profiled effects
-    # the flight's FlightSummary (quadcore.identify.summaries) when there is one to ask for: the
+    # the flight's FlightSummary (quadcore.identify.describe.summaries) when there is one to ask for: the
     # stored ones are read when asked (None when missing or stale), not held
     summary_source: Callable[[], FlightSummary | None] | None = None
 
     def summary(self) -> FlightSummary | None:
-        """The flight's :class:`quadcore.identify.summaries.FlightSummary`, or None."""
+        """The flight's :class:`quadcore.identify.describe.summaries.FlightSummary`, or None."""
         return self.summary_source() if self.summary_source is not None else None
 
     @cached_property
@@ -292,7 +293,7 @@ def extra_column(fd, vehicle: Vehicle, layout: Layout, columns: np.ndarray,
     ``[Σ_i z_ic[columns] e_ic | Σ_i e_ic²]`` over the usable samples, (6, len(columns) + 1), the
     columns in increasing order. Those columns of the design (:func:`design_rows`) are made once,
     here, from the flight's rows and kept for every ``e`` asked for; the sums are the profiles'
-    (:func:`quadcore.identify.profiles.sums`)."""
+    (:func:`quadcore.identify.stats.profiles.sums`)."""
     want = sorted({int(c) for c in columns})
     extras = extras or {}
     missing = [n for n in layout.extras if layout.extra(n) in want and n not in extras]
@@ -394,7 +395,7 @@ def predicted(effects: list[Effect], params: Mapping[str, dict[str, float]], s: 
               vehicle: Vehicle) -> tuple[FlightStats, np.ndarray]:
     """The summed prediction of ``effects`` at ``params`` on a flight's statistics: the linear
     effects' coordinates, and each profiled nonlinear effect's prediction at its value as an extra
-    column ``pred:<effect>`` from its profile (:func:`quadcore.identify.profiles.with_predictions`):
+    column ``pred:<effect>`` from its profile (:func:`quadcore.identify.stats.profiles.with_predictions`):
     the statistics grown by those columns (in the order of ``effects``) and the signal vector there."""
     values = {e.name: params[e.name][e.parameters[0].name] for e in effects if not e.linear}
     grown = profiles.with_predictions(s, values, signals=list(values)) if values else s
@@ -434,7 +435,7 @@ def compute(spec, flight: str, decoded, layout: Layout, source: str = "", summar
     """A flight's statistics from its decoded table, for a :class:`quadcore.identify.model.ModelSpec`:
     the state and ``y0`` with the flight's own thrust map, the bases on the model's vehicle.
     ``source``: the SHA-256 of the log the table was decoded from (its provenance); ``summarize``:
-    with the flight's :class:`quadcore.identify.summaries.FlightSummary` (what the diagnosis
+    with the flight's :class:`quadcore.identify.describe.summaries.FlightSummary` (what the diagnosis
     describes the evaluated flights from); ``fd``: the table's
     :func:`quadcore.identify.flightdata.flight_data` when the caller has it (its bases are cached there)."""
     fd = fd if fd is not None else flight_data(flight, decoded, spec.vehicle_for(flight))
@@ -475,8 +476,9 @@ CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quad
                 "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.flightdata",
                 "quadcore.identify.binfile",
                 "quadcore.identify.evidence",
-                "quadcore.effects.base", "quadcore.identify.sufficient", "quadcore.identify.profiles",
-                "quadcore.identify.summaries", "quadcore.identify.regimes", "quadcore.identify.spectrum")
+                "quadcore.effects.base", "quadcore.identify.stats.sufficient", "quadcore.identify.stats.profiles",
+                "quadcore.identify.describe.summaries", "quadcore.identify.describe.regimes",
+                "quadcore.identify.describe.spectrum")
 
 
 @functools.lru_cache(maxsize=1)
@@ -519,7 +521,7 @@ def stats_key(vehicle: Vehicle, flight_vehicle: Vehicle, layout: Layout) -> str:
 
 def save(s: FlightStats, root: Any) -> Any:
     """Write a flight's statistics under the data root (atomically; an object store too), its
-    summary first (:func:`quadcore.identify.summaries.save`, when it has one). The symmetric
+    summary first (:func:`quadcore.identify.describe.summaries.save`, when it has one). The symmetric
     matrices are stored as their upper triangles."""
     summary = s.summary()
     if summary is not None:

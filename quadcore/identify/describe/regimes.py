@@ -1,7 +1,7 @@
 """Where the model fails, by flight regime (speed, height, thrust-to-weight, angular rate,
 battery voltage, acceleration, flight phase): each sample's regime variables, their bins and
 labels, and the windows of the worst segments in time (``docs/diagnosis.md``, part 1). The
-tables themselves come from each flight's stored sums (:mod:`quadcore.identify.summaries`); the
+tables themselves come from each flight's stored sums (:mod:`quadcore.identify.describe.summaries`); the
 same tables on rows, the reference they are tested against: tests/reference/tables.py.
 """
 

@@ -67,7 +67,7 @@ class SpectrumSums:
 
     def add_spectra(self, spectra: dict[str, np.ndarray], rr_above: np.ndarray, weight: float,
                     mean_sq: np.ndarray) -> None:
-        """One flight's sums (from its stored summary, :mod:`quadcore.identify.summaries`):
+        """One flight's sums (from its stored summary, :mod:`quadcore.identify.describe.summaries`):
         ``spectra[key]`` (K, 6) its stretches' spectra at bins 1..K, weighted by their samples,
         with a unit sample rate (divided by ``fs_hz`` here);
         ``rr_above`` (6,) the residual's above bin K summed; ``weight`` its stretches' samples;

@@ -4,7 +4,7 @@ from a flight's statistics, without its rows.
 A nonlinear effect ``e`` with one parameter ``v`` (``motor_lag``'s τ, ``thrust_delay``'s t_d, a
 plugin's) predicts ``p_ic(v)`` (smoothed force and torque, body frame, as
 :func:`quadcore.identify.flightdata.prediction`). Every sum its fit and its held-out test take of
-``p`` against a signal ``s = z·u`` of the flight's statistics (:mod:`quadcore.identify.sufficient`)
+``p`` against a signal ``s = z·u`` of the flight's statistics (:mod:`quadcore.identify.stats.sufficient`)
 is ``Σ_i p_ic(v) z_ic·u`` or ``Σ_i p_ic(v)²``. So, per flight, on a fixed grid ``v_g`` of the
 parameter (:func:`profile_grid`: the search's 17 points, :func:`search_grid`, and
 ``GRID_DENSITY - 1`` geometric points between each two), the profile holds per channel ``c``
@@ -46,7 +46,7 @@ interpolated signal ``p̃ = Σ_g ω_g p(v_g)``, ``ω·C_aa·ω`` (``signals`` of
 not the interpolated energy ``ω·P[W]``: the residual ``y - p̃`` is small beside ``y`` and ``p̃``, and
 the interpolated energy's error (~1e-5 of ``Σ p²``) would be 1-2 % of the residual's energy on a
 simulated lag at the noise floor, the signal's ~1e-4 (the residual's Gram matrix stays one).
-The fits' objective keeps the interpolated energy (``quadcore.identify.sufficient.profiled_fit``).
+The fits' objective keeps the interpolated energy (``quadcore.identify.stats.sufficient.profiled_fit``).
 
 **Accuracy** (``benchmarks/bench_profiles.py``, all flights fitted at once): for ``motor_lag``
 the profile search lands within 0.02 of the row search's own tolerance (``xatol``, 5e-4 of the
@@ -80,7 +80,7 @@ from quadcore.identify.flightdata import FlightData, prediction, unit_wrench
 from quadcore.physics.vehicle import Vehicle
 
 if TYPE_CHECKING:
-    from quadcore.identify.sufficient import FlightStats, Layout
+    from quadcore.identify.stats.sufficient import FlightStats, Layout
 
 GRID_DENSITY = 2  # intervals of the profile's grid per interval of the search's grid
 
@@ -229,7 +229,7 @@ def sums(P: np.ndarray, Z: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 
 def of_flight(s: FlightStats) -> Profiles:
-    """A flight's profiles; a :class:`quadcore.identify.sufficient.StatsError` if its statistics hold none
+    """A flight's profiles; a :class:`quadcore.identify.stats.sufficient.StatsError` if its statistics hold none
     (:func:`covers` says whether they do)."""
     if s.profiles is None:
         raise StatsError("these statistics hold no profiles (their layout profiles no effect)")
