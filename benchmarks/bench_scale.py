@@ -11,7 +11,7 @@ N flights: N distinct simulated flights, each a random go-to flight of 10 s with
 learning use every one (the workflows use a log whose bytes repeat another's once:
 ``quadcore.workflows.fleet.duplicates``). Each is simulated once and cached under
 $TMPDIR/quadcore_bench_scale/pool (its own $TMPDIR for a benchmark of your own: the cache is
-shared), in runs of 20 that print the seconds a simulated flight took; raw folders link to it.
+shared), in runs of 20 that print the seconds a simulated flight took; raw folders hard-link it.
 
 - Main job: for each N, ``python -m pipeline`` on an empty data root (a fresh process: wall time,
   peak resident memory, seconds per stage), then one more flight and the job again: the refit +
@@ -91,12 +91,13 @@ def pool_log(i: int) -> Path:
 
 
 def simulated(n: int) -> Path:
-    """A raw folder with ``n`` distinct flights (links into the pool)."""
+    """A raw folder with ``n`` distinct flights: the pool's logs hard-linked (the decoder refuses
+    a symbolic link out of the raw folder)."""
     raw = CACHE / f"raw{n}"
     shutil.rmtree(raw, ignore_errors=True)
     raw.mkdir()
     for i, log in enumerate(pool_logs(n)):
-        (raw / fid(i)).symlink_to(log)
+        os.link(log, raw / fid(i))
     return raw
 
 
@@ -348,7 +349,7 @@ def main_job(sizes: list[int]) -> None:
         shutil.rmtree(root, ignore_errors=True)
         run = run_main_job(root, raw)
         per_flight = (run.stage_s.get("1", 0.0) + run.stage_s.get("3", 0.0)) / n
-        (raw / fid(n)).symlink_to(pool_log(n))
+        os.link(pool_log(n), raw / fid(n))
         more = run_main_job(root, raw)
         refresh = sum(more.stage_s.get(k, 0.0) for k in ("1", "2", "3"))
         rows.append(MainJobRow(n, run.wall_s, run.wall_s / n, per_flight, run.stage_s.get("2", 0.0),
