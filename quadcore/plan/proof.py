@@ -106,8 +106,7 @@ def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, m
         (dict(t.std) for t in diag.model.terms if t.name == truth.name), {})
     sigma = gap = None
     if pair is not None:
-        comp = separation.compare(separation.flights_of(tables, spec), diag.model, pair[0], pair[1],
-                                  skip=separation.compared_blocks(diag))
+        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.compared_blocks(diag))
         sigma = comp.sigma_for(truth.name)
         gap = score_gap(diag, truth.name, pair[1] if pair[0] == truth.name else pair[0])
     return Flown(truth.name, top.effect if top else "", bool(top is not None and top.effect == truth.name),
@@ -123,6 +122,6 @@ def score_gap(diag: Diagnosis, a: str, b: str) -> float | None:
 def before(tables: Mapping, spec: ModelSpec, model: PhysicsModel, pair: tuple[str, str],
            skip: int = 0) -> separation.Comparison:
     """The held-out separation on the logged flights alone (without each flight's first ``skip`` blocks)."""
-    return separation.compare(separation.flights_of(tables, spec), model, *pair, skip=skip)
+    return separation.compare(tables, spec, model, *pair, skip=skip)
 
 

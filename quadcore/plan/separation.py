@@ -1,8 +1,10 @@
 """The measured separation of two explanations on flights: the diagnosis's held-out comparison.
 
-Cross-validation over flights (:func:`quadcore.identify.fit.solve.folds`, as the diagnosis): in
-each fold both candidates are fitted (:func:`quadcore.identify.fit.fit_rows`) on the
-training flights' residual of the model and predict the test flights; then
+Cross-validation over flights (:func:`quadcore.identify.fit.solve.folds`, as the diagnosis),
+from the flights' statistics (:func:`quadcore.identify.diagnosis.held_out_of_model`: each
+flight's rows become statistics once, with the model's effects and the two candidates): in each
+fold both candidates are fitted on the training flights' residual of the model and predict the
+test flights' (signal vectors; a one-parameter nonlinear candidate from its profiles); then
 :func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks, which of the two
 fits the residual better, in the channels above the sensor-noise floor. Its ``t`` is the
 separation in standard errors (positive: the first fits better).
@@ -11,10 +13,12 @@ As the diagnosis, it compares the two on the same samples: each flight's first `
 (:func:`compared_blocks`: those within the longest memory of the diagnosis's effects) are left
 out.
 
-One simplification against the diagnosis: the model's own effects are not refitted in each
+Two simplifications against the diagnosis: the model's own effects are not refitted in each
 fold; its residual is taken against the model fitted on all flights (``model``, from the
 diagnosis), so the model's parameters have seen the test flights (a few parameters over
-thousands of samples; the comparison of the two candidates is what matters here).
+thousands of samples; the comparison of the two candidates is what matters here). And the
+candidates are fitted free, not within their physical bounds (the separation of the data's own
+best fits).
 """
 
 from __future__ import annotations
@@ -22,12 +26,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import numpy as np
+import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import evidence, fit as fitlib, flightdata
+from quadcore.identify import diagnosis as diagnosislib, evidence, flightdata
 from quadcore.identify.diagnosis.results import Diagnosis
-from quadcore.identify.fit import sessions, solve
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
@@ -62,31 +65,12 @@ def compared_blocks(diag: Diagnosis) -> int:
     return evidence.memory_blocks([effectlib.get(n) for n in names])
 
 
-def compare(fds: Mapping[str, flightdata.FlightData], model: PhysicsModel, a: str, b: str,
-            n_folds: int = N_FOLDS, skip: int = 0) -> Comparison:
-    """The held-out comparison of candidates ``a`` and ``b`` on ``fds``, each flight without its
-    first ``skip`` blocks (see the module)."""
-    ids = sorted(fds)
-    vehicle = model.vehicle
-    resid = {}
-    for f in ids:
-        fd = fds[f]
-        target = np.concatenate([fd.r_f, fd.r_tau], axis=1)
-        resid[f] = target - sessions.model_prediction(model, fd) if model.terms else target
-    ea, eb = effectlib.get(a), effectlib.get(b)
-    pred_a: dict[str, np.ndarray] = {}
-    pred_b: dict[str, np.ndarray] = {}
-    for held in solve.folds(ids, n_folds):
-        train = [f for f in ids if f not in held] or ids
-        for e, out in ((ea, pred_a), (eb, pred_b)):
-            fit = fitlib.fit_rows([e], [fds[f] for f in train], [resid[f] for f in train], vehicle)
-            for f in held:
-                out[f] = fit.predict([e], fds[f], vehicle)
-    flights = [fds[f].after_blocks(skip) for f in ids]
-    before = sum((resid[fd.flight][fd.mask] ** 2).sum(axis=0) for fd in flights)
-    floor = sum((fd.noise ** 2 * fd.n for fd in flights), np.zeros(6))
-    quiet = evidence.at_noise_level(before, floor)
-    w = fitlib.row_weights(flights, [resid[fd.flight] for fd in flights])
-    w = w * evidence.channel_mask([ch for ch, q in quiet.items() if not q])
-    test = evidence.compare(flights, resid, pred_a, pred_b, w)
+def compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel, a: str, b: str,
+            n_folds: int = N_FOLDS, skip: int = 0, stats=None) -> Comparison:
+    """The held-out comparison of candidates ``a`` and ``b`` on the decoded ``tables`` (their
+    statistics for ``spec``; ``stats``: stored ones, as the diagnosis takes them), each flight
+    without its first ``skip`` blocks (see the module)."""
+    held = diagnosislib.held_out_of_model(tables, spec, model, [a, b], n_folds, skip, bounded=False, stats=stats)
+    w = held.w * evidence.channel_mask([ch for ch, quiet in held.at_noise.items() if not quiet])
+    test = evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], w)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))

@@ -1,7 +1,9 @@
 """The diagnosis's problem: its flights (rows or statistics, :class:`_Flights`), their targets,
 the model's effects and the candidates (:class:`_Problem`), the folds (:func:`_splits`), the
 cross-fit of the model and of every candidate on each fold's training flights
-(:func:`_cross_fit`), and the evaluated flights as the scores take them (:func:`_held_out`)."""
+(:func:`_cross_fit`), and the evaluated flights as the scores take them (:func:`_held_out`);
+the same for a model fitted once, to compare two candidates against (:func:`held_out_of_model`:
+the planner's measured separation)."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from quadcore.identify.evidence import default_candidates, scored_after_blocks
 from quadcore.identify.fit import model_fit, sessions as sessionlib, solve
 from quadcore.identify.flightdata import Flight, FlightData
 from quadcore.identify.model import PhysicsModel
-from quadcore.identify.settings import DiagnosisSettings
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.identify.stats import profiles, sufficient
 from quadcore.spec.model import ModelSpec
 
@@ -157,13 +159,15 @@ class _Problem:
     flights' rows (:func:`quadcore.identify.fit.search.search_fit`); a model with a nonlinear
     effect per session on rows (:func:`_model_on_rows`)."""
 
-    def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats):
+    def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats,
+                 skip: int | None = None, bounded: bool = True):
         self.spec, self.vehicle = spec, spec.vehicle
         self.ids = sorted(decoded)
         self.model_effects = [effectlib.get(n) for n in spec.effects]
         names = candidates if candidates is not None else default_candidates(spec)
         self.cands = [effectlib.get(n) for n in names]
-        self.skip = scored_after_blocks(spec, names)
+        self.skip = scored_after_blocks(spec, names) if skip is None else skip
+        self.bounded = bounded  # the candidates fitted within their parameters' physical bounds
         self.effect_of = {c.name: c for c in self.cands}
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
         self.fds = {f: self.fl.flight(f) for f in self.ids}
@@ -178,15 +182,16 @@ class _Problem:
 
     def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
-        parameters' physical bounds (the free fit, when it left them, kept as ``free``); a candidate
+        parameters' physical bounds (the free fit, when it left them, kept as ``free``; free only
+        when the problem says so: ``bounded``); a candidate
         without a profile (``by_rows``) from the statistics too, its predictions made on the
         training flights' rows (:func:`quadcore.identify.fit.search.search_fit`)."""
         if self.by_rows[c.name]:
             return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
-                                      self.vehicle, bounded=True, rows=self.fl.rows,
+                                      self.vehicle, bounded=self.bounded, rows=self.fl.rows,
                                       extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
         return self.fl.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
-                                   self.vehicle, bounded=True)
+                                   self.vehicle, bounded=self.bounded)
 
     def from_profile(self, c) -> bool:
         """Whether ``c`` is fitted and predicted from the flights' profiles."""
@@ -299,9 +304,11 @@ class _Folds:
     eval_extras: dict[str, dict[str, np.ndarray]]  # per test flight: its residual's extra columns' rows
 
 
-def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log) -> _Folds:
+def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions, log,
+               fixed: _Residual | None = None) -> _Folds:
     """Per fold: the model and each candidate (on the model's residual) fitted on the training
-    flights, and their residual and predictions on the test flights."""
+    flights, and their residual and predictions on the test flights; ``fixed``: the residual of a
+    model fitted once (on every flight), not refitted per fold (:func:`held_out_of_model`)."""
     eval_resid: dict[str, np.ndarray] = {}
     cand_pred: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in p.cands}
     fold_fits: dict[str, solve.Fit] = {}
@@ -314,7 +321,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
     model_fit = None
     for k, (train, test) in enumerate(splits, 1):
         log(f"fold {k}/{len(splits)}: fitting on {len(train)} flights, scoring {len(test)}")
-        model_fit, resid = _model_residuals(p, train, test, sessions, log)
+        model_fit, resid = (None, fixed) if fixed is not None else _model_residuals(p, train, test, sessions, log)
         for c in p.cands:
             fit_c = fold_fits[c.name] = p.fit_candidate(c, train, resid)
             fold_params[c.name].append(fit_c.params[c.name])
@@ -361,7 +368,7 @@ def _group_spread(p: _Problem, train_all: list[str], resid_train: _Residual, n_f
 
 
 @dataclass(frozen=True)
-class _HeldOut:
+class HeldOut:
     """The evaluated flights as the scores take them (:func:`_evaluated`), the model's residual
     and each candidate's prediction on them, the residual's sums of squares per channel
     (``before``) over ``n`` samples, the sensor-noise floor's, the channels at that floor, and
@@ -380,7 +387,7 @@ class _HeldOut:
     extras: dict[str, dict[str, np.ndarray]]  # per flight: the rows of ``resid``'s columns known only on rows
 
 
-def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldOut:
+def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> HeldOut:
     eval_ids = sorted(folds.eval_resid)
     eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.skip)
     before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
@@ -390,8 +397,26 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> _HeldO
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
     w = p.fl.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
-    return _HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w,
+    return HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w,
                     folds.model_values, folds.eval_extras)
+
+
+def held_out_of_model(decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel,
+                      candidates: list[str], n_folds: int, skip: int, bounded: bool = True, stats=None,
+                      settings: DiagnosisSettings = DEFAULT) -> HeldOut:
+    """The held-out comparison of ``candidates`` against the residual of a fitted ``model`` (its
+    fleet, or each flight's session's, values; not refitted per fold), from the flights'
+    statistics as the diagnosis takes them (:class:`_Problem`): folds over the flights
+    (:func:`_splits`), each candidate fitted on the training flights' residual (``bounded``:
+    within its physical bounds) and predicting the test flights' (a signal vector; a nonlinear
+    one from its profiles or as an extra column, :func:`_evaluated`), every flight scored without
+    its first ``skip`` blocks (:func:`_on_common_samples`). ``stats``: stored statistics, as for
+    :func:`quadcore.identify.diagnosis.diagnose`."""
+    p = _Problem(decoded, spec, candidates, stats, skip=skip, bounded=bounded)
+    splits, _, _ = _splits(p.ids, None, n_folds)
+    resid = _residual(p, _session_terms(model, lambda msg: None), p.ids)
+    folds = _cross_fit(p, splits, None, lambda msg: None, fixed=resid)
+    return _held_out(p, folds, settings)
 
 
 def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:

@@ -15,10 +15,10 @@ from quadcore.identify import evidence, rates
 from quadcore.identify.describe import summaries
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
+    HeldOut,
     _cross_fit,
     _group_spread,
     _held_out,
-    _HeldOut,
     _Problem,
     _splits,
     _ss,
@@ -110,7 +110,7 @@ def diagnose(
                      _stability(rows, splits, held, timing, settings), settings)
 
 
-def _assemble(p: _Problem, held: _HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[CandidateRow],
+def _assemble(p: _Problem, held: HeldOut, model: PhysicsModel, evaluation: Evaluation, rows: list[CandidateRow],
               sensitivity: dict, disagree: list, outside: dict[str, Any] | None,
               stability: Stability, settings: DiagnosisSettings) -> Diagnosis:
     """The typed diagnosis, with the evaluated flights' residual by regime, by flight, in time
@@ -156,7 +156,7 @@ def _rmse(ss: np.ndarray, n: int) -> ResidualRmse:
                         tuple(float(np.sqrt(ss[3 + j] / n)) for j in range(3)))
 
 
-def _by_flight(p: _Problem, held: _HeldOut) -> summaries.Tables:
+def _by_flight(p: _Problem, held: HeldOut) -> summaries.Tables:
     """The evaluated flights' residual by regime, by flight, in time and in frequency, from their
     summaries (:mod:`quadcore.identify.describe.summaries`): the residual, a signal vector, summed as
     quadratic forms of each flight's stored summary; a flight whose summary cannot describe it
@@ -196,7 +196,7 @@ def _discover_placeholder(spec: ModelSpec) -> str:
     return f"quadcore discover LOGS {model_arg} --json discovery.json"
 
 
-def _outside_library(rows: list[CandidateRow], held: _HeldOut, command: str, library_share: float
+def _outside_library(rows: list[CandidateRow], held: HeldOut, command: str, library_share: float
                      ) -> dict[str, Any] | None:
     """Whether what the library finds is only a small part of what is left, per channel: the
     share of the held-out residual *above the sensor-noise floor* that the found candidates of
@@ -236,7 +236,7 @@ def _outside_library(rows: list[CandidateRow], held: _HeldOut, command: str, lib
     return {"channels": out, "command": command} if out else None
 
 
-def _fold_answer(rows: list[CandidateRow], held: _HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:
+def _fold_answer(rows: list[CandidateRow], held: HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:
     """The answer of one fold (its test ``flights``): the physical candidate whose held-out
     prediction (fitted without them) removes the largest share of their residual, scored as the
     ranking scores (force and torque averaged, channels at the fleet's or the fold's noise floor
@@ -264,7 +264,7 @@ def _fold_answer(rows: list[CandidateRow], held: _HeldOut, flights: list[str], s
     return best if best_ev >= settings.min_explained else NOTHING
 
 
-def _stability(rows: list[CandidateRow], splits: list[tuple[list[str], list[str]]], held: _HeldOut,
+def _stability(rows: list[CandidateRow], splits: list[tuple[list[str], list[str]]], held: HeldOut,
                timing: rates.Judged, settings: DiagnosisSettings) -> Stability:
     """How many folds agree on the top answer (:class:`quadcore.identify.diagnosis.results.Stability`): the
     cross-validation's folds, or with one split each held-out flight. From the held-out

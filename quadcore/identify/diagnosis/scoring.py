@@ -13,7 +13,7 @@ from quadcore.effects import Effect
 from quadcore.identify import evidence, rates
 from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
-    _HeldOut,
+    HeldOut,
     _Problem,
     _ss,
     _total,
@@ -32,7 +32,7 @@ def _ev(before: np.ndarray, after: np.ndarray, channels: slice) -> float:
     return float(1.0 - after[channels].sum() / b) if b > 0 else 0.0
 
 
-def _score(c: Effect, held: _HeldOut, fit_c: solve.Fit,
+def _score(c: Effect, held: HeldOut, fit_c: solve.Fit,
            fold_params: tuple[list[dict[str, float]], list[dict[str, float]]],
            test_sums: tuple[np.ndarray, np.ndarray], settings: DiagnosisSettings) -> CandidateRow:
     """A candidate's row: what its held-out prediction removes (raw, per channel and axis), the
@@ -203,7 +203,7 @@ def _decide(r: CandidateRow, at_noise: dict[str, bool], n_candidates: int, setti
         r.grade = "small but certain"
 
 
-def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p: _Problem,
+def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: HeldOut, p: _Problem,
                 settings: DiagnosisSettings) -> None:
     """Which candidates leave the same signature on the evaluated flights: per row, the physical
     ones that reproduce its prediction in its channel and it theirs (``indistinguishable_from``),
@@ -252,7 +252,7 @@ def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p:
                 o.separated_by = {k: v for k, v in o.separated_by.items() if k != r.effect}
 
 
-def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: _HeldOut, p: _Problem,
+def _beyond_the_best(rows: list[CandidateRow], span: _SpanOverlap, held: HeldOut, p: _Problem,
                      settings: DiagnosisSettings) -> dict[str, dict[str, float | None]]:
     """On the ranked rows: what each could still explain once the best one is in the model
     (``explained_after_top``), why each is ranked where it is, and how small an effect could

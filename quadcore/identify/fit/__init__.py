@@ -20,14 +20,14 @@ from quadcore.identify.binfile import StatsError
 from quadcore.identify.fit.linear import channel_weights, fit_linear
 from quadcore.identify.fit.profiled import profiled_fit
 from quadcore.identify.fit.search import Extras, Rows, search_fit
-from quadcore.identify.fit.solve import Fit, fixed_values, weights_from_sums
+from quadcore.identify.fit.solve import Fit, fixed_values
 from quadcore.identify.flightdata import FlightData
 from quadcore.identify.stats import profiles, sufficient
 from quadcore.identify.stats.sufficient import FlightStats, flight_stats, layout_of
 from quadcore.physics.vehicle import Vehicle
 
 __all__ = ["Extras", "Fit", "Rows", "channel_weights", "fit_effects", "fit_linear", "fit_rows", "profiled_fit",
-           "row_weights", "search_fit"]
+           "search_fit"]
 
 TARGET = "target"  # the extra column a target given as rows becomes (fit_rows)
 
@@ -69,7 +69,7 @@ def fit_rows(effects: list[Effect], flights: Sequence[FlightData], targets: Sequ
     the linear effects' columns, ``y0`` and the target as an extra column), then the fit from them,
     the nonlinear effects' predictions made on the same rows (:func:`search_fit`; a profile is no
     cheaper than the search's own predictions for one fit). For what holds rows, not statistics: a
-    planned flight's separation, a model fitted per session with a nonlinear per-session effect."""
+    model fitted per session with a nonlinear per-session effect."""
     by_id = {fd.flight: fd for fd in flights}
     if len(by_id) != len(flights):  # the search finds a flight's rows by its id
         raise ValueError(f"fit_rows: two of the flights share an id ({', '.join(fd.flight for fd in flights)})")
@@ -79,8 +79,3 @@ def fit_rows(effects: list[Effect], flights: Sequence[FlightData], targets: Sequ
     return fit_effects(effects, stats, [layout.unit(layout.extra(TARGET)) for _ in stats], vehicle, fixed, bounded,
                        rows=lambda f: by_id[f], extras=lambda f: columns[f])
 
-
-def row_weights(flights: Sequence[FlightData], targets: Sequence[np.ndarray]) -> np.ndarray:
-    """:func:`channel_weights` of targets given as rows ((n, 6) per flight), on the flights' usable samples."""
-    ss = sum((np.einsum("nc,nc->c", y[fd.mask], y[fd.mask]) for fd, y in zip(flights, targets)), np.zeros(6))
-    return weights_from_sums(ss, sum(fd.n for fd in flights))

@@ -1,0 +1,68 @@
+"""The reference the planner's measured separation (:func:`quadcore.plan.separation.compare`,
+from the flights' statistics) is tested against: the same held-out comparison on the flights'
+rows, sample by sample. Nothing in quadcore uses it; tests/test_plan_separation.py compares
+against it.
+
+Per fold over the flights (:func:`quadcore.identify.fit.solve.folds`), each candidate is fitted
+(:func:`reference.rows.fit_effects`, free) to the training flights' residual of the model and
+predicts the test flights' (:func:`quadcore.identify.flightdata.prediction`). On the usable
+samples ``i`` of each flight, numbered into blocks of ``BLOCK_S`` over the whole flight
+(:func:`quadcore.identify.flightdata.block_index`) and without the first ``skip`` of them, the
+score of a block ``b`` is
+
+    g_b = Σ_{i∈b} Σ_c w_c 2 (a_ic - b_ic) (r_ic - (a_ic + b_ic)/2)     (= |r - b|² - |r - a|²)
+
+``w_c`` the inverse mean square of the residual per force and torque, channels whose residual
+is within the noise margin of the sensor-noise floor left out; ``t`` the one-sample t statistic
+of the ``g_b`` (> 0: ``a`` fits better).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from quadcore import effects as effectlib
+from quadcore.identify import evidence, flightdata
+from quadcore.identify.fit import sessions, solve
+from quadcore.identify.flightdata import FlightData
+from quadcore.identify.model import PhysicsModel
+from reference import rows
+
+
+def _kept(fd: FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
+    """The usable samples after the first ``skip`` blocks (numbered over the whole flight), and their blocks."""
+    idx = np.flatnonzero(fd.mask)
+    block = flightdata.block_index(fd.state.t_s[idx])
+    keep = block >= skip
+    return idx[keep], block[keep] - skip
+
+
+def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: str, n_folds: int = 5,
+                skip: int = 0) -> tuple[float, int]:
+    """The held-out comparison's ``t`` and its number of blocks (see the module)."""
+    ids = sorted(fds)
+    resid = {f: flightdata.targets_of([fds[f]])[0] - (sessions.model_prediction(model, fds[f]) if model.terms else 0)
+             for f in ids}
+    pred: dict[str, dict[str, np.ndarray]] = {a: {}, b: {}}
+    for held in solve.folds(ids, n_folds):
+        train = [f for f in ids if f not in held] or ids
+        for name in (a, b):
+            e = effectlib.get(name)
+            fit = rows.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], model.vehicle)
+            for f in held:
+                pred[name][f] = flightdata.prediction(e, fit.params[name], fds[f], model.vehicle)
+    kept = {f: _kept(fds[f], skip) for f in ids}
+    r = {f: resid[f][kept[f][0]] for f in ids}
+    ss = sum((np.einsum("nc,nc->c", r[f], r[f]) for f in ids), np.zeros(6))
+    floor = sum((fds[f].noise ** 2 * len(kept[f][0]) for f in ids), np.zeros(6))
+    quiet = evidence.at_noise_level(ss, floor)
+    w = rows.channel_weights(list(r.values())) * evidence.channel_mask([ch for ch, q in quiet.items() if not q])
+    g = []
+    for f in ids:
+        pa, pb = pred[a][f][kept[f][0]], pred[b][f][kept[f][0]]
+        per_sample = (2 * (pa - pb) * (r[f] - 0.5 * (pa + pb))) @ w
+        g.append(np.bincount(kept[f][1], weights=per_sample))
+    scores = np.concatenate(g)
+    return float(np.mean(scores) / (np.std(scores, ddof=1) / np.sqrt(len(scores)))), len(scores)
