@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from quadcore import cli
+from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.plan import bench, family, flatness, limits, pieces
 from quadcore.sim import simulation, trajectories
@@ -262,3 +263,36 @@ def test_a_data_roots_plan_is_made_from_its_stored_diagnosis_beside_it(hover_tie
     assert not result.planned and written.trajectory is None
     assert not (reports / planflow.PLAN_CSV).exists() and not (reports / planflow.PLAN_PNG).exists()
     assert json.loads(written.json.read_text())["question"] == {"kind": "none"}
+
+
+@pytest.mark.slow
+def test_the_proof_measures_the_separation_on_the_statistics_the_diagnosis_took(hover_tie, monkeypatch):
+    """The proof (each explanation flown in the simulator, then diagnosed and compared with the old
+    flights): the comparison takes the flights' statistics made once for the diagnosis and equals
+    the comparison on the rows (tests/reference/separation.py) to rounding; each explanation flown
+    is favoured by the separation when the diagnosis ranks it first."""
+    from reference import separation as reference
+
+    from quadcore.identify import diagnosis as diagnosislib
+    from quadcore.plan import planner, separation
+    from quadcore.spec.model import spec_from
+
+    spec = spec_from(VEHICLE, [])
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(hover_tie)}
+    compared, compare = [], separation.compare
+
+    def recorded(tables, spec, model, a, b, n_folds=separation.N_FOLDS, skip=0, stats=None):
+        out = compare(tables, spec, model, a, b, n_folds, skip, stats)
+        compared.append((stats, out, reference.t_statistic(separation.flights_of(tables, spec), model, a, b,
+                                                             n_folds, skip)[0]))
+        return out
+
+    monkeypatch.setattr(separation, "compare", recorded)
+    result = planner.plan(tables, spec, diagnosislib.diagnose(tables, spec), planner.PlanRequest(duration_s=4.0))
+    assert sorted(f.truth for f in result.proof) == ["added_mass", "thrust_scale"]
+    assert len(compared) == 3  # the logged flights, then each explanation flown
+    for _, out, t_rows in compared:
+        assert out.t == pytest.approx(t_rows, rel=1e-9)
+    assert all(stats is not None for stats, _, _ in compared[1:])  # the diagnosis's statistics, not made again
+    for flown in result.proof:
+        assert flown.sigma is not None and (flown.sigma > 0 or not flown.first), flown

@@ -122,16 +122,19 @@ def _differ_separate(a: Explanation, b: Explanation, fd: flightdata.FlightData, 
 
 
 def plan(tables: Mapping, spec: ModelSpec, diag: Diagnosis, request: PlanRequest,
-         sessions: dict[str, list[str]] | None = None, log: Callable[[str], None] = lambda m: None) -> FlightPlan:
-    """The flight that answers the diagnosis's open question (or the one asked); see the module."""
+         sessions: dict[str, list[str]] | None = None, log: Callable[[str], None] = lambda m: None,
+         stats: proof.StoredStats = None) -> FlightPlan:
+    """The flight that answers the diagnosis's open question (or the one asked); see the module.
+    ``stats``: the flights' stored statistics (:func:`quadcore.identify.stats.sufficient.stored`),
+    for the measured separation and the proof."""
     q = questionlib.ask(diag, request.between, request.parameter)
     limits, duration = request.limits, float(request.duration_s)
     if q.kind == "none":
         return FlightPlan(q, limits, duration)
     log(f"plan: {q.why}")
     if q.kind == "separate":
-        return _separate(q, tables, spec, diag, request, sessions, log)
-    return _parameter(q, tables, spec, diag, request, spec.vehicle, sessions, log)
+        return _separate(q, tables, spec, diag, request, sessions, log, stats)
+    return _parameter(q, tables, spec, diag, request, spec.vehicle, sessions, log, stats)
 
 
 def fitting_flights(tables: Mapping, spec: ModelSpec) -> dict[str, flightdata.FlightData]:
@@ -186,7 +189,7 @@ def _unlogged_timing(q: Question, flights: Mapping[str, flightdata.FlightData]) 
 
 
 def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, sessions,
-              log) -> FlightPlan:
+              log, stats: proof.StoredStats = None) -> FlightPlan:
     vehicle, limits = spec.vehicle, request.limits
     flights = fitting_flights(tables, spec)
     old = list(flights.values())
@@ -209,11 +212,11 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": after.to_dict(),
                               "expected_to_decide": bool(after.value >= 1.0),
                               "noise_per_axis": [float(v) for v in sigma]}
-    measured = proof.before(tables, spec, diag.model, (a.name, b.name), skip)
+    measured = proof.before(tables, spec, diag.model, (a.name, b.name), skip, stats)
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
-                       sessions) if request.prove else [])
+                       sessions, stats) if request.prove else [])
     return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
                       check(best.trajectory, vehicle, limits), design, abs(measured.t),
                       abs(proof.score_gap(diag, a.name, b.name) or 0.0), tuple(flown),
@@ -222,7 +225,7 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
 
 
 def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, vehicle: Vehicle,
-               sessions, log) -> FlightPlan:
+               sessions, log, stats: proof.StoredStats = None) -> FlightPlan:
     effect, _, name = q.parameter.partition(".")
     expl = questionlib.explanation(diag, effect)
     std_before = float(expl.std.get(name, float("nan")))
@@ -236,7 +239,7 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
                               "noise_per_axis": [float(v) for v in sigma]}
     log(f"plan: {best.manoeuvre.describe()}; predicted std of {q.parameter} {std_before:.3g} -> "
         f"{design['std_after']:.3g}")
-    flown = (proof.fly(best.trajectory, tables, spec, diag.model, [expl], None, request.seed, log, sessions)
+    flown = (proof.fly(best.trajectory, tables, spec, diag.model, [expl], None, request.seed, log, sessions, stats)
              if request.prove else [])
     u = signatures.unit_wrench(expl, name, fd, vehicle)
     return FlightPlan(q, request.limits, request.duration_s, best.manoeuvre, best.trajectory,

@@ -11,6 +11,10 @@ explanation at its fitted values, decoded as a real log, added to the logged fli
 * compared (:func:`quadcore.plan.separation.compare`): the held-out separation in σ, in favour
   of the explanation flown.
 
+Both take the flights' statistics (:mod:`quadcore.identify.stats.sufficient`), made once: the
+logged flights' (stored ones where given) for every explanation, the planned flight's once per
+explanation flown (:func:`statistics`).
+
 Nothing is written outside a temporary folder that is removed afterwards.
 """
 
@@ -19,6 +23,7 @@ from __future__ import annotations
 import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +31,7 @@ import numpy as np
 from quadcore.identify import diagnosis as diagnosislib
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.stats import sufficient
 from quadcore.logs import flight as flightlib
 from quadcore.plan import pieces, separation
 from quadcore.plan.signatures import Explanation
@@ -83,30 +89,56 @@ def simulate_plan(traj: PolyTrajectory, truth: Explanation | None, model: Physic
     return flightlib.decode_flight(path).tables["fixedFrequency"]
 
 
+StoredStats = Callable[[str], sufficient.FlightStats | None] | None  # a flight's stored statistics, if current
+
+
+def statistics(tables: Mapping, spec: ModelSpec, stored: StoredStats = None
+               ) -> Callable[[str], sufficient.FlightStats]:
+    """``flight -> statistics``: its stored ones (``stored``), else computed from its decoded table
+    for ``spec`` (:func:`quadcore.identify.stats.sufficient.spec_layout`: every built-in effect), each
+    once when first asked for."""
+    layout = sufficient.spec_layout(spec)
+
+    @cache
+    def of(flight: str) -> sufficient.FlightStats:
+        s = stored(flight) if stored is not None else None
+        return s if s is not None else sufficient.compute(spec, flight, tables[flight], layout)
+
+    return of
+
+
 def fly(traj: PolyTrajectory, tables: Mapping, spec: ModelSpec, model: PhysicsModel, truths: list[Explanation],
         pair: tuple[str, str] | None, seed: int = 0, log: Callable[[str], None] = lambda m: None,
-        sessions: dict[str, list[str]] | None = None) -> list[Flown]:
-    """The proof (see the module) for each of ``truths``."""
+        sessions: dict[str, list[str]] | None = None, stats: StoredStats = None) -> list[Flown]:
+    """The proof (see the module) for each of ``truths``; ``stats``: the logged flights' stored statistics."""
     out = []
     name = flight_name(spec)
+    old = statistics(tables, spec, stats)
     with tempfile.TemporaryDirectory(prefix="quadcore-plan-") as tmp:
         for k, truth in enumerate(truths):
             log(f"proof: flying the plan in the simulator with {truth.name} as the truth")
             new = simulate_plan(traj, truth, model, Path(tmp), name, seed + k)
             both = {**tables, name: new}
-            diag = diagnosislib.diagnose(both, spec, sessions=sessions)
-            out.append(_flown(diag, truth, pair, both, spec, model))
+            planned = statistics({name: new}, spec)
+
+            def of(f: str, planned=planned) -> sufficient.FlightStats:
+                return planned(f) if f == name else old(f)
+
+            diag = diagnosislib.diagnose(both, spec, sessions=sessions, stats=of)
+            out.append(_flown(diag, truth, pair, both, spec, model, of))
     return out
 
 
-def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, model: PhysicsModel) -> Flown:
+def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, model: PhysicsModel,
+           stats: StoredStats = None) -> Flown:
     top = diag.candidates[0] if diag.candidates else None
     row = next((c for c in diag.candidates if c.effect == truth.name), None)
     std = dict(row.parameter_std) if row is not None else next(
         (dict(t.std) for t in diag.model.terms if t.name == truth.name), {})
     sigma = gap = None
     if pair is not None:
-        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.compared_blocks(diag))
+        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.compared_blocks(diag),
+                                  stats=stats)
         sigma = comp.sigma_for(truth.name)
         gap = score_gap(diag, truth.name, pair[1] if pair[0] == truth.name else pair[0])
     return Flown(truth.name, top.effect if top else "", bool(top is not None and top.effect == truth.name),
@@ -120,8 +152,9 @@ def score_gap(diag: Diagnosis, a: str, b: str) -> float | None:
 
 
 def before(tables: Mapping, spec: ModelSpec, model: PhysicsModel, pair: tuple[str, str],
-           skip: int = 0) -> separation.Comparison:
-    """The held-out separation on the logged flights alone (without each flight's first ``skip`` blocks)."""
-    return separation.compare(tables, spec, model, *pair, skip=skip)
+           skip: int = 0, stats: StoredStats = None) -> separation.Comparison:
+    """The held-out separation on the logged flights alone (without each flight's first ``skip``
+    blocks; ``stats``: their stored statistics)."""
+    return separation.compare(tables, spec, model, *pair, skip=skip, stats=stats)
 
 

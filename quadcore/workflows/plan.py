@@ -15,6 +15,7 @@ import polars as pl
 from quadcore.identify.diagnosis.results import CandidateScore, Diagnosis, Evaluation, ResidualRmse, Stability
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DiagnosisSettings
+from quadcore.identify.stats import sufficient
 from quadcore.plan import output, pieces, planner
 from quadcore.store import store
 from quadcore.workflows.fleet import Fleet, WorkflowError, sessions_of
@@ -30,10 +31,12 @@ def _quiet(msg: str) -> None:
     pass
 
 
-def plan(fleet: Fleet, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, log: Log = _quiet) -> FlightPlan:
-    """The plan for ``diag`` (a diagnosis of ``fleet``'s flights with ``spec``)."""
+def plan(fleet: Fleet, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, log: Log = _quiet,
+         stats=None) -> FlightPlan:
+    """The plan for ``diag`` (a diagnosis of ``fleet``'s flights with ``spec``); ``stats``: the
+    flights' stored statistics (:func:`quadcore.identify.stats.sufficient.stored`)."""
     seen = fleet.only(sorted({*diag.evaluation.train_flights, *diag.evaluation.eval_flights}))
-    return planner.plan(seen.tables, spec, diag, request, sessions_of(spec, seen.ids), log)
+    return planner.plan(seen.tables, spec, diag, request, sessions_of(spec, seen.ids), log, stats)
 
 
 @dataclass(frozen=True)
@@ -111,7 +114,7 @@ def plan_data_root(root, fleet: Fleet, spec: ModelSpec, request: PlanRequest, lo
     if doc.get("effects_in_model") != list(spec.effects):
         raise WorkflowError(f"the stored diagnosis is of {doc.get('effects_in_model')}, not of the model file's "
                             f"{spec.effects}: materialise model_diagnosis first")
-    result = plan(fleet, spec, diagnosis_from_document(doc, spec), request, log)
+    result = plan(fleet, spec, diagnosis_from_document(doc, spec), request, log, sufficient.stored(root, spec))
     reports = store.reports_dir(root)
     if not result.planned:  # no earlier plan's files left beside a document that plans nothing
         for name in (PLAN_CSV, PLAN_PNG):
