@@ -1,10 +1,12 @@
-"""The flights' Gram sums term discovery selects from (:class:`LibrarySums`), made flight by
-flight: from each flight's rows and its residual under the model (:func:`from_rows`), or from the
-flights' stored statistics (:func:`from_statistics`, :mod:`quadcore.identify.discovery.library_stats`)
-with a model's linear effects subtracted from the sums."""
+"""The flights' Gram sums term discovery selects from and scores with (:class:`LibrarySums`), combined
+flight by flight from their discovery statistics (:mod:`quadcore.identify.discovery.library_stats`, one
+accumulation: :func:`_combined`): computed from each flight's rows and its residual under the model
+(:func:`from_rows`: a nonlinear or per-session model, predicted on the rows), or the flights' stored
+statistics (:func:`from_statistics`) with a model's linear effects subtracted from the sums."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -15,7 +17,7 @@ from quadcore import effects as effectlib
 from quadcore.effects.base import Effect
 from quadcore.identify import flightdata
 from quadcore.identify.discovery import library_stats
-from quadcore.identify.discovery.grams import Columns, GramSums, flight_gram, flight_grams, library_columns
+from quadcore.identify.discovery.grams import Columns, GramSums, library_columns
 from quadcore.identify.discovery.terms import Term, Variable, library_of, variables
 from quadcore.identify.fit import sessions as sessionlib
 from quadcore.identify.fit.model_fit import fit_model
@@ -27,18 +29,20 @@ from quadcore.spec.model import ModelSpec
 @dataclass(frozen=True)
 class LibrarySums:
     """The candidate library (its terms and their Gram columns) and the flights' Gram matrices
-    accumulated flight by flight, with each flight's usable samples and sensor noise."""
+    accumulated flight by flight, with each flight's usable samples and sensor noise; the same
+    matrices on every usable sample (``full``) and after each flight's first blocks (``after``), the
+    matrices the held-out RMSE is a quadratic form of."""
 
     terms: list[Term]
     cols: Columns
     sums: GramSums
     samples: dict[str, int]
     noise_of: dict[str, np.ndarray]
-    full: GramSums | None = None  # from statistics: the same sums on every usable sample
-    y0_squares: dict[str, np.ndarray] | None = None  # from statistics, a model without effects: Σ y0² per flight
-    after: GramSums | None = None  # from statistics: ``full``'s sums after each flight's first blocks
-    samples_after: dict[str, int] | None = None  # from statistics: the usable samples there per flight
-    y0_squares_after: dict[str, np.ndarray] | None = None  # as ``y0_squares``, there
+    full: GramSums  # the same sums on every usable sample (each fold's own flights' and the held-out ones')
+    y_squares: dict[str, np.ndarray] | None  # Σ r² per flight as the rows give it; None: a model's linear fit
+    after: GramSums  # ``full``'s sums after each flight's first blocks
+    samples_after: dict[str, int]  # the usable samples there per flight
+    y_squares_after: dict[str, np.ndarray] | None  # as ``y_squares``, there
 
 
 # ``flight(f, quiet=False) -> (its rows, its residual under the model)``; quiet: without the model's progress
@@ -46,25 +50,52 @@ RowsOf = Callable[..., tuple[flightdata.FlightData, np.ndarray]]
 
 
 def from_rows(ids: list[str], flight: RowsOf, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec,
-              fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, log) -> LibrarySums:
-    """Each flight's rows (``flight(f)``: its rows and residual, :func:`residual_rows`) turned into its
-    Gram matrix and dropped; the library is built from the first flight's variables."""
-    vehicle = spec.vehicle
+              fx_effects: list[Effect], folds: list[list[str]], holdout: list[str], stride: int, blocks: int,
+              log) -> LibrarySums:
+    """Each flight's rows and its residual under the model (``flight(f)``: :func:`residual_rows`) turned
+    into its discovery statistics (:func:`quadcore.identify.discovery.library_stats.compute`, the residual
+    in the ``y`` columns, every ``stride``-th sample, the "after" sums after the first ``blocks`` blocks)
+    and dropped, then combined as stored ones are (:func:`_combined`); the library is built from the
+    first flight's variables."""
     # motor terms only when every flight has them (read off the columns, before any Gram matrix)
     motors = all(_logs_motors(decoded[f], spec.vehicle_for(f)) for f in ids)
-    sums = GramSums(folds, holdout)
+    fd, r = flight(ids[0])
+    terms = library_of(variables(fd.state, spec.vehicle), motors)
+    cols = library_columns(terms, fx_effects)
+    log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
+        f"accumulating on {len(ids)} flights")
+
+    def statistics(f: str, rows: tuple[flightdata.FlightData, np.ndarray] | None = None) -> library_stats.FlightLibrary:
+        fd, r = rows or flight(f)
+        return library_stats.compute(spec, f, decoded[f], fd=fd, residual=r, terms=terms, stride=stride,
+                                     blocks=blocks)
+
+    first = statistics(ids[0], (fd, r))
+    del fd, r
+    return _combined(ids, lambda f: first if f == ids[0] else statistics(f), cols, folds, holdout)
+
+
+def _combined(ids: list[str], statistics_of: Callable[[str], library_stats.FlightLibrary], cols: Columns,
+              folds: list[list[str]], holdout: list[str]) -> LibrarySums:
+    """The flights' statistics (``statistics_of(f)``, over at least the columns ``cols``), one flight at a
+    time, added to the sums discovery selects and scores from."""
+    labels = cols.labels()
+    sums, full, after = (GramSums(folds, holdout), GramSums(folds, holdout, scored_only=True),
+                         GramSums(folds, holdout, scored_only=True))
     samples: dict[str, int] = {}
     noise_of: dict[str, np.ndarray] = {}
+    squares: dict[str, np.ndarray] = {}
+    samples_after: dict[str, int] = {}
+    squares_after: dict[str, np.ndarray] = {}
     for f in ids:
-        fd, r = flight(f)
-        if f == ids[0]:
-            terms = library_of(variables(fd.state, vehicle), motors)
-            cols = library_columns(terms, fx_effects)
-            log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; "
-                f"accumulating on {len(ids)} flights")
-        sums.add(f, flight_gram(fd, r, cols, fx_effects, vehicle, stride))
-        samples[f], noise_of[f] = int(fd.mask.sum()), fd.noise
-    return LibrarySums(terms, cols, sums, samples, noise_of)
+        lib = statistics_of(f)
+        G, H, H_after = (_picked(M, lib.labels, labels) for M in lib.grams())
+        sums.add(f, G)
+        full.add(f, H)
+        after.add(f, H_after)
+        samples[f], noise_of[f], squares[f] = lib.samples, lib.noise, lib.y0_squares
+        samples_after[f], squares_after[f] = lib.samples_after, lib.y0_squares_after
+    return LibrarySums(cols.terms, cols, sums, samples, noise_of, full, squares, after, samples_after, squares_after)
 
 
 def _library_terms(first: library_stats.FlightLibrary, motors: bool) -> list[Term]:
@@ -96,55 +127,39 @@ def from_statistics(ids: list[str], decoded: Mapping[str, pl.DataFrame], spec: M
     motors = all(found[f].logs_motors if found[f] is not None else _logs_motors(decoded[f], spec.vehicle_for(f))
                  for f in ids)
     first = found[ids[0]] or library_stats.compute(spec, ids[0], decoded[ids[0]])
+    found[ids[0]] = first
     terms = _library_terms(first, motors)
     cols = library_columns(terms, fx_effects)
-    labels = cols.labels()
     missing = [f for f in ids if found[f] is None]
     log(f"candidate library: {len(cols.force)} force terms, {len(cols.torque)} torque terms; combining "
         f"{len(ids) - len(missing)} flights' stored statistics" + (f", computing {len(missing)}" if missing else ""))
-    sums, full, after = (GramSums(folds, holdout), GramSums(folds, holdout, scored_only=True),
-                         GramSums(folds, holdout, scored_only=True))
-    samples: dict[str, int] = {}
-    noise_of: dict[str, np.ndarray] = {}
-    y0_squares: dict[str, np.ndarray] = {}
-    samples_after: dict[str, int] = {}
-    y0_after: dict[str, np.ndarray] = {}
-    for f in ids:
-        G, H, H_after, lib = _flight_statistics(f, found[f] if f != ids[0] else first, labels, spec, decoded, cols,
-                                               fx_effects)
-        sums.add(f, G)
-        full.add(f, H)
-        after.add(f, H_after)
-        samples[f], noise_of[f], y0_squares[f] = lib.samples, lib.noise, lib.y0_squares
-        samples_after[f], y0_after[f] = lib.samples_after, lib.y0_squares_after
-    if spec.effects:
-        model = fit_model(spec, decoded, train, sessions, log, stats)
-        T = _residual_transform(cols, model, spec.vehicle)
-        for g in (sums, full, after):
-            g.transformed(T)
-    bare = not spec.effects  # a model without effects: the residual is y0, its squares summed as the rows sum them
-    return LibrarySums(terms, cols, sums, samples, noise_of, full, y0_squares if bare else None, after,
-                       samples_after, y0_after if bare else None)
+    lib = _combined(ids, lambda f: _flight_statistics(f, found[f], cols, spec, decoded), cols, folds, holdout)
+    if not spec.effects:  # a model without effects: the residual is y0, its squares summed as the rows sum them
+        return lib
+    model = fit_model(spec, decoded, train, sessions, log, stats)
+    T = _residual_transform(cols, model, spec.vehicle)
+    for g in (lib.sums, lib.full, lib.after):
+        g.transformed(T)
+    return dataclasses.replace(lib, y_squares=None, y_squares_after=None)
 
 
-def _flight_statistics(f: str, lib, labels: tuple[str, ...], spec: ModelSpec, decoded, cols: Columns,
-                       fx_effects) -> tuple[np.ndarray, np.ndarray, np.ndarray, library_stats.FlightLibrary]:
-    """(G, H, H_after, the statistics) of one flight in the columns ``labels``: the stored ones (``lib``),
-    else computed from its rows; from its rows with ``cols`` when they lack a column (an effect
-    loaded since)."""
+def _flight_statistics(f: str, lib: library_stats.FlightLibrary | None, cols: Columns, spec: ModelSpec,
+                       decoded) -> library_stats.FlightLibrary:
+    """One flight's statistics over at least the columns ``cols``: the stored ones (``lib``) with their
+    matrices read now, else computed from its rows (over ``cols`` when the flight's own library lacks a
+    column: an effect loaded since)."""
+    labels = cols.labels()
     if lib is not None and set(labels) <= set(lib.labels):
         try:
-            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
+            grams = lib.grams()
+            return dataclasses.replace(lib, grams_source=lambda: grams)
         except sufficient.StatsError:  # cut short since its header was read
             lib = None
     if lib is None:
         lib = library_stats.compute(spec, f, decoded[f])
         if set(labels) <= set(lib.labels):
-            return *(_picked(M, lib.labels, labels) for M in lib.grams()), lib
-    fd = flightdata.flight_data(f, decoded[f], spec.vehicle_for(f))
-    G, H, H_after = flight_grams(fd, flightdata.targets_of([fd])[0], cols, fx_effects, spec.vehicle,
-                                library_stats.STRIDE, lib.head_blocks)
-    return G, H, H_after, lib
+            return lib
+    return library_stats.compute(spec, f, decoded[f], terms=cols.terms)
 
 
 def _picked(M: np.ndarray, have: tuple[str, ...], want: tuple[str, ...]) -> np.ndarray:

@@ -106,12 +106,6 @@ def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
         return Z.T @ Z
 
 
-def flight_gram(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle, stride: int):
-    """Gram matrix of one flight's filtered terms, residual targets, modelled sides and the
-    effects' bases, on every ``stride``-th usable sample."""
-    return _gram(_flight_blocks(fd, resid, cols, fx_effects, vehicle), np.flatnonzero(fd.mask)[::stride])
-
-
 def flight_grams(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle,
                  stride: int, head_blocks: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix

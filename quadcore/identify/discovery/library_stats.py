@@ -33,7 +33,8 @@ with ``T`` the identity but for the residual's columns, ``T[B_{a,k}, y_a] = -θ_
 
 exactly (in exact arithmetic; ``T`` mixes columns of one axis only, so ``H``'s two blocks stay
 whole): the stored matrices serve every fit of linear effects. A model
-with a nonlinear effect, or effects fitted per session, is read from rows.
+with a nonlinear effect, or effects fitted per session, is read from rows: its residual predicted on
+them takes ``y0``'s place in the statistics :func:`compute` makes of them (kept in memory, not stored).
 
 Stored under ``<root>/stats/flight=<id>/library.bin`` (the format of
 :mod:`quadcore.identify.stats.sufficient`, upper triangles in float64) with the :func:`library_key` they were
@@ -56,7 +57,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.identify import evidence, flightdata
 from quadcore.identify.discovery.grams import channel_groups, flight_grams, library_columns
-from quadcore.identify.discovery.terms import library, variables
+from quadcore.identify.discovery.terms import Term, library, variables
 from quadcore.identify.settings import STATISTICS
 from quadcore.identify.stats import sufficient
 
@@ -80,7 +81,7 @@ class FlightLibrary:
     labels: tuple[str, ...]  # a name per Gram column (grams.Columns.labels)
     samples: int
     noise: np.ndarray  # (6,)
-    y0_squares: np.ndarray  # (6,) Σ over usable samples of y0²
+    y0_squares: np.ndarray  # (6,) Σ over usable samples of y0² (of the residual ``compute`` was given)
     head_blocks: int  # K: the first blocks the "after" sums leave out (head_blocks())
     samples_after: int  # the usable samples after them
     y0_squares_after: np.ndarray  # (6,) Σ of y0² over those
@@ -136,22 +137,31 @@ def version(spec, flight: str) -> str:
     return f"{sufficient.current_key(spec, flight)}+{library_key(spec, flight)}"
 
 
-def compute(spec, flight: str, decoded, source: str = "", fd: flightdata.FlightData | None = None) -> FlightLibrary:
-    """A flight's statistics from its decoded table (its rows read once); ``fd``: the table's
-    :func:`quadcore.identify.flightdata.flight_data` when the caller has it (the effects' bases
-    cached there are not computed again)."""
+def compute(spec, flight: str, decoded, source: str = "", fd: flightdata.FlightData | None = None,
+            residual: np.ndarray | None = None, terms: list[Term] | None = None, stride: int = STRIDE,
+            blocks: int | None = None) -> FlightLibrary:
+    """A flight's statistics from its decoded table (its rows read once): the one place a flight's
+    rows become discovery's sums. ``fd``: the table's :func:`quadcore.identify.flightdata.flight_data`
+    when the caller has it (the effects' bases cached there are not computed again); ``residual``
+    (n, 6): the residual the ``y`` columns hold and ``y0_squares`` sums, a model's (its effects
+    predicted on the rows: a nonlinear or per-session model), else the nominal ``y0``; ``terms``: the
+    candidate library (else every term of the flight's variables); ``stride`` and ``blocks`` (``K``, else
+    :func:`head_blocks`): the selection's sample stride and the first blocks the "after" sums leave
+    out. Only the defaults' statistics carry their :func:`library_key` (others are never current when
+    stored: the key names no residual, library or stride)."""
     fd = fd if fd is not None else flightdata.flight_data(flight, decoded, spec.vehicle_for(flight))
     vars_ = variables(fd.state, spec.vehicle)
     effects = fx_effects(spec)
-    cols = library_columns(library(vars_), effects)
-    y0 = flightdata.targets_of([fd])[0]
-    k = head_blocks(spec)
-    G, H, H_after = flight_grams(fd, y0, cols, effects, spec.vehicle, STRIDE, k)
+    cols = library_columns(terms if terms is not None else library(vars_), effects)
+    y = flightdata.targets_of([fd])[0] if residual is None else residual
+    k = head_blocks(spec) if blocks is None else blocks
+    G, H, H_after = flight_grams(fd, y, cols, effects, spec.vehicle, stride, k)
     after = np.flatnonzero(fd.mask)[fd.blocks() >= k]
     described = tuple((name, tuple(v.unit), tuple(v.sources), v.channel) for name, v in vars_.items())
-    return FlightLibrary(flight, library_key(spec, flight), source, described, cols.labels(), fd.n,
-                         np.asarray(fd.noise, dtype=float), (y0[fd.mask] ** 2).sum(axis=0), k, len(after),
-                         (y0[after] ** 2).sum(axis=0), lambda: (G, H, H_after))
+    plain = residual is None and terms is None and stride == STRIDE and k == head_blocks(spec)
+    return FlightLibrary(flight, library_key(spec, flight) if plain else "", source, described, cols.labels(), fd.n,
+                         np.asarray(fd.noise, dtype=float), (y[fd.mask] ** 2).sum(axis=0), k, len(after),
+                         (y[after] ** 2).sum(axis=0), lambda: (G, H, H_after))
 
 
 def library_path(root: Any, flight: str) -> Any:

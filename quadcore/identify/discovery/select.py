@@ -48,7 +48,6 @@ from quadcore.identify.discovery.terms import (
     TARGETS,
     UNIT,
     Term,
-    evaluate,
     excluded,
     form_family,
     literature,
@@ -59,7 +58,6 @@ from quadcore.identify.evidence import scored_after_blocks
 from quadcore.identify.fit import solve
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.identify.stats import sufficient
-from quadcore.physics import signals
 from quadcore.spec.model import ModelSpec
 
 MIN_STABILITY = 0.6  # selected in at least this share of the folds ("most folds")
@@ -201,14 +199,14 @@ def _form_label(expression: str, forms: tuple[Form, ...], channel: str) -> str:
 
 def _rmse_from_sums(lib: LibrarySums, coefs: dict, pairs: list[tuple[np.ndarray, np.ndarray]],
                     eval_ids: list[str], cut: bool) -> tuple[dict, dict]:
-    """:func:`_held_out_rmse` from statistics: per pair (the Gram matrix the terms are fitted on,
-    the sum of ``H`` of the flights scored with them), the residual's sum of squares after the
-    terms, ``Σ r² - 2 βᵀXᵀr + βᵀXᵀXβ`` (:func:`_sse`); before them, ``Σ r²`` (a model without
-    effects: the flights' own sums of ``y0²``, as the rows give them). ``cut``: the pairs' ``H`` are
-    over the samples after each flight's first blocks, and so are the sums of ``y0²`` and the samples
-    counted here."""
+    """:func:`_held_out_errors`' RMSE: per pair (the Gram matrix the terms are fitted on, the sum of
+    ``H`` of the flights scored with them), the residual's sum of squares after the terms,
+    ``Σ r² - 2 βᵀXᵀr + βᵀXᵀXβ`` (:func:`_sse`); before them, ``Σ r²`` (the flights' own sums of the
+    residual's squares, as the rows give them, unless a model's linear fit was subtracted from the
+    sums). ``cut``: the pairs' ``H`` are over the samples after each flight's first blocks, and so are
+    the sums of squares and the samples counted here."""
     cols = lib.cols
-    squares = lib.y0_squares_after if cut else lib.y0_squares
+    squares = lib.y_squares_after if cut else lib.y_squares
     if squares is not None:
         before = np.zeros(6)
         for f in eval_ids:
@@ -225,8 +223,8 @@ def _rmse_from_sums(lib: LibrarySums, coefs: dict, pairs: list[tuple[np.ndarray,
 
 
 def _scored_samples(lib: LibrarySums, eval_ids: list[str], cut: bool) -> int:
-    """The evaluated flights' usable samples; ``cut``: after their first blocks (from statistics)."""
-    samples = lib.samples_after if cut and lib.samples_after is not None else lib.samples
+    """The evaluated flights' usable samples; ``cut``: after their first blocks."""
+    samples = lib.samples_after if cut else lib.samples
     return sum(samples[f] for f in eval_ids)
 
 
@@ -299,9 +297,13 @@ def discover(
     flights, from a sessions file) group the flights of per-session effects, as in
     :func:`quadcore.identify.diagnosis.diagnose`; None: the model file's, else the groups the data show.
 
-    From rows, flight by flight: each flight's rows become its Gram matrix (the statistics the
-    selection, the folds and the coefficients combine) and are dropped; the evaluated flights are
-    read again for the held-out RMSE. ``decoded`` may read each table as it is looked up
+    Every path selects and scores from the flights' discovery statistics
+    (:mod:`quadcore.identify.discovery.library_stats`: the selection's Gram matrices, and the held-out
+    RMSE before and after the terms as a quadratic form of the matrices on every usable sample).
+
+    From rows, flight by flight: each flight's rows and its residual under the model (the model's
+    effects predicted on them) become its statistics (:func:`quadcore.identify.discovery.library_stats.compute`)
+    and are dropped, each flight read once. ``decoded`` may read each table as it is looked up
     (:class:`quadcore.store.store.FlightTables`). Fitting the model's own effects reads the training
     flights' rows together (and every flight's for per-session effects).
 
@@ -310,8 +312,8 @@ def discover(
     fitted fleet-wide, at the default ``stride``: no flight with stored statistics is read; the
     model's effects are fitted from the sufficient statistics (``stats``:
     :func:`quadcore.identify.stats.sufficient.stored`). The same sums in the same order as from rows, so
-    the same terms and coefficients; the held-out RMSE after the terms is a quadratic form of the
-    flights' Gram matrices (equal to the rows' to rounding). ``settings``: its folds, ``min_gain`` and
+    the same terms and coefficients, the model's fitted linear effects subtracted from the sums (the
+    residual's Gram matrices ``TᵀGT``, equal to the rows' to rounding). ``settings``: its folds, ``min_gain`` and
     ``noise_margin`` (:class:`~quadcore.identify.settings.DiagnosisSettings`), recorded in the result."""
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
@@ -324,17 +326,16 @@ def discover(
     combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects)
                   and skip in (0, library_stats.head_blocks(spec)))
-    flight = None
     if combinable:
         lib = accumulate.from_statistics(ids, decoded, spec, fx_effects, folds, holdout, train, stored, stats,
                                          sessions, log)
     else:
         flight = accumulate.residual_rows(spec, decoded, ids, train, sessions, log)
-        lib = accumulate.from_rows(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, log)
+        lib = accumulate.from_rows(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, skip, log)
     noise = _noise_floor([lib.samples[f] for f in train], [lib.noise_of[f] for f in train])
     kept, axes, coefs = _discover_axes(lib, noise, bool(holdout), spec.effects, fx_effects, settings)
     eval_ids = holdout or ids
-    base, after = _held_out_errors(lib, coefs, folds, holdout, eval_ids, flight, spec.vehicle, skip)
+    base, after = _held_out_errors(lib, coefs, holdout, eval_ids, skip)
     return Discovery(
         tuple(kept), tuple(axes), base, after,
         _by_axis(noise),
@@ -364,26 +365,19 @@ def _discover_axes(lib: LibrarySums, noise: np.ndarray, holdout: bool, model_eff
     return kept, axes, coefs
 
 
-def _held_out_errors(lib: LibrarySums, coefs: dict, folds: list[list[str]], holdout: list[str], eval_ids: list[str],
-                     flight: accumulate.RowsOf | None, vehicle, skip: int) -> tuple[dict, dict]:
+def _held_out_errors(lib: LibrarySums, coefs: dict, holdout: list[str], eval_ids: list[str],
+                     skip: int) -> tuple[dict, dict]:
     """The RMSE per axis on the evaluated flights before and after the kept terms (``coefs``), each
     flight scored with the terms fitted on its fold's training flights (a holdout: on every training
-    flight): from the sums when the library was combined from statistics (:func:`_rmse_from_sums`),
-    else from the flights' rows read again (``flight``, :func:`_held_out_rmse`); on the usable samples
-    after each evaluated flight's first ``skip`` blocks, the samples the diagnosis scores."""
+    flight), from the flights' statistics (:func:`_rmse_from_sums`), on the usable samples after each
+    evaluated flight's first ``skip`` blocks, the samples the diagnosis scores (on every usable sample
+    when none is left there, as the diagnosis: ``problem._on_common_samples``)."""
     fold_grams, G_train = lib.sums.fold_grams(), lib.sums.training_total()
-    if lib.full is not None:
-        # as the diagnosis (problem._on_common_samples): after the first blocks, unless nothing is left there
-        cut = skip > 0 and lib.after is not None and _scored_samples(lib, eval_ids, True) > 0
-        scored = lib.after if cut and lib.after is not None else lib.full
-        pairs = [(G_train, scored.held_out())] if holdout else [
-            (tr, inside) for (tr, _), inside in zip(fold_grams, scored.own_sums())]
-        return _rmse_from_sums(lib, coefs, pairs, eval_ids, cut)
-    assert flight is not None, "sums made from rows (no lib.full) come with the rows' reader"
-    train_gram = {f: G_train for f in eval_ids} if holdout else {
-        f: fold_grams[i][0] for i, fold in enumerate(folds) for f in fold}  # the G each flight is scored with
-    return _held_out_rmse(lambda f: flight(f, quiet=True), eval_ids, train_gram, lib.cols, lib.terms, coefs,
-                          vehicle, skip)
+    cut = skip > 0 and _scored_samples(lib, eval_ids, True) > 0
+    scored = lib.after if cut else lib.full
+    pairs = [(G_train, scored.held_out())] if holdout else [
+        (tr, inside) for (tr, _), inside in zip(fold_grams, scored.own_sums())]
+    return _rmse_from_sums(lib, coefs, pairs, eval_ids, cut)
 
 
 def _usable(cols: Columns, axis: int, terms: list[Term]) -> list[Term]:
@@ -447,34 +441,3 @@ def _modelled_side_note(G, cols: Columns, chosen, beta, axis: int, target: str) 
     return ((f"{r2:.0%} of what the kept terms predict on {target} is {k:+.2f} × the modelled {side}: the model's own "
             f"term is mis-scaled or cancelled by something it does not model (a thrust-map error, or a disturbance "
             f"the controller holds off), not a new mechanism by itself"),)
-
-
-def _held_out_rmse(flight, eval_ids, train_gram, cols, terms, coefs, vehicle, skip: int):
-    """RMSE per axis on the evaluated flights before and after the discovered terms (fitted on
-    training flights: ``train_gram[f]``, the Gram matrix flight ``f`` is scored with, of its fold's
-    training flights without a holdout), on the usable samples after each flight's first ``skip``
-    blocks, the samples the diagnosis scores (:func:`quadcore.identify.evidence.scored_after_blocks`;
-    on every usable sample when no evaluated flight keeps one after them, as the diagnosis does).
-    ``flight(f)`` gives a flight's rows and residual, read one flight at a time."""
-    ss = np.zeros((2, 2, 6))  # (after the first blocks, every usable sample) x (before, after the terms)
-    n = np.zeros(2, dtype=int)
-    for f in eval_ids:
-        fd, r = flight(f)
-        pred = np.zeros_like(r)
-        G = train_gram[f]
-        for axis, (chosen, _) in coefs.items():
-            if not chosen:
-                continue
-            beta = _ols(G, chosen, cols.target0 + axis)
-            col_term = {cols.term_col(k, axis): t.expression for k, t in enumerate(terms)
-                        if k in (cols.force if axis < 3 else cols.torque)}
-            raw = evaluate([col_term[c] for c in chosen], fd.state, vehicle)
-            filt = signals.smooth(raw) if axis < 3 else \
-                signals.matched_to_derivative(raw, fd.state.t_s, fd.state.thrust_hold_s)
-            pred[:, axis] = filt @ beta
-        for i, m in enumerate((fd.after_blocks(skip).mask, fd.mask)):
-            ss[i, 0] += (r[m] ** 2).sum(axis=0)
-            ss[i, 1] += ((r - pred)[m] ** 2).sum(axis=0)
-            n[i] += int(m.sum())
-    i = 0 if n[0] > 0 else 1
-    return _rmse(ss[i, 0], int(n[i])), _rmse(ss[i, 1], int(n[i]))
