@@ -27,6 +27,8 @@ from quadcore.physics import dynamics, signals
 from quadcore.physics.dynamics import FlightState
 from quadcore.physics.vehicle import Vehicle
 
+CHUNK_ROWS = 2048  # strided samples per chunk of a flight's design rows (a few MB: the rows are never all copied)
+
 
 @dataclass
 class Columns:
@@ -100,12 +102,6 @@ def _flight_blocks(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, 
     return blocks
 
 
-def _gram(blocks: list, rows: np.ndarray) -> np.ndarray:
-    Z = np.concatenate([b[rows] for b in blocks], axis=1)
-    with flightdata.one_blas_thread():
-        return Z.T @ Z
-
-
 def flight_grams(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx_effects, vehicle,
                  stride: int, head_blocks: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(the Gram matrix the selection uses: every ``stride``-th usable sample, the same matrix
@@ -113,21 +109,24 @@ def flight_grams(fd: flightdata.FlightData, resid: np.ndarray, cols: Columns, fx
     ``head_blocks`` blocks: the RMSE's of a score that leaves them out) of one flight (see
     :mod:`quadcore.identify.discovery.library_stats`). The last two hold only the products within the
     force columns and within the torque columns (:func:`channel_groups`; zero between them): a force
-    axis' RMSE never takes a torque term."""
+    axis' RMSE never takes a torque term. Summed over chunks of ``stride * CHUNK_ROWS`` usable samples,
+    so no copy of the flight's whole design is made."""
     blocks = _flight_blocks(fd, resid, cols, fx_effects, vehicle)
-    rows = np.flatnonzero(fd.mask)
-    Z = np.concatenate([b[rows] for b in blocks], axis=1)
-    return _gram(blocks, rows[::stride]), _grouped(Z, cols), _grouped(Z[fd.blocks() >= head_blocks], cols)
-
-
-def _grouped(Z: np.ndarray, cols: Columns) -> np.ndarray:
-    """``ZᵀZ`` within the force columns and within the torque columns (zero between them)."""
-    H = np.zeros((cols.n_total, cols.n_total))
-    for group in channel_groups(cols.labels()):
-        Zg = Z[:, group]
+    rows, keep = np.flatnonzero(fd.mask), fd.blocks() >= head_blocks
+    groups = channel_groups(cols.labels())
+    G, H, H_after = (np.zeros((cols.n_total, cols.n_total)) for _ in range(3))
+    chunk = stride * CHUNK_ROWS  # a multiple of the stride: the chunks' strided rows are the flight's
+    for start in range(0, len(rows), chunk):
+        Z = np.concatenate([b[rows[start:start + chunk]] for b in blocks], axis=1)
+        Za = Z[keep[start:start + chunk]]
+        Zs = np.ascontiguousarray(Z[::stride])
         with flightdata.one_blas_thread():
-            H[np.ix_(group, group)] = Zg.T @ Zg
-    return H
+            G += Zs.T @ Zs
+            for g in groups:
+                Zg, Zga = Z[:, g], Za[:, g]
+                H[np.ix_(g, g)] += Zg.T @ Zg
+                H_after[np.ix_(g, g)] += Zga.T @ Zga
+    return G, H, H_after
 
 
 def channel_groups(labels: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
