@@ -99,7 +99,8 @@ def stats_root(drag_fleet, tmp_path_factory):
 
 
 def _discoveries(root, effects, holdout, monkeypatch) -> tuple[dict, dict, list]:
-    """(from rows, from the stored statistics, the decoded tables read for the second)."""
+    """(without a data root: every flight's statistics computed from its rows; from the stored
+    statistics; the decoded tables read for the second)."""
     from quadcore.spec.model import spec_from
     from quadcore.workflows import identify
 

@@ -1,8 +1,9 @@
 """The flights' Gram sums term discovery selects from and scores with (:class:`LibrarySums`), combined
 flight by flight from their discovery statistics (:mod:`quadcore.identify.discovery.library_stats`, one
 accumulation: :func:`_combined`): computed from each flight's rows and its residual under the model
-(:func:`from_rows`: a nonlinear or per-session model, predicted on the rows), or the flights' stored
-statistics (:func:`from_statistics`) with a model's linear effects subtracted from the sums."""
+(:func:`from_rows`: a nonlinear or per-session model, predicted on the rows), or the flights' nominal
+statistics, stored or computed from their rows (:func:`from_statistics`), with a model's linear effects
+subtracted from the sums."""
 
 from __future__ import annotations
 

@@ -301,20 +301,22 @@ def discover(
     (:mod:`quadcore.identify.discovery.library_stats`: the selection's Gram matrices, and the held-out
     RMSE before and after the terms as a quadratic form of the matrices on every usable sample).
 
-    From rows, flight by flight: each flight's rows and its residual under the model (the model's
-    effects predicted on them) become its statistics (:func:`quadcore.identify.discovery.library_stats.compute`)
-    and are dropped, each flight read once. ``decoded`` may read each table as it is looked up
+    A model without effects or of linear effects fitted fleet-wide, at the default ``stride``: from
+    the flights' nominal statistics, ``stored`` (flight -> its stored discovery statistics or None:
+    :func:`quadcore.identify.discovery.library_stats.stored`; no flight with stored statistics is
+    read), the others computed from their rows; the model's effects fitted (from the sufficient
+    statistics ``stats`` when given: :func:`quadcore.identify.stats.sufficient.stored`) and subtracted
+    from the sums (the residual's Gram matrices ``TᵀGT``, equal to the rows' to rounding).
+
+    Any other model (a nonlinear effect, effects fitted per session) or stride: from rows, flight by
+    flight: each flight's rows and its residual under the model (the model's effects predicted on
+    them) become its statistics (:func:`quadcore.identify.discovery.library_stats.compute`) and are
+    dropped, each flight read once. ``decoded`` may read each table as it is looked up
     (:class:`quadcore.store.store.FlightTables`). Fitting the model's own effects reads the training
     flights' rows together (and every flight's for per-session effects).
 
-    From statistics, with ``stored`` (flight -> its stored discovery statistics or None:
-    :func:`quadcore.identify.discovery.library_stats.stored`) for a model without effects or of linear effects
-    fitted fleet-wide, at the default ``stride``: no flight with stored statistics is read; the
-    model's effects are fitted from the sufficient statistics (``stats``:
-    :func:`quadcore.identify.stats.sufficient.stored`). The same sums in the same order as from rows, so
-    the same terms and coefficients, the model's fitted linear effects subtracted from the sums (the
-    residual's Gram matrices ``TᵀGT``, equal to the rows' to rounding). ``settings``: its folds, ``min_gain`` and
-    ``noise_margin`` (:class:`~quadcore.identify.settings.DiagnosisSettings`), recorded in the result."""
+    ``settings``: its folds, ``min_gain`` and ``noise_margin``
+    (:class:`~quadcore.identify.settings.DiagnosisSettings`), recorded in the result."""
     ids = sorted(decoded)
     holdout = [h for h in (holdout or []) if h in decoded]
     train = [f for f in ids if f not in holdout]
@@ -323,12 +325,12 @@ def discover(
     fx_effects = library_stats.fx_effects(spec)  # the effects the stored statistics hold
     folds = solve.folds(train, settings.n_folds)
     skip = scored_after_blocks(spec)  # the first blocks of an evaluated flight the diagnosis does not score
-    combinable = (stored is not None and stride == library_stats.STRIDE and not spec.per_session
+    combinable = (stride == library_stats.STRIDE and not spec.per_session
                   and all(effectlib.get(n).linear for n in spec.effects)
                   and skip in (0, library_stats.head_blocks(spec)))
-    if combinable:
-        lib = accumulate.from_statistics(ids, decoded, spec, fx_effects, folds, holdout, train, stored, stats,
-                                         sessions, log)
+    if combinable:  # without stored statistics: each flight's computed from its rows
+        lib = accumulate.from_statistics(ids, decoded, spec, fx_effects, folds, holdout, train,
+                                         stored or (lambda f: None), stats, sessions, log)
     else:
         flight = accumulate.residual_rows(spec, decoded, ids, train, sessions, log)
         lib = accumulate.from_rows(ids, flight, decoded, spec, fx_effects, folds, holdout, stride, skip, log)
