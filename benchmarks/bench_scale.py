@@ -65,9 +65,9 @@ EVENTS = ("fixedFrequency", "estPose")
 
 def pool_logs(n: int) -> list[Path]:
     """The logs of simulated flights 0 .. n-1 (flight ``k``: seed 1000 + k), each simulated once
-    and cached: the missing ones in runs of ``CHUNK``, each moved into the pool when written
-    (truth first, its log last: a log in the pool is a whole flight), so a killed run keeps what
-    it finished."""
+    and cached: the missing ones in runs of ``CHUNK``, each run's flights moved into the pool once
+    written (truth first, its log last: a log in the pool is a whole flight), so a killed run keeps
+    the runs it finished."""
     pool = CACHE / "pool"
     pool.mkdir(parents=True, exist_ok=True)
     missing = [k for k in range(n) if not (pool / fid(k)).is_file()]
