@@ -846,13 +846,14 @@ def test_a_gap_in_the_log_adds_no_empty_cluster_to_the_held_out_test(tmp_path):
     """Blocks of the held-out test are the 1 s stretches that hold samples: a 3 s hole in the
     log is no three clusters with a zero score (which would inflate the degrees of freedom)."""
     import polars as pl
+    from reference.flight import as_rows
 
     from quadcore.identify import evidence
 
     simulation.simulate_set(tmp_path, [SimConfig(kind="random", duration_s=8.0, seed=5)], {}, VEHICLE)
     (table,) = _decode(tmp_path).values()
     holed = table.filter((pl.col("t_s") < 2.0) | (pl.col("t_s") >= 5.0))
-    fd = flightdata.flight_data("sim000", holed, VEHICLE)
+    fd = as_rows(flightdata.flight_data("sim000", holed, VEHICLE))
     resid = {"sim000": np.concatenate([fd.r_f, fd.r_tau], axis=1)}
     sums = evidence.block_sums([fd], resid, resid, np.ones(6))
     t = fd.state.t_s[fd.mask]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from reference import rows as reference
 
@@ -94,6 +95,22 @@ def test_a_fixed_nonlinear_effect_without_a_profile_is_subtracted_as_its_rows_pr
     for e, k in _params(rows):
         assert combined.params[e][k] == pytest.approx(rows.params[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"
         assert combined.std[e][k] == pytest.approx(rows.std[e][k], rel=1e-9, abs=1e-14), f"{e}.{k}"
+
+
+def test_a_fixed_profiled_lag_beside_a_free_profiled_delay_is_fitted_from_the_profiles(lagged):
+    """A model file that fixes the lag and fits a delay beside it: the fixed lag is its profile's
+    column, the delay the one free profiled effect (this raised 'too many values to unpack'
+    when the fixed lag was still counted as a second free one). The delay lands where the row
+    search does within a tenth of a sample (the profile's grid does not resolve the delay's
+    sample-period ripple: tests/test_sufficient.py), the thrust scale within 1 % of its σ."""
+    names, fixed = ["motor_lag", "thrust_delay", "thrust_scale"], {"motor_lag": {"tau_s": 0.03}}
+    rows, combined = _both(lagged, names, sufficient.library_layout(), fixed)
+    assert combined.params["motor_lag"] == {"tau_s": 0.03}
+    dt_s = float(np.median(np.diff(lagged[sorted(lagged)[0]].state.t_s)))
+    assert abs(combined.params["thrust_delay"]["t_d_s"] - rows.params["thrust_delay"]["t_d_s"]) < dt_s / 10
+    a, b = rows.params["thrust_scale"]["scale"], combined.params["thrust_scale"]["scale"]
+    s = rows.std["thrust_scale"]["scale"]
+    assert s > 0 and abs(a - b) < 0.01 * s, f"rows {a} ± {s}, statistics {b}"
 
 
 def test_a_search_without_rows_says_what_it_needs(lagged):

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from reference import rows as reference
+from reference.flight import as_rows
 
 from quadcore import effects
 from quadcore.identify import evidence, fit as fitlib, flightdata
@@ -104,7 +105,7 @@ def test_held_out_test_from_statistics_equals_the_rows(fleet):
     pred_rows = {f: fit.predict([e], fds[f], VEHICLE) for f in test}
     resid_vec = {f: stats[f].layout.target() for f in test}
     pred_vec = {f: fit.predict([e], stats[f], VEHICLE) for f in test}
-    a = evidence.held_out_test([fds[f] for f in test], resid_rows, pred_rows, w)
+    a = evidence.held_out_test([as_rows(fds[f]) for f in test], resid_rows, pred_rows, w)
     b = evidence.held_out_test([stats[f] for f in test], resid_vec, pred_vec, w)
     assert a.blocks == b.blocks > 0
     assert b.t == pytest.approx(a.t, rel=REL) and b.beta == pytest.approx(a.beta, rel=REL)

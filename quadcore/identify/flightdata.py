@@ -1,7 +1,11 @@
-"""A flight's rows ready for fitting (:class:`FlightData`): its state, the nominal residual,
-the usable samples, the sensor-noise floor, and what every fit, test and description asks of a
-flight (the :class:`Flight` protocol, which a flight's statistics,
-:class:`quadcore.identify.stats.sufficient.FlightStats`, answer from their Gram matrices).
+"""A flight's rows (:class:`FlightData`): its state, the nominal residual, the usable samples and
+the sensor-noise floor, what a flight's statistics are made from
+(:func:`quadcore.identify.stats.sufficient.flight_stats`), and what every fit, test and description
+asks of a flight (the :class:`Flight` protocol, which the statistics,
+:class:`quadcore.identify.stats.sufficient.FlightStats`, answer from their Gram matrices; the same
+answered on rows, sample by sample, is the tests' reference, ``tests/reference/flight.py``). Rows
+answer only a prediction (:class:`Predicting`): what enters the statistics as an extra column
+where they cannot carry an effect.
 
 The bottom of the identification: the smoothed prediction of one effect on rows
 (:func:`prediction`), its unit wrench (:func:`unit_wrench`), the blocks of the held-out test
@@ -29,7 +33,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Protocol, Self
 
 import numpy as np
@@ -50,22 +54,27 @@ GRAM_STRIDE = STATISTICS.gram_stride  # every 4th usable sample for the signatur
 Signals = Mapping[str, np.ndarray]  # flight -> its signal: (n, 6) on rows, a (W,) vector on statistics
 
 
-class Flight(Protocol):
-    """What the fits, held-out tests and descriptions ask of one flight: its rows
-    (:class:`FlightData`, signals (n, 6) arrays) or its statistics
-    (:class:`quadcore.identify.stats.sufficient.FlightStats`, signals vectors over its columns)
-    answer alike; which one a diagnosis holds is chosen once, by its effects' kinds."""
+class Predicting(Protocol):
+    """A flight an effect's prediction is made on: its rows (:class:`FlightData`, an (n, 6)
+    array) or its statistics (:class:`quadcore.identify.stats.sufficient.FlightStats`, a signal
+    vector over its columns)."""
 
     @property
     def flight(self) -> str: ...
+
+    def predict(self, effects: Sequence[Effect], params: Mapping[str, dict], vehicle: Vehicle) -> np.ndarray: ...
+
+
+class Flight(Predicting, Protocol):
+    """What the fits, held-out tests and descriptions ask of one flight's statistics
+    (:class:`quadcore.identify.stats.sufficient.FlightStats`: signals are vectors over its columns);
+    ``tests/reference/flight.py`` answers the same on rows, the reference it is tested against."""
 
     @property
     def noise(self) -> np.ndarray: ...
 
     @property
     def n(self) -> int: ...
-
-    def predict(self, effects: Sequence[Effect], params: Mapping[str, dict], vehicle: Vehicle) -> np.ndarray: ...
 
     def sum_of_squares(self, signal: np.ndarray) -> np.ndarray: ...
 
@@ -103,9 +112,6 @@ class FlightData:
     mask: np.ndarray  # (n,) the usable samples (usable_samples: away from gaps and the filters' edges)
     noise: np.ndarray = field(default_factory=lambda: np.zeros(6))  # (6,) sensor-noise RMS of r_f, r_tau
     _basis: dict = field(default_factory=dict, repr=False)
-    _predictions: dict = field(default_factory=dict, repr=False)
-    _sums: dict = field(default_factory=dict, repr=False)
-    _designs: dict = field(default_factory=dict, repr=False)
 
     @property
     def n(self) -> int:
@@ -133,28 +139,12 @@ class FlightData:
         (without caching one: a caller over many flights holds no bases it did not ask for)."""
         return self._basis.get(effect.name)
 
-    def design(self, lin: list[Effect], vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray]:
-        """Masked stacked basis (m, 6, k) of linear effects and its Gram matrix per channel
-        (6, k, k), cached: the weights change between fits, the basis does not."""
-        key = tuple(e.name for e in lin)
-        if key not in self._designs:
-            X = np.concatenate([self.basis(e, vehicle) for e in lin], axis=2)[self.mask]
-            self._designs[key] = (X, np.einsum("nci,ncj->cij", X, X))
-        return self._designs[key]
+    def blocks(self) -> np.ndarray:
+        """Block of each usable sample (:func:`block_index`)."""
+        return block_index(self.state.t_s[self.mask])
 
-    def cached_prediction(self, effect: Effect, params: dict, vehicle: Vehicle) -> np.ndarray:
-        """(n, 6) smoothed prediction of a nonlinear effect, cached for repeated parameter values
-        (the grid search evaluates the same values in every fold)."""
-        key = (effect.name, tuple(sorted(params.items())))
-        if key not in self._predictions:
-            if len(self._predictions) > 64:
-                self._predictions.clear()
-            self._predictions[key] = prediction(effect, params, self, vehicle)
-        return self._predictions[key]
-
-
-    # --- what the fits, tests and descriptions ask of a flight, on its rows (FlightStats: the same
-    # from its statistics, signals as vectors): the Flight protocol below
+    # --- a prediction on the rows (the Predicting protocol below): what becomes an extra column of
+    # a flight's statistics where they cannot carry an effect (a model the profiles cannot, the search)
 
     def predict(self, effects: Sequence[Effect], params: Mapping[str, dict], vehicle: Vehicle) -> np.ndarray:
         """(n, 6) the effects' summed smoothed prediction at ``params`` (by effect name)."""
@@ -163,77 +153,9 @@ class FlightData:
             out += prediction(e, params[e.name], self, vehicle)
         return out
 
-    def sum_of_squares(self, signal: np.ndarray) -> np.ndarray:
-        """(6,) per channel: the sum of squares of an (n, 6) signal over the usable samples."""
-        return (signal[self.mask] ** 2).sum(axis=0)
-
-    def unit_signal(self, effect: Effect, param: Parameter, vehicle: Vehicle) -> np.ndarray:
-        """:func:`unit_wrench` on this flight."""
-        return unit_wrench(effect, param, self, vehicle)
-
-    def reference_ss(self, effect: Effect, vehicle: Vehicle) -> float:
-        """Energy of the effect's prediction at its sensitivity reference over the usable samples."""
-        ref = {**effect.defaults(), **effect.sensitivity_reference}
-        return float((prediction(effect, ref, self, vehicle)[self.mask] ** 2).sum())
-
-    def blocks(self) -> np.ndarray:
-        """Block of each usable sample (:func:`block_index`)."""
-        return block_index(self.state.t_s[self.mask])
-
-    def after_blocks(self, k: int) -> FlightData:
-        """The flight without its first ``k`` blocks (numbered as :meth:`blocks` numbers them):
-        its usable samples from there on; the cached sums and designs, taken over the usable
-        samples, start afresh."""
-        if k <= 0:
-            return self
-        keep = self.mask.copy()
-        keep[np.flatnonzero(self.mask)[self.blocks() < k]] = False
-        return replace(self, mask=keep, _sums={}, _designs={})
-
-    def block_channel_sums(self, pairs: Sequence[tuple[Mapping[str, np.ndarray], Mapping[str, np.ndarray]]]
-                           ) -> list[np.ndarray]:
-        """Per pair ``(a, b)`` of signals (flight -> (n, 6)): (blocks, 6) ``Σ_i a_ic b_ic`` per block
-        and channel over the usable samples."""
-        blocks = self.blocks()
-        out = []
-        for a, b in pairs:
-            prod = a[self.flight][self.mask] * b[self.flight][self.mask]
-            out.append(np.stack([np.bincount(blocks, weights=prod[:, c], minlength=blocks.max(initial=-1) + 1)
-                                 for c in range(6)], axis=1))
-        return out
-
-    def basis_columns(self, effect: Effect, vehicle: Vehicle) -> list[np.ndarray]:
-        """(n, 6) the smoothed wrench per unit of each linear coordinate of a linear effect."""
-        B = self.basis(effect, vehicle)
-        return [B[:, :, j] for j in range(B.shape[2])]
-
-    def strided_grams(self, columns: Sequence[np.ndarray], w: np.ndarray,
-                      groups: Mapping[str, slice]) -> dict[str, np.ndarray]:
-        """Per channel group: ``Zᵀ Z`` of the weighted columns (each (n, 6), times ``sqrt(w_c)``) on
-        every ``GRAM_STRIDE``-th usable sample: the signals are smoothed over a 31-sample window,
-        so the thinned sums give the same energy ratios at a fraction of the cost."""
-        m = np.flatnonzero(self.mask)[::GRAM_STRIDE]
-        Z = np.stack([c[m] for c in columns], axis=2) * np.sqrt(w)[None, :, None]  # (m, 6, k)
-        return {ch: np.einsum("nci,ncj->ij", Z[:, sl, :], Z[:, sl, :]) for ch, sl in groups.items()}
-
     def forget_bases(self) -> None:
-        """Drop the cached bases and designs (a flight's statistics hold what they gave)."""
+        """Drop the cached bases (a flight's statistics hold what they gave)."""
         self._basis.clear()
-        self._designs.clear()
-
-    def cached_sums(self, nonlin: list[Effect], params: dict, y: np.ndarray, target_key: str,
-                    vehicle: Vehicle) -> np.ndarray:
-        """(6,) ``Σ (y - Σ_e p_e)²`` per channel over the usable samples, for nonlinear effects at
-        ``params`` and the target ``y`` (``target_key``: its digest), cached: a search keeps six
-        numbers per value and flight instead of a prediction, and a value met again (the grid's,
-        in every fold on the same target) costs nothing."""
-        key = (target_key, tuple((e.name, tuple(sorted(params[e.name].items()))) for e in nonlin))
-        if key not in self._sums:
-            p = np.zeros_like(y)
-            for e in nonlin:
-                p += prediction(e, params[e.name], self, vehicle)
-            self._sums[key] = ((y - p)[self.mask] ** 2).sum(axis=0)
-        return self._sums[key]
 
 
 def flight_data(flight: str, decoded, vehicle: Vehicle) -> FlightData:

@@ -15,6 +15,7 @@ from quadcore.identify.discovery.grams import Columns
 from quadcore.identify.discovery.terms import Term, evaluate
 from quadcore.physics import signals
 from quadcore.physics.vehicle import Vehicle
+from reference.flight import as_rows
 
 
 def _ols(G: np.ndarray, cols: list[int], y: int) -> np.ndarray:
@@ -46,7 +47,7 @@ def held_out_rmse(flight: Callable[[str], tuple[flightdata.FlightData, np.ndarra
             filt = signals.smooth(raw) if axis < 3 else \
                 signals.matched_to_derivative(raw, fd.state.t_s, fd.state.thrust_hold_s)
             pred[:, axis] = filt @ beta
-        for i, m in enumerate((fd.after_blocks(skip).mask, fd.mask)):
+        for i, m in enumerate((as_rows(fd).after_blocks(skip).mask, fd.mask)):
             ss[i, 0] += (r[m] ** 2).sum(axis=0)
             ss[i, 1] += ((r - pred)[m] ** 2).sum(axis=0)
             n[i] += int(m.sum())

@@ -47,6 +47,7 @@ from quadcore.identify.fit.solve import (
 )
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
 from quadcore.physics.vehicle import Vehicle
+from reference.flight import RowFlight, as_rows
 
 
 def channel_weights(targets: list[np.ndarray]) -> np.ndarray:
@@ -60,7 +61,7 @@ def weights_of(flights: Sequence[FlightData], targets: Sequence[np.ndarray]) -> 
     return channel_weights([y[fd.mask] for fd, y in zip(flights, targets)])
 
 
-def _row_normal_equations(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
+def _row_normal_equations(lin: list[Effect], flights: Sequence[RowFlight], ys: list[np.ndarray], w: np.ndarray,
                           vehicle: Vehicle) -> tuple[np.ndarray, np.ndarray, float, int]:
     """``(A, b, yy, n_rows)`` of the weighted least squares for the stacked linear coordinates."""
     k = sum(len(e.parameters) for e in lin)
@@ -76,7 +77,7 @@ def _row_normal_equations(lin: list[Effect], flights: Sequence[FlightData], ys: 
     return A, b, yy, n
 
 
-def _linear_solve(lin: list[Effect], flights: Sequence[FlightData], ys: list[np.ndarray], w: np.ndarray,
+def _linear_solve(lin: list[Effect], flights: Sequence[RowFlight], ys: list[np.ndarray], w: np.ndarray,
                   vehicle: Vehicle):
     """Weighted least squares for the stacked linear coordinates: (θ, A, rss, n_rows)."""
     A, b, yy, n = _row_normal_equations(lin, flights, ys, w, vehicle)
@@ -109,19 +110,20 @@ def fit_effects(
     (chosen by who holds the flights, by the effects' kinds).
     """
     fixed = fixed or {}
-    w = weights_of(flights, targets)
+    rfs = [as_rows(fd) for fd in flights]  # the rows with the designs and caches a row fit keeps
+    w = weights_of(rfs, targets)
     ys = [y.copy() for y in targets]
     params, std = fixed_values(effects, fixed)
     for e in effects:
         if e.name in fixed:
-            ys = [y - prediction(e, params[e.name], fd, vehicle) for fd, y in zip(flights, ys)]
+            ys = [y - prediction(e, params[e.name], fd, vehicle) for fd, y in zip(rfs, ys)]
     free = [e for e in effects if e.name not in fixed]
     lin = [e for e in free if e.linear]
     nonlin = [e for e in free if not e.linear]
     if nonlin:
         n_nonlin = sum(len(e.parameters) for e in nonlin)
         search = _scalar_search if n_nonlin == 1 else _vector_search
-        x, cov = search(nonlin, lin, flights, ys, w, vehicle)
+        x, cov = search(nonlin, lin, rfs, ys, w, vehicle)
         nl = unpack(nonlin, x)
         i = 0
         for e in nonlin:
@@ -129,11 +131,11 @@ def fit_effects(
             std[e.name] = {p.name: float(np.sqrt(max(cov[i + j, i + j], 0.0))) for j, p in enumerate(e.parameters)}
             i += len(e.parameters)
         if lin:  # the linear effects are solved on what the nonlinear ones leave
-            ys = _after(nonlin, nl, flights, ys, vehicle)
+            ys = _after(nonlin, nl, rfs, ys, vehicle)
 
     if not lin:
         return Fit(params, std, w)
-    A, b, yy, n = _row_normal_equations(lin, flights, ys, w, vehicle)
+    A, b, yy, n = _row_normal_equations(lin, rfs, ys, w, vehicle)
     return solved_linear(lin, A, b, yy, n, vehicle, params, std, w, bounded)
 
 

@@ -40,10 +40,11 @@ def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: S
     effects solved inside (variable projection: with ``ω = ω(v)``, ``A = Σ_f Σ_c w_c G_fc[K, K]``,
     ``b(v) = Σ_f Σ_c w_c (G_fc[K, :] u_f - ω·P_f·c[K])``, ``J(v) = yy(v) - b(v)ᵀ A⁻¹ b(v)``), then
     the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
-    :func:`quadcore.identify.fit.solve.solved_linear`). Those named in ``fixed`` (linear) are
-    subtracted first."""
+    :func:`quadcore.identify.fit.solve.solved_linear`). Those named in ``fixed`` are subtracted
+    first (a linear one by its coordinates, a profiled one by its column ``pred:<effect>``:
+    :func:`quadcore.identify.fit.linear.subtract_fixed`)."""
     fixed = fixed or {}
-    (nonlinear,) = [e for e in effects if not e.linear]
+    (nonlinear,) = [e for e in effects if not e.linear and e.name not in fixed]
     (p,) = nonlinear.parameters
     w = channel_weights(stats, [np.asarray(u, dtype=float) for u in targets])
     us, params, std = subtract_fixed(effects, fixed, stats, targets, vehicle)

@@ -34,7 +34,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify.fit import fit_effects, solve
-from quadcore.identify.flightdata import Flight
+from quadcore.identify.flightdata import Predicting
 from quadcore.identify.model import EffectTerm, PhysicsModel
 from quadcore.physics.vehicle import Vehicle
 
@@ -292,7 +292,7 @@ def fit_per_session(spec, fds: dict, targets: dict, train: list[str],
                         dict(spec.session_patterns))
 
 
-def model_prediction(pm: PhysicsModel, fd: Flight, log=lambda msg: None) -> np.ndarray:
+def model_prediction(pm: PhysicsModel, fd: Predicting, log=lambda msg: None) -> np.ndarray:
     """The smoothed wrench of a fitted model on one flight, with its session's values and thrust
     map (the fleet value, said in ``log``, for a flight of no fitted session):
     :meth:`~quadcore.identify.flightdata.Flight.predict`, (n, 6) on its rows, a signal vector on

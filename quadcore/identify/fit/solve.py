@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import brentq, lsq_linear, minimize, minimize_scalar
 
 from quadcore.effects import Effect
-from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, Flight
+from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, Predicting
 from quadcore.identify.model import EffectTerm, HeldBound
 from quadcore.identify.settings import DEFAULT
 from quadcore.identify.stats.profiles import search_grid
@@ -52,7 +52,7 @@ class Fit:
     active: dict[str, dict[str, float]] = field(default_factory=dict)
     free: Fit | None = None
 
-    def predict(self, effects: list[Effect], fd: Flight, vehicle: Vehicle) -> np.ndarray:
+    def predict(self, effects: list[Effect], fd: Predicting, vehicle: Vehicle) -> np.ndarray:
         """The effects' summed prediction on a flight (:meth:`Flight.predict`: (n, 6) on its
         rows, a signal vector on its statistics)."""
         return fd.predict(effects, self.params, vehicle)
