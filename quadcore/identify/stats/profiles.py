@@ -31,7 +31,8 @@ any τ > 0 delays the thrust by a whole sample). So, with weights ``ω(v)``, the
 
 exact on the grid (the search's grid stage finds the row search's grid point), a smooth
 interpolant between (the bounded Brent refinement and the profile interval of the standard
-error run on it); beside linear effects, these are solved inside it (:func:`fit_effects`). A held-out
+error run on it); beside linear effects, these are solved inside it
+(:func:`quadcore.identify.fit.profiled.profiled_fit`). A held-out
 prediction at the fitted ``v`` is an extra column whose sums with every other column are
 ``ω(v)·P`` per block: exact on a grid point (to float32 rounding per block), interpolated between
 as the search's objective is; the unit wrench and the reference are exact (stored columns).
@@ -46,7 +47,7 @@ interpolated signal ``p̃ = Σ_g ω_g p(v_g)``, ``ω·C_aa·ω`` (``signals`` of
 not the interpolated energy ``ω·P[W]``: the residual ``y - p̃`` is small beside ``y`` and ``p̃``, and
 the interpolated energy's error (~1e-5 of ``Σ p²``) would be 1-2 % of the residual's energy on a
 simulated lag at the noise floor, the signal's ~1e-4 (the residual's Gram matrix stays one).
-The fits' objective keeps the interpolated energy (``quadcore.identify.stats.sufficient.profiled_fit``).
+The fits' objective keeps the interpolated energy (:func:`quadcore.identify.fit.profiled.profiled_fit`).
 
 **Accuracy** (``benchmarks/bench_profiles.py``, all flights fitted at once): for ``motor_lag``
 the profile search lands within 0.02 of the row search's own tolerance (``xatol``, 5e-4 of the
