@@ -181,7 +181,7 @@ def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: lis
                   sessions: dict[str, list[str]] | None, log) -> RowsOf:
     """``flight(f, quiet=False)``: one flight's rows and its residual (force N, torque N m, body frame)
     under the model's effects, fitted here on the training flights (:func:`model_fit`)."""
-    predict = model_fit(spec, decoded, ids, train, sessions, log)
+    predict = model_fit(spec, decoded, train, sessions, log)
 
     def flight(f: str, quiet: bool = False) -> tuple[flightdata.FlightData, np.ndarray]:
         fd = flightdata.flight_data(f, decoded[f], spec.vehicle_for(f))  # a session's map
@@ -191,17 +191,17 @@ def residual_rows(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: lis
     return flight
 
 
-def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], ids: list[str], train: list[str],
+def model_fit(spec: ModelSpec, decoded: Mapping[str, pl.DataFrame], train: list[str],
               sessions: dict[str, list[str]] | None, log) -> Callable | None:
     """``predict(flight data, log) -> (n, 6)``: the model's effects fitted on the training flights
     from their statistics (:func:`quadcore.identify.fit.model_fit.fit_model`; per session for per-session
     effects) and predicted on a flight's rows, or None for a model without effects."""
     if not spec.effects:
         return None
-    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
-        pm = fit_model(spec, decoded, train, sessions, log)
-        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
-    log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
+    if not spec.per_session:
+        log(f"fitting the model's effects {spec.effects} on {len(train)} flights")
     pm = fit_model(spec, decoded, train, sessions, log)
+    if spec.per_session:  # some effects fitted per session: each flight's residual under its session's values
+        return lambda fd, say: sessionlib.model_prediction(pm, fd, say)
     effects, params = [t.effect for t in pm.terms], {t.name: t.params for t in pm.terms}
     return lambda fd, say: fd.predict(effects, params, spec.vehicle)

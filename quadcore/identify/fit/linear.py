@@ -19,7 +19,7 @@ import numpy as np
 
 from quadcore.effects import Effect
 from quadcore.identify.fit.solve import Fit, fixed_values, solved_linear, weights_from_sums
-from quadcore.identify.stats.sufficient import FlightStats, normal_equations, sum_of_squares
+from quadcore.identify.stats.sufficient import FlightStats, Layout, normal_equations, sum_of_squares
 from quadcore.physics.vehicle import Vehicle
 
 
@@ -46,6 +46,20 @@ def subtract_fixed(effects: list[Effect], fixed: dict[str, dict[str, float]], st
     return vs, params, std
 
 
+def linear_columns(layout: Layout, lin: Sequence[Effect]) -> np.ndarray:
+    """The columns of the linear effects ``lin`` in a flight's layout (stacked, in order)."""
+    return np.concatenate([layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
+
+
+def projected_rss(A: np.ndarray, b: np.ndarray, yy: float) -> float:
+    """The weighted residual sum of squares left when the linear coordinates are solved for
+    (variable projection): ``yy - 2 θ·b + θᵀ A θ`` at ``θ = A⁺ b`` (least squares), never below 0."""
+    if not len(b):
+        return max(yy, 0.0)
+    theta = np.linalg.lstsq(A, b, rcond=None)[0]
+    return max(yy - 2 * float(theta @ b) + float(theta @ A @ theta), 0.0)
+
+
 def fit_linear(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
     """Jointly fit the linear ``effects`` to the targets ``z·v_f`` (normal equations, see the
@@ -56,6 +70,6 @@ def fit_linear(effects: list[Effect], stats: Sequence[FlightStats], targets: Seq
     vs, params, std = subtract_fixed(effects, fixed, stats, targets, vehicle)
     lin = [e for e in effects if e.name not in fixed]
     if lin:
-        A, b, yy = normal_equations(stats, vs, w, lambda lay: np.concatenate([lay.cols(e.name) for e in lin]))
+        A, b, yy = normal_equations(stats, vs, w, lambda lay: linear_columns(lay, lin))
         return solved_linear(lin, A, b, yy, 6 * sum(s.n for s in stats), vehicle, params, std, w, bounded)
     return Fit(params, std, w)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify.fit.linear import channel_weights, subtract_fixed
+from quadcore.identify.fit.linear import channel_weights, linear_columns, projected_rss, subtract_fixed
 from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear
 from quadcore.identify.stats import profiles
 from quadcore.identify.stats.sufficient import FlightStats
@@ -52,7 +52,7 @@ def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: S
     sums = _Sums.of(nonlinear.name, lin, stats, us, w)
 
     def J(v: float) -> float:
-        return sums.rss(profiles.weights(p.lower, p.upper, v))[0]
+        return sums.rss(profiles.weights(p.lower, p.upper, v))
 
     best, var = scalar_minimum(J, sums.n, p.lower, p.upper)
     params[nonlinear.name] = {p.name: best}
@@ -82,7 +82,7 @@ class _Sums:
         k = sum(len(e.parameters) for e in lin)
         const, S, Q, A, b0, B, n = 0.0, 0.0, 0.0, np.zeros((k, k)), np.zeros(k), 0.0, 0
         for s, u in zip(stats, us):
-            cols = np.concatenate([s.layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
+            cols = linear_columns(s.layout, lin)
             Gw = np.tensordot(w, s.total, axes=1)  # Σ_c w_c G_c
             prof = profiles.of_flight(s).by_effect[name].total
             Pw = np.einsum("gcw,c->gw", prof[:, :, :len(u)], w)  # Σ_c w_c P_gc, per grid point
@@ -100,10 +100,6 @@ class _Sums:
         the profiled effect leaves at weights ``om``."""
         return self.b0 - self.B @ om, self.const - 2 * float(om @ self.S) + float(om @ self.Q)
 
-    def rss(self, om: np.ndarray) -> tuple[float, np.ndarray]:
-        """The residual sum of squares at weights ``om`` and the linear coordinates there."""
-        b, yy = self.normal(om)
-        if not len(self.b0):
-            return max(yy, 0.0), np.zeros(0)
-        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
-        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0), theta
+    def rss(self, om: np.ndarray) -> float:
+        """The residual sum of squares at weights ``om``, the linear effects solved for."""
+        return projected_rss(self.A, *self.normal(om))

@@ -49,7 +49,7 @@ from scipy.optimize import minimize
 from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify.binfile import StatsError
-from quadcore.identify.fit.linear import channel_weights, subtract_fixed
+from quadcore.identify.fit.linear import channel_weights, linear_columns, projected_rss, subtract_fixed
 from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, unpack
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
 from quadcore.identify.stats import sufficient
@@ -71,7 +71,7 @@ class _Search:
                  stats: Sequence[FlightStats], us: list[np.ndarray], w: np.ndarray, rows: Rows, vehicle: Vehicle,
                  extras: Extras | None = None):
         self.nonlin, self.vehicle, self.w = nonlin, vehicle, w
-        self.A, self.b0, self.yy0 = normal_equations(stats, us, w, lambda lay: _cols(lay, lin))
+        self.A, self.b0, self.yy0 = normal_equations(stats, us, w, lambda lay: linear_columns(lay, lin))
         self.n = 6 * sum(s.n for s in stats)
         self.flights: list[tuple[FlightData, Callable[[np.ndarray], np.ndarray], np.ndarray, np.ndarray,
                                  np.ndarray]] = []
@@ -79,7 +79,7 @@ class _Search:
             fd = rows(s.flight)
             if fd.n != s.n:
                 raise StatsError(f"{s.flight}: its rows have {fd.n} usable samples, its statistics {s.n}")
-            K = _cols(s.layout, lin)
+            K = linear_columns(s.layout, lin)
             cols = np.array(sorted({*K.tolist(), *np.flatnonzero(u).tolist()}), dtype=int)
             at_K = np.searchsorted(cols, K)
             base = sum((prediction(effectlib.get(n), v, fd, vehicle) for n, v in held.items()),
@@ -101,11 +101,7 @@ class _Search:
         return b, yy
 
     def rss(self, nl: dict[str, dict[str, float]]) -> float:
-        b, yy = self.normal(nl)
-        if not len(b):
-            return max(yy, 0.0)
-        theta = np.linalg.lstsq(self.A, b, rcond=None)[0]
-        return max(yy - 2 * float(theta @ b) + float(theta @ self.A @ theta), 0.0)
+        return projected_rss(self.A, *self.normal(nl))
 
     def gauss_newton(self, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """``M`` of the module at ``x`` (the derivatives by central differences within the box)."""
@@ -136,11 +132,6 @@ class _Search:
     def values(self, x: np.ndarray) -> dict[str, dict[str, float]]:
         """The nonlinear effects' parameters at the stacked values ``x``."""
         return unpack(self.nonlin, x)
-
-
-def _cols(layout: sufficient.Layout, lin: list[Effect]) -> np.ndarray:
-    """The columns of the linear effects ``lin`` in a flight's layout (stacked, in order)."""
-    return np.concatenate([layout.cols(e.name) for e in lin]) if lin else np.zeros(0, dtype=int)
 
 
 def search_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
