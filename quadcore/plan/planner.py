@@ -160,7 +160,7 @@ def _choose_rival(q: Question, diag: Diagnosis, old, vehicle, limits: Limits, du
         b = questionlib.explanation(diag, rival)
         sigma = noise_sigma(diag, [top.name, rival])
         sep = objective.SeparationObjective(top, b, old, vehicle, sigma, old_energy(diag),
-                                            separation.compared_blocks(diag)).evaluate(probe)
+                                            separation.skipped_blocks(diag)).evaluate(probe)
         if sep.sigma >= MIN_PROBE_SIGMA:
             return q.with_rival(rival, f"{q.why.rsplit(' ', 1)[0]} {rival}" if rival != q.candidates[1] else q.why)
         log(f"plan: no flight separates {top.name} from {rival} (a flight of the family gives {sep.sigma:.2f} σ): "
@@ -202,7 +202,7 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
             return FlightPlan(q, limits, request.duration_s)
     a, b = (questionlib.explanation(diag, n) for n in q.candidates)
     sigma = noise_sigma(diag, list(q.candidates))
-    skip = separation.compared_blocks(diag)
+    skip = separation.skipped_blocks(diag)
     obj = objective.SeparationObjective(a, b, old, vehicle, sigma, old_energy(diag), skip)
     loop = signatures.activity(old)
     best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,

@@ -137,7 +137,7 @@ def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, m
         (dict(t.std) for t in diag.model.terms if t.name == truth.name), {})
     sigma = gap = None
     if pair is not None:
-        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.compared_blocks(diag),
+        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.skipped_blocks(diag),
                                   stats=stats)
         sigma = comp.sigma_for(truth.name)
         gap = score_gap(diag, truth.name, pair[1] if pair[0] == truth.name else pair[0])

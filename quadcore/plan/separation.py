@@ -10,7 +10,7 @@ fits the residual better, in the channels above the sensor-noise floor. Its ``t`
 separation in standard errors (positive: the first fits better).
 
 As the diagnosis, it compares the two on the same samples: each flight's first ``skip`` blocks
-(:func:`compared_blocks`: those within the longest memory of the diagnosis's effects) are left
+(:func:`skipped_blocks`: those within the longest memory of the diagnosis's effects) are left
 out.
 
 Two simplifications against the diagnosis: the model's own effects are not refitted in each
@@ -58,7 +58,7 @@ def flights_of(tables: Mapping, spec: ModelSpec) -> dict[str, flightdata.FlightD
     return {f: flightdata.flight_data(f, tables[f], spec.vehicle_for(f)) for f in sorted(tables)}
 
 
-def compared_blocks(diag: Diagnosis) -> int:
+def skipped_blocks(diag: Diagnosis) -> int:
     """The first blocks of each flight the diagnosis left out of its comparison of candidates
     (:func:`quadcore.identify.evidence.memory_blocks` of its model's effects and candidates)."""
     names = [*diag.effects_in_model, *(c.effect for c in diag.candidates)]

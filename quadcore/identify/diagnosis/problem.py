@@ -56,7 +56,7 @@ class _Residual:
 
 class _Flights:
     """The diagnosis's flights as their sufficient statistics (:mod:`quadcore.identify.stats.sufficient`:
-    ``flight(f)`` a :class:`~quadcore.identify.stats.sufficient.FlightStats`, every residual and
+    ``stats[f]`` a :class:`~quadcore.identify.stats.sufficient.FlightStats`, every residual and
     prediction a signal vector), and their rows where those are needed (:meth:`rows`,
     :meth:`signal_rows`): the evaluated flights' residual summaries where the stored ones cannot
     describe the residual, the rate level of timing candidates, and what the statistics cannot
@@ -66,8 +66,6 @@ class _Flights:
         self.decoded, self.spec, self.ids = decoded, spec, ids
         self._rows: dict[str, FlightData] = {}
         self.stats = sufficient.for_flights(spec, decoded, ids, layout, stored)
-        self.fit_effects: sessionlib.FitEffects = fitlib.fit_effects
-        self.channel_weights: Callable[[Sequence[Any], Sequence[np.ndarray]], np.ndarray] = fitlib.channel_weights
 
     def rows(self, f: str) -> FlightData:
         if f not in self._rows:  # a session's thrust map for its state
@@ -78,15 +76,9 @@ class _Flights:
         """Let a flight's rows go."""
         self._rows.pop(f, None)
 
-    def statistics(self, f: str) -> sufficient.FlightStats:
-        return self.stats[f]
-
     def summary(self, f: str) -> summaries.FlightSummary | None:
         """A flight's stored summary (:mod:`quadcore.identify.describe.summaries`), if its statistics have one."""
         return self.stats[f].summary()
-
-    def flight(self, f: str):
-        return self.stats[f]
 
     def target(self, f: str) -> np.ndarray:
         return self.stats[f].layout.target()
@@ -170,10 +162,10 @@ class _Problem:
         self.bounded = bounded  # the candidates fitted within their parameters' physical bounds
         self.effect_of = {c.name: c for c in self.cands}
         self.fl = _Flights(decoded, spec, self.ids, sufficient.layout_of(self.model_effects + self.cands), stats)
-        self.fds = {f: self.fl.flight(f) for f in self.ids}
+        self.fds = self.fl.stats  # by flight id, in the order of ids
         self.targets = {f: self.fl.target(f) for f in self.ids}
         self.in_statistics = model_fit.from_statistics(spec, self.model_effects)
-        self.search_fit = functools.partial(fitlib.fit_effects, rows=self.fl.rows)  # as fit_model fits
+        self.fit_effects = functools.partial(fitlib.fit_effects, rows=self.fl.rows)  # as fit_model fits
         # a nonlinear effect fitted per session: from rows, as fit_model fits it
         self.per_session_nonlinear = any(not e.linear for e in self.model_effects if e.name in spec.per_session)
         # a nonlinear candidate is fitted and predicted from its profiles (quadcore.identify.stats.profiles);
@@ -183,15 +175,13 @@ class _Problem:
     def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
         parameters' physical bounds (the free fit, when it left them, kept as ``free``; free only
-        when the problem says so: ``bounded``); a candidate
-        without a profile (``by_rows``) from the statistics too, its predictions made on the
-        training flights' rows (:func:`quadcore.identify.fit.search.search_fit`)."""
-        if self.by_rows[c.name]:
-            return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
-                                      self.vehicle, bounded=self.bounded, rows=self.fl.rows,
-                                      extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
-        return self.fl.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
-                                   self.vehicle, bounded=self.bounded)
+        when the problem says so: ``bounded``), from the statistics
+        (:func:`quadcore.identify.fit.fit_effects`); a candidate without a profile (``by_rows``) by
+        the search, its predictions made on the training flights' rows
+        (:func:`quadcore.identify.fit.search.search_fit`, the residual's extra columns given as rows)."""
+        return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
+                                  self.vehicle, bounded=self.bounded, rows=self.fl.rows,
+                                  extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
 
     def from_profile(self, c) -> bool:
         """Whether ``c`` is fitted and predicted from the flights' profiles."""
@@ -232,9 +222,9 @@ def _fit_model(p: _Problem, train: list[str], sessions, log) -> tuple[Any, Model
     if p.per_session_nonlinear:
         return _model_on_rows(p, train, sessions, log)
     if p.spec.per_session:
-        pm = sessionlib.fit_per_session(p.spec, p.fds, p.targets, train, sessions, log, p.search_fit)
+        pm = sessionlib.fit_per_session(p.spec, p.fds, p.targets, train, sessions, log, p.fit_effects)
         return pm, _session_terms(pm, log)
-    fit_m = p.search_fit(p.model_effects, [p.fds[f] for f in train], [p.targets[f] for f in train], p.vehicle,
+    fit_m = p.fit_effects(p.model_effects, [p.fds[f] for f in train], [p.targets[f] for f in train], p.vehicle,
                          p.spec.fixed, bounded=True)
     return fit_m, _fit_terms(p, fit_m)
 
@@ -396,7 +386,7 @@ def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> HeldOu
     # holds no evidence FOR an effect (only against one that would add error there).
     noise_ss = _total(fd.noise ** 2 * fd.n for fd in eval_fds)
     at_noise = evidence.at_noise_level(before, noise_ss, settings.noise_margin)
-    w = p.fl.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
+    w = fitlib.channel_weights(eval_fds, [folds.eval_resid[f] for f in eval_ids])
     return HeldOut(eval_ids, eval_fds, folds.eval_resid, folds.cand_pred, before, n_eval, noise_ss, at_noise, w,
                     folds.model_values, folds.eval_extras)
 
@@ -419,7 +409,7 @@ def held_out_of_model(decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, mode
     return _held_out(p, folds, settings)
 
 
-def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list:
+def _evaluated(p: _Problem, eval_ids: list[str], folds: _Folds) -> list[sufficient.FlightStats]:
     """The evaluated flights as the scores take them. From statistics, a nonlinear candidate's
     held-out prediction is an extra column ``pred:`` + its name of the evaluated flights'
     statistics: from its profile at the fitted value (:func:`quadcore.identify.stats.profiles.with_predictions`,
@@ -472,12 +462,12 @@ def _with_row_predictions(fl: _Flights, f: str, cands, cand_pred: dict, base: su
     for c in cands:  # its prediction, then its unit wrenches and reference as a profiled effect has them
         extras[f"pred:{c.name}"] = cand_pred[c.name][f]
         extras.update(profiles.fixed_signals([c.name], fd, vehicle))
-    s = sufficient.flight_stats(fd, vehicle, fl.statistics(f).layout.with_extras(list(extras)), base.key, extras)
+    s = sufficient.flight_stats(fd, vehicle, fl.stats[f].layout.with_extras(list(extras)), base.key, extras)
     fd.forget_bases()  # every linear effect's basis on every evaluated flight: memory the statistics spare
     return s
 
 
-def _on_common_samples(flights: list[Flight], k: int) -> list[Flight]:
+def _on_common_samples(flights: list[sufficient.FlightStats], k: int) -> list[sufficient.FlightStats]:
     """The evaluated flights without the first ``k`` blocks (of ``BLOCK_S``, numbered as the held-out
     test numbers them): those within the longest :meth:`~quadcore.effects.Effect.memory_s` of the
     model's effects and the candidates (:func:`quadcore.identify.evidence.scored_after_blocks`):

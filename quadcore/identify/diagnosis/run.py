@@ -187,7 +187,7 @@ def _session_disagreements(p: _Problem, rows: list[CandidateRow], sessions: Sess
     from its profiles, or by the search on the flights' rows)."""
     best = [p.effect_of[rows[0].effect]] if rows and rows[0].found else []
     return sessionlib.disagreements(p.model_effects + best, p.fds, p.targets, p.vehicle, p.spec.fixed, sessions,
-                                    log, p.search_fit)
+                                    log, p.fit_effects)
 
 
 def _discover_placeholder(spec: ModelSpec) -> str:
