@@ -296,3 +296,35 @@ def test_the_proof_measures_the_separation_on_the_statistics_the_diagnosis_took(
     assert all(stats is not None for stats, _, _ in compared[1:])  # the diagnosis's statistics, not made again
     for flown in result.proof:
         assert flown.sigma is not None and (flown.sigma > 0 or not flown.first), flown
+
+
+def test_a_flight_the_simulator_cannot_fly_is_left_out_of_the_proof_with_its_reason(hover_tie):
+    """One explanation's flight that cannot be flown does not stop the proof: flown with a rotor
+    lag of 0.106 s (the real flights' fitted lag, which the simulator's controller cannot fly) the
+    plan is left out with the reason, the other explanation is still flown and diagnosed, and the
+    JSON says what was left out and why (the prediction after is then the design's)."""
+    from dataclasses import replace
+
+    from quadcore import effects as effectlib
+    from quadcore.identify import diagnosis as diagnosislib
+    from quadcore.plan import planner, proof, question
+    from quadcore.plan.signatures import Explanation
+    from quadcore.spec.model import spec_from
+
+    spec = spec_from(VEHICLE, [])
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(hover_tie)}
+    diag = diagnosislib.diagnose(tables, spec)
+    result = planner.plan(tables, spec, diag, planner.PlanRequest(between=("thrust_scale", "added_mass"),
+                                                                  duration_s=4.0, prove=False))
+    kept = question.explanation(diag, "thrust_scale")
+    unflyable = Explanation(effectlib.get("motor_lag"), {"tau_s": 0.106}, {"tau_s": 0.003})
+    said: list[str] = []
+    done = proof.fly(result.trajectory, tables, spec, diag.model, [unflyable, kept], None, log=said.append)
+    assert [f.truth for f in done.flown] == ["thrust_scale"] and done.flown[0].top
+    [left] = done.left_out
+    assert left.truth == "motor_lag" and "lost control" in left.reason and "tau_s=0.106" in left.reason
+    assert any("WARNING" in m and "motor_lag" in m for m in said)
+    doc = replace(result, proof=done.flown, proof_left_out=done.left_out).to_dict("plan.csv")
+    assert doc["proof_left_out"] == [{"truth": "motor_lag", "reason": left.reason}]
+    assert [f["truth"] for f in doc["proof"]] == ["thrust_scale"]
+    assert doc["predicted"]["separation_sigma_after"] == result.design["after"]["sigma"]

@@ -493,3 +493,24 @@ def test_a_flight_can_start_off_its_reference_with_the_rotors_at_hover():
         np.testing.assert_allclose(sim.p_true[0], np.array([0.1, -0.1, cfg.start_height_m + 0.05]), atol=1e-12)
         np.testing.assert_allclose(sim.f_actual_N[0], hover, rtol=1e-12)
         assert np.max(np.abs(sim.f_map_N[0] - hover)) > 0.01  # the first command is no hover
+
+
+def test_a_vehicle_the_controller_cannot_fly_is_an_error_not_a_log():
+    """A rotor lag as slow as the one fitted on the real flights (0.106 s) makes the controller's
+    attitude loop (tuned for the nominal vehicle, 30 rad/s) unstable: the vehicle flips in take-off
+    and falls to the floor, where the simulator has no ground contact and only holds it out, a
+    velocity jump the accelerometer never sees. That is no flight: a typed error says so, where
+    before a log was written that the physics gate refuses ('the state estimate contradicts
+    itself'). A lag the loop can fly still gives a flight that the gate passes."""
+    cfg = SimConfig(kind="hover", duration_s=4.0, seed=0)
+    with pytest.raises(simulation.SimulationError, match=r"lost control: it turned upside down at t = 1\.\d\d s.*"
+                                                         r"motor_lag tau_s=0\.106"):
+        simulation.simulate(cfg, VEHICLE, {"motor_lag": {"tau_s": 0.106}})
+    sim = simulation.simulate(cfg, VEHICLE, {"motor_lag": {"tau_s": 0.03}})
+    assert simulation.lost_control(sim.t_s, sim.p_true, sim.q_true) is None
+    # what the check reads: upside down, or on the floor
+    q_flipped = np.tile([1.0, 0.0, 0.0, 0.0], (len(sim.t_s), 1))  # 180 degrees about x
+    assert "upside down at t = 0.00 s" in simulation.lost_control(sim.t_s, sim.p_true, q_flipped)
+    p_floor = sim.p_true.copy()
+    p_floor[500:, 2] = 0.0
+    assert f"reached the floor at t = {sim.t_s[500]:.2f} s" in simulation.lost_control(sim.t_s, p_floor, sim.q_true)

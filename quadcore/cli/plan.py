@@ -38,6 +38,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
         print(f"  flown with {f.truth} true: diagnosis ranks {f.top} first"
               + (f", tied with {', '.join(f.tied_with)}" if f.tied_with else ", no tie")
               + (f"; separation {f.sigma:.1f} σ" if f.sigma is not None else ""))
+    for left in result.proof_left_out:
+        print(f"  warning: not in the proof, the flight with {left.truth} true: {left.reason}")
     print(f"wrote {written.trajectory}, {written.plot} and {written.json}")
     return 0
 

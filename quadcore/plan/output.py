@@ -9,7 +9,8 @@ JSON (``quadcore plan --json``; key order fixed)::
      {parameter_std_before, parameter_std_after}, ...}
 
 followed by what explains the numbers (``why``, ``manoeuvre``, ``checked`` limits, ``design``:
-the objective's prediction, ``proof``: each explanation flown in the simulator).
+the objective's prediction, ``proof``: each explanation flown in the simulator, ``proof_left_out``:
+each explanation whose flight the proof could not use, and why).
 
 The picture: the path seen from above and from the side inside the arena, coloured by speed,
 with the stretches where the two explanations' predicted wrenches differ most marked.

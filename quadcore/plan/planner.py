@@ -21,6 +21,7 @@ from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import family, flatness, objective, proof, question as questionlib, search, separation, signatures
 from quadcore.plan.limits import LimitCheck, Limits, check, largest_scale
+from quadcore.plan.proof import LeftOut
 from quadcore.plan.question import Question
 from quadcore.plan.signatures import Explanation
 from quadcore.sim.trajectories import PolyTrajectory
@@ -59,6 +60,7 @@ class FlightPlan:
     measured_before: float | None = None
     gap_before: float | None = None  # |score difference| of the two candidates in the diagnosis
     proof: tuple[proof.Flown, ...] = ()
+    proof_left_out: tuple[LeftOut, ...] = ()  # explanations whose flight the proof could not use
     differ: np.ndarray | None = None  # per sample of the planned path: how much the explanations differ
     path: flatness.FlatPath | None = None
 
@@ -67,18 +69,20 @@ class FlightPlan:
         return self.trajectory is not None
 
     def predicted(self) -> dict[str, float | None]:
-        """The contract's ``predicted``: measured before, proven (else designed) after."""
+        """The contract's ``predicted``: measured before, proven after where every explanation was
+        flown (else designed: without the proof, or with an explanation left out of it)."""
         q = self.question
+        proven = self.proof if not self.proof_left_out else ()
         if q.kind == "separate":
-            after = (min(f.sigma for f in self.proof if f.sigma is not None) if self.proof
+            after = (min(f.sigma for f in proven if f.sigma is not None) if proven
                      else self.design.get("after", {}).get("sigma"))
-            gap = (min(f.score_gap for f in self.proof if f.score_gap is not None) if self.proof
+            gap = (min(f.score_gap for f in proven if f.score_gap is not None) if proven
                    else self.design.get("after", {}).get("score_gap"))
             return {"separation_sigma_before": self.measured_before, "separation_sigma_after": after,
                     "score_gap_before": self.gap_before, "score_gap_after": gap}
         if q.kind == "parameter":
             name = q.parameter.partition(".")[2]
-            after = (self.proof[0].parameter_std.get(name) if self.proof else self.design.get("std_after"))
+            after = (proven[0].parameter_std.get(name) if proven else self.design.get("std_after"))
             return {"parameter_std_before": self.design.get("std_before"), "parameter_std_after": after}
         return {}
 
@@ -97,6 +101,7 @@ class FlightPlan:
             doc["checked"] = self.checked.to_dict()
             doc["design"] = self.design
             doc["proof"] = [f.to_dict() for f in self.proof]
+            doc["proof_left_out"] = [f.to_dict() for f in self.proof_left_out]
         return doc
 
 
@@ -216,10 +221,10 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
-                       sessions, stats) if request.prove else [])
+                       sessions, stats) if request.prove else proof.Proof())
     return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
                       check(best.trajectory, vehicle, limits), design, abs(measured.t),
-                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), tuple(flown),
+                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), flown.flown, flown.left_out,
                       _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
                       flatness.flat_path(best.trajectory, vehicle))
 
@@ -240,8 +245,8 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
     log(f"plan: {best.manoeuvre.describe()}; predicted std of {q.parameter} {std_before:.3g} -> "
         f"{design['std_after']:.3g}")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [expl], None, request.seed, log, sessions, stats)
-             if request.prove else [])
+             if request.prove else proof.Proof())
     u = signatures.unit_wrench(expl, name, fd, vehicle)
     return FlightPlan(q, request.limits, request.duration_s, best.manoeuvre, best.trajectory,
-                      check(best.trajectory, vehicle, request.limits), design, None, None, tuple(flown),
+                      check(best.trajectory, vehicle, request.limits), design, None, None, flown.flown, flown.left_out,
                       (u**2) @ (1.0 / sigma**2), flatness.flat_path(best.trajectory, vehicle))

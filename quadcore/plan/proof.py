@@ -11,6 +11,11 @@ explanation at its fitted values, decoded as a real log, added to the logged fli
 * compared (:func:`quadcore.plan.separation.compare`): the held-out separation in σ, in favour
   of the explanation flown.
 
+One explanation's flight that cannot be used does not stop the others: a flight the simulator
+cannot fly (its closed loop loses control: :func:`quadcore.sim.simulation.lost_control`) or whose
+log the physics gate refuses (:func:`quadcore.physics.gate.physics_problem`) is left out of the
+proof with the reason (:class:`LeftOut`), and the proof goes on with the other explanation.
+
 Both take the flights' statistics (:mod:`quadcore.identify.stats.sufficient`), made once: the
 logged flights' (stored ones where given) for every explanation, the planned flight's once per
 explanation flown (:func:`statistics`).
@@ -33,6 +38,7 @@ from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.stats import sufficient
 from quadcore.logs import flight as flightlib
+from quadcore.physics import gate
 from quadcore.plan import pieces, separation
 from quadcore.plan.signatures import Explanation
 from quadcore.sim import simulation
@@ -58,6 +64,26 @@ class Flown:
     def to_dict(self) -> dict:
         return {"truth": self.truth, "top": self.top, "ranked_first": self.first, "tied_with": list(self.tied_with),
                 "separation_sigma": self.sigma, "score_gap": self.score_gap, "parameter_std": dict(self.parameter_std)}
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """An explanation whose planned flight the proof could not use, and why (the simulator lost
+    control of it, or the physics gate refuses its log)."""
+
+    truth: str
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {"truth": self.truth, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Proof:
+    """The proof's outcome: each explanation flown and diagnosed, and those left out."""
+
+    flown: tuple[Flown, ...] = ()
+    left_out: tuple[LeftOut, ...] = ()
 
 
 def flight_name(spec: ModelSpec) -> str:
@@ -109,15 +135,19 @@ def statistics(tables: Mapping, spec: ModelSpec, stored: StoredStats = None
 
 def fly(traj: PolyTrajectory, tables: Mapping, spec: ModelSpec, model: PhysicsModel, truths: list[Explanation],
         pair: tuple[str, str] | None, seed: int = 0, log: Callable[[str], None] = lambda m: None,
-        sessions: dict[str, list[str]] | None = None, stats: StoredStats = None) -> list[Flown]:
+        sessions: dict[str, list[str]] | None = None, stats: StoredStats = None) -> Proof:
     """The proof (see the module) for each of ``truths``; ``stats``: the logged flights' stored statistics."""
-    out = []
+    out, left_out = [], []
     name = flight_name(spec)
     old = statistics(tables, spec, stats)
     with tempfile.TemporaryDirectory(prefix="quadcore-plan-") as tmp:
         for k, truth in enumerate(truths):
             log(f"proof: flying the plan in the simulator with {truth.name} as the truth")
-            new = simulate_plan(traj, truth, model, Path(tmp), name, seed + k)
+            new, why = _flown_log(traj, truth, model, Path(tmp), name, seed + k)
+            if new is None:
+                left_out.append(LeftOut(truth.name, why))
+                log(f"proof: WARNING: the flight with {truth.name} as the truth is left out of the proof: {why}")
+                continue
             both = {**tables, name: new}
             planned = statistics({name: new}, spec)
 
@@ -126,7 +156,20 @@ def fly(traj: PolyTrajectory, tables: Mapping, spec: ModelSpec, model: PhysicsMo
 
             diag = diagnosislib.diagnose(both, spec, sessions=sessions, stats=of)
             out.append(_flown(diag, truth, pair, both, spec, model, of))
-    return out
+    return Proof(tuple(out), tuple(left_out))
+
+
+def _flown_log(traj: PolyTrajectory, truth: Explanation, model: PhysicsModel, out_dir: Path, name: str,
+               seed: int):
+    """(the planned flight's decoded table with ``truth``, "") or (None, why the proof cannot use it)."""
+    try:
+        table = simulate_plan(traj, truth, model, out_dir, name, seed)
+    except simulation.SimulationError as exc:
+        return None, f"the simulator cannot fly it: {exc}"
+    problem = gate.physics_problem(table, gate.required_columns(model.vehicle))
+    if problem is not None:
+        return None, f"the physics gate refuses its simulated log: {problem}"
+    return table, ""
 
 
 def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, model: PhysicsModel,

@@ -666,6 +666,13 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     body = _true_body(veh, eff, context, n)
     noise = _draw_noise(noise_rng, config.noise, n, rate)
     rec = _fly(config, veh, ref, body, noise, t)
+    lost = lost_control(t, rec.P, rec.Q)
+    if lost is not None:
+        flown = "; ".join(f"{name} " + ", ".join(f"{k}={v:.3g}" for k, v in params.items())
+                          for name, params in eff.items()) or "no effects"
+        raise SimulationError(f"the simulated vehicle lost control: {lost}. The simulator's controller "
+                              f"(quadcore.sim.controller, tuned for the nominal vehicle) cannot fly it with "
+                              f"{flown}; no log is written")
     # the log samples the controller's steps, from log_start_s on (its clock restarting there)
     skip = min(int(round(config.log_start_s * float(config.log_rate_hz))), n // every - 2) * every
     logged = slice(skip, None, every)
@@ -681,6 +688,23 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
         pwm_raw=rec.PWM, vbat_V=rec.VBAT_MV * 1e-3, wind_w_mps=body.air_w_mps[logged],
         reference=trajectories.Reference(*(np.asarray(getattr(ref, f.name))[logged] for f in fields(ref))),
     )
+
+
+def lost_control(t_s: np.ndarray, p_w_m: np.ndarray, q_xyzw: np.ndarray) -> str | None:
+    """Why a simulated flight is no longer a flight, or None: the vehicle turned upside down (its
+    body z axis below the horizon: ``R_wb[2, 2] = 1 - 2 (q_x^2 + q_y^2) < 0``) or reached the
+    floor (``p_w_z = 0``). The simulator has no ground contact: :func:`_integrate` holds the body
+    out of the floor by setting its height and downward velocity to zero, a jump no force
+    explains, so the log's velocity would contradict its accelerometer (the physics gate,
+    :func:`quadcore.physics.gate.state_estimate_problem`, refuses such a log); the references never
+    go there, so a vehicle that does has lost control (an unstable closed loop)."""
+    up = 1.0 - 2.0 * (q_xyzw[:, 0] ** 2 + q_xyzw[:, 1] ** 2)
+    flipped, floor = np.flatnonzero(up < 0.0), np.flatnonzero(p_w_m[:, 2] <= 0.0)
+    first = [(t_s[i[0]], what) for i, what in ((flipped, "turned upside down"), (floor, "reached the floor")) if len(i)]
+    if not first:
+        return None
+    at, what = min(first)
+    return f"it {what} at t = {at:.2f} s"
 
 
 def steps_per_log_sample(config: SimConfig, veh: vehicle_mod.Vehicle) -> int:
