@@ -21,7 +21,7 @@ import pytest
 import snapshot
 
 from quadcore import cli, effects
-from quadcore.identify import diagnosis, evidence, flightdata, model
+from quadcore.identify import diagnosis, evidence, flightdata, model, rates
 from quadcore.identify.fit import model_fit
 from quadcore.logs import flight
 from quadcore.physics import vehicle
@@ -890,3 +890,11 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     assert one.sentence().startswith("Stability not measured") and one.to_dict()["agree"] == 1
     other = Stability(NOTHING, (NOTHING,), "held-out flight", {"ground_effect": 1}, 1)  # one answer cannot flip
     assert other.undecided_between == () and other.sentence().startswith("Stability not measured")
+    # a fold where the rate level prefers none of two timing candidates (rates.Judged.answer): a tie,
+    # agreeing when the top answer is tied with the other one too, else a flip
+    tie = f"motor_lag{rates.TIE}thrust_delay"
+    tied = Stability("thrust_delay", ("thrust_delay", "motor_lag"), "fold", {"thrust_delay": 4, tie: 1}, 5)
+    assert tied.agree == 5 and tied.undecided_between == ()
+    apart = Stability("thrust_delay", ("thrust_delay",), "fold", {"thrust_delay": 4, tie: 1}, 5)
+    assert apart.agree == 4 and apart.undecided_between == ("thrust_delay", tie)
+    assert "thrust_delay and motor_lag or thrust_delay (tied at the angular-rate level)" in apart.sentence()

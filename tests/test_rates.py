@@ -10,6 +10,7 @@ true rates), where the torque channels are unbiased too: the cause, checked.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -188,3 +189,54 @@ def test_the_rate_sums_give_the_rows_costs(delayed_hover):
         assert sums.cost(lag, v, w) == pytest.approx(rows.cost(lag, v, w), rel=1e-5)
     for got, want in zip(sums.differences(delay, 0.0101, lag, 0.0117), rows.differences(delay, 0.0101, lag, 0.0117)):
         assert got == pytest.approx(want, rel=1e-4, abs=1e-6 * np.abs(want).max())
+
+
+DOUBLE_LAG = Path(__file__).resolve().parent / "plugins" / "double_lag.py"  # a third timing effect
+
+
+def _judged(order, sums, w) -> rates.Judged:
+    """What :func:`rates.judge` measures with its timing candidates in ``order``: per pair ``(a, b)``
+    (``a`` before ``b`` in ``order``) the per-block differences on the flights ``sums`` (one flight,
+    ``"f"``), each candidate fitted on them."""
+    fits = {e.name: rates.fit(e, sums, w) for e in order}
+    at = {n: {f.parameter: f.value} for n, f in fits.items()}
+    return rates.Judged({(a.name, b.name): {"f": rates.block_differences(sums, a, at[a.name], b, at[b.name], w)[0]}
+                         for i, a in enumerate(order) for b in order[i + 1:]})
+
+
+def test_the_rate_levels_answer_among_three_timing_candidates_does_not_depend_on_their_order(delayed_hover):
+    """A third timing plugin (tests/plugins/double_lag.py) beside the delay and the lag: the rate
+    level compares the three pair by pair, and a fold's answer, whichever of them the torque level
+    gave and in whatever order the candidates came, is the one no other fits better: here the
+    delay, which is true. (Before, the answer was the better of the first pair that held the
+    fold's answer: the lag's answer in one order was the double lag, which the delay beats.)"""
+    effects.load_plugin(DOUBLE_LAG)
+    timing = [effects.get(n) for n in (*TIMING, "double_lag")]
+    (rf,) = delayed_hover
+    sums = [rates.rate_sums(rf, timing)]
+    w = rates.weights(sums)
+    answers = {(tuple(e.name for e in order), e.name): _judged(order, sums, w).answer(e.name, ["f"])
+               for order in itertools.permutations(timing) for e in timing}
+    assert set(answers.values()) == {"thrust_delay"}, answers
+    assert _judged(timing, sums, w).answer("rotor_drag", ["f"]) == "rotor_drag"  # not a timing candidate
+
+
+def _given(pairs: dict[tuple[str, str], float]) -> rates.Judged:
+    """A Judged whose pairs sum to the given totals on one flight ``"f"`` (> 0: the first fits better)."""
+    return rates.Judged({k: {"f": np.array([v, 0.0])} for k, v in pairs.items()})
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_the_rate_levels_answer_states_a_tie_as_a_tie(flip):
+    """Where no one timing candidate fits better than every other, the answer names those none
+    fits better (an exact tie: two fits that predict alike), or, in a cycle, all of them; the same
+    with each pair's sides swapped."""
+    def judged(pairs):
+        return _given({(b, a) if flip else (a, b): -v if flip else v for (a, b), v in pairs.items()})
+
+    tie = judged({("a", "b"): 0.0, ("a", "c"): 2.0, ("b", "c"): 1.0})
+    assert {tie.answer(e, ["f"]) for e in "abc"} == {f"a{rates.TIE}b"}
+    cycle = judged({("a", "b"): 1.0, ("b", "c"): 1.0, ("a", "c"): -1.0})
+    assert {cycle.answer(e, ["f"]) for e in "abc"} == {rates.TIE.join("abc")}
+    assert judged({("a", "b"): 1.0}).answer("b", ["f"]) == "a"
+    assert judged({("a", "b"): 1.0}).answer("b", ["g"]) == "b"  # nothing measured on these flights: the fold's own

@@ -464,6 +464,9 @@ def _model_torque(model, flight: str, fd: FlightData) -> tuple[Vehicle, np.ndarr
     return m.vehicle, tau
 
 
+TIE = " = "  # joins the timing candidates a fold's answer names when the rate level prefers none of them
+
+
 @dataclass(frozen=True)
 class Judged:
     """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
@@ -472,13 +475,23 @@ class Judged:
     differences: dict[tuple[str, str], dict[str, np.ndarray]]
 
     def answer(self, effect: str, flights: Sequence[str]) -> str:
-        """``effect``, or the timing rival that fits ``flights`` better at the rate level."""
-        for (a, b), per_flight in self.differences.items():
-            if effect in (a, b):
-                total = sum(float(per_flight[f].sum()) for f in flights if f in per_flight)
-                if total != 0:
-                    return a if total > 0 else b
-        return effect
+        """A fold's answer ``effect`` (the torque level's), as the rate level has it on ``flights``
+        when ``effect`` is one of the timing candidates it compared: from every pair's difference
+        summed over ``flights``, the candidate no other fits better; several (an exact tie: fits
+        that predict alike) or, in a cycle, none: every candidate none fits better, or all of them,
+        joined by :data:`TIE` (a tie stated as one). Symmetric: the same whatever the order of the
+        pairs and of each pair's sides. ``effect`` itself when it is no timing candidate or no pair
+        was measured on ``flights``."""
+        names = {n for pair in self.differences for n in pair}
+        measured = [(a, b, per_flight) for (a, b), per_flight in self.differences.items()
+                    if any(f in per_flight for f in flights)]
+        if effect not in names or not measured:
+            return effect
+        beaten: set[str] = set()
+        for a, b, per_flight in measured:
+            total = sum(float(per_flight[f].sum()) for f in flights if f in per_flight)
+            beaten |= {b} if total > 0 else {a} if total < 0 else set()
+        return TIE.join(sorted(names - beaten) or sorted(names))
 
 
 def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],

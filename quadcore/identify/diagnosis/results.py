@@ -10,6 +10,7 @@ from dataclasses import FrozenInstanceError, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from quadcore.identify.model import VEHICLE_DIGEST
+from quadcore.identify.rates import TIE
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 
 if TYPE_CHECKING:
@@ -163,22 +164,28 @@ class Stability:
     votes: Mapping[str, int]  # answer -> in how many units it comes first, most first
     total: int
 
+    def _in_group(self, answer: str) -> bool:
+        """Whether a unit's answer is the top answer or one the data cannot tell from it; a tie
+        between timing candidates (:data:`quadcore.identify.rates.TIE`) when each of them is."""
+        return all(a in self.group for a in answer.split(TIE))
+
     @property
     def agree(self) -> int:
-        return sum(n for a, n in self.votes.items() if a in self.group)
+        return sum(n for a, n in self.votes.items() if self._in_group(a))
 
     @property
     def undecided_between(self) -> tuple[str, ...]:
         """The answers when another one than the top comes first in some unit (none with a single
         unit: one answer cannot flip)."""
-        others = [a for a in self.votes if a not in self.group and a != NO_EVIDENCE]
+        others = [a for a in self.votes if not self._in_group(a) and a != NO_EVIDENCE]
         return (self.answer, *others) if others and self.total > 1 else ()
 
     def sentence(self) -> str:
         """``Stable: ... first in 5 of 5 folds`` or ``Undecided between A and B: ...``."""
         def name(a: str) -> str:
             return {NOTHING: "no effect of the library",
-                    NO_EVIDENCE: "none (flights at the sensor-noise floor: no evidence)"}.get(a, a)
+                    NO_EVIDENCE: "none (flights at the sensor-noise floor: no evidence)"}.get(
+                        a, a if TIE not in a else f"{' or '.join(a.split(TIE))} (tied at the angular-rate level)")
 
         units = f"{self.unit}{'s' if self.total != 1 else ''}"
         if self.total < 2:
