@@ -240,3 +240,27 @@ def test_the_rate_levels_answer_states_a_tie_as_a_tie(flip):
     assert {cycle.answer(e, ["f"]) for e in "abc"} == {rates.TIE.join("abc")}
     assert judged({("a", "b"): 1.0}).answer("b", ["f"]) == "a"
     assert judged({("a", "b"): 1.0}).answer("b", ["g"]) == "b"  # nothing measured on these flights: the fold's own
+
+
+@pytest.mark.slow
+def test_in_holdout_mode_the_held_out_flight_does_not_weigh_the_rate_levels_fit(tmp_path):
+    """The rate level's timing fit on the training flights takes its noise weights from them
+    alone: the same training flights beside a held-out flight with a different gyro noise (three
+    times the roll axis's, a third of the others') give the same parameters. Before, the weights
+    were the noise floor of every flight, the held-out ones too: a leak of the held-out data
+    into the fit."""
+    delay = {"thrust_delay": {"t_d_s": TRUE_S}}
+    train = [SimConfig(kind="hover", duration_s=6.0, seed=k) for k in range(3)]
+    answers = []
+    for gyro_dps in ((0.70, 0.74, 0.29), (2.1, 0.25, 0.1)):
+        folder = tmp_path / f"held_{gyro_dps[0]}"
+        held = SimConfig(kind="hover", duration_s=6.0, seed=9, noise=simulation.SensorNoise(gyro_dps=gyro_dps))
+        simulation.simulate_set(folder, [*train, held], delay, VEHICLE)
+        tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
+        d = diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING), holdout=["sim003"])
+        answers.append({c.effect: (c.parameters, c.parameter_std) for c in d.candidates})
+    for name in TIMING:
+        (p0, s0), (p1, s1) = answers[0][name], answers[1][name]
+        for k in p0:
+            assert p1[k] == pytest.approx(p0[k], rel=1e-9, abs=1e-15), (name, p0, p1)
+            assert s1[k] == pytest.approx(s0[k], rel=1e-9, abs=1e-15), (name, s0, s1)

@@ -534,7 +534,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         first = sorted(slow)[0]
         return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
     flights = {f: s for f, s in reduced_flights.items() if s is not None}
-    w = weights(list(flights.values()))
+    w = weights([flights[f] for f in train_all])  # the training flights' noise: none of the held-out ones'
     folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
     # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
     groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
