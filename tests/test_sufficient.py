@@ -257,6 +257,28 @@ def test_a_candidate_with_two_nonlinear_parameters_is_scored_from_rows_beside_pr
         effects.unregister("scaled_lag")
 
 
+def test_a_candidate_without_a_profile_beside_a_model_with_a_profiled_effect_is_described(lagged_fleet):
+    """A model with a profiled effect (its prediction a column of the residual's statistics) and a
+    candidate without a profile (its held-out prediction and unit wrenches columns from the
+    evaluated flight's rows, before the model's column): the residual's regime tables, from its
+    rows, find each column of the residual by name (before: 'a signal on extra columns has no
+    rows here', the model's column looked for right after the flight's own)."""
+    from quadcore.identify import diagnosis
+
+    effects.load_plugin(SCALED_LAG)
+    try:
+        fds, stats = lagged_fleet
+        held = sorted(fds)[-1]
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(flightdata, "flight_data", lambda f, decoded, veh: fds[f])
+            result = diagnosis.diagnose({f: "rows" for f in fds}, spec_from(VEHICLE, ["motor_lag"]), [held],
+                                        ["scaled_lag"], stats=stats.get).to_dict()
+        assert [f["flight"] for f in result["flights"]] == [held] and result["regimes"]
+        assert result["model"]["effects"][0]["params"]["tau_s"] == pytest.approx(0.03, rel=0.15)
+    finally:
+        effects.unregister("scaled_lag")
+
+
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
     from quadcore.identify.stats import profiles

@@ -83,17 +83,19 @@ class _Flights:
     def target(self, f: str) -> np.ndarray:
         return self.stats[f].layout.target()
 
-    def signal_rows(self, f: str, signal: np.ndarray, values: Mapping[str, float] | None = None,
-                    extras: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
-        """(n, 6) a signal vector on the flight's samples; ``values``: the model's profiled
-        effects' values, whose predictions (``pred:<effect>``, made on the rows), then ``extras``
-        (name -> (n, 6) rows), follow the flight's own columns in the signal's layout."""
+    def signal_rows(self, f: str, signal: np.ndarray, layout: sufficient.Layout,
+                    values: Mapping[str, float] | None = None, extras: Mapping[str, np.ndarray] | None = None
+                    ) -> np.ndarray:
+        """(n, 6) a signal vector of ``layout`` (the flight's statistics' own, grown by extra
+        columns) on the flight's samples; its extra columns, found by name: ``values``, the model's
+        profiled effects' values, whose predictions ``pred:<effect>`` are made on the rows
+        (:meth:`model_columns`), and ``extras`` (name -> (n, 6) rows); any other extra column it
+        uses has no rows here (the evaluated flights' columns of candidates are no part of a residual)."""
         columns = {**self.model_columns(f, values or {}), **(extras or {})}
-        # the evaluated flights' extra columns of candidates are no part of a residual
-        layout = self.stats[f].layout.with_extras(list(columns))
-        if np.any(signal[layout.width:]):
-            raise sufficient.StatsError(f"{f}: a signal on extra columns has no rows here")
-        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal[: layout.width], columns)
+        missing = [n for n in layout.extras if signal[layout.extra(n)] and n not in columns]
+        if missing:
+            raise sufficient.StatsError(f"{f}: the signal's extra column(s) {', '.join(missing)} have no rows here")
+        return sufficient.signal_rows(self.rows(f), self.spec.vehicle, layout, signal, columns)
 
     def model_columns(self, f: str, values: Mapping[str, float]) -> dict[str, np.ndarray]:
         """(n, 6) on the flight's rows, the extra columns ``pred:<effect>`` of the model's profiled

@@ -167,8 +167,11 @@ def _by_flight(p: _Problem, held: HeldOut) -> summaries.Tables:
     for f in set(p.ids) - set(held.ids):  # the training flights' rows, read for nonlinear candidates
         p.fl.release(f)
 
+    layouts = {f: fd.layout for f, fd in zip(held.ids, held.flights)}  # the residuals' own
+
     def from_rows(f: str) -> summaries.ResidualSums:
-        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], held.model_values.get(f), held.extras.get(f))
+        fd, r = p.fl.rows(f), p.fl.signal_rows(f, held.resid[f], layouts[f], held.model_values.get(f),
+                                               held.extras.get(f))
         out = summaries.of_rows(fd, r, p.vehicle).residual(np.ones(1))
         p.fl.release(f)
         return out
