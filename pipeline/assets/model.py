@@ -105,7 +105,7 @@ def model_diagnosis(context: dg.AssetExecutionContext, data_root: DataRoot, mode
     flights = load_fleet(data_root, spec.vehicle, context.log)
     with failing_on_user_errors():
         result = identify.diagnose(flights, spec, model.holdout_flights, context.log.info,
-                                   stats=sufficient.stored(data_root.root_path, spec),
+                                   stats=sufficient.stored(data_root.root_path, spec), root=data_root.root_path,
                                    discover_command=identify.discover_command(data_root.raw_path, spec,
                                                                               model.holdout_flights))
     md, page = identify.record_diagnosis(data_root.root_path, result, spec, make_command("run"))

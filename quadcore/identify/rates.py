@@ -65,8 +65,9 @@ rank against each other come from here (docs/diagnosis.md).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -183,8 +184,30 @@ class RateSums:
 def _packed_square(u: np.ndarray) -> np.ndarray:
     """(P,) the coefficients of a packed upper triangle in ``uᵀ G u``: ``u_i u_j`` (twice off
     the diagonal)."""
-    i, j = np.triu_indices(len(u))
-    return u[i] * u[j] * np.where(i == j, 1.0, 2.0)
+    i, j, twice = _triangle(len(u))
+    return u[i] * u[j] * twice
+
+
+@functools.lru_cache(maxsize=8)
+def _triangle(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The upper triangle's indices of a k × k matrix and its factors (2 off the diagonal): made
+    once per size (every cost of a fit asks for them; read only)."""
+    i, j = np.triu_indices(k)
+    return i, j, np.where(i == j, 1.0, 2.0)
+
+
+def _squares(effect: Effect, flights: Sequence[RateSums]) -> Callable[[float], list[np.ndarray]]:
+    """``squares(v)``: per flight the packed square of its :meth:`RateSums.direction` at ``v``, made
+    once for the flights whose grids are the same (the same vector: the fleet's flights at one
+    sample rate share them)."""
+    first: dict[tuple, int] = {}
+    same = [first.setdefault(tuple((n, g.tobytes()) for n, g in s.grids.items()), k) for k, s in enumerate(flights)]
+
+    def squares(v: float) -> list[np.ndarray]:
+        made = {k: _packed_square(flights[k].direction(effect, v)) for k in first.values()}
+        return [made[k] for k in same]
+
+    return squares
 
 
 def rate_grid(effect: Effect, dt_s: float) -> np.ndarray:
@@ -381,11 +404,12 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
     """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module)."""
     (p,) = effect.parameters
     memo: dict[float, float] = {}
+    squares = _squares(effect, flights)
 
-    def J(v: float) -> float:
+    def J(v: float) -> float:  # Σ_f RateSums.cost, each flight's direction made once per grid
         v = float(min(max(v, p.lower), p.upper))
         if v not in memo:
-            memo[v] = sum(s.cost(effect, v, w) for s in flights)
+            memo[v] = sum(float(w @ (s.total @ q)) for s, q in zip(flights, squares(v)))
         return memo[v]
 
     n = sum(s.n for s in flights) * 3
@@ -409,8 +433,10 @@ def _clustered_variance(effect: Effect, flights: Sequence[RateSums], w: np.ndarr
     if hi <= lo:
         return 0.0
 
-    def per_block(v: float) -> np.ndarray:
-        return np.concatenate([s.costs(effect, v) @ w for s in flights])
+    squares = _squares(effect, flights)
+
+    def per_block(v: float) -> np.ndarray:  # RateSums.costs per flight, its direction made once per grid
+        return np.concatenate([(s.blocks.astype(float) @ q) @ w for s, q in zip(flights, squares(v))])
 
     slopes = (per_block(hi) - per_block(lo)) / (hi - lo)
     k = len(slopes)
@@ -494,9 +520,35 @@ class Judged:
         return TIE.join(sorted(names - beaten) or sorted(names))
 
 
+@dataclass(frozen=True)
+class BelowCommandRate:
+    """A flight logged below the command rate (:func:`below_command_rate`): its median log
+    period and its thrust hold, s. Its rows give no rate-level sums."""
+
+    period_s: float
+    hold_s: float
+
+
+FlightRates = RateSums | BelowCommandRate  # what the rate level keeps of one flight
+# ``cache(flight, inputs, compute)``: the flight's FlightRates for ``inputs`` (what they depend on
+# besides the flight's log: the timing candidates, the skipped start, the model there), kept
+# from an earlier diagnosis or ``compute()``d (quadcore.identify.diagnosis.rate_cache)
+RatesCache = Callable[[str, dict, Callable[[], FlightRates]], FlightRates]
+
+
+def flight_inputs(model, flight: str, timing: Sequence[Effect], skip_s: float) -> dict:
+    """What a flight's :class:`FlightRates` depend on besides its log (JSON): the timing effects,
+    the start left out, and the model on the flight (its vehicle, its effects' values)."""
+    m = model.for_flight(flight)
+    return {"timing": [e.name for e in timing], "skip_s": skip_s,
+            "vehicle": {k: v for k, v in asdict(m.vehicle).items() if k != "source"},
+            "terms": [[t.name, t.params] for t in m.terms]}
+
+
 def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],
           release: Callable[[str], None], model, splits: Sequence[tuple[list[str], list[str]]], train_all: list[str],
-          settings: DiagnosisSettings, decide: Callable[[CandidateRow], None]) -> tuple[list[CandidateRow], Judged]:
+          settings: DiagnosisSettings, decide: Callable[[CandidateRow], None],
+          cache: RatesCache | None = None) -> tuple[list[CandidateRow], Judged]:
     """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
     :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
     one's parameter, standard error (the larger of the profile's and the spread between the
@@ -507,8 +559,9 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     found (undecided, whatever the torque level says). Every candidate on the same intervals
     (after the longest memory of them). The model's effects at their values fitted on all
     training flights. Each flight's rows (``rows_of``) are read once, reduced to its
-    :class:`RateSums` and let go (``release``). ``decide``: the diagnosis's decision (found,
-    grade), taken again on a row whose significance changed."""
+    :class:`RateSums` and let go (``release``); ``cache``: those kept from an earlier diagnosis,
+    each flight's rows read only when its are missing or stale. ``decide``: the diagnosis's
+    decision (found, grade), taken again on a row whose significance changed."""
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
@@ -517,15 +570,21 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
 
     slow: dict[str, tuple[float, float]] = {}  # flights below the command rate: their log period and hold
 
-    def reduced(f: str) -> RateSums | None:  # one flight's rows at a time, let go once its sums are taken
+    def compute(f: str) -> FlightRates:  # one flight's rows at a time, let go once its sums are taken
         fd = rows_of(f)
-        out = None
         if below_command_rate(fd):
-            slow[f] = (float(np.median(np.diff(fd.state.t_s))), fd.state.thrust_hold_s)
+            out: FlightRates = BelowCommandRate(float(np.median(np.diff(fd.state.t_s))), fd.state.thrust_hold_s)
         else:
             vehicle, tau = _model_torque(model, f, fd)
             out = rate_sums(rate_flight(fd, vehicle, tau, skip), timing)
         release(f)
+        return out
+
+    def reduced(f: str) -> RateSums | None:
+        out = compute(f) if cache is None else cache(f, flight_inputs(model, f, timing, skip), lambda: compute(f))
+        if isinstance(out, BelowCommandRate):
+            slow[f] = (out.period_s, out.hold_s)
+            return None
         return out
 
     reduced_flights = {f: reduced(f) for f in ids}

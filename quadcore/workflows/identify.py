@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from quadcore.commands import quadcore_command
 from quadcore.identify import diagnosis, history, model
+from quadcore.identify.diagnosis import rate_cache
 from quadcore.identify.fit import model_fit
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.identify.stats import sufficient
@@ -93,15 +94,18 @@ def diagnosis_flights(fleet: Fleet, named: list[str], where: str = "the decoded 
 
 def diagnose(fleet: Fleet, spec: ModelSpec, named_holdout: list[str], log: Log = _quiet,
              where: str = "the decoded flights", stats=None, discover_command: str | None = None,
-             settings: DiagnosisSettings = DEFAULT) -> Diagnosis:
+             settings: DiagnosisSettings = DEFAULT, root=None) -> Diagnosis:
     """:func:`quadcore.identify.diagnosis.diagnose` on the flights :func:`diagnosis_flights` picks,
     with the flights skipped on the way (``skipped_flights``). ``stats`` as for :func:`fit`;
     ``discover_command``: the command the verdict points to when what is left is outside the library;
-    ``settings``: its thresholds and folds."""
+    ``settings``: its thresholds and folds; ``root``: the data root the flights are decoded under,
+    where the rate level's per-flight sums are kept between diagnoses
+    (:mod:`quadcore.identify.diagnosis.rate_cache`: a new flight's rows are read, the others' sums reused)."""
     seen, holdout = diagnosis_flights(fleet, named_holdout, where)
     log(f"diagnosing {len(seen.tables)} flights against {spec.effects or 'the nominal model'}")
     result = diagnosis.diagnose(seen.tables, spec, holdout, log=log, sessions=sessions_of(spec, seen.ids),
-                                stats=stats, discover_command=discover_command, settings=settings)
+                                stats=stats, discover_command=discover_command, settings=settings,
+                                rate_cache=rate_cache.stored(root) if root is not None else None)
     return result.with_skipped(fleet.skipped)
 
 

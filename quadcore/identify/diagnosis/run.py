@@ -60,6 +60,7 @@ def diagnose(
     sessions: Sessions = None,
     stats: StoredStats = None,
     discover_command: str | None = None,
+    rate_cache: rates.RatesCache | None = None,
 ) -> Diagnosis:
     """Fit the model, score it on held-out flights, rank the missing effects, and find the
     parameters that differ between groups of flights (``sessions``: name -> flights, from a
@@ -75,7 +76,9 @@ def diagnose(
     ``discover_command``: the ``quadcore discover`` command the verdict points to when what is
     left is outside the library (None: one with placeholders for the logs and the model file).
     ``settings``: the thresholds and folds it decides by (:class:`~quadcore.identify.settings.DiagnosisSettings`),
-    recorded in the result."""
+    recorded in the result. ``rate_cache``: the timing candidates' rate-level sums kept from an
+    earlier diagnosis (:func:`quadcore.identify.diagnosis.rate_cache.stored`), so that only the
+    flights whose sums are missing or stale are read."""
     p = _Problem(decoded, spec, candidates, stats)
     splits, train_all, mode = _splits(p.ids, holdout, settings.n_folds)
     folds = _cross_fit(p, splits, sessions, log)
@@ -99,7 +102,7 @@ def diagnose(
     _mark_alike(rows, span, held, p, settings)
     # a lag, a delay: fitted and compared at the angular-rate level, which the closed loop does not bias
     rows, timing = rates.judge(_rank(rows), p.cands, p.fl.rows, p.fl.release, model, splits, train_all, settings,
-                               lambda r: _decide(r, held.at_noise, len(rows), settings))
+                               lambda r: _decide(r, held.at_noise, len(rows), settings), rate_cache)
     for f in p.ids:
         p.fl.release(f)
     sensitivity = _beyond_the_best(rows, span, held, p, settings)

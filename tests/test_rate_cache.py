@@ -1,0 +1,138 @@
+"""The rate level's per-flight sums kept under the data root (quadcore.identify.diagnosis.rate_cache):
+a diagnosis with them equals one without, a kept flight's rows are not read again, and a kept file
+that no longer describes the flight (another log, another model, another format, cut short, not
+one) is computed again, never read."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from snapshot import json_differences
+
+from quadcore.identify import binfile, diagnosis, rates
+from quadcore.identify.diagnosis import rate_cache
+from quadcore.logs import flight
+from quadcore.physics import decoded_store
+from quadcore.physics.vehicle import load as load_vehicle
+from quadcore.spec.model import spec_from
+from quadcore.store import store
+
+VEHICLE = load_vehicle("crazyflie21")
+CANDIDATES = ["rotor_drag", "motor_lag", "thrust_delay"]  # two timing candidates: the rate level runs
+
+
+@pytest.fixture
+def root(drag_fleet, tmp_path):
+    """The shared fleet decoded under a data root of its own (the decoded tables record their log's digest)."""
+    for path in flight.discover_logs(drag_fleet):
+        decoded_store.write_decoded(tmp_path, flight.decode_flight(path))
+    return tmp_path
+
+
+def _tables(root) -> dict:
+    return {f: store.read_decoded(root, store.MAIN_EVENT, f) for f in ("sim000", "sim001", "sim002", "sim003")}
+
+
+def _diagnose(root, tables, spec=None, cache=True) -> dict:
+    return diagnosis.diagnose(tables, spec or spec_from(VEHICLE, []), None, CANDIDATES,
+                              rate_cache=rate_cache.stored(root) if cache else None).to_dict()
+
+
+@pytest.fixture
+def computed(monkeypatch) -> list[int]:
+    """How many flights' rate-level sums were computed from their rows (one entry per flight)."""
+    calls: list[int] = []
+    made = rates.rate_sums
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return made(*args, **kwargs)
+
+    monkeypatch.setattr(rates, "rate_sums", counting)
+    return calls
+
+
+def test_kept_sums_give_the_diagnosis_without_them_and_read_no_rows_again(root, computed):
+    tables = _tables(root)
+    without = _diagnose(root, tables, cache=False)
+    assert len(computed) == 4 and not list(root.glob("stats/*/rates.bin"))
+    first = _diagnose(root, tables)  # computed and kept
+    assert len(computed) == 8 and len(list(root.glob("stats/*/rates.bin"))) == 4
+    again = _diagnose(root, tables)  # read back: no flight's sums computed
+    assert len(computed) == 8
+    timing = [c for c in again["candidates"] if c["effect"] in ("motor_lag", "thrust_delay")]
+    assert len(timing) == 2 and all(any("angular-rate level" in n for n in c["notes"]) for c in timing)
+    assert json_differences(first, without) == [] and json_differences(again, without) == []
+
+
+def test_a_flight_decoded_from_other_bytes_is_computed_again_and_only_it(root, drag_fleet, computed):
+    tables = _tables(root)
+    _diagnose(root, tables)
+    # sim000 decoded again from another log's bytes: its kept sums are of the old log
+    other = flight.decode_flight(next(p for p in flight.discover_logs(drag_fleet) if p.name == "sim001"), "sim000")
+    decoded_store.write_decoded(root, other)
+    tables = _tables(root)
+    computed.clear()
+    refreshed = _diagnose(root, tables)
+    assert len(computed) == 1
+    assert json_differences(refreshed, _diagnose(root, tables, cache=False)) == []
+
+
+def test_another_model_computes_every_flight_again(root, computed):
+    tables = _tables(root)
+    _diagnose(root, tables)
+    computed.clear()
+    spec = spec_from(VEHICLE, ["rotor_drag"])
+    cands = [c for c in CANDIDATES if c != "rotor_drag"]
+    with_model = diagnosis.diagnose(tables, spec, None, cands, rate_cache=rate_cache.stored(root)).to_dict()
+    assert len(computed) == 4  # the model's torque is taken out of the increments: its fit is in the key
+    assert json_differences(with_model, diagnosis.diagnose(tables, spec, None, cands).to_dict()) == []
+
+
+def test_a_kept_file_that_cannot_serve_is_computed_again_not_read(root, computed):
+    tables = _tables(root)
+    without = _diagnose(root, tables, cache=False)
+    _diagnose(root, tables)
+    path = rate_cache.path(root, "sim002")
+    for damage in ("cut", "garbage", "other_format", "other_key"):
+        raw = path.read_bytes()
+        if damage == "cut":
+            path.write_bytes(raw[: len(raw) // 2])
+        elif damage == "garbage":
+            path.write_bytes(b"not a rate-level file")
+        else:
+            header, array = binfile.decode(raw)
+            arrays = {n: array(n) for n in header["arrays"]}
+            del header["arrays"]
+            header.update({"format": rate_cache.FORMAT + 1} if damage == "other_format" else {"key": "another-key"})
+            binfile.write_file(path, header, arrays)
+        computed.clear()
+        assert json_differences(_diagnose(root, tables), without) == [], damage
+        assert len(computed) == 1, damage  # that flight's, and the file replaced by a good one
+        assert rate_cache.load(root, "sim002", binfile.decode(path.read_bytes())[0]["key"]) is not None
+
+
+def test_sums_read_back_equal_the_ones_written(root, tmp_path):
+    tables = _tables(root)
+    sums: dict[str, rates.FlightRates] = {}
+
+    def keep(f, inputs, compute):
+        sums[f] = compute()
+        return sums[f]
+
+    diagnosis.diagnose(tables, spec_from(VEHICLE, []), None, CANDIDATES, rate_cache=keep)
+    s = sums["sim001"]
+    assert isinstance(s, rates.RateSums)
+    rate_cache.save(tmp_path, "sim001", "k", s)
+    back = rate_cache.load(tmp_path, "sim001", "k")
+    assert isinstance(back, rates.RateSums)
+    assert back.slots == s.slots and (back.samples, back.n) == (s.samples, s.n) and back.dt_s == pytest.approx(s.dt_s)
+    for name in s.grids:
+        np.testing.assert_allclose(back.grids[name], s.grids[name], rtol=1e-15)
+    for a, b in ((back.blocks, s.blocks), (back.total, s.total), (back.noise, s.noise)):
+        assert a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=1e-15)
+    assert rate_cache.load(tmp_path, "sim001", "another") is None
+    slow = rates.BelowCommandRate(0.01, 0.002)
+    rate_cache.save(tmp_path, "slow", "k", slow)
+    assert rate_cache.load(tmp_path, "slow", "k") == slow
