@@ -279,6 +279,28 @@ def test_a_candidate_without_a_profile_beside_a_model_with_a_profiled_effect_is_
         effects.unregister("scaled_lag")
 
 
+def test_the_residuals_rows_are_the_residual_its_statistics_hold(lagged_fleet):
+    """A model with a profiled effect, its prediction a column ``pred:<effect>`` of the residual's
+    statistics (interpolated in the profile's grid): the residual's rows (the regime tables', the
+    search's extra columns) hold that same column, so their sums of squares are the statistics'
+    to rounding. (Before, the rows held the exact prediction: 3e-5 relative off here, motor_lag
+    fixed at 15 ms, off its profile's grid.)"""
+    from quadcore.identify.diagnosis import problem
+
+    fds, stats = lagged_fleet
+    spec = spec_from(VEHICLE, ["rotor_drag", "motor_lag"], {"motor_lag": {"tau_s": 0.015}})
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(flightdata, "flight_data", lambda f, decoded, veh: fds[f])
+        p = problem._Problem({f: "rows" for f in fds}, spec, [], stats.get)
+        _, model_of = problem._fit_model(p, p.ids, None, lambda msg: None)
+        resid = problem._residual(p, model_of, p.ids)
+        for f in p.ids:
+            assert resid.values[f] == {"motor_lag": 0.015}
+            rows = p.fl.signal_rows(f, resid.signal[f], resid.on[f].layout, resid.values[f], resid.extras[f])
+            np.testing.assert_allclose((rows[fds[f].mask] ** 2).sum(axis=0),
+                                       resid.on[f].sum_of_squares(resid.signal[f]), rtol=1e-10)
+
+
 def test_the_profile_is_exact_on_its_grid(lagged_fleet):
     """At a grid point, the held-out prediction's sums from the profile are the rows' sums."""
     from quadcore.identify.stats import profiles

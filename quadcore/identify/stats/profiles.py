@@ -48,6 +48,9 @@ not the interpolated energy ``ω·P[W]``: the residual ``y - p̃`` is small besi
 the interpolated energy's error (~1e-5 of ``Σ p²``) would be 1-2 % of the residual's energy on a
 simulated lag at the noise floor, the signal's ~1e-4 (the residual's Gram matrix stays one).
 The fits' objective keeps the interpolated energy (:func:`quadcore.identify.fit.profiled.profiled_fit`).
+Where such a residual is wanted on rows (its regime tables, the search's extra columns beside it),
+its column's rows are ``p̃`` itself (:func:`interpolated_prediction`), not ``p(v)``: the residual on
+rows is then the one its statistics hold (docs/diagnosis.md figures the difference).
 
 **Accuracy** (``benchmarks/bench_profiles.py``, all flights fitted at once): for ``motor_lag``
 the profile search lands within 0.02 of the row search's own tolerance (``xatol``, 5e-4 of the
@@ -148,6 +151,20 @@ def fixed_signals(names: Sequence[str], fd: FlightData, vehicle: Vehicle) -> dic
         out.update({f"unit:{name}:{p.name}": unit_wrench(e, p, fd, vehicle) for p in e.parameters})
         if e.sensitivity_reference:
             out[f"ref:{name}"] = prediction(e, {**e.defaults(), **e.sensitivity_reference}, fd, vehicle)
+    return out
+
+
+def interpolated_prediction(effect: Effect, v: float, fd: FlightData, vehicle: Vehicle) -> np.ndarray:
+    """(n, 6) on a flight's rows, the column ``pred:<effect>`` that :func:`with_predictions` adds
+    to its statistics at ``v``: the interpolated signal ``p̃ = Σ_g ω_g(v) p(v_g)`` over the
+    profile's grid (see the module), whose sums with every column, and own energy as a model's
+    signal, are those the statistics hold; the exact prediction ``p(v)`` only on a grid point."""
+    (p,) = effect.parameters
+    w = weights(p.lower, p.upper, v)
+    out = np.zeros((fd.state.n, 6))
+    for g in np.flatnonzero(w):
+        out += w[g] * prediction(effect, {**effect.defaults(), p.name: float(profile_grid(p.lower, p.upper)[g])},
+                                 fd, vehicle)
     return out
 
 
