@@ -3,13 +3,15 @@ statistics equals the same held-out comparison on their rows (tests/reference/se
 linear candidates to rounding (measured 1e-15); beside a model with a profiled nonlinear effect,
 whose prediction comes from its profile interpolated between grid points, to 1e-4 (measured
 8e-6); one-parameter nonlinear candidates, fitted and predicted from their profiles where the
-rows search the parameter itself, to 1 % (measured 3e-3)."""
+rows search the parameter itself, to 1 % (measured 3e-3). For two timing candidates it is the
+diagnosis's own angular-rate level test, not the torque channels' comparison."""
 
 from __future__ import annotations
 
 import pytest
 from reference import separation as reference
 
+from quadcore.identify import diagnosis, rates
 from quadcore.identify.fit import model_fit
 from quadcore.identify.model import PhysicsModel
 from quadcore.logs import flight as flightlib
@@ -47,3 +49,27 @@ def test_the_separation_from_statistics_is_the_one_on_the_rows(weak_map, effects
     assert comp.blocks == blocks
     assert comp.t == pytest.approx(t, rel=rel), (comp.t, t)
     assert abs(t) > 1.0  # a comparison that says something (not two zero predictions)
+
+
+def test_a_lag_against_a_delay_is_measured_by_the_diagnosis_s_own_rate_level_test(weak_map, monkeypatch):
+    """The diagnosis decides a lag against a delay at the angular-rate level
+    (:func:`quadcore.identify.rates.judge`): the planner's measured separation of the two
+    (what the plan reports before, the proof after, and the benchmark per trial) is that test's t."""
+    seen: list[float] = []
+    test = rates.difference_test
+
+    def spy(g, D):
+        out = test(g, D)
+        seen.append(out.t)
+        return out
+
+    monkeypatch.setattr(rates, "difference_test", spy)
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(weak_map, spec)
+    assert len(seen) == 1, seen  # the diagnosis compared the pair once
+    comp = separation.measured(weak_map, spec, diag, "motor_lag", "thrust_delay")
+    assert len(seen) == 2 and comp.t == pytest.approx(seen[0], rel=1e-12, abs=1e-12)
+    torque = separation.compare(weak_map, spec, diag.model, "motor_lag", "thrust_delay",
+                                skip=separation.skipped_blocks(diag))
+    assert abs(comp.t - torque.t) > 0.5, (comp.t, torque.t)  # a different statistic from the torque level's
+

@@ -66,7 +66,7 @@ rank against each other come from here (docs/diagnosis.md).
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
@@ -271,8 +271,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = False) ->
     for e in timing:
         (p,) = e.parameters
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
-            tau = e.wrench(st, rf.vehicle, {p.name: float(v)})[1]
-            X[:, :, j] = demeaned(np.cumsum(signals.interval_integrals(tau, st.t_s, st.thrust_hold_s), axis=0)[use])
+            X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
     ar, share = noise_model(X, starts, rf.fd.noise[3:]) if whiten else (np.zeros((3, 0)), np.ones(3))
     lags = ar.shape[1]
     iu = np.triu_indices(k)
@@ -286,6 +285,14 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = False) ->
     used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
     return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0),
                     rf.fd.noise[3:] * np.sqrt(share), max(rf.fd.n, 1), dt_s, used)
+
+
+def effect_increments(effect: Effect, params: dict[str, float], rf: RateFlight) -> np.ndarray:
+    """(m, 3) ``∫ τ_e dt`` over each sample interval of ``rf``'s flight: the torque of ``effect`` at
+    ``params`` with the flight's thrust hold (N m s, body frame): a candidate's increments, whose
+    running sum is its ``C``."""
+    st = rf.fd.state
+    return signals.interval_integrals(effect.wrench(st, rf.vehicle, params)[1], st.t_s, st.thrust_hold_s)
 
 
 # The rate level's noise model (noise_model, docs/timing.md "The noise model")
@@ -575,8 +582,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         if below_command_rate(fd):
             out: FlightRates = BelowCommandRate(float(np.median(np.diff(fd.state.t_s))), fd.state.thrust_hold_s)
         else:
-            vehicle, tau = _model_torque(model, f, fd)
-            out = rate_sums(rate_flight(fd, vehicle, tau, skip), timing)
+            out = flight_sums(fd, model, f, timing, skip)
         release(f)
         return out
 
@@ -609,16 +615,33 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             ra, rb = by_name[a.name], by_name[b.name]
             if not (ra.physical and rb.physical):
                 continue
-            per_flight = {
-                f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
-                for (_, te), fa, fb in zip(splits, folds[a.name], folds[b.name]) for f in te}
+            per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], w)
             differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
-            test = difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
             if test.p_value < settings.alpha:
                 rows = _prefer(rows, *((ra, rb) if test.t > 0 else (rb, ra)))
             elif ra.found or rb.found:
                 _tie(ra, rb)
     return rows, Judged(differences)
+
+
+def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_s: float) -> RateSums:
+    """One flight's :class:`RateSums` as the diagnosis takes them: the increments with the torque
+    of ``model``'s effects (on ``flight``) removed, the intervals within ``skip_s`` of its start
+    left out (the longest memory of the ``timing`` candidates)."""
+    vehicle, tau = _model_torque(model, flight, fd)
+    return rate_sums(rate_flight(fd, vehicle, tau, skip_s), timing)
+
+
+def compare_pair(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], a: Effect,
+                 b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
+                 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], evidence.HeldOutTest]:
+    """The held-out comparison of two timing candidates: per test flight of each split its
+    :func:`block_differences` with both candidates fitted on the split's training flights
+    (``fits_a``, ``fits_b``, one per split), and the :func:`difference_test` over all of them
+    (``t > 0``: ``a`` fits better)."""
+    per_flight = {f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
+                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te}
+    return per_flight, difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
 
 
 def below_command_rate(fd: FlightData) -> bool:

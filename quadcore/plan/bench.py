@@ -38,9 +38,9 @@ from quadcore.identify import diagnosis as diagnosislib
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.logs import flight as flightlib
 from quadcore.physics import vehicle as vehiclelib
-from quadcore.plan import pieces, planner, signatures
+from quadcore.plan import pieces, planner, question as questionlib, ratelevel, separation, signatures
 from quadcore.plan.limits import Limits
-from quadcore.sim import simulation
+from quadcore.sim import simulation, trajectories
 from quadcore.sim.simulation import SensorNoise, SimConfig
 from quadcore.spec.model import spec_from
 
@@ -55,6 +55,11 @@ class Scenario:
     truths: tuple[dict[str, float], dict[str, float]]  # parameters of pair[0], pair[1]
     old: Callable[[int], list[SimConfig]]
     noise: SensorNoise = SensorNoise()  # every flight's sensor noise, the old ones' and the added one's
+
+    @property
+    def timing(self) -> bool:
+        """A lag against a delay: decided at the angular-rate level."""
+        return separation.timing_pair(*self.pair)
 
 
 def _circles(seed: int) -> list[SimConfig]:
@@ -79,12 +84,16 @@ SCENARIOS = {
 
 @dataclass(frozen=True)
 class Outcome:
-    """What the diagnosis says about the truth: ranked first, and tied (or alike) with the rival."""
+    """What the diagnosis says about the truth: ranked first, and tied (or alike) with the rival;
+    ``sigma`` the separation in favour of the truth, in the statistic the diagnosis decides the
+    pair by (:func:`quadcore.plan.separation.measured`: the held-out t; negative: the rival fits
+    better)."""
 
     top: str
     first: bool
     tied: bool
     alike: bool
+    sigma: float = float("nan")
 
     @property
     def decided(self) -> bool:
@@ -92,17 +101,35 @@ class Outcome:
         return self.first and not self.tied
 
     def describe(self) -> str:
-        return f"top {self.top}" + (", tied" if self.tied else "") + (", alike" if self.alike and not self.tied else "")
+        tie = ", tied" if self.tied else (", alike" if self.alike else "")
+        return f"top {self.top}{tie}, {self.sigma:+.1f} σ"
 
 
-def outcome(diag: Diagnosis, truth: str, rival: str) -> Outcome:
+def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outcome:
     row = next(c for c in diag.candidates if c.effect == truth)
     top = diag.candidates[0].effect
-    return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from)
+    sigma = separation.measured(tables, spec, diag, truth, rival).sigma_for(truth)
+    return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from, sigma)
 
 
 def _decode(folder: Path) -> dict:
     return {p.name: flightlib.decode_flight(p).tables["fixedFrequency"] for p in flightlib.discover_logs(folder)}
+
+
+@dataclass(frozen=True)
+class Added:
+    """What one added flight is predicted to add at the rate level
+    (:meth:`quadcore.plan.ratelevel.RateSeparation.own`): per truth the expected t of its blocks
+    alone, its length, and the design's separation with it."""
+
+    flight: str
+    seconds: float
+    own: dict[str, float]
+    after: float
+
+    def per_second(self) -> float:
+        """The smaller over the truths of ``t²`` per second of flight (``t²`` adds over blocks)."""
+        return min(t**2 for t in self.own.values()) / self.seconds
 
 
 @dataclass(frozen=True)
@@ -117,7 +144,9 @@ class Trial:
     planned: Outcome
     files: dict[str, Outcome]
     manoeuvre: str
-    predicted_sigma: float
+    predicted_sigma: float  # the design's separation with the planned flight if the truth is true
+    predicted_before: float  # the same on the old flights alone
+    added: tuple[Added, ...] = ()  # a timing pair: the rate-level objective on the plan, each file and a hover
 
 
 def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str], None] = lambda m: None) -> Trial:
@@ -129,15 +158,14 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
     effects = {truth: sc.truths[k]}
     veh = vehiclelib.load()
     spec = spec_from(veh, [])
+    old, before = old_flights(name, seed)
     with tempfile.TemporaryDirectory(prefix="quadcore-plan-bench-") as tmp:
         root = Path(tmp)
-        simulation.simulate_set(root / "old", [replace(c, noise=sc.noise) for c in sc.old(seed)], effects, veh)
-        old = _decode(root / "old")
-        before = diagnosislib.diagnose(old, spec)
         plan = planner.plan(old, spec, before, planner.PlanRequest(sc.pair, None, Limits(), PLAN_S, prove=False,
                                                                    seed=seed))
         assert plan.trajectory is not None and plan.manoeuvre is not None
         log(f"{name} seed {seed}: truth {truth}; plan {plan.manoeuvre.describe()}")
+        added = predicted_by_flight(plan.trajectory, old, before, spec, sc.pair, (*FILES, "hover")) if sc.timing else ()
         flown = {}
         csv = root / "plan.csv"
 
@@ -147,10 +175,51 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
         configs = {"planned": SimConfig(kind="plan", plan_file=str(csv), height_m=float(start[2]),
                                         seed=1000 + seed, name=signatures.PLANNED, noise=sc.noise)}
         configs.update({f: SimConfig(kind=f, duration_s=total, seed=1000 + seed, name=f, noise=sc.noise)
-                        for f in files})
+                        for f in files})  # (kind "hover": a hover flight of the same length)
         for label, cfg in configs.items():
             simulation.write_flight(simulation.simulate(cfg, veh, effects), root / "new" / label / label)
             tables = {**old, label: _decode(root / "new" / label)[label]}
-            flown[label] = outcome(diagnosislib.diagnose(tables, spec), truth, rival)
-    return Trial(name, seed, truth, outcome(before, truth, rival), flown.pop("planned"), flown,
-                 plan.manoeuvre.describe(), float(plan.design["after"]["sigma"]))
+            flown[label] = outcome(diagnosislib.diagnose(tables, spec), truth, rival, tables, spec)
+    return Trial(name, seed, truth, outcome(before, truth, rival, old, spec), flown.pop("planned"), flown,
+                 plan.manoeuvre.describe(), float(plan.design["after"]["by_truth"][truth]["sigma"]),
+                 float(plan.design["before"]["by_truth"][truth]["sigma"]), added)
+
+
+def old_flights(name: str, seed: int) -> tuple[dict, Diagnosis]:
+    """A scenario's old flights, simulated with the seed's truth (decoded tables), and their diagnosis."""
+    sc = SCENARIOS[name]
+    k = seed % 2
+    veh = vehiclelib.load()
+    with tempfile.TemporaryDirectory(prefix="quadcore-plan-bench-") as tmp:
+        simulation.simulate_set(Path(tmp), [replace(c, noise=sc.noise) for c in sc.old(seed)],
+                                {sc.pair[k]: sc.truths[k]}, veh)
+        old = _decode(Path(tmp))
+    return old, diagnosislib.diagnose(old, spec_from(veh, []))
+
+
+def predicted_by_flight(planned: trajectories.PolyTrajectory, old: dict, before: Diagnosis, spec,
+                        pair: tuple[str, str], files: tuple[str, ...]) -> tuple[Added, ...]:
+    """For a timing pair: the rate-level objective (:class:`quadcore.plan.ratelevel.RateSeparation`)
+    on the ``planned`` path and on each of ``files`` (the lab's trajectory as written; ``hover``:
+    a hover as long as the plan), each with the logged flights' closed-loop rotor activity, as
+    the search scores its candidates."""
+    a, b = (questionlib.explanation(before, n) for n in pair)
+    flights = planner.fitting_flights(old, spec)
+    obj = planner.separation_objective(a, b, flights, before, spec.vehicle)
+    assert isinstance(obj, ratelevel.RateSeparation)
+    loop = signatures.activity(list(flights.values()))
+    paths = {"planned": planned,
+             **{f: hover_path(planned) if f == "hover" else trajectories.load_plan(f) for f in files}}
+    out = []
+    for label, traj in paths.items():
+        fd = signatures.planned_flight(traj, spec.vehicle, loop)
+        out.append(Added(label, traj.duration_s, obj.own(fd), obj.evaluate(fd).sigma))
+    return tuple(out)
+
+
+def hover_path(like: trajectories.PolyTrajectory) -> trajectories.PolyTrajectory:
+    """A hover at ``like``'s first point for as long as ``like``."""
+    start = like.evaluate(np.zeros(1))[0]
+    coeffs = np.zeros((1, 4, 8))
+    coeffs[0, :, 0] = start
+    return trajectories.PolyTrajectory("hover", np.array([like.duration_s]), coeffs)

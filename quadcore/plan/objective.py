@@ -40,7 +40,7 @@ treated alone (its correlation with the others ignored, stated in the docs).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,9 +173,9 @@ class Separation:
     comparison's σ and the score gap; ``value`` the search's objective."""
 
     sigma: float
-    score_gap: float
+    score_gap: float | None  # None where the diagnosis decides by the comparison alone (timing, ratelevel)
     value: float
-    by_truth: dict[str, tuple[float, float]]
+    by_truth: Mapping[str, tuple[float, float | None]]
 
     def to_dict(self) -> dict:
         return {"sigma": self.sigma, "score_gap": self.score_gap, "value": self.value,

@@ -180,8 +180,7 @@ def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, m
         (dict(t.std) for t in diag.model.terms if t.name == truth.name), {})
     sigma = gap = None
     if pair is not None:
-        comp = separation.compare(tables, spec, diag.model, pair[0], pair[1], skip=separation.skipped_blocks(diag),
-                                  stats=stats)
+        comp = separation.measured(tables, spec, diag, pair[0], pair[1], stats)
         sigma = comp.sigma_for(truth.name)
         gap = score_gap(diag, truth.name, pair[1] if pair[0] == truth.name else pair[0])
     return Flown(truth.name, top.effect if top else "", bool(top is not None and top.effect == truth.name),
@@ -194,10 +193,11 @@ def score_gap(diag: Diagnosis, a: str, b: str) -> float | None:
     return scores[a] - scores[b] if a in scores and b in scores else None
 
 
-def before(tables: Mapping, spec: ModelSpec, model: PhysicsModel, pair: tuple[str, str],
-           skip: int = 0, stats: StoredStats = None) -> separation.Comparison:
-    """The held-out separation on the logged flights alone (without each flight's first ``skip``
-    blocks; ``stats``: their stored statistics)."""
-    return separation.compare(tables, spec, model, *pair, skip=skip, stats=stats)
+def before(tables: Mapping, spec: ModelSpec, diag: Diagnosis, pair: tuple[str, str],
+           stats: StoredStats = None) -> separation.Comparison:
+    """The held-out separation on the logged flights alone, in the statistic the diagnosis
+    decides the pair by (:func:`quadcore.plan.separation.measured`; ``stats``: their stored
+    statistics)."""
+    return separation.measured(tables, spec, diag, *pair, stats=stats)
 
 

@@ -13,6 +13,11 @@ As the diagnosis, it compares the two on the same samples: each flight's first `
 (:func:`skipped_blocks`: those within the longest memory of the diagnosis's effects) are left
 out.
 
+Between two timing candidates (both :attr:`~quadcore.effects.Effect.retimes_thrust`) the
+diagnosis decides at the angular-rate level (:mod:`quadcore.identify.rates`), not by this
+comparison: :func:`rate_compare` is its held-out comparison there, run with the rate level's own
+functions on the same folds.
+
 Two simplifications against the diagnosis: the model's own effects are not refitted in each
 fold; its residual is taken against the model fitted on all flights (``model``, from the
 diagnosis), so the model's parameters have seen the test flights (a few parameters over
@@ -29,8 +34,9 @@ from dataclasses import dataclass
 import polars as pl
 
 from quadcore import effects as effectlib
-from quadcore.identify import diagnosis as diagnosislib, evidence, flightdata
+from quadcore.identify import diagnosis as diagnosislib, evidence, flightdata, rates
 from quadcore.identify.diagnosis.results import Diagnosis
+from quadcore.identify.fit import solve
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
@@ -74,3 +80,36 @@ def compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsM
     w = held.w * evidence.channel_mask([ch for ch, quiet in held.at_noise.items() if not quiet])
     test = evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], w)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
+
+
+def timing_pair(a: str, b: str) -> bool:
+    """Both candidates re-time the rotors' thrust: the diagnosis compares them at the rate level."""
+    return all(effectlib.get(n).retimes_thrust and len(effectlib.get(n).parameters) == 1 for n in (a, b))
+
+
+def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel, a: str, b: str,
+                 n_folds: int = N_FOLDS) -> Comparison:
+    """The diagnosis's held-out comparison of two timing candidates at the angular-rate level
+    (:func:`quadcore.identify.rates.judge`'s, for one pair): each flight's rate sums with the
+    model's torque removed, both candidates fitted on each fold's training flights, the blocks'
+    :func:`quadcore.identify.rates.difference_test` over the test flights (``t > 0``: ``a``)."""
+    ea, eb = effectlib.get(a), effectlib.get(b)
+    skip_s = evidence.memory_blocks([ea, eb]) * evidence.BLOCK_S
+    fds = flights_of(tables, spec)
+    sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip_s) for f, fd in fds.items()}
+    ids = sorted(sums)
+    splits = [([f for f in ids if f not in fold], fold) for fold in solve.folds(ids, n_folds)]
+    w = rates.weights(list(sums.values()))
+    fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for tr, _ in splits] for e in (ea, eb)}
+    _, test = rates.compare_pair(sums, splits, ea, eb, fits[a], fits[b], w)
+    return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
+
+
+def measured(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, diag: Diagnosis, a: str, b: str,
+             stats=None) -> Comparison:
+    """The separation of ``a`` and ``b`` in the statistic the diagnosis ``diag`` decides them by:
+    :func:`rate_compare` for two timing candidates, else :func:`compare` (its model, its skipped
+    blocks; ``stats`` as there)."""
+    if timing_pair(a, b):
+        return rate_compare(tables, spec, diag.model, a, b)
+    return compare(tables, spec, diag.model, a, b, skip=skipped_blocks(diag), stats=stats)
