@@ -8,7 +8,7 @@ the planner's measured separation)."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +20,7 @@ from quadcore.identify import evidence, fit as fitlib, flightdata
 from quadcore.identify.describe import summaries
 from quadcore.identify.evidence import default_candidates, scored_after_blocks
 from quadcore.identify.fit import model_fit, sessions as sessionlib, solve
-from quadcore.identify.flightdata import Flight, FlightData
+from quadcore.identify.flightdata import FlightData
 from quadcore.identify.model import PhysicsModel
 from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.identify.stats import profiles, sufficient
@@ -33,11 +33,6 @@ MODEL_COLUMN = "pred:model"  # a model fitted on rows: its prediction as a colum
 def _total(parts: Iterable[np.ndarray]) -> np.ndarray:
     """Element-wise sum of per-flight arrays (the same additions, in the same order, as ``sum``)."""
     return functools.reduce(np.add, parts)
-
-
-def _ss(resid: np.ndarray, flight: Flight) -> np.ndarray:
-    """Sum of squares per channel (6,) on usable samples (:meth:`Flight.sum_of_squares`)."""
-    return flight.sum_of_squares(resid)
 
 
 @dataclass(frozen=True)
@@ -190,10 +185,6 @@ class _Problem:
                                   self.vehicle, bounded=self.bounded, rows=self.fl.rows,
                                   extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
 
-    def from_profile(self, c) -> bool:
-        """Whether ``c`` is fitted and predicted from the flights' profiles."""
-        return profiles.profiled(c)
-
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
         return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
@@ -250,25 +241,17 @@ def _residual(p: _Problem, model_of: ModelOf, flights: list[str]) -> _Residual:
 # What the statistics cannot fit yet: a nonlinear effect per session, on rows
 # ---------------------------------------------------------------------------------------
 
-def _fit_on_rows(effects: list, flights: Sequence[FlightData], targets: Sequence[np.ndarray], vehicle,
-                 fixed: dict | None = None, bounded: bool = False) -> solve.Fit:
-    """The diagnosis's one fit of targets held as rows (:func:`quadcore.identify.fit.fit_rows`: each
-    flight's rows made into statistics with the target as a column), for a model with a nonlinear
-    effect per session (:func:`_model_on_rows`; its prediction then enters the statistics as a
-    column), as fit_model fits it."""
-    return fitlib.fit_rows(effects, flights, targets, vehicle, fixed, bounded=bounded)
-
-
 def _model_on_rows(p: _Problem, train: list[str], sessions, log) -> tuple[Any, ModelOf]:
-    """:func:`_fit_model` on the flights' rows (:func:`_fit_on_rows`), for a model with a nonlinear
-    effect per session, as fit_model fits it."""
+    """:func:`_fit_model` on the flights' rows, for a model with a nonlinear effect per session, as
+    fit_model fits it: each flight's rows made into statistics with the target as a column
+    (:func:`quadcore.identify.fit.fit_rows`); its prediction then enters the statistics as a column."""
     rows = {f: p.fl.rows(f) for f in p.ids}
     targets = dict(zip(p.ids, flightdata.targets_of([rows[f] for f in p.ids])))
     if p.spec.per_session:
-        pm = sessionlib.fit_per_session(p.spec, rows, targets, train, sessions, log, _fit_on_rows)
+        pm = sessionlib.fit_per_session(p.spec, rows, targets, train, sessions, log, fitlib.fit_rows)
         return pm, _session_terms(pm, log)
-    fit_m = _fit_on_rows(p.model_effects, [rows[f] for f in train], [targets[f] for f in train], p.vehicle,
-                         p.spec.fixed, bounded=True)
+    fit_m = fitlib.fit_rows(p.model_effects, [rows[f] for f in train], [targets[f] for f in train], p.vehicle,
+                            p.spec.fixed, bounded=True)
     return fit_m, _fit_terms(p, fit_m)
 
 
@@ -324,7 +307,7 @@ def _cross_fit(p: _Problem, splits: list[tuple[list[str], list[str]]], sessions,
             fold_params[c.name].append(fit_c.params[c.name])
             free_params[c.name].append((fit_c.free or fit_c).params[c.name])
             for f in test:
-                if p.from_profile(c):
+                if profiles.profiled(c):
                     values.setdefault(c.name, {})[f] = fit_c.params[c.name][c.parameters[0].name]
                 else:
                     cand_pred[c.name][f] = fit_c.predict([c], p.scored_flight(c, f), p.vehicle)
@@ -387,7 +370,7 @@ class HeldOut:
 def _held_out(p: _Problem, folds: _Folds, settings: DiagnosisSettings) -> HeldOut:
     eval_ids = sorted(folds.eval_resid)
     eval_fds = _on_common_samples(_evaluated(p, eval_ids, folds), p.skip)
-    before = _total(_ss(folds.eval_resid[f], fd) for f, fd in zip(eval_ids, eval_fds))
+    before = _total(fd.sum_of_squares(folds.eval_resid[f]) for f, fd in zip(eval_ids, eval_fds))
     n_eval = sum(fd.n for fd in eval_fds)
     # The sensor-noise floor: a channel whose residual is within settings.noise_margin of it
     # holds no evidence FOR an effect (only against one that would add error there).

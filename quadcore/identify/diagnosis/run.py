@@ -21,7 +21,6 @@ from quadcore.identify.diagnosis.problem import (
     _held_out,
     _Problem,
     _splits,
-    _ss,
     _total,
     _training_model,
 )
@@ -251,7 +250,7 @@ def _fold_answer(rows: list[CandidateRow], held: HeldOut, flights: list[str], se
     hover shows no drag: that is no vote against it)."""
     index = {f: i for i, f in enumerate(held.ids)}
     fds = [held.flights[index[f]] for f in flights]
-    before = _total(_ss(held.resid[f], fd) for f, fd in zip(flights, fds))
+    before = _total(fd.sum_of_squares(held.resid[f]) for f, fd in zip(flights, fds))
     # The fold's own noise floor: a channel at it holds no evidence for an effect in these
     # flights (as the fleet's in the ranking); with every channel there, the fold abstains.
     at_noise = evidence.at_noise_level(before, _total(fd.noise ** 2 * fd.n for fd in fds), settings.noise_margin)
@@ -262,7 +261,7 @@ def _fold_answer(rows: list[CandidateRow], held: HeldOut, flights: list[str], se
         if not r.physical:
             continue
         pred = held.cand_pred[r.effect]
-        after = _total(_ss(held.resid[f] - pred[f], fd) for f, fd in zip(flights, fds))
+        after = _total(fd.sum_of_squares(held.resid[f] - pred[f]) for f, fd in zip(flights, fds))
         ev = [min(x, 0.0) if held.at_noise[ch] or at_noise[ch] else x
               for ch, x in ((ch, _ev(before, after, sl)) for ch, sl in TARGET_CHANNELS.items())]
         if 0.5 * sum(ev) > best_score:

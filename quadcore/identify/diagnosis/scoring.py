@@ -15,7 +15,6 @@ from quadcore.identify.diagnosis.problem import (
     TARGET_CHANNELS,
     HeldOut,
     _Problem,
-    _ss,
     _total,
 )
 from quadcore.identify.diagnosis.rows import CandidateRow
@@ -43,7 +42,8 @@ def _score(c: Effect, held: HeldOut, fit_c: solve.Fit,
     ``settings.bound_sigma`` standard errors is unphysical; one within noise of it is judged as fitted
     with the bound active (``active_bounds``)."""
     before, at_noise = held.before, held.at_noise
-    after = _total(_ss(held.resid[f] - held.cand_pred[c.name][f], fd) for f, fd in zip(held.ids, held.flights))
+    after = _total(fd.sum_of_squares(held.resid[f] - held.cand_pred[c.name][f])
+                   for f, fd in zip(held.ids, held.flights))
     raw = {ch: _ev(before, after, sl) for ch, sl in TARGET_CHANNELS.items()}
     ev_f, ev_t = (min(raw[ch], 0.0) if at_noise[ch] else raw[ch] for ch in ("force", "torque"))
     target = c.target if c.target != "both" else ("force" if ev_f >= ev_t else "torque")
