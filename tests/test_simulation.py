@@ -504,7 +504,7 @@ def test_a_vehicle_the_controller_cannot_fly_is_an_error_not_a_log():
     itself'). A lag the loop can fly still gives a flight that the gate passes."""
     cfg = SimConfig(kind="hover", duration_s=4.0, seed=0)
     with pytest.raises(simulation.SimulationError, match=r"lost control: it turned upside down at t = 1\.\d\d s.*"
-                                                         r"motor_lag tau_s=0\.106"):
+                                                         r"motor_lag \(tau_s=0\.106\)"):
         simulation.simulate(cfg, VEHICLE, {"motor_lag": {"tau_s": 0.106}})
     sim = simulation.simulate(cfg, VEHICLE, {"motor_lag": {"tau_s": 0.03}})
     assert simulation.lost_control(sim.t_s, sim.p_true, sim.q_true) is None

@@ -668,7 +668,8 @@ def simulate(config: SimConfig, vehicle: vehicle_mod.Vehicle | None = None,
     rec = _fly(config, veh, ref, body, noise, t)
     lost = lost_control(t, rec.P, rec.Q)
     if lost is not None:
-        flown = "; ".join(f"{name} " + ", ".join(f"{k}={v:.3g}" for k, v in params.items())
+        flown = ", ".join(name + (" (" + ", ".join(f"{k}={v:.3g}" for k, v in params.items()) + ")"
+                                  if len(params) <= 3 else f" ({len(params)} parameters)")
                           for name, params in eff.items()) or "no effects"
         raise SimulationError(f"the simulated vehicle lost control: {lost}. The simulator's controller "
                               f"(quadcore.sim.controller, tuned for the nominal vehicle) cannot fly it with "
