@@ -514,3 +514,13 @@ def test_a_vehicle_the_controller_cannot_fly_is_an_error_not_a_log():
     p_floor = sim.p_true.copy()
     p_floor[500:, 2] = 0.0
     assert f"reached the floor at t = {sim.t_s[500]:.2f} s" in simulation.lost_control(sim.t_s, p_floor, sim.q_true)
+
+
+def test_a_flight_that_loses_control_does_not_stop_the_others(tmp_path):
+    """simulate_set: the flights that fly are written; one error then names the one that did not."""
+    configs = [SimConfig(kind="hover", duration_s=3.0, seed=s) for s in (0, 1, 2)]
+    lag = [{}, {"motor_lag": {"tau_s": 0.106}}, {}]
+    with pytest.raises(simulation.SimulationError, match=r"1 of 3 flights not written \(2 written .*sim001: the "
+                                                         r"simulated vehicle lost control"):
+        simulation.simulate_set(tmp_path, configs, lag, VEHICLE)
+    assert sorted(p.name for p in flight.discover_logs(tmp_path)) == ["sim000", "sim002"]

@@ -755,7 +755,10 @@ def simulate_set(
 ) -> list[tuple[Path, Path]]:
     """Simulate and write several flights as ``<out_dir>/sim000``, ``sim001``, ... (+ truth).
 
-    ``effects`` is one dict for every flight, or a list with one dict per flight.
+    ``effects`` is one dict for every flight, or a list with one dict per flight. A flight the
+    simulator cannot fly (its closed loop loses control, :func:`lost_control`) does not stop the
+    others: they are written, and then one :class:`SimulationError` names every flight left out
+    and why.
     """
     out = Path(out_dir)
     veh = vehicle if vehicle is not None else vehicle_mod.load()
@@ -764,11 +767,19 @@ def simulate_set(
         raise SimulationError(f"{len(per_flight)} effect sets for {len(configs)} flights")
     for e in per_flight:
         validate_effects(e)  # fail before simulating anything
-    written = []
+    written, lost = [], []
     for i, (cfg, eff) in enumerate(zip(configs, per_flight)):
         name = f"{prefix}{i:03d}"
         cfg = cfg if cfg.name else replace(cfg, name=name)
-        written.append(write_flight(simulate(cfg, veh, eff), out / name))
+        try:
+            flown = simulate(cfg, veh, eff)
+        except SimulationError as exc:
+            lost.append(f"{name}: {exc}")
+            continue
+        written.append(write_flight(flown, out / name))
+    if lost:
+        raise SimulationError(f"{len(lost)} of {len(configs)} flights not written ({len(written)} written to {out}): "
+                              + "; ".join(lost))
     return written
 
 
