@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -264,3 +265,33 @@ def test_in_holdout_mode_the_held_out_flight_does_not_weigh_the_rate_levels_fit(
         for k in p0:
             assert p1[k] == pytest.approx(p0[k], rel=1e-9, abs=1e-15), (name, p0, p1)
             assert s1[k] == pytest.approx(s0[k], rel=1e-9, abs=1e-15), (name, s0, s1)
+
+
+def _rows(*names: str, found: bool = True) -> list:
+    """Candidate rows of the diagnosis, physical, ``found`` or not, nothing else filled in."""
+    from dataclasses import fields
+
+    from quadcore.identify.diagnosis.rows import CandidateRow
+
+    blank: dict[str, Any] = {f.name: None for f in fields(CandidateRow) if f.name != "explained_alone_screen"}
+    return [CandidateRow(**{**blank, "effect": n, "found": found, "physical": True}) for n in names]
+
+
+def test_the_rate_levels_ranking_of_three_timing_candidates_does_not_depend_on_their_order():
+    """The rows as the rate level ranks them from its significant pairs (``rates._ranked``): a > b,
+    b > c, a > c give a, b, c from any starting order and any order of the pairs (before, each
+    pair moved its better one above the worse in turn: [c, a, b] with the pairs (a, b), (b, c),
+    (a, c) became [b, a, c]); a row between them keeps its place below the better."""
+    for start in itertools.permutations(_rows("a", "b", "c")):
+        by = {r.effect: r for r in start}
+        pairs = [(by["a"], by["b"]), (by["b"], by["c"]), (by["a"], by["c"])]
+        for wins in itertools.permutations(pairs):
+            assert [r.effect for r in rates._ranked(list(start), wins)] == ["a", "b", "c"]
+    b, x, a = _rows("b", "x", "a")
+    assert rates._ranked([b, x, a], [(a, b)]) == [a, b, x]  # the better one just above the worse
+    c, d, e = _rows("c", "d", "e")
+    cycle = [(d, c), (e, d), (c, e)]
+    assert {tuple(r.effect for r in rates._ranked([c, d, e], w)) for w in itertools.permutations(cycle)} == {
+        ("c", "e", "d")}  # a cycle: the first row left first, then the others as their pair says
+    (f,), (g,) = _rows("f", found=False), _rows("g")
+    assert rates._ranked([g, f], [(f, g)]) == [g, f]  # found ones first, whatever the rate level says

@@ -610,6 +610,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         decide(by_name[c.name])
     rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+    wins: list[tuple[CandidateRow, CandidateRow]] = []
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
             ra, rb = by_name[a.name], by_name[b.name]
@@ -618,10 +619,11 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], w)
             differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
             if test.p_value < settings.alpha:
-                rows = _prefer(rows, *((ra, rb) if test.t > 0 else (rb, ra)))
+                wins.append((ra, rb) if test.t > 0 else (rb, ra))
+                _prefer(*wins[-1])
             elif ra.found or rb.found:
                 _tie(ra, rb)
-    return rows, Judged(differences)
+    return _ranked(rows, wins), Judged(differences)
 
 
 def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_s: float) -> RateSums:
@@ -694,15 +696,37 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
                              "'no effect'")
 
 
-def _prefer(rows: list[CandidateRow], better: CandidateRow, worse: CandidateRow) -> list[CandidateRow]:
-    """``better`` separated from ``worse`` by the rate level, and ranked above it in its tier."""
+def _prefer(better: CandidateRow, worse: CandidateRow) -> None:
+    """``better`` separated from ``worse`` by the rate level (:func:`_ranked` ranks it above)."""
     for r, o in ((better, worse), (worse, better)):
         r.tied_with = tuple(x for x in r.tied_with if x != o.effect)
         r.separated_by = {**r.separated_by, o.effect: RATE_LEVEL}
-    i, j = rows.index(better), rows.index(worse)
-    if j < i and better.tier() == worse.tier():
-        rows = [*rows[:j], better, *[r for r in rows[j:] if r is not better]]
-    return rows
+
+
+def _ranked(rows: list[CandidateRow], wins: Sequence[tuple[CandidateRow, CandidateRow]]) -> list[CandidateRow]:
+    """``rows`` (in their tiers) with the better of each pair in ``wins`` (better, worse) ranked
+    above the worse where both are in one tier, every other row in its order: row by row, the
+    first row left, or, when a row left in its tier fits better than it, that one (the first
+    such, followed up the chain; in a cycle, the first row left). A function of the set of wins,
+    so the same whatever order the pairs were compared in. (Before, each significant pair moved
+    its better one above the worse in turn, and with three timing candidates a later move could
+    put a worse one back above its better: [c, a, b] with a > b > c became [b, a, c] when the
+    pairs came as (a, b), (b, c), (a, c), and [a, b, c] in another order.)"""
+    better = {(id(b), id(w)) for b, w in wins if b.tier() == w.tier()}
+    left, out = list(rows), []
+    while left:
+        r, chain = left[0], []
+        while r not in chain:
+            chain.append(r)
+            above = [o for o in left if (id(o), id(r)) in better]
+            if not above:
+                break
+            r = above[0]
+        else:  # a cycle: no row of it is above the others
+            r = left[0]
+        out.append(r)
+        left.remove(r)
+    return out
 
 
 def _tie(a: CandidateRow, b: CandidateRow) -> None:
