@@ -20,7 +20,12 @@ plan that merely favours one side fails half the seeds):
   :func:`quadcore.identify.rates.below_command_rate`).
 * ``lag_firmware``: the ``lag`` scenario with the sensor noise the Crazyflie's firmware leaves
   (``SensorNoise.lowpass_hz`` = 80 Hz, as the real logs' gyro noise is coloured): every flight,
-  the old ones and the added one.
+  the old ones and the added one. The hover flights tie the lag-true seeds; a manoeuvre decides
+  them, the plan by the largest separation (docs/flight-planning.md).
+
+Each outcome carries the separation in σ in favour of the truth, in the statistic the diagnosis
+decides the pair by (:func:`quadcore.plan.separation.measured`); a timing trial also the
+rate-level objective on the plan, each file and a hover (:class:`Added`).
 
 Used by ``benchmarks/bench_plan.py`` (all seeds) and ``tests/test_plan.py`` (a few).
 """
