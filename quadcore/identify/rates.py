@@ -40,14 +40,16 @@ when the model's error within a block is not white), the comparison of two candi
 firmware's 80 Hz low-pass: lag-one autocorrelation +0.7), and ``ε_k`` then correlates with the
 ``ε_(k−1)`` the commands react to: on three hover flights with that noise (simulated) a 10 ms delay
 came out 9.2-9.7 ms, a lag 11.0-11.9 ms, the delay preferred when the lag was true. Each flight's
-running sums (``R`` and every ``C``) go through a whitening filter ``x_k − Σ_i φ_i x_(k−i)``
-per axis (:func:`noise_model`: AR of order ≤ 8 by BIC, 0 on white noise, fitted by Yule-Walker
-with a 10 % white floor to the residual of the best-fitting candidate), so that the filtered
-residual's noise is the innovation, unpredictable from the past; the fit stays a quadratic form
-of the filtered sums. Same flights: 9.9-10.2 ms and 10.2-11.6 ms, the truth preferred (docs/timing.md).
-Not used by the diagnosis (``rate_sums(..., whiten=True)`` only): on the 19 real flights the filter
-fitted to the residual has ``Σφ`` 0.98-0.99, a near-difference that models the unmodelled torque's
-drift within the running sums, not the sensor noise.
+running sums (``R`` and every ``C``) go through a whitening filter ``x_k − Σ_i φ_i x_(k−i)`` per
+axis, an AR model of the gyro's own noise (:func:`gyro_noise_model`: its spectrum read off the
+logged rate less its trend above 30 Hz, held flat below; order ≤ 8 by BIC, 0 on white noise;
+Yule-Walker with a 10 % white floor), so that the filtered residual's noise is the innovation,
+unpredictable from the past; the fit stays a quadratic form of the filtered sums. Same flights:
+the lag 9.8-10.9 ms and preferred in 5 of 5 seeds; a 9 ms delay 8.8-9.2 ms (docs/timing.md). The
+filter fitted to the residual instead (:func:`noise_model`, ``rate_sums(..., noise="residual")``)
+is unbiased on the simulator too, but on the 19 real flights it has ``Σφ`` 0.98-0.99, a
+near-difference that models the unmodelled torque's drift within the running sums, not the sensor
+noise, and 'found' a delay of 1.0 ms at 6.3 σ; the gyro's has ``Σφ`` 0.5-0.65 and finds none.
 
 **From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
 sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
@@ -68,10 +70,11 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from scipy import linalg, stats
+from scipy.signal import savgol_coeffs
 
 from quadcore.effects import Effect, get as get_effect
 from quadcore.identify import evidence
@@ -92,12 +95,18 @@ NOT_SIGNIFICANT = "not significant:"  # how a row's note on its significance beg
 @dataclass(frozen=True)
 class RateFlight:
     """One flight at the rate level: the increments ``d_k`` (m, 3) over its sample intervals
-    (N m s, body frame, the model's torque removed) and each interval's block (-1: not used)."""
+    (N m s, body frame, the model's torque removed), each interval's block (-1: not used) and
+    its segment (-1: not used). The block is the diagnosis's, :func:`quadcore.identify.flightdata.block_index`
+    of the interval's end sample (the held-out tests' clusters, the same at both levels); a
+    segment is a run of consecutive used intervals within one block, each with its own offset
+    (the running sum starts again after a gap, whose commands are unknown), so a block with a gap
+    in it holds two segments."""
 
     fd: FlightData
     vehicle: Vehicle
     increments: np.ndarray
     block: np.ndarray
+    segment: np.ndarray
 
     @property
     def n(self) -> int:
@@ -105,10 +114,12 @@ class RateFlight:
 
 
 def rate_flight(fd: FlightData, vehicle: Vehicle, model_tau_b_Nm: np.ndarray | None = None,
-                skip_s: float = 0.0) -> RateFlight:
+                skip_blocks: int = 0) -> RateFlight:
     """The increments ``J Δω + ∫ ω × J ω − ∫ (A f + τ_model)`` of a flight; intervals across a
-    gap (the commands in it unknown), near the filters' edges and within ``skip_s`` of the first
-    sample (where an effect with memory predicts nothing) belong to no block."""
+    gap (the commands in it unknown), ending near the filters' edges (not a usable sample,
+    :func:`quadcore.identify.flightdata.usable_samples`) and in the first ``skip_blocks`` blocks
+    (where an effect with memory predicts nothing; the diagnosis leaves the same blocks out of
+    the torque level's scores) belong to no block."""
     st = fd.state
     t, om = st.t_s, st.omega_b_radps
     J = np.asarray(vehicle.inertia_kgm2, float)
@@ -117,11 +128,14 @@ def rate_flight(fd: FlightData, vehicle: Vehicle, model_tau_b_Nm: np.ndarray | N
         tau = tau + model_tau_b_Nm
     inc = (np.diff(om, axis=0) @ J.T + signals.interval_integrals(np.cross(om, om @ J.T), t, 0.0)
            - signals.interval_integrals(tau, t, st.thrust_hold_s))
+    of_sample = np.full(len(t), -1)
+    of_sample[fd.mask] = fd.blocks()
+    end = of_sample[1:]
     dt = np.diff(t)
-    ok = (dt < 1.5 * np.median(dt)) & fd.mask[1:] & (t[1:] - t[0] >= skip_s)
-    block = np.full(len(inc), -1)
-    block[ok] = _runs(ok, ((t[1:] - t[0]) // evidence.BLOCK_S).astype(int))[ok]
-    return RateFlight(fd, vehicle, inc, block)
+    ok = (dt < 1.5 * np.median(dt)) & (end >= skip_blocks)
+    block, segment = np.where(ok, end, -1), np.full(len(inc), -1)
+    segment[ok] = _runs(ok, end)[ok]
+    return RateFlight(fd, vehicle, inc, block, segment)
 
 
 def _runs(ok: np.ndarray, period: np.ndarray) -> np.ndarray:
@@ -240,13 +254,15 @@ def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     return out
 
 
-def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = False) -> RateSums:
+def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel = "gyro") -> RateSums:
     """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
     its rows: each effect's interval integrals of its torque at every point of its grid, with
-    the flight's thrust hold (as the model's torque in the increments); with ``whiten`` every
-    running sum through the flight's whitening filter (:func:`noise_model`). Off by default, and
-    so in the diagnosis: on the real flights the filter fitted to the residual models the
-    unmodelled torque's drift, not the gyro noise (docs/timing.md, "The noise model")."""
+    the flight's thrust hold (as the model's torque in the increments); every running sum
+    through the flight's whitening filter, ``noise`` saying which: ``"gyro"`` (the default, and
+    the diagnosis's) fitted to the gyro's own noise (:func:`gyro_noise_model`), ``"residual"``
+    fitted to the rate-level residual (:func:`noise_model`; on the real flights it models the
+    unmodelled torque's drift, not the gyro noise: docs/timing.md, "The noise model"),
+    ``"white"`` none."""
     st = rf.fd.state
     use = rf.block >= 0
     dt_s = float(np.median(np.diff(st.t_s)))
@@ -255,8 +271,9 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = False) ->
     for e in timing:
         slots[e.name] = slice(k, k + len(grids[e.name]))
         k += len(grids[e.name])
-    b = rf.block[use]
+    b = rf.segment[use]
     starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
+    cluster = np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1) if len(b) else starts[:0]
     size = np.diff(starts).astype(float)
 
     def demeaned(running: np.ndarray) -> np.ndarray:
@@ -272,16 +289,17 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], whiten: bool = False) ->
         (p,) = e.parameters
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
             X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
-    ar, share = noise_model(X, starts, rf.fd.noise[3:]) if whiten else (np.zeros((3, 0)), np.ones(3))
+    ar, share = (gyro_noise_model(rf.fd) if noise == "gyro" else noise_model(X, starts, rf.fd.noise[3:])
+                 if noise == "residual" else (np.zeros((3, 0)), np.ones(3)))
     lags = ar.shape[1]
     iu = np.triu_indices(k)
-    blocks = np.zeros((len(starts) - 1, 3, len(iu[0])))
-    for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):
+    blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
+    for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
         x = whitened(X[lo:hi].astype(float), ar)
         if not len(x):
             continue
         x -= x.mean(axis=0)
-        blocks[i] = np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
+        blocks[cluster[i]] += np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
     used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
     return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0),
                     rf.fd.noise[3:] * np.sqrt(share), max(rf.fd.n, 1), dt_s, used)
@@ -299,6 +317,106 @@ def effect_increments(effect: Effect, params: dict[str, float], rf: RateFlight) 
 MAX_AR_ORDER = 8  # its largest AR order (the simulator's coloured gyro noise takes all 8)
 NOISE_MODEL_PASSES = 3  # fits of it, each on the residual of the column the last one's whitening prefers
 WHITE_FLOOR = 0.1  # its white floor, a share of the residual's variance (Yule-Walker's lag-0 loading)
+
+
+NOISE_BAND_HZ = 30.0  # the gyro noise's spectrum is read above it (below, the vehicle's motion is in the gyro)
+NOISE_FLAT_HZ = 20.0  # the width of the band above NOISE_BAND_HZ whose level the spectrum keeps below it
+NOISE_LAGS = 64  # the gyro noise's autocovariance's lags its spectrum comes from (8 Hz resolution at 500 Hz)
+NoiseModel = Literal["gyro", "residual", "white"]  # what a flight's whitening filter is fitted to (rate_sums)
+
+
+def gyro_noise_model(fd: FlightData) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis the AR(p) coefficients (3, p) of the gyro's own noise ``ε`` as the log has it and
+    the share (3,) of its variance the whitening ``ε_k − Σ_i φ_i ε_(k−i)`` leaves (the
+    innovation's), from the logged rate alone: no model, no residual.
+
+    The logged rate is ``ω̃ = ω + ε``; less its trend (:func:`quadcore.physics.signals.smooth`,
+    the local quadratic ``S`` over 31 samples) it is ``e = (1 − S)[ε] + (1 − S)[ω]``. Above
+    :data:`NOISE_BAND_HZ` the vehicle's own motion is small against the noise (on the real logs
+    the raw gyro's spectrum at 30-60 Hz is the detrended one's through ``|1 − H_S|²``; at 15-30 Hz
+    the raw one is 1.3-2.7 times higher: the motion), so there ``S_e(f) ≈ |1 − H_S(f)|² S_ε(f)``:
+
+        S_ε(f) = S_e(f) / |1 − H_S(f)|²                              (f >= NOISE_BAND_HZ)
+        S_ε(f) = mean of S_ε over [NOISE_BAND_HZ, NOISE_BAND_HZ + NOISE_FLAT_HZ]   (below)
+
+    the second because the firmware's low-pass (80 Hz, two poles) is flat within its passband and
+    the sensor's own noise is white: what the trend and the motion hide is the level above them.
+    ``S_e`` is the Blackman-Tukey estimate from ``e``'s autocovariances at lags 0 to
+    :data:`NOISE_LAGS` (over the pairs of usable samples that many periods apart) with a
+    Tukey-Hanning lag window; ``γ_ε(ℓ) = ∫ S_ε(f) cos(2π f ℓ Δt) df`` over [0, Nyquist]. The order
+    ``p`` <= :data:`MAX_AR_ORDER` by BIC of the Levinson prediction errors over the flight's ``n``
+    usable samples, ``n log(σ²_p / γ_ε(0)) + p log n``, the largest over the axes (0 on white
+    noise: nothing changes), the coefficients by Yule-Walker with ``γ_ε(0)`` raised by
+    :data:`WHITE_FLOOR` (the low-pass leaves almost nothing near the log's Nyquist frequency,
+    where the exact whitening's gain is unbounded: docs/timing.md, "Why a floor"), the share
+    ``aᵀ Γ_ε a / γ_ε(0)`` with ``a = [1, −φ]`` (``Γ_ε`` the Toeplitz of ``γ_ε``).
+
+    What it cannot see: the closed loop's response to its own noise. The controller turns the
+    noise into torque, and the rate follows it (``ω̃ = (1 − T) ε`` in the loop's band); on the
+    simulator's roll and pitch axes that raises the detrended gyro's spectrum at 30-60 Hz by
+    6-25 % above the noise's (the rate-level residual at the true timing has the noise's own). A
+    filter from the exact noise spectrum fits a 10 ms delay at 9.86-10.18 ms; this one, on the
+    same flights, on either side of it (docs/timing.md). On the real logs ``Σφ`` is 0.5-0.65
+    (the residual's filter: 0.98-0.99)."""
+    t = fd.state.t_s
+    om = fd.state.omega_b_radps
+    return _noise_ar(om - signals.smooth(om, t_s=t), fd.mask, t)
+
+
+def _noise_ar(e: np.ndarray, ok: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The AR coefficients (3, p) and innovation shares (3,) of the noise whose detrended
+    series is ``e`` (n, 3) at times ``t``, over the usable samples ``ok`` (:func:`gyro_noise_model`)."""
+    none = (np.zeros((3, 0)), np.ones(3))
+    n = int(ok.sum())
+    if n <= 10 * NOISE_LAGS:
+        return none
+    dt = float(np.median(np.diff(t)))
+    f_hz, spectrum = _noise_spectrum(e, ok, t, dt)
+    lags = np.arange(MAX_AR_ORDER + 1)
+    quad = np.full(len(f_hz), 1.0)
+    quad[[0, -1]] = 0.5
+    gamma = (np.cos(2 * np.pi * np.outer(lags, f_hz) * dt) * quad) @ spectrum  # (lags, 3)
+    if not np.all(gamma[0] > 0):
+        return none
+    bic = np.array([[n * np.log(max(_prediction_error(g, p) / g[0], 1e-300)) + p * np.log(n) for g in gamma.T]
+                    for p in range(MAX_AR_ORDER + 1)])
+    p = int(np.argmin(bic, axis=0).max())
+    if p == 0:
+        return none
+    ar = np.array([linalg.solve_toeplitz(np.concatenate([[g[0] * (1 + WHITE_FLOOR)], g[1:p]]), g[1:p + 1])
+                   for g in gamma.T])
+    a = np.concatenate([np.ones((3, 1)), -ar], axis=1)
+    share = np.array([a[i] @ linalg.toeplitz(gamma[:p + 1, i]) @ a[i] / gamma[0, i] for i in range(3)])
+    return ar, share
+
+
+def _noise_spectrum(e: np.ndarray, ok: np.ndarray, t: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F,) frequencies and (F, 3) the gyro noise's spectrum ``S_ε`` (up to a constant) from the
+    detrended rate ``e`` (:func:`gyro_noise_model`)."""
+    m = len(e)
+    gamma = np.zeros((NOISE_LAGS + 1, e.shape[1]))
+    for lag in range(NOISE_LAGS + 1):
+        pair = ok[:m - lag] & ok[lag:] & (np.abs(t[lag:] - t[:m - lag] - lag * dt) < 0.5 * dt)
+        gamma[lag] = (e[:m - lag] * e[lag:])[pair].sum(axis=0) / max(int(pair.sum()), 1)
+    lags = np.arange(NOISE_LAGS + 1)
+    f_hz = np.linspace(0.0, 0.5 / dt, 4 * NOISE_LAGS + 1)
+    window = np.where(lags == 0, 1.0, 2.0) * 0.5 * (1 + np.cos(np.pi * lags / (NOISE_LAGS + 1)))
+    s_e = np.cos(2 * np.pi * np.outer(f_hz, lags) * dt) @ (window[:, None] * gamma)
+    half = signals.WINDOW // 2
+    h_s = np.cos(2 * np.pi * np.outer(f_hz, np.arange(-half, half + 1)) * dt) @ savgol_coeffs(signals.WINDOW,
+                                                                                           signals.ORDER)
+    band = f_hz >= NOISE_BAND_HZ
+    s_eps = s_e / np.maximum((1.0 - h_s) ** 2, 1e-12)[:, None]
+    s_eps[~band] = s_eps[band & (f_hz < NOISE_BAND_HZ + NOISE_FLAT_HZ)].mean(axis=0)
+    return f_hz, s_eps
+
+
+def _prediction_error(gamma: np.ndarray, p: int) -> float:
+    """The one-step prediction error variance of the best AR(p) for autocovariances ``gamma``."""
+    if p == 0:
+        return float(gamma[0])
+    phi = linalg.solve_toeplitz(gamma[:p], gamma[1:p + 1])
+    return float(gamma[0] - phi @ gamma[1:p + 1])
 
 
 def whitened(x: np.ndarray, ar: np.ndarray) -> np.ndarray:
@@ -543,11 +661,11 @@ FlightRates = RateSums | BelowCommandRate  # what the rate level keeps of one fl
 RatesCache = Callable[[str, dict, Callable[[], FlightRates]], FlightRates]
 
 
-def flight_inputs(model, flight: str, timing: Sequence[Effect], skip_s: float) -> dict:
+def flight_inputs(model, flight: str, timing: Sequence[Effect], skip_blocks: int) -> dict:
     """What a flight's :class:`FlightRates` depend on besides its log (JSON): the timing effects,
     the start left out, and the model on the flight (its vehicle, its effects' values)."""
     m = model.for_flight(flight)
-    return {"timing": [e.name for e in timing], "skip_s": skip_s,
+    return {"timing": [e.name for e in timing], "skip_blocks": skip_blocks,
             "vehicle": {k: v for k, v in asdict(m.vehicle).items() if k != "source"},
             "terms": [[t.name, t.params] for t in m.terms]}
 
@@ -572,7 +690,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
-    skip = evidence.memory_blocks(timing) * evidence.BLOCK_S
+    skip = evidence.memory_blocks(timing)
     ids = sorted({f for tr, te in splits for f in (*tr, *te)})
 
     slow: dict[str, tuple[float, float]] = {}  # flights below the command rate: their log period and hold
@@ -626,12 +744,13 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     return _ranked(rows, wins), Judged(differences)
 
 
-def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_s: float) -> RateSums:
+def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int,
+                noise: NoiseModel = "gyro") -> RateSums:
     """One flight's :class:`RateSums` as the diagnosis takes them: the increments with the torque
-    of ``model``'s effects (on ``flight``) removed, the intervals within ``skip_s`` of its start
-    left out (the longest memory of the ``timing`` candidates)."""
+    of ``model``'s effects (on ``flight``) removed, its first ``skip_blocks`` blocks left out (the
+    longest memory of the ``timing`` candidates), whitened as ``noise`` says (:func:`rate_sums`)."""
     vehicle, tau = _model_torque(model, flight, fd)
-    return rate_sums(rate_flight(fd, vehicle, tau, skip_s), timing)
+    return rate_sums(rate_flight(fd, vehicle, tau, skip_blocks), timing, noise)
 
 
 def compare_pair(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], a: Effect,

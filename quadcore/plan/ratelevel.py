@@ -44,13 +44,13 @@ from quadcore.plan.objective import SIGMA_GOAL, Separation
 from quadcore.plan.signatures import Explanation
 
 
-def rate_flight(fd: flightdata.FlightData, vehicle: Vehicle, skip_s: float) -> rates.RateFlight:
+def rate_flight(fd: flightdata.FlightData, vehicle: Vehicle, skip_blocks: int) -> rates.RateFlight:
     """``fd`` at the rate level (its increments are replaced, :func:`hypothetical`); a planned
     flight (flat state, no thrust hold of its own) gets the vehicle's command period as its hold,
     as it will be logged."""
     if fd.state.thrust_hold_s == 0 and vehicle.thrust_hold_s > 0:
         fd = replace(fd, state=replace(fd.state, thrust_hold_s=vehicle.thrust_hold_s))
-    return rates.rate_flight(fd, vehicle, None, skip_s)
+    return rates.rate_flight(fd, vehicle, None, skip_blocks)
 
 
 def hypothetical(rf: rates.RateFlight, truth: Explanation) -> rates.RateFlight:
@@ -74,14 +74,15 @@ class _Logged:
     def __init__(self, old: Mapping[str, flightdata.FlightData], model: PhysicsModel,
                  candidates: list[Explanation]):
         effects = [c.effect for c in candidates]
-        self.skip_s = evidence.memory_blocks(effects) * evidence.BLOCK_S
-        real = [rates.flight_sums(fd, model, f, effects, self.skip_s) for f, fd in old.items()]
+        self.skip_blocks = evidence.memory_blocks(effects)
+        # the sums unwhitened, as this objective's noise model (white at the rate level) takes them
+        real = [rates.flight_sums(fd, model, f, effects, self.skip_blocks, noise="white") for f, fd in old.items()]
         self.w = rates.weights(real)
         n = max(sum(s.n for s in real), 1)
         left = [sum(s.costs(e, rates.fit(e, real, self.w).value).sum(axis=0) for s in real) / n for e in effects]
         left += [sum(s.costs(e, e.parameters[0].default).sum(axis=0) for s in real) / n for e in effects[:1]]
         self.var = min(left, key=lambda v: float(v @ self.w))
-        self.flights = {f: rate_flight(fd, model.for_flight(f).vehicle, self.skip_s) for f, fd in old.items()}
+        self.flights = {f: rate_flight(fd, model.for_flight(f).vehicle, self.skip_blocks) for f, fd in old.items()}
 
 
 class _Direction:
@@ -94,7 +95,7 @@ class _Direction:
         self.on_old = rates.fit(self.rival, self.old, self.w).value
 
     def sums(self, rf: rates.RateFlight) -> rates.RateSums:
-        return rates.rate_sums(hypothetical(rf, self.truth), [self.rival])
+        return rates.rate_sums(hypothetical(rf, self.truth), [self.rival], noise="white")
 
     def held_out(self, new: rates.RateSums | None = None) -> np.ndarray:
         """(blocks, 3) ``D`` per block and axis: the old flights alone (the rival fitted on them),
@@ -118,7 +119,7 @@ class RateSeparation:
         self.directions = [_Direction(a, b, self.logged), _Direction(b, a, self.logged)]
 
     def evaluate(self, new: flightdata.FlightData | None = None) -> Separation:
-        rf = rate_flight(new, self.vehicle, self.logged.skip_s) if new is not None else None
+        rf = rate_flight(new, self.vehicle, self.logged.skip_blocks) if new is not None else None
         by_truth = {d.truth.name: (expected_t(d.held_out(d.sums(rf) if rf is not None else None), self.logged.w,
                                               self.logged.var), None) for d in self.directions}
         sigma = min(s for s, _ in by_truth.values())
@@ -130,7 +131,7 @@ class RateSeparation:
     def own(self, new: flightdata.FlightData) -> dict[str, float]:
         """Per truth, the expected t of ``new``'s blocks alone (the rival fitted on the old
         flights): what that flight adds, whatever the old flights hold."""
-        rf = rate_flight(new, self.vehicle, self.logged.skip_s)
+        rf = rate_flight(new, self.vehicle, self.logged.skip_blocks)
         return {d.truth.name: expected_t(d.sums(rf).costs(d.rival, d.on_old), self.logged.w, self.logged.var)
                 for d in self.directions}
 
@@ -156,7 +157,7 @@ class RateInformation:
         return float((s.costs(e, theta + h).sum(axis=0) / self.logged.var).sum()) / h**2
 
     def std_after(self, new: flightdata.FlightData) -> float:
-        info = self.information(rate_flight(new, self.vehicle, self.logged.skip_s))
+        info = self.information(rate_flight(new, self.vehicle, self.logged.skip_blocks))
         prior = 1.0 / self.std_before**2 if self.std_before > 0 and np.isfinite(self.std_before) else 0.0
         return float(1.0 / np.sqrt(prior + info)) if prior + info > 0 else float("inf")
 

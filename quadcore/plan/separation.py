@@ -94,9 +94,9 @@ def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: Phy
     model's torque removed, both candidates fitted on each fold's training flights, the blocks'
     :func:`quadcore.identify.rates.difference_test` over the test flights (``t > 0``: ``a``)."""
     ea, eb = effectlib.get(a), effectlib.get(b)
-    skip_s = evidence.memory_blocks([ea, eb]) * evidence.BLOCK_S
+    skip = evidence.memory_blocks([ea, eb])
     fds = flights_of(tables, spec)
-    sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip_s) for f, fd in fds.items()}
+    sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip) for f, fd in fds.items()}
     ids = sorted(sums)
     splits = [([f for f in ids if f not in fold], fold) for fold in solve.folds(ids, n_folds)]
     w = rates.weights(list(sums.values()))

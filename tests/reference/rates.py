@@ -1,6 +1,6 @@
 """The reference the rate level's sums (:class:`quadcore.identify.rates.RateSums`) are tested
 against: every cost evaluated on the flight's rows, recomputing the candidate's torque
-(``R_k − C_k(v) − mean_b`` per block, docs/timing.md), with the sums' interface (``cost``,
+(``R_k − C_k(v)`` less its mean per segment, summed per block, docs/timing.md), with the sums' interface (``cost``,
 ``costs``, ``differences``, ``n``, ``dt_s``), so that :func:`quadcore.identify.rates.fit` and
 :func:`~quadcore.identify.rates.block_differences` run on either. Nothing in quadcore uses it."""
 
@@ -24,9 +24,9 @@ class RowRates:
         c = signals.interval_integrals(effect.wrench(st, self.rf.vehicle, {p.name: value})[1], st.t_s,
                                        st.thrust_hold_s)
         use = self.rf.block >= 0
-        R, b = np.cumsum(self.rf.increments - c, axis=0)[use], self.rf.block[use]
-        mean = np.stack([np.bincount(b, R[:, a]) for a in range(3)], axis=1) / np.bincount(b)[:, None]
-        return R - mean[b], b
+        R, seg = np.cumsum(self.rf.increments - c, axis=0)[use], self.rf.segment[use]
+        mean = np.stack([np.bincount(seg, R[:, a]) for a in range(3)], axis=1) / np.bincount(seg)[:, None]
+        return R - mean[seg], np.unique(self.rf.block[use], return_inverse=True)[1].reshape(-1)
 
     @staticmethod
     def _per_block(x: np.ndarray, b: np.ndarray) -> np.ndarray:
