@@ -32,6 +32,7 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
+import polars as pl
 
 from quadcore.identify import diagnosis as diagnosislib
 from quadcore.identify.diagnosis.results import Diagnosis
@@ -160,7 +161,7 @@ def fly(traj: PolyTrajectory, tables: Mapping, spec: ModelSpec, model: PhysicsMo
 
 
 def _flown_log(traj: PolyTrajectory, truth: Explanation, model: PhysicsModel, out_dir: Path, name: str,
-               seed: int):
+               seed: int) -> tuple[pl.DataFrame | None, str]:
     """(the planned flight's decoded table with ``truth``, "") or (None, why the proof cannot use it)."""
     try:
         table = simulate_plan(traj, truth, model, out_dir, name, seed)
