@@ -254,7 +254,7 @@ def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     return out
 
 
-def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel = "gyro") -> RateSums:
+def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filter = "gyro") -> RateSums:
     """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
     its rows: each effect's interval integrals of its torque at every point of its grid, with
     the flight's thrust hold (as the model's torque in the increments); every running sum
@@ -262,7 +262,8 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel = "gyr
     the diagnosis's) fitted to the gyro's own noise (:func:`gyro_noise_model`), ``"residual"``
     fitted to the rate-level residual (:func:`noise_model`; on the real flights it models the
     unmodelled torque's drift, not the gyro noise: docs/timing.md, "The noise model"),
-    ``"white"`` none."""
+    ``"white"`` none; or a given filter (:data:`Filter`: a flight not flown yet takes the logged
+    ones', quadcore.plan.ratelevel)."""
     st = rf.fd.state
     use = rf.block >= 0
     dt_s = float(np.median(np.diff(st.t_s)))
@@ -289,8 +290,9 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel = "gyr
         (p,) = e.parameters
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
             X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
-    ar, share = (gyro_noise_model(rf.fd) if noise == "gyro" else noise_model(X, starts, rf.fd.noise[3:])
-                 if noise == "residual" else (np.zeros((3, 0)), np.ones(3)))
+    ar, share = (noise if isinstance(noise, tuple) else gyro_noise_model(rf.fd) if noise == "gyro"
+                 else noise_model(X, starts, rf.fd.noise[3:]) if noise == "residual"
+                 else (np.zeros((3, 0)), np.ones(3)))
     lags = ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
@@ -323,6 +325,7 @@ NOISE_BAND_HZ = 30.0  # the gyro noise's spectrum is read above it (below, the v
 NOISE_FLAT_HZ = 20.0  # the width of the band above NOISE_BAND_HZ whose level the spectrum keeps below it
 NOISE_LAGS = 64  # the gyro noise's autocovariance's lags its spectrum comes from (8 Hz resolution at 500 Hz)
 NoiseModel = Literal["gyro", "residual", "white"]  # what a flight's whitening filter is fitted to (rate_sums)
+Filter = tuple[np.ndarray, np.ndarray]  # a whitening filter: AR coefficients (3, p) and the innovation's share (3,)
 
 
 def gyro_noise_model(fd: FlightData) -> tuple[np.ndarray, np.ndarray]:

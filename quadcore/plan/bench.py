@@ -84,6 +84,8 @@ SCENARIOS = {
     "lag_small": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.002}, {"t_d_s": 0.002}), _hover),
     "lag_firmware": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.01}, {"t_d_s": 0.01}), _hover,
                              SensorNoise(lowpass_hz=FIRMWARE_LOWPASS_HZ)),
+    "lag_firmware_5ms": Scenario(("motor_lag", "thrust_delay"), ({"tau_s": 0.005}, {"t_d_s": 0.005}), _hover,
+                                 SensorNoise(lowpass_hz=FIRMWARE_LOWPASS_HZ)),
 }
 
 

@@ -20,10 +20,13 @@ flight is scored with B fitted (:func:`quadcore.identify.rates.fit`) on the old 
 flights with B fitted on old and planned together. The same with B true; the design's
 separation is the smaller. ``s_a²``: the rate-level residual per interval the logged flights
 leave after the better of the two fitted candidates (or of neither): the sensor noise as it
-appears there, plus whatever the model lacks. It treats that noise as white; coloured noise (the
-firmware's gyro low-pass) makes the achieved t smaller than predicted, by the same factor for any
-flight. The score gap does not enter: between two timing candidates the diagnosis decides by this
-test alone (:func:`quadcore.identify.rates.judge`).
+appears there, plus whatever the model lacks. Every running sum goes through the whitening
+filter the diagnosis uses (:func:`quadcore.identify.rates.gyro_noise_model`, the gyro's own noise):
+a logged flight's own, a planned flight the first logged flight's (the same vehicle and
+firmware), so that the noise is white where the formula takes it so; what the filter misses (the
+closed loop's response to its own noise, docs/timing.md) makes the achieved t differ. The score
+gap does not enter: between two timing candidates the diagnosis decides by this test alone
+(:func:`quadcore.identify.rates.judge`).
 
 **Information on a timing parameter.** The same machinery with the explanation against itself:
 ``Σ_a Σ_k (C̃(θ) − C̃(θ + h))² / s_a² / h²`` is the information a flight adds (white noise at the
@@ -75,8 +78,11 @@ class _Logged:
                  candidates: list[Explanation]):
         effects = [c.effect for c in candidates]
         self.skip_blocks = evidence.memory_blocks(effects)
-        # the sums unwhitened, as this objective's noise model (white at the rate level) takes them
-        real = [rates.flight_sums(fd, model, f, effects, self.skip_blocks, noise="white") for f, fd in old.items()]
+        # the sums whitened as the diagnosis takes them (its default noise model, the gyro's own noise)
+        real = [rates.flight_sums(fd, model, f, effects, self.skip_blocks) for f, fd in old.items()]
+        self.filters = {f: rates.gyro_noise_model(fd) for f, fd in old.items()}
+        # a planned flight is not flown yet: the vehicle's gyro, as the first logged flight has it
+        self.planned_filter = self.filters[min(old)]
         self.w = rates.weights(real)
         n = max(sum(s.n for s in real), 1)
         left = [sum(s.costs(e, rates.fit(e, real, self.w).value).sum(axis=0) for s in real) / n for e in effects]
@@ -91,11 +97,15 @@ class _Direction:
 
     def __init__(self, truth: Explanation, rival: Explanation, logged: _Logged):
         self.truth, self.rival, self.w = truth, rival.effect, logged.w
-        self.old = [self.sums(rf) for rf in logged.flights.values()]
+        self.planned_filter = logged.planned_filter
+        self.old = [self.sums(rf, logged.filters[f]) for f, rf in logged.flights.items()]
         self.on_old = rates.fit(self.rival, self.old, self.w).value
 
-    def sums(self, rf: rates.RateFlight) -> rates.RateSums:
-        return rates.rate_sums(hypothetical(rf, self.truth), [self.rival], noise="white")
+    def sums(self, rf: rates.RateFlight, noise: rates.Filter | None = None) -> rates.RateSums:
+        """A flight's sums with the truth's residual, through ``noise`` (a logged flight's own
+        whitening filter; a planned one's: the logged flights')."""
+        return rates.rate_sums(hypothetical(rf, self.truth), [self.rival],
+                               noise=self.planned_filter if noise is None else noise)
 
     def held_out(self, new: rates.RateSums | None = None) -> np.ndarray:
         """(blocks, 3) ``D`` per block and axis: the old flights alone (the rival fitted on them),
@@ -151,7 +161,8 @@ class RateInformation:
         secant over a quarter sample period, inward from a bound)."""
         e = self.expl.effect
         (p,) = e.parameters
-        s = rates.rate_sums(hypothetical(rf, self.expl), [e])
+        s = rates.rate_sums(hypothetical(rf, self.expl), [e], noise=self.logged.filters.get(rf.fd.flight,
+                                                                                           self.logged.planned_filter))
         theta = float(self.expl.params[p.name])
         h = 0.25 * s.dt_s if theta + 0.25 * s.dt_s <= p.upper else -0.25 * s.dt_s
         return float((s.costs(e, theta + h).sum(axis=0) / self.logged.var).sum()) / h**2
