@@ -267,7 +267,7 @@ def test_the_objective_for_a_lag_against_a_delay_predicts_the_rate_levels_separa
     real = [rates.flight_sums(fd, diag.model, f, [expl.effect], info.logged.skip_blocks)
             for f, fd in planner.fitting_flights(old, spec).items()]
     fitted = rates.fit(expl.effect, real, rates.weights(real))
-    std = 1 / math.sqrt(sum(info.information(rf) for rf in info.logged.flights.values()))
+    std = 1 / math.sqrt(sum(info.flight_information(rf) for rf in info.logged.flights.values()))
     assert std == pytest.approx(fitted.std, rel=0.2), (std, fitted.std)
 
 

@@ -218,21 +218,34 @@ class SeparationObjective:
         return self.evaluate(new).value
 
 
-class InformationObjective:
-    """The standard error of one parameter after a planned flight (see the module); the search
-    maximises ``std_before / std_after``."""
+class Information:
+    """A parameter's standard error after a planned flight, ``(1/std_before² + I)^(-1/2)`` for the
+    information ``I`` the flight adds (:meth:`information`, the subclass's); the search maximises
+    ``std_before / std_after``."""
 
-    def __init__(self, expl: Explanation, parameter: str, std_before: float, vehicle: Vehicle, sigma: np.ndarray):
-        self.expl, self.parameter, self.vehicle = expl, parameter, vehicle
-        self.std_before = float(std_before)
-        self.w = 1.0 / np.maximum(np.asarray(sigma, float), 1e-12) ** 2
+    std_before: float
+
+    def information(self, new: flightdata.FlightData) -> float:
+        raise NotImplementedError
 
     def std_after(self, new: flightdata.FlightData) -> float:
-        u = unit_wrench(self.expl, self.parameter, new, self.vehicle)[new.mask]
-        info = float((u**2).sum(axis=0) @ self.w) / W
+        info = self.information(new)
         prior = 1.0 / self.std_before**2 if self.std_before > 0 and np.isfinite(self.std_before) else 0.0
         return float(1.0 / np.sqrt(prior + info)) if prior + info > 0 else float("inf")
 
     def value(self, new: flightdata.FlightData) -> float:
         after = self.std_after(new)
         return self.std_before / after if np.isfinite(after) and after > 0 and np.isfinite(self.std_before) else 0.0
+
+
+class InformationObjective(Information):
+    """The information on the force and torque channels (see the module)."""
+
+    def __init__(self, expl: Explanation, parameter: str, std_before: float, vehicle: Vehicle, sigma: np.ndarray):
+        self.expl, self.parameter, self.vehicle = expl, parameter, vehicle
+        self.std_before = float(std_before)
+        self.w = 1.0 / np.maximum(np.asarray(sigma, float), 1e-12) ** 2
+
+    def information(self, new: flightdata.FlightData) -> float:
+        u = unit_wrench(self.expl, self.parameter, new, self.vehicle)[new.mask]
+        return float((u**2).sum(axis=0) @ self.w) / W

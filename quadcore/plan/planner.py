@@ -263,7 +263,7 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
     expl = questionlib.explanation(diag, effect)
     std_before = float(expl.std.get(name, float("nan")))
     sigma = noise_sigma(diag, [effect])
-    obj: objective.InformationObjective | ratelevel.RateInformation
+    obj: objective.Information
     if expl.effect.retimes_thrust and len(expl.effect.parameters) == 1:  # decided at the rate level
         obj = ratelevel.RateInformation(expl, std_before, fitting_flights(tables, spec), diag.model, vehicle)
     else:

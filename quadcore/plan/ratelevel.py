@@ -43,7 +43,7 @@ import numpy as np
 from quadcore.identify import evidence, flightdata, rates
 from quadcore.identify.model import PhysicsModel
 from quadcore.physics.vehicle import Vehicle
-from quadcore.plan.objective import SIGMA_GOAL, Separation
+from quadcore.plan.objective import SIGMA_GOAL, Information, Separation
 from quadcore.plan.signatures import Explanation
 
 
@@ -146,9 +146,9 @@ class RateSeparation:
                 for d in self.directions}
 
 
-class RateInformation:
+class RateInformation(Information):
     """The standard error of a timing effect's one parameter after a planned flight, at the rate
-    level (see the module); the interface of :class:`quadcore.plan.objective.InformationObjective`."""
+    level (see the module)."""
 
     def __init__(self, expl: Explanation, std_before: float, old: Mapping[str, flightdata.FlightData],
                  model: PhysicsModel, vehicle: Vehicle):
@@ -156,7 +156,10 @@ class RateInformation:
         self.std_before = float(std_before)
         self.logged = _Logged(old, model, [expl])
 
-    def information(self, rf: rates.RateFlight) -> float:
+    def information(self, new: flightdata.FlightData) -> float:
+        return self.flight_information(rate_flight(new, self.vehicle, self.logged.skip_blocks))
+
+    def flight_information(self, rf: rates.RateFlight) -> float:
         """What a flight at the rate level adds to the parameter's information (see the module; a
         secant over a quarter sample period, inward from a bound)."""
         e = self.expl.effect
@@ -166,12 +169,3 @@ class RateInformation:
         theta = float(self.expl.params[p.name])
         h = 0.25 * s.dt_s if theta + 0.25 * s.dt_s <= p.upper else -0.25 * s.dt_s
         return float((s.costs(e, theta + h).sum(axis=0) / self.logged.var).sum()) / h**2
-
-    def std_after(self, new: flightdata.FlightData) -> float:
-        info = self.information(rate_flight(new, self.vehicle, self.logged.skip_blocks))
-        prior = 1.0 / self.std_before**2 if self.std_before > 0 and np.isfinite(self.std_before) else 0.0
-        return float(1.0 / np.sqrt(prior + info)) if prior + info > 0 else float("inf")
-
-    def value(self, new: flightdata.FlightData) -> float:
-        after = self.std_after(new)
-        return self.std_before / after if np.isfinite(after) and after > 0 and np.isfinite(self.std_before) else 0.0
