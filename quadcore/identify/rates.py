@@ -358,7 +358,7 @@ def gyro_noise_model(fd: FlightData) -> tuple[np.ndarray, np.ndarray]:
     What it cannot see: the closed loop's response to its own noise. The controller turns the
     noise into torque, and the rate follows it (``ω̃ = (1 − T) ε`` in the loop's band); on the
     simulator's roll and pitch axes that raises the detrended gyro's spectrum at 30-60 Hz by
-    6-25 % above the noise's (the rate-level residual at the true timing has the noise's own). A
+    6-16 % above the noise's (the rate-level residual's at the true timing), at 20-30 Hz 34-40 %. A
     filter from the exact noise spectrum fits a 10 ms delay at 9.86-10.18 ms; this one, on the
     same flights, on either side of it (docs/timing.md). On the real logs ``Σφ`` is 0.5-0.65
     (the residual's filter: 0.98-0.99)."""
