@@ -210,6 +210,19 @@ def _triangle(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return i, j, np.where(i == j, 1.0, 2.0)
 
 
+def _pooled(flights: Sequence[RateSums], w: np.ndarray) -> list[tuple[RateSums, np.ndarray]]:
+    """Per set of flights with the same grids (the fleet's flights at one sample rate share them):
+    one of them, and their axis-weighted totals summed, ``Σ_f w·total_f`` (P,): the weighted
+    cost of a direction ``u`` over all of them is then one dot with its packed square
+    (:meth:`RateSums.cost`, summed over flights: a fit's cost no longer grows with the flights)."""
+    pooled: dict[tuple, tuple[RateSums, np.ndarray]] = {}
+    for s in flights:
+        key = tuple((n, g.tobytes()) for n, g in s.grids.items())
+        first, t = pooled.get(key, (s, np.zeros(s.total.shape[1])))
+        pooled[key] = (first, t + w @ s.total)
+    return list(pooled.values())
+
+
 def _squares(effect: Effect, flights: Sequence[RateSums]) -> Callable[[float], list[np.ndarray]]:
     """``squares(v)``: per flight the packed square of its :meth:`RateSums.direction` at ``v``, made
     once for the flights whose grids are the same (the same vector: the fleet's flights at one
@@ -533,12 +546,12 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
     """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module)."""
     (p,) = effect.parameters
     memo: dict[float, float] = {}
-    squares = _squares(effect, flights)
+    pooled = _pooled(flights, w)
 
-    def J(v: float) -> float:  # Σ_f RateSums.cost, each flight's direction made once per grid
+    def J(v: float) -> float:  # Σ_f RateSums.cost: per grid, the flights' weighted totals summed once
         v = float(min(max(v, p.lower), p.upper))
         if v not in memo:
-            memo[v] = sum(float(w @ (s.total @ q)) for s, q in zip(flights, squares(v)))
+            memo[v] = sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in pooled)
         return memo[v]
 
     n = sum(s.n for s in flights) * 3
