@@ -20,8 +20,11 @@ plan that merely favours one side fails half the seeds):
   :func:`quadcore.identify.rates.below_command_rate`).
 * ``lag_firmware``: the ``lag`` scenario with the sensor noise the Crazyflie's firmware leaves
   (``SensorNoise.lowpass_hz`` = 80 Hz, as the real logs' gyro noise is coloured): every flight,
-  the old ones and the added one. The hover flights tie the lag-true seeds; a manoeuvre decides
-  them, the plan by the largest separation (docs/flight-planning.md).
+  the old ones and the added one. The hover flights tied the lag-true seeds until the rate level
+  whitened with the gyro's own noise (fa7af71; since, 1 of 5); a manoeuvre decides them, the plan
+  by the largest separation (docs/flight-planning.md).
+* ``lag_firmware_5ms``: the same at 5 ms, where the diagnosis answers wrongly before any added
+  flight (docs/flight-planning.md).
 
 Each outcome carries the separation in σ in favour of the truth, in the statistic the diagnosis
 decides the pair by (:func:`quadcore.plan.separation.measured`); a timing trial also the
