@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 from snapshot import json_differences
 
+from quadcore import effects
 from quadcore.identify import binfile, diagnosis, rates
 from quadcore.identify.diagnosis import rate_cache
+from quadcore.identify.fit import solve
 from quadcore.logs import flight
 from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import load as load_vehicle
@@ -136,3 +138,42 @@ def test_sums_read_back_equal_the_ones_written(root, tmp_path):
     slow = rates.BelowCommandRate(0.01, 0.002)
     rate_cache.save(tmp_path, "slow", "k", slow)
     assert rate_cache.load(tmp_path, "slow", "k") == slow
+
+
+def _synthetic_sums(rng: np.random.Generator, dt_s: float, timing: list) -> rates.RateSums:
+    """A flight's rate-level sums from random block-demeaned running sums on ``timing``'s grids at
+    the sample period ``dt_s`` (each block's Gram a real one: the costs are sums of squares)."""
+    grids = {e.name: rates.rate_grid(e, dt_s) for e in timing}
+    slots, k = {}, 1
+    for e in timing:
+        slots[e.name] = slice(k, k + len(grids[e.name]))
+        k += len(grids[e.name])
+    i, j = np.triu_indices(k)
+    blocks = []
+    for _ in range(4):
+        x = rng.standard_normal((50, 3, k))
+        x[:, :, 1:] += x[:, :, :1]  # the candidates' running sums near the residual's, as a fit finds them
+        blocks.append(np.einsum("kai,kaj->aij", x, x)[:, i, j])
+    b = np.asarray(blocks)
+    return rates.RateSums(grids, slots, b.astype(np.float32), b.sum(axis=0), np.ones(3), 200, dt_s, 200)
+
+
+def test_a_rate_level_fit_pools_the_flights_of_one_grid_as_their_sum_of_costs():
+    """rates.fit sums the flights' weighted totals once per grid: the same fit as the sum of each
+    flight's own cost (RateSums.cost), with flights at two sample rates (two grids of the delay)."""
+    rng = np.random.default_rng(7)
+    timing = [effects.get("motor_lag"), effects.get("thrust_delay")]
+    flights = [_synthetic_sums(rng, dt, timing) for dt in (0.002, 0.004, 0.002, 0.004, 0.002)]
+    assert len({len(s.grids["thrust_delay"]) for s in flights}) == 2
+    w = np.array([1.0, 2.0, 0.5])
+    for effect in timing:
+        (p,) = effect.parameters
+        got = rates.fit(effect, flights, w)
+        n = sum(s.n for s in flights) * 3
+
+        def cost(v: float, effect=effect, p=p) -> float:
+            return sum(s.cost(effect, float(min(max(v, p.lower), p.upper)), w) for s in flights)
+
+        best, _ = solve.scalar_minimum(cost, n, p.lower, p.upper, samples_per_independent=1)
+        assert got.value == pytest.approx(best, rel=1e-9, abs=1e-12 * (p.upper - p.lower))
+        assert got.cost == pytest.approx(cost(got.value), rel=1e-9)

@@ -38,9 +38,9 @@ from quadcore.store.names import check_component
 
 FORMAT = 1  # bump when what the file holds changes: kept ones become stale
 FILE = "rates.bin"
-# The code the sums come from besides the statistics' (the rows, the state, the effects' base):
-# the rate level itself and the grids' interpolation (profiles, in the statistics' modules).
-CODE_MODULES = (*sufficient.CODE_MODULES, "quadcore.identify.rates", "quadcore.identify.diagnosis.rate_cache")
+# The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
+# state, the effects' base, the grids' interpolation in profiles): the rate level and this file.
+CODE_MODULES = ("quadcore.identify.rates", "quadcore.identify.diagnosis.rate_cache")
 
 
 def path(root: Any, flight: str) -> Any:
@@ -49,12 +49,12 @@ def path(root: Any, flight: str) -> Any:
 
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
-    """A digest of the source of :data:`CODE_MODULES` (once per process)."""
-    digest = hashlib.sha256()
+    """The statistics' code digest (:func:`quadcore.identify.stats.sufficient.code_digest`) and the
+    source of :data:`CODE_MODULES` (once per process)."""
+    digest = hashlib.sha256(sufficient.code_digest().encode())
     for name in CODE_MODULES:
-        spec = importlib.util.find_spec(name)
-        origin = spec.origin if spec is not None else None
-        digest.update(name.encode() + (Path(origin).read_bytes() if origin else b"missing"))
+        found = importlib.util.find_spec(name)
+        digest.update(Path(found.origin).read_bytes() if found is not None and found.origin else b"missing")
     return digest.hexdigest()[:16]
 
 
