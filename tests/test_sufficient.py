@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import copy
 import gc
+import importlib
+import sys
 import weakref
 from pathlib import Path
 
@@ -696,3 +698,47 @@ def test_a_per_session_model_beside_a_lag_is_fitted_from_statistics_as_the_rows_
         for s in a.per_session:
             for k, v in a.per_session[s].items():
                 assert abs(b.per_session[s][k] - v) <= 0.1 * a.per_session_std[s][k], f"{a.name}.{k}[{s}]"
+
+
+_PLUGIN = '''from quadcore.effects.base import Effect, Parameter, rotor_wrench
+
+
+def share(x):
+    return {factor} * x
+
+
+class Scaled(Effect):
+    name = "{name}"
+    target = "both"
+    parameters = (Parameter("k", "", 0.0, 0.0, 1.0, "a share of the rotors' thrust"),)
+
+    def wrench(self, state, vehicle, params):
+        return rotor_wrench(vehicle, share(params["k"]) * state.f_rotor_N)
+
+
+EFFECT = Scaled()
+'''
+
+
+def test_an_effects_source_digest_follows_its_modules_code_not_only_its_class(tmp_path, monkeypatch):
+    """What keys the statistics kept under a data root (and the rate level's sums) changes when
+    the code an effect's wrench runs changes: a module-level function its class calls (as
+    motor_lag's wrench calls first_order_lag), and a plugin's file edited between two loads. Before,
+    the digest was the class's source alone (the same text here), and every plugin's 'unknown'
+    (its module is in no sys.modules), so kept statistics of the old code stayed current."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    digests = []
+    for i, factor in enumerate(("1.0", "2.0")):  # the same class, another helper
+        (tmp_path / f"digest_mod_{i}.py").write_text(_PLUGIN.format(factor=factor, name="digest"))
+        try:
+            digests.append(sufficient.source_digest(type(importlib.import_module(f"digest_mod_{i}").EFFECT)))
+        finally:
+            sys.modules.pop(f"digest_mod_{i}", None)
+    assert digests[0] != digests[1] and "unknown" not in digests
+    plugin = tmp_path / "edited_plugin.py"
+    plugins = []
+    for factor in ("1.0", "2.0"):  # one plugin file, edited between two loads
+        plugin.write_text(_PLUGIN.format(factor=factor, name="edited"))
+        plugins.append(sufficient.source_digest(type(effects.load_plugin(plugin))))
+        effects.unregister("edited")
+    assert plugins[0] != plugins[1] and "unknown" not in plugins
