@@ -367,3 +367,49 @@ def test_a_flight_the_simulator_cannot_fly_is_left_out_of_the_proof_with_its_rea
     assert doc["proof_left_out"] == [{"truth": "motor_lag", "reason": left.reason}]
     assert [f["truth"] for f in doc["proof"]] == ["thrust_scale"]
     assert doc["predicted"]["separation_sigma_after"] == result.design["after"]["sigma"]
+
+
+def test_the_plan_says_how_much_such_flying_would_decide_and_compares_like_with_like(hover_tie):
+    """Without the proof the contract's before and after are one measure (the design's), the
+    separation measured on the logged flights under ``measured``; ``improves`` says whether the
+    planned flight raises both of the diagnosis's measures; and where one flight is not expected
+    to decide, ``repeated`` gives the fewest copies of it that are (the objective at that many
+    copies reaches 1 and at one fewer does not), or none up to MAX_COPIES, with the advice."""
+    from quadcore.identify import diagnosis as diagnosislib
+    from quadcore.plan import objective, planner, question, signatures
+    from quadcore.spec.model import spec_from
+
+    spec = spec_from(VEHICLE, [])
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(hover_tie)}
+    diag = diagnosislib.diagnose(tables, spec)
+    result = planner.plan(tables, spec, diag, planner.PlanRequest(duration_s=4.0, prove=False))
+    doc = result.to_dict("plan.csv")
+    design = doc["design"]
+    pred = doc["predicted"]
+    assert pred["separation_sigma_before"] == design["before"]["sigma"]
+    assert pred["score_gap_before"] == design["before"]["score_gap"]
+    assert pred["separation_sigma_after"] == design["after"]["sigma"]
+    assert doc["measured"]["separation_sigma_before"] == result.measured_before > 0
+    raised = (design["after"]["sigma"] >= design["before"]["sigma"]
+              and design["after"]["score_gap"] >= design["before"]["score_gap"])
+    assert design["improves"] is raised
+    # the objective with N copies of the planned flight, as the planner builds it
+    a, b = (question.explanation(diag, n) for n in result.question.candidates)
+    flights = planner.fitting_flights(tables, spec)
+    obj = planner.separation_objective(a, b, flights, diag, VEHICLE)
+    assert isinstance(obj, objective.SeparationObjective)
+    fd = signatures.planned_flight(result.trajectory, VEHICLE, signatures.activity(list(flights.values())))
+    assert obj.evaluate(fd).value == pytest.approx(design["after"]["value"], rel=1e-9)
+    values = [obj.evaluate(fd, n).value for n in (1, 2, 4, 8)]
+    assert values == sorted(values) and values[-1] > values[0]  # more such flying separates more
+    copies, there = obj.copies_to_decide(fd)
+    if copies is None:
+        assert there.value < 1 and obj.evaluate(fd, objective.MAX_COPIES).value < 1
+    else:
+        assert there.value >= 1 and (copies == 1 or obj.evaluate(fd, copies - 1).value < 1)
+    if design["expected_to_decide"]:
+        assert "repeated" not in design and "advice" not in design
+    else:
+        assert design["repeated"]["copies"] == copies
+        assert design["repeated"]["at"]["value"] == pytest.approx(there.value, rel=1e-9)
+        assert design["advice"].startswith("one such flight does not decide it")

@@ -31,9 +31,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
           f"{len(result.trajectory.durations) if result.trajectory is not None else 0} pieces)")
     for k, v in pred.items():
         print(f"  {k}: {'n/a' if v is None else f'{v:.3g}'}")
+    if result.measured_before is not None:
+        print(f"  measured on the logged flights: separation {result.measured_before:.3g} σ, score gap "
+              f"{result.gap_before:.3g}")
     if result.design.get("expected_to_decide") is False:
         print("  note: the best flight of the family is not predicted to break the tie with margin "
-              f"(objective {result.design['after']['value']:.2f} < 1); see docs/flight-planning.md")
+              f"(objective {result.design['after']['value']:.2f} < 1): {result.design.get('advice', '')}; "
+              "see docs/flight-planning.md")
     for f in result.proof:
         print(f"  flown with {f.truth} true: diagnosis ranks {f.top} first"
               + (f", tied with {', '.join(f.tied_with)}" if f.tied_with else ", no tie")

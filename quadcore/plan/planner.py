@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from quadcore import effects as effectlib
-from quadcore.identify import flightdata, rates
+from quadcore.identify import evidence, flightdata, rates
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.physics.vehicle import Vehicle
 from quadcore.plan import (
@@ -79,17 +79,20 @@ class FlightPlan:
         return self.trajectory is not None
 
     def predicted(self) -> dict[str, float | None]:
-        """The contract's ``predicted``: measured before, proven after where every explanation was
-        flown (else designed: without the proof, or with an explanation left out of it)."""
+        """The contract's ``predicted``: measured before and proven after where every explanation was
+        flown, else both designed (without the proof, or with an explanation left out of it): a
+        before and an after of one measure (the measured before is under ``measured``)."""
         q = self.question
         proven = self.proof if not self.proof_left_out else ()
         if q.kind == "separate":
-            after = (min(f.sigma for f in proven if f.sigma is not None) if proven
-                     else self.design.get("after", {}).get("sigma"))
-            gap = (min(f.score_gap for f in proven if f.score_gap is not None) if proven
-                   else self.design.get("after", {}).get("score_gap"))
-            return {"separation_sigma_before": self.measured_before, "separation_sigma_after": after,
-                    "score_gap_before": self.gap_before, "score_gap_after": gap}
+            if proven:
+                return {"separation_sigma_before": self.measured_before,
+                        "separation_sigma_after": min(f.sigma for f in proven if f.sigma is not None),
+                        "score_gap_before": self.gap_before,
+                        "score_gap_after": min(f.score_gap for f in proven if f.score_gap is not None)}
+            pre, post = self.design.get("before", {}), self.design.get("after", {})
+            return {"separation_sigma_before": pre.get("sigma"), "separation_sigma_after": post.get("sigma"),
+                    "score_gap_before": pre.get("score_gap"), "score_gap_after": post.get("score_gap")}
         if q.kind == "parameter":
             name = q.parameter.partition(".")[2]
             after = (proven[0].parameter_std.get(name) if proven else self.design.get("std_after"))
@@ -105,6 +108,8 @@ class FlightPlan:
             "predicted": self.predicted(),
             "why": self.question.why,
         }
+        if self.question.kind == "separate" and self.measured_before is not None:
+            doc["measured"] = {"separation_sigma_before": self.measured_before, "score_gap_before": self.gap_before}
         if self.planned and self.manoeuvre is not None and self.checked is not None:
             doc["manoeuvre"] = {**self.manoeuvre.to_dict(), "description": self.manoeuvre.describe(),
                                 "pieces": len(self.trajectory.durations) if self.trajectory is not None else 0}
@@ -233,12 +238,15 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,
                          request.duration_s, log)
     fd = signatures.planned_flight(best.trajectory, vehicle, loop)
-    after = obj.evaluate(fd)
-    design: dict[str, Any] = {"before": obj.evaluate().to_dict(), "after": after.to_dict(),
+    before, after = obj.evaluate(), obj.evaluate(fd)
+    design: dict[str, Any] = {"before": before.to_dict(), "after": after.to_dict(),
                               "expected_to_decide": bool(after.value >= 1.0),
                               "noise_per_axis": [float(v) for v in sigma],
                               "statistic": ("angular rate" if isinstance(obj, ratelevel.RateSeparation)
-                                            else "force and torque")}
+                                            else "force and torque"),
+                              **_outlook(obj, fd, before, after, request.duration_s)}
+    if design.get("advice"):
+        log(f"plan: {design['advice']}")
     measured = proof.before(tables, spec, diag, (a.name, b.name), stats)
     if isinstance(obj, ratelevel.RateSeparation) and abs(measured.t) < 0.5 * design["before"]["sigma"]:
         design["note"] = (f"the logged flights separate the two by {abs(measured.t):.1f} σ at the angular-rate level "
@@ -255,6 +263,40 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                       abs(proof.score_gap(diag, a.name, b.name) or 0.0), flown.flown, flown.left_out,
                       _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
                       flatness.flat_path(best.trajectory, vehicle))
+
+
+def _flying(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+def _outlook(obj, fd: flightdata.FlightData, before: objective.Separation, after: objective.Separation,
+             duration_s: float) -> dict[str, Any]:
+    """What the design says beyond its value (see docs/flight-planning.md): whether the planned
+    flight raises both of the diagnosis's measures (``improves``), and, where one flight is not
+    expected to decide, how many such flights would (``repeated``, force and torque statistic
+    only) and a plain ``advice``."""
+    gaps = (before.score_gap, after.score_gap)
+    improves = after.sigma >= before.sigma and (None in gaps or gaps[1] >= gaps[0])  # type: ignore[operator]
+    out: dict[str, Any] = {"improves": bool(improves)}
+    if after.value >= 1.0:
+        return out
+    said = []
+    if not improves:
+        said.append(f"the best flight found does not raise both measures on the logged flights: expected separation "
+                    f"{before.sigma:.2f} -> {after.sigma:.2f} σ, score gap "
+                    + (f"{gaps[0]:.2g} -> {gaps[1]:.2g}" if None not in gaps else "n/a"))
+    if isinstance(obj, objective.SeparationObjective):
+        copies, there = obj.copies_to_decide(fd)
+        out["repeated"] = {"copies": copies, "flying_s": None if copies is None else copies * duration_s,
+                           "max_copies": objective.MAX_COPIES, "at": there.to_dict()}
+        said.append(f"flown {copies} times ({_flying(copies * duration_s)}) it is expected to decide"
+                    if copies is not None else
+                    f"even flown {objective.MAX_COPIES} times it is not expected to decide: the score gap tends to "
+                    f"{there.score_gap:.2g} where the diagnosis needs {evidence.TIE_MARGIN:g} "
+                    f"({objective.GAP_GOAL:g} with the design's margin; more such flying does not raise it); "
+                    "explain more of the residual first, or decide by knowledge of the vehicle")
+    out["advice"] = "one such flight does not decide it; " + "; ".join(said)
+    return out
 
 
 def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, vehicle: Vehicle,
