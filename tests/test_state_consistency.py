@@ -77,7 +77,7 @@ def test_a_long_gap_restarts_the_integration():
 
 def test_the_real_flights_planned_fast_yaw_wobble_flown_in_the_simulator_passes(tmp_path):
     """The plan for the 19 real flights (examples/real-flights/next-flight.csv: a slow line with a
-    yaw wobble of ±9.5° at 2.7 Hz) flown closed loop with a CoM offset and the committed model's
+    yaw wobble of ±16° at 2.1 Hz) flown closed loop with a CoM offset and the committed model's
     thrust scale and rotor drag: its state estimate agrees with its accelerometer (the gate's
     refusal of the proof's flights came from a rotor lag the controller cannot fly, not the yaw)."""
     from quadcore.sim import simulation
