@@ -16,7 +16,7 @@ from reference import rows as reference
 from reference.flight import as_rows
 
 from quadcore import effects
-from quadcore.identify import evidence, fit as fitlib, flightdata
+from quadcore.identify import evidence, fit as fitlib, flightdata, rates
 from quadcore.identify.fit import model_fit, sessions
 from quadcore.identify.stats import sufficient
 from quadcore.logs import flight
@@ -742,3 +742,47 @@ def test_an_effects_source_digest_follows_its_modules_code_not_only_its_class(tm
         plugins.append(sufficient.source_digest(type(effects.load_plugin(plugin))))
         effects.unregister("edited")
     assert plugins[0] != plugins[1] and "unknown" not in plugins
+
+
+# What runs while a flight's statistics and its rate-level sums are made, and is in no code digest
+# on purpose: each effect's own module (its source digest, sufficient.source_digest, is in the keys
+# of the effects they hold), the effect registry, the physics gate's checks (they refuse a flight
+# or pass it: nothing they compute is kept), and the model and spec that resolve a flight's
+# vehicle and effect values (those values are in the keys, not the code that looked them up).
+_OUTSIDE_THE_DIGEST = ("quadcore.effects", "quadcore.physics.gate", "quadcore.logs.checks", "quadcore.identify.model",
+                       "quadcore.spec.model")
+
+
+def test_the_code_that_makes_a_flights_statistics_and_rate_sums_is_in_their_code_digest(drag_fleet):
+    """Every quadcore module whose functions run while a flight's statistics (stats.bin, its
+    summary) and rate-level sums (rates.bin) are made is in the digest of code their keys carry
+    (sufficient.CODE_MODULES, rate_cache.CODE_MODULES), or is one of those outside it on purpose
+    (_OUTSIDE_THE_DIGEST): code that changes kept numbers makes them stale. Before,
+    quadcore.physics.vehicle (the rotors' thrust from the thrust map, the allocation, the thrust
+    hold) was in neither: a change to the thrust map's formula left every kept file current."""
+    from quadcore.identify.diagnosis import rate_cache
+    from quadcore.identify.model import PhysicsModel
+
+    path = sorted(flight.discover_logs(drag_fleet))[0]
+    table = flight.decode_flight(path).tables["fixedFrequency"]
+    spec = spec_from(VEHICLE, ["rotor_drag", "motor_lag"])
+    timing = [effects.get("motor_lag"), effects.get("thrust_delay")]
+    model = PhysicsModel(spec.vehicle, [])
+    ran: set[str] = set()
+
+    def seen(frame, event, arg):
+        name = frame.f_globals.get("__name__", "")
+        if event == "call" and name.startswith("quadcore"):
+            ran.add(name)
+
+    sys.setprofile(seen)
+    try:
+        sufficient.compute_current(spec, path.name, table)
+        fd = flightdata.flight_data(path.name, table, spec.vehicle_for(path.name))
+        rates.flight_sums(fd, model, path.name, timing, evidence.memory_blocks(timing))
+    finally:
+        sys.setprofile(None)
+    digested = {*sufficient.CODE_MODULES, *rate_cache.CODE_MODULES}
+    outside = {m for m in ran - digested if not any(m == o or m.startswith(o + ".") for o in _OUTSIDE_THE_DIGEST)}
+    assert {"quadcore.identify.rates", "quadcore.identify.flightdata"} <= ran  # the work was traced
+    assert not outside, sorted(outside)

@@ -469,12 +469,14 @@ def for_flights(spec, decoded, flights: Iterable[str], layout: Layout,
 # Identity and storage
 # ---------------------------------------------------------------------------------------
 
-# The code a flight's statistics come from besides the effects' own classes: the state and the
-# nominal residual (dynamics, residuals, signals), the usable mask, noise floor and voltage
+# The code a flight's statistics come from besides the effects' own modules: the state and the
+# nominal residual (dynamics, residuals, signals), the rotors' thrust from the vehicle's thrust map,
+# its allocation and thrust hold (vehicle), the usable mask, noise floor and voltage
 # (flightdata.flight_data), the blocks and strides (settings.STATISTICS), the bases' helpers, this module and the
 # summaries' (their bins, windows and spectra: summaries, regimes, spectrum).
 CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quadcore.physics.residuals",
-                "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.identify.flightdata",
+                "quadcore.physics.signals", "quadcore.physics.rotations", "quadcore.physics.vehicle",
+                "quadcore.identify.flightdata",
                 "quadcore.identify.binfile",
                 "quadcore.identify.evidence",
                 "quadcore.effects.base", "quadcore.identify.stats.sufficient", "quadcore.identify.stats.profiles",
