@@ -31,6 +31,7 @@ def flight_plan(context: dg.AssetExecutionContext, data_root: DataRoot, model: M
             "manoeuvre": result.manoeuvre.describe() if result.manoeuvre else "",
             "trajectory": dg.MetadataValue.path(str(written.trajectory)),
             **{k: number(v) for k, v in result.predicted().items() if v is not None},
+            **({"advice": result.design["advice"]} if result.design.get("advice") else {}),
             **({"plan_plot": plot_md(data_root, png, "flight plan")} if png is not None else {}),
         }
     return dg.MaterializeResult(metadata=meta)

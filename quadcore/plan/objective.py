@@ -242,7 +242,7 @@ class SeparationObjective:
                          max_copies: int = MAX_COPIES) -> tuple[int | None, Separation]:
         """How many times ``new`` must be flown for the objective to reach 1 (both of the
         diagnosis's tie conditions broken with margin), and the separation there: doubling, then
-        halving the last step (the value grows with the copies); ``(None, at max_copies)`` when
+        halving the last step (taking the value to grow with the copies); ``(None, at max_copies)`` when
         even ``max_copies`` do not (the score gap tends to the flight's own share of mismatch in
         its residual energy, which more flying does not raise)."""
         lo, hi = 0, 1
