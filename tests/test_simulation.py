@@ -483,6 +483,15 @@ def test_a_log_can_start_mid_manoeuvre():
         simulation.simulate(replace(cfg, log_start_s=6.5), VEHICLE)
 
 
+def test_a_flight_that_starts_at_the_floor_is_a_configuration_error_not_a_lost_vehicle():
+    """The simulator has no ground contact, so a reference at or below the floor is refused up
+    front with what to change (before, ``start_height_m = 0`` simulated and then reported "lost
+    control: it reached the floor at t = 0.00 s")."""
+    for bad in ({"start_height_m": 0.0}, {"height_m": -0.1}):
+        with pytest.raises(simulation.SimulationError, match="above the floor"):
+            simulation.simulate(replace(_random(1, duration=3.0), **bad), VEHICLE)
+
+
 def test_a_flight_can_start_off_its_reference_with_the_rotors_at_hover():
     """``start_offset_m``: the vehicle starts away from the reference, so the first commands are
     a correction, while a lag's rotors (and a delay's history) still give the hover thrust."""

@@ -762,7 +762,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
 
 
 def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int,
-                noise: NoiseModel = "gyro") -> RateSums:
+                noise: NoiseModel | Filter = "gyro") -> RateSums:
     """One flight's :class:`RateSums` as the diagnosis takes them: the increments with the torque
     of ``model``'s effects (on ``flight``) removed, its first ``skip_blocks`` blocks left out (the
     longest memory of the ``timing`` candidates), whitened as ``noise`` says (:func:`rate_sums`)."""

@@ -79,8 +79,8 @@ class _Logged:
         effects = [c.effect for c in candidates]
         self.skip_blocks = evidence.memory_blocks(effects)
         # the sums whitened as the diagnosis takes them (its default noise model, the gyro's own noise)
-        real = [rates.flight_sums(fd, model, f, effects, self.skip_blocks) for f, fd in old.items()]
         self.filters = {f: rates.gyro_noise_model(fd) for f, fd in old.items()}
+        real = [rates.flight_sums(fd, model, f, effects, self.skip_blocks, self.filters[f]) for f, fd in old.items()]
         # a planned flight is not flown yet: the vehicle's gyro, as the first logged flight has it
         self.planned_filter = self.filters[min(old)]
         self.w = rates.weights(real)

@@ -212,6 +212,9 @@ class SimConfig:
             raise SimulationError("duration_s must be positive")
         if self.timescale <= 0:
             raise SimulationError("timescale must be positive")
+        if self.start_height_m <= 0 or self.height_m <= 0:
+            raise SimulationError("start_height_m and height_m must be above the floor (> 0 m): the "
+                                  "simulator has no ground contact, and a vehicle at the floor has lost control")
         if self.accel_max_mps2 <= 0:
             raise SimulationError("accel_max_mps2 must be positive")
         if not 0 < self.speed_min_mps <= self.speed_max_mps:
