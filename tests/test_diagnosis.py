@@ -897,4 +897,5 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     assert tied.agree == 5 and tied.undecided_between == ()
     apart = Stability("thrust_delay", ("thrust_delay",), "fold", {"thrust_delay": 4, tie: 1}, 5)
     assert apart.agree == 4 and apart.undecided_between == ("thrust_delay", tie)
-    assert "thrust_delay and motor_lag or thrust_delay (tied at the angular-rate level)" in apart.sentence()
+    assert ("Undecided between thrust_delay and a tie (motor_lag = thrust_delay, at the angular-rate level)"
+            in apart.sentence())

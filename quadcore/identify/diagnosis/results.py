@@ -185,7 +185,7 @@ class Stability:
         def name(a: str) -> str:
             return {NOTHING: "no effect of the library",
                     NO_EVIDENCE: "none (flights at the sensor-noise floor: no evidence)"}.get(
-                        a, a if TIE not in a else f"{' or '.join(a.split(TIE))} (tied at the angular-rate level)")
+                        a, a if TIE not in a else f"a tie ({a}, at the angular-rate level)")
 
         units = f"{self.unit}{'s' if self.total != 1 else ''}"
         if self.total < 2:
