@@ -174,6 +174,10 @@ def test_a_rate_level_fit_pools_the_flights_of_one_grid_as_their_sum_of_costs():
         def cost(v: float, effect=effect, p=p) -> float:
             return sum(s.cost(effect, float(min(max(v, p.lower), p.upper)), w) for s in flights)
 
-        best, _ = solve.scalar_minimum(cost, n, p.lower, p.upper, samples_per_independent=1)
+        if effect.linear_between_samples:  # a delay: every piece between the grids' whole sample periods
+            knots = np.unique(np.concatenate([s.grids[effect.name] for s in flights]))
+            best = rates.piecewise_quadratic_minimum(cost, knots, n)[0]
+        else:
+            best, _ = solve.scalar_minimum(cost, n, p.lower, p.upper, samples_per_independent=1)
         assert got.value == pytest.approx(best, rel=1e-9, abs=1e-12 * (p.upper - p.lower))
         assert got.cost == pytest.approx(cost(got.value), rel=1e-9)

@@ -32,7 +32,9 @@ white gyro noise; its whitening filter is the running sum). The offsets make the
 the noise correlated only through the block mean, a bias of order one sample per block. Same
 flights: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's standard error is the larger of the
 profile's (:func:`quadcore.identify.fit.solve.scalar_minimum` with one sample per independent one:
-right for a white residual) and the blocks-as-clusters one (:func:`_clustered_variance`, right
+right for a white residual; for a delay, whose cost is a quadratic between whole sample periods
+with a minimum in each, :func:`piecewise_quadratic_minimum`: every piece searched, the interval
+taken whole) and the blocks-as-clusters one (:func:`_clustered_variance`, right
 when the model's error within a block is not white), the comparison of two candidates the held-out difference of their
 ``J_rate`` per block, t-tested over the blocks (:func:`difference_test`).
 
@@ -547,6 +549,7 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
     (p,) = effect.parameters
     memo: dict[float, float] = {}
     pooled = _pooled(flights, w)
+    squares = _squares(effect, flights)
 
     def J(v: float) -> float:  # Σ_f RateSums.cost: per grid, the flights' weighted totals summed once
         v = float(min(max(v, p.lower), p.upper))
@@ -554,35 +557,106 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
             memo[v] = sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in pooled)
         return memo[v]
 
-    n = sum(s.n for s in flights) * 3
-    best, var = solve.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
-    var = max(var, _clustered_variance(effect, flights, w, best, var, J(best) / max(n - 1, 1)))
-    return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
-
-
-def _clustered_variance(effect: Effect, flights: Sequence[RateSums], w: np.ndarray, best: float, var: float,
-                        s2: float) -> float:
-    """The variance of the fitted value with the blocks as independent clusters (the sandwich
-    ``Σ_b (∂J_b/∂θ)² / H²``, ``H = 2 s² / var`` the profile's curvature), which the profile's
-    variance, right for a white residual, understates where the residual within a block is not
-    white (the effect's form only close to the physics, a torque the model lacks); each block's
-    slope by central differences over half a sample period, one-sided at a bound."""
-    (p,) = effect.parameters
-    if not np.isfinite(var) or var <= 0:
-        return var
-    h = 0.25 * min(s.dt_s for s in flights)
-    lo, hi = max(best - h, p.lower), min(best + h, p.upper)
-    if hi <= lo:
-        return 0.0
-
-    squares = _squares(effect, flights)
-
     def per_block(v: float) -> np.ndarray:  # RateSums.costs per flight, its direction made once per grid
         return np.concatenate([(s.blocks.astype(float) @ q) @ w for s, q in zip(flights, squares(v))])
 
+    knots = np.unique(np.concatenate([s.grids[effect.name] for s in flights]))
+    return fit_cost(effect, J, per_block, sum(s.n for s in flights) * 3, min(s.dt_s for s in flights), knots)
+
+
+def fit_cost(effect: Effect, J: Callable[[float], float], per_block: Callable[[float], np.ndarray], n: int,
+             dt_s: float, knots: np.ndarray) -> RateFit:
+    """:func:`fit` on a cost ``J`` over ``n`` values and its per-block parts ``per_block`` (weighted,
+    (blocks,)): a delay (:attr:`~quadcore.effects.Effect.linear_between_samples`) by
+    :func:`piecewise_quadratic_minimum` over the pieces between ``knots`` (its grids' whole sample
+    periods), another effect by :func:`quadcore.identify.fit.solve.scalar_minimum`; the standard
+    error the larger of the profile's and :func:`_clustered_variance`'s (``dt_s`` the shortest
+    sample period)."""
+    (p,) = effect.parameters
+    if effect.linear_between_samples:
+        best, var, curvature = piecewise_quadratic_minimum(J, knots, n)
+    else:
+        best, var = solve.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
+        curvature = 2.0 * (J(best) / max(n - 1, 1)) / var if np.isfinite(var) and var > 0 else 0.0
+    var = max(var, _clustered_variance(effect, per_block, dt_s, best, curvature))
+    return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
+
+
+def piecewise_quadratic_minimum(J: Callable[[float], float], knots: np.ndarray, n: int) -> tuple[float, float, float]:
+    """The minimum of ``J``, a quadratic between consecutive ``knots`` (a delay's cost between whole
+    sample periods: its running sums interpolated linearly, :func:`grid_weights`), over
+    ``[knots[0], knots[-1]]``: each piece's quadratic from ``J`` at its ends and middle, the lowest
+    of the pieces' minima. The variance of its position the likelihood-ratio interval's,
+    ``{v: J(v) <= J_min + s²}`` (``s² = J_min / (n − 1)``, the residual white), taken whole over
+    every piece: its larger distance from the minimum, to where it ends or to a bound it reaches
+    (a piece's minimum elsewhere within ``s²`` of the lowest widens it: the data do not tell
+    them apart; a minimum on a bound is measured to the other side). Also the curvature ``J''``
+    of the minimum's piece (the sandwich's, :func:`_clustered_variance`; 0 where that piece is not
+    convex, the minimum at a kink).
+
+    Why not :func:`quadcore.identify.fit.solve.scalar_minimum`: its 17 geometric points are 2.5 ms
+    apart at 5 ms and the cost has a minimum in every piece (the interpolation between whole
+    samples dips below the chord by ``t (1 − t) |C_(m+1) − C_m|²``), so it stopped in the piece
+    nearest its best point: three 8 s hovers with a 5 ms delay fitted 0.89-1.04 ± 0.12 ms
+    (docs/timing.md)."""
+    a, b = knots[:-1], knots[1:]
+    ja, jb = np.array([J(float(v)) for v in a]), np.array([J(float(v)) for v in b])
+    jm = np.array([J(float(v)) for v in 0.5 * (a + b)])
+    # per piece J(a + x h) = ja + x (jb − ja − c) + c x², x in [0, 1]
+    c = 2.0 * (ja + jb - 2.0 * jm)
+    slope = jb - ja - c
+    x = np.where(c > 0, np.clip(-slope / np.where(c > 0, 2.0 * c, 1.0), 0.0, 1.0), np.where(jb < ja, 1.0, 0.0))
+    low = ja + slope * x + c * x**2
+    i = int(np.argmin(low))
+    best, j0 = float(a[i] + x[i] * (b[i] - a[i])), float(low[i])
+    level = j0 + j0 / max(n - 1, 1)
+    inside = []  # each piece's stretch with J <= level (roots of the quadratic)
+    for k in range(len(a)):
+        h = b[k] - a[k]
+        xs = _below(float(ja[k] - level), float(slope[k]), float(c[k]))
+        if xs is not None:
+            inside.append((a[k] + xs[0] * h, a[k] + xs[1] * h))
+    lo, hi = min(v for v, _ in inside), max(v for _, v in inside)
+    widths = [d for d in (best - lo, hi - best) if d > 0]
+    var = float(max(widths) ** 2) if widths else 0.0
+    return best, var, float(max(c[i], 0.0) * 2.0 / (b[i] - a[i]) ** 2)
+
+
+def _below(c0: float, c1: float, c2: float) -> tuple[float, float] | None:
+    """The hull of ``{x in [0, 1]: c0 + c1 x + c2 x² <= 0}`` as its ends (None: empty): its ends are
+    among 0, 1 (where the quadratic is <= 0 there) and its roots within [0, 1]."""
+    if c2 != 0.0:
+        disc = c1 * c1 - 4.0 * c2 * c0
+        roots = (-c1 + np.array([-1.0, 1.0]) * np.sqrt(disc)) / (2.0 * c2) if disc >= 0 else np.zeros(0)
+    else:
+        roots = np.array([-c0 / c1]) if c1 != 0.0 else np.zeros(0)
+    ends = [e for e in (0.0, 1.0) if c0 + c1 * e + c2 * e * e <= 0.0]
+    points = [*ends, *(float(r) for r in roots if 0.0 <= r <= 1.0)]
+    return (min(points), max(points)) if points else None
+
+
+def _clustered_variance(effect: Effect, per_block: Callable[[float], np.ndarray], dt_s: float, best: float,
+                        curvature: float) -> float:
+    """The variance of the fitted value with the blocks as independent clusters (the sandwich
+    ``Σ_b (∂J_b/∂θ)² / H²``, ``H`` the cost's ``curvature`` at ``best``: the profile's ``2 s² / var``,
+    or a delay's piece's exact one, :func:`piecewise_quadratic_minimum`), which the profile's
+    variance, right for a white residual, understates where the residual within a block is not
+    white (the effect's form only close to the physics, a torque the model lacks); each block's
+    slope (``per_block``) by central differences over half a sample period (``dt_s``), one-sided at a bound, where the
+    slopes' sum is not 0 (the bound holds the fit: on a simulated fleet with no delay the slope
+    from 0 rose the cost by s² within 3 µs) and their spread about their mean is the score's
+    variance. 0 without a positive curvature (the profile's interval stands)."""
+    (p,) = effect.parameters
+    if not np.isfinite(curvature) or curvature <= 0:
+        return 0.0
+    h = 0.25 * dt_s
+    lo, hi = max(best - h, p.lower), min(best + h, p.upper)
+    if hi <= lo:
+        return 0.0
     slopes = (per_block(hi) - per_block(lo)) / (hi - lo)
+    if best <= p.lower or best >= p.upper:  # held by a bound, the blocks' slopes need not sum to 0: their spread
+        slopes = slopes - slopes.mean()
     k = len(slopes)
-    curvature = 2.0 * s2 / var
     return float(k / max(k - 1, 1) * np.sum(slopes**2) / curvature**2)
 
 

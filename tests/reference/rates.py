@@ -1,8 +1,9 @@
 """The reference the rate level's sums (:class:`quadcore.identify.rates.RateSums`) are tested
 against: every cost evaluated on the flight's rows, recomputing the candidate's torque
 (``R_k − C_k(v)`` less its mean per segment, summed per block, docs/timing.md), with the sums' interface (``cost``,
-``costs``, ``differences``, ``n``, ``dt_s``), so that :func:`quadcore.identify.rates.fit` and
-:func:`~quadcore.identify.rates.block_differences` run on either. Nothing in quadcore uses it."""
+``costs``, ``differences``, ``n``, ``dt_s``), so that :func:`~quadcore.identify.rates.block_differences`
+runs on either, and :func:`fit`, the rows' :func:`quadcore.identify.rates.fit` (the same search,
+:func:`quadcore.identify.rates.fit_cost`, on the rows' costs). Nothing in quadcore uses it."""
 
 from __future__ import annotations
 
@@ -42,3 +43,16 @@ class RowRates:
     def differences(self, a, va: float, b, vb: float) -> tuple[np.ndarray, np.ndarray]:
         (dev_a, blocks), (dev_b, _) = self._deviations(a, va), self._deviations(b, vb)
         return self._per_block(dev_b**2 - dev_a**2, blocks), self._per_block((dev_b - dev_a) ** 2, blocks)
+
+
+def fit(effect, flights: list[RowRates], w: np.ndarray) -> rates.RateFit:
+    """:func:`quadcore.identify.rates.fit` on the rows: the same search and standard errors
+    (:func:`quadcore.identify.rates.fit_cost`), each cost from the rows."""
+    def J(v: float) -> float:
+        return sum(f.cost(effect, v, w) for f in flights)
+
+    def per_block(v: float) -> np.ndarray:
+        return np.concatenate([f.costs(effect, v) @ w for f in flights])
+
+    knots = np.unique(np.concatenate([rates.rate_grid(effect, f.dt_s) for f in flights]))
+    return rates.fit_cost(effect, J, per_block, sum(f.n for f in flights) * 3, min(f.dt_s for f in flights), knots)
