@@ -8,8 +8,10 @@ JSON (``quadcore plan --json``; key order fixed)::
      arena: [6]}, "predicted": {separation_sigma_before, separation_sigma_after} |
      {parameter_std_before, parameter_std_after}, ...}
 
-followed by what explains the numbers (``why``, ``manoeuvre``, ``checked`` limits, ``design``:
-the objective's prediction, ``proof``: each explanation flown in the simulator, ``proof_left_out``:
+followed by what explains the numbers (``why``, ``measured``: the separation and score gap of
+the logged flights, ``manoeuvre``, ``checked`` limits, ``design``: the objective's prediction,
+whether the flight ``improves`` both, and where it does not decide alone how many ``repeated``
+flights would and the ``advice``, ``proof``: each explanation flown in the simulator, ``proof_left_out``:
 each explanation whose flight the proof could not use, and why).
 
 The picture: the path seen from above and from the side inside the arena, coloured by speed,
