@@ -295,7 +295,7 @@ def _outlook(obj, fd: flightdata.FlightData, before: objective.Separation, after
                     f"{there.score_gap:.2g} where the diagnosis needs {evidence.TIE_MARGIN:g} "
                     f"({objective.GAP_GOAL:g} with the design's margin; more such flying does not raise it); "
                     "explain more of the residual first, or decide by knowledge of the vehicle")
-    out["advice"] = "one such flight does not decide it; " + "; ".join(said)
+    out["advice"] = "; ".join(["one such flight does not decide it", *said])
     return out
 
 
