@@ -8,9 +8,13 @@ diagnosis's own angular-rate level test, not the torque channels' comparison."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 from reference import separation as reference
 
+from quadcore import effects as effectlib
 from quadcore.identify import diagnosis, rates
 from quadcore.identify.fit import model_fit
 from quadcore.identify.model import PhysicsModel
@@ -73,3 +77,34 @@ def test_a_lag_against_a_delay_is_measured_by_the_diagnosis_s_own_rate_level_tes
                                 skip=separation.skipped_blocks(diag))
     assert abs(comp.t - torque.t) > 0.5, (comp.t, torque.t)  # a different statistic from the torque level's
 
+
+
+DOUBLE_LAG = Path(__file__).resolve().parent / "plugins" / "double_lag.py"  # a third timing effect
+
+
+@pytest.mark.parametrize("flights, plugin", [(1, False), (3, True)])
+def test_the_rate_level_separation_is_the_diagnosis_s_with_one_flight_and_with_a_third_timing_candidate(
+        weak_map, monkeypatch, flights, plugin):
+    """The planner's measured rate-level separation is the diagnosis's own, also where the two
+    used to differ (the reviewer): one logged flight, which the diagnosis compares in-sample
+    (before, the planner split it into folds with no training flight and fitted nothing), and a
+    third timing candidate (tests/plugins/double_lag.py, 1.4 s of memory), whose longest memory
+    the diagnosis leaves out of every flight (before, the planner left out only the pair's)."""
+    if plugin:
+        effectlib.load_plugin(DOUBLE_LAG)
+    seen: dict[tuple[str, str], float] = {}
+    compare_pair = rates.compare_pair
+
+    def spy(sums, splits, a, b, fits_a, fits_b, w):
+        per_flight, test = compare_pair(sums, splits, a, b, fits_a, fits_b, w)
+        seen[(a.name, b.name)] = test.t
+        return per_flight, test
+
+    monkeypatch.setattr(rates, "compare_pair", spy)
+    tables = {f: weak_map[f] for f in sorted(weak_map)[:flights]}
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(tables, spec, candidates=["motor_lag", "thrust_delay", "double_lag"] if plugin else None)
+    assert ("double_lag" in separation.timing_candidates(diag)) == plugin
+    t = seen.get(("motor_lag", "thrust_delay"), -seen.get(("thrust_delay", "motor_lag"), np.nan))
+    comp = separation.measured(tables, spec, diag, "motor_lag", "thrust_delay")
+    assert comp.t == pytest.approx(t, rel=1e-9, abs=1e-9), (comp.t, seen)

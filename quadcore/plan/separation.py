@@ -28,7 +28,7 @@ best fits).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import polars as pl
@@ -36,7 +36,6 @@ import polars as pl
 from quadcore import effects as effectlib
 from quadcore.identify import diagnosis as diagnosislib, evidence, flightdata, rates
 from quadcore.identify.diagnosis.results import Diagnosis
-from quadcore.identify.fit import solve
 from quadcore.identify.model import PhysicsModel
 from quadcore.spec.model import ModelSpec
 
@@ -88,21 +87,27 @@ def timing_pair(a: str, b: str) -> bool:
 
 
 def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel, a: str, b: str,
-                 n_folds: int = N_FOLDS) -> Comparison:
+                 n_folds: int = N_FOLDS, timing: Sequence[str] = ()) -> Comparison:
     """The diagnosis's held-out comparison of two timing candidates at the angular-rate level
     (:func:`quadcore.identify.rates.judge`'s, for one pair): each flight's rate sums with the
-    model's torque removed, both candidates fitted on each fold's training flights, the blocks'
+    model's torque removed and the first blocks of the longest memory among the diagnosis's
+    ``timing`` candidates left out (``a`` and ``b`` at least), both candidates fitted on each
+    fold's training flights (the diagnosis's folds: in-sample with one flight), the blocks'
     :func:`quadcore.identify.rates.difference_test` over the test flights (``t > 0``: ``a``)."""
     ea, eb = effectlib.get(a), effectlib.get(b)
-    skip = evidence.memory_blocks([ea, eb])
+    skip = evidence.memory_blocks([effectlib.get(n) for n in {a, b, *timing}])
     fds = flights_of(tables, spec)
     sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip) for f, fd in fds.items()}
-    ids = sorted(sums)
-    splits = [([f for f in ids if f not in fold], fold) for fold in solve.folds(ids, n_folds)]
+    splits, _, _ = diagnosislib.fold_splits(sorted(sums), None, n_folds)
     w = rates.weights(list(sums.values()))
     fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for tr, _ in splits] for e in (ea, eb)}
     _, test = rates.compare_pair(sums, splits, ea, eb, fits[a], fits[b], w)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
+
+
+def timing_candidates(diag: Diagnosis) -> list[str]:
+    """The diagnosis's candidates its rate level compares (one parameter, re-timing the thrust)."""
+    return [c.effect for c in diag.candidates if timing_pair(c.effect, c.effect)]
 
 
 def measured(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, diag: Diagnosis, a: str, b: str,
@@ -111,5 +116,5 @@ def measured(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, diag: Diagnosi
     :func:`rate_compare` for two timing candidates, else :func:`compare` (its model, its skipped
     blocks; ``stats`` as there)."""
     if timing_pair(a, b):
-        return rate_compare(tables, spec, diag.model, a, b)
+        return rate_compare(tables, spec, diag.model, a, b, timing=timing_candidates(diag))
     return compare(tables, spec, diag.model, a, b, skip=skipped_blocks(diag), stats=stats)

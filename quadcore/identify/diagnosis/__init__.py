@@ -14,7 +14,7 @@ missing beside the best one) is in ``docs/diagnosis.md``; the thresholds in
 * :mod:`~quadcore.identify.diagnosis.run`: :func:`diagnose`, the steps in order.
 """
 
-from quadcore.identify.diagnosis.problem import HeldOut, default_candidates, held_out_of_model
+from quadcore.identify.diagnosis.problem import HeldOut, default_candidates, fold_splits, held_out_of_model
 from quadcore.identify.diagnosis.results import (
     NO_EVIDENCE,
     NOTHING,
@@ -28,4 +28,5 @@ from quadcore.identify.diagnosis.run import diagnose
 from quadcore.identify.diagnosis.sensitivity import detection_limits, sensitivity_basis
 
 __all__ = ["NOTHING", "NO_EVIDENCE", "CandidateScore", "Diagnosis", "Evaluation", "HeldOut", "ResidualRmse",
-           "Stability", "default_candidates", "detection_limits", "diagnose", "held_out_of_model", "sensitivity_basis"]
+           "Stability", "default_candidates", "detection_limits", "diagnose", "fold_splits", "held_out_of_model",
+           "sensitivity_basis"]

@@ -1,5 +1,5 @@
 """The diagnosis's problem: its flights (rows or statistics, :class:`_Flights`), their targets,
-the model's effects and the candidates (:class:`_Problem`), the folds (:func:`_splits`), the
+the model's effects and the candidates (:class:`_Problem`), the folds (:func:`fold_splits`), the
 cross-fit of the model and of every candidate on each fold's training flights
 (:func:`_cross_fit`), and the evaluated flights as the scores take them (:func:`_held_out`);
 the same for a model fitted once, to compare two candidates against (:func:`held_out_of_model`:
@@ -190,7 +190,7 @@ class _Problem:
         return self.fl.rows(f) if self.by_rows[c.name] else self.fds[f]
 
 
-def _splits(ids: list[str], holdout: list[str] | None, n_folds: int
+def fold_splits(ids: list[str], holdout: list[str] | None, n_folds: int
             ) -> tuple[list[tuple[list[str], list[str]]], list[str], str]:
     """The (training, test) flights of each fold, all the training flights, and the mode: the
     held-out flights when given, else folds over the flights (in-sample with one flight)."""
@@ -387,13 +387,13 @@ def held_out_of_model(decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, mode
     """The held-out comparison of ``candidates`` against the residual of a fitted ``model`` (its
     fleet, or each flight's session's, values; not refitted per fold), from the flights'
     statistics as the diagnosis takes them (:class:`_Problem`): folds over the flights
-    (:func:`_splits`), each candidate fitted on the training flights' residual (``bounded``:
+    (:func:`fold_splits`), each candidate fitted on the training flights' residual (``bounded``:
     within its physical bounds) and predicting the test flights' (a signal vector; a nonlinear
     one from its profiles or as an extra column, :func:`_evaluated`), every flight scored without
     its first ``skip`` blocks (:func:`_on_common_samples`). ``stats``: stored statistics, as for
     :func:`quadcore.identify.diagnosis.diagnose`."""
     p = _Problem(decoded, spec, candidates, stats, skip=skip, bounded=bounded)
-    splits, _, _ = _splits(p.ids, None, n_folds)
+    splits, _, _ = fold_splits(p.ids, None, n_folds)
     resid = _residual(p, _session_terms(model, lambda msg: None), p.ids)
     folds = _cross_fit(p, splits, None, lambda msg: None, fixed=resid)
     return _held_out(p, folds, settings)

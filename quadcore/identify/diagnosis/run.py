@@ -20,9 +20,9 @@ from quadcore.identify.diagnosis.problem import (
     _group_spread,
     _held_out,
     _Problem,
-    _splits,
     _total,
     _training_model,
+    fold_splits,
 )
 from quadcore.identify.diagnosis.results import (
     NO_EVIDENCE,
@@ -79,7 +79,7 @@ def diagnose(
     earlier diagnosis (:func:`quadcore.identify.diagnosis.rate_cache.stored`), so that only the
     flights whose sums are missing or stale are read."""
     p = _Problem(decoded, spec, candidates, stats)
-    splits, train_all, mode = _splits(p.ids, holdout, settings.n_folds)
+    splits, train_all, mode = fold_splits(p.ids, holdout, settings.n_folds)
     folds = _cross_fit(p, splits, sessions, log)
     # With a single split on all training flights (holdout), its fits are the final ones.
     reuse = len(splits) == 1 and splits[0][0] == train_all
