@@ -125,7 +125,8 @@ def test_with_the_firmwares_coloured_noise_the_gyro_noise_model_keeps_the_rate_l
         if noise == "white":  # the bias the noise model removes is there
             assert (fit.value - truth_s < -1.5 * fit.std) if name == "thrust_delay" else (test.t < 0), (fit, test)
             continue
-        assert abs(fit.value - truth_s) < 3 * fit.std and fit.std < 1e-3, (fit.value, fit.std)
+        # the standard error spans the unwhitened fit (rates.RateFit.unwhitened): up to 1.01 ms (the lag, seed 1)
+        assert abs(fit.value - truth_s) < 3 * fit.std and fit.std < 1.5e-3, (fit.value, fit.std)
         assert test.t > 0, test
         if name == "motor_lag":
             assert test.p_value < evidence.ALPHA, test
@@ -184,21 +185,23 @@ def test_a_delays_standard_error_spans_minima_the_data_cannot_tell_apart():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.xfail(
-    strict=True, reason="the gyro's noise model on white noise: its cost's lowest minimum is at 0.89 ms "
-                        "(docs/timing.md, 'What is not covered')")), 2])
-def test_a_small_delay_is_fitted_within_its_standard_error(tmp_path, seed):
-    """Known answer: a 5 ms delay (2.5 sample periods) on three 8 s hovers with the simulator's white
-    noise, fitted as the diagnosis fits it (the gyro's noise model). Before every piece between whole
-    samples was searched: 1.04 ± 0.12 and 0.99 ± 0.12 ms (seeds 0, 2; 33 σ off), now 5.07 ± 0.12 and
-    4.99 ± 0.12 ms; seed 1's cost has its lowest minimum at 0.89 ms (the noise model's bias on
-    white noise, not the search: expected to fail). Unwhitened (noise="white"): 5.06, 4.79, 4.99 ms."""
-    fds = _flights(tmp_path, "thrust_delay", seed=seed, truth_s=0.005)
+@pytest.mark.parametrize("truth_ms, seed, lowpass_hz", [(5, 0, 0.0), (5, 1, 0.0), (2, 0, 0.0), (6, 0, 80.0)])
+def test_a_small_delays_error_bar_covers_the_truth(tmp_path, truth_ms, seed, lowpass_hz):
+    """Known answer: a small delay on three 8 s hovers, fitted as the diagnosis fits it (the gyro's
+    noise model). Measured before (e8999c1): 5 ms 1.04 ± 0.12 (seed 0: the search stopped in the
+    wrong piece) and 0.89 ± 0.12 ms (seed 1), 2 ms 0.83 ± 0.12 ms, with the firmware's coloured noise
+    6 ms 2.17 ± 0.66 ms: 6-33 σ off. With every piece searched seed 0 is 5.06 ± 0.12 ms (the filter
+    and the unwhitened fit agree there: a tight bar, right); where the whitened cost's lowest
+    minimum is elsewhere (the filter's bias, docs/timing.md "A small delay") the standard error
+    spans the unwhitened fit (unbiased on white noise, 3 σ high on the coloured one at 5 ms): 0.89 ±
+    3.90, 0.83 ± 1.04, 2.16 ± 3.84 ms, within 1.1 σ. Unwhitened alone: 5.06, 4.79, 1.87, 6.00 ms."""
+    fds = _flights(tmp_path, "thrust_delay", seed=seed, truth_s=truth_ms / 1e3, lowpass_hz=lowpass_hz)
     e, rival = effects.get("thrust_delay"), effects.get("motor_lag")
-    for noise in ("white", "gyro"):
-        sums = [rates.rate_sums(rf, [e, rival], noise=noise) for rf in _rate_flights(fds)]
-        fit = rates.fit(e, sums, rates.weights(sums))
-        assert abs(fit.value - 0.005) < 3 * fit.std and fit.std < 1e-3, (noise, fit.value, fit.std)
+    sums = [rates.rate_sums(rf, [e, rival]) for rf in _rate_flights(fds)]
+    fit = rates.fit(e, sums, rates.weights(sums))
+    assert fit.unwhitened is not None, "the gyro's filter is not empty on these flights"
+    assert abs(fit.value - truth_ms / 1e3) < 2 * fit.std, (fit.value, fit.std, fit.unwhitened)
+    assert fit.std <= max(abs(fit.value - fit.unwhitened), 0.2e-3) + 1e-12, "wide only by the noise model's spread"
 
 
 @pytest.mark.slow

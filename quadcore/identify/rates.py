@@ -52,6 +52,10 @@ filter fitted to the residual instead (:func:`noise_model`, ``rate_sums(..., noi
 is unbiased on the simulator too, but on the 19 real flights it has ``Σφ`` 0.98-0.99, a
 near-difference that models the unmodelled torque's drift within the running sums, not the sensor
 noise, and 'found' a delay of 1.0 ms at 6.3 σ; the gyro's has ``Σφ`` 0.5-0.65 and finds none.
+Which filter is right the gyro cannot tell (it holds the loop's response to its own noise), and
+below about 8 ms the whitened and the unwhitened fits of a delay disagree by up to 4 ms (the
+whitened one biased: docs/timing.md, "A small delay"): :func:`fit` fits both and the standard
+error is at least their distance (:attr:`RateFit.unwhitened`).
 
 **From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
 sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
@@ -71,7 +75,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -159,7 +163,9 @@ class RateSums:
     :attr:`blocks` (B, 3, P) in float32 (the held-out tests' clusters, as the profiles' blocks)
     and :attr:`total` (3, P) over the flight in float64 (the fits). ``noise`` (3,) the torque
     channels' sensor-noise RMS over ``samples`` usable samples (:func:`weights`), ``dt_s`` the
-    median sample period, ``n`` the used intervals."""
+    median sample period, ``n`` the used intervals. :attr:`unwhitened` (3, P): :attr:`total`
+    without the whitening filter (the same where it is empty; None: not taken), whose fit
+    :func:`fit` sets beside the whitened one (the noise model's share of the standard error)."""
 
     grids: dict[str, np.ndarray]
     slots: dict[str, slice]
@@ -169,6 +175,7 @@ class RateSums:
     samples: int
     dt_s: float
     n: int
+    unwhitened: np.ndarray | None = None
 
     def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
         """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
@@ -311,15 +318,21 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     lags = ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
+    raw = np.zeros((3, len(iu[0])))  # the same without the filter (RateSums.unwhitened)
     for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
         x = whitened(X[lo:hi].astype(float), ar)
         if not len(x):
             continue
         x -= x.mean(axis=0)
         blocks[cluster[i]] += np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
+        if lags:
+            r = X[lo:hi].astype(float)
+            r -= r.mean(axis=0)
+            raw += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
     used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
-    return RateSums(grids, slots, blocks.astype(np.float32), blocks.sum(axis=0),
-                    rf.fd.noise[3:] * np.sqrt(share), max(rf.fd.n, 1), dt_s, used)
+    total = blocks.sum(axis=0)
+    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
+                    max(rf.fd.n, 1), dt_s, used, raw if lags else total)
 
 
 def effect_increments(effect: Effect, params: dict[str, float], rf: RateFlight) -> np.ndarray:
@@ -534,7 +547,10 @@ def weights(flights: Sequence[RateSums]) -> np.ndarray:
 @dataclass(frozen=True)
 class RateFit:
     """A timing effect's one parameter fitted at the rate level: value, standard error, and the
-    weighted cost at it over ``n`` intervals."""
+    weighted cost at it over ``n`` intervals; ``unwhitened``: the value fitted without the flights'
+    whitening filters (None: they had none), whose distance from ``value`` the standard error is
+    at least (the answer's dependence on the noise model, which the gyro cannot check: it holds
+    the loop's response to its own noise, docs/timing.md "A small delay")."""
 
     effect: str
     parameter: str
@@ -542,10 +558,13 @@ class RateFit:
     std: float
     cost: float
     n: int
+    unwhitened: float | None = None
 
 
 def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
-    """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module)."""
+    """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module), its
+    standard error (:func:`fit_cost`) at least the distance to the value fitted without the flights'
+    whitening filters (:attr:`RateFit.unwhitened`)."""
     (p,) = effect.parameters
     memo: dict[float, float] = {}
     pooled = _pooled(flights, w)
@@ -561,7 +580,24 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
         return np.concatenate([(s.blocks.astype(float) @ q) @ w for s, q in zip(flights, squares(v))])
 
     knots = np.unique(np.concatenate([s.grids[effect.name] for s in flights]))
-    return fit_cost(effect, J, per_block, sum(s.n for s in flights) * 3, min(s.dt_s for s in flights), knots)
+    n = sum(s.n for s in flights) * 3
+    out = fit_cost(effect, J, per_block, n, min(s.dt_s for s in flights), knots)
+    if not any(_filtered(s) for s in flights):
+        return out
+    raw = _pooled([s if s.unwhitened is None else replace(s, total=s.unwhitened) for s in flights], w)
+
+    def J_raw(v: float) -> float:  # the same cost without each flight's whitening filter
+        v = float(min(max(v, p.lower), p.upper))
+        return sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in raw)
+
+    other = (piecewise_quadratic_minimum(J_raw, knots, n)[0] if effect.linear_between_samples
+             else solve.scalar_minimum(J_raw, n, p.lower, p.upper, samples_per_independent=1)[0])
+    return replace(out, std=max(out.std, abs(out.value - other)), unwhitened=other)
+
+
+def _filtered(s: RateSums) -> bool:
+    """Whether ``s``'s totals went through a whitening filter (its :attr:`RateSums.unwhitened` differ)."""
+    return s.unwhitened is not None and s.unwhitened is not s.total and not np.array_equal(s.unwhitened, s.total)
 
 
 def fit_cost(effect: Effect, J: Callable[[float], float], per_block: Callable[[float], np.ndarray], n: int,
@@ -901,6 +937,9 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     r.notes = (*(n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)),
                f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
                f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)")
+    if rf.unwhitened is not None and abs(rf.value - rf.unwhitened) >= std:
+        r.notes = (*r.notes, f"{p.name} depends on the gyro noise model: {rf.value:.4g} with it, {rf.unwhitened:.4g} "
+                             "without; the standard error spans both (docs/timing.md, 'A small delay')")
     if not r.significant:
         r.notes = (*r.notes, f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
                              "'no effect'")

@@ -36,7 +36,7 @@ from quadcore.identify.stats import sufficient
 from quadcore.store import store
 from quadcore.store.names import check_component
 
-FORMAT = 1  # bump when what the file holds changes: kept ones become stale
+FORMAT = 2  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals)
 FILE = "rates.bin"
 # The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
 # state, the effects' base, the grids' interpolation in profiles): the rate level and this file.
@@ -78,7 +78,7 @@ def save(root: Any, flight: str, k: str, sums: rates.FlightRates) -> Any:
     header.update(slots={n: [sl.start, sl.stop] for n, sl in sums.slots.items()}, samples=sums.samples,
                   dt_s=sums.dt_s, n=sums.n)
     arrays = {**{f"grid:{n}": g for n, g in sums.grids.items()}, "blocks": sums.blocks, "total": sums.total,
-              "noise": sums.noise}
+              "noise": sums.noise, "unwhitened": sums.total if sums.unwhitened is None else sums.unwhitened}
     return binfile.write_file(path(root, flight), header, arrays)
 
 
@@ -96,7 +96,8 @@ def load(root: Any, flight: str, k: str) -> rates.FlightRates | None:
             return rates.BelowCommandRate(float(period), float(hold))
         slots = {n: slice(int(a), int(b)) for n, (a, b) in header["slots"].items()}
         return rates.RateSums({n: array(f"grid:{n}") for n in slots}, slots, array("blocks"), array("total"),
-                              array("noise"), int(header["samples"]), float(header["dt_s"]), int(header["n"]))
+                              array("noise"), int(header["samples"]), float(header["dt_s"]), int(header["n"]),
+                              array("unwhitened"))
     except (ValueError, KeyError, TypeError) as exc:
         raise binfile.StatsError(f"{where}: not a rate-level file ({exc})") from None
 
