@@ -103,7 +103,11 @@ def test_the_main_job_runs_on_an_object_store(s3_url, drag_fleet, tmp_path, monk
     assert diagnosis["model"]["label"] == fitted["label"]
     assert "<html" in (root / "reports" / "diagnosis.html").read_text().lower()
     assert store.read_json(root / "reports" / "discovery.json")["effects_in_model"] == ["rotor_drag"]
-    from quadcore.identify import history
+    from quadcore.identify import binfile, history
+    from quadcore.identify.diagnosis import rate_cache
+
+    kept = binfile.decode(binfile.read_file(rate_cache.path(root, "sim003")))[0]  # the rate level's sums, kept
+    assert kept["flight"] == "sim003" and kept["format"] == rate_cache.FORMAT
 
     assert history.read(root)["model_label"].to_list()[0] == fitted["label"]
     index = store.read_json(root / "learned" / "index.json")
