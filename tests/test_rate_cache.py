@@ -131,7 +131,9 @@ def test_sums_read_back_equal_the_ones_written(root, tmp_path):
     assert back.slots == s.slots and (back.samples, back.n) == (s.samples, s.n) and back.dt_s == pytest.approx(s.dt_s)
     for name in s.grids:
         np.testing.assert_allclose(back.grids[name], s.grids[name], rtol=1e-15)
-    for a, b in ((back.blocks, s.blocks), (back.total, s.total), (back.noise, s.noise)):
+    assert back.unwhitened is not None and s.unwhitened is not None
+    for a, b in ((back.blocks, s.blocks), (back.total, s.total), (back.noise, s.noise),
+                 (back.unwhitened, s.unwhitened)):
         assert a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-15)
     assert rate_cache.load(tmp_path, "sim001", "another") is None
