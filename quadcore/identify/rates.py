@@ -646,7 +646,7 @@ def piecewise_quadratic_minimum(J: Callable[[float], float], knots: np.ndarray, 
     i = int(np.argmin(low))
     best, j0 = float(a[i] + x[i] * (b[i] - a[i])), float(low[i])
     level = j0 + j0 / max(n - 1, 1)
-    inside = []  # each piece's stretch with J <= level (roots of the quadratic)
+    inside = [(best, best)]  # each piece's stretch with J <= level (roots of the quadratic); the minimum's own
     for k in range(len(a)):
         h = b[k] - a[k]
         xs = _below(float(ja[k] - level), float(slope[k]), float(c[k]))
