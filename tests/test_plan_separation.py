@@ -60,14 +60,14 @@ def test_a_lag_against_a_delay_is_measured_by_the_diagnosis_s_own_rate_level_tes
     (:func:`quadcore.identify.rates.judge`): the planner's measured separation of the two
     (what the plan reports before, the proof after, and the benchmark per trial) is that test's t."""
     seen: list[float] = []
-    test = rates.difference_test
+    compare_pair = rates.compare_pair
 
-    def spy(g, D):
-        out = test(g, D)
+    def spy(*args):  # the comparison with the gyro noise model (rates.unwhitened_comparison: without it)
+        per_flight, out = compare_pair(*args)
         seen.append(out.t)
-        return out
+        return per_flight, out
 
-    monkeypatch.setattr(rates, "difference_test", spy)
+    monkeypatch.setattr(rates, "compare_pair", spy)
     spec = spec_from(VEHICLE, [])
     diag = diagnosis.diagnose(weak_map, spec)
     assert len(seen) == 1, seen  # the diagnosis compared the pair once

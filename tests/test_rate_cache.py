@@ -132,8 +132,10 @@ def test_sums_read_back_equal_the_ones_written(root, tmp_path):
     for name in s.grids:
         np.testing.assert_allclose(back.grids[name], s.grids[name], rtol=1e-15)
     assert back.unwhitened is not None and s.unwhitened is not None
+    assert (back.unwhitened_blocks is None) == (s.unwhitened_blocks is None)
     for a, b in ((back.blocks, s.blocks), (back.total, s.total), (back.noise, s.noise),
-                 (back.unwhitened, s.unwhitened)):
+                 (back.unwhitened, s.unwhitened), *(((back.unwhitened_blocks, s.unwhitened_blocks),)
+                                                    if s.unwhitened_blocks is not None else ())):
         assert a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-15)
     assert rate_cache.load(tmp_path, "sim001", "another") is None

@@ -165,7 +165,10 @@ class RateSums:
     channels' sensor-noise RMS over ``samples`` usable samples (:func:`weights`), ``dt_s`` the
     median sample period, ``n`` the used intervals. :attr:`unwhitened` (3, P): :attr:`total`
     without the whitening filter (the same where it is empty; None: not taken), whose fit
-    :func:`fit` sets beside the whitened one (the noise model's share of the standard error)."""
+    :func:`fit` sets beside the whitened one (the noise model's share of the standard error);
+    :attr:`unwhitened_blocks` (B, 3, P) float32: :attr:`blocks` without the filter (None: the
+    same as :attr:`blocks`, or not taken), the held-out comparison's without the noise model
+    (:func:`unwhitened_comparison`)."""
 
     grids: dict[str, np.ndarray]
     slots: dict[str, slice]
@@ -176,6 +179,7 @@ class RateSums:
     dt_s: float
     n: int
     unwhitened: np.ndarray | None = None
+    unwhitened_blocks: np.ndarray | None = None
 
     def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
         """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
@@ -194,14 +198,17 @@ class RateSums:
         """(blocks, 3) ``Σ_(k∈b) (R̃_ka − C̃_ka(value))²`` per block and axis."""
         return self._forms(self.direction(effect, value))
 
-    def differences(self, a: Effect, va: float, b: Effect, vb: float) -> tuple[np.ndarray, np.ndarray]:
-        """(blocks, 3) each: ``b``'s cost minus ``a``'s, and ``Σ (C̃_a(va) − C̃_b(vb))²``."""
+    def differences(self, a: Effect, va: float, b: Effect, vb: float, unwhitened: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(blocks, 3) each: ``b``'s cost minus ``a``'s, and ``Σ (C̃_a(va) − C̃_b(vb))²``;
+        ``unwhitened``: from the Grams without the whitening filter (:attr:`unwhitened_blocks`)."""
         ua, ub = self.direction(a, va), self.direction(b, vb)
-        return self._forms(ub) - self._forms(ua), self._forms(ub - ua)
+        G = self.unwhitened_blocks if unwhitened and self.unwhitened_blocks is not None else self.blocks
+        return self._forms(ub, G) - self._forms(ua, G), self._forms(ub - ua, G)
 
-    def _forms(self, u: np.ndarray) -> np.ndarray:
-        """(blocks, 3) ``uᵀ G_ba u``."""
-        return self.blocks.astype(float) @ _packed_square(u)
+    def _forms(self, u: np.ndarray, G: np.ndarray | None = None) -> np.ndarray:
+        """(blocks, 3) ``uᵀ G_ba u`` (``G``: :attr:`blocks` unless given)."""
+        return (self.blocks if G is None else G).astype(float) @ _packed_square(u)
 
 
 def _packed_square(u: np.ndarray) -> np.ndarray:
@@ -318,7 +325,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     lags = ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
-    raw = np.zeros((3, len(iu[0])))  # the same without the filter (RateSums.unwhitened)
+    raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
     for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
         x = whitened(X[lo:hi].astype(float), ar)
         if not len(x):
@@ -328,11 +335,12 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
         if lags:
             r = X[lo:hi].astype(float)
             r -= r.mean(axis=0)
-            raw += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
+            raw[cluster[i]] += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
     used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
     total = blocks.sum(axis=0)
     return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
-                    max(rf.fd.n, 1), dt_s, used, raw if lags else total)
+                    max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
+                    raw.astype(np.float32) if lags else None)
 
 
 def effect_increments(effect: Effect, params: dict[str, float], rf: RateFlight) -> np.ndarray:
@@ -697,14 +705,15 @@ def _clustered_variance(effect: Effect, per_block: Callable[[float], np.ndarray]
 
 
 def block_differences(flights: Sequence[RateSums], a: Effect, pa: dict[str, float], b: Effect,
-                      pb: dict[str, float], w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      pb: dict[str, float], w: np.ndarray, unwhitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per block of ``flights``: ``g``, ``b``'s weighted ``J_rate`` minus ``a``'s (> 0: ``a`` fits
     better), and ``D``, the weighted ``Σ (C_a − C_b)²`` (block means removed) that ``g`` is made of:
     with ``e = R − (C_a + C_b)/2``, ``g = 2 Σ (C_a − C_b) e`` and, if ``a`` is the truth,
-    ``E g = D``; if ``b`` is, ``−D``."""
+    ``E g = D``; if ``b`` is, ``−D``. ``unwhitened``: without the flights' whitening filters
+    (:attr:`RateSums.unwhitened_blocks`)."""
     g, D = [], []
     for s in flights:
-        gs, Ds = s.differences(a, pa[a.parameters[0].name], b, pb[b.parameters[0].name])
+        gs, Ds = s.differences(a, pa[a.parameters[0].name], b, pb[b.parameters[0].name], unwhitened)
         g.append(gs @ w)
         D.append(Ds @ w)
     return np.concatenate(g), np.concatenate(D)
@@ -748,18 +757,20 @@ TIE = " = "  # joins the timing candidates a fold's answer names when the rate l
 @dataclass(frozen=True)
 class Judged:
     """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
-    per-block :func:`block_differences` (> 0: ``a`` fits better)."""
+    per-block :func:`block_differences` (> 0: ``a`` fits better); ``undecided``: the pairs whose
+    answer the gyro noise model decides (:func:`noise_model_decides`), which prefer neither."""
 
     differences: dict[tuple[str, str], dict[str, np.ndarray]]
+    undecided: frozenset[tuple[str, str]] = frozenset()
 
     def answer(self, effect: str, flights: Sequence[str]) -> str:
         """A fold's answer ``effect`` (the torque level's), as the rate level has it on ``flights``
         when ``effect`` is one of the timing candidates it compared: from every pair's difference
         summed over ``flights``, the candidate no other fits better; several (an exact tie: fits
         that predict alike) or, in a cycle, none: every candidate none fits better, or all of them,
-        joined by :data:`TIE` (a tie stated as one). Symmetric: the same whatever the order of the
-        pairs and of each pair's sides. ``effect`` itself when it is no timing candidate or no pair
-        was measured on ``flights``."""
+        joined by :data:`TIE` (a tie stated as one); a pair in :attr:`undecided` beats neither.
+        Symmetric: the same whatever the order of the pairs and of each pair's sides. ``effect``
+        itself when it is no timing candidate or no pair was measured on ``flights``."""
         names = {n for pair in self.differences for n in pair}
         measured = [(a, b, per_flight) for (a, b), per_flight in self.differences.items()
                     if any(f in per_flight for f in flights)]
@@ -767,6 +778,8 @@ class Judged:
             return effect
         beaten: set[str] = set()
         for a, b, per_flight in measured:
+            if (a, b) in self.undecided:
+                continue
             total = sum(float(per_flight[f].sum()) for f in flights if f in per_flight)
             beaten |= {b} if total > 0 else {a} if total < 0 else set()
         return TIE.join(sorted(names - beaten) or sorted(names))
@@ -856,6 +869,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     wins: list[tuple[CandidateRow, CandidateRow]] = []
+    undecided: set[tuple[str, str]] = set()
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
             ra, rb = by_name[a.name], by_name[b.name]
@@ -863,12 +877,16 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
                 continue
             per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], w)
             differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
-            if test.p_value < settings.alpha:
+            raw = unwhitened_comparison(flights, splits, a, b, folds[a.name], folds[b.name], w)
+            if raw is not None and noise_model_decides(test, raw, settings.alpha):
+                undecided.add((a.name, b.name))
+                _noise_model_tie(ra, rb, test, raw)
+            elif test.p_value < settings.alpha:
                 wins.append((ra, rb) if test.t > 0 else (rb, ra))
                 _prefer(*wins[-1])
             elif ra.found or rb.found:
                 _tie(ra, rb)
-    return _ranked(rows, wins), Judged(differences)
+    return _ranked(rows, wins), Judged(differences, frozenset(undecided))
 
 
 def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int,
@@ -890,6 +908,35 @@ def compare_pair(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequenc
     per_flight = {f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
                   for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te}
     return per_flight, difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
+
+
+def unwhitened_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                          a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
+                          ) -> evidence.HeldOutTest | None:
+    """:func:`compare_pair`'s test without the whitening filters: each candidate at its value fitted
+    without them (:attr:`RateFit.unwhitened`), the blocks' differences from the unfiltered Grams
+    (:attr:`RateSums.unwhitened_blocks`). None when no test flight went through a filter (the two
+    are then the same test)."""
+    if not any(_filtered(flights[f]) for _, te in splits for f in te):
+        return None
+
+    def at(fit: RateFit) -> dict[str, float]:
+        return {fit.parameter: fit.value if fit.unwhitened is None else fit.unwhitened}
+
+    per_flight = [block_differences([flights[f]], a, at(fa), b, at(fb), w, unwhitened=True)
+                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te]
+    return difference_test(*(np.concatenate(x) for x in zip(*per_flight)))
+
+
+def noise_model_decides(test: evidence.HeldOutTest, unwhitened: evidence.HeldOutTest, alpha: float) -> bool:
+    """True when the comparison's answer depends on the gyro noise model: ``test`` (whitened) prefers
+    one candidate at ``alpha`` and the same comparison without the filters (``unwhitened``) prefers
+    the other at ``alpha``. The gyro cannot tell which filter is right (it holds the closed loop's
+    response to its own noise, docs/timing.md "A small delay"), so two defensible noise models
+    that significantly contradict each other leave the pair undecided; an unwhitened test that
+    merely fails to confirm (not significant, or significant the same way) leaves the whitened
+    answer standing (its error bar already spans the noise model: :attr:`RateFit.unwhitened`)."""
+    return test.p_value < alpha and unwhitened.p_value < alpha and bool(np.sign(test.t) != np.sign(unwhitened.t))
 
 
 def below_command_rate(fd: FlightData) -> bool:
@@ -986,3 +1033,18 @@ def _tie(a: CandidateRow, b: CandidateRow) -> None:
         if o.effect not in r.indistinguishable_from:
             r.indistinguishable_from = (*r.indistinguishable_from, o.effect)
         r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}
+
+
+def _noise_model_tie(a: CandidateRow, b: CandidateRow, test: evidence.HeldOutTest, raw: evidence.HeldOutTest) -> None:
+    """``a`` and ``b`` tied because the noise model decides between them (:func:`noise_model_decides`):
+    the held-out comparison prefers one with the gyro's whitening filter (``test``, ``t > 0``: ``a``)
+    and the other without it (``raw``); each row says so (they are tied, as an undecided pair is,
+    when either is found)."""
+    first, second = (a, b) if test.t > 0 else (b, a)
+    note = (f"the angular-rate level prefers {first.effect} to {second.effect} with the gyro noise model "
+            f"(t = {abs(test.t):.1f}) and {second.effect} without it (t = {abs(raw.t):.1f}): the noise model "
+            "decides it, so neither is preferred (docs/timing.md, 'A small delay')")
+    for r in (a, b):
+        r.notes = (*r.notes, note)
+    if a.found or b.found:
+        _tie(a, b)

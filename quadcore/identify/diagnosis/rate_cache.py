@@ -36,7 +36,7 @@ from quadcore.identify.stats import sufficient
 from quadcore.store import store
 from quadcore.store.names import check_component
 
-FORMAT = 2  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals)
+FORMAT = 3  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks)
 FILE = "rates.bin"
 # The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
 # state, the effects' base, the grids' interpolation in profiles): the rate level and this file.
@@ -79,6 +79,8 @@ def save(root: Any, flight: str, k: str, sums: rates.FlightRates) -> Any:
                   dt_s=sums.dt_s, n=sums.n)
     arrays = {**{f"grid:{n}": g for n, g in sums.grids.items()}, "blocks": sums.blocks, "total": sums.total,
               "noise": sums.noise, "unwhitened": sums.total if sums.unwhitened is None else sums.unwhitened}
+    if sums.unwhitened_blocks is not None:  # absent: the same as the blocks (no whitening filter)
+        arrays["unwhitened_blocks"] = sums.unwhitened_blocks
     return binfile.write_file(path(root, flight), header, arrays)
 
 
@@ -97,7 +99,8 @@ def load(root: Any, flight: str, k: str) -> rates.FlightRates | None:
         slots = {n: slice(int(a), int(b)) for n, (a, b) in header["slots"].items()}
         return rates.RateSums({n: array(f"grid:{n}") for n in slots}, slots, array("blocks"), array("total"),
                               array("noise"), int(header["samples"]), float(header["dt_s"]), int(header["n"]),
-                              array("unwhitened"))
+                              array("unwhitened"),
+                              array("unwhitened_blocks") if "unwhitened_blocks" in header["arrays"] else None)
     except (ValueError, KeyError, TypeError) as exc:
         raise binfile.StatsError(f"{where}: not a rate-level file ({exc})") from None
 
