@@ -40,7 +40,8 @@ class RowRates:
     def cost(self, effect, value: float, w: np.ndarray) -> float:
         return float(self.costs(effect, value).sum(axis=0) @ w)
 
-    def differences(self, a, va: float, b, vb: float) -> tuple[np.ndarray, np.ndarray]:
+    def differences(self, a, va: float, b, vb: float, unwhitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The rows have no whitening filter: ``unwhitened`` changes nothing."""
         (dev_a, blocks), (dev_b, _) = self._deviations(a, va), self._deviations(b, vb)
         return self._per_block(dev_b**2 - dev_a**2, blocks), self._per_block((dev_b - dev_a) ** 2, blocks)
 
