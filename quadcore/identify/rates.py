@@ -181,6 +181,11 @@ class RateSums:
     unwhitened: np.ndarray | None = None
     unwhitened_blocks: np.ndarray | None = None
 
+    @property
+    def grid_key(self) -> tuple:
+        """The same for flights whose grids are the same (the fleet's flights at one sample rate)."""
+        return tuple((n, g.tobytes()) for n, g in self.grids.items())
+
     def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
         """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
         residual alone)."""
@@ -233,9 +238,8 @@ def _pooled(flights: Sequence[RateSums], w: np.ndarray) -> list[tuple[RateSums, 
     (:meth:`RateSums.cost`, summed over flights: a fit's cost no longer grows with the flights)."""
     pooled: dict[tuple, tuple[RateSums, np.ndarray]] = {}
     for s in flights:
-        key = tuple((n, g.tobytes()) for n, g in s.grids.items())
-        first, t = pooled.get(key, (s, np.zeros(s.total.shape[1])))
-        pooled[key] = (first, t + w @ s.total)
+        first, t = pooled.get(s.grid_key, (s, np.zeros(s.total.shape[1])))
+        pooled[s.grid_key] = (first, t + w @ s.total)
     return list(pooled.values())
 
 
@@ -244,7 +248,7 @@ def _squares(effect: Effect, flights: Sequence[RateSums]) -> Callable[[float], l
     once for the flights whose grids are the same (the same vector: the fleet's flights at one
     sample rate share them)."""
     first: dict[tuple, int] = {}
-    same = [first.setdefault(tuple((n, g.tobytes()) for n, g in s.grids.items()), k) for k, s in enumerate(flights)]
+    same = [first.setdefault(s.grid_key, k) for k, s in enumerate(flights)]
 
     def squares(v: float) -> list[np.ndarray]:
         made = {k: _packed_square(flights[k].direction(effect, v)) for k in first.values()}
