@@ -15,8 +15,11 @@ held-out comparison's t; for a lag against a delay the angular-rate level's,
 :func:`quadcore.plan.separation.measured`), so "does worse" is a number, not only a count; the
 design's predicted σ beside the one achieved with the planned flight. ``--files`` chooses the
 comparison flights (``hover``: a hover of the same length). Prints a line per trial (and with
-``--json`` appends it to that file as a JSON line) and the counts with the median σ. CI runs
-two seeds per scenario without the files (``tests/test_plan.py``); this runs all of them.
+``--json`` appends it to that file as a JSON line), a table per scenario of each seed's σ per
+flight (the docs' tables), and the counts with the median σ; ``--table FILE`` prints the tables
+and counts of the trials a ``--json`` run wrote (several runs, resumed ones, in one table) without
+running anything. CI runs two seeds per scenario without the files (``tests/test_plan.py``); this
+runs all of them.
 """
 
 from __future__ import annotations
@@ -38,17 +41,19 @@ def main() -> None:
     ap.add_argument("--files", default=",".join(bench.FILES),
                     help="comparison flights of the same length: " + ", ".join((*bench.FILES, "hover")) + " ('' none)")
     ap.add_argument("--json", help="append each trial to this file as a JSON line")
+    ap.add_argument("--table", help="print the tables of the trials in this --json file, run nothing")
     args = ap.parse_args()
+    if args.table:
+        with open(args.table) as fh:
+            summarise([trial_from(json.loads(line)) for line in fh if line.strip()])
+        return
     files = tuple(f for f in args.files.split(",") if f)
-    totals: dict[str, dict[str, list]] = {}
+    trials = []
     for name in args.scenarios.split(","):
-        res = totals.setdefault(name, {})
         for seed in range(args.first, args.first + args.seeds):
             t0 = time.perf_counter()
             trial = bench.run(name, seed, files)
-            for label, o in (("before", trial.before), ("planned", trial.planned), *trial.files.items()):
-                res.setdefault(label, []).append(o)
-            res.setdefault("any file", []).append(any(o.decided for o in trial.files.values()))
+            trials.append(trial)
             described = "; ".join(f"{f}: {o.describe()}" for f, o in trial.files.items())
             print(f"{name} seed {seed} truth {trial.truth}: before {trial.before.describe()} (predicted "
                   f"{trial.predicted_before:.1f} σ) | planned ({trial.manoeuvre}; predicted "
@@ -59,21 +64,64 @@ def main() -> None:
                                     + f" ({x.per_second():.2f}/s)" for x in trial.added)
                 print(f"  predicted at the rate level, the flight's own blocks (t per truth; min t² per s): {flights}",
                       flush=True)
-                for x in trial.added:
-                    res.setdefault(f"per second {x.flight}", []).append(x.per_second())
             if args.json:
                 with open(args.json, "a") as fh:
                     fh.write(json.dumps(dataclasses.asdict(trial)) + "\n")
+    summarise(trials)
+
+
+def trial_from(d: dict) -> bench.Trial:
+    """A :class:`bench.Trial` from its ``--json`` line."""
+    return bench.Trial(**{**d, "before": bench.Outcome(**d["before"]), "planned": bench.Outcome(**d["planned"]),
+                          "files": {f: bench.Outcome(**o) for f, o in d["files"].items()},
+                          "added": tuple(bench.Added(**x) for x in d["added"])})
+
+
+def cell(o: bench.Outcome, rival: str) -> str:
+    """One flight's σ for the truth, and what the diagnosis said when it did not decide."""
+    if o.decided:
+        return f"{o.sigma:+.1f}"
+    why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")
+    return f"{o.sigma:+.1f} {why}"
+
+
+def summarise(trials: list[bench.Trial]) -> None:
+    """Per scenario a table of each seed's σ per flight (markdown), then the counts and medians."""
+    by_name: dict[str, list[bench.Trial]] = {}
+    for t in trials:
+        by_name.setdefault(t.scenario, []).append(t)
+    for name, ts in by_name.items():
+        files = list(dict.fromkeys(f for t in ts for f in t.files))
+        pair = bench.SCENARIOS[name].pair
+        print(f"\n{name}: σ for the truth per seed (decided unless marked: 'tied', 'wrong' = the rival first "
+              "untied, or the effect ranked first)")
+        print("| seed (truth) | before | plan (predicted) | " + " | ".join(files) + " |")
+        print("|---" * (3 + len(files)) + "|")
+        for t in sorted(ts, key=lambda t: (t.truth != pair[0], t.seed)):
+            rival = pair[1] if t.truth == pair[0] else pair[0]
+            cells = [cell(t.before, rival), f"{cell(t.planned, rival)} ({t.predicted_sigma:.0f})",
+                     *(cell(t.files[f], rival) if f in t.files else "" for f in files)]
+            print(f"| {t.seed} ({t.truth}) | " + " | ".join(cells) + " |")
+        print("| decided (median σ) | " + " | ".join(
+            f"{sum(o.decided for o in os)} ({statistics.median(o.sigma for o in os):+.1f})"
+            for os in ([t.before for t in ts], [t.planned for t in ts],
+                       *([t.files[f] for t in ts if f in t.files] for f in files))) + " |")
     print("\ndecided (truth first, not tied with the other) of the seeds, and the median separation σ for the truth:")
-    labels = ("before", "planned", *files)
-    print(f"{'scenario':12s} " + " ".join(f"{f:>15s}" for f in labels) + f" {'any file':>9s}")
-    for name, res in totals.items():
-        cells = [f"{sum(o.decided for o in res[f]):2d} ({statistics.median(o.sigma for o in res[f]):+6.1f} σ)"
-                 for f in labels]
-        print(f"{name:12s} " + " ".join(f"{c:>15s}" for c in cells) + f" {sum(res['any file']):9d}")
-        rate = {k.removeprefix("per second "): v for k, v in res.items() if k.startswith("per second ")}
+    for name, ts in by_name.items():
+        files = list(dict.fromkeys(f for t in ts for f in t.files))
+        cols = {"before": [t.before for t in ts], "planned": [t.planned for t in ts],
+                **{f: [t.files[f] for t in ts if f in t.files] for f in files}}
+        print(f"{'scenario':16s} " + " ".join(f"{f:>15s}" for f in cols) + f" {'any file':>9s} (of the lab's files)")
+        cells = [f"{sum(o.decided for o in os):2d} ({statistics.median(o.sigma for o in os):+6.1f} σ)"
+                 for os in cols.values()]
+        anyfile = sum(any(o.decided for f, o in t.files.items() if f != "hover") for t in ts)
+        print(f"{name:16s} " + " ".join(f"{c:>15s}" for c in cells) + f" {anyfile:9d}")
+        rate: dict[str, list[float]] = {}
+        for t in ts:
+            for x in t.added:
+                rate.setdefault(x.flight, []).append(x.per_second())
         if rate:
-            print(f"{'':12s} predicted rate-level t² per second of the added flight alone (median, smaller over the "
+            print(f"{'':16s} predicted rate-level t² per second of the added flight alone (median, smaller over the "
                   "truths): " + ", ".join(f"{k} {statistics.median(v):.2f}" for k, v in rate.items()))
 
 
