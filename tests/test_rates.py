@@ -283,7 +283,7 @@ def test_a_pair_the_noise_model_decides_is_a_tie_in_the_folds_answers():
 def test_blocks_are_runs_of_usable_intervals_cut_every_block():
     ok = np.array([True, True, False, True, True, True, True])
     period = np.array([0, 0, 0, 0, 1, 1, 1])
-    runs = rates._runs(ok, period)
+    runs = rates.increments._runs(ok, period)
     assert runs[ok].tolist() == [0, 0, 1, 2, 2, 2]
 
 
@@ -408,7 +408,7 @@ def _rows(*names: str, found: bool = True) -> list:
 
 
 def test_the_rate_levels_ranking_of_three_timing_candidates_does_not_depend_on_their_order():
-    """The rows as the rate level ranks them from its significant pairs (``rates._ranked``): a > b,
+    """The rows as the rate level ranks them from its significant pairs (``rates.judgement._ranked``): a > b,
     b > c, a > c give a, b, c from any starting order and any order of the pairs (before, each
     pair moved its better one above the worse in turn: [c, a, b] with the pairs (a, b), (b, c),
     (a, c) became [b, a, c]); a row between them keeps its place below the better."""
@@ -416,15 +416,15 @@ def test_the_rate_levels_ranking_of_three_timing_candidates_does_not_depend_on_t
         by = {r.effect: r for r in start}
         pairs = [(by["a"], by["b"]), (by["b"], by["c"]), (by["a"], by["c"])]
         for wins in itertools.permutations(pairs):
-            assert [r.effect for r in rates._ranked(list(start), wins)] == ["a", "b", "c"]
+            assert [r.effect for r in rates.judgement._ranked(list(start), wins)] == ["a", "b", "c"]
     b, x, a = _rows("b", "x", "a")
-    assert rates._ranked([b, x, a], [(a, b)]) == [a, b, x]  # the better one just above the worse
+    assert rates.judgement._ranked([b, x, a], [(a, b)]) == [a, b, x]  # the better one just above the worse
     c, d, e = _rows("c", "d", "e")
     cycle = [(d, c), (e, d), (c, e)]
-    assert {tuple(r.effect for r in rates._ranked([c, d, e], w)) for w in itertools.permutations(cycle)} == {
+    assert {tuple(r.effect for r in rates.judgement._ranked([c, d, e], w)) for w in itertools.permutations(cycle)} == {
         ("c", "e", "d")}  # a cycle: the first row left first, then the others as their pair says
     (f,), (g,) = _rows("f", found=False), _rows("g")
-    assert rates._ranked([g, f], [(f, g)]) == [g, f]  # found ones first, whatever the rate level says
+    assert rates.judgement._ranked([g, f], [(f, g)]) == [g, f]  # found ones first, whatever the rate level says
 
 
 def test_the_rate_levels_blocks_are_the_diagnosiss(tmp_path):

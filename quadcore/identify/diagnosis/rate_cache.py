@@ -39,8 +39,10 @@ from quadcore.store.names import check_component
 FORMAT = 3  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks)
 FILE = "rates.bin"
 # The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
-# state, the effects' base, the grids' interpolation in profiles): the rate level and this file.
-CODE_MODULES = ("quadcore.identify.rates", "quadcore.identify.diagnosis.rate_cache")
+# state, the effects' base, the grids' interpolation in profiles): the rate level's modules that
+# make what it keeps of a flight (not its comparison or judgement, which read the sums) and this file.
+CODE_MODULES = ("quadcore.identify.rates.increments", "quadcore.identify.rates.noise", "quadcore.identify.rates.sums",
+                "quadcore.identify.diagnosis.rate_cache")
 
 
 def path(root: Any, flight: str) -> Any:

@@ -1,0 +1,98 @@
+"""Which of two timing candidates the rate level prefers: the held-out comparison.
+
+Per block ``b`` of a held-out flight, with both candidates fitted on the training flights
+(:mod:`quadcore.identify.rates.sums`), the difference of their weighted costs
+
+    g_b = J_rate,b(B) − J_rate,b(A),   D_b = Σ_(k∈b) Σ_axis w_a (C̃_A,ka − C̃_B,ka)²      (body frame)
+
+(:func:`block_differences`; ``E g_b = D_b`` if ``A`` is the truth, ``−D_b`` if ``B`` is), and the
+slope ``β = Σ g / Σ D`` t-tested over the blocks as independent clusters
+(:func:`difference_test`; ``t > 0``: ``A`` fits better). The same comparison without the gyro
+noise model's whitening filters (:func:`unwhitened_comparison`) decides nothing alone: when the
+two are both significant and opposite, the noise model decides the answer and the rate level
+prefers neither (:func:`noise_model_decides`, docs/timing.md "A small delay").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from quadcore.effects import Effect
+from quadcore.identify import evidence
+from quadcore.identify.rates.sums import RateFit, RateSums
+
+
+def block_differences(flights: Sequence[RateSums], a: Effect, pa: dict[str, float], b: Effect,
+                      pb: dict[str, float], w: np.ndarray, unwhitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per block of ``flights``: ``g``, ``b``'s weighted ``J_rate`` minus ``a``'s (> 0: ``a`` fits
+    better), and ``D``, the weighted ``Σ (C_a − C_b)²`` (block means removed) that ``g`` is made of:
+    with ``e = R − (C_a + C_b)/2``, ``g = 2 Σ (C_a − C_b) e`` and, if ``a`` is the truth,
+    ``E g = D``; if ``b`` is, ``−D``. ``unwhitened``: without the flights' whitening filters
+    (:attr:`RateSums.unwhitened_blocks`)."""
+    g, D = [], []
+    for s in flights:
+        gs, Ds = s.differences(a, pa[a.parameters[0].name], b, pb[b.parameters[0].name], unwhitened)
+        g.append(gs @ w)
+        D.append(Ds @ w)
+    return np.concatenate(g), np.concatenate(D)
+
+
+def difference_test(g: np.ndarray, D: np.ndarray) -> evidence.HeldOutTest:
+    """Which of two candidates the blocks prefer: the slope ``β = Σ g / Σ D`` of the residual on
+    the direction from ``b``'s prediction to ``a``'s (+1: ``a`` is right, −1: ``b`` is, 0: neither
+    fits better), its standard error from the blocks' scores ``g − β D`` (blocks as independent
+    clusters, as :func:`quadcore.identify.evidence.held_out_test_of` takes them), two-sided
+    (``t > 0``: ``a`` fits better). A t-test of the mean of ``g`` instead would count the spread
+    of ``D`` between blocks (a manoeuvre's blocks against a hover's) as noise."""
+    n, den = len(g), float(D.sum())
+    if n < 3 or den <= 0:
+        return evidence.NO_TEST
+    beta = float(g.sum() / den)
+    se = float(np.sqrt(n / (n - 1) * np.sum((g - beta * D) ** 2)) / den)
+    t = beta / se if se > 0 else (np.inf if beta > 0 else -np.inf if beta < 0 else 0.0)
+    t = float(np.clip(t, -1e6, 1e6))
+    return evidence.HeldOutTest(beta, t, float(2 * stats.t.sf(abs(t), n - 1)), n)
+
+
+def compare_pair(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], a: Effect,
+                 b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
+                 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], evidence.HeldOutTest]:
+    """The held-out comparison of two timing candidates: per test flight of each split its
+    :func:`block_differences` with both candidates fitted on the split's training flights
+    (``fits_a``, ``fits_b``, one per split), and the :func:`difference_test` over all of them
+    (``t > 0``: ``a`` fits better)."""
+    per_flight = {f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
+                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te}
+    return per_flight, difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
+
+
+def unwhitened_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                          a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
+                          ) -> evidence.HeldOutTest | None:
+    """:func:`compare_pair`'s test without the whitening filters: each candidate at its value fitted
+    without them (:attr:`RateFit.unwhitened`), the blocks' differences from the unfiltered Grams
+    (:attr:`RateSums.unwhitened_blocks`). None when no test flight went through a filter (the two
+    are then the same test)."""
+    if not any(flights[f].filtered for _, te in splits for f in te):
+        return None
+
+    def at(fit: RateFit) -> dict[str, float]:
+        return {fit.parameter: fit.value if fit.unwhitened is None else fit.unwhitened}
+
+    per_flight = [block_differences([flights[f]], a, at(fa), b, at(fb), w, unwhitened=True)
+                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te]
+    return difference_test(*(np.concatenate(x) for x in zip(*per_flight)))
+
+
+def noise_model_decides(test: evidence.HeldOutTest, unwhitened: evidence.HeldOutTest, alpha: float) -> bool:
+    """True when the comparison's answer depends on the gyro noise model: ``test`` (whitened) prefers
+    one candidate at ``alpha`` and the same comparison without the filters (``unwhitened``) prefers
+    the other at ``alpha``. The gyro cannot tell which filter is right (it holds the closed loop's
+    response to its own noise, docs/timing.md "A small delay"), so two defensible noise models
+    that significantly contradict each other leave the pair undecided; an unwhitened test that
+    merely fails to confirm (not significant, or significant the same way) leaves the whitened
+    answer standing (its error bar already spans the noise model: :attr:`RateFit.unwhitened`)."""
+    return test.p_value < alpha and unwhitened.p_value < alpha and bool(np.sign(test.t) != np.sign(unwhitened.t))

@@ -1,0 +1,256 @@
+"""The rate level in the diagnosis: the timing candidates' rows fitted, compared and ranked.
+
+:func:`judge` takes every flight's :data:`~quadcore.identify.rates.sums.FlightRates` (kept or
+made), fits each timing candidate's one parameter (:func:`quadcore.identify.rates.sums.fit`:
+``θ̂ = argmin J_rate(θ)`` over the training flights, body-frame torques integrated to N m s) and
+compares every pair held out (:mod:`quadcore.identify.rates.compare`): a significant difference
+ranks the better one above the other, a pair the noise model decides, or one not significant
+where either is found, is tied (:data:`TIE`, :class:`Judged`). Used by
+:func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
+commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters and how they
+rank against each other come from here (docs/diagnosis.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from quadcore.effects import Effect
+from quadcore.identify import evidence
+from quadcore.identify.fit import solve
+from quadcore.identify.flightdata import FlightData
+from quadcore.identify.rates.compare import compare_pair, noise_model_decides, unwhitened_comparison
+from quadcore.identify.rates.sums import (
+    BelowCommandRate,
+    FlightRates,
+    RateFit,
+    RatesCache,
+    RateSums,
+    fit,
+    flight_inputs,
+    flight_rates,
+    weights,
+)
+
+if TYPE_CHECKING:  # the diagnosis imports this module: its types only for the annotations
+    from quadcore.identify.diagnosis.rows import CandidateRow
+    from quadcore.identify.settings import DiagnosisSettings
+
+RATE_LEVEL = "angular rate"  # what separates two timing candidates (a row's ``separated_by``)
+NOT_SIGNIFICANT = "not significant:"  # how a row's note on its significance begins (quadcore.identify.diagnosis)
+
+TIE = " = "  # joins the timing candidates a fold's answer names when the rate level prefers none of them
+
+
+@dataclass(frozen=True)
+class Judged:
+    """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
+    per-block :func:`block_differences` (> 0: ``a`` fits better); ``undecided``: the pairs whose
+    answer the gyro noise model decides (:func:`noise_model_decides`), which prefer neither."""
+
+    differences: dict[tuple[str, str], dict[str, np.ndarray]]
+    undecided: frozenset[tuple[str, str]] = frozenset()
+
+    def answer(self, effect: str, flights: Sequence[str]) -> str:
+        """A fold's answer ``effect`` (the torque level's), as the rate level has it on ``flights``
+        when ``effect`` is one of the timing candidates it compared: from every pair's difference
+        summed over ``flights``, the candidate no other fits better; several (an exact tie: fits
+        that predict alike) or, in a cycle, none: every candidate none fits better, or all of them,
+        joined by :data:`TIE` (a tie stated as one); a pair in :attr:`undecided` beats neither.
+        Symmetric: the same whatever the order of the pairs and of each pair's sides. ``effect``
+        itself when it is no timing candidate or no pair was measured on ``flights``."""
+        names = {n for pair in self.differences for n in pair}
+        measured = [(a, b, per_flight) for (a, b), per_flight in self.differences.items()
+                    if any(f in per_flight for f in flights)]
+        if effect not in names or not measured:
+            return effect
+        beaten: set[str] = set()
+        for a, b, per_flight in measured:
+            if (a, b) in self.undecided:
+                continue
+            total = sum(float(per_flight[f].sum()) for f in flights if f in per_flight)
+            beaten |= {b} if total > 0 else {a} if total < 0 else set()
+        return TIE.join(sorted(names - beaten) or sorted(names))
+
+
+def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],
+          release: Callable[[str], None], model, splits: Sequence[tuple[list[str], list[str]]], train_all: list[str],
+          settings: DiagnosisSettings, decide: Callable[[CandidateRow], None],
+          cache: RatesCache | None = None) -> tuple[list[CandidateRow], Judged]:
+    """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
+    :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
+    one's parameter, standard error (the larger of the profile's and the spread between the
+    folds' fits) and significance from :func:`fit` on the training flights, and, per pair, the
+    held-out :func:`difference_test` over the folds' test flights (each candidate fitted on the
+    fold's training flights): significant at ``settings.alpha``, the better one ranks above the
+    other (within its tier) and the two are no longer tied; not, they are tied when either is
+    found (undecided, whatever the torque level says). Every candidate on the same intervals
+    (after the longest memory of them). The model's effects at their values fitted on all
+    training flights. Each flight's rows (``rows_of``) are read once, reduced to its
+    :class:`RateSums` and let go (``release``); ``cache``: those kept from an earlier diagnosis,
+    each flight's rows read only when its are missing or stale. ``decide``: the diagnosis's
+    decision (found, grade), taken again on a row whose significance changed."""
+    timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
+    if not timing:
+        return rows, Judged({})
+    skip = evidence.memory_blocks(timing)
+    ids = sorted({f for tr, te in splits for f in (*tr, *te)})
+
+    slow: dict[str, tuple[float, float]] = {}  # flights below the command rate: their log period and hold
+
+    def compute(f: str) -> FlightRates:  # one flight's rows at a time, let go once its sums are taken
+        out = flight_rates(rows_of(f), model, f, timing, skip)
+        release(f)
+        return out
+
+    def reduced(f: str) -> RateSums | None:
+        out = compute(f) if cache is None else cache(f, flight_inputs(model, f, timing, skip), lambda: compute(f))
+        if isinstance(out, BelowCommandRate):
+            slow[f] = (out.period_s, out.hold_s)
+            return None
+        return out
+
+    reduced_flights = {f: reduced(f) for f in ids}
+    by_name = {r.effect: r for r in rows}
+    if slow:
+        first = sorted(slow)[0]
+        return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
+    flights = {f: s for f, s in reduced_flights.items() if s is not None}
+    w = weights([flights[f] for f in train_all])  # the training flights' noise: none of the held-out ones'
+    folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
+    # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
+    groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
+              if len(train_all) >= 3 else [])
+    for c in timing:
+        spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
+        _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
+        decide(by_name[c.name])
+    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
+    differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+    wins: list[tuple[CandidateRow, CandidateRow]] = []
+    undecided: set[tuple[str, str]] = set()
+    for i, a in enumerate(timing):
+        for b in timing[i + 1:]:
+            ra, rb = by_name[a.name], by_name[b.name]
+            if not (ra.physical and rb.physical):
+                continue
+            per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], w)
+            differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
+            raw = unwhitened_comparison(flights, splits, a, b, folds[a.name], folds[b.name], w)
+            if raw is not None and noise_model_decides(test, raw, settings.alpha):
+                undecided.add((a.name, b.name))
+                _noise_model_tie(ra, rb, test, raw)
+            elif test.p_value < settings.alpha:
+                wins.append((ra, rb) if test.t > 0 else (rb, ra))
+                _prefer(*wins[-1])
+            elif ra.found or rb.found:
+                _tie(ra, rb)
+    return _ranked(rows, wins), Judged(differences, frozenset(undecided))
+
+
+def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], dt: float, hold_s: float
+               ) -> list[CandidateRow]:
+    """The timing candidates of a fleet with flights :func:`below_command_rate`: not fitted or
+    compared at the rate level (their parameters stay the torque level's), and tied where either
+    is found. Between two log samples the firmware sets commands the log does not hold, each
+    reacting to a fresh gyro sample; the interval integral gives the logged command's jitter
+    the whole interval where it acted for one command period, and a lag (which smooths it
+    away) fits that better than the truth (docs/timing.md: on simulated 100 Hz hover flights a
+    lag came out at its 0.2 s bound whether a 10 ms lag or a 10 ms delay was true)."""
+    note = (f"not compared with the other timing candidates at the angular-rate level: {', '.join(slow)} "
+            f"log{'s' if len(slow) == 1 else ''} the commands every {dt * 1e3:.3g} ms, the firmware sets them "
+            f"every {hold_s * 1e3:.3g} ms, and the commands between samples read as a lag "
+            "(docs/timing.md); the parameter is the torque level's, which the closed loop biases")
+    for i, a in enumerate(timing):
+        a.notes = (*a.notes, note)
+        for b in timing[i + 1:]:
+            if a.physical and b.physical and (a.found or b.found):
+                _tie(a, b)
+    return rows
+
+
+def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], min_sigma: float) -> None:
+    """A candidate row with its parameter from the rate level (the torque level's in a note),
+    its standard error the larger of the profile's and the grouped jackknife's over ``folds``
+    (fits that each leave out a group of flights)."""
+    (p,) = c.parameters
+    spread = solve.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
+    std = max(rf.std, spread)
+    torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
+    r.parameters = {p.name: rf.value}
+    r.parameter_std = {p.name: std}
+    r.parameter_spread_between_flights = {p.name: spread}
+    sigma = abs(rf.value - p.default) / std if std > 0 else (np.inf if rf.value != p.default else 0.0)
+    r.significance_sigma = float(min(sigma, 1e6))
+    r.significant = r.significance_sigma >= min_sigma
+    r.notes = (*(n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)),
+               f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
+               f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)")
+    if rf.unwhitened is not None and abs(rf.value - rf.unwhitened) >= std:
+        r.notes = (*r.notes, f"{p.name} depends on the gyro noise model: {rf.value:.4g} with it, {rf.unwhitened:.4g} "
+                             "without; the standard error spans both (docs/timing.md, 'A small delay')")
+    if not r.significant:
+        r.notes = (*r.notes, f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
+                             "'no effect'")
+
+
+def _prefer(better: CandidateRow, worse: CandidateRow) -> None:
+    """``better`` separated from ``worse`` by the rate level (:func:`_ranked` ranks it above)."""
+    for r, o in ((better, worse), (worse, better)):
+        r.tied_with = tuple(x for x in r.tied_with if x != o.effect)
+        r.separated_by = {**r.separated_by, o.effect: RATE_LEVEL}
+
+
+def _ranked(rows: list[CandidateRow], wins: Sequence[tuple[CandidateRow, CandidateRow]]) -> list[CandidateRow]:
+    """``rows`` (in their tiers) with the better of each pair in ``wins`` (better, worse) ranked
+    above the worse where both are in one tier, every other row in its order: row by row, the
+    first row left, or, when a row left in its tier fits better than it, that one (the first
+    such, followed up the chain; in a cycle, the first row left). A function of the set of wins,
+    so the same whatever order the pairs were compared in. (Before, each significant pair moved
+    its better one above the worse in turn, and with three timing candidates a later move could
+    put a worse one back above its better: [c, a, b] with a > b > c became [b, a, c] when the
+    pairs came as (a, b), (b, c), (a, c), and [a, b, c] in another order.)"""
+    better = {(id(b), id(w)) for b, w in wins if b.tier() == w.tier()}
+    left, out = list(rows), []
+    while left:
+        r, chain = left[0], []
+        while r not in chain:
+            chain.append(r)
+            above = [o for o in left if (id(o), id(r)) in better]
+            if not above:
+                break
+            r = above[0]
+        else:  # a cycle: no row of it is above the others
+            r = left[0]
+        out.append(r)
+        left.remove(r)
+    return out
+
+
+def _tie(a: CandidateRow, b: CandidateRow) -> None:
+    """``a`` and ``b`` tied: the rate level prefers neither."""
+    for r, o in ((a, b), (b, a)):
+        if o.effect not in r.tied_with:
+            r.tied_with = (*r.tied_with, o.effect)
+        if o.effect not in r.indistinguishable_from:
+            r.indistinguishable_from = (*r.indistinguishable_from, o.effect)
+        r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}
+
+
+def _noise_model_tie(a: CandidateRow, b: CandidateRow, test: evidence.HeldOutTest, raw: evidence.HeldOutTest) -> None:
+    """``a`` and ``b`` tied because the noise model decides between them (:func:`noise_model_decides`):
+    the held-out comparison prefers one with the gyro's whitening filter (``test``, ``t > 0``: ``a``)
+    and the other without it (``raw``); each row says so (they are tied, as an undecided pair is,
+    when either is found)."""
+    first, second = (a, b) if test.t > 0 else (b, a)
+    note = (f"the angular-rate level prefers {first.effect} to {second.effect} with the gyro noise model "
+            f"(t = {abs(test.t):.1f}) and {second.effect} without it (t = {abs(raw.t):.1f}): the noise model "
+            "decides it, so neither is preferred (docs/timing.md, 'A small delay')")
+    for r in (a, b):
+        r.notes = (*r.notes, note)
+    if a.found or b.found:
+        _tie(a, b)

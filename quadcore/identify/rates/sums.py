@@ -1,0 +1,468 @@
+"""The rate level's sufficient sums of a flight, and a timing parameter's fit from them.
+
+Over blocks ``b`` of :data:`~quadcore.identify.evidence.BLOCK_S` with a free offset each
+(:mod:`quadcore.identify.rates.increments`), per axis ``a`` (body frame)
+
+    J_rate(θ) = Σ_b Σ_(k∈b) Σ_axis w_a (R_ka − C_ka(θ) − c_ba)²,   w_a = 1 / σ_a²
+
+is the prediction-error criterion with the right noise model (the torque noise is differenced
+white gyro noise; its whitening filter is the running sum; coloured gyro noise goes through
+:mod:`quadcore.identify.rates.noise`'s filter first). The offsets make the regressor and the
+noise correlated only through the block mean, a bias of order one sample per block. Three 8 s
+hover flights, 10 ms delay true, seeds 0-2: ``t_d`` = 9.97-10.18 ± 0.11 ms. The parameter's
+standard error is the larger of the profile's (:func:`quadcore.identify.fit.solve.scalar_minimum`
+with one sample per independent one: right for a white residual; for a delay, whose cost is a
+quadratic between whole sample periods with a minimum in each,
+:func:`piecewise_quadratic_minimum`: every piece searched, the interval taken whole) and the
+blocks-as-clusters one (:func:`_clustered_variance`, right when the model's error within a block
+is not white), and at least the distance to the fit without the whitening filters (below about
+8 ms the whitened and the unwhitened fits of a delay disagree by up to 4 ms, the whitened one
+biased: docs/timing.md, "A small delay"; :attr:`RateFit.unwhitened`).
+
+**From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
+sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
+point of a grid of its parameter, block-demeaned, are taken in one pass over a flight's rows,
+which then go. Between grid points the candidate's running sums are interpolated (linear
+between whole sample periods for a delay, which is exact; the profiles' spline for a lag), so
+the fit, its standard errors and the comparison come from the sums: on three hover flights
+with 10 ms of either, within 0.001 standard errors of the row evaluation, the comparison's
+``t`` within 1e-4 (tests/reference/rates.py holds the row evaluation as the reference). What the
+rate level keeps of a flight (:data:`FlightRates`, :func:`flight_rates`) is made here and only
+here: the rate cache's code digest (:mod:`quadcore.identify.diagnosis.rate_cache`) covers this
+module and those below it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from quadcore.effects import Effect, get as get_effect
+from quadcore.identify.fit import solve
+from quadcore.identify.flightdata import FlightData
+from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
+from quadcore.identify.rates.noise import Filter, NoiseModel, gyro_noise_model, noise_model, whitened
+from quadcore.identify.stats import profiles
+from quadcore.physics.vehicle import Vehicle
+
+
+@dataclass(frozen=True)
+class RateSums:
+    """One flight at the rate level as sufficient sums, its rows no longer needed: per block
+    ``b`` and axis ``a`` the Gram ``G_ba = Σ_(k∈b) x̃_k x̃_kᵀ`` of the block-demeaned running sums
+    ``x_k = [R_k, C_k(v_1), …]``: the residual's and, per timing effect (its columns
+    :attr:`slots`), its candidate's at each point ``v_g`` of its grid (:func:`rate_grid`). With
+    the grid's interpolation weights ``ω(v)`` (:func:`grid_weights`) and ``u = [1, −ω(v)]`` in
+    the effect's columns, ``Σ_(k∈b) (R̃_ka − C̃_ka(v))² = uᵀ G_ba u = a − 2 ω·s + ωᵀ Q ω`` (the
+    variable-projection form of the torque level's profiles): exact on a grid point, the
+    candidate's running sums interpolated between. Stored as each Gram's upper triangle,
+    :attr:`blocks` (B, 3, P) in float32 (the held-out tests' clusters, as the profiles' blocks)
+    and :attr:`total` (3, P) over the flight in float64 (the fits). ``noise`` (3,) the torque
+    channels' sensor-noise RMS over ``samples`` usable samples (:func:`weights`), ``dt_s`` the
+    median sample period, ``n`` the used intervals. :attr:`unwhitened` (3, P): :attr:`total`
+    without the whitening filter (the same where it is empty; None: not taken), whose fit
+    :func:`fit` sets beside the whitened one (the noise model's share of the standard error);
+    :attr:`unwhitened_blocks` (B, 3, P) float32: :attr:`blocks` without the filter (None: the
+    same as :attr:`blocks`, or not taken), the held-out comparison's without the noise model
+    (:func:`unwhitened_comparison`)."""
+
+    grids: dict[str, np.ndarray]
+    slots: dict[str, slice]
+    blocks: np.ndarray
+    total: np.ndarray
+    noise: np.ndarray
+    samples: int
+    dt_s: float
+    n: int
+    unwhitened: np.ndarray | None = None
+    unwhitened_blocks: np.ndarray | None = None
+
+    @property
+    def grid_key(self) -> tuple:
+        """The same for flights whose grids are the same (the fleet's flights at one sample rate)."""
+        return tuple((n, g.tobytes()) for n, g in self.grids.items())
+
+    @property
+    def filtered(self) -> bool:
+        """Whether the totals went through a whitening filter (:attr:`unwhitened` differ from them)."""
+        return self.unwhitened is not None and self.unwhitened is not self.total and not np.array_equal(
+            self.unwhitened, self.total)
+
+    def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
+        """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
+        residual alone)."""
+        u = np.zeros(1 + sum(len(g) for g in self.grids.values()))
+        u[0] = 1.0
+        if effect is not None:
+            u[self.slots[effect.name]] = -grid_weights(effect, self.grids[effect.name], value)
+        return u
+
+    def cost(self, effect: Effect, value: float, w: np.ndarray) -> float:
+        """``Σ_a w_a Σ_k (R̃_ka − C̃_ka(value))²`` over the flight."""
+        return float(w @ (self.total @ _packed_square(self.direction(effect, value))))
+
+    def costs(self, effect: Effect, value: float) -> np.ndarray:
+        """(blocks, 3) ``Σ_(k∈b) (R̃_ka − C̃_ka(value))²`` per block and axis."""
+        return self._forms(self.direction(effect, value))
+
+    def differences(self, a: Effect, va: float, b: Effect, vb: float, unwhitened: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(blocks, 3) each: ``b``'s cost minus ``a``'s, and ``Σ (C̃_a(va) − C̃_b(vb))²``;
+        ``unwhitened``: from the Grams without the whitening filter (:attr:`unwhitened_blocks`)."""
+        ua, ub = self.direction(a, va), self.direction(b, vb)
+        G = self.unwhitened_blocks if unwhitened and self.unwhitened_blocks is not None else self.blocks
+        return self._forms(ub, G) - self._forms(ua, G), self._forms(ub - ua, G)
+
+    def _forms(self, u: np.ndarray, G: np.ndarray | None = None) -> np.ndarray:
+        """(blocks, 3) ``uᵀ G_ba u`` (``G``: :attr:`blocks` unless given)."""
+        return (self.blocks if G is None else G).astype(float) @ _packed_square(u)
+
+
+def _packed_square(u: np.ndarray) -> np.ndarray:
+    """(P,) the coefficients of a packed upper triangle in ``uᵀ G u``: ``u_i u_j`` (twice off
+    the diagonal)."""
+    i, j, twice = _triangle(len(u))
+    return u[i] * u[j] * twice
+
+
+@functools.lru_cache(maxsize=8)
+def _triangle(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The upper triangle's indices of a k × k matrix and its factors (2 off the diagonal): made
+    once per size (every cost of a fit asks for them; read only)."""
+    i, j = np.triu_indices(k)
+    return i, j, np.where(i == j, 1.0, 2.0)
+
+
+def _pooled(flights: Sequence[RateSums], w: np.ndarray) -> list[tuple[RateSums, np.ndarray]]:
+    """Per set of flights with the same grids (the fleet's flights at one sample rate share them):
+    one of them, and their axis-weighted totals summed, ``Σ_f w·total_f`` (P,): the weighted
+    cost of a direction ``u`` over all of them is then one dot with its packed square
+    (:meth:`RateSums.cost`, summed over flights: a fit's cost no longer grows with the flights)."""
+    pooled: dict[tuple, tuple[RateSums, np.ndarray]] = {}
+    for s in flights:
+        first, t = pooled.get(s.grid_key, (s, np.zeros(s.total.shape[1])))
+        pooled[s.grid_key] = (first, t + w @ s.total)
+    return list(pooled.values())
+
+
+def _squares(effect: Effect, flights: Sequence[RateSums]) -> Callable[[float], list[np.ndarray]]:
+    """``squares(v)``: per flight the packed square of its :meth:`RateSums.direction` at ``v``, made
+    once for the flights whose grids are the same (the same vector: the fleet's flights at one
+    sample rate share them)."""
+    first: dict[tuple, int] = {}
+    same = [first.setdefault(s.grid_key, k) for k, s in enumerate(flights)]
+
+    def squares(v: float) -> list[np.ndarray]:
+        made = {k: _packed_square(flights[k].direction(effect, v)) for k in first.values()}
+        return [made[k] for k in same]
+
+    return squares
+
+
+def rate_grid(effect: Effect, dt_s: float) -> np.ndarray:
+    """The values of ``effect``'s one parameter the rate level's sums are taken at, on a flight
+    of median sample period ``dt_s``: the profile grid
+    (:func:`quadcore.identify.stats.profiles.profile_grid`), or, for an effect linear in it between
+    whole sample periods (:attr:`~quadcore.effects.Effect.linear_between_samples`, a delay),
+    every multiple of ``dt_s`` within its bounds and the bounds: the interpolation between
+    them is then exact, where a smooth one through the profile grid rounds off the kinks (a
+    delay fitted 0.9 σ from the rows' minimum on three hover flights)."""
+    (p,) = effect.parameters
+    if not effect.linear_between_samples:
+        return profiles.profile_grid(p.lower, p.upper)
+    steps = np.arange(np.ceil(p.lower / dt_s), np.floor(p.upper / dt_s) + 1) * dt_s
+    return np.unique(np.concatenate([[p.lower], steps[(steps > p.lower) & (steps < p.upper)], [p.upper]]))
+
+
+def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
+    """(G,) the interpolation weights at ``v`` of :func:`rate_grid`'s ``grid``: linear between
+    its points for an effect linear between samples, else the profiles' spline
+    (:func:`quadcore.identify.stats.profiles.weights`)."""
+    (p,) = effect.parameters
+    if not effect.linear_between_samples:
+        return profiles.weights(p.lower, p.upper, v)
+    v = float(min(max(v, grid[0]), grid[-1]))
+    i = int(np.clip(np.searchsorted(grid, v, side="right") - 1, 0, len(grid) - 2))
+    t = (v - grid[i]) / (grid[i + 1] - grid[i])
+    out = np.zeros(len(grid))
+    out[i], out[i + 1] = 1.0 - t, t
+    return out
+
+
+def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filter = "gyro") -> RateSums:
+    """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
+    its rows: each effect's interval integrals of its torque at every point of its grid, with
+    the flight's thrust hold (as the model's torque in the increments); every running sum
+    through the flight's whitening filter, ``noise`` saying which: ``"gyro"`` (the default, and
+    the diagnosis's) fitted to the gyro's own noise (:func:`gyro_noise_model`), ``"residual"``
+    fitted to the rate-level residual (:func:`noise_model`; on the real flights it models the
+    unmodelled torque's drift, not the gyro noise: docs/timing.md, "The noise model"),
+    ``"white"`` none; or a given filter (:data:`Filter`: a flight not flown yet takes the logged
+    ones', quadcore.plan.ratelevel)."""
+    st = rf.fd.state
+    use = rf.block >= 0
+    dt_s = float(np.median(np.diff(st.t_s)))
+    grids = {e.name: rate_grid(e, dt_s) for e in timing}
+    k, slots = 1, {}
+    for e in timing:
+        slots[e.name] = slice(k, k + len(grids[e.name]))
+        k += len(grids[e.name])
+    b = rf.segment[use]
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
+    cluster = np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1) if len(b) else starts[:0]
+    size = np.diff(starts).astype(float)
+
+    def demeaned(running: np.ndarray) -> np.ndarray:
+        """(m, 3) running sums less their block's mean (which the block's offset takes)."""
+        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None], np.diff(starts),
+                                   axis=0) if len(b) else running
+
+    # (m, 3, K) block-demeaned, filled one column at a time; float32 (one flight's, the largest array here):
+    # the rounding perturbs each value by 6e-8 of itself, a residual by that of the values, not of their Gram
+    X = np.empty((len(b), 3, k), np.float32)
+    X[:, :, 0] = demeaned(np.cumsum(rf.increments, axis=0)[use])
+    for e in timing:
+        (p,) = e.parameters
+        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
+            X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
+    ar, share = (noise if isinstance(noise, tuple) else gyro_noise_model(rf.fd) if noise == "gyro"
+                 else noise_model(X, starts, rf.fd.noise[3:]) if noise == "residual"
+                 else (np.zeros((3, 0)), np.ones(3)))
+    lags = ar.shape[1]
+    iu = np.triu_indices(k)
+    blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
+    raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
+    for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
+        x = whitened(X[lo:hi].astype(float), ar)
+        if not len(x):
+            continue
+        x -= x.mean(axis=0)
+        blocks[cluster[i]] += np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
+        if lags:
+            r = X[lo:hi].astype(float)
+            r -= r.mean(axis=0)
+            raw[cluster[i]] += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
+    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
+    total = blocks.sum(axis=0)
+    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
+                    max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
+                    raw.astype(np.float32) if lags else None)
+
+
+def weights(flights: Sequence[RateSums]) -> np.ndarray:
+    """(3,) per axis ``1 / σ²`` from the torque channels' sensor-noise floor (the gyro noise
+    through ``J``: the same per axis up to a common factor at every level)."""
+    n = np.array([s.samples for s in flights], float)
+    ms = sum(s.noise ** 2 * k for s, k in zip(flights, n)) / n.sum()
+    return 1.0 / np.where(ms > 0, ms, 1.0)
+
+
+@dataclass(frozen=True)
+class RateFit:
+    """A timing effect's one parameter fitted at the rate level: value, standard error, and the
+    weighted cost at it over ``n`` intervals; ``unwhitened``: the value fitted without the flights'
+    whitening filters (None: they had none), whose distance from ``value`` the standard error is
+    at least (the answer's dependence on the noise model, which the gyro cannot check: it holds
+    the loop's response to its own noise, docs/timing.md "A small delay")."""
+
+    effect: str
+    parameter: str
+    value: float
+    std: float
+    cost: float
+    n: int
+    unwhitened: float | None = None
+
+
+def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
+    """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module), its
+    standard error (:func:`fit_cost`) at least the distance to the value fitted without the flights'
+    whitening filters (:attr:`RateFit.unwhitened`)."""
+    (p,) = effect.parameters
+    memo: dict[float, float] = {}
+    pooled = _pooled(flights, w)
+    squares = _squares(effect, flights)
+
+    def J(v: float) -> float:  # Σ_f RateSums.cost: per grid, the flights' weighted totals summed once
+        v = float(min(max(v, p.lower), p.upper))
+        if v not in memo:
+            memo[v] = sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in pooled)
+        return memo[v]
+
+    def per_block(v: float) -> np.ndarray:  # RateSums.costs per flight, its direction made once per grid
+        return np.concatenate([(s.blocks.astype(float) @ q) @ w for s, q in zip(flights, squares(v))])
+
+    knots = np.unique(np.concatenate([s.grids[effect.name] for s in flights]))
+    n = sum(s.n for s in flights) * 3
+    out = fit_cost(effect, J, per_block, n, min(s.dt_s for s in flights), knots)
+    if not any(s.filtered for s in flights):
+        return out
+    raw = _pooled([s if s.unwhitened is None else replace(s, total=s.unwhitened) for s in flights], w)
+
+    def J_raw(v: float) -> float:  # the same cost without each flight's whitening filter
+        v = float(min(max(v, p.lower), p.upper))
+        return sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in raw)
+
+    other = (piecewise_quadratic_minimum(J_raw, knots, n)[0] if effect.linear_between_samples
+             else solve.scalar_minimum(J_raw, n, p.lower, p.upper, samples_per_independent=1)[0])
+    return replace(out, std=max(out.std, abs(out.value - other)), unwhitened=other)
+
+
+def fit_cost(effect: Effect, J: Callable[[float], float], per_block: Callable[[float], np.ndarray], n: int,
+             dt_s: float, knots: np.ndarray) -> RateFit:
+    """:func:`fit` on a cost ``J`` over ``n`` values and its per-block parts ``per_block`` (weighted,
+    (blocks,)): a delay (:attr:`~quadcore.effects.Effect.linear_between_samples`) by
+    :func:`piecewise_quadratic_minimum` over the pieces between ``knots`` (its grids' whole sample
+    periods), another effect by :func:`quadcore.identify.fit.solve.scalar_minimum`; the standard
+    error the larger of the profile's and :func:`_clustered_variance`'s (``dt_s`` the shortest
+    sample period)."""
+    (p,) = effect.parameters
+    if effect.linear_between_samples:
+        best, var, curvature = piecewise_quadratic_minimum(J, knots, n)
+    else:
+        best, var = solve.scalar_minimum(J, n, p.lower, p.upper, samples_per_independent=1)
+        curvature = 2.0 * (J(best) / max(n - 1, 1)) / var if np.isfinite(var) and var > 0 else 0.0
+    var = max(var, _clustered_variance(effect, per_block, dt_s, best, curvature))
+    return RateFit(effect.name, p.name, best, float(np.sqrt(var)), J(best), n)
+
+
+def piecewise_quadratic_minimum(J: Callable[[float], float], knots: np.ndarray, n: int) -> tuple[float, float, float]:
+    """The minimum of ``J``, a quadratic between consecutive ``knots`` (a delay's cost between whole
+    sample periods: its running sums interpolated linearly, :func:`grid_weights`), over
+    ``[knots[0], knots[-1]]``: each piece's quadratic from ``J`` at its ends and middle, the lowest
+    of the pieces' minima. The variance of its position the likelihood-ratio interval's,
+    ``{v: J(v) <= J_min + s²}`` (``s² = J_min / (n − 1)``, the residual white), taken whole over
+    every piece: its larger distance from the minimum, to where it ends or to a bound it reaches
+    (a piece's minimum elsewhere within ``s²`` of the lowest widens it: the data do not tell
+    them apart; a minimum on a bound is measured to the other side). Also the curvature ``J''``
+    of the minimum's piece (the sandwich's, :func:`_clustered_variance`; 0 where that piece is not
+    convex, the minimum at a kink).
+
+    Why not :func:`quadcore.identify.fit.solve.scalar_minimum`: its 17 geometric points are 2.5 ms
+    apart at 5 ms and the cost has a minimum in every piece (the interpolation between whole
+    samples dips below the chord by ``t (1 − t) |C_(m+1) − C_m|²``), so it stopped in the piece
+    nearest its best point: three 8 s hovers with a 5 ms delay fitted 0.89-1.04 ± 0.12 ms
+    (docs/timing.md)."""
+    a, b = knots[:-1], knots[1:]
+    ja, jb = np.array([J(float(v)) for v in a]), np.array([J(float(v)) for v in b])
+    jm = np.array([J(float(v)) for v in 0.5 * (a + b)])
+    # per piece J(a + x h) = ja + x (jb − ja − c) + c x², x in [0, 1]
+    c = 2.0 * (ja + jb - 2.0 * jm)
+    slope = jb - ja - c
+    x = np.where(c > 0, np.clip(-slope / np.where(c > 0, 2.0 * c, 1.0), 0.0, 1.0), np.where(jb < ja, 1.0, 0.0))
+    low = ja + slope * x + c * x**2
+    i = int(np.argmin(low))
+    best, j0 = float(a[i] + x[i] * (b[i] - a[i])), float(low[i])
+    level = j0 + j0 / max(n - 1, 1)
+    inside = [(best, best)]  # each piece's stretch with J <= level (roots of the quadratic); the minimum's own
+    for k in range(len(a)):
+        h = b[k] - a[k]
+        xs = _below(float(ja[k] - level), float(slope[k]), float(c[k]))
+        if xs is not None:
+            inside.append((a[k] + xs[0] * h, a[k] + xs[1] * h))
+    lo, hi = min(v for v, _ in inside), max(v for _, v in inside)
+    widths = [d for d in (best - lo, hi - best) if d > 0]
+    var = float(max(widths) ** 2) if widths else 0.0
+    return best, var, float(max(c[i], 0.0) * 2.0 / (b[i] - a[i]) ** 2)
+
+
+def _below(c0: float, c1: float, c2: float) -> tuple[float, float] | None:
+    """The hull of ``{x in [0, 1]: c0 + c1 x + c2 x² <= 0}`` as its ends (None: empty): its ends are
+    among 0, 1 (where the quadratic is <= 0 there) and its roots within [0, 1]."""
+    if c2 != 0.0:
+        disc = c1 * c1 - 4.0 * c2 * c0
+        roots = (-c1 + np.array([-1.0, 1.0]) * np.sqrt(disc)) / (2.0 * c2) if disc >= 0 else np.zeros(0)
+    else:
+        roots = np.array([-c0 / c1]) if c1 != 0.0 else np.zeros(0)
+    ends = [e for e in (0.0, 1.0) if c0 + c1 * e + c2 * e * e <= 0.0]
+    points = [*ends, *(float(r) for r in roots if 0.0 <= r <= 1.0)]
+    return (min(points), max(points)) if points else None
+
+
+def _clustered_variance(effect: Effect, per_block: Callable[[float], np.ndarray], dt_s: float, best: float,
+                        curvature: float) -> float:
+    """The variance of the fitted value with the blocks as independent clusters (the sandwich
+    ``Σ_b (∂J_b/∂θ)² / H²``, ``H`` the cost's ``curvature`` at ``best``: the profile's ``2 s² / var``,
+    or a delay's piece's exact one, :func:`piecewise_quadratic_minimum`), which the profile's
+    variance, right for a white residual, understates where the residual within a block is not
+    white (the effect's form only close to the physics, a torque the model lacks); each block's
+    slope (``per_block``) by central differences over half a sample period (``dt_s``), one-sided at a bound, where the
+    slopes' sum is not 0 (the bound holds the fit: on a simulated fleet with no delay the slope
+    from 0 rose the cost by s² within 3 µs) and their spread about their mean is the score's
+    variance. 0 without a positive curvature (the profile's interval stands)."""
+    (p,) = effect.parameters
+    if not np.isfinite(curvature) or curvature <= 0:
+        return 0.0
+    h = 0.25 * dt_s
+    lo, hi = max(best - h, p.lower), min(best + h, p.upper)
+    if hi <= lo:
+        return 0.0
+    slopes = (per_block(hi) - per_block(lo)) / (hi - lo)
+    if best <= p.lower or best >= p.upper:  # held by a bound, the blocks' slopes need not sum to 0: their spread
+        slopes = slopes - slopes.mean()
+    k = len(slopes)
+    return float(k / max(k - 1, 1) * np.sum(slopes**2) / curvature**2)
+
+
+def _model_torque(model, flight: str, fd: FlightData) -> tuple[Vehicle, np.ndarray | None]:
+    """The vehicle of ``flight`` and the torque (n, 3) of the model's effects there (unfiltered)."""
+    m = model.for_flight(flight)
+    if not m.terms:
+        return m.vehicle, None
+    tau = np.zeros((fd.state.n, 3))
+    for t in m.terms:
+        tau += get_effect(t.name).wrench(fd.state, m.vehicle, t.params)[1]
+    return m.vehicle, tau
+
+
+@dataclass(frozen=True)
+class BelowCommandRate:
+    """A flight logged below the command rate (:func:`below_command_rate`): its median log
+    period and its thrust hold, s. Its rows give no rate-level sums."""
+
+    period_s: float
+    hold_s: float
+
+
+FlightRates = RateSums | BelowCommandRate  # what the rate level keeps of one flight
+# ``cache(flight, inputs, compute)``: the flight's FlightRates for ``inputs`` (what they depend on
+# besides the flight's log: the timing candidates, the skipped start, the model there), kept
+# from an earlier diagnosis or ``compute()``d (quadcore.identify.diagnosis.rate_cache)
+RatesCache = Callable[[str, dict, Callable[[], FlightRates]], FlightRates]
+
+
+def flight_inputs(model, flight: str, timing: Sequence[Effect], skip_blocks: int) -> dict:
+    """What a flight's :class:`FlightRates` depend on besides its log (JSON): the timing effects,
+    the start left out, and the model on the flight (its vehicle, its effects' values)."""
+    m = model.for_flight(flight)
+    return {"timing": [e.name for e in timing], "skip_blocks": skip_blocks,
+            "vehicle": {k: v for k, v in asdict(m.vehicle).items() if k != "source"},
+            "terms": [[t.name, t.params] for t in m.terms]}
+
+
+def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int,
+                noise: NoiseModel | Filter = "gyro") -> RateSums:
+    """One flight's :class:`RateSums` as the diagnosis takes them: the increments with the torque
+    of ``model``'s effects (on ``flight``) removed, its first ``skip_blocks`` blocks left out (the
+    longest memory of the ``timing`` candidates), whitened as ``noise`` says (:func:`rate_sums`)."""
+    vehicle, tau = _model_torque(model, flight, fd)
+    return rate_sums(rate_flight(fd, vehicle, tau, skip_blocks), timing, noise)
+
+
+def flight_rates(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int) -> FlightRates:
+    """What the rate level keeps of one flight (:func:`quadcore.identify.rates.judge`'s, and its
+    cache's): :class:`BelowCommandRate` (its median log period and thrust hold) when it is
+    :func:`below_command_rate`, else its :func:`flight_sums`."""
+    if below_command_rate(fd):
+        return BelowCommandRate(float(np.median(np.diff(fd.state.t_s))), fd.state.thrust_hold_s)
+    return flight_sums(fd, model, flight, timing, skip_blocks)
+
+
+def below_command_rate(fd: FlightData) -> bool:
+    """True when ``fd`` logs a held command (PWM) less often than the firmware sets it: the
+    commands between two samples are not in the log."""
+    hold = fd.state.thrust_hold_s
+    return hold > 0 and float(np.median(np.diff(fd.state.t_s))) > 1.5 * hold
