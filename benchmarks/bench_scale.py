@@ -219,14 +219,16 @@ def per_flight_main(sizes: list[int]) -> None:
 
 def decoded_pool(n: int) -> Path:
     """The pool's flights 0 .. n-1 decoded once (their tables are linked under the data roots that
-    use them); again when decoded by older code (no physics facts in the main table's footer: the
-    fleet stages would then read every table to judge it)."""
+    use them); again when decoded by another decoder (:func:`quadcore.physics.decoded_store.decoded_from`)
+    or by older code (no physics facts in the main table's footer: the fleet stages would then read
+    every table to judge it)."""
     from quadcore.logs import flight
 
     root = CACHE / "decoded_pool"
     for i, log in enumerate(pool_logs(n)):
         main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
-        if not main.is_file() or decoded_store.recorded_physics_facts(main) is None:
+        if (not decoded_store.decoded_from(root, store.MAIN_EVENT, fid(i), log)
+                or decoded_store.recorded_physics_facts(main) is None):
             decoded_store.write_decoded(root, flight.decode_flight(log))
     return root
 

@@ -364,6 +364,7 @@ def test_decode_flight_gives_si_tables_with_provenance(real_logs):
     assert prov.start_ns is not None and prov.start_source == flight.START_FROM_MTIME
     # the JSON form: the keys the decoded Parquet files carry, and back
     assert list(prov.to_dict()) == ["source_file", "source_sha256", "format_version", "crc_ok", "bytes_total",
-                                    "bytes_dropped", "decode_warnings", "rows", "start_ns", "start_source"]
+                                    "bytes_dropped", "decode_warnings", "rows", "decoder", "start_ns", "start_source"]
+    assert prov.decoder == flight.decoder_digest() and prov.current(prov.source_sha256)
     assert flight.Provenance.from_dict(json.loads(json.dumps(prov.to_dict()))) == prov
     assert fl.warnings == []

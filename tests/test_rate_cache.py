@@ -80,6 +80,21 @@ def test_a_flight_decoded_from_other_bytes_is_computed_again_and_only_it(root, d
     assert json_differences(refreshed, _diagnose(root, tables, cache=False)) == []
 
 
+def test_a_flight_decoded_again_by_another_decoder_is_computed_again_and_only_it(root, drag_fleet, computed,
+                                                                                 monkeypatch):
+    """The same log decoded by another decoder (a release that changed the decoding or the unit
+    conversion: its digest, quadcore.logs.flight.decoder_digest, in the decoded table's provenance):
+    the sums kept from the old table are stale (before, they were keyed by the log's SHA-256 alone)."""
+    tables = _tables(root)
+    _diagnose(root, tables)
+    monkeypatch.setattr(flight, "decoder_digest", lambda: "another decoder")
+    decoded_store.write_decoded(root, flight.decode_flight(drag_fleet / "sim002"))
+    computed.clear()
+    refreshed = _diagnose(root, _tables(root))
+    assert len(computed) == 1
+    assert json_differences(refreshed, _diagnose(root, tables, cache=False)) == []
+
+
 def test_another_model_computes_every_flight_again(root, computed):
     tables = _tables(root)
     _diagnose(root, tables)

@@ -16,6 +16,7 @@ from pipeline.partitions import flights
 from pipeline.resources import DataRoot, ModelConfig
 from pipeline.run import main, parallel
 from quadcore.identify.stats import sufficient
+from quadcore.logs import flight as flightmod
 from quadcore.sim import simulation
 from quadcore.store import store
 from quadcore.workflows import learn
@@ -147,9 +148,10 @@ def test_per_flight_stage_with_the_multiprocess_executor(sim_logs, tmp_path, mon
         assert sorted(p.name for p in (root / "mcap").glob("*.mcap")) == ["sim000.mcap", "sim001.mcap"]
 
 
-def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path):
+def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path, monkeypatch):
     """Unchanged flights are not decoded or recomputed again; a new one costs its own work, the
-    refit and the diagnosis; learning waits for its nightly tick while the physics model is the same."""
+    refit and the diagnosis; a new decoder decodes every flight again; learning waits for its
+    nightly tick while the physics model is the same."""
     raw = _raw(tmp_path, sim_logs, bad=False)
     (raw / "sim002").unlink()
     data_root = DataRoot(root=str(tmp_path / "root"), raw=str(raw))
@@ -160,6 +162,9 @@ def test_the_main_job_redoes_only_what_changed(sim_logs, tmp_path):
         assert main.to_decode(instance, data_root, ids) == ids
         main.run_flights(instance, {"data_root": data_root, "model": ModelConfig()}, ids, PER_FLIGHT, "f", lines.append)
         assert main.to_decode(instance, data_root, ids) == []
+        with monkeypatch.context() as m:  # a release changed the decoder: its tables are not the same logs' now
+            m.setattr(flightmod, "decoder_digest", lambda: "another decoder")
+            assert main.to_decode(instance, data_root, ids) == ids
         assert main.to_recompute(instance, data_root, ModelConfig(), ids, []) == []
         assert main.to_recompute(instance, data_root, ModelConfig(), ids, ["sim001"]) == ["sim001"]
         # another model than the tables were computed against: every table is stale

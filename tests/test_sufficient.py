@@ -451,7 +451,7 @@ def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(
     spec = spec_from(VEHICLE, [])
     decoded_store.write_decoded(root, flight.decode_flight(drag_fleet / "sim000"))
     decoded = store.read_decoded(root, "fixedFrequency", "sim000")
-    source = decoded_store.recorded_provenance(root, "fixedFrequency", "sim000").source_sha256
+    source = sufficient.decoded_source(root, "sim000")
     sufficient.save(sufficient.compute_current(spec, "sim000", decoded, source), root)
     assert sufficient.stored(root, spec)("sim000") is not None
     other = tmp_path / "raw" / "sim000"
@@ -459,6 +459,71 @@ def test_stored_statistics_of_a_flight_decoded_again_from_other_bytes_are_stale(
     other.write_bytes((drag_fleet / "sim001").read_bytes())  # new bytes under the same flight id
     decoded_store.write_decoded(root, flight.decode_flight(other))
     assert sufficient.stored(root, spec)("sim000") is None
+
+
+def test_a_log_decoded_again_by_another_decoder_is_decoded_again_and_what_was_kept_from_it_is_stale(
+        drag_fleet, tmp_path, monkeypatch):
+    """The decoder's code is part of what a decoded table and everything kept from it are made
+    of: after a change of the decoder (its digest, :func:`quadcore.logs.flight.decoder_digest`)
+    the same log's table is not current (the pipeline decodes it again), and once it is decoded
+    again the statistics and discovery statistics made from the old table are stale (before,
+    both were keyed by the log's SHA-256 alone: a new decoder's tables were never made, and its
+    statistics were never recomputed)."""
+    from quadcore.identify.discovery import library_stats
+    from quadcore.physics import decoded_store
+    from quadcore.store import store
+
+    root, log = tmp_path / "root", drag_fleet / "sim000"
+    spec = spec_from(VEHICLE, [])
+    decoded_store.write_decoded(root, flight.decode_flight(log))
+    decoded, source = store.read_decoded(root, "fixedFrequency", "sim000"), sufficient.decoded_source(root, "sim000")
+    sufficient.save(sufficient.compute_current(spec, "sim000", decoded, source), root)
+    library_stats.save(library_stats.compute(spec, "sim000", decoded, source), root)
+    assert decoded_store.decoded_from(root, "fixedFrequency", "sim000", log)
+    assert sufficient.stored(root, spec)("sim000") is not None
+    assert library_stats.stored(root, spec)("sim000") is not None
+    monkeypatch.setattr(flight, "decoder_digest", lambda: "another decoder")  # a release changed the decoder
+    assert not decoded_store.decoded_from(root, "fixedFrequency", "sim000", log)  # to be decoded again
+    decoded_store.write_decoded(root, flight.decode_flight(log))  # the same bytes, by the new decoder
+    assert decoded_store.decoded_from(root, "fixedFrequency", "sim000", log)
+    assert sufficient.stored(root, spec)("sim000") is None and library_stats.stored(root, spec)("sim000") is None
+
+
+def test_the_decoder_digest_follows_the_decoders_code(tmp_path, monkeypatch):
+    """The digest a decoded table records changes with the source of any module in
+    :data:`quadcore.logs.flight.DECODER_MODULES` (a probe module standing for one of them)."""
+    (tmp_path / "qc_probe_decoder.py").write_text("SCALE = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(flight, "DECODER_MODULES", (*flight.DECODER_MODULES, "qc_probe_decoder"))
+    flight.decoder_digest.cache_clear()
+    before = flight.decoder_digest()
+    (tmp_path / "qc_probe_decoder.py").write_text("SCALE = 2.0\n")  # the unit conversion changed
+    flight.decoder_digest.cache_clear()  # a new process
+    assert flight.decoder_digest() != before
+    flight.decoder_digest.cache_clear()
+
+
+def test_the_code_that_decodes_a_log_is_in_the_decoder_digest(drag_fleet):
+    """Every quadcore module whose functions run while a log is decoded into its tables is in
+    :data:`quadcore.logs.flight.DECODER_MODULES`, or makes none of the table's numbers
+    (``quadcore.store.names`` names the flight, ``quadcore.store.codedigest`` digests the decoder):
+    a change to the decoding or the unit conversion makes every decoded table, and what was kept
+    from it, stale."""
+    ran: set[str] = set()
+
+    def seen(frame, event, arg):
+        name = frame.f_globals.get("__name__", "")
+        if event == "call" and name.startswith("quadcore"):
+            ran.add(name)
+
+    sys.setprofile(seen)
+    try:
+        decoded = flight.decode_flight(drag_fleet / "sim000")
+    finally:
+        sys.setprofile(None)
+    assert {"quadcore.logs.logformat", "quadcore.logs.units"} <= ran  # the work was traced
+    assert not ran - {*flight.DECODER_MODULES, "quadcore.store.names", "quadcore.store.codedigest"}, sorted(ran)
+    assert decoded.provenance.decoder == flight.decoder_digest()
 
 
 def test_the_statistics_key_follows_the_spec_not_the_plugins_this_process_loaded():
@@ -748,9 +813,10 @@ def test_an_effects_source_digest_follows_its_modules_code_not_only_its_class(tm
 # on purpose: each effect's own module (its source digest, sufficient.source_digest, is in the keys
 # of the effects they hold), the effect registry, the physics gate's checks (they refuse a flight
 # or pass it: nothing they compute is kept), and the model and spec that resolve a flight's
-# vehicle and effect values (those values are in the keys, not the code that looked them up).
+# vehicle and effect values (those values are in the keys, not the code that looked them up), and
+# the digest itself (quadcore.store.codedigest: it reads the modules' source, it makes no number).
 _OUTSIDE_THE_DIGEST = ("quadcore.effects", "quadcore.physics.gate", "quadcore.logs.checks", "quadcore.identify.model",
-                       "quadcore.spec.model")
+                       "quadcore.spec.model", "quadcore.store.codedigest")
 
 
 def test_the_code_that_makes_a_flights_statistics_and_rate_sums_is_in_their_code_digest(drag_fleet):

@@ -7,6 +7,7 @@ any event type in the file, so all tables of a flight share one clock.
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
@@ -18,14 +19,29 @@ import numpy as np
 import polars as pl
 
 from quadcore.logs import logformat, units
-from quadcore.store import names
+from quadcore.store import codedigest, names
+
+# The code a decoded table's rows, columns and provenance come from: the uSD format's reader, the
+# conversion to SI units and the assembly into a :class:`Flight` (the flight id's naming,
+# ``quadcore.store.names``, names the table and makes none of its numbers). A decoded table records
+# their digest (:func:`decoder_digest`, ``Provenance.decoder``): one decoded by other code is decoded
+# again, and what was computed from it (statistics, rate-level sums) is stale
+# (:meth:`Provenance.decoded_as`).
+DECODER_MODULES = ("quadcore.logs.logformat", "quadcore.logs.units", "quadcore.logs.flight")
+
+
+@functools.lru_cache(maxsize=1)
+def decoder_digest() -> str:
+    """The digest of :data:`DECODER_MODULES`' source (once per process)."""
+    return codedigest.modules_digest(DECODER_MODULES)
 
 
 @dataclass(frozen=True)
 class Provenance:
     """Where a decoded flight came from and what decoding found. Written as JSON beside each of
     its decoded tables (:meth:`to_dict`); ``start_ns`` is the flight's absolute start (ns since
-    the Unix epoch), None where it is not known."""
+    the Unix epoch), None where it is not known; ``decoder`` the digest of the code that decoded
+    it (:func:`decoder_digest`; "" when decoded before it was recorded)."""
 
     source_file: str = ""
     source_sha256: str = ""
@@ -37,6 +53,20 @@ class Provenance:
     rows: dict[str, int] = field(default_factory=dict)  # event -> records
     start_ns: int | None = None
     start_source: str = ""
+    decoder: str = ""
+
+    @property
+    def decoded_as(self) -> str:
+        """What the decoded table is a function of: the log's bytes (``source_sha256``) and the
+        decoder's code (``decoder``). The one identity everything computed from the table and kept
+        is keyed by (:func:`quadcore.identify.stats.sufficient.decoded_source`): a log decoded again
+        from other bytes, or by another decoder, makes it stale."""
+        return f"{self.source_sha256}+decoder:{self.decoder}"
+
+    def current(self, source_sha256: str) -> bool:
+        """Whether this decode is the one the current code makes of a log whose SHA-256 is
+        ``source_sha256``: the same bytes, decoded by this decoder (:func:`decoder_digest`)."""
+        return self.source_sha256 == source_sha256 and self.decoder == decoder_digest()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (the keys the decoded Parquet files have always carried)."""
@@ -44,6 +74,7 @@ class Provenance:
             "source_file": self.source_file, "source_sha256": self.source_sha256,
             "format_version": self.format_version, "crc_ok": self.crc_ok, "bytes_total": self.bytes_total,
             "bytes_dropped": self.bytes_dropped, "decode_warnings": list(self.decode_warnings), "rows": dict(self.rows),
+            "decoder": self.decoder,
         }
         if self.start_ns is not None:
             d.update(start_ns=self.start_ns, start_source=self.start_source)
@@ -57,7 +88,7 @@ class Provenance:
         return cls(str(d.get("source_file", "")), str(d.get("source_sha256", "")), int(d.get("format_version", 0)),
                    d.get("crc_ok"), int(d.get("bytes_total", 0)), int(d.get("bytes_dropped", 0)),
                    tuple(d.get("decode_warnings", ())), dict(d.get("rows", {})),
-                   None if start is None else int(start), str(d.get("start_source", "")))
+                   None if start is None else int(start), str(d.get("start_source", "")), str(d.get("decoder", "")))
 
 
 @dataclass
@@ -134,7 +165,7 @@ def from_decoded(flight_id: str, log: logformat.DecodedLog, source_file: str = "
         source_file, source_sha256, log.version, log.crc_ok, log.bytes_total, log.bytes_dropped,
         tuple(log.warnings), log.rows(),
         start_ns=source_mtime_ns - duration_ns if source_mtime_ns is not None else None,
-        start_source=START_FROM_MTIME if estimated else "",
+        start_source=START_FROM_MTIME if estimated else "", decoder=decoder_digest(),
     )
     return Flight(flight_id, tables, columns, provenance)
 

@@ -44,9 +44,10 @@ def recorded_provenance(root: Path, event: str, flight: str) -> Provenance | Non
 
 def decoded_from(root: Path, event: str, flight: str, log_path: Path) -> bool:
     """Whether the flight's decoded ``event`` table was decoded from exactly these bytes (the
-    SHA-256 in its provenance); False when it is missing or the log cannot be read."""
+    SHA-256 in its provenance) by the decoder as it is now (:meth:`quadcore.logs.flight.Provenance.current`);
+    False when it is missing, was decoded by other code, or the log cannot be read."""
     recorded = recorded_provenance(root, event, flight)
     try:
-        return recorded is not None and recorded.source_sha256 == store.file_sha256(log_path)
+        return recorded is not None and recorded.current(store.file_sha256(log_path))
     except (OSError, ValueError):
         return False

@@ -45,11 +45,9 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import importlib.util
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -60,6 +58,7 @@ from quadcore.identify.discovery.grams import channel_groups, flight_grams, libr
 from quadcore.identify.discovery.terms import Term, library, variables
 from quadcore.identify.settings import STATISTICS
 from quadcore.identify.stats import sufficient
+from quadcore.store import codedigest
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 STRIDE = STATISTICS.library_stride  # discovery's default: every 4th usable sample in the selection's Gram matrix
@@ -113,13 +112,9 @@ def head_blocks(spec) -> int:
 
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
-    """The sufficient statistics' code digest and the source of the modules the discovery statistics
-    are computed by (once per process, as :func:`quadcore.identify.stats.sufficient.code_digest`)."""
-    digest = hashlib.sha256(sufficient.code_digest().encode())
-    for name in _MODULES:
-        found = importlib.util.find_spec(name)
-        digest.update(Path(found.origin).read_bytes() if found is not None and found.origin else b"missing")
-    return digest.hexdigest()[:16]
+    """The source of the modules the sufficient statistics and the discovery statistics are
+    computed by (once per process, as :func:`quadcore.identify.stats.sufficient.code_digest`)."""
+    return codedigest.modules_digest((*sufficient.CODE_MODULES, *_MODULES))
 
 
 def library_key(spec, flight: str) -> str:

@@ -45,14 +45,12 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import importlib.util
 import inspect
 import json
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -80,7 +78,7 @@ from quadcore.identify.flightdata import GRAM_STRIDE, SECANT, FlightData, Signal
 from quadcore.identify.stats import profiles
 from quadcore.physics import decoded_store
 from quadcore.physics.vehicle import Vehicle
-from quadcore.store import store
+from quadcore.store import codedigest, store
 
 FORMAT = 3  # bump when what the statistics mean changes: stored ones become stale
 Y0 = "y0"
@@ -487,13 +485,9 @@ CODE_MODULES = ("quadcore.identify.settings", "quadcore.physics.dynamics", "quad
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
     """A digest of the source of :data:`CODE_MODULES` (once per process): statistics stored by
-    other code are stale."""
-    digest = hashlib.sha256()
-    for name in CODE_MODULES:
-        spec = importlib.util.find_spec(name)
-        origin = spec.origin if spec is not None else None
-        digest.update(name.encode() + (Path(origin).read_bytes() if origin else b"missing"))
-    return digest.hexdigest()[:16]
+    other code are stale. The decoder's code is not in it: the statistics name the decoded table
+    they were made from, decoder included (``source``, :func:`decoded_source`)."""
+    return codedigest.modules_digest(CODE_MODULES)
 
 
 @functools.cache
@@ -580,10 +574,13 @@ def compute_current(spec, flight: str, decoded, source: str = "", fd: FlightData
 
 
 def decoded_source(root: Any, flight: str) -> str | None:
-    """The SHA-256 of the log the flight's main table under the data root was decoded from
-    (None when it is not decoded)."""
+    """What the flight's main table under the data root was made from: the SHA-256 of its log and
+    the digest of the decoder's code (:attr:`quadcore.logs.flight.Provenance.decoded_as`; None when
+    it is not decoded). Everything kept from a decoded table is keyed by it (``stats.bin``,
+    ``library.bin``, ``rates.bin``): a log decoded again, from other bytes or by another decoder,
+    makes them stale."""
     provenance = decoded_store.recorded_provenance(root, store.MAIN_EVENT, flight)
-    return provenance.source_sha256 if provenance is not None else None
+    return provenance.decoded_as if provenance is not None else None
 
 
 def stored(root: Any, spec) -> Callable[[str], FlightStats | None]:
