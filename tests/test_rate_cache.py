@@ -200,3 +200,18 @@ def test_a_rate_level_fit_pools_the_flights_of_one_grid_as_their_sum_of_costs():
             best, _ = solve.scalar_minimum(cost, n, p.lower, p.upper, samples_per_independent=1)
         assert got.value == pytest.approx(best, rel=1e-9, abs=1e-12 * (p.upper - p.lower))
         assert got.cost == pytest.approx(cost(got.value), rel=1e-9)
+
+
+def test_the_key_follows_the_code_that_makes_the_sums(tmp_path, monkeypatch):
+    """A change to a module the sums are made by (a probe standing for one of rate_cache.CODE_MODULES)
+    changes the key (a new process), so the kept sums are made again."""
+    (tmp_path / "qc_probe_rates.py").write_text("SCALE = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(rate_cache, "CODE_MODULES", (*rate_cache.CODE_MODULES, "qc_probe_rates"))
+    inputs = {"timing": ["motor_lag"], "terms": []}
+    rate_cache.code_digest.cache_clear()
+    before = rate_cache.key("log", inputs)
+    (tmp_path / "qc_probe_rates.py").write_text("SCALE = 2.0\n")
+    rate_cache.code_digest.cache_clear()  # a new process
+    assert rate_cache.key("log", inputs) != before
+    rate_cache.code_digest.cache_clear()

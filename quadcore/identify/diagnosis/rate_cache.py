@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import importlib.util
 import json
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,7 +31,7 @@ import numpy as np
 from quadcore import effects as effectlib
 from quadcore.identify import binfile, rates
 from quadcore.identify.stats import sufficient
-from quadcore.store import store
+from quadcore.store import codedigest, store
 from quadcore.store.names import check_component
 
 FORMAT = 3  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks)
@@ -51,13 +49,9 @@ def path(root: Any, flight: str) -> Any:
 
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
-    """The statistics' code digest (:func:`quadcore.identify.stats.sufficient.code_digest`) and the
-    source of :data:`CODE_MODULES` (once per process)."""
-    digest = hashlib.sha256(sufficient.code_digest().encode())
-    for name in CODE_MODULES:
-        found = importlib.util.find_spec(name)
-        digest.update(Path(found.origin).read_bytes() if found is not None and found.origin else b"missing")
-    return digest.hexdigest()[:16]
+    """The source of the statistics' modules (:data:`quadcore.identify.stats.sufficient.CODE_MODULES`)
+    and of :data:`CODE_MODULES` (once per process)."""
+    return codedigest.modules_digest((*sufficient.CODE_MODULES, *CODE_MODULES))
 
 
 def key(source: str, inputs: dict) -> str:
