@@ -96,8 +96,8 @@ def test_the_rate_level_separation_is_the_diagnosis_s_with_one_flight_and_with_a
     seen: dict[tuple[str, str], float] = {}
     compare_pair = rates.compare_pair
 
-    def spy(sums, splits, a, b, fits_a, fits_b, w):
-        per_flight, test = compare_pair(sums, splits, a, b, fits_a, fits_b, w)
+    def spy(sums, splits, a, b, fits_a, fits_b, ws):
+        per_flight, test = compare_pair(sums, splits, a, b, fits_a, fits_b, ws)
         seen[(a.name, b.name)] = test.t
         return per_flight, test
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -395,6 +396,38 @@ def test_in_holdout_mode_the_held_out_flight_does_not_weigh_the_rate_levels_fit(
         for k in p0:
             assert p1[k] == pytest.approx(p0[k], rel=1e-9, abs=1e-15), (name, p0, p1)
             assert s1[k] == pytest.approx(s0[k], rel=1e-9, abs=1e-15), (name, s0, s1)
+
+
+def test_in_cross_validation_each_folds_weights_come_from_its_training_flights(drag_fleet, monkeypatch):
+    """Cross-validation: each fold's rate-level fits and its held-out flights' block differences
+    take their noise weights from the fold's training flights alone. The same four flights, the
+    last one's noise floor (what the weights are made of, nothing else) three times larger on one
+    axis and a third on the others: the fold that holds it out measures exactly what it measured
+    before; the folds it trains in do not (the weights are used). Before, every fold's weights
+    were the noise floor of all the flights, each fold's held-out ones too (the holdout mode's
+    leak, 25df2b3, in the folds)."""
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
+    held = sorted(tables)[-1]
+    seen: list[dict[str, np.ndarray]] = []
+    compare_pair = rates.compare_pair
+
+    def spy(*args):
+        per_flight, test = compare_pair(*args)
+        seen.append({f: g for f, (g, _) in per_flight.items()})
+        return per_flight, test
+
+    def noisier(f, inputs, compute):  # the held flight's noise floor changed, its sums the same
+        s = compute()
+        return replace(s, noise=s.noise * np.array([3.0, 1 / 3, 1 / 3])) if f == held else s
+
+    for where in (rates.judgement, rates):
+        monkeypatch.setattr(where, "compare_pair", spy)
+    for cache in (None, noisier):
+        diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING), rate_cache=cache)
+    assert len(seen) == 2 and set(seen[0]) == set(tables), seen
+    before, after = seen
+    np.testing.assert_allclose(after[held], before[held], rtol=1e-12, atol=0)
+    assert all(not np.allclose(after[f], before[f], rtol=1e-6, atol=0) for f in tables if f != held)
 
 
 def _rows(*names: str, found: bool = True) -> list:

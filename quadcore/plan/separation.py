@@ -99,9 +99,9 @@ def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: Phy
     fds = flights_of(tables, spec)
     sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip) for f, fd in fds.items()}
     splits, _, _ = diagnosislib.fold_splits(sorted(sums), None, n_folds)
-    w = rates.weights(list(sums.values()))
-    fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for tr, _ in splits] for e in (ea, eb)}
-    _, test = rates.compare_pair(sums, splits, ea, eb, fits[a], fits[b], w)
+    ws = rates.split_weights(sums, splits)  # each fold's from its training flights, as the diagnosis's
+    fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for (tr, _), w in zip(splits, ws)] for e in (ea, eb)}
+    _, test = rates.compare_pair(sums, splits, ea, eb, fits[a], fits[b], ws)
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
 
 

@@ -76,6 +76,7 @@ from quadcore.identify.rates.sums import (
     piecewise_quadratic_minimum,
     rate_grid,
     rate_sums,
+    split_weights,
     weights,
 )
 
@@ -84,5 +85,5 @@ __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOIS
            "RateFit", "RateFlight", "RateSums", "RatesCache", "below_command_rate", "block_differences",
            "compare_pair", "difference_test", "effect_increments", "fit", "fit_cost", "flight_inputs", "flight_rates",
            "flight_sums", "grid_weights", "gyro_noise_model", "judge", "noise_model", "noise_model_decides",
-           "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums", "unwhitened_comparison",
-           "weights", "whitened"]
+           "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums", "split_weights",
+           "unwhitened_comparison", "weights", "whitened"]

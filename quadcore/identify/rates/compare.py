@@ -58,20 +58,21 @@ def difference_test(g: np.ndarray, D: np.ndarray) -> evidence.HeldOutTest:
 
 
 def compare_pair(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], a: Effect,
-                 b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
+                 b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], ws: Sequence[np.ndarray]
                  ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], evidence.HeldOutTest]:
     """The held-out comparison of two timing candidates: per test flight of each split its
     :func:`block_differences` with both candidates fitted on the split's training flights
-    (``fits_a``, ``fits_b``, one per split), and the :func:`difference_test` over all of them
-    (``t > 0``: ``a`` fits better)."""
+    (``fits_a``, ``fits_b``, one per split) and weighted as there (``ws``, one per split:
+    :func:`quadcore.identify.rates.sums.split_weights`), and the :func:`difference_test` over all
+    of them (``t > 0``: ``a`` fits better)."""
     per_flight = {f: block_differences([flights[f]], a, {fa.parameter: fa.value}, b, {fb.parameter: fb.value}, w)
-                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te}
+                  for (_, te), fa, fb, w in zip(splits, fits_a, fits_b, ws) for f in te}
     return per_flight, difference_test(*(np.concatenate(x) for x in zip(*per_flight.values())))
 
 
 def unwhitened_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
-                          a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit], w: np.ndarray
-                          ) -> evidence.HeldOutTest | None:
+                          a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
+                          ws: Sequence[np.ndarray]) -> evidence.HeldOutTest | None:
     """:func:`compare_pair`'s test without the whitening filters: each candidate at its value fitted
     without them (:attr:`RateFit.unwhitened`), the blocks' differences from the unfiltered Grams
     (:attr:`RateSums.unwhitened_blocks`). None when no test flight went through a filter (the two
@@ -83,7 +84,7 @@ def unwhitened_comparison(flights: Mapping[str, RateSums], splits: Sequence[tupl
         return {fit.parameter: fit.value if fit.unwhitened is None else fit.unwhitened}
 
     per_flight = [block_differences([flights[f]], a, at(fa), b, at(fb), w, unwhitened=True)
-                  for (_, te), fa, fb in zip(splits, fits_a, fits_b) for f in te]
+                  for (_, te), fa, fb, w in zip(splits, fits_a, fits_b, ws) for f in te]
     return difference_test(*(np.concatenate(x) for x in zip(*per_flight)))
 
 

@@ -33,6 +33,7 @@ from quadcore.identify.rates.sums import (
     fit,
     flight_inputs,
     flight_rates,
+    split_weights,
     weights,
 )
 
@@ -121,7 +122,8 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
     flights = {f: s for f, s in reduced_flights.items() if s is not None}
     w = weights([flights[f] for f in train_all])  # the training flights' noise: none of the held-out ones'
-    folds = {c.name: [fit(c, [flights[f] for f in tr], w) for tr, _ in splits] for c in timing}
+    ws = split_weights(flights, splits)  # each fold's from its training flights: none of its test flights'
+    folds = {c.name: [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, ws)] for c in timing}
     # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
     groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
               if len(train_all) >= 3 else [])
@@ -138,9 +140,9 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             ra, rb = by_name[a.name], by_name[b.name]
             if not (ra.physical and rb.physical):
                 continue
-            per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], w)
+            per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], ws)
             differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
-            raw = unwhitened_comparison(flights, splits, a, b, folds[a.name], folds[b.name], w)
+            raw = unwhitened_comparison(flights, splits, a, b, folds[a.name], folds[b.name], ws)
             if raw is not None and noise_model_decides(test, raw, settings.alpha):
                 undecided.add((a.name, b.name))
                 _noise_model_tie(ra, rb, test, raw)

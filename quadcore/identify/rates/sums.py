@@ -35,7 +35,7 @@ module and those below it.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -258,6 +258,13 @@ def weights(flights: Sequence[RateSums]) -> np.ndarray:
     n = np.array([s.samples for s in flights], float)
     ms = sum(s.noise ** 2 * k for s, k in zip(flights, n)) / n.sum()
     return 1.0 / np.where(ms > 0, ms, 1.0)
+
+
+def split_weights(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]]
+                  ) -> list[np.ndarray]:
+    """Per split (training, test flights) the :func:`weights` of its training flights: what a fold
+    fits and scores its test flights with, none of them weighing it."""
+    return [weights([flights[f] for f in tr]) for tr, _ in splits]
 
 
 @dataclass(frozen=True)
