@@ -78,9 +78,11 @@ def trial_from(d: dict) -> bench.Trial:
 
 
 def cell(o: bench.Outcome, rival: str) -> str:
-    """One flight's σ for the truth, and what the diagnosis said when it did not decide."""
+    """One flight's σ for the truth, and what the diagnosis said when it did not decide; 'first
+    against σ': decided, but the comparison favours the rival (the truth ranked first across
+    tiers: the rival's fit not significant)."""
     if o.decided:
-        return f"{o.sigma:+.1f}"
+        return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "")
     why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")
     return f"{o.sigma:+.1f} {why}"
 
@@ -94,7 +96,7 @@ def summarise(trials: list[bench.Trial]) -> None:
         files = list(dict.fromkeys(f for t in ts for f in t.files))
         pair = bench.SCENARIOS[name].pair
         print(f"\n{name}: σ for the truth per seed (decided unless marked: 'tied', 'wrong' = the rival first "
-              "untied, or the effect ranked first)")
+              "untied, or the effect ranked first; 'first against σ': decided, the comparison favouring the rival)")
         print("| seed (truth) | before | plan (predicted) | " + " | ".join(files) + " |")
         print("|---" * (3 + len(files)) + "|")
         for t in sorted(ts, key=lambda t: (t.truth != pair[0], t.seed)):
@@ -102,8 +104,9 @@ def summarise(trials: list[bench.Trial]) -> None:
             cells = [cell(t.before, rival), f"{cell(t.planned, rival)} ({t.predicted_sigma:.0f})",
                      *(cell(t.files[f], rival) if f in t.files else "" for f in files)]
             print(f"| {t.seed} ({t.truth}) | " + " | ".join(cells) + " |")
-        print("| decided (median σ) | " + " | ".join(
-            f"{sum(o.decided for o in os)} ({statistics.median(o.sigma for o in os):+.1f})"
+        print("| decided, of them against σ (median σ) | " + " | ".join(
+            f"{sum(o.decided for o in os)}, {sum(o.decided and o.sigma < 0 for o in os)} "
+            f"({statistics.median(o.sigma for o in os):+.1f})"
             for os in ([t.before for t in ts], [t.planned for t in ts],
                        *([t.files[f] for t in ts if f in t.files] for f in files))) + " |")
     print("\ndecided (truth first, not tied with the other) of the seeds, and the median separation σ for the truth:")
