@@ -389,7 +389,10 @@ def test_the_plan_says_how_much_such_flying_would_decide_and_compares_like_with_
     assert pred["separation_sigma_before"] == design["before"]["sigma"]
     assert pred["score_gap_before"] == design["before"]["score_gap"]
     assert pred["separation_sigma_after"] == design["after"]["sigma"]
-    assert doc["measured"]["separation_sigma_before"] == result.measured_before > 0
+    # in hover the torque is at its noise floor: thrust scale and payload predict the same force,
+    # no held-out comparison, and the design's note says why it expects more (it counts the torque)
+    assert doc["measured"]["separation_sigma_before"] == result.measured_before == 0.0
+    assert "no held-out comparison" in design["note"] and "torque at the floor" in design["note"]
     raised = (design["after"]["sigma"] >= design["before"]["sigma"]
               and design["after"]["score_gap"] >= design["before"]["score_gap"])
     assert design["improves"] is raised

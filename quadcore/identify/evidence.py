@@ -76,6 +76,7 @@ SAME_SIGNATURE = DEFAULT.same_signature
 TIE_MARGIN = DEFAULT.tie_margin
 LARGE_SNR = DEFAULT.large_snr
 CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
+SAME_TO_ROUNDING = 1e-18  # energy of a difference, relative: amplitudes equal to 1e-9 (rounding leaves ~1e-15)
 
 
 @dataclass(frozen=True)
@@ -186,16 +187,26 @@ def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np
             pred_b: dict[str, np.ndarray], weights: np.ndarray) -> HeldOutTest:
     """Does ``pred_a`` fit the held-out ``resid`` better than ``pred_b``? The difference of their
     weighted squared errors, ``|r - b|² - |r - a|² = 2 (a - b)·(r - (a + b)/2)``, summed per
-    block; two-sided t-test of its mean (``t > 0``: ``a`` fits better)."""
+    block; two-sided t-test of its mean (``t > 0``: ``a`` fits better). Two predictions equal to
+    rounding (:func:`same_prediction`) are no test: the t of a rounding error is any number (2.9
+    for a thrust scale and a payload fitted to the same force, their signals equal to 1e-15)."""
     d = {f: pred_a[f] - pred_b[f] for f in pred_a}
     centred = {f: resid[f] - 0.5 * (pred_a[f] + pred_b[f]) for f in pred_a}
-    g = block_sums(flights, d, centred, weights)
+    g, dd, aa, bb = (s @ weights for s in block_channel_sums(
+        flights, [(d, centred), (d, d), (pred_a, pred_a), (pred_b, pred_b)]))
     n = len(g)
-    if n < 3 or not np.any(g):
+    if n < 3 or not np.any(g) or same_prediction(float(dd.sum()), float(aa.sum() + bb.sum())):
         return NO_TEST
     sd = float(np.std(g, ddof=1))
     t = float(np.mean(g) / (sd / np.sqrt(n))) if sd > 0 else 0.0
     return HeldOutTest(float(np.mean(g)), t, float(2 * stats.t.sf(abs(t), n - 1)), n)
+
+
+def same_prediction(diff_ss: float, total_ss: float) -> bool:
+    """Two predictions whose difference's weighted sum of squares ``diff_ss`` is within
+    ``SAME_TO_ROUNDING`` of theirs (``total_ss``) are the same signal, written differently (a
+    thrust scale's coordinates and a payload's on the same thrust)."""
+    return diff_ss <= SAME_TO_ROUNDING * total_ss
 
 
 def critical_t(blocks: int, n_candidates: int = 1, alpha: float = ALPHA) -> float:

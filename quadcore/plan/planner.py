@@ -254,6 +254,9 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                           "there or biases the fits (docs/timing.md), so the prediction after is optimistic "
                           "(docs/flight-planning.md)")
         log(f"plan: {design['note']}")
+    elif measured.blocks == 0:
+        design["note"] = _no_comparison_note(diag, design["before"]["sigma"])
+        log(f"plan: {design['note']}")
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
@@ -263,6 +266,20 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                       abs(proof.score_gap(diag, a.name, b.name) or 0.0), flown.flown, flown.left_out,
                       _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
                       flatness.flat_path(best.trajectory, vehicle))
+
+
+def _no_comparison_note(diag: Diagnosis, expected: float) -> str:
+    """Why the measured separation is 0 where the design expects more: the held-out comparison
+    (:func:`quadcore.plan.separation.compare`) had nothing to compare, the two predicting the same
+    in the channels the diagnosis takes evidence from (above the sensor-noise floor), while the
+    objective counts every channel (in hover a thrust scale's torque trims, below the gyro noise,
+    against a payload's none; docs/flight-planning.md)."""
+    quiet = [ch for ch, at in diag.at_noise_level.items() if at]
+    return ("the logged flights do not separate the two at all: they predict the same where the residual stands "
+            "above the sensor-noise floor" + (f" ({' and '.join(quiet)} at the floor, where the diagnosis takes no "
+                                              "evidence)" if quiet else "")
+            + f", so there is no held-out comparison (0 σ) where the objective, which counts every channel, "
+            f"expects {expected:.1f} σ")
 
 
 def _flying(seconds: float) -> str:

@@ -69,7 +69,7 @@ def _row_normal_equations(lin: list[Effect], flights: Sequence[RowFlight], ys: l
     for fd, y in zip(flights, ys):
         ym = y[fd.mask]
         yy += float((ym**2).sum(axis=0) @ w)
-        n += ym.size
+        n += len(ym) * int(np.count_nonzero(w))  # the values of the channels fitted
         if lin:
             X, gram = fd.design(lin, vehicle)
             A += np.tensordot(w, gram, axes=1)
@@ -100,6 +100,7 @@ def fit_effects(
     vehicle: Vehicle,
     fixed: dict[str, dict[str, float]] | None = None,
     bounded: bool = False,
+    channels: np.ndarray | None = None,
 ) -> Fit:
     """Jointly fit ``effects`` to ``targets`` ((n, 6) residual per flight) on the flights' rows.
 
@@ -107,11 +108,12 @@ def fit_effects(
     ``bounded``: the linear effects' parameters are kept within their physical bounds
     (:func:`bounded_linear_parameters`; nonlinear ones are searched within them anyway). The
     same fit from the flights' statistics: :func:`quadcore.identify.fit.fit_effects`
-    (chosen by who holds the flights, by the effects' kinds).
+    (chosen by who holds the flights, by the effects' kinds). ``channels``: (6,) 1 on the
+    channels fitted, 0 on those left out (None: all).
     """
     fixed = fixed or {}
     rfs = [as_rows(fd) for fd in flights]  # the rows with the designs and caches a row fit keeps
-    w = weights_of(rfs, targets)
+    w = weights_of(rfs, targets) * (1.0 if channels is None else channels)
     ys = [y.copy() for y in targets]
     params, std = fixed_values(effects, fixed)
     for e in effects:
@@ -158,7 +160,7 @@ def _objective(nonlin, lin, flights, ys, w, vehicle, x, keys=None) -> tuple[floa
         nl, yy, n = unpack(nonlin, x), 0.0, 0
         for fd, y, key in zip(flights, ys, keys):
             yy += float(fd.cached_sums(nonlin, nl, y, key, vehicle) @ w)
-            n += int(fd.mask.sum()) * y.shape[1]
+            n += int(fd.mask.sum()) * int(np.count_nonzero(w))
         return max(yy, 0.0), n
     ys2 = _after(nonlin, unpack(nonlin, x), flights, ys, vehicle)
     _, _, rss, n = _linear_solve(lin, flights, ys2, w, vehicle)

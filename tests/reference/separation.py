@@ -4,7 +4,9 @@ rows, sample by sample. Nothing in quadcore uses it; tests/test_plan_separation.
 against it.
 
 Per fold over the flights (:func:`quadcore.identify.fit.solve.folds`), each candidate is fitted
-(:func:`reference.rows.fit_effects`, free) to the training flights' residual of the model and
+(:func:`reference.rows.fit_effects`, free; a one-parameter candidate acting on force and torque
+in the one of them above the sensor-noise floor on the training flights when the other is at it)
+to the training flights' residual of the model and
 predicts the test flights' (:func:`quadcore.identify.flightdata.prediction`). On the usable
 samples ``i`` of each flight, numbered into blocks of ``BLOCK_S`` over the whole flight
 (:func:`quadcore.identify.flightdata.block_index`) and without the first ``skip`` of them, the
@@ -39,6 +41,17 @@ def _kept(fd: FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
     return idx[keep], block[keep] - skip
 
 
+def _fitted_channels(e, train: list[FlightData], resid: list[np.ndarray]) -> np.ndarray | None:
+    """A one-parameter candidate acting on force and torque is fitted in the one of the two above
+    its sensor-noise floor on the training flights when the other is at it (every usable sample)."""
+    if e.target != "both" or len(e.parameters) != 1:
+        return None
+    ss = sum((np.einsum("nc,nc->c", r[fd.mask], r[fd.mask]) for fd, r in zip(train, resid)), np.zeros(6))
+    floor = sum((fd.noise ** 2 * fd.n for fd in train), np.zeros(6))
+    above = [ch for ch, quiet in evidence.at_noise_level(ss, floor).items() if not quiet]
+    return evidence.channel_mask(above) if len(above) == 1 else None
+
+
 def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: str, n_folds: int = 5,
                 skip: int = 0) -> tuple[float, int]:
     """The held-out comparison's ``t`` and its number of blocks (see the module)."""
@@ -50,7 +63,8 @@ def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: s
         train = [f for f in ids if f not in held] or ids
         for name in (a, b):
             e = effectlib.get(name)
-            fit = rows.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], model.vehicle)
+            fit = rows.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], model.vehicle,
+                                   channels=_fitted_channels(e, [fds[f] for f in train], [resid[f] for f in train]))
             for f in held:
                 pred[name][f] = flightdata.prediction(e, fit.params[name], fds[f], model.vehicle)
     kept = {f: _kept(fds[f], skip) for f in ids}

@@ -154,8 +154,9 @@ class _Problem:
     effect per session on rows (:func:`_model_on_rows`)."""
 
     def __init__(self, decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, candidates: list[str] | None, stats,
-                 skip: int | None = None, bounded: bool = True):
+                 skip: int | None = None, bounded: bool = True, noise_margin: float = DEFAULT.noise_margin):
         self.spec, self.vehicle = spec, spec.vehicle
+        self.noise_margin = noise_margin  # a channel within it of its sensor-noise floor informs no candidate's fit
         self.ids = sorted(decoded)
         self.model_effects = [effectlib.get(n) for n in spec.effects]
         names = candidates if candidates is not None else default_candidates(spec)
@@ -177,13 +178,38 @@ class _Problem:
     def fit_candidate(self, c, flights: list[str], resid: _Residual) -> solve.Fit:
         """``c`` alone fitted to ``resid`` (the model's residual) on ``flights``, within its
         parameters' physical bounds (the free fit, when it left them, kept as ``free``; free only
-        when the problem says so: ``bounded``), from the statistics
-        (:func:`quadcore.identify.fit.fit_effects`); a candidate without a profile (``by_rows``) by
-        the search, its predictions made on the training flights' rows
+        when the problem says so: ``bounded``), in the channels :meth:`fitted_channels` gives, from
+        the statistics (:func:`quadcore.identify.fit.fit_effects`); a candidate without a profile
+        (``by_rows``) by the search, its predictions made on the training flights' rows
         (:func:`quadcore.identify.fit.search.search_fit`, the residual's extra columns given as rows)."""
         return fitlib.fit_effects([c], [resid.on[f] for f in flights], [resid.signal[f] for f in flights],
                                   self.vehicle, bounded=self.bounded, rows=self.fl.rows,
-                                  extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]})
+                                  extras=lambda f: {**self.fl.model_columns(f, resid.values[f]), **resid.extras[f]},
+                                  channels=self.fitted_channels(c, flights, resid))
+
+    def fitted_channels(self, c, flights: list[str], resid: _Residual) -> np.ndarray | None:
+        """The channels a one-parameter candidate acting on force and torque is fitted in: with one
+        of the two at its sensor-noise floor on the training ``flights`` (the model's residual
+        within ``noise_margin`` of it, :func:`quadcore.identify.evidence.at_noise_level`), the other
+        alone (:func:`quadcore.identify.evidence.channel_mask`); None (every channel) otherwise.
+        One parameter shapes both channels' prediction, so either channel alone pins it; several
+        may not be pinned by one channel (``rotor_imbalance``'s force is the small part its
+        thrust differences leave in the collective thrust: fitted on force alone in hover its
+        factors came out ±1.2, and their torque wrecked the score), so those keep every channel.
+
+        A channel at its floor holds no evidence for an effect (:mod:`quadcore.identify.evidence`),
+        and none for its size either: there the closed loop's errors in variables pull a thrust
+        scale's torque part to ``scale - 1`` of -0.6 whether the thrust is scaled by 0.92 or a
+        payload of 3 g is carried (three 8 s hovers, 2026-11-26), so a joint fit moved the thrust
+        scale's force prediction by 0.002 of the thrust, and the held-out comparison on force, the
+        channel above the floor, then preferred the payload by 14-20 σ whichever was true
+        (docs/flight-planning.md, "Thrust scale against added mass")."""
+        if c.target != "both" or len(c.parameters) != 1:
+            return None
+        ss = _total(resid.on[f].sum_of_squares(resid.signal[f]) for f in flights)
+        floor = _total(resid.on[f].noise ** 2 * resid.on[f].n for f in flights)
+        above = [ch for ch, quiet in evidence.at_noise_level(ss, floor, self.noise_margin).items() if not quiet]
+        return evidence.channel_mask(above) if len(above) == 1 else None
 
     def scored_flight(self, c, f: str):
         """The flight as ``c``'s prediction takes it (rows for a candidate fitted from rows)."""
@@ -392,7 +418,7 @@ def held_out_of_model(decoded: Mapping[str, pl.DataFrame], spec: ModelSpec, mode
     one from its profiles or as an extra column, :func:`_evaluated`), every flight scored without
     its first ``skip`` blocks (:func:`_on_common_samples`). ``stats``: stored statistics, as for
     :func:`quadcore.identify.diagnosis.diagnose`."""
-    p = _Problem(decoded, spec, candidates, stats, skip=skip, bounded=bounded)
+    p = _Problem(decoded, spec, candidates, stats, skip=skip, bounded=bounded, noise_margin=settings.noise_margin)
     splits, _, _ = fold_splits(p.ids, None, n_folds)
     resid = _residual(p, _session_terms(model, lambda msg: None), p.ids)
     folds = _cross_fit(p, splits, None, lambda msg: None, fixed=resid)

@@ -78,7 +78,7 @@ def diagnose(
     recorded in the result. ``rate_cache``: the timing candidates' rate-level sums kept from an
     earlier diagnosis (:func:`quadcore.identify.diagnosis.rate_cache.stored`), so that only the
     flights whose sums are missing or stale are read."""
-    p = _Problem(decoded, spec, candidates, stats)
+    p = _Problem(decoded, spec, candidates, stats, noise_margin=settings.noise_margin)
     splits, train_all, mode = fold_splits(p.ids, holdout, settings.n_folds)
     folds = _cross_fit(p, splits, sessions, log)
     # With a single split on all training flights (holdout), its fits are the final ones.

@@ -34,7 +34,7 @@ TARGET = "target"  # the extra column a target given as rows becomes (fit_rows)
 
 def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
                 vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False,
-                rows: Rows | None = None, extras: Extras | None = None) -> Fit:
+                rows: Rows | None = None, extras: Extras | None = None, channels: np.ndarray | None = None) -> Fit:
     """Jointly fit ``effects`` to the targets ``z·v_f`` (a signal vector per flight) from the
     flights' statistics; those named in ``fixed`` keep their values and are subtracted first;
     ``bounded``: the linear effects within their physical bounds. Linear effects:
@@ -44,7 +44,9 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
     (:func:`quadcore.identify.stats.sufficient.predicted`), the weights still of the targets as given. Any
     other nonlinear effects (several parameters, several effects, one without a profile):
     :func:`search_fit`, their predictions made on the flights' rows (``rows(flight)``;
-    ``extras(flight)``: the rows of the extra columns of its statistics a target reads)."""
+    ``extras(flight)``: the rows of the extra columns of its statistics a target reads).
+    ``channels``: (6,) 1 on the channels fitted, 0 on those left out (None: all; the weights of
+    :func:`channel_weights`)."""
     fixed = fixed or {}
     free = [e for e in effects if not e.linear and e.name not in fixed]
     held = [e for e in effects if not e.linear and e.name in fixed]
@@ -53,13 +55,13 @@ def fit_effects(effects: list[Effect], stats: Sequence[FlightStats], targets: Se
         if rows is None:
             raise StatsError(f"nonlinear effect(s) {', '.join(e.name for e in free + held)}: their predictions "
                              "are made on the flights' rows, and none were given")
-        return search_fit(effects, stats, targets, vehicle, rows, fixed, bounded, extras)
+        return search_fit(effects, stats, targets, vehicle, rows, fixed, bounded, extras, channels)
     if held:
         grown = [sufficient.predicted(held, fixed_values(held, fixed)[0], s, vehicle)[0] for s in stats]
         stats, targets = grown, [s.layout.pad(np.asarray(v, dtype=float)) for s, v in zip(grown, targets)]
     if free:
-        return profiled_fit(effects, stats, targets, vehicle, fixed, bounded)
-    return fit_linear(effects, stats, targets, vehicle, fixed, bounded)
+        return profiled_fit(effects, stats, targets, vehicle, fixed, bounded, channels)
+    return fit_linear(effects, stats, targets, vehicle, fixed, bounded, channels)
 
 
 def fit_rows(effects: list[Effect], flights: Sequence[FlightData], targets: Sequence[np.ndarray], vehicle: Vehicle,

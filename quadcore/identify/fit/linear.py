@@ -18,17 +18,20 @@ from collections.abc import Sequence
 import numpy as np
 
 from quadcore.effects import Effect
-from quadcore.identify.fit.solve import Fit, fixed_values, solved_linear, weights_from_sums
+from quadcore.identify.fit.solve import Fit, fixed_values, solved_linear, weighted_values, weights_from_sums
 from quadcore.identify.stats.sufficient import FlightStats, Layout, normal_equations, sum_of_squares
 from quadcore.physics.vehicle import Vehicle
 
 
-def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray]) -> np.ndarray:
+def channel_weights(stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
+                    channels: np.ndarray | None = None) -> np.ndarray:
     """1/σ² for the force and the torque channels from the mean squares of the targets ``z·v_f``
-    (:func:`quadcore.identify.fit.solve.weights_from_sums`)."""
+    (:func:`quadcore.identify.fit.solve.weights_from_sums`); ``channels``: (6,) 1 on the channels
+    the fit takes, 0 on those it leaves out (None: every channel)."""
     # per flight: stacking the totals (a copy of ~23 MB at 1,000 flights) costs 5x these products
     ss = sum((sum_of_squares(s, v) for s, v in zip(stats, targets)), np.zeros(6))
-    return weights_from_sums(ss, sum(s.n for s in stats))
+    w = weights_from_sums(ss, sum(s.n for s in stats))
+    return w if channels is None else w * channels
 
 
 def subtract_fixed(effects: list[Effect], fixed: dict[str, dict[str, float]], stats: Sequence[FlightStats],
@@ -61,15 +64,18 @@ def projected_rss(A: np.ndarray, b: np.ndarray, yy: float) -> float:
 
 
 def fit_linear(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-               vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
+               vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False,
+               channels: np.ndarray | None = None) -> Fit:
     """Jointly fit the linear ``effects`` to the targets ``z·v_f`` (normal equations, see the
     module); those named in ``fixed`` keep their values and are subtracted first; ``bounded``:
-    within the parameters' physical bounds (:func:`quadcore.identify.fit.solve.solved_linear`)."""
+    within the parameters' physical bounds (:func:`quadcore.identify.fit.solve.solved_linear`);
+    ``channels``: the channels fitted (:func:`channel_weights`)."""
     fixed = fixed or {}
-    w = channel_weights(stats, [np.asarray(v, dtype=float) for v in targets])
+    w = channel_weights(stats, [np.asarray(v, dtype=float) for v in targets], channels)
     vs, params, std = subtract_fixed(effects, fixed, stats, targets, vehicle)
     lin = [e for e in effects if e.name not in fixed]
     if lin:
         A, b, yy = normal_equations(stats, vs, w, lambda lay: linear_columns(lay, lin))
-        return solved_linear(lin, A, b, yy, 6 * sum(s.n for s in stats), vehicle, params, std, w, bounded)
+        n = weighted_values(w, sum(s.n for s in stats))
+        return solved_linear(lin, A, b, yy, n, vehicle, params, std, w, bounded)
     return Fit(params, std, w)

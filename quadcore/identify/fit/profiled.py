@@ -25,14 +25,15 @@ import numpy as np
 
 from quadcore.effects import Effect
 from quadcore.identify.fit.linear import channel_weights, linear_columns, projected_rss, subtract_fixed
-from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear
+from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, weighted_values
 from quadcore.identify.stats import profiles
 from quadcore.identify.stats.sufficient import FlightStats
 from quadcore.physics.vehicle import Vehicle
 
 
 def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
-                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False) -> Fit:
+                vehicle: Vehicle, fixed: dict[str, dict[str, float]] | None = None, bounded: bool = False,
+                channels: np.ndarray | None = None) -> Fit:
     """:func:`quadcore.identify.fit.fit_effects` of one profiled effect and linear ones to the
     targets ``z·u_f`` from the flights' statistics and profiles, as the rows do it: the profiled
     effect's parameter by the row search's grid, Brent refinement and profile interval
@@ -42,11 +43,12 @@ def profiled_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: S
     the linear effects on what it leaves at the optimum (``bounded``: within their physical bounds,
     :func:`quadcore.identify.fit.solve.solved_linear`). Those named in ``fixed`` are subtracted
     first (a linear one by its coordinates, a profiled one by its column ``pred:<effect>``:
-    :func:`quadcore.identify.fit.linear.subtract_fixed`)."""
+    :func:`quadcore.identify.fit.linear.subtract_fixed`); ``channels``: the channels fitted
+    (:func:`quadcore.identify.fit.linear.channel_weights`)."""
     fixed = fixed or {}
     (nonlinear,) = [e for e in effects if not e.linear and e.name not in fixed]
     (p,) = nonlinear.parameters
-    w = channel_weights(stats, [np.asarray(u, dtype=float) for u in targets])
+    w = channel_weights(stats, [np.asarray(u, dtype=float) for u in targets], channels)
     us, params, std = subtract_fixed(effects, fixed, stats, targets, vehicle)
     lin = [e for e in effects if e.linear and e.name not in fixed]
     sums = _Sums.of(nonlinear.name, lin, stats, us, w)
@@ -92,7 +94,7 @@ class _Sums:
             A += Gw[np.ix_(cols, cols)]
             b0 += Gw[cols] @ u
             B = B + Pw[:, cols].T
-            n += 6 * s.n
+            n += weighted_values(w, s.n)
         return cls(const, np.asarray(S), np.asarray(Q), A, b0, np.asarray(B), n)
 
     def normal(self, om: np.ndarray) -> tuple[np.ndarray, float]:

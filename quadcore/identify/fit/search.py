@@ -50,7 +50,7 @@ from quadcore import effects as effectlib
 from quadcore.effects import Effect
 from quadcore.identify.binfile import StatsError
 from quadcore.identify.fit.linear import channel_weights, linear_columns, projected_rss, subtract_fixed
-from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, unpack
+from quadcore.identify.fit.solve import Fit, scalar_minimum, solved_linear, unpack, weighted_values
 from quadcore.identify.flightdata import SAMPLES_PER_INDEPENDENT, FlightData, prediction
 from quadcore.identify.stats import sufficient
 from quadcore.identify.stats.sufficient import FlightStats, normal_equations
@@ -72,7 +72,7 @@ class _Search:
                  extras: Extras | None = None):
         self.nonlin, self.vehicle, self.w = nonlin, vehicle, w
         self.A, self.b0, self.yy0 = normal_equations(stats, us, w, lambda lay: linear_columns(lay, lin))
-        self.n = 6 * sum(s.n for s in stats)
+        self.n = weighted_values(w, sum(s.n for s in stats))
         self.flights: list[tuple[FlightData, Callable[[np.ndarray], np.ndarray], np.ndarray, np.ndarray,
                                  np.ndarray]] = []
         for s, u in zip(stats, us):
@@ -136,15 +136,16 @@ class _Search:
 
 def search_fit(effects: list[Effect], stats: Sequence[FlightStats], targets: Sequence[np.ndarray],
                vehicle: Vehicle, rows: Rows, fixed: dict[str, dict[str, float]] | None = None,
-               bounded: bool = False, extras: Extras | None = None) -> Fit:
+               bounded: bool = False, extras: Extras | None = None, channels: np.ndarray | None = None) -> Fit:
     """Jointly fit ``effects`` (nonlinear ones among them) to the targets ``z·u_f`` from the
     flights' statistics, the nonlinear effects' predictions made on their rows (``rows(flight)``)
     and entering as an extra column (see the module); those named in ``fixed`` keep their values
     (linear ones subtracted as vectors, nonlinear ones part of the column); ``bounded``: the linear
     effects within their physical bounds; ``extras(flight)``: the rows of the extra columns of the
-    flight's statistics a target reads (a model's profiled prediction, say)."""
+    flight's statistics a target reads (a model's profiled prediction, say); ``channels``: the
+    channels fitted (:func:`quadcore.identify.fit.linear.channel_weights`)."""
     fixed = fixed or {}
-    w = channel_weights(stats, [np.asarray(u, dtype=float) for u in targets])
+    w = channel_weights(stats, [np.asarray(u, dtype=float) for u in targets], channels)
     us, params, std = subtract_fixed(effects, {e.name: fixed[e.name] for e in effects if e.linear and e.name in fixed},
                                      stats, targets, vehicle)
     held = {e.name: {**e.defaults(), **fixed[e.name]} for e in effects if not e.linear and e.name in fixed}

@@ -65,6 +65,12 @@ def weights_from_sums(ss: np.ndarray, n: int) -> np.ndarray:
     return np.array([1 / (ms_f or 1.0)] * 3 + [1 / (ms_t or 1.0)] * 3)
 
 
+def weighted_values(w: np.ndarray, samples: int) -> int:
+    """How many values a fit with channel weights ``w`` sums over ``samples`` samples: the
+    channels it weighs (a channel of weight 0, left out of the fit, counts none)."""
+    return int(np.count_nonzero(w)) * samples
+
+
 def _params_with_std(effect: Effect, coeffs: np.ndarray, cov: np.ndarray, vehicle: Vehicle):
     """SI parameters from linear coordinates, standard errors by the delta method."""
     params = effect.from_linear(coeffs, vehicle)
