@@ -12,7 +12,8 @@ comparison, each of the lab's files (figure8, circle0, yaw0) flown for the same 
 "decided" = the diagnosis ranks the truth first and no longer ties it with the other; "σ" the
 separation in favour of the truth in the statistic the diagnosis decides the pair by (the
 held-out comparison's t; for a lag against a delay the angular-rate level's,
-:func:`quadcore.plan.separation.measured`), so "does worse" is a number, not only a count; the
+:func:`quadcore.plan.separation.measured`: 0 and marked "(noise model)" where the gyro noise model
+decides it and the diagnosis prefers neither), so "does worse" is a number, not only a count; the
 design's predicted σ beside the one achieved with the planned flight. ``--files`` chooses the
 comparison flights (``hover``: a hover of the same length). Prints a line per trial (and with
 ``--json`` appends it to that file as a JSON line), a table per scenario of each seed's σ per
@@ -84,7 +85,7 @@ def cell(o: bench.Outcome, rival: str) -> str:
     if o.decided:
         return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "")
     why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")
-    return f"{o.sigma:+.1f} {why}"
+    return f"{o.sigma:+.1f} {why}" + (" (noise model)" if o.undecided else "")
 
 
 def summarise(trials: list[bench.Trial]) -> None:

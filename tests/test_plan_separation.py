@@ -67,8 +67,7 @@ def test_a_lag_against_a_delay_is_measured_by_the_diagnosis_s_own_rate_level_tes
         seen.append(out.t)
         return per_flight, out
 
-    for where in (rates.judgement, rates):  # where the diagnosis's judge looks it up, and the planner
-        monkeypatch.setattr(where, "compare_pair", spy)
+    monkeypatch.setattr(rates.compare, "compare_pair", spy)  # the diagnosis's and the planner's comparison
     spec = spec_from(VEHICLE, [])
     diag = diagnosis.diagnose(weak_map, spec)
     assert len(seen) == 1, seen  # the diagnosis compared the pair once
@@ -140,8 +139,7 @@ def test_the_rate_level_separation_is_the_diagnosis_s_with_one_flight_and_with_a
         seen[(a.name, b.name)] = test.t
         return per_flight, test
 
-    for where in (rates.judgement, rates):  # where the diagnosis's judge looks it up, and the planner
-        monkeypatch.setattr(where, "compare_pair", spy)
+    monkeypatch.setattr(rates.compare, "compare_pair", spy)  # the diagnosis's and the planner's comparison
     tables = {f: weak_map[f] for f in sorted(weak_map)[:flights]}
     spec = spec_from(VEHICLE, [])
     diag = diagnosis.diagnose(tables, spec, candidates=["motor_lag", "thrust_delay", "double_lag"] if plugin else None)

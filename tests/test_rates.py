@@ -246,22 +246,36 @@ def test_the_rate_level_does_not_prefer_what_the_noise_model_decides(tmp_path, n
     delay (t = +4.0, p = 6e-4): the noise model decides it, so the diagnosis prefers neither and
     says why (before: the lag, separated at the angular-rate level). A 10 ms lag on the firmware's
     coloured noise keeps its right answer: whitened the lag (t = −7.1), unwhitened the delay at
-    t = +2.0, p = 0.06, not significant (docs/timing.md, "A small delay")."""
+    t = +2.0, p = 0.06, not significant (docs/timing.md, "A small delay"). The planner's measured
+    separation (quadcore.plan.separation.measured) says what the diagnosis says: on the tie, the
+    diagnosis's sentence and no separation (0 σ; before, 4.1 σ for the lag, a separation the
+    diagnosis calls a tie), with the whitened t and the unwhitened one of the other sign beside it;
+    on the lag, its 7 σ."""
+    from quadcore.plan import separation
+
     folder = tmp_path / "logs"
     _flights(folder, name, truth_s=truth_ms / 1e3, lowpass_hz=lowpass_hz)
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
-    rows = {c.effect: c for c in diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING)).candidates}
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(tables, spec, candidates=list(TIMING))
+    rows = {c.effect: c for c in diag.candidates}
     a, b = rows["thrust_delay"], rows["motor_lag"]
     said = [any("the noise model decides it" in n for n in r.notes) for r in (a, b)]
+    comp = separation.measured(tables, spec, diag, "thrust_delay", "motor_lag")
     if tie:
         assert all(said), (a.notes, b.notes)
         for r, o in ((a, b), (b, a)):
             assert rates.RATE_LEVEL not in r.separated_by.values(), r.separated_by
             assert o.effect in r.tied_with if (r.found or o.found) else True
+        assert comp.sigma_for("thrust_delay") == 0.0 == comp.sigma_for("motor_lag"), comp
+        assert comp.undecided in a.notes and comp.undecided in b.notes, (comp, a.notes)
+        assert comp.p_value < diag.settings.alpha and comp.unwhitened_t is not None
+        assert np.sign(comp.t) != np.sign(comp.unwhitened_t) and abs(comp.unwhitened_t) > 3, comp
     else:
         assert not any(said), (a.notes, b.notes)
         assert b.separated_by.get("thrust_delay") == rates.RATE_LEVEL, b.separated_by
         assert list(rows).index("motor_lag") < list(rows).index("thrust_delay")
+        assert not comp.undecided and comp.sigma_for("motor_lag") > 5, comp
 
 
 def test_a_pair_the_noise_model_decides_is_a_tie_in_the_folds_answers():
@@ -420,8 +434,7 @@ def test_in_cross_validation_each_folds_weights_come_from_its_training_flights(d
         s = compute()
         return replace(s, noise=s.noise * np.array([3.0, 1 / 3, 1 / 3])) if f == held else s
 
-    for where in (rates.judgement, rates):
-        monkeypatch.setattr(where, "compare_pair", spy)
+    monkeypatch.setattr(rates.compare, "compare_pair", spy)  # where held_out_comparison looks it up
     for cache in (None, noisier):
         diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING), rate_cache=cache)
     assert len(seen) == 2 and set(seen[0]) == set(tables), seen

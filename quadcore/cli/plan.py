@@ -33,7 +33,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
         print(f"  {k}: {'n/a' if v is None else f'{v:.3g}'}")
     if result.measured_before is not None:
         print(f"  measured on the logged flights: separation {result.measured_before:.3g} σ, score gap "
-              f"{result.gap_before:.3g}")
+              f"{result.gap_before:.3g}" + (f" ({result.undecided_before})" if result.undecided_before else ""))
     if result.design.get("expected_to_decide") is False:
         print("  note: the best flight of the family is not predicted to break the tie with margin "
               f"(objective {result.design['after']['value']:.2f} < 1): {result.design.get('advice', '')}; "
@@ -41,7 +41,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     for f in result.proof:
         print(f"  flown with {f.truth} true: diagnosis ranks {f.top} first"
               + (f", tied with {', '.join(f.tied_with)}" if f.tied_with else ", no tie")
-              + (f"; separation {f.sigma:.1f} σ" if f.sigma is not None else ""))
+              + (f"; separation {f.sigma:.1f} σ" if f.sigma is not None else "")
+              + (f" ({f.undecided})" if f.undecided else ""))
     for left in result.proof_left_out:
         print(f"  warning: not in the proof, the flight with {left.truth} true: {left.reason}")
     print(f"wrote {written.trajectory}, {written.plot} and {written.json}")

@@ -104,6 +104,7 @@ class Outcome:
     tied: bool
     alike: bool
     sigma: float = float("nan")
+    undecided: str = ""  # why the diagnosis prefers neither whatever the held-out t (sigma 0 then)
 
     @property
     def decided(self) -> bool:
@@ -112,14 +113,15 @@ class Outcome:
 
     def describe(self) -> str:
         tie = ", tied" if self.tied else (", alike" if self.alike else "")
-        return f"top {self.top}{tie}, {self.sigma:+.1f} σ"
+        return f"top {self.top}{tie}, {self.sigma:+.1f} σ" + (", the noise model decides it" if self.undecided else "")
 
 
 def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outcome:
     row = next(c for c in diag.candidates if c.effect == truth)
     top = diag.candidates[0].effect
-    sigma = separation.measured(tables, spec, diag, truth, rival).sigma_for(truth)
-    return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from, sigma)
+    comp = separation.measured(tables, spec, diag, truth, rival)
+    return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from,
+                   comp.sigma_for(truth), comp.undecided)
 
 
 def _decode(folder: Path) -> dict:

@@ -73,6 +73,7 @@ class FlightPlan:
     proof_left_out: tuple[LeftOut, ...] = ()  # explanations whose flight the proof could not use
     differ: np.ndarray | None = None  # per sample of the planned path: how much the explanations differ
     path: flatness.FlatPath | None = None
+    undecided_before: str = ""  # why the diagnosis prefers neither on the logged flights (measured_before 0)
 
     @property
     def planned(self) -> bool:
@@ -109,7 +110,8 @@ class FlightPlan:
             "why": self.question.why,
         }
         if self.question.kind == "separate" and self.measured_before is not None:
-            doc["measured"] = {"separation_sigma_before": self.measured_before, "score_gap_before": self.gap_before}
+            doc["measured"] = {"separation_sigma_before": self.measured_before, "score_gap_before": self.gap_before,
+                               "undecided": self.undecided_before or None}
         if self.planned and self.manoeuvre is not None and self.checked is not None:
             doc["manoeuvre"] = {**self.manoeuvre.to_dict(), "description": self.manoeuvre.describe(),
                                 "pieces": len(self.trajectory.durations) if self.trajectory is not None else 0}
@@ -248,6 +250,8 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     if design.get("advice"):
         log(f"plan: {design['advice']}")
     measured = proof.before(tables, spec, diag, (a.name, b.name), stats)
+    if measured.undecided:
+        log(f"plan: on the logged flights {measured.undecided}")
     if isinstance(obj, ratelevel.RateSeparation) and abs(measured.t) < 0.5 * design["before"]["sigma"]:
         design["note"] = (f"the logged flights separate the two by {abs(measured.t):.1f} σ at the angular-rate level "
                           f"where the objective expects {design['before']['sigma']:.1f} σ: the gyro noise is not white "
@@ -258,14 +262,15 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
         design["note"] = _no_comparison_note(diag, design["before"]["sigma"])
         log(f"plan: {design['note']}")
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
-        f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.t):.1f} σ)")
+        f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.sigma_for(a.name)):.1f} σ"
+        f"{', undecided' if measured.undecided else ''})")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
                        sessions, stats) if request.prove else proof.Proof())
     return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
-                      check(best.trajectory, vehicle, limits), design, abs(measured.t),
+                      check(best.trajectory, vehicle, limits), design, abs(measured.sigma_for(a.name)),
                       abs(proof.score_gap(diag, a.name, b.name) or 0.0), flown.flown, flown.left_out,
                       _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
-                      flatness.flat_path(best.trajectory, vehicle))
+                      flatness.flat_path(best.trajectory, vehicle), measured.undecided)
 
 
 def _no_comparison_note(diag: Diagnosis, expected: float) -> str:

@@ -61,10 +61,12 @@ class Flown:
     sigma: float | None
     parameter_std: dict[str, float]
     score_gap: float | None = None  # the truth's score minus the other's (a tie within TIE_MARGIN)
+    undecided: str = ""  # why the diagnosis prefers neither of the pair whatever the held-out t (sigma 0 then)
 
     def to_dict(self) -> dict:
         return {"truth": self.truth, "top": self.top, "ranked_first": self.first, "tied_with": list(self.tied_with),
-                "separation_sigma": self.sigma, "score_gap": self.score_gap, "parameter_std": dict(self.parameter_std)}
+                "separation_sigma": self.sigma, "score_gap": self.score_gap, "parameter_std": dict(self.parameter_std),
+                "undecided": self.undecided or None}
 
 
 @dataclass(frozen=True)
@@ -180,12 +182,13 @@ def _flown(diag: Diagnosis, truth: Explanation, pair, tables, spec: ModelSpec, m
     std = dict(row.parameter_std) if row is not None else next(
         (dict(t.std) for t in diag.model.terms if t.name == truth.name), {})
     sigma = gap = None
+    undecided = ""
     if pair is not None:
         comp = separation.measured(tables, spec, diag, pair[0], pair[1], stats)
-        sigma = comp.sigma_for(truth.name)
+        sigma, undecided = comp.sigma_for(truth.name), comp.undecided
         gap = score_gap(diag, truth.name, pair[1] if pair[0] == truth.name else pair[0])
     return Flown(truth.name, top.effect if top else "", bool(top is not None and top.effect == truth.name),
-                 tuple(row.tied_with) if row is not None else (), sigma, std, gap)
+                 tuple(row.tied_with) if row is not None else (), sigma, std, gap, undecided)
 
 
 def score_gap(diag: Diagnosis, a: str, b: str) -> float | None:

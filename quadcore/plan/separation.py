@@ -37,6 +37,7 @@ from quadcore import effects as effectlib
 from quadcore.identify import diagnosis as diagnosislib, evidence, flightdata, rates
 from quadcore.identify.diagnosis.results import Diagnosis
 from quadcore.identify.model import PhysicsModel
+from quadcore.identify.settings import DEFAULT, DiagnosisSettings
 from quadcore.spec.model import ModelSpec
 
 N_FOLDS = 5
@@ -45,16 +46,24 @@ N_FOLDS = 5
 @dataclass(frozen=True)
 class Comparison:
     """The held-out comparison of ``a`` and ``b``: ``t`` (> 0: ``a`` fits better), its p-value,
-    the blocks it was summed over."""
+    the blocks it was summed over; ``undecided``: why the diagnosis prefers neither whatever ``t``
+    says (empty: it goes by ``t``): at the rate level, the gyro noise model decides it (the
+    comparison with the whitening filter, ``t``, and the one without, ``unwhitened_t``, both
+    significant and opposite: :func:`quadcore.identify.rates.noise_model_decides`)."""
 
     a: str
     b: str
     t: float
     p_value: float
     blocks: int
+    undecided: str = ""
+    unwhitened_t: float | None = None
 
     def sigma_for(self, truth: str) -> float:
-        """The separation in favour of ``truth`` (negative when the data prefer the other)."""
+        """The separation in favour of ``truth`` (negative when the data prefer the other), as the
+        diagnosis decides the pair: 0 where it prefers neither (:attr:`undecided`)."""
+        if self.undecided:
+            return 0.0
         return self.t if truth == self.a else -self.t
 
 
@@ -87,22 +96,26 @@ def timing_pair(a: str, b: str) -> bool:
 
 
 def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel, a: str, b: str,
-                 n_folds: int = N_FOLDS, timing: Sequence[str] = ()) -> Comparison:
+                 timing: Sequence[str] = (), settings: DiagnosisSettings = DEFAULT) -> Comparison:
     """The diagnosis's held-out comparison of two timing candidates at the angular-rate level
-    (:func:`quadcore.identify.rates.judge`'s, for one pair): each flight's rate sums with the
-    model's torque removed and the first blocks of the longest memory among the diagnosis's
-    ``timing`` candidates left out (``a`` and ``b`` at least), both candidates fitted on each
-    fold's training flights (the diagnosis's folds: in-sample with one flight), the blocks'
-    :func:`quadcore.identify.rates.difference_test` over the test flights (``t > 0``: ``a``)."""
+    (:func:`quadcore.identify.rates.judge`'s, for one pair, with its ``settings``: folds and
+    ``alpha``): each flight's rate sums with the model's torque removed and the first blocks of the
+    longest memory among the diagnosis's ``timing`` candidates left out (``a`` and ``b`` at least),
+    both candidates fitted on each fold's training flights (the diagnosis's folds: in-sample with
+    one flight), :func:`quadcore.identify.rates.held_out_comparison` over the test flights
+    (``t > 0``: ``a``): undecided where the diagnosis prefers neither because the noise model
+    decides it."""
     ea, eb = effectlib.get(a), effectlib.get(b)
     skip = evidence.memory_blocks([effectlib.get(n) for n in {a, b, *timing}])
     fds = flights_of(tables, spec)
     sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip) for f, fd in fds.items()}
-    splits, _, _ = diagnosislib.fold_splits(sorted(sums), None, n_folds)
+    splits, _, _ = diagnosislib.fold_splits(sorted(sums), None, settings.n_folds)
     ws = rates.split_weights(sums, splits)  # each fold's from its training flights, as the diagnosis's
     fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for (tr, _), w in zip(splits, ws)] for e in (ea, eb)}
-    _, test = rates.compare_pair(sums, splits, ea, eb, fits[a], fits[b], ws)
-    return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks))
+    pair = rates.held_out_comparison(sums, splits, ea, eb, fits[a], fits[b], ws, settings.alpha)
+    test = pair.test
+    return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks), pair.note() if pair.undecided else "",
+                      None if pair.unwhitened is None else float(pair.unwhitened.t))
 
 
 def timing_candidates(diag: Diagnosis) -> list[str]:
@@ -116,5 +129,5 @@ def measured(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, diag: Diagnosi
     :func:`rate_compare` for two timing candidates, else :func:`compare` (its model, its skipped
     blocks; ``stats`` as there)."""
     if timing_pair(a, b):
-        return rate_compare(tables, spec, diag.model, a, b, timing=timing_candidates(diag))
+        return rate_compare(tables, spec, diag.model, a, b, timing_candidates(diag), diag.settings)
     return compare(tables, spec, diag.model, a, b, skip=skipped_blocks(diag), stats=stats)

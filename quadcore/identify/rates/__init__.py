@@ -39,9 +39,11 @@ derivation and the measurements.
 """
 
 from quadcore.identify.rates.compare import (
+    PairComparison,
     block_differences,
     compare_pair,
     difference_test,
+    held_out_comparison,
     noise_model_decides,
     unwhitened_comparison,
 )
@@ -82,8 +84,8 @@ from quadcore.identify.rates.sums import (
 
 __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOISE_MODEL_PASSES", "NOT_SIGNIFICANT",
            "RATE_LEVEL", "TIE", "WHITE_FLOOR", "BelowCommandRate", "Filter", "FlightRates", "Judged", "NoiseModel",
-           "RateFit", "RateFlight", "RateSums", "RatesCache", "below_command_rate", "block_differences",
-           "compare_pair", "difference_test", "effect_increments", "fit", "fit_cost", "flight_inputs", "flight_rates",
-           "flight_sums", "grid_weights", "gyro_noise_model", "judge", "noise_model", "noise_model_decides",
-           "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums", "split_weights",
-           "unwhitened_comparison", "weights", "whitened"]
+           "PairComparison", "RateFit", "RateFlight", "RatesCache", "RateSums", "below_command_rate",
+           "block_differences", "compare_pair", "difference_test", "effect_increments", "fit", "fit_cost",
+           "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model", "held_out_comparison",
+           "judge", "noise_model", "noise_model_decides", "piecewise_quadratic_minimum", "rate_flight", "rate_grid",
+           "rate_sums", "split_weights", "unwhitened_comparison", "weights", "whitened"]

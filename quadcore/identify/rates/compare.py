@@ -16,6 +16,7 @@ prefers neither (:func:`noise_model_decides`, docs/timing.md "A small delay").
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
@@ -97,3 +98,39 @@ def noise_model_decides(test: evidence.HeldOutTest, unwhitened: evidence.HeldOut
     merely fails to confirm (not significant, or significant the same way) leaves the whitened
     answer standing (its error bar already spans the noise model: :attr:`RateFit.unwhitened`)."""
     return test.p_value < alpha and unwhitened.p_value < alpha and bool(np.sign(test.t) != np.sign(unwhitened.t))
+
+
+@dataclass(frozen=True)
+class PairComparison:
+    """The rate level's held-out comparison of two timing candidates ``a`` and ``b`` as it decides
+    them: each test flight's :func:`block_differences` (> 0: ``a`` fits better), the test with the
+    gyro noise model's whitening (``test``) and without it (``unwhitened``; None: no test flight went
+    through a filter), and ``undecided``: the two significant and opposite, so that the noise model
+    decides it and neither is preferred (:func:`noise_model_decides`)."""
+
+    a: str
+    b: str
+    per_flight: dict[str, tuple[np.ndarray, np.ndarray]]
+    test: evidence.HeldOutTest
+    unwhitened: evidence.HeldOutTest | None
+    undecided: bool
+
+    def note(self) -> str:
+        """What an undecided comparison says: which candidate each test prefers, and that neither is."""
+        first, second = (self.a, self.b) if self.test.t > 0 else (self.b, self.a)
+        raw = self.unwhitened.t if self.unwhitened is not None else float("nan")
+        return (f"the angular-rate level prefers {first} to {second} with the gyro noise model "
+                f"(t = {abs(self.test.t):.1f}) and {second} without it (t = {abs(raw):.1f}): the noise model "
+                "decides it, so neither is preferred (docs/timing.md, 'A small delay')")
+
+
+def held_out_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                        a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
+                        ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
+    """The comparison the diagnosis decides two timing candidates by (and the planner measures
+    them by): :func:`compare_pair`, :func:`unwhitened_comparison` on the same folds, and whether
+    the noise model decides it at ``alpha`` (:func:`noise_model_decides`)."""
+    per_flight, test = compare_pair(flights, splits, a, b, fits_a, fits_b, ws)
+    raw = unwhitened_comparison(flights, splits, a, b, fits_a, fits_b, ws)
+    return PairComparison(a.name, b.name, per_flight, test, raw,
+                          raw is not None and noise_model_decides(test, raw, alpha))

@@ -23,7 +23,7 @@ from quadcore.effects import Effect
 from quadcore.identify import evidence
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData
-from quadcore.identify.rates.compare import compare_pair, noise_model_decides, unwhitened_comparison
+from quadcore.identify.rates.compare import held_out_comparison
 from quadcore.identify.rates.sums import (
     BelowCommandRate,
     FlightRates,
@@ -140,14 +140,13 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             ra, rb = by_name[a.name], by_name[b.name]
             if not (ra.physical and rb.physical):
                 continue
-            per_flight, test = compare_pair(flights, splits, a, b, folds[a.name], folds[b.name], ws)
-            differences[(a.name, b.name)] = {f: g for f, (g, _) in per_flight.items()}
-            raw = unwhitened_comparison(flights, splits, a, b, folds[a.name], folds[b.name], ws)
-            if raw is not None and noise_model_decides(test, raw, settings.alpha):
+            pair = held_out_comparison(flights, splits, a, b, folds[a.name], folds[b.name], ws, settings.alpha)
+            differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
+            if pair.undecided:
                 undecided.add((a.name, b.name))
-                _noise_model_tie(ra, rb, test, raw)
-            elif test.p_value < settings.alpha:
-                wins.append((ra, rb) if test.t > 0 else (rb, ra))
+                _noise_model_tie(ra, rb, pair.note())
+            elif pair.test.p_value < settings.alpha:
+                wins.append((ra, rb) if pair.test.t > 0 else (rb, ra))
                 _prefer(*wins[-1])
             elif ra.found or rb.found:
                 _tie(ra, rb)
@@ -243,15 +242,11 @@ def _tie(a: CandidateRow, b: CandidateRow) -> None:
         r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}
 
 
-def _noise_model_tie(a: CandidateRow, b: CandidateRow, test: evidence.HeldOutTest, raw: evidence.HeldOutTest) -> None:
-    """``a`` and ``b`` tied because the noise model decides between them (:func:`noise_model_decides`):
-    the held-out comparison prefers one with the gyro's whitening filter (``test``, ``t > 0``: ``a``)
-    and the other without it (``raw``); each row says so (they are tied, as an undecided pair is,
-    when either is found)."""
-    first, second = (a, b) if test.t > 0 else (b, a)
-    note = (f"the angular-rate level prefers {first.effect} to {second.effect} with the gyro noise model "
-            f"(t = {abs(test.t):.1f}) and {second.effect} without it (t = {abs(raw.t):.1f}): the noise model "
-            "decides it, so neither is preferred (docs/timing.md, 'A small delay')")
+def _noise_model_tie(a: CandidateRow, b: CandidateRow, note: str) -> None:
+    """``a`` and ``b`` tied because the noise model decides between them
+    (:func:`quadcore.identify.rates.noise_model_decides`): each row says so (``note``,
+    :meth:`quadcore.identify.rates.compare.PairComparison.note`; they are tied, as an undecided pair
+    is, when either is found)."""
     for r in (a, b):
         r.notes = (*r.notes, note)
     if a.found or b.found:
