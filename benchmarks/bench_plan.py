@@ -82,10 +82,11 @@ def cell(o: bench.Outcome, rival: str) -> str:
     """One flight's σ for the truth, and what the diagnosis said when it did not decide; 'first
     against σ': decided, but the comparison favours the rival (the truth ranked first across
     tiers: the rival's fit not significant)."""
+    noise = " (noise model)" if o.undecided else ""  # the diagnosis prefers neither at the rate level: σ 0
     if o.decided:
-        return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "")
+        return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "") + noise
     why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")
-    return f"{o.sigma:+.1f} {why}" + (" (noise model)" if o.undecided else "")
+    return f"{o.sigma:+.1f} {why}{noise}"
 
 
 def summarise(trials: list[bench.Trial]) -> None:
