@@ -1,6 +1,7 @@
 """Peak memory of the fleet diagnosis against the number of flights (issue 13: peak < 4 GB).
 
     nice -n 10 python benchmarks/bench_diagnosis_memory.py [--without-timing] [N ...]     (default: 40 100 300)
+    nice -n 10 python benchmarks/bench_diagnosis_memory.py [--without-timing] --real FOLDER
 
 For each N, in a fresh process: the diagnosis as ``model_diagnosis`` runs it
 (:func:`quadcore.workflows.identify.diagnose` on every usable decoded flight under the data root,
@@ -14,6 +15,12 @@ process too, untimed. Prints seconds and peak resident memory per N
 arrays included, traced by tracemalloc, which the allocator's keeping of freed memory does not
 blur), and the growth of the diagnosis's own peak in MB a flight between consecutive N. A
 report, not a test: exits 0 either way.
+
+``--real FOLDER``: the same on the logs in FOLDER (the 19 real flights:
+/work/shared/crazyflie/logs), decoded into a temporary data root of their own. The simulated
+pool's flights have white gyro noise, so the rate level keeps no unwhitened copy of their
+per-block sums (``RateSums.unwhitened_blocks``, rates.bin format 3); the real flights' noise is
+coloured and the copy is kept: they measure what it costs.
 """
 
 from __future__ import annotations
@@ -21,10 +28,13 @@ from __future__ import annotations
 import gc
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
+from pathlib import Path
 
 import bench_scale
 from _jobs import REPO
@@ -38,13 +48,18 @@ from quadcore.store import store  # noqa: E402
 from quadcore.workflows import fleet, identify  # noqa: E402
 
 
-def measure(n: int, timing: bool) -> None:
+def measure(n: int, timing: bool, real: str | None = None) -> None:
     """In the child: the statistics, then the diagnosis (without the timing candidates unless
-    ``timing``); prints one JSON line."""
-    root, _ = bench_scale.fleet_root(n)
+    ``timing``) on ``n`` pool flights, or on the logs in the folder ``real``; prints one JSON line."""
     spec = workflows.resolve_model(None)
-    for i in range(n):
-        f = bench_scale.fid(i)
+    if real is None:
+        root, _ = bench_scale.fleet_root(n)
+        ids = [bench_scale.fid(i) for i in range(n)]
+    else:
+        root = Path(tempfile.mkdtemp())
+        ids = [f.flight_id for f in fleet.decode_logs([real], root)[0]]
+        n = len(ids)
+    for f in ids:
         decoded = store.read_decoded(root, store.MAIN_EVENT, f)
         sufficient.save(sufficient.compute_current(spec, f, decoded, sufficient.decoded_source(root, f) or ""), root)
     del decoded
@@ -59,18 +74,25 @@ def measure(n: int, timing: bool) -> None:
     print(json.dumps({"flights": n, "evaluated": len(result.evaluation.eval_flights),
                       "seconds": round(time.perf_counter() - t0, 1), "peak_mb": round(bench_scale.peak_mb()),
                       "diagnosis_mb": round(tracemalloc.get_traced_memory()[1] / 2**20, 1)}))
+    if real is not None:
+        shutil.rmtree(root)
 
 
 def main() -> None:
-    if sys.argv[1:2] == ["--child"]:
-        measure(int(sys.argv[2]), sys.argv[3:4] != ["--without-timing"])
+    args = sys.argv[1:]
+    real = args[args.index("--real") + 1] if "--real" in args else None
+    if real is not None:
+        args.remove("--real")
+        args.remove(real)
+    if args[:1] == ["--child"]:
+        measure(int(args[1]), "--without-timing" not in args, real)
         return
-    flags = [a for a in sys.argv[1:] if a == "--without-timing"]
-    sizes = [int(a) for a in sys.argv[1:] if a not in flags] or [40, 100, 300]
+    flags = [a for a in args if a == "--without-timing"]
+    sizes = [0] if real is not None else [int(a) for a in args if a not in flags] or [40, 100, 300]
     rows = []
     for n in sizes:
-        out = subprocess.run([sys.executable, __file__, "--child", str(n), *flags], stdout=subprocess.PIPE, text=True,
-                             env={**os.environ, "PYTHONPATH": str(REPO)}, check=True)
+        out = subprocess.run([sys.executable, __file__, "--child", str(n), *flags, *(["--real", real] if real else [])],
+                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     print("| flights | evaluated | diagnosis s | peak MB | the diagnosis's own peak MB | its growth MB/flight |")
     print("|---|---|---|---|---|---|")
