@@ -5,6 +5,8 @@ one) is computed again, never read."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from snapshot import json_differences
@@ -148,12 +150,24 @@ def test_sums_read_back_equal_the_ones_written(root, tmp_path):
         np.testing.assert_allclose(back.grids[name], s.grids[name], rtol=1e-15)
     assert back.unwhitened is not None and s.unwhitened is not None
     assert (back.unwhitened_blocks is None) == (s.unwhitened_blocks is None)
+    assert (back.lagged_blocks is None) == (s.lagged_blocks is None)
     for a, b in ((back.blocks, s.blocks), (back.total, s.total), (back.noise, s.noise),
                  (back.unwhitened, s.unwhitened), *(((back.unwhitened_blocks, s.unwhitened_blocks),)
-                                                    if s.unwhitened_blocks is not None else ())):
+                                                    if s.unwhitened_blocks is not None else ()),
+                 *(((back.lagged_blocks, s.lagged_blocks),) if s.lagged_blocks is not None else ())):
         assert a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-15)
     assert rate_cache.load(tmp_path, "sim001", "another") is None
+    # a flight with a whitening filter also keeps its blocks without it and its lagged blocks (this fleet's
+    # white noise takes none: written here as a filtered flight's would be)
+    k = 1 + sum(len(g) for g in s.grids.values())
+    lagged = np.linspace(-1.0, 1.0, len(s.blocks) * 3 * k * k, dtype=np.float32).reshape(len(s.blocks), 3, k, k)
+    filtered = replace(s, unwhitened_blocks=2 * s.blocks, lagged_blocks=lagged)
+    rate_cache.save(tmp_path, "sim001", "f", filtered)
+    back = rate_cache.load(tmp_path, "sim001", "f")
+    assert isinstance(back, rates.RateSums) and back.unwhitened_blocks is not None and back.lagged_blocks is not None
+    assert back.lagged_blocks.dtype == np.float32 and np.array_equal(back.lagged_blocks, lagged)
+    assert np.array_equal(back.unwhitened_blocks, filtered.unwhitened_blocks)
     slow = rates.BelowCommandRate(0.01, 0.002)
     rate_cache.save(tmp_path, "slow", "k", slow)
     assert rate_cache.load(tmp_path, "slow", "k") == slow

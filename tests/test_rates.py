@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from reference import rows as reference
-from reference.rates import RowRates, fit as row_fit
+from reference.rates import RowRates, fit as row_fit, instrumented as row_instrumented
 
 from quadcore import effects
 from quadcore.cli import main
@@ -273,9 +273,66 @@ def test_the_rate_level_does_not_prefer_what_the_noise_model_decides(tmp_path, n
         assert np.sign(comp.t) != np.sign(comp.unwhitened_t) and abs(comp.unwhitened_t) > 3, comp
     else:
         assert not any(said), (a.notes, b.notes)
+        assert not any("closed loop's response" in n for n in (*a.notes, *b.notes)), (a.notes, b.notes)
         assert b.separated_by.get("thrust_delay") == rates.RATE_LEVEL, b.separated_by
         assert list(rows).index("motor_lag") < list(rows).index("thrust_delay")
         assert not comp.undecided and comp.sigma_for("motor_lag") > 5, comp
+
+
+@pytest.mark.slow
+def test_the_rate_level_does_not_prefer_what_the_closed_loop_decides(tmp_path):
+    """Known answer: a 5 ms lag on three 8 s hovers with the firmware's coloured noise (seed 0).
+    The held-out comparison with the gyro's whitening filter prefers the delay (t = +8.5: wrong),
+    and without the filter too (t = +15.5), so the noise-model rule cannot see it; with the timing
+    direction one sample back as the instrument the comparison leans to the lag (t = −5.2), and the
+    two slopes differ at 15 standard errors: the closed loop's response to its own noise decides
+    it, so the diagnosis prefers neither and says why (before: the delay, separated at the
+    angular-rate level). The same flights with the gyro noise kept out of the controller prefer the
+    lag (t = −3.6): the closed loop is the cause (docs/timing.md, "The closed loop's share")."""
+    folder = tmp_path / "logs"
+    _flights(folder, "motor_lag", truth_s=0.005, lowpass_hz=80.0)
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
+    rows = {c.effect: c for c in diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING)).candidates}
+    a, b = rows["thrust_delay"], rows["motor_lag"]
+    assert all(any("closed loop's response to its own noise decides it" in n for n in r.notes) for r in (a, b)), (
+        a.notes, b.notes)
+    for r, o in ((a, b), (b, a)):
+        assert rates.RATE_LEVEL not in r.separated_by.values(), r.separated_by
+        assert o.effect in r.tied_with if (r.found or o.found) else True
+
+
+def test_the_instrumented_comparison_is_the_rows_and_its_rule_ties_only_a_contradicted_answer(delayed_hover):
+    """The sums' instrumented differences (the whitened direction one interval back times the
+    whitened residual) are the rows' to the float32 rounding of the lagged Grams (the lag on its
+    grid's points, the delay anywhere); a flight without
+    a filter is its own instrument. The rule: the whitened answer stands unless its slope differs
+    from the instrumented one's at alpha and the instrumented one does not confirm it at alpha."""
+    (rf,) = delayed_hover
+    delay, lag = effects.get("thrust_delay"), effects.get("motor_lag")
+    ar = np.full((3, 2), [0.5, -0.1])
+    sums, rows = rates.rate_sums(rf, [delay, lag], noise=(ar, np.ones(3))), RowRates(rf)
+    assert sums.lagged_blocks is not None
+    for va, vb in ((0.0101, float(sums.grids["motor_lag"][12])), (0.004, float(sums.grids["motor_lag"][20]))):
+        for got, want in zip(sums.instrumented(delay, va, lag, vb), row_instrumented(rows, delay, va, lag, vb, ar)):
+            assert got == pytest.approx(want, rel=1e-4, abs=1e-5 * np.abs(want).max())
+    white = rates.rate_sums(rf, [delay, lag], noise="white")
+    assert white.lagged_blocks is None
+    for got, want in zip(white.instrumented(delay, 0.01, lag, 0.01), white.differences(delay, 0.01, lag, 0.01)):
+        assert np.array_equal(got, want)
+    # the Hausman slope difference: two sets of blocks whose slopes are +1 and -1 with scores known
+    D, r = np.array([1.0, 2.0, 1.0, 2.0]), np.array([0.1, -0.1, 0.1, -0.1])
+    iv, shift = rates.instrument_test(D + r, D, -D - r, D)
+    assert iv.beta == pytest.approx(-1.0) and shift.beta == pytest.approx(2.0)
+    assert shift.t == pytest.approx(2.0 / np.sqrt(4 / 3 * np.sum((2 * r / D.sum()) ** 2)))
+
+    def test(t: float, p: float) -> evidence.HeldOutTest:
+        return evidence.HeldOutTest(t / 10, t, p, 20)
+
+    assert rates.closed_loop_decides(test(8.5, 1e-7), test(-5.2, 1e-5), test(15.5, 1e-12), 0.01)  # the 5 ms lag
+    assert rates.closed_loop_decides(test(8.5, 1e-7), test(-1.0, 0.3), test(15.5, 1e-12), 0.01)  # IV undecided
+    assert not rates.closed_loop_decides(test(-7.1, 1e-6), test(-10.7, 1e-9), test(3.2, 0.004), 0.01)  # confirmed
+    assert not rates.closed_loop_decides(test(8.0, 1e-7), test(4.2, 5e-4), test(1.3, 0.2), 0.01)  # slopes agree
+    assert not rates.closed_loop_decides(test(2.0, 0.06), test(-5.0, 1e-5), test(6.0, 1e-6), 0.01)  # nothing to tie
 
 
 def test_a_pair_the_noise_model_decides_is_a_tie_in_the_folds_answers():

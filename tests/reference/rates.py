@@ -57,3 +57,20 @@ def fit(effect, flights: list[RowRates], w: np.ndarray) -> rates.RateFit:
 
     knots = np.unique(np.concatenate([rates.rate_grid(effect, f.dt_s) for f in flights]))
     return rates.fit_cost(effect, J, per_block, sum(f.n for f in flights) * 3, min(f.dt_s for f in flights), knots)
+
+
+def instrumented(rows: RowRates, a, va: float, b, vb: float, ar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`quadcore.identify.rates.RateSums.instrumented` on the rows: per segment the deviations
+    whitened with ``ar`` (3, p) and demeaned again, the direction ``Δ = C_a − C_b`` one interval
+    back times the residual about the middle and times ``Δ``, summed per block."""
+    (dev_a, blocks), (dev_b, _) = rows._deviations(a, va), rows._deviations(b, vb)
+    seg = rows.rf.segment[rows.rf.block >= 0]
+    g, D = np.zeros((blocks.max() + 1, 3)), np.zeros((blocks.max() + 1, 3))
+    for s in np.unique(seg):
+        at = np.flatnonzero(seg == s)
+        d = rates.whitened(dev_b[at] - dev_a[at], ar)
+        e = rates.whitened(0.5 * (dev_a[at] + dev_b[at]), ar)
+        d, e = d - d.mean(axis=0), e - e.mean(axis=0)
+        g[blocks[at[0]]] += 2.0 * (d[:-1] * e[1:]).sum(axis=0)
+        D[blocks[at[0]]] += (d[:-1] * d[1:]).sum(axis=0)
+    return g, D

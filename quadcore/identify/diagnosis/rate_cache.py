@@ -34,7 +34,8 @@ from quadcore.identify.stats import sufficient
 from quadcore.store import codedigest, store
 from quadcore.store.names import check_component
 
-FORMAT = 3  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks)
+FORMAT = 4  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks,
+# 4: the lagged blocks)
 FILE = "rates.bin"
 # The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
 # state, the effects' base, the grids' interpolation in profiles): the rate level's modules that
@@ -77,6 +78,8 @@ def save(root: Any, flight: str, k: str, sums: rates.FlightRates) -> Any:
               "noise": sums.noise, "unwhitened": sums.total if sums.unwhitened is None else sums.unwhitened}
     if sums.unwhitened_blocks is not None:  # absent: the same as the blocks (no whitening filter)
         arrays["unwhitened_blocks"] = sums.unwhitened_blocks
+    if sums.lagged_blocks is not None:  # absent: no whitening filter (RateSums.lagged_blocks)
+        arrays["lagged_blocks"] = sums.lagged_blocks
     return binfile.write_file(path(root, flight), header, arrays)
 
 
@@ -96,7 +99,8 @@ def load(root: Any, flight: str, k: str) -> rates.FlightRates | None:
         return rates.RateSums({n: array(f"grid:{n}") for n in slots}, slots, array("blocks"), array("total"),
                               array("noise"), int(header["samples"]), float(header["dt_s"]), int(header["n"]),
                               array("unwhitened"),
-                              array("unwhitened_blocks") if "unwhitened_blocks" in header["arrays"] else None)
+                              array("unwhitened_blocks") if "unwhitened_blocks" in header["arrays"] else None,
+                              array("lagged_blocks") if "lagged_blocks" in header["arrays"] else None)
     except (ValueError, KeyError, TypeError) as exc:
         raise binfile.StatsError(f"{where}: not a rate-level file ({exc})") from None
 

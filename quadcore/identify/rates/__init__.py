@@ -29,7 +29,8 @@ The package, importing only downward:
 * :mod:`.sums`: a flight's sufficient sums (:class:`RateSums`), what the rate level keeps of a
   flight, and a timing parameter's fit from the sums (:func:`fit`);
 * :mod:`.compare`: the held-out comparison of two candidates (:func:`difference_test`) and when
-  the noise model decides it (:func:`noise_model_decides`);
+  the noise model (:func:`noise_model_decides`) or the closed loop (:func:`closed_loop_decides`)
+  decides it;
 * :mod:`.judgement`: the diagnosis's use of all of it (:func:`judge`).
 
 Used by :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
@@ -41,9 +42,12 @@ derivation and the measurements.
 from quadcore.identify.rates.compare import (
     PairComparison,
     block_differences,
+    closed_loop_decides,
     compare_pair,
     difference_test,
     held_out_comparison,
+    instrument_test,
+    instrumented_differences,
     noise_model_decides,
     unwhitened_comparison,
 )
@@ -84,8 +88,9 @@ from quadcore.identify.rates.sums import (
 
 __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOISE_MODEL_PASSES", "NOT_SIGNIFICANT",
            "RATE_LEVEL", "TIE", "WHITE_FLOOR", "BelowCommandRate", "Filter", "FlightRates", "Judged", "NoiseModel",
-           "PairComparison", "RateFit", "RateFlight", "RatesCache", "RateSums", "below_command_rate",
-           "block_differences", "compare_pair", "difference_test", "effect_increments", "fit", "fit_cost",
-           "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model", "held_out_comparison",
-           "judge", "noise_model", "noise_model_decides", "piecewise_quadratic_minimum", "rate_flight", "rate_grid",
-           "rate_sums", "split_weights", "unwhitened_comparison", "weights", "whitened"]
+           "PairComparison", "RateFit", "RateFlight", "RateSums", "RatesCache", "below_command_rate",
+           "block_differences", "closed_loop_decides", "compare_pair", "difference_test", "effect_increments", "fit",
+           "fit_cost", "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model",
+           "held_out_comparison", "instrument_test", "instrumented_differences", "judge", "noise_model",
+           "noise_model_decides", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums",
+           "split_weights", "unwhitened_comparison", "weights", "whitened"]

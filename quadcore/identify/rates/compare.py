@@ -10,7 +10,12 @@ slope ``β = Σ g / Σ D`` t-tested over the blocks as independent clusters
 (:func:`difference_test`; ``t > 0``: ``A`` fits better). The same comparison without the gyro
 noise model's whitening filters (:func:`unwhitened_comparison`) decides nothing alone: when the
 two are both significant and opposite, the noise model decides the answer and the rate level
-prefers neither (:func:`noise_model_decides`, docs/timing.md "A small delay").
+prefers neither (:func:`noise_model_decides`, docs/timing.md "A small delay"). Nor does the
+comparison with the whitened direction one interval back as the instrument
+(:func:`instrumented_differences`), which the noise the commands react to reaches far less than the
+direction itself: when the whitened slope differs from it significantly and it does not confirm the
+whitened answer, the closed loop's response to its own noise decides the answer, and the rate level
+prefers neither (:func:`closed_loop_decides`, docs/timing.md "The closed loop's share").
 """
 
 from __future__ import annotations
@@ -100,13 +105,64 @@ def noise_model_decides(test: evidence.HeldOutTest, unwhitened: evidence.HeldOut
     return test.p_value < alpha and unwhitened.p_value < alpha and bool(np.sign(test.t) != np.sign(unwhitened.t))
 
 
+def instrumented_differences(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                             a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
+                             ws: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`compare_pair`'s per-block ``g`` and ``D``, block for block in its order, with the
+    direction one interval back as the instrument (:meth:`RateSums.instrumented`): each candidate
+    at its whitened fit and weighted as there. None when no test flight went through a whitening
+    filter."""
+    if not any(flights[f].lagged_blocks is not None for _, te in splits for f in te):
+        return None
+    per_flight = {f: tuple(x @ w for x in flights[f].instrumented(a, fa.value, b, fb.value))
+                  for (_, te), fa, fb, w in zip(splits, fits_a, fits_b, ws) for f in te}
+    g, D = (np.concatenate(x) for x in zip(*per_flight.values()))
+    return g, D
+
+
+def instrument_test(g: np.ndarray, D: np.ndarray, gi: np.ndarray, Di: np.ndarray
+                    ) -> tuple[evidence.HeldOutTest, evidence.HeldOutTest]:
+    """The instrumented :func:`difference_test` of the blocks' ``gi``, ``Di``
+    (:func:`instrumented_differences`), and the test of the whitened slope (``g``, ``D``: the same
+    blocks) against it, ``β_W − β_IV`` with its standard error from the difference of the two
+    slopes' block scores (blocks as independent clusters): a Durbin-Wu-Hausman test, the whitened
+    slope the efficient one where the noise left after the filter is uncorrelated with the
+    direction, the instrumented one consistent where it is not. ``t > 0``: the whitened slope
+    leans more to ``a``."""
+    iv = difference_test(gi, Di)
+    n, den, den_i = len(g), float(D.sum()), float(Di.sum())
+    if n < 3 or den <= 0 or den_i <= 0:
+        return iv, evidence.NO_TEST
+    beta, beta_i = float(g.sum() / den), float(gi.sum() / den_i)
+    score = (g - beta * D) / den - (gi - beta_i * Di) / den_i
+    se = float(np.sqrt(n / (n - 1) * np.sum(score**2)))
+    t = float(np.clip((beta - beta_i) / se, -1e6, 1e6)) if se > 0 else 0.0
+    return iv, evidence.HeldOutTest(beta - beta_i, t, float(2 * stats.t.sf(abs(t), n - 1)), n)
+
+
+def closed_loop_decides(test: evidence.HeldOutTest, iv: evidence.HeldOutTest, shift: evidence.HeldOutTest,
+                        alpha: float) -> bool:
+    """True when the whitened comparison's answer is the closed loop's: ``test`` prefers one
+    candidate at ``alpha``, its slope differs from the instrumented one's at ``alpha`` (``shift``,
+    :func:`instrument_test`), and the instrumented comparison (``iv``) does not prefer the same one
+    at ``alpha``. The whitening filter leaves the gyro noise correlated with itself one interval
+    apart (its white floor, and the loop's response to its own noise that the gyro holds and the
+    filter takes for colour), and the commands that make the direction react to that noise; the
+    direction one interval back, which the noise reaches far less, is the instrument
+    (docs/timing.md, "The closed loop's share")."""
+    return (test.p_value < alpha and shift.p_value < alpha
+            and not (iv.p_value < alpha and bool(np.sign(iv.t) == np.sign(test.t))))
+
+
 @dataclass(frozen=True)
 class PairComparison:
     """The rate level's held-out comparison of two timing candidates ``a`` and ``b`` as it decides
     them: each test flight's :func:`block_differences` (> 0: ``a`` fits better), the test with the
     gyro noise model's whitening (``test``) and without it (``unwhitened``; None: no test flight went
     through a filter), and ``undecided``: the two significant and opposite, so that the noise model
-    decides it and neither is preferred (:func:`noise_model_decides`)."""
+    decides it (:func:`noise_model_decides`), or the closed loop does (``closed_loop``,
+    :func:`closed_loop_decides`, ``instrumented`` the test with the direction one interval back as
+    the instrument; None: no test flight went through a filter), and neither is preferred."""
 
     a: str
     b: str
@@ -114,10 +170,20 @@ class PairComparison:
     test: evidence.HeldOutTest
     unwhitened: evidence.HeldOutTest | None
     undecided: bool
+    instrumented: evidence.HeldOutTest | None = None
+    closed_loop: bool = False
 
     def note(self) -> str:
         """What an undecided comparison says: which candidate each test prefers, and that neither is."""
         first, second = (self.a, self.b) if self.test.t > 0 else (self.b, self.a)
+        if self.closed_loop and self.instrumented is not None:
+            iv = self.instrumented.t
+            lean = first if iv * self.test.t > 0 else second if iv * self.test.t < 0 else "neither"
+            return (f"the angular-rate level prefers {first} to {second} with the gyro noise model "
+                    f"(t = {abs(self.test.t):.1f}), but significantly less so with the timing direction one sample "
+                    f"back as the instrument, which leans to {lean} (t = {abs(iv):.1f}): the closed loop's "
+                    "response to its own noise decides it, so neither is preferred (docs/timing.md, "
+                    "'The closed loop's share')")
         raw = self.unwhitened.t if self.unwhitened is not None else float("nan")
         return (f"the angular-rate level prefers {first} to {second} with the gyro noise model "
                 f"(t = {abs(self.test.t):.1f}) and {second} without it (t = {abs(raw):.1f}): the noise model "
@@ -128,9 +194,16 @@ def held_out_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[
                         a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
                         ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
     """The comparison the diagnosis decides two timing candidates by (and the planner measures
-    them by): :func:`compare_pair`, :func:`unwhitened_comparison` on the same folds, and whether
-    the noise model decides it at ``alpha`` (:func:`noise_model_decides`)."""
+    them by): :func:`compare_pair`, :func:`unwhitened_comparison` and :func:`instrumented_differences`
+    on the same folds, and whether the noise model (:func:`noise_model_decides`) or else the closed
+    loop (:func:`closed_loop_decides`) decides it at ``alpha``."""
     per_flight, test = compare_pair(flights, splits, a, b, fits_a, fits_b, ws)
     raw = unwhitened_comparison(flights, splits, a, b, fits_a, fits_b, ws)
-    return PairComparison(a.name, b.name, per_flight, test, raw,
-                          raw is not None and noise_model_decides(test, raw, alpha))
+    noise_model = raw is not None and noise_model_decides(test, raw, alpha)
+    lagged = instrumented_differences(flights, splits, a, b, fits_a, fits_b, ws)
+    if lagged is None:
+        return PairComparison(a.name, b.name, per_flight, test, raw, noise_model)
+    g, D = (np.concatenate(x) for x in zip(*per_flight.values()))
+    iv, shift = instrument_test(g, D, *lagged)
+    closed_loop = not noise_model and closed_loop_decides(test, iv, shift, alpha)
+    return PairComparison(a.name, b.name, per_flight, test, raw, noise_model or closed_loop, iv, closed_loop)

@@ -51,7 +51,8 @@ TIE = " = "  # joins the timing candidates a fold's answer names when the rate l
 class Judged:
     """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
     per-block :func:`block_differences` (> 0: ``a`` fits better); ``undecided``: the pairs whose
-    answer the gyro noise model decides (:func:`noise_model_decides`), which prefer neither."""
+    answer the gyro noise model (:func:`noise_model_decides`) or the closed loop
+    (:func:`closed_loop_decides`) decides, which prefer neither."""
 
     differences: dict[tuple[str, str], dict[str, np.ndarray]]
     undecided: frozenset[tuple[str, str]] = frozenset()

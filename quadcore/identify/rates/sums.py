@@ -67,7 +67,10 @@ class RateSums:
     :func:`fit` sets beside the whitened one (the noise model's share of the standard error);
     :attr:`unwhitened_blocks` (B, 3, P) float32: :attr:`blocks` without the filter (None: the
     same as :attr:`blocks`, or not taken), the held-out comparison's without the noise model
-    (:func:`unwhitened_comparison`)."""
+    (:func:`unwhitened_comparison`); :attr:`lagged_blocks` (B, 3, K, K) float32: per block and axis
+    ``Σ_k x̃_(k−1) x̃_kᵀ`` of the whitened block-demeaned running sums, each interval's with the one
+    before it (None: the flight has no whitening filter), the held-out comparison's with the
+    direction one interval back as its instrument (:func:`instrumented_differences`)."""
 
     grids: dict[str, np.ndarray]
     slots: dict[str, slice]
@@ -79,6 +82,7 @@ class RateSums:
     n: int
     unwhitened: np.ndarray | None = None
     unwhitened_blocks: np.ndarray | None = None
+    lagged_blocks: np.ndarray | None = None
 
     @property
     def grid_key(self) -> tuple:
@@ -115,6 +119,18 @@ class RateSums:
         ua, ub = self.direction(a, va), self.direction(b, vb)
         G = self.unwhitened_blocks if unwhitened and self.unwhitened_blocks is not None else self.blocks
         return self._forms(ub, G) - self._forms(ua, G), self._forms(ub - ua, G)
+
+    def instrumented(self, a: Effect, va: float, b: Effect, vb: float) -> tuple[np.ndarray, np.ndarray]:
+        """(blocks, 3) each: :meth:`differences` with the direction one interval back as the
+        instrument, ``2 Σ_k Δ̃_(k−1) ẽ_k`` and ``Σ_k Δ̃_(k−1) Δ̃_k`` (``Δ = C_a − C_b``,
+        ``e = R − (C_a + C_b)/2``, whitened, :attr:`lagged_blocks`); a flight without a whitening
+        filter (white noise: the direction is predetermined) its own :meth:`differences`."""
+        if self.lagged_blocks is None:
+            return self.differences(a, va, b, vb)
+        ua, ub = self.direction(a, va), self.direction(b, vb)
+        d, m = ub - ua, 0.5 * (ua + ub)
+        G = self.lagged_blocks.astype(float)
+        return 2.0 * np.einsum("i,baij,j->ba", d, G, m), np.einsum("i,baij,j->ba", d, G, d)
 
     def _forms(self, u: np.ndarray, G: np.ndarray | None = None) -> np.ndarray:
         """(blocks, 3) ``uᵀ G_ba u`` (``G``: :attr:`blocks` unless given)."""
@@ -235,6 +251,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
     raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
+    lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))  # each interval with the one before (lagged_blocks)
     for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
         x = whitened(X[lo:hi].astype(float), ar)
         if not len(x):
@@ -242,6 +259,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
         x -= x.mean(axis=0)
         blocks[cluster[i]] += np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
         if lags:
+            lagged[cluster[i]] += np.einsum("kai,kaj->aij", x[:-1], x[1:])
             r = X[lo:hi].astype(float)
             r -= r.mean(axis=0)
             raw[cluster[i]] += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
@@ -249,7 +267,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     total = blocks.sum(axis=0)
     return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
                     max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
-                    raw.astype(np.float32) if lags else None)
+                    raw.astype(np.float32) if lags else None, lagged.astype(np.float32) if lags else None)
 
 
 def weights(flights: Sequence[RateSums]) -> np.ndarray:
