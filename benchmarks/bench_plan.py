@@ -10,17 +10,17 @@ and seed: three flights simulated with the hidden truth (alternating between the
 limits); the plan flown in the simulator with the truth and added to the old flights; and, for
 comparison, each of the lab's files (figure8, circle0, yaw0) flown for the same time instead.
 "decided" = the diagnosis ranks the truth first and no longer ties it with the other; "σ" the
-separation in favour of the truth in the statistic the diagnosis decides the pair by (the
-held-out comparison's t; for a lag against a delay the angular-rate level's,
-:func:`quadcore.plan.separation.measured`: 0 and marked "(noise model)" where the gyro noise model
-decides it and the diagnosis prefers neither), so "does worse" is a number, not only a count; the
-design's predicted σ beside the one achieved with the planned flight. ``--files`` chooses the
-comparison flights (``hover``: a hover of the same length). Prints a line per trial (and with
-``--json`` appends it to that file as a JSON line), a table per scenario of each seed's σ per
-flight (the docs' tables), and the counts with the median σ; ``--table FILE`` prints the tables
-and counts of the trials a ``--json`` run wrote (several runs, resumed ones, in one table) without
-running anything. CI runs two seeds per scenario without the files (``tests/test_plan.py``); this
-runs all of them.
+separation in favour of the truth in the statistic the diagnosis decides the pair by (the held-out
+comparison's t; for a lag against a delay the angular-rate level's,
+:func:`quadcore.plan.separation.measured`: 0 and marked "(noise model)" or "(closed loop)" where the
+gyro noise model or the closed loop decides it and the diagnosis prefers neither), so "does worse"
+is a number, not only a count; the design's predicted σ beside the one achieved with the planned
+flight. ``--files`` chooses the comparison flights (``hover``: a hover of the same length). Prints a
+line per trial (and with ``--json`` appends it to that file as a JSON line), a table per scenario of
+each seed's σ per flight (the docs' tables), and the counts with the median σ; ``--table FILE``
+prints the tables and counts of the trials a ``--json`` run wrote (several runs, resumed ones, in
+one table) without running anything. CI runs two seeds per scenario without the files
+(``tests/test_plan.py``); this runs all of them.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def cell(o: bench.Outcome, rival: str) -> str:
     """One flight's σ for the truth, and what the diagnosis said when it did not decide; 'first
     against σ': decided, but the comparison favours the rival (the truth ranked first across
     tiers: the rival's fit not significant)."""
-    noise = " (noise model)" if o.undecided else ""  # the diagnosis prefers neither at the rate level: σ 0
+    noise = f" ({o.why_undecided})" if o.undecided else ""  # the diagnosis prefers neither at the rate level: σ 0
     if o.decided:
         return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "") + noise
     why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")

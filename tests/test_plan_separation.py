@@ -15,7 +15,7 @@ import pytest
 from reference import separation as reference
 
 from quadcore import effects as effectlib
-from quadcore.identify import diagnosis, rates
+from quadcore.identify import diagnosis, evidence, rates
 from quadcore.identify.fit import model_fit
 from quadcore.identify.model import PhysicsModel
 from quadcore.logs import flight as flightlib
@@ -116,6 +116,29 @@ def test_predictions_equal_to_rounding_are_no_comparison(weak_map):
     model = model_fit.fit_model(spec, weak_map, sorted(weak_map))
     comp = separation.compare(weak_map, spec, model, "thrust_scale", "added_mass", skip=1)
     assert (comp.t, comp.p_value, comp.blocks) == (0.0, 1.0, 0)
+
+
+def test_an_undecided_pair_says_which_rule_decides_it():
+    """Where the rate level prefers neither of a lag and a delay, what the planner and the bench say
+    names the rule that decided so: the closed loop (the instrumented comparison contradicts the
+    whitened one) or the noise model (with and without the whitening filter significant and
+    opposite). Before, every undecided pair was marked "(noise model)" in bench_plan's tables and
+    "the noise model decides it" in a trial's line, the closed loop's ties too."""
+    def test(t: float, p: float) -> evidence.HeldOutTest:
+        return evidence.HeldOutTest(t / 10, t, p, 20)
+
+    whitened = test(8.5, 1e-7)
+    loop = rates.PairComparison("thrust_delay", "motor_lag", {}, whitened, test(15.5, 1e-12), True,
+                                test(-5.2, 1e-5), True)
+    noise = rates.PairComparison("thrust_delay", "motor_lag", {}, whitened, test(-4.0, 6e-4), True, test(7.0, 1e-6))
+    decided = rates.PairComparison("thrust_delay", "motor_lag", {}, whitened, test(2.0, 0.06), False, test(7.0, 1e-6))
+    assert (loop.undecided_by, noise.undecided_by, decided.undecided_by) == ("the closed loop", "the noise model", "")
+    assert "the closed loop's response" in loop.note() and "the noise model decides it" in noise.note()
+    for pair, word in ((loop, "closed loop"), (noise, "noise model")):
+        o = bench.Outcome("motor_lag", True, True, False, 0.0, pair.note(), pair.undecided_by)
+        assert o.why_undecided == word and o.describe().endswith(f"undecided ({word})"), o.describe()
+    assert bench.Outcome("motor_lag", True, False, False, 3.0).why_undecided == ""
+    assert bench.Outcome("motor_lag", True, True, False, 0.0, "a sentence").why_undecided == "undecided"  # older line
 
 
 DOUBLE_LAG = Path(__file__).resolve().parent / "plugins" / "double_lag.py"  # a third timing effect

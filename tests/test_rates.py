@@ -271,6 +271,7 @@ def test_the_rate_level_does_not_prefer_what_the_noise_model_decides(tmp_path, n
         assert comp.undecided in a.notes and comp.undecided in b.notes, (comp, a.notes)
         assert comp.p_value < diag.settings.alpha and comp.unwhitened_t is not None
         assert np.sign(comp.t) != np.sign(comp.unwhitened_t) and abs(comp.unwhitened_t) > 3, comp
+        assert comp.undecided_by == "the noise model", comp
     else:
         assert not any(said), (a.notes, b.notes)
         assert not any("closed loop's response" in n for n in (*a.notes, *b.notes)), (a.notes, b.notes)
@@ -289,16 +290,23 @@ def test_the_rate_level_does_not_prefer_what_the_closed_loop_decides(tmp_path):
     it, so the diagnosis prefers neither and says why (before: the delay, separated at the
     angular-rate level). The same flights with the gyro noise kept out of the controller prefer the
     lag (t = −3.6): the closed loop is the cause (docs/timing.md, "The closed loop's share")."""
+    from quadcore.plan import separation
+
     folder = tmp_path / "logs"
     _flights(folder, "motor_lag", truth_s=0.005, lowpass_hz=80.0)
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
-    rows = {c.effect: c for c in diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING)).candidates}
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(tables, spec, candidates=list(TIMING))
+    rows = {c.effect: c for c in diag.candidates}
     a, b = rows["thrust_delay"], rows["motor_lag"]
     assert all(any("closed loop's response to its own noise decides it" in n for n in r.notes) for r in (a, b)), (
         a.notes, b.notes)
     for r, o in ((a, b), (b, a)):
         assert rates.RATE_LEVEL not in r.separated_by.values(), r.separated_by
         assert o.effect in r.tied_with if (r.found or o.found) else True
+    # the planner's measured separation says the same, and which rule (before: "noise model" in bench_plan's tables)
+    comp = separation.measured(tables, spec, diag, "thrust_delay", "motor_lag")
+    assert comp.sigma_for("motor_lag") == 0.0 and comp.undecided in a.notes and comp.undecided_by == "the closed loop"
 
 
 def test_the_instrumented_comparison_is_the_rows_and_its_rule_ties_only_a_contradicted_answer(delayed_hover):

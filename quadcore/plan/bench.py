@@ -105,6 +105,7 @@ class Outcome:
     alike: bool
     sigma: float = float("nan")
     undecided: str = ""  # why the diagnosis prefers neither whatever the held-out t (sigma 0 then)
+    undecided_by: str = ""  # what decides it in its place: "the noise model", "the closed loop" (Comparison's)
 
     @property
     def decided(self) -> bool:
@@ -113,7 +114,14 @@ class Outcome:
 
     def describe(self) -> str:
         tie = ", tied" if self.tied else (", alike" if self.alike else "")
-        return f"top {self.top}{tie}, {self.sigma:+.1f} σ" + (", the noise model decides it" if self.undecided else "")
+        return f"top {self.top}{tie}, {self.sigma:+.1f} σ" + (f", undecided ({self.why_undecided})" if self.undecided
+                                                             else "")
+
+    @property
+    def why_undecided(self) -> str:
+        """What decides the pair where the diagnosis prefers neither, in a few words ("" when it
+        goes by sigma; "undecided" for a trial written before it was recorded)."""
+        return (self.undecided_by.removeprefix("the ") or "undecided") if self.undecided else ""
 
 
 def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outcome:
@@ -121,7 +129,7 @@ def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outc
     top = diag.candidates[0].effect
     comp = separation.measured(tables, spec, diag, truth, rival)
     return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from,
-                   comp.sigma_for(truth), comp.undecided)
+                   comp.sigma_for(truth), comp.undecided, comp.undecided_by)
 
 
 def _decode(folder: Path) -> dict:

@@ -47,9 +47,12 @@ N_FOLDS = 5
 class Comparison:
     """The held-out comparison of ``a`` and ``b``: ``t`` (> 0: ``a`` fits better), its p-value,
     the blocks it was summed over; ``undecided``: why the diagnosis prefers neither whatever ``t``
-    says (empty: it goes by ``t``): at the rate level, the gyro noise model decides it (the
-    comparison with the whitening filter, ``t``, and the one without, ``unwhitened_t``, both
-    significant and opposite: :func:`quadcore.identify.rates.noise_model_decides`)."""
+    says (empty: it goes by ``t``), and ``undecided_by`` what decides it in its place, in a few
+    words: at the rate level, ``the noise model`` (the comparison with the whitening filter, ``t``,
+    and the one without, ``unwhitened_t``, both significant and opposite:
+    :func:`quadcore.identify.rates.noise_model_decides`) or ``the closed loop`` (the comparison with
+    the timing direction one sample back as the instrument contradicts ``t``:
+    :func:`quadcore.identify.rates.closed_loop_decides`)."""
 
     a: str
     b: str
@@ -58,6 +61,7 @@ class Comparison:
     blocks: int
     undecided: str = ""
     unwhitened_t: float | None = None
+    undecided_by: str = ""
 
     def sigma_for(self, truth: str) -> float:
         """The separation in favour of ``truth`` (negative when the data prefer the other), as the
@@ -103,8 +107,8 @@ def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: Phy
     longest memory among the diagnosis's ``timing`` candidates left out (``a`` and ``b`` at least),
     both candidates fitted on each fold's training flights (the diagnosis's folds: in-sample with
     one flight), :func:`quadcore.identify.rates.held_out_comparison` over the test flights
-    (``t > 0``: ``a``): undecided where the diagnosis prefers neither because the noise model
-    decides it."""
+    (``t > 0``: ``a``): undecided where the diagnosis prefers neither because the noise model or the
+    closed loop decides it."""
     ea, eb = effectlib.get(a), effectlib.get(b)
     skip = evidence.memory_blocks([effectlib.get(n) for n in {a, b, *timing}])
     fds = flights_of(tables, spec)
@@ -115,7 +119,7 @@ def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: Phy
     pair = rates.held_out_comparison(sums, splits, ea, eb, fits[a], fits[b], ws, settings.alpha)
     test = pair.test
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks), pair.note() if pair.undecided else "",
-                      None if pair.unwhitened is None else float(pair.unwhitened.t))
+                      None if pair.unwhitened is None else float(pair.unwhitened.t), pair.undecided_by)
 
 
 def timing_candidates(diag: Diagnosis) -> list[str]:

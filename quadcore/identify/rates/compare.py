@@ -173,6 +173,13 @@ class PairComparison:
     instrumented: evidence.HeldOutTest | None = None
     closed_loop: bool = False
 
+    @property
+    def undecided_by(self) -> str:
+        """What decides an undecided comparison in its place, in a few words: ``the closed loop``
+        (:func:`closed_loop_decides`) or ``the noise model`` (:func:`noise_model_decides`); "" when
+        the comparison decides."""
+        return "" if not self.undecided else "the closed loop" if self.closed_loop else "the noise model"
+
     def note(self) -> str:
         """What an undecided comparison says: which candidate each test prefers, and that neither is."""
         first, second = (self.a, self.b) if self.test.t > 0 else (self.b, self.a)
