@@ -107,6 +107,30 @@ def test_a_thrust_scale_and_a_payload_are_not_separated_by_a_channel_at_the_nois
     assert comp.p_value > 0.01, comp  # before: t -20.3, p 8e-15
 
 
+@pytest.fixture(scope="module")
+def payload_figure8s(tmp_path_factory) -> dict:
+    """Three 8 s figure-eights carrying a 3 g payload (decoded tables)."""
+    folder = tmp_path_factory.mktemp("payload_figure8s")
+    configs = [SimConfig(kind="figure8", duration_s=8.0, seed=s) for s in (1, 2, 3)]
+    simulation.simulate_set(folder, configs, {"added_mass": {"m_p_kg": 0.003}}, VEHICLE)
+    return {p.name: flightlib.decode_flight(p).tables["fixedFrequency"] for p in flightlib.discover_logs(folder)}
+
+
+def test_a_channel_at_the_noise_floor_counts_against_a_candidate_that_adds_error_there(payload_figure8s):
+    """With a payload true the torque residual is at its floor also on a manoeuvre, and there the
+    thrust scale (fitted on force, where it equals the payload) predicts the manoeuvre's torques
+    times ``scale - 1``: error the payload does not make. A channel at its floor holds no evidence
+    for a candidate but counts against one that adds error there (the score's rule), so the
+    comparison takes the torque and prefers the payload (measured t 3.1); leaving the torque out
+    made it no test, the two tied and the planner bench's payload-true seeds undecided."""
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(payload_figure8s, spec)
+    assert diag.at_noise_level["torque"]
+    assert diag.candidates[0].effect == "added_mass" and "thrust_scale" not in diag.candidates[0].tied_with
+    comp = separation.measured(payload_figure8s, spec, diag, "added_mass", "thrust_scale")
+    assert comp.t > 0 and comp.p_value < 0.01, comp
+
+
 def test_predictions_equal_to_rounding_are_no_comparison(weak_map):
     """Beside a fitted motor lag the torque residual of the weak-map hovers is at its floor: a
     thrust scale and a payload, fitted on force alone, predict the same signal in other

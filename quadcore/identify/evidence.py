@@ -202,6 +202,28 @@ def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np
     return HeldOutTest(float(np.mean(g)), t, float(2 * stats.t.sf(abs(t), n - 1)), n)
 
 
+def compared_weights(flights: Flights, resid: Signals, pred_a: Signals, pred_b: Signals, weights: np.ndarray,
+                     at_noise: dict[str, bool]) -> np.ndarray:
+    """The channel weights :func:`compare` takes two candidates' held-out predictions in: every
+    channel above its sensor-noise floor, and one at its floor (``at_noise``) only where either
+    prediction adds error there (``|r - p|² > |r|²`` summed over the held-out flights). In a
+    channel at its floor a prediction counts only against a candidate, as in its score
+    (:func:`quadcore.identify.diagnosis.scoring`): there the closed loop's errors in variables let
+    a thrust scale's torque trims "explain" some gyro noise whichever is true (no evidence for it),
+    while its torque on a manoeuvre, which a payload does not make, adds error when the payload is
+    the truth (evidence against it)."""
+    quiet = [ch for ch, at in at_noise.items() if at]
+    mask = channel_mask([ch for ch, at in at_noise.items() if not at])
+    if quiet:
+        rp_a, pp_a, rp_b, pp_b = (s.sum(axis=0) for s in block_channel_sums(
+            flights, [(resid, pred_a), (pred_a, pred_a), (resid, pred_b), (pred_b, pred_b)]))
+        for ch in quiet:
+            sl = CHANNELS[ch]
+            if max((pp_a - 2 * rp_a)[sl] @ weights[sl], (pp_b - 2 * rp_b)[sl] @ weights[sl]) > 0:
+                mask[sl] = 1.0
+    return weights * mask
+
+
 def same_prediction(diff_ss: float, total_ss: float) -> bool:
     """Two predictions whose difference's weighted sum of squares ``diff_ss`` is within
     ``SAME_TO_ROUNDING`` of theirs (``total_ss``) are the same signal, written differently (a

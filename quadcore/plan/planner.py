@@ -69,6 +69,7 @@ class FlightPlan:
     design: dict[str, Any] = field(default_factory=dict)
     measured_before: float | None = None
     gap_before: float | None = None  # |score difference| of the two candidates in the diagnosis
+    measured_by_flight: separation.ByFlight | None = None  # the measured comparison with flights as clusters
     proof: tuple[proof.Flown, ...] = ()
     proof_left_out: tuple[LeftOut, ...] = ()  # explanations whose flight the proof could not use
     differ: np.ndarray | None = None  # per sample of the planned path: how much the explanations differ
@@ -112,6 +113,8 @@ class FlightPlan:
         if self.question.kind == "separate" and self.measured_before is not None:
             doc["measured"] = {"separation_sigma_before": self.measured_before, "score_gap_before": self.gap_before,
                                "undecided": self.undecided_before or None}
+            if self.measured_by_flight is not None:
+                doc["measured"]["by_flight"] = self.measured_by_flight.to_dict()
         if self.planned and self.manoeuvre is not None and self.checked is not None:
             doc["manoeuvre"] = {**self.manoeuvre.to_dict(), "description": self.manoeuvre.describe(),
                                 "pieces": len(self.trajectory.durations) if self.trajectory is not None else 0}
@@ -261,6 +264,9 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
     elif measured.blocks == 0:
         design["note"] = _no_comparison_note(diag, design["before"]["sigma"])
         log(f"plan: {design['note']}")
+    elif _flights_disagree(measured):
+        design["note"] = _flights_note(measured)
+        log(f"plan: {design['note']}")
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.sigma_for(a.name)):.1f} σ"
         f"{', undecided' if measured.undecided else ''})")
@@ -268,7 +274,8 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                        sessions, stats) if request.prove else proof.Proof())
     return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
                       check(best.trajectory, vehicle, limits), design, abs(measured.sigma_for(a.name)),
-                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), flown.flown, flown.left_out,
+                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), measured.by_flight, flown.flown,
+                      flown.left_out,
                       _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
                       flatness.flat_path(best.trajectory, vehicle), measured.undecided)
 
@@ -285,6 +292,24 @@ def _no_comparison_note(diag: Diagnosis, expected: float) -> str:
                                               "evidence)" if quiet else "")
             + f", so there is no held-out comparison (0 σ) where the objective, which counts every channel, "
             f"expects {expected:.1f} σ")
+
+
+def _flights_disagree(measured: separation.Comparison) -> bool:
+    """The block test separates the two at the diagnosis's level, the flights taken as the
+    clusters do not (:class:`quadcore.plan.separation.ByFlight`)."""
+    by = measured.by_flight
+    return by is not None and measured.p_value < evidence.ALPHA <= by.p_value
+
+
+def _flights_note(measured: separation.Comparison) -> str:
+    by = measured.by_flight
+    assert by is not None
+    first, second = (measured.a, measured.b) if measured.t > 0 else (measured.b, measured.a)
+    fewer = by.for_first if measured.t > 0 else by.flights - by.for_first
+    return (f"the logged flights separate the two by {abs(measured.t):.1f} σ counting their 1 s blocks as independent, "
+            f"but the flights disagree: {first} fits {fewer} of {by.flights} better, {second} the others, and with "
+            f"each flight as one cluster the separation is {abs(by.t):.1f} σ (p {by.p_value:.2g}), "
+            "not significant (docs/flight-planning.md)")
 
 
 def _flying(seconds: float) -> str:
@@ -344,5 +369,6 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
              if request.prove else proof.Proof())
     u = signatures.unit_wrench(expl, name, fd, vehicle)
     return FlightPlan(q, request.limits, request.duration_s, best.manoeuvre, best.trajectory,
-                      check(best.trajectory, vehicle, request.limits), design, None, None, flown.flown, flown.left_out,
+                      check(best.trajectory, vehicle, request.limits), design, None, None, None, flown.flown,
+                      flown.left_out,
                       (u**2) @ (1.0 / sigma**2), flatness.flat_path(best.trajectory, vehicle))

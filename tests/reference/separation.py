@@ -15,7 +15,8 @@ score of a block ``b`` is
     g_b = Σ_{i∈b} Σ_c w_c 2 (a_ic - b_ic) (r_ic - (a_ic + b_ic)/2)     (= |r - b|² - |r - a|²)
 
 ``w_c`` the inverse mean square of the residual per force and torque, channels whose residual
-is within the noise margin of the sensor-noise floor left out; ``t`` the one-sample t statistic
+is within the noise margin of the sensor-noise floor left out unless either prediction adds error
+there (``Σ p·(p - 2 r) > 0``); ``t`` the one-sample t statistic
 of the ``g_b`` (> 0: ``a`` fits better).
 """
 
@@ -72,7 +73,15 @@ def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: s
     ss = sum((np.einsum("nc,nc->c", r[f], r[f]) for f in ids), np.zeros(6))
     floor = sum((fds[f].noise ** 2 * len(kept[f][0]) for f in ids), np.zeros(6))
     quiet = evidence.at_noise_level(ss, floor)
-    w = rows.channel_weights(list(r.values())) * evidence.channel_mask([ch for ch, q in quiet.items() if not q])
+    w = rows.channel_weights(list(r.values()))
+    mask = evidence.channel_mask([ch for ch, q in quiet.items() if not q])
+    for ch in (ch for ch, q in quiet.items() if q):  # at the floor: taken where either prediction adds error
+        sl = evidence.CHANNELS[ch]
+        worse = [sum(float(np.einsum("nc,nc->c", pred[n][f][kept[f][0]], pred[n][f][kept[f][0]] - 2 * r[f])[sl] @ w[sl])
+                     for f in ids) for n in (a, b)]
+        if max(worse) > 0:
+            mask[sl] = 1.0
+    w = w * mask
     g = []
     for f in ids:
         pa, pb = pred[a][f][kept[f][0]], pred[b][f][kept[f][0]]

@@ -209,12 +209,12 @@ def _mark_alike(rows: list[CandidateRow], span: _SpanOverlap, held: HeldOut, p: 
     ones that reproduce its prediction in its channel and it theirs (``indistinguishable_from``),
     those of them it ties with (scores within ``tie_margin``, or the held-out flights prefer
     neither; a tie goes both ways), and what separates it from the others (``separated_by``)."""
-    evidence_w = held.w * evidence.channel_mask([ch for ch, quiet in held.at_noise.items() if not quiet])
-
     def separated(a: str, b: str) -> bool:
-        """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the noise)."""
-        return (evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], evidence_w).p_value
-                < settings.alpha)
+        """The held-out flights prefer one of ``a`` and ``b`` significantly (channels above the
+        noise, and one at it where either adds error: :func:`quadcore.identify.evidence.compared_weights`)."""
+        pa, pb = held.cand_pred[a], held.cand_pred[b]
+        w = evidence.compared_weights(held.flights, held.resid, pa, pb, held.w, held.at_noise)
+        return evidence.compare(held.flights, held.resid, pa, pb, w).p_value < settings.alpha
     by_name = {r.effect: r for r in rows}
 
     def can_mimic(a: str, b: str, ch: str) -> bool:
