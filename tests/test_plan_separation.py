@@ -129,6 +129,8 @@ def test_a_channel_at_the_noise_floor_counts_against_a_candidate_that_adds_error
     assert diag.candidates[0].effect == "added_mass" and "thrust_scale" not in diag.candidates[0].tied_with
     comp = separation.measured(payload_figure8s, spec, diag, "added_mass", "thrust_scale")
     assert comp.t > 0 and comp.p_value < 0.01, comp
+    by = comp.by_flight  # every flight prefers the payload: by flight too
+    assert by is not None and (by.flights, by.for_first) == (3, 3) and by.t > 0 and by.p_value < 0.01, by
 
 
 def test_predictions_equal_to_rounding_are_no_comparison(weak_map):

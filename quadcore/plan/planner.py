@@ -305,9 +305,9 @@ def _flights_note(measured: separation.Comparison) -> str:
     by = measured.by_flight
     assert by is not None
     first, second = (measured.a, measured.b) if measured.t > 0 else (measured.b, measured.a)
-    fewer = by.for_first if measured.t > 0 else by.flights - by.for_first
+    count = by.for_first if measured.t > 0 else by.flights - by.for_first
     return (f"the logged flights separate the two by {abs(measured.t):.1f} σ counting their 1 s blocks as independent, "
-            f"but the flights disagree: {first} fits {fewer} of {by.flights} better, {second} the others, and with "
+            f"but the flights disagree: {first} fits {count} of {by.flights} better, {second} the others, and with "
             f"each flight as one cluster the separation is {abs(by.t):.1f} σ (p {by.p_value:.2g}), "
             "not significant (docs/flight-planning.md)")
 
