@@ -82,7 +82,9 @@ def cell(o: bench.Outcome, rival: str) -> str:
     """One flight's σ for the truth, and what the diagnosis said when it did not decide; 'first
     against σ': decided, but the comparison favours the rival (the truth ranked first across
     tiers: the rival's fit not significant)."""
-    noise = f" ({o.why_undecided})" if o.undecided else ""  # the diagnosis prefers neither at the rate level: σ 0
+    noise = ""  # the diagnosis prefers neither at the rate level: σ 0, and the t it sets aside
+    if o.undecided:
+        noise = f" ({o.why_undecided}" + (f", t {o.t:+.1f})" if o.t == o.t else ")")
     if o.decided:
         return f"{o.sigma:+.1f}" + (" first against σ" if o.sigma < 0 else "") + noise
     why = "tied" if o.tied else ("wrong" if o.top == rival else f"{o.top} first")
@@ -98,7 +100,8 @@ def summarise(trials: list[bench.Trial]) -> None:
         files = list(dict.fromkeys(f for t in ts for f in t.files))
         pair = bench.SCENARIOS[name].pair
         print(f"\n{name}: σ for the truth per seed (decided unless marked: 'tied', 'wrong' = the rival first "
-              "untied, or the effect ranked first; 'first against σ': decided, the comparison favouring the rival)")
+              "untied, or the effect ranked first; 'first against σ': decided, the comparison favouring the rival; "
+              "(closed loop, t) / (noise model, t): the rate level prefers neither for that reason, σ 0, t set aside)")
         print("| seed (truth) | before | plan (predicted) | " + " | ".join(files) + " |")
         print("|---" * (3 + len(files)) + "|")
         for t in sorted(ts, key=lambda t: (t.truth != pair[0], t.seed)):

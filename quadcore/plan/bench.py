@@ -106,6 +106,7 @@ class Outcome:
     sigma: float = float("nan")
     undecided: str = ""  # why the diagnosis prefers neither whatever the held-out t (sigma 0 then)
     undecided_by: str = ""  # what decides it in its place: "the noise model", "the closed loop" (Comparison's)
+    t: float = float("nan")  # the held-out t in favour of the truth, set aside or not (sigma where it decides)
 
     @property
     def decided(self) -> bool:
@@ -120,8 +121,12 @@ class Outcome:
     @property
     def why_undecided(self) -> str:
         """What decides the pair where the diagnosis prefers neither, in a few words ("" when it
-        goes by sigma; "undecided" for a trial written before it was recorded)."""
-        return (self.undecided_by.removeprefix("the ") or "undecided") if self.undecided else ""
+        goes by sigma; for a trial written before it was recorded, read from the sentence)."""
+        if not self.undecided:
+            return ""
+        if self.undecided_by:
+            return self.undecided_by.removeprefix("the ")
+        return next((w for w in ("closed loop", "noise model") if w in self.undecided), "undecided")
 
 
 def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outcome:
@@ -129,7 +134,7 @@ def outcome(diag: Diagnosis, truth: str, rival: str, tables: dict, spec) -> Outc
     top = diag.candidates[0].effect
     comp = separation.measured(tables, spec, diag, truth, rival)
     return Outcome(top, top == truth, rival in row.tied_with, rival in row.indistinguishable_from,
-                   comp.sigma_for(truth), comp.undecided, comp.undecided_by)
+                   comp.sigma_for(truth), comp.undecided, comp.undecided_by, comp.t if truth == comp.a else -comp.t)
 
 
 def _decode(folder: Path) -> dict:
