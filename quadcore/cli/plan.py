@@ -34,6 +34,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     if result.measured_before is not None:
         print(f"  measured on the logged flights: separation {result.measured_before:.3g} σ, score gap "
               f"{result.gap_before:.3g}" + (f" ({result.undecided_before})" if result.undecided_before else ""))
+    if result.design.get("note"):  # why the measured separation and the design's differ
+        print(f"  note: {result.design['note']}")
     if result.design.get("expected_to_decide") is False:
         print("  note: the best flight of the family is not predicted to break the tie with margin "
               f"(objective {result.design['after']['value']:.2f} < 1): {result.design.get('advice', '')}; "
