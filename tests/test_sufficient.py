@@ -503,12 +503,8 @@ def test_the_decoder_digest_follows_the_decoders_code(tmp_path, monkeypatch):
     flight.decoder_digest.cache_clear()
 
 
-def test_the_code_that_decodes_a_log_is_in_the_decoder_digest(drag_fleet):
-    """Every quadcore module whose functions run while a log is decoded into its tables is in
-    :data:`quadcore.logs.flight.DECODER_MODULES`, or makes none of the table's numbers
-    (``quadcore.store.names`` names the flight, ``quadcore.store.codedigest`` digests the decoder):
-    a change to the decoding or the unit conversion makes every decoded table, and what was kept
-    from it, stale."""
+def _modules_that_run(work):
+    """``work()``'s result and the quadcore modules whose functions it called (a profile hook)."""
     ran: set[str] = set()
 
     def seen(frame, event, arg):
@@ -518,9 +514,19 @@ def test_the_code_that_decodes_a_log_is_in_the_decoder_digest(drag_fleet):
 
     sys.setprofile(seen)
     try:
-        decoded = flight.decode_flight(drag_fleet / "sim000")
+        out = work()
     finally:
         sys.setprofile(None)
+    return out, ran
+
+
+def test_the_code_that_decodes_a_log_is_in_the_decoder_digest(drag_fleet):
+    """Every quadcore module whose functions run while a log is decoded into its tables is in
+    :data:`quadcore.logs.flight.DECODER_MODULES`, or makes none of the table's numbers
+    (``quadcore.store.names`` names the flight, ``quadcore.store.codedigest`` digests the decoder):
+    a change to the decoding or the unit conversion makes every decoded table, and what was kept
+    from it, stale."""
+    decoded, ran = _modules_that_run(lambda: flight.decode_flight(drag_fleet / "sim000"))
     assert {"quadcore.logs.logformat", "quadcore.logs.units"} <= ran  # the work was traced
     assert not ran - {*flight.DECODER_MODULES, "quadcore.store.names", "quadcore.store.codedigest"}, sorted(ran)
     assert decoded.provenance.decoder == flight.decoder_digest()
@@ -834,20 +840,13 @@ def test_the_code_that_makes_a_flights_statistics_and_rate_sums_is_in_their_code
     spec = spec_from(VEHICLE, ["rotor_drag", "motor_lag"])
     timing = [effects.get("motor_lag"), effects.get("thrust_delay")]
     model = PhysicsModel(spec.vehicle, [])
-    ran: set[str] = set()
 
-    def seen(frame, event, arg):
-        name = frame.f_globals.get("__name__", "")
-        if event == "call" and name.startswith("quadcore"):
-            ran.add(name)
-
-    sys.setprofile(seen)
-    try:
+    def make() -> None:
         sufficient.compute_current(spec, path.name, table)
         fd = flightdata.flight_data(path.name, table, spec.vehicle_for(path.name))
         rates.flight_sums(fd, model, path.name, timing, evidence.memory_blocks(timing))
-    finally:
-        sys.setprofile(None)
+
+    _, ran = _modules_that_run(make)
     digested = {*sufficient.CODE_MODULES, *rate_cache.CODE_MODULES}
     outside = {m for m in ran - digested if not any(m == o or m.startswith(o + ".") for o in _OUTSIDE_THE_DIGEST)}
     assert {"quadcore.identify.rates.sums", "quadcore.identify.flightdata"} <= ran  # the work was traced
