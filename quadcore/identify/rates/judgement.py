@@ -145,7 +145,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
             if pair.undecided:
                 undecided.add((a.name, b.name))
-                _noise_model_tie(ra, rb, pair.note())
+                _undecided_tie(ra, rb, pair.note())
             elif pair.test.p_value < settings.alpha:
                 wins.append((ra, rb) if pair.test.t > 0 else (rb, ra))
                 _prefer(*wins[-1])
@@ -243,9 +243,10 @@ def _tie(a: CandidateRow, b: CandidateRow) -> None:
         r.separated_by = {k: v for k, v in r.separated_by.items() if k != o.effect}
 
 
-def _noise_model_tie(a: CandidateRow, b: CandidateRow, note: str) -> None:
-    """``a`` and ``b`` tied because the noise model decides between them
-    (:func:`quadcore.identify.rates.noise_model_decides`): each row says so (``note``,
+def _undecided_tie(a: CandidateRow, b: CandidateRow, note: str) -> None:
+    """``a`` and ``b`` tied because the noise model or the closed loop decides between them
+    (:func:`quadcore.identify.rates.noise_model_decides`,
+    :func:`quadcore.identify.rates.closed_loop_decides`): each row says so (``note``,
     :meth:`quadcore.identify.rates.compare.PairComparison.note`; they are tied, as an undecided pair
     is, when either is found)."""
     for r in (a, b):
