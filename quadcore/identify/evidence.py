@@ -192,10 +192,10 @@ def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np
     for a thrust scale and a payload fitted to the same force, their signals equal to 1e-15)."""
     d = {f: pred_a[f] - pred_b[f] for f in pred_a}
     centred = {f: resid[f] - 0.5 * (pred_a[f] + pred_b[f]) for f in pred_a}
-    g, dd, aa, bb = (s @ weights for s in block_channel_sums(
-        flights, [(d, centred), (d, d), (pred_a, pred_a), (pred_b, pred_b)]))
+    g = block_sums(flights, d, centred, weights)
     n = len(g)
-    if n < 3 or not np.any(g) or same_prediction(float(dd.sum()), float(aa.sum() + bb.sum())):
+    if n < 3 or not np.any(g) or same_prediction(_energy(flights, d) @ weights,
+                                                 (_energy(flights, pred_a) + _energy(flights, pred_b)) @ weights):
         return NO_TEST
     sd = float(np.std(g, ddof=1))
     t = float(np.mean(g) / (sd / np.sqrt(n))) if sd > 0 else 0.0
@@ -215,13 +215,18 @@ def compared_weights(flights: Flights, resid: Signals, pred_a: Signals, pred_b: 
     quiet = [ch for ch, at in at_noise.items() if at]
     mask = channel_mask([ch for ch, at in at_noise.items() if not at])
     if quiet:
-        rp_a, pp_a, rp_b, pp_b = (s.sum(axis=0) for s in block_channel_sums(
-            flights, [(resid, pred_a), (pred_a, pred_a), (resid, pred_b), (pred_b, pred_b)]))
+        before = _energy(flights, resid)
+        added = [_energy(flights, {f: resid[f] - p[f] for f in resid}) - before for p in (pred_a, pred_b)]
         for ch in quiet:
             sl = CHANNELS[ch]
-            if max((pp_a - 2 * rp_a)[sl] @ weights[sl], (pp_b - 2 * rp_b)[sl] @ weights[sl]) > 0:
+            if max(float(x[sl] @ weights[sl]) for x in added) > 0:
                 mask[sl] = 1.0
     return weights * mask
+
+
+def _energy(flights: Flights, signal: Signals) -> np.ndarray:
+    """(6,) the signal's sum of squares per channel over the flights (their totals, no blocks read)."""
+    return sum((fd.sum_of_squares(signal[fd.flight]) for fd in flights), np.zeros(6))
 
 
 def same_prediction(diff_ss: float, total_ss: float) -> bool:
