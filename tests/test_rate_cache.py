@@ -104,8 +104,50 @@ def test_another_model_computes_every_flight_again(root, computed):
     spec = spec_from(VEHICLE, ["rotor_drag"])
     cands = [c for c in CANDIDATES if c != "rotor_drag"]
     with_model = diagnosis.diagnose(tables, spec, None, cands, rate_cache=rate_cache.stored(root)).to_dict()
-    assert len(computed) == 4  # the model's torque is taken out of the increments: its fit is in the key
+    assert len(computed) == 4  # another set of effects in the model: another key
     assert json_differences(with_model, diagnosis.diagnose(tables, spec, None, cands).to_dict()) == []
+
+
+def test_a_refit_that_moves_the_models_linear_effects_reads_every_kept_flight_back(root, computed):
+    """A model whose linear effect has a torque (com_offset): its values are not in the kept sums
+    (their columns, RateSums.model, are taken out at the diagnosis's values), so a refit that moves
+    them (here: the fit on three of the four flights) reads every flight's sums back, with the
+    diagnosis the same as without them (before: every flight computed again)."""
+    spec = spec_from(VEHICLE, ["com_offset"])
+    cands = [c for c in CANDIDATES if c != "com_offset"]
+    tables = _tables(root)
+    diagnosis.diagnose(tables, spec, None, cands, rate_cache=rate_cache.stored(root))
+    assert len(computed) == 4
+    fewer = {f: t for f, t in tables.items() if f != "sim003"}  # another fit: com_offset's values move
+    computed.clear()
+    kept = diagnosis.diagnose(fewer, spec, None, cands, rate_cache=rate_cache.stored(root)).to_dict()
+    assert len(computed) == 0
+    assert json_differences(kept, diagnosis.diagnose(fewer, spec, None, cands).to_dict()) == []
+
+
+def test_the_linear_effects_columns_give_the_sums_of_their_torque_taken_out_of_the_increments(root):
+    """The model's linear effects as columns taken out at their values (rates.flight_sums) equal the
+    sums with their torque taken out of the increments first (rates.rate_flight's, as before),
+    within the float32 rounding of the running sums: R = R⁰ − Σ c_j T_j, and the whitening and the
+    demeaning are linear."""
+    from quadcore.identify import flightdata
+    from quadcore.identify.model import EffectTerm, PhysicsModel
+
+    e = effects.get("com_offset")
+    model = PhysicsModel(VEHICLE, [EffectTerm("com_offset", e.from_linear([2e-3, -1e-3, 0.0][:len(e.parameters)],
+                                                                           VEHICLE))])
+    timing = [effects.get("motor_lag"), effects.get("thrust_delay")]
+    fd = flightdata.flight_data("sim001", _tables(root)["sim001"], VEHICLE)
+    columns = rates.flight_sums(fd, model, "sim001", timing, 1)
+    assert columns.model and np.any(columns.at)
+    tau = e.wrench(fd.state, VEHICLE, model.terms[0].params)[1]
+    folded = rates.rate_sums(rates.rate_flight(fd, VEHICLE, tau, 1), timing)
+    assert not folded.model
+    for cand in timing:
+        for value in (0.0, 0.004):
+            np.testing.assert_allclose(columns.costs(cand, value), folded.costs(cand, value), rtol=1e-5)
+            assert columns.cost(cand, value, np.ones(3)) == pytest.approx(folded.cost(cand, value, np.ones(3)),
+                                                                          rel=1e-6)
 
 
 def test_a_kept_file_that_cannot_serve_is_computed_again_not_read(root, computed):

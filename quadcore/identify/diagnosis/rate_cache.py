@@ -6,17 +6,20 @@ A diagnosis with timing candidates reduces every flight's rows to its
 :class:`~quadcore.identify.rates.RateSums` (or finds it logged below the command rate,
 :class:`~quadcore.identify.rates.BelowCommandRate`). Those depend on the flight's log, on what
 :func:`quadcore.identify.rates.flight_inputs` names (the timing candidates, the start left out,
-the model on the flight: its vehicle and its effects' values) and on the code. Each flight keeps
-the last ones made, in ``<root>/stats/flight=<id>/rates.bin`` (:mod:`quadcore.identify.binfile`'s
-format, written atomically), under a key of all of these (:func:`key`): a diagnosis of the same
-candidates against the same model (the nominal one, or a fit that did not move) reads them back
-bit for bit; any other (a refit that moved the model, a log decoded again from other bytes,
-other code, another format) does not match the key, and the flight's sums are computed from its
-rows again and replace them. A file that cannot be read (cut short, not one) is computed again
-too, never read. Without a data root (``quadcore diagnose`` on logs) nothing is kept.
+the model on the flight: its vehicle, its effects, and the values of those that are not linear)
+and on the code. Each flight keeps the last ones made, in ``<root>/stats/flight=<id>/rates.bin``
+(:mod:`quadcore.identify.binfile`'s format, written atomically), under a key of all of these
+(:func:`key`): a diagnosis of the same candidates against a model with the same effects (the
+nominal one, or a refit that moved only the values of its linear effects: the sums hold those as
+columns, :attr:`quadcore.identify.rates.RateSums.model`, taken out at the values of the diagnosis's
+model) reads them back bit for bit; any other (a refit that moved a nonlinear effect of the model,
+such as ``motor_lag``'s τ, a log decoded again, other code, another format) does not match the key,
+and the flight's sums are computed from its rows again and replace them. A file that cannot be
+read (cut short, not one) is computed again too, never read. Without a data root (``quadcore
+diagnose`` on logs) nothing is kept.
 
 Not in ``stats.bin``: the flight's statistics do not depend on the fitted model, the rate
-level's do (the model's torque is taken out of the increments before the sums).
+level's do (the model's nonlinear effects' torque is taken out of the increments before the sums).
 """
 
 from __future__ import annotations
@@ -34,8 +37,9 @@ from quadcore.identify.stats import sufficient
 from quadcore.store import codedigest, store
 from quadcore.store.names import check_component
 
-FORMAT = 4  # bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks,
-# 4: the lagged blocks)
+# bump when what the file holds changes: kept ones become stale (2: the unwhitened totals, 3: blocks,
+# 4: the lagged blocks, 5: the model's linear effects as columns, RateSums.model)
+FORMAT = 5
 FILE = "rates.bin"
 # The code the sums come from besides the statistics' (sufficient.CODE_MODULES: the rows, the
 # state, the effects' base, the grids' interpolation in profiles): the rate level's modules that
@@ -73,7 +77,7 @@ def save(root: Any, flight: str, k: str, sums: rates.FlightRates) -> Any:
         return binfile.write_file(path(root, flight), {**header, "below_command_rate": [sums.period_s, sums.hold_s]},
                                   {})
     header.update(slots={n: [sl.start, sl.stop] for n, sl in sums.slots.items()}, samples=sums.samples,
-                  dt_s=sums.dt_s, n=sums.n)
+                  dt_s=sums.dt_s, n=sums.n, model=list(sums.model))  # not RateSums.at: the model's values
     arrays = {**{f"grid:{n}": g for n, g in sums.grids.items()}, "blocks": sums.blocks, "total": sums.total,
               "noise": sums.noise, "unwhitened": sums.total if sums.unwhitened is None else sums.unwhitened}
     if sums.unwhitened_blocks is not None:  # absent: the same as the blocks (no whitening filter)
@@ -100,7 +104,8 @@ def load(root: Any, flight: str, k: str) -> rates.FlightRates | None:
                               array("noise"), int(header["samples"]), float(header["dt_s"]), int(header["n"]),
                               array("unwhitened"),
                               array("unwhitened_blocks") if "unwhitened_blocks" in header["arrays"] else None,
-                              array("lagged_blocks") if "lagged_blocks" in header["arrays"] else None)
+                              array("lagged_blocks") if "lagged_blocks" in header["arrays"] else None,
+                              tuple(str(m) for m in header["model"]), np.zeros(len(header["model"])))
     except (ValueError, KeyError, TypeError) as exc:
         raise binfile.StatsError(f"{where}: not a rate-level file ({exc})") from None
 

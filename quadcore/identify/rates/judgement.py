@@ -114,7 +114,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         if isinstance(out, BelowCommandRate):
             slow[f] = (out.period_s, out.hold_s)
             return None
-        return out
+        return out.at_model(model, f)  # kept sums hold no value of the model's linear effects
 
     reduced_flights = {f: reduced(f) for f in ids}
     by_name = {r.effect: r for r in rows}

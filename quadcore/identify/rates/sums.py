@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -46,6 +46,7 @@ from quadcore.identify.flightdata import FlightData
 from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
 from quadcore.identify.rates.noise import Filter, NoiseModel, gyro_noise_model, noise_model, whitened
 from quadcore.identify.stats import profiles
+from quadcore.physics import signals
 from quadcore.physics.vehicle import Vehicle
 
 
@@ -70,7 +71,15 @@ class RateSums:
     (:func:`unwhitened_comparison`); :attr:`lagged_blocks` (B, 3, K, K) float32: per block and axis
     ``Σ_k x̃_(k−1) x̃_kᵀ`` of the whitened block-demeaned running sums, each interval's with the one
     before it (None: the flight has no whitening filter), the held-out comparison's with the
-    direction one interval back as its instrument (:func:`instrumented_differences`)."""
+    direction one interval back as its instrument (:func:`instrumented_differences`).
+
+    The model's linear effects (:attr:`model`, one label per linear coordinate) are not taken out
+    of ``R`` before the sums: their torque per unit of each coordinate, ``T_j``, has a column of its
+    own after ``R`` (``x_k = [R⁰_k, T_1k, …, C_k(v_1), …]``), and the direction takes them out at
+    their values :attr:`at` (``u = [1, −c, −ω(v)]``: ``R = R⁰ − Σ_j c_j T_j`` is linear in them,
+    and the filter and the demeaning are linear). The sums then hold no value of the model's
+    linear effects: a refit that moves them is the same sums at other :attr:`at` (kept by the rate
+    cache across refits, :func:`flight_inputs`)."""
 
     grids: dict[str, np.ndarray]
     slots: dict[str, slice]
@@ -83,11 +92,19 @@ class RateSums:
     unwhitened: np.ndarray | None = None
     unwhitened_blocks: np.ndarray | None = None
     lagged_blocks: np.ndarray | None = None
+    model: tuple[str, ...] = ()
+    at: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def grid_key(self) -> tuple:
-        """The same for flights whose grids are the same (the fleet's flights at one sample rate)."""
-        return tuple((n, g.tobytes()) for n, g in self.grids.items())
+        """The same for flights whose directions are the same (the fleet's flights at one sample
+        rate, under the same values of the model's linear effects)."""
+        return (*((n, g.tobytes()) for n, g in self.grids.items()), self.model, self.at.tobytes())
+
+    def at_model(self, model, flight: str) -> RateSums:
+        """These sums with the values of ``model``'s linear effects on ``flight`` (:attr:`at`), the
+        coordinates of :attr:`model`'s columns (:func:`model_columns`)."""
+        return replace(self, at=np.array([c for _, c in model_columns(model, flight, self.model)], float))
 
     @property
     def filtered(self) -> bool:
@@ -96,10 +113,11 @@ class RateSums:
             self.unwhitened, self.total)
 
     def direction(self, effect: Effect | None, value: float = 0.0) -> np.ndarray:
-        """(K,) ``u``: the residual minus ``effect``'s running sums at ``value`` (None: the
-        residual alone)."""
-        u = np.zeros(1 + sum(len(g) for g in self.grids.values()))
+        """(K,) ``u``: the residual (the model's linear effects at :attr:`at` taken out) minus
+        ``effect``'s running sums at ``value`` (None: the residual alone)."""
+        u = np.zeros(1 + len(self.model) + sum(len(g) for g in self.grids.values()))
         u[0] = 1.0
+        u[1:1 + len(self.model)] = -self.at
         if effect is not None:
             u[self.slots[effect.name]] = -grid_weights(effect, self.grids[effect.name], value)
         return u
@@ -208,7 +226,8 @@ def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     return out
 
 
-def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filter = "gyro") -> RateSums:
+def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filter = "gyro",
+              model: Sequence[tuple[str, np.ndarray]] = ()) -> RateSums:
     """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
     its rows: each effect's interval integrals of its torque at every point of its grid, with
     the flight's thrust hold (as the model's torque in the increments); every running sum
@@ -217,12 +236,14 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     fitted to the rate-level residual (:func:`noise_model`; on the real flights it models the
     unmodelled torque's drift, not the gyro noise: docs/timing.md, "The noise model"),
     ``"white"`` none; or a given filter (:data:`Filter`: a flight not flown yet takes the logged
-    ones', quadcore.plan.ratelevel)."""
+    ones', quadcore.plan.ratelevel). ``model``: (label, increments (m, 3)) of each column of
+    :attr:`RateSums.model` (the model's linear effects per unit of a coordinate, not in ``rf``'s
+    increments; :func:`flight_sums`), at no value (:attr:`RateSums.at` zero)."""
     st = rf.fd.state
     use = rf.block >= 0
     dt_s = float(np.median(np.diff(st.t_s)))
     grids = {e.name: rate_grid(e, dt_s) for e in timing}
-    k, slots = 1, {}
+    k, slots = 1 + len(model), {}
     for e in timing:
         slots[e.name] = slice(k, k + len(grids[e.name]))
         k += len(grids[e.name])
@@ -240,6 +261,8 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     # the rounding perturbs each value by 6e-8 of itself, a residual by that of the values, not of their Gram
     X = np.empty((len(b), 3, k), np.float32)
     X[:, :, 0] = demeaned(np.cumsum(rf.increments, axis=0)[use])
+    for j, (_, increments) in enumerate(model, 1):
+        X[:, :, j] = demeaned(np.cumsum(increments, axis=0)[use])
     for e in timing:
         (p,) = e.parameters
         for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
@@ -267,7 +290,8 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     total = blocks.sum(axis=0)
     return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
                     max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
-                    raw.astype(np.float32) if lags else None, lagged.astype(np.float32) if lags else None)
+                    raw.astype(np.float32) if lags else None, lagged.astype(np.float32) if lags else None,
+                    tuple(label for label, _ in model), np.zeros(len(model)))
 
 
 def weights(flights: Sequence[RateSums]) -> np.ndarray:
@@ -432,15 +456,46 @@ def _clustered_variance(effect: Effect, per_block: Callable[[float], np.ndarray]
     return float(k / max(k - 1, 1) * np.sum(slopes**2) / curvature**2)
 
 
-def _model_torque(model, flight: str, fd: FlightData) -> tuple[Vehicle, np.ndarray | None]:
-    """The vehicle of ``flight`` and the torque (n, 3) of the model's effects there (unfiltered)."""
+def _model_torque(model, flight: str, fd: FlightData, keep_linear: bool) -> tuple[Vehicle, np.ndarray | None]:
+    """The vehicle of ``flight`` and the torque (n, 3) of the model's effects there (unfiltered):
+    with ``keep_linear``, of its effects that are not linear (the linear ones are columns of the
+    sums, :func:`model_columns`)."""
     m = model.for_flight(flight)
-    if not m.terms:
+    terms = [t for t in m.terms if not (keep_linear and get_effect(t.name).linear)]
+    if not terms:
         return m.vehicle, None
     tau = np.zeros((fd.state.n, 3))
-    for t in m.terms:
+    for t in terms:
         tau += get_effect(t.name).wrench(fd.state, m.vehicle, t.params)[1]
     return m.vehicle, tau
+
+
+def model_columns(model, flight: str, labels: Sequence[str] | None = None) -> list[tuple[str, float]]:
+    """(label, value) of each linear coordinate of ``model``'s linear effects on ``flight``
+    (:meth:`~quadcore.effects.Effect.to_linear`), labelled ``effect:index``; ``labels``: those
+    (a kept :attr:`RateSums.model`, whose effects the model has; a label the model lacks is at 0)."""
+    m = model.for_flight(flight)
+    out = [(f"{t.name}:{i}", float(c)) for t in m.terms if get_effect(t.name).linear
+           for i, c in enumerate(get_effect(t.name).to_linear(t.params, m.vehicle))]
+    if labels is None:
+        return out
+    values = dict(out)
+    return [(label, values.get(label, 0.0)) for label in labels]
+
+
+def _model_increments(model, flight: str, rf: RateFlight) -> list[tuple[str, np.ndarray]]:
+    """(label, ``∫ B_j dt`` (m, 3)) per linear coordinate of the model's linear effects on
+    ``flight`` that has a torque: the torque per unit of it over each sample interval, with the
+    thrust hold."""
+    m, st = model.for_flight(flight), rf.fd.state
+    out = []
+    for t in m.terms:
+        e = get_effect(t.name)
+        if e.linear:
+            for i, (_, torque) in enumerate(e.basis(st, m.vehicle)):
+                if np.any(torque):  # a coordinate without torque (a drag's) is no column: the rate level is torque
+                    out.append((f"{t.name}:{i}", signals.interval_integrals(torque, st.t_s, st.thrust_hold_s)))
+    return out
 
 
 @dataclass(frozen=True)
@@ -461,20 +516,25 @@ RatesCache = Callable[[str, dict, Callable[[], FlightRates]], FlightRates]
 
 def flight_inputs(model, flight: str, timing: Sequence[Effect], skip_blocks: int) -> dict:
     """What a flight's :class:`FlightRates` depend on besides its log (JSON): the timing effects,
-    the start left out, and the model on the flight (its vehicle, its effects' values)."""
+    the start left out, and the model on the flight: its vehicle, its effects, and the values of
+    those that are not linear (a linear one's values are not in the sums: :attr:`RateSums.at`)."""
     m = model.for_flight(flight)
     return {"timing": [e.name for e in timing], "skip_blocks": skip_blocks,
             "vehicle": {k: v for k, v in asdict(m.vehicle).items() if k != "source"},
-            "terms": [[t.name, t.params] for t in m.terms]}
+            "terms": [[t.name, None if get_effect(t.name).linear else t.params] for t in m.terms]}
 
 
 def flight_sums(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int,
                 noise: NoiseModel | Filter = "gyro") -> RateSums:
     """One flight's :class:`RateSums` as the diagnosis takes them: the increments with the torque
-    of ``model``'s effects (on ``flight``) removed, its first ``skip_blocks`` blocks left out (the
-    longest memory of the ``timing`` candidates), whitened as ``noise`` says (:func:`rate_sums`)."""
-    vehicle, tau = _model_torque(model, flight, fd)
-    return rate_sums(rate_flight(fd, vehicle, tau, skip_blocks), timing, noise)
+    of ``model``'s effects (on ``flight``) removed (its linear effects' as columns taken out at
+    their values, :attr:`RateSums.at`; all in the increments for ``noise="residual"``, whose filter
+    is fitted to the residual), its first ``skip_blocks`` blocks left out (the longest memory of
+    the ``timing`` candidates), whitened as ``noise`` says (:func:`rate_sums`)."""
+    keep = not (isinstance(noise, str) and noise == "residual")
+    vehicle, tau = _model_torque(model, flight, fd, keep)
+    rf = rate_flight(fd, vehicle, tau, skip_blocks)
+    return rate_sums(rf, timing, noise, _model_increments(model, flight, rf) if keep else ()).at_model(model, flight)
 
 
 def flight_rates(fd: FlightData, model, flight: str, timing: Sequence[Effect], skip_blocks: int) -> FlightRates:
