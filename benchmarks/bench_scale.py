@@ -53,7 +53,7 @@ from _jobs import REPO, report, run_main_job
 
 sys.path.insert(0, str(REPO))
 
-from quadcore.physics import decoded_store  # noqa: E402
+from quadcore.physics import decoded_store, gate  # noqa: E402
 from quadcore.report import plots  # noqa: E402
 from quadcore.sim import simulation  # noqa: E402
 from quadcore.store import store  # noqa: E402
@@ -220,15 +220,15 @@ def per_flight_main(sizes: list[int]) -> None:
 def decoded_pool(n: int) -> Path:
     """The pool's flights 0 .. n-1 decoded once (their tables are linked under the data roots that
     use them); again when decoded by another decoder (:func:`quadcore.physics.decoded_store.decoded_from`)
-    or by older code (no physics facts in the main table's footer: the fleet stages would then read
-    every table to judge it)."""
+    or by older code (no physics facts in the main table's footer, or facts found by another gate:
+    the fleet stages would then read every table to judge it)."""
     from quadcore.logs import flight
 
     root = CACHE / "decoded_pool"
     for i, log in enumerate(pool_logs(n)):
         main = store.decoded_path(root, store.MAIN_EVENT, fid(i))
         if (not decoded_store.decoded_from(root, store.MAIN_EVENT, fid(i), log)
-                or decoded_store.recorded_physics_facts(main) is None):
+                or gate.PhysicsFacts.from_dict(decoded_store.recorded_physics_facts(main)) is None):
             decoded_store.write_decoded(root, flight.decode_flight(log))
     return root
 

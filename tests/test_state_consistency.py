@@ -62,6 +62,17 @@ def test_old_footer_facts_are_not_trusted_for_the_new_check(main_table):
     assert gate.PhysicsFacts.from_dict(d) is None
 
 
+def test_footer_facts_found_by_another_gate_are_not_trusted(main_table, monkeypatch):
+    """The facts carry the digest of the code that found them (gate.FACTS_MODULES): after a change
+    to the gate (another digest) they are not used, and the table is read to judge it (before, only
+    a missing key made them stale: a changed threshold left every footer's verdict current)."""
+    d = gate.physics_facts(main_table).to_dict()
+    assert gate.PhysicsFacts.from_dict(d) is not None
+    monkeypatch.setattr(gate, "facts_digest", lambda: "another gate")
+    assert gate.PhysicsFacts.from_dict(d) is None
+
+
+
 def test_a_long_gap_restarts_the_integration():
     """A 10 s gap (a log paused): motion across it is not integrated, so a vehicle that moved
     while nothing was logged passes; the samples on each side are checked."""

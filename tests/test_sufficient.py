@@ -532,6 +532,18 @@ def test_the_code_that_decodes_a_log_is_in_the_decoder_digest(drag_fleet):
     assert decoded.provenance.decoder == flight.decoder_digest()
 
 
+def test_the_code_that_finds_a_decoded_tables_footer_facts_is_in_their_digest(drag_fleet):
+    """Every quadcore module whose functions run while the physics facts of a decoded table (its
+    footer's, quadcore.physics.decoded_store.write_decoded) are found is in gate.FACTS_MODULES:
+    facts found by another gate are not used (gate.PhysicsFacts.from_dict)."""
+    from quadcore.physics import gate
+
+    table = flight.decode_flight(drag_fleet / "sim000").tables["fixedFrequency"]
+    facts, ran = _modules_that_run(lambda: gate.physics_facts(table).to_dict())
+    assert "quadcore.physics.gate" in ran and facts["code"] == gate.facts_digest()
+    assert not ran - {*gate.FACTS_MODULES, "quadcore.store.codedigest"}, sorted(ran)
+
+
 def test_the_statistics_key_follows_the_spec_not_the_plugins_this_process_loaded():
     """What a flight's stored statistics must hold is decided by the model spec alone: a plugin
     another code path registered in a long-lived process (the code server keeps every plugin it

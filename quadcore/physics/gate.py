@@ -11,6 +11,7 @@ dynamics that call it.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -21,6 +22,7 @@ from quadcore.logs.checks import LOG_CHECK_DESCRIPTIONS, LOG_CHECKS, has_flight_
 from quadcore.logs.required import logged_as
 from quadcore.physics import rotations
 from quadcore.physics.vehicle import Vehicle
+from quadcore.store import codedigest
 
 XYZ = ("x", "y", "z")
 
@@ -92,19 +94,34 @@ class PhysicsFacts:
         return self.flight_phase
 
     def to_dict(self) -> dict:
+        """The footer's document, with the digest of the code that found the facts (:func:`facts_digest`)."""
         return {"columns": list(self.columns), "early": self.early, "bad_values": self.bad_values,
                 "quaternion": self.quaternion, "vbat_low": self.vbat_low, "flight_phase": self.flight_phase,
-                "state_estimate": self.state_estimate}
+                "state_estimate": self.state_estimate, "code": facts_digest()}
 
     @classmethod
     def from_dict(cls, d) -> PhysicsFacts | None:
-        """The facts of a footer's document, or None when it holds none (or not readable ones,
-        or ones recorded before the state estimate's consistency was checked: the table is then read)."""
+        """The facts of a footer's document, or None when it holds none (or not readable ones, or
+        ones found by other code than this, :func:`facts_digest`, such as before the state
+        estimate's consistency was checked: the table is then read)."""
         try:
+            if d["code"] != facts_digest():
+                return None
             return cls(tuple(d["columns"]), d["early"], {str(k): int(v) for k, v in d["bad_values"].items()},
                        d["quaternion"], int(d["vbat_low"]), d["flight_phase"], d["state_estimate"])
         except (KeyError, TypeError, ValueError, AttributeError):
             return None
+
+
+# The code the facts recorded in a decoded table's footer come from: this module's checks, the log's
+# checks (its flight phase) and the quaternion helpers. Facts recorded by other code are not used.
+FACTS_MODULES = ("quadcore.physics.gate", "quadcore.logs.checks", "quadcore.physics.rotations")
+
+
+@functools.lru_cache(maxsize=1)
+def facts_digest() -> str:
+    """The digest of :data:`FACTS_MODULES`' source (once per process)."""
+    return codedigest.modules_digest(FACTS_MODULES)
 
 
 def physics_facts(df: pl.DataFrame, columns: list[str] | None = None) -> PhysicsFacts:
