@@ -470,16 +470,13 @@ def _model_torque(model, flight: str, fd: FlightData, keep_linear: bool) -> tupl
     return m.vehicle, tau
 
 
-def model_columns(model, flight: str, labels: Sequence[str] | None = None) -> list[tuple[str, float]]:
-    """(label, value) of each linear coordinate of ``model``'s linear effects on ``flight``
-    (:meth:`~quadcore.effects.Effect.to_linear`), labelled ``effect:index``; ``labels``: those
-    (a kept :attr:`RateSums.model`, whose effects the model has; a label the model lacks is at 0)."""
+def model_columns(model, flight: str, labels: Sequence[str]) -> list[tuple[str, float]]:
+    """(label, value) of the linear coordinates ``labels`` (``effect:index``, a
+    :attr:`RateSums.model`) of ``model``'s linear effects on ``flight``
+    (:meth:`~quadcore.effects.Effect.to_linear`; a label the model lacks is at 0)."""
     m = model.for_flight(flight)
-    out = [(f"{t.name}:{i}", float(c)) for t in m.terms if get_effect(t.name).linear
-           for i, c in enumerate(get_effect(t.name).to_linear(t.params, m.vehicle))]
-    if labels is None:
-        return out
-    values = dict(out)
+    values = {f"{t.name}:{i}": float(c) for t in m.terms if get_effect(t.name).linear
+              for i, c in enumerate(get_effect(t.name).to_linear(t.params, m.vehicle))}
     return [(label, values.get(label, 0.0)) for label in labels]
 
 
