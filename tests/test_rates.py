@@ -25,6 +25,7 @@ from quadcore import effects
 from quadcore.cli import main
 from quadcore.identify import diagnosis, evidence, flightdata, rates
 from quadcore.identify.fit import solve
+from quadcore.identify.settings import DiagnosisSettings
 from quadcore.logs import flight
 from quadcore.physics import vehicle
 from quadcore.sim import simulation
@@ -241,16 +242,17 @@ def test_below_the_command_rate_the_rate_level_does_not_decide_lag_against_delay
 @pytest.mark.parametrize("name, truth_ms, lowpass_hz, tie", [("thrust_delay", 5, 0.0, True),
                                                             ("motor_lag", 10, 80.0, False)])
 def test_the_rate_level_does_not_prefer_what_the_noise_model_decides(tmp_path, name, truth_ms, lowpass_hz, tie):
-    """Known answer: a 5 ms delay on three 8 s hovers (white noise, seed 0). The held-out comparison
-    with the gyro's whitening filter prefers the lag (t = −4.1, p = 5e-4: wrong), without it the
-    delay (t = +4.0, p = 6e-4): the noise model decides it, so the diagnosis prefers neither and
+    """Known answer: a 5 ms delay on three 8 s hovers (white noise, seed 0). The comparison (both
+    candidates fitted on all three flights, rates.timing_comparison) with the gyro's whitening
+    filter prefers the lag (t = −3.1: wrong; −4.1 held out, before 26 Nov), without it the delay
+    (t = +4.0): the noise model decides it, so the diagnosis prefers neither and
     says why (before: the lag, separated at the angular-rate level). A 10 ms lag on the firmware's
-    coloured noise keeps its right answer: whitened the lag (t = −7.1), unwhitened the delay at
-    t = +2.0, p = 0.06, not significant (docs/timing.md, "A small delay"). The planner's measured
+    coloured noise keeps its right answer: whitened the lag (t = −10.9; −7.1 held out), unwhitened
+    the delay at t = +2.0, not significant (docs/timing.md, "A small delay"). The planner's measured
     separation (quadcore.plan.separation.measured) says what the diagnosis says: on the tie, the
     diagnosis's sentence and no separation (0 σ; before, 4.1 σ for the lag, a separation the
     diagnosis calls a tie), with the whitened t and the unwhitened one of the other sign beside it;
-    on the lag, its 7 σ."""
+    on the lag, its 11 σ."""
     from quadcore.plan import separation
 
     folder = tmp_path / "logs"
@@ -281,12 +283,43 @@ def test_the_rate_level_does_not_prefer_what_the_noise_model_decides(tmp_path, n
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("name", TIMING)
+def test_a_flight_that_moves_decides_a_small_lag_against_a_delay_among_hovers(tmp_path, name):
+    """Known answer: a 5 ms lag or delay on three 8 s hovers and 14 s of circle0 with the firmware's
+    coloured noise (seed 0). Fitted on all four flights (one parameter each) the comparison prefers
+    the truth with and without the whitening filter and with the direction one sample back as the
+    instrument (lag: t = -32.1, -3.6, -9.2; delay: +10.2, +8.0, +3.5, measured on the same flights
+    through rates.timing_comparison), so the diagnosis ranks it first, separated at the angular-rate
+    level, and the planner's measured separation says the same. Before, leaving one flight out, the
+    fold holding the circle out fitted both on the hovers alone (t_d at 2 ms) and the circle's blocks
+    asked which biased fit was nearer: whitened the lag, unwhitened the delay whichever was true,
+    tied by the noise-model rule (docs/timing.md, "The closed loop's share")."""
+    from quadcore.plan import separation
+
+    folder = tmp_path / "logs"
+    noise = simulation.SensorNoise(lowpass_hz=80.0)
+    configs = [SimConfig(kind="hover", duration_s=8.0, seed=k, log_rate_hz=500.0, noise=noise) for k in range(3)]
+    configs.append(SimConfig(kind="circle0", duration_s=14.0, seed=1000, name="circle0", noise=noise))
+    simulation.simulate_set(folder, configs, {name: {effects.get(name).parameters[0].name: 0.005}}, VEHICLE)
+    tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
+    spec = spec_from(VEHICLE, [])
+    diag = diagnosis.diagnose(tables, spec, candidates=list(TIMING))
+    rows = {c.effect: c for c in diag.candidates}
+    rival = next(n for n in TIMING if n != name)
+    assert not any("decides it" in n for n in (*rows[name].notes, *rows[rival].notes)), rows[name].notes
+    assert rows[rival].separated_by.get(name) == rates.RATE_LEVEL, rows[rival].separated_by
+    assert list(rows).index(name) < list(rows).index(rival) and rival not in rows[name].tied_with
+    comp = separation.measured(tables, spec, diag, name, rival)
+    assert not comp.undecided and comp.sigma_for(name) > 5, comp
+
+
+@pytest.mark.slow
 def test_the_rate_level_does_not_prefer_what_the_closed_loop_decides(tmp_path):
     """Known answer: a 5 ms lag on three 8 s hovers with the firmware's coloured noise (seed 0).
-    The held-out comparison with the gyro's whitening filter prefers the delay (t = +8.5: wrong),
-    and without the filter too (t = +15.5), so the noise-model rule cannot see it; with the timing
-    direction one sample back as the instrument the comparison leans to the lag (t = −5.2), and the
-    two slopes differ at 15 standard errors: the closed loop's response to its own noise decides
+    The comparison (fitted on all three flights) with the gyro's whitening filter prefers the delay
+    (t = +8.3: wrong; +8.5 held out), and without the filter too (t = +15.6), so the noise-model rule
+    cannot see it; with the timing direction one sample back as the instrument the comparison leans
+    to the lag (t = −5.3), and the two slopes differ significantly: the closed loop's response to its own noise decides
     it, so the diagnosis prefers neither and says why (before: the delay, separated at the
     angular-rate level). The same flights with the gyro noise kept out of the controller prefer the
     lag (t = −3.6): the closed loop is the cause (docs/timing.md, "The closed loop's share")."""
@@ -478,34 +511,45 @@ def test_in_holdout_mode_the_held_out_flight_does_not_weigh_the_rate_levels_fit(
 
 
 def test_in_cross_validation_each_folds_weights_come_from_its_training_flights(drag_fleet, monkeypatch):
-    """Cross-validation: each fold's rate-level fits and its held-out flights' block differences
-    take their noise weights from the fold's training flights alone. The same four flights, the
-    last one's noise floor (what the weights are made of, nothing else) three times larger on one
-    axis and a third on the others: the fold that holds it out measures exactly what it measured
-    before; the folds it trains in do not (the weights are used). Before, every fold's weights
-    were the noise floor of all the flights, each fold's held-out ones too (the holdout mode's
-    leak, 25df2b3, in the folds)."""
+    """Cross-validation: each fold's rate-level fits (the spread between flights) take their noise
+    weights from the fold's training flights alone, and the pair's comparison (fits on all the
+    flights, every flight scored: rates.timing_comparison) from all of them. The same four
+    flights, the last one's noise floor (what the weights are made of, nothing else) three times
+    larger on one axis and a third on the others: the fold that holds it out fits with exactly the
+    weights it had before; the folds it trains in do not, nor does the comparison (the weights are
+    used). Before 25df2b3 every fold's weights were the noise floor of all the flights, each fold's
+    held-out ones too (the holdout mode's leak, in the folds)."""
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(drag_fleet)}
     held = sorted(tables)[-1]
-    seen: list[dict[str, np.ndarray]] = []
-    compare_pair = rates.compare_pair
+    splits, _, _ = diagnosis.fold_splits(sorted(tables), None, DiagnosisSettings().n_folds)
+    fold_weights: list[list[np.ndarray]] = []
+    compared: list[dict[str, np.ndarray]] = []
+    fit, compare_pair = rates.judgement.fit, rates.compare_pair
 
-    def spy(*args):
+    def fit_spy(effect, flights, w):
+        if effect.name == TIMING[0] and len(fold_weights[-1]) < len(splits):  # the folds' fits come first
+            fold_weights[-1].append(np.array(w, copy=True))
+        return fit(effect, flights, w)
+
+    def compare_spy(*args):
         per_flight, test = compare_pair(*args)
-        seen.append({f: g for f, (g, _) in per_flight.items()})
+        compared.append({f: g for f, (g, _) in per_flight.items()})
         return per_flight, test
 
     def noisier(f, inputs, compute):  # the held flight's noise floor changed, its sums the same
         s = compute()
         return replace(s, noise=s.noise * np.array([3.0, 1 / 3, 1 / 3])) if f == held else s
 
-    monkeypatch.setattr(rates.compare, "compare_pair", spy)  # where held_out_comparison looks it up
+    monkeypatch.setattr(rates.judgement, "fit", fit_spy)
+    monkeypatch.setattr(rates.compare, "compare_pair", compare_spy)  # where held_out_comparison looks it up
     for cache in (None, noisier):
+        fold_weights.append([])
         diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING), rate_cache=cache)
-    assert len(seen) == 2 and set(seen[0]) == set(tables), seen
-    before, after = seen
-    np.testing.assert_allclose(after[held], before[held], rtol=1e-12, atol=0)
-    assert all(not np.allclose(after[f], before[f], rtol=1e-6, atol=0) for f in tables if f != held)
+    assert len(splits) == len(tables) and [len(w) for w in fold_weights] == [len(splits)] * 2, fold_weights
+    for (train, _), before, after in zip(splits, *fold_weights):
+        assert np.allclose(after, before, rtol=1e-12, atol=0) == (held not in train), (train, before, after)
+    assert len(compared) == 2 and set(compared[0]) == set(compared[1]) == set(tables), compared
+    assert all(not np.allclose(compared[1][f], compared[0][f], rtol=1e-6, atol=0) for f in tables)
 
 
 def _rows(*names: str, found: bool = True) -> list:

@@ -153,12 +153,12 @@ def timing_pair(a: str, b: str) -> bool:
 
 def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsModel, a: str, b: str,
                  timing: Sequence[str] = (), settings: DiagnosisSettings = DEFAULT) -> Comparison:
-    """The diagnosis's held-out comparison of two timing candidates at the angular-rate level
+    """The diagnosis's comparison of two timing candidates at the angular-rate level
     (:func:`quadcore.identify.rates.judge`'s, for one pair, with its ``settings``: folds and
     ``alpha``): each flight's rate sums with the model's torque removed and the first blocks of the
     longest memory among the diagnosis's ``timing`` candidates left out (``a`` and ``b`` at least),
-    both candidates fitted on each fold's training flights (the diagnosis's folds: in-sample with
-    one flight), :func:`quadcore.identify.rates.held_out_comparison` over the test flights
+    :func:`quadcore.identify.rates.timing_comparison` on the diagnosis's folds (both candidates
+    fitted on all the training flights, every flight scored; held-out flights given: those)
     (``t > 0``: ``a``): undecided where the diagnosis prefers neither because the noise model or the
     closed loop decides it."""
     ea, eb = effectlib.get(a), effectlib.get(b)
@@ -166,9 +166,7 @@ def rate_compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: Phy
     fds = flights_of(tables, spec)
     sums = {f: rates.flight_sums(fd, model, f, [ea, eb], skip) for f, fd in fds.items()}
     splits, _, _ = diagnosislib.fold_splits(sorted(sums), None, settings.n_folds)
-    ws = rates.split_weights(sums, splits)  # each fold's from its training flights, as the diagnosis's
-    fits = {e.name: [rates.fit(e, [sums[f] for f in tr], w) for (tr, _), w in zip(splits, ws)] for e in (ea, eb)}
-    pair = rates.held_out_comparison(sums, splits, ea, eb, fits[a], fits[b], ws, settings.alpha)
+    pair = rates.timing_comparison(sums, splits, ea, eb, settings.alpha)
     test = pair.test
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks), pair.note() if pair.undecided else "",
                       None if pair.unwhitened is None else float(pair.unwhitened.t), pair.undecided_by)

@@ -49,6 +49,8 @@ from quadcore.identify.rates.compare import (
     instrument_test,
     instrumented_differences,
     noise_model_decides,
+    pair_splits,
+    timing_comparison,
     unwhitened_comparison,
 )
 from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
@@ -92,5 +94,5 @@ __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOIS
            "block_differences", "closed_loop_decides", "compare_pair", "difference_test", "effect_increments", "fit",
            "fit_cost", "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model",
            "held_out_comparison", "instrument_test", "instrumented_differences", "judge", "noise_model",
-           "noise_model_decides", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums",
-           "split_weights", "unwhitened_comparison", "weights", "whitened"]
+           "noise_model_decides", "pair_splits", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums",
+           "split_weights", "timing_comparison", "unwhitened_comparison", "weights", "whitened"]

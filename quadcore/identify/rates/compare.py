@@ -16,6 +16,14 @@ comparison with the whitened direction one interval back as the instrument
 direction itself: when the whitened slope differs from it significantly and it does not confirm the
 whitened answer, the closed loop's response to its own noise decides the answer, and the rate level
 prefers neither (:func:`closed_loop_decides`, docs/timing.md "The closed loop's share").
+
+The diagnosis and the planner compare the pair at fits on all the training flights
+(:func:`pair_splits`, :func:`timing_comparison`), every flight's blocks scored: two non-nested
+candidates with one parameter each gain alike, in expectation, from fitting the flights they are
+scored on (Vuong 1989, the likelihood-ratio test of non-nested models of equal dimension needs no
+correction), while leaving one flight out lets the fold that holds out the one informative flight
+(a flight that moves, among hovers) fit both on the others alone, biased, and that flight's blocks
+then ask only which biased fit is nearer (docs/timing.md, "The closed loop's share").
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ from scipy import stats
 
 from quadcore.effects import Effect
 from quadcore.identify import evidence
-from quadcore.identify.rates.sums import RateFit, RateSums
+from quadcore.identify.rates.sums import RateFit, RateSums, fit, split_weights
 
 
 def block_differences(flights: Sequence[RateSums], a: Effect, pa: dict[str, float], b: Effect,
@@ -214,3 +222,28 @@ def held_out_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[
     iv, shift = instrument_test(g, D, *lagged)
     closed_loop = not noise_model and closed_loop_decides(test, iv, shift, alpha)
     return PairComparison(a.name, b.name, per_flight, test, raw, noise_model or closed_loop, iv, closed_loop)
+
+
+def pair_splits(splits: Sequence[tuple[Sequence[str], Sequence[str]]]) -> list[tuple[list[str], list[str]]]:
+    """The one split two timing candidates are compared on: the diagnosis's folds' flights, each
+    candidate fitted on all of them and every one scored (in-sample, :mod:`this module's
+    <quadcore.identify.rates.compare>` note); a single split (held-out flights given, or one
+    flight) as it is."""
+    if len(splits) == 1:
+        return [(list(splits[0][0]), list(splits[0][1]))]
+    ids = sorted({f for tr, te in splits for f in (*tr, *te)})
+    return [(ids, ids)]
+
+
+def timing_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                      a: Effect, b: Effect, alpha: float) -> PairComparison:
+    """How the diagnosis (:func:`quadcore.identify.rates.judge`) and the planner
+    (:func:`quadcore.plan.separation.rate_compare`) decide two timing candidates: on
+    :func:`pair_splits` of the diagnosis's ``splits``, each candidate fitted on the split's training
+    flights and weighted by their noise (:func:`~quadcore.identify.rates.sums.fit`,
+    :func:`~quadcore.identify.rates.sums.split_weights`), :func:`held_out_comparison` at ``alpha``
+    with every rule that leaves the pair undecided."""
+    pair = pair_splits(splits)
+    ws = split_weights(flights, pair)
+    fits_a, fits_b = ([fit(e, [flights[f] for f in tr], w) for (tr, _), w in zip(pair, ws)] for e in (a, b))
+    return held_out_comparison(flights, pair, a, b, fits_a, fits_b, ws, alpha)

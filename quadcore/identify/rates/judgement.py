@@ -3,7 +3,8 @@
 :func:`judge` takes every flight's :data:`~quadcore.identify.rates.sums.FlightRates` (kept or
 made), fits each timing candidate's one parameter (:func:`quadcore.identify.rates.sums.fit`:
 ``θ̂ = argmin J_rate(θ)`` over the training flights, body-frame torques integrated to N m s) and
-compares every pair held out (:mod:`quadcore.identify.rates.compare`): a significant difference
+compares every pair at fits on all the training flights, every flight's blocks scored
+(:func:`quadcore.identify.rates.compare.timing_comparison`): a significant difference
 ranks the better one above the other, a pair the noise model decides, or one not significant
 where either is found, is tied (:data:`TIE`, :class:`Judged`). Used by
 :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
@@ -23,7 +24,7 @@ from quadcore.effects import Effect
 from quadcore.identify import evidence
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData
-from quadcore.identify.rates.compare import held_out_comparison
+from quadcore.identify.rates.compare import timing_comparison
 from quadcore.identify.rates.sums import (
     BelowCommandRate,
     FlightRates,
@@ -49,8 +50,9 @@ TIE = " = "  # joins the timing candidates a fold's answer names when the rate l
 
 @dataclass(frozen=True)
 class Judged:
-    """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each held-out flight's
-    per-block :func:`block_differences` (> 0: ``a`` fits better); ``undecided``: the pairs whose
+    """What :func:`judge` measured: per pair ``(a, b)`` of timing candidates, each compared flight's
+    per-block :func:`block_differences` (> 0: ``a`` fits better; :func:`timing_comparison`'s
+    flights and fits); ``undecided``: the pairs whose
     answer the gyro noise model (:func:`noise_model_decides`) or the closed loop
     (:func:`closed_loop_decides`) decides, which prefer neither."""
 
@@ -86,9 +88,10 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     """The ranked candidate rows of a diagnosis with its timing candidates (one parameter each,
     :attr:`~quadcore.effects.Effect.retimes_thrust`) fitted and compared at the rate level: each
     one's parameter, standard error (the larger of the profile's and the spread between the
-    folds' fits) and significance from :func:`fit` on the training flights, and, per pair, the
-    held-out :func:`difference_test` over the folds' test flights (each candidate fitted on the
-    fold's training flights): significant at ``settings.alpha``, the better one ranks above the
+    folds' fits) and significance from :func:`fit` on the training flights, and, per pair,
+    :func:`timing_comparison`'s :func:`difference_test` (each candidate fitted on all the training
+    flights, every flight's blocks scored; with held-out flights given, those): significant at
+    ``settings.alpha``, the better one ranks above the
     other (within its tier) and the two are no longer tied; not, they are tied when either is
     found (undecided, whatever the torque level says). Every candidate on the same intervals
     (after the longest memory of them). The model's effects at their values fitted on all
@@ -141,7 +144,7 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             ra, rb = by_name[a.name], by_name[b.name]
             if not (ra.physical and rb.physical):
                 continue
-            pair = held_out_comparison(flights, splits, a, b, folds[a.name], folds[b.name], ws, settings.alpha)
+            pair = timing_comparison(flights, splits, a, b, settings.alpha)
             differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
             if pair.undecided:
                 undecided.add((a.name, b.name))
