@@ -42,7 +42,7 @@ import numpy as np
 
 from quadcore.effects import Effect, get as get_effect
 from quadcore.identify.fit import solve
-from quadcore.identify.flightdata import FlightData
+from quadcore.identify.flightdata import FlightData, one_blas_thread
 from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
 from quadcore.identify.rates.noise import Filter, NoiseModel, gyro_noise_model, noise_model, whitened
 from quadcore.identify.stats import profiles
@@ -226,6 +226,15 @@ def grid_weights(effect: Effect, grid: np.ndarray, v: float) -> np.ndarray:
     return out
 
 
+def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(3, K, K) per axis ``a`` the products ``Σ_k x[k, a, i] y[k, a, j]`` of two (n, 3, K) arrays of
+    running sums, as one matrix product per axis (BLAS: about 14 times faster than the same sum by
+    ``np.einsum`` at a real flight's segment of 450 rows and K = 84; equal to rounding, 1e-15 of the
+    largest). Run it under :func:`~quadcore.identify.flightdata.one_blas_thread`: OpenBLAS's
+    second thread splits the sum and moves its last bits."""
+    return np.matmul(x.transpose(1, 2, 0), y.transpose(1, 0, 2))
+
+
 def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filter = "gyro",
               model: Sequence[tuple[str, np.ndarray]] = ()) -> RateSums:
     """A flight's :class:`RateSums` for the one-parameter ``timing`` effects, in one pass over
@@ -275,17 +284,18 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
     raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
     lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))  # each interval with the one before (lagged_blocks)
-    for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
-        x = whitened(X[lo:hi].astype(float), ar)
-        if not len(x):
-            continue
-        x -= x.mean(axis=0)
-        blocks[cluster[i]] += np.einsum("kai,kaj->aij", x, x)[:, iu[0], iu[1]]
-        if lags:
-            lagged[cluster[i]] += np.einsum("kai,kaj->aij", x[:-1], x[1:])
-            r = X[lo:hi].astype(float)
-            r -= r.mean(axis=0)
-            raw[cluster[i]] += np.einsum("kai,kaj->aij", r, r)[:, iu[0], iu[1]]
+    with one_blas_thread():  # the Gram products: the same numbers whatever BLAS's thread count
+        for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
+            x = whitened(X[lo:hi].astype(float), ar)
+            if not len(x):
+                continue
+            x -= x.mean(axis=0)
+            blocks[cluster[i]] += _gram(x, x)[:, iu[0], iu[1]]
+            if lags:
+                lagged[cluster[i]] += _gram(x[:-1], x[1:])
+                r = X[lo:hi].astype(float)
+                r -= r.mean(axis=0)
+                raw[cluster[i]] += _gram(r, r)[:, iu[0], iu[1]]
     used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
     total = blocks.sum(axis=0)
     return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
