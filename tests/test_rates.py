@@ -435,6 +435,30 @@ def test_the_rate_sums_give_the_rows_costs(delayed_hover):
         assert got == pytest.approx(want, rel=1e-4, abs=1e-6 * np.abs(want).max())
 
 
+def test_the_rate_sums_gram_products_run_on_one_blas_thread(delayed_hover, monkeypatch):
+    """The per-segment Gram products are matrix products (BLAS), and OpenBLAS's second thread
+    splits such a sum and moves its last bits (a 450 x 84 segment: not equal with two threads):
+    rate_sums makes every one of them (whitened, lagged, unwhitened) on one BLAS thread whatever
+    the caller allows, so a flight's sums do not depend on the thread count."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from quadcore.identify.rates import sums as sums_module
+
+    gram, seen = sums_module._gram, []
+
+    def watched(x, y):
+        seen.append({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+        return gram(x, y)
+
+    monkeypatch.setattr(sums_module, "_gram", watched)
+    (rf,) = delayed_hover
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"} == {2}
+        s = rates.rate_sums(rf, [effects.get("thrust_delay"), effects.get("motor_lag")],
+                            noise=(np.full((3, 2), [0.5, -0.1]), np.ones(3)))
+    assert s.lagged_blocks is not None and len(seen) >= 3 and all(n == {1} for n in seen)
+
+
 DOUBLE_LAG = Path(__file__).resolve().parent / "plugins" / "double_lag.py"  # a third timing effect
 
 
