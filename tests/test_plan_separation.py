@@ -142,6 +142,7 @@ def test_predictions_equal_to_rounding_are_no_comparison(weak_map):
     model = model_fit.fit_model(spec, weak_map, sorted(weak_map))
     comp = separation.compare(weak_map, spec, model, "thrust_scale", "added_mass", skip=1)
     assert (comp.t, comp.p_value, comp.blocks) == (0.0, 1.0, 0)
+    assert comp.available_blocks is not None and comp.available_blocks >= evidence.MIN_BLOCKS  # not too short
 
 
 def test_an_undecided_pair_says_which_rule_decides_it():
@@ -196,3 +197,23 @@ def test_the_rate_level_separation_is_the_diagnosis_s_with_one_flight_and_with_a
     t = seen.get(("motor_lag", "thrust_delay"), -seen.get(("thrust_delay", "motor_lag"), np.nan))
     comp = separation.measured(tables, spec, diag, "motor_lag", "thrust_delay")
     assert comp.t == pytest.approx(t, rel=1e-9, abs=1e-9), (comp.t, seen)
+
+
+def test_no_comparison_says_whether_too_few_blocks_or_the_same_prediction():
+    """The planner's note for a measured separation with no held-out test: fewer than
+    ``evidence.MIN_BLOCKS`` held-out blocks is too little data, not two equal predictions
+    (before, every 0-block result said "they predict the same"); the rate level claims neither."""
+    from types import SimpleNamespace
+
+    from quadcore.plan import planner
+
+    diag = SimpleNamespace(at_noise_level={"force": False, "torque": True})
+    def note(available):
+        comp = separation.Comparison("thrust_scale", "added_mass", 0.0, 1.0, 0, available_blocks=available)
+        return planner._no_comparison_note(diag, comp, 4.2)
+
+    short, same, rate = note(2), note(15), note(None)
+    assert "too short" in short and "2 held-out blocks" in short and "predict the same" not in short
+    assert "predict the same" in same and "torque at the floor" in same and "too short" not in same
+    assert "predict the same" not in rate and "angular-rate level" in rate
+    assert all("expects 4.2 σ" in s for s in (short, same, rate))

@@ -95,6 +95,7 @@ class HeldOutTest:
 
 
 NO_TEST = HeldOutTest(0.0, 0.0, 1.0, 0)
+MIN_BLOCKS = 3  # the fewest blocks a held-out t-test is made on
 
 
 def channel_mask(channels) -> np.ndarray:
@@ -152,7 +153,7 @@ def block_sums(flights: Flights, a: Signals, b: Signals, weights: np.ndarray) ->
 
 def _t_and_p(num: np.ndarray, den: float, scores: np.ndarray) -> HeldOutTest:
     n = len(scores)
-    if n < 3 or den <= 0:
+    if n < MIN_BLOCKS or den <= 0:
         return NO_TEST
     beta = float(num.sum() / den)
     se = float(np.sqrt(n / (n - 1) * np.sum(scores**2)) / den)
@@ -194,7 +195,7 @@ def compare(flights: Flights, resid: dict[str, np.ndarray], pred_a: dict[str, np
     centred = {f: resid[f] - 0.5 * (pred_a[f] + pred_b[f]) for f in pred_a}
     g = block_sums(flights, d, centred, weights)
     n = len(g)
-    if n < 3 or not np.any(g) or same_prediction(_energy(flights, d) @ weights,
+    if n < MIN_BLOCKS or not np.any(g) or same_prediction(_energy(flights, d) @ weights,
                                                  (_energy(flights, pred_a) + _energy(flights, pred_b)) @ weights):
         return NO_TEST
     sd = float(np.std(g, ddof=1))

@@ -262,7 +262,7 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                           "(docs/flight-planning.md)")
         log(f"plan: {design['note']}")
     elif measured.blocks == 0:
-        design["note"] = _no_comparison_note(diag, design["before"]["sigma"])
+        design["note"] = _no_comparison_note(diag, measured, design["before"]["sigma"])
         log(f"plan: {design['note']}")
     elif _flights_disagree(measured):
         design["note"] = _flights_note(measured)
@@ -280,18 +280,26 @@ def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: Pl
                       flatness.flat_path(best.trajectory, vehicle), measured.undecided)
 
 
-def _no_comparison_note(diag: Diagnosis, expected: float) -> str:
+def _no_comparison_note(diag: Diagnosis, measured: separation.Comparison, expected: float) -> str:
     """Why the measured separation is 0 where the design expects more: the held-out comparison
-    (:func:`quadcore.plan.separation.compare`) had nothing to compare, the two predicting the same
-    in the channels the diagnosis takes evidence from (above the sensor-noise floor), while the
-    objective counts every channel (in hover a thrust scale's torque trims, below the gyro noise,
-    against a payload's none; docs/flight-planning.md)."""
+    (:func:`quadcore.plan.separation.compare`) had too few blocks to test on (fewer than
+    ``evidence.MIN_BLOCKS``: too little data, which says nothing of the predictions), or nothing
+    to compare, the two predicting the same in the channels the diagnosis takes evidence from
+    (above the sensor-noise floor), while the objective counts every channel (in hover a thrust
+    scale's torque trims, below the gyro noise, against a payload's none; docs/flight-planning.md);
+    at the rate level (no block count) neither is claimed."""
+    tail = f", so there is no held-out comparison (0 σ) where the objective, which counts every channel, " \
+           f"expects {expected:.1f} σ"
+    available = measured.available_blocks
+    if available is None:
+        return "the logged flights give no comparison of the two at the angular-rate level" + tail
+    if available < evidence.MIN_BLOCKS:
+        return (f"the logged flights are too short to compare the two: {available} held-out "
+                f"block{'' if available == 1 else 's'} where the test needs at least {evidence.MIN_BLOCKS}") + tail
     quiet = [ch for ch, at in diag.at_noise_level.items() if at]
     return ("the logged flights do not separate the two at all: they predict the same where the residual stands "
             "above the sensor-noise floor" + (f" ({' and '.join(quiet)} at the floor, where the diagnosis takes no "
-                                              "evidence)" if quiet else "")
-            + f", so there is no held-out comparison (0 σ) where the objective, which counts every channel, "
-            f"expects {expected:.1f} σ")
+                                              "evidence)" if quiet else "") + tail)
 
 
 def _flights_disagree(measured: separation.Comparison) -> bool:

@@ -90,7 +90,8 @@ class Comparison:
     :func:`quadcore.identify.rates.noise_model_decides`) or ``the closed loop`` (the comparison with
     the timing direction one sample back as the instrument contradicts ``t``:
     :func:`quadcore.identify.rates.closed_loop_decides`); ``by_flight``: the same by flight
-    (:class:`ByFlight`; None at the rate level)."""
+    (:class:`ByFlight`; None at the rate level); ``available_blocks``: the held-out blocks there
+    were to compare on (None at the rate level), fewer than ``evidence.MIN_BLOCKS`` being no test."""
 
     a: str
     b: str
@@ -101,6 +102,7 @@ class Comparison:
     unwhitened_t: float | None = None
     undecided_by: str = ""
     by_flight: ByFlight | None = None
+    available_blocks: int | None = None
 
     def sigma_for(self, truth: str) -> float:
         """The separation in favour of ``truth`` (negative when the data prefer the other), as the
@@ -130,8 +132,9 @@ def compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsM
     held = diagnosislib.held_out_of_model(tables, spec, model, [a, b], n_folds, skip, bounded=False, stats=stats)
     w = evidence.compared_weights(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], held.w, held.at_noise)
     test = evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], w)
+    available = test.blocks or len(evidence.block_sums(held.flights, held.resid, held.resid, w))
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks),
-                      by_flight=_by_flight(held, a, b, w) if test.blocks else None)
+                      by_flight=_by_flight(held, a, b, w) if test.blocks else None, available_blocks=available)
 
 
 def _by_flight(held, a: str, b: str, w) -> ByFlight:
