@@ -28,7 +28,6 @@ from __future__ import annotations
 import gc
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -50,15 +49,21 @@ from quadcore.workflows import fleet, identify  # noqa: E402
 
 def measure(n: int, timing: bool, real: str | None = None) -> None:
     """In the child: the statistics, then the diagnosis (without the timing candidates unless
-    ``timing``) on ``n`` pool flights, or on the logs in the folder ``real``; prints one JSON line."""
-    spec = workflows.resolve_model(None)
+    ``timing``) on ``n`` pool flights, or on the logs in the folder ``real`` decoded into a
+    temporary data root, removed however the run ends; prints one JSON line."""
     if real is None:
         root, _ = bench_scale.fleet_root(n)
-        ids = [bench_scale.fid(i) for i in range(n)]
-    else:
-        root = Path(tempfile.mkdtemp())
-        ids = [f.flight_id for f in fleet.decode_logs([real], root)[0]]
-        n = len(ids)
+        _measure(root, [bench_scale.fid(i) for i in range(n)], timing)
+        return
+    with tempfile.TemporaryDirectory(prefix="bench_diagnosis_memory_") as tmp:
+        root = Path(tmp)
+        _measure(root, [f.flight_id for f in fleet.decode_logs([real], root)[0]], timing)
+
+
+def _measure(root: Path, ids: list[str], timing: bool) -> None:
+    """:func:`measure` on the flights ``ids`` of the data root ``root``."""
+    spec = workflows.resolve_model(None)
+    n = len(ids)
     for f in ids:
         decoded = store.read_decoded(root, store.MAIN_EVENT, f)
         sufficient.save(sufficient.compute_current(spec, f, decoded, sufficient.decoded_source(root, f) or ""), root)
@@ -74,8 +79,6 @@ def measure(n: int, timing: bool, real: str | None = None) -> None:
     print(json.dumps({"flights": n, "evaluated": len(result.evaluation.eval_flights),
                       "seconds": round(time.perf_counter() - t0, 1), "peak_mb": round(bench_scale.peak_mb()),
                       "diagnosis_mb": round(tracemalloc.get_traced_memory()[1] / 2**20, 1)}))
-    if real is not None:
-        shutil.rmtree(root)
 
 
 def main() -> None:

@@ -28,7 +28,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import statistics
+import sys
 import time
 
 from quadcore.plan import bench
@@ -45,8 +47,7 @@ def main() -> None:
     ap.add_argument("--table", help="print the tables of the trials in this --json file, run nothing")
     args = ap.parse_args()
     if args.table:
-        with open(args.table) as fh:
-            summarise([trial_from(json.loads(line)) for line in fh if line.strip()])
+        summarise([trial_from(d) for d in read_lines(args.table)])
         return
     files = tuple(f for f in args.files.split(",") if f)
     trials = []
@@ -66,9 +67,31 @@ def main() -> None:
                 print(f"  predicted at the rate level, the flight's own blocks (t per truth; min t² per s): {flights}",
                       flush=True)
             if args.json:
-                with open(args.json, "a") as fh:
-                    fh.write(json.dumps(dataclasses.asdict(trial)) + "\n")
+                append_line(args.json, json.dumps(dataclasses.asdict(trial)))
     summarise(trials)
+
+
+def read_lines(path: str) -> list[dict]:
+    """The JSON lines of a ``--json`` file; a line that is not complete JSON (a run killed
+    mid-write, then perhaps resumed after it: :func:`append_line`) is left out with a message."""
+    rows = []
+    with open(path) as fh:
+        for k, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                print(f"bench_plan: {path} line {k} is not complete JSON (a run killed mid-write?): left out",
+                      file=sys.stderr)
+    return rows
+
+
+def append_line(path: str, line: str) -> None:
+    """Append ``line`` to ``path`` on a line of its own (after a last line a killed run left unfinished)."""
+    with open(path, "ab+") as fh:  # appends go to the end whatever the position read from
+        ended = fh.seek(0, os.SEEK_END) == 0 or (fh.seek(-1, os.SEEK_END) >= 0 and fh.read(1) == b"\n")
+        fh.write((("" if ended else "\n") + line + "\n").encode())
 
 
 def trial_from(d: dict) -> bench.Trial:
