@@ -42,13 +42,17 @@ def _kept(fd: FlightData, skip: int) -> tuple[np.ndarray, np.ndarray]:
     return idx[keep], block[keep] - skip
 
 
-def _fitted_channels(e, train: list[FlightData], resid: list[np.ndarray]) -> np.ndarray | None:
+def _fitted_channels(e, train: list[FlightData], resid: list[np.ndarray], skip: int) -> np.ndarray | None:
     """A one-parameter candidate acting on force and torque is fitted in the one of the two above
-    its sensor-noise floor on the training flights when the other is at it (every usable sample)."""
+    its sensor-noise floor on the training flights when the other is at it (the usable samples
+    the scores count: after the first ``skip`` blocks, every one if none is left)."""
     if e.target != "both" or len(e.parameters) != 1:
         return None
-    ss = sum((np.einsum("nc,nc->c", r[fd.mask], r[fd.mask]) for fd, r in zip(train, resid)), np.zeros(6))
-    floor = sum((fd.noise ** 2 * fd.n for fd in train), np.zeros(6))
+    kept = [_kept(fd, skip)[0] for fd in train]
+    if sum(len(k) for k in kept) == 0:
+        kept = [np.flatnonzero(fd.mask) for fd in train]
+    ss = sum((np.einsum("nc,nc->c", r[k], r[k]) for k, r in zip(kept, resid)), np.zeros(6))
+    floor = sum((fd.noise ** 2 * len(k) for fd, k in zip(train, kept)), np.zeros(6))
     above = [ch for ch, quiet in evidence.at_noise_level(ss, floor).items() if not quiet]
     return evidence.channel_mask(above) if len(above) == 1 else None
 
@@ -65,7 +69,8 @@ def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: s
         for name in (a, b):
             e = effectlib.get(name)
             fit = rows.fit_effects([e], [fds[f] for f in train], [resid[f] for f in train], model.vehicle,
-                                   channels=_fitted_channels(e, [fds[f] for f in train], [resid[f] for f in train]))
+                                   channels=_fitted_channels(e, [fds[f] for f in train], [resid[f] for f in train],
+                                                                   skip))
             for f in held:
                 pred[name][f] = flightdata.prediction(e, fit.params[name], fds[f], model.vehicle)
     kept = {f: _kept(fds[f], skip) for f in ids}

@@ -190,7 +190,8 @@ class _Problem:
     def fitted_channels(self, c, flights: list[str], resid: _Residual) -> np.ndarray | None:
         """The channels a one-parameter candidate acting on force and torque is fitted in: with one
         of the two at its sensor-noise floor on the training ``flights`` (the model's residual
-        within ``noise_margin`` of it, :func:`quadcore.identify.evidence.at_noise_level`), the other
+        within ``noise_margin`` of it, :func:`quadcore.identify.evidence.at_noise_level`, on the
+        blocks the scores count: without the first ``skip``, :func:`_on_common_samples`), the other
         alone (:func:`quadcore.identify.evidence.channel_mask`); None (every channel) otherwise.
         One parameter shapes both channels' prediction, so either channel alone pins it; several
         may not be pinned by one channel (``rotor_imbalance``'s force is the small part its
@@ -206,8 +207,9 @@ class _Problem:
         (docs/flight-planning.md, "Thrust scale against added mass")."""
         if c.target != "both" or len(c.parameters) != 1:
             return None
-        ss = _total(resid.on[f].sum_of_squares(resid.signal[f]) for f in flights)
-        floor = _total(resid.on[f].noise ** 2 * resid.on[f].n for f in flights)
+        on = _on_common_samples([resid.on[f] for f in flights], self.skip)  # the blocks the scores count
+        ss = _total(fd.sum_of_squares(resid.signal[f]) for f, fd in zip(flights, on))
+        floor = _total(fd.noise ** 2 * fd.n for fd in on)
         above = [ch for ch, quiet in evidence.at_noise_level(ss, floor, self.noise_margin).items() if not quiet]
         return evidence.channel_mask(above) if len(above) == 1 else None
 
