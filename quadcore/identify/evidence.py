@@ -212,7 +212,17 @@ def compared_weights(flights: Flights, resid: Signals, pred_a: Signals, pred_b: 
     (:func:`quadcore.identify.diagnosis.scoring`): there the closed loop's errors in variables let
     a thrust scale's torque trims "explain" some gyro noise whichever is true (no evidence for it),
     while its torque on a manoeuvre, which a payload does not make, adds error when the payload is
-    the truth (evidence against it)."""
+    the truth (evidence against it).
+
+    The choice is made on the predictions the comparison then tests, not on the training
+    flights' (symmetric in the two, so it favours neither). Measured that this does not move it
+    (2026-11-26, /work/coord/baseline/fixup_item1/: thrust scale 0.92 or a 3 g payload, three
+    hovers, yaw0, circle0 or figure8 flights of 6-8 s, two seeds each, no model; per fold the
+    choice made from each candidate fitted on and predicting the training flights): the same
+    channels in all 48 folds; where torque was at its floor it was either out on both sides (hover:
+    neither adds error) or in by far (payload true: the thrust scale's torque adds 0.40-0.44x
+    (figure8), 41-45x (yaw0), 223-240x (circle0) the residual's energy there, held out and in
+    training alike)."""
     quiet = [ch for ch, at in at_noise.items() if at]
     mask = channel_mask([ch for ch, at in at_noise.items() if not at])
     if quiet:
