@@ -23,12 +23,12 @@ plan that merely favours one side fails half the seeds):
   the old ones and the added one. The hover flights tied the lag-true seeds until the rate level
   whitened with the gyro's own noise (fa7af71; since, 1 of 5); a manoeuvre decides them, the plan
   by the largest separation (docs/flight-planning.md).
-* ``lag_firmware_5ms``: the same at 5 ms, where the diagnosis answers wrongly before any added
-  flight (docs/flight-planning.md).
+* ``lag_firmware_5ms``: the same at 5 ms: the hovers tie (the closed loop decides it), and with a
+  moving flight added another effect ranks first (docs/flight-planning.md).
 * ``lag_firmware_short``: ``lag_firmware`` on three 3 s hovers (take-off and 1 s of hover, 9 s
   of flight in all) instead of three 8 s ones: a fleet on which the lag and the delay genuinely
-  tie (the rate level's t 0.3-3.7, tied in 10 of 10 seeds at cebea07; the 8 s hovers decide 9 of
-  10 at 06e986d), so the bench shows whether one added flight decides what the logged flights
+  tie (tied in 9 of 10 seeds at 02e59b2; the 8 s hovers decide 9 of 10 at 06e986d), so the
+  bench shows whether one added flight decides what the logged flights
   leave open rather than a margin on a decided question (docs/flight-planning.md).
 
 Each outcome carries the separation in σ in favour of the truth, in the statistic the diagnosis
