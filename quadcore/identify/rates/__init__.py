@@ -54,7 +54,7 @@ from quadcore.identify.rates.compare import (
     unwhitened_comparison,
 )
 from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
-from quadcore.identify.rates.judgement import NOT_SIGNIFICANT, RATE_LEVEL, TIE, Judged, judge
+from quadcore.identify.rates.judgement import NOT_SIGNIFICANT, RATE_LEVEL, TIE, Judged, judge, timing_fit
 from quadcore.identify.rates.noise import (
     MAX_AR_ORDER,
     NOISE_BAND_HZ,
@@ -95,4 +95,4 @@ __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOIS
            "fit_cost", "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model",
            "held_out_comparison", "instrument_test", "instrumented_differences", "judge", "noise_model",
            "noise_model_decides", "pair_splits", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums",
-           "split_weights", "timing_comparison", "unwhitened_comparison", "weights", "whitened"]
+           "split_weights", "timing_comparison", "timing_fit", "unwhitened_comparison", "weights", "whitened"]

@@ -14,7 +14,7 @@ rank against each other come from here (docs/diagnosis.md).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -125,15 +125,9 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         first = sorted(slow)[0]
         return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
     flights = {f: s for f, s in reduced_flights.items() if s is not None}
-    w = weights([flights[f] for f in train_all])  # the training flights' noise: none of the held-out ones'
-    ws = split_weights(flights, splits)  # each fold's from its training flights: none of its test flights'
-    folds = {c.name: [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, ws)] for c in timing}
-    # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
-    groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
-              if len(train_all) >= 3 else [])
     for c in timing:
-        spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
-        _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
+        _update_row(by_name[c.name], c, *timing_fit(c, flights, splits, train_all, settings.n_folds),
+                    settings.min_sigma)
         decide(by_name[c.name])
     rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
@@ -157,6 +151,26 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     return _ranked(rows, wins), Judged(differences, frozenset(undecided))
 
 
+def timing_fit(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+               train_all: Sequence[str], n_folds: int) -> tuple[RateFit, float]:
+    """A timing candidate's parameter as the diagnosis reports it: :func:`fit` on all the training
+    flights (weighted by their noise, none of the held-out ones'), and its spread between flights, the
+    grouped jackknife over the folds' fits (each on its training flights, weighted by them), or with
+    one split, over fits that each leave out a group of its flights (``n_folds`` groups; none with
+    fewer than three flights). The row's standard error is the larger of the two (:func:`_update_row`)."""
+    w = weights([flights[f] for f in train_all])
+    if len(splits) > 1:
+        ws = split_weights(flights, splits)
+        spread = [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, ws)]
+    else:
+        groups = ([[f for f in train_all if f not in g] for g in solve.folds(list(train_all), n_folds)]
+                  if len(train_all) >= 3 else [])
+        spread = [fit(c, [flights[f] for f in g], w) for g in groups]
+    (p,) = c.parameters
+    return (fit(c, [flights[f] for f in train_all], w),
+            solve.jackknife_std([{p.name: f.value} for f in spread]).get(p.name, 0.0))
+
+
 def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], dt: float, hold_s: float
                ) -> list[CandidateRow]:
     """The timing candidates of a fleet with flights :func:`below_command_rate`: not fitted or
@@ -178,12 +192,11 @@ def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[
     return rows
 
 
-def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], min_sigma: float) -> None:
+def _update_row(r: CandidateRow, c: Effect, rf: RateFit, spread: float, min_sigma: float) -> None:
     """A candidate row with its parameter from the rate level (the torque level's in a note),
-    its standard error the larger of the profile's and the grouped jackknife's over ``folds``
-    (fits that each leave out a group of flights)."""
+    its standard error the larger of the profile's and ``spread``, the grouped jackknife's
+    between flights (:func:`timing_fit`)."""
     (p,) = c.parameters
-    spread = solve.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
     std = max(rf.std, spread)
     torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
     r.parameters = {p.name: rf.value}
