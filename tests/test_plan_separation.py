@@ -217,3 +217,25 @@ def test_no_comparison_says_whether_too_few_blocks_or_the_same_prediction():
     assert "predict the same" in same and "torque at the floor" in same and "too short" not in same
     assert "predict the same" not in rate and "angular-rate level" in rate
     assert all("expects 4.2 σ" in s for s in (short, same, rate))
+
+
+def test_flights_that_disagree_get_the_note_with_each_flight_as_one_cluster():
+    """The planner's note when the block test separates the two and the flights taken as the
+    clusters do not (the real flights' com_offset against rotor_imbalance, docs/flight-planning.md):
+    it names who fits how many flights better and the separation by flight; no note when the
+    flights agree too."""
+    from types import SimpleNamespace
+
+    from quadcore.plan import planner
+
+    def note(t, by):
+        comp = separation.Comparison("com_offset", "rotor_imbalance", t, 1e-6, 300, by_flight=by)
+        return planner._measured_note(SimpleNamespace(), SimpleNamespace(), comp, 5.0)
+
+    split = separation.ByFlight(19, 11, 1.55, 0.14)
+    first = note(5.0, split)
+    assert first is not None and "com_offset fits 11 of 19 better" in first and "1.6 σ (p 0.14)" in first
+    second = note(-5.0, split)
+    assert second is not None and "rotor_imbalance fits 8 of 19 better" in second
+    assert note(5.0, separation.ByFlight(19, 18, 6.0, 1e-5)) is None  # the flights agree
+    assert note(5.0, None) is None
