@@ -503,6 +503,41 @@ def test_the_decoder_digest_follows_the_decoders_code(tmp_path, monkeypatch):
     flight.decoder_digest.cache_clear()
 
 
+
+def test_the_decoder_digest_follows_the_code_not_its_comments_docstrings_or_layout(tmp_path, monkeypatch):
+    """An edit of a comment, a docstring or the layout of a module in
+    :data:`quadcore.logs.flight.DECODER_MODULES` keeps every decoded table current (before, any
+    byte of quadcore.logs.flight, the flight's assembly and its folder helpers alike, decoded every
+    flight again); an edit of its code does not: on the decoder's own source, and through the
+    digest of a probe module standing for one of them."""
+    from quadcore.store import codedigest
+
+    source = Path(flight.__file__).read_text()
+    assert '"""A decoded flight' in source and "# The code a decoded table's rows" in source
+    words = (source.replace('"""A decoded flight', '"""A flight decoded', 1)
+             .replace("# The code a decoded table's rows", "# The code that makes a decoded table's rows", 1)
+             .replace("\n\n\n", "\n\n\n\n", 1) + "\n# a last comment\n")
+    code = source.replace('TRUTH_SUFFIX = ".truth.json"', 'TRUTH_SUFFIX = ".true.json"', 1)
+    assert words != source and code != source
+    assert codedigest.code_of(words.encode()) == codedigest.code_of(source.encode())
+    assert codedigest.code_of(code.encode()) != codedigest.code_of(source.encode())
+
+    probe = tmp_path / "qc_probe_decoder.py"
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(flight, "DECODER_MODULES", (*flight.DECODER_MODULES, "qc_probe_decoder"))
+
+    def digest(text: str) -> str:
+        probe.write_text(text)
+        flight.decoder_digest.cache_clear()  # a new process
+        return flight.decoder_digest()
+
+    try:
+        first = digest('"""Unit scale."""\n\n\ndef scale(x):\n    """Times one."""\n    return x * 1.0  # SI\n')
+        assert digest('"""The unit\'s scale."""\n\n\ndef scale(x):\n    """x, as is."""\n\n    return x*1.0\n') == first
+        assert digest('"""Unit scale."""\n\n\ndef scale(x):\n    """Times one."""\n    return x * 2.0  # SI\n') != first
+    finally:
+        flight.decoder_digest.cache_clear()
+
 def _modules_that_run(work):
     """``work()``'s result and the quadcore modules whose functions it called (a profile hook)."""
     ran: set[str] = set()
