@@ -843,16 +843,19 @@ def test_an_effects_source_digest_follows_its_modules_code_not_only_its_class(tm
     the code an effect's wrench runs changes: a module-level function its class calls (as
     motor_lag's wrench calls first_order_lag), and a plugin's file edited between two loads. Before,
     the digest was the class's source alone (the same text here), and every plugin's 'unknown'
-    (its module is in no sys.modules), so kept statistics of the old code stayed current."""
+    (its module is in no sys.modules), so kept statistics of the old code stayed current. A
+    comment or docstring edited in the module keeps it (quadcore.store.codedigest.code_of)."""
     monkeypatch.syspath_prepend(str(tmp_path))
     digests = []
-    for i, factor in enumerate(("1.0", "2.0")):  # the same class, another helper
-        (tmp_path / f"digest_mod_{i}.py").write_text(_PLUGIN.format(factor=factor, name="digest"))
+    comment = '"""An edited docstring."""\n# and a comment\n'
+    for i, (factor, words) in enumerate((("1.0", ""), ("2.0", ""), ("1.0", comment))):  # the same class, another helper
+        (tmp_path / f"digest_mod_{i}.py").write_text(words + _PLUGIN.format(factor=factor, name="digest"))
         try:
             digests.append(sufficient.source_digest(type(importlib.import_module(f"digest_mod_{i}").EFFECT)))
         finally:
             sys.modules.pop(f"digest_mod_{i}", None)
     assert digests[0] != digests[1] and "unknown" not in digests
+    assert digests[2] == digests[0]  # the words changed, not the code
     plugin = tmp_path / "edited_plugin.py"
     plugins = []
     for factor in ("1.0", "2.0"):  # one plugin file, edited between two loads
