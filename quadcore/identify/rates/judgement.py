@@ -208,7 +208,7 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, spread: float, min_sigm
     r.notes = (*(n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)),
                f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
                f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)")
-    if rf.unwhitened is not None and abs(rf.value - rf.unwhitened) >= std:
+    if rf.unwhitened is not None and rf.depends_on_noise_model and rf.std >= spread:
         r.notes = (*r.notes, f"{p.name} depends on the gyro noise model: {rf.value:.4g} with it, {rf.unwhitened:.4g} "
                              "without; the standard error spans both (docs/timing.md, 'A small delay')")
     if not r.significant:
