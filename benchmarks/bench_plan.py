@@ -69,8 +69,10 @@ def main() -> None:
             trial = bench.run(name, seed, files, limits=limits)
             trials.append(trial)
             described = "; ".join(f"{f}: {o.describe()}" for f, o in trial.files.items())
+            peaks = trial.checked
             print(f"{name} seed {seed} truth {trial.truth}: before {trial.before.describe()} (predicted "
-                  f"{trial.predicted_before:.1f} σ) | planned ({trial.manoeuvre}; predicted "
+                  f"{trial.predicted_before:.1f} σ) | planned ({trial.manoeuvre}; peaks {peaks['max_speed_mps']:.2f} "
+                  f"m/s, {peaks['max_acc_mps2']:.1f} m/s², {peaks['max_tilt_deg']:.1f}°; predicted "
                   f"{trial.predicted_sigma:.1f} σ): {trial.planned.describe()} | {described} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
             if trial.added:

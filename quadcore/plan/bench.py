@@ -185,6 +185,7 @@ class Trial:
     predicted_before: float  # the same on the old flights alone
     added: tuple[Added, ...] = ()  # a timing pair: the rate-level objective on the plan, each file and a hover
     limits: dict = field(default_factory=dict)  # the plan's limits (Limits.to_dict); {} in lines written before
+    checked: dict = field(default_factory=dict)  # the plan's peaks, checked on its pieces (LimitCheck.to_dict)
 
 
 def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str], None] = lambda m: None,
@@ -223,7 +224,8 @@ def run(name: str, seed: int, files: tuple[str, ...] = FILES, log: Callable[[str
             flown[label] = outcome(diagnosislib.diagnose(tables, spec), truth, rival, tables, spec)
     return Trial(name, seed, truth, outcome(before, truth, rival, old, spec), flown.pop("planned"), flown,
                  plan.manoeuvre.describe(), float(plan.design["after"]["by_truth"][truth]["sigma"]),
-                 float(plan.design["before"]["by_truth"][truth]["sigma"]), added, limits.to_dict())
+                 float(plan.design["before"]["by_truth"][truth]["sigma"]), added, limits.to_dict(),
+                 plan.checked.to_dict() if plan.checked is not None else {})
 
 
 def old_flights(name: str, seed: int) -> tuple[dict, Diagnosis]:

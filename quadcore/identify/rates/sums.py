@@ -248,44 +248,90 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     ones', quadcore.plan.ratelevel). ``model``: (label, increments (m, 3)) of each column of
     :attr:`RateSums.model` (the model's linear effects per unit of a coordinate, not in ``rf``'s
     increments; :func:`flight_sums`), at no value (:attr:`RateSums.at` zero)."""
-    st = rf.fd.state
-    use = rf.block >= 0
-    dt_s = float(np.median(np.diff(st.t_s)))
+    dt_s = float(np.median(np.diff(rf.fd.state.t_s)))
     grids = {e.name: rate_grid(e, dt_s) for e in timing}
-    k, slots = 1 + len(model), {}
-    for e in timing:
-        slots[e.name] = slice(k, k + len(grids[e.name]))
-        k += len(grids[e.name])
-    b = rf.segment[use]
-    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
-    cluster = np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1) if len(b) else starts[:0]
-    size = np.diff(starts).astype(float)
-
-    def demeaned(running: np.ndarray) -> np.ndarray:
-        """(m, 3) running sums less their block's mean (which the block's offset takes)."""
-        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None], np.diff(starts),
-                                   axis=0) if len(b) else running
-
-    # (m, 3, K) block-demeaned, filled one column at a time; float32 (one flight's, the largest array here):
-    # the rounding perturbs each value by 6e-8 of itself, a residual by that of the values, not of their Gram
-    X = np.empty((len(b), 3, k), np.float32)
-    X[:, :, 0] = demeaned(np.cumsum(rf.increments, axis=0)[use])
-    for j, (_, increments) in enumerate(model, 1):
-        X[:, :, j] = demeaned(np.cumsum(increments, axis=0)[use])
-    for e in timing:
-        (p,) = e.parameters
-        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
-            X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
+    slots = _slots(grids, len(model))
+    use = rf.block >= 0
+    starts, cluster = _segments(rf, use)
+    X = _running_sums(rf, use, starts, timing, grids, slots, model)
     ar, share = (noise if isinstance(noise, tuple) else gyro_noise_model(rf.fd) if noise == "gyro"
                  else noise_model(X, starts, rf.fd.noise[3:]) if noise == "residual"
                  else (np.zeros((3, 0)), np.ones(3)))
+    blocks, raw, lagged = _block_grams(X, starts, cluster, ar)
     lags = ar.shape[1]
+    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(X) else 0
+    total = blocks.sum(axis=0)
+    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
+                    samples=max(rf.fd.n, 1), dt_s=dt_s, n=used, unwhitened=raw.sum(axis=0) if lags else total,
+                    unwhitened_blocks=raw.astype(np.float32) if lags else None,
+                    lagged_blocks=lagged.astype(np.float32) if lags else None,
+                    model=tuple(label for label, _ in model), at=np.zeros(len(model)))
+
+
+def _slots(grids: Mapping[str, np.ndarray], linear: int) -> dict[str, slice]:
+    """Each timing effect's columns of the running sums (:attr:`RateSums.slots`): one per point of
+    its grid, in ``grids``' order, after the residual's column and the model's ``linear``
+    coordinates'."""
+    k, slots = 1 + linear, {}
+    for name, grid in grids.items():
+        slots[name] = slice(k, k + len(grid))
+        k += len(grid)
+    return slots
+
+
+def _segments(rf: RateFlight, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of ``rf``'s used rows (``use``) in one segment: their ``starts`` (S + 1,), each the
+    first row of a run in the used rows and the last the end, and (S,) each run's block as an
+    index of the flight's blocks that have one (the held-out tests' clusters)."""
+    b = rf.segment[use]
+    if not len(b):
+        return np.zeros(1, int), np.zeros(0, int)
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]]))
+    return starts, np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1)
+
+
+def _running_sums(rf: RateFlight, use: np.ndarray, starts: np.ndarray, timing: Sequence[Effect],
+                  grids: Mapping[str, np.ndarray], slots: Mapping[str, slice],
+                  model: Sequence[tuple[str, np.ndarray]]) -> np.ndarray:
+    """(m, 3, K) the running sums of the used rows, each less its run's mean (which the block's
+    offset takes): the residual's, the model's linear coordinates', each timing effect's at every
+    point of its grid. float32, one flight's and the largest array here: the rounding perturbs
+    each value by 6e-8 of itself, a residual by that of the values, not of their Gram."""
+    k = 1 + len(model) + sum(len(g) for g in grids.values())
+    size = np.diff(starts)
+
+    def demeaned(increments: np.ndarray) -> np.ndarray:
+        running = np.cumsum(increments, axis=0)[use]
+        if not len(running):
+            return running
+        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None].astype(float),
+                                   size, axis=0)
+
+    X = np.empty((int(use.sum()), 3, k), np.float32)  # filled one column at a time
+    X[:, :, 0] = demeaned(rf.increments)
+    for j, (_, increments) in enumerate(model, 1):
+        X[:, :, j] = demeaned(increments)
+    for e in timing:
+        (p,) = e.parameters
+        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
+            X[:, :, j] = demeaned(effect_increments(e, {p.name: float(v)}, rf))
+    return X
+
+
+def _block_grams(X: np.ndarray, starts: np.ndarray, cluster: np.ndarray, ar: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block and axis the packed Gram of the running sums ``X`` through the whitening filter
+    ``ar`` (3, lags), each run demeaned after it (:attr:`RateSums.blocks`, float64 here), and where
+    there is a filter the same without it (:attr:`RateSums.unwhitened_blocks`) and each interval's
+    whitened sums with the one before's (:attr:`RateSums.lagged_blocks`, full (K, K)); with no
+    filter those two are zeros (of no block for the lagged)."""
+    k, lags = X.shape[2], ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
-    raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
-    lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))  # each interval with the one before (lagged_blocks)
+    raw = np.zeros_like(blocks)
+    lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))
     with one_blas_thread():  # the Gram products: the same numbers whatever BLAS's thread count
-        for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
+        for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each run's Gram into its block's
             x = whitened(X[lo:hi].astype(float), ar)
             if not len(x):
                 continue
@@ -296,12 +342,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
                 r = X[lo:hi].astype(float)
                 r -= r.mean(axis=0)
                 raw[cluster[i]] += _gram(r, r)[:, iu[0], iu[1]]
-    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
-    total = blocks.sum(axis=0)
-    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
-                    max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
-                    raw.astype(np.float32) if lags else None, lagged.astype(np.float32) if lags else None,
-                    tuple(label for label, _ in model), np.zeros(len(model)))
+    return blocks, raw, lagged
 
 
 def weights(flights: Sequence[RateSums]) -> np.ndarray:
