@@ -33,15 +33,14 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 import pickle
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from bench_plan import append_line, read_lines
 
 from quadcore import effects
 from quadcore.identify import evidence, flightdata, rates
@@ -225,28 +224,10 @@ def summarise(trials: list[Trial], alpha: float, min_sigma: float) -> None:
               f"{t_sd / math.sqrt(n):.2f} ({t_sd:.2f}) | " + " | ".join(cols) + " |")
 
 
-def read_lines(path: str) -> list[Trial]:
-    """The trials of a ``--json`` file; a line that is not complete JSON (a run killed mid-write)
-    is left out with a message."""
-    out = []
-    with open(path) as fh:
-        for k, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                d = json.loads(line)
-            except json.JSONDecodeError:
-                print(f"{path} line {k} is not complete JSON (a run killed mid-write?): left out", file=sys.stderr)
-                continue
-            out.append(Trial(**{**d, "fits": {n: tuple(v) for n, v in d["fits"].items()}}))
-    return out
-
-
-def append_line(path: str, line: str) -> None:
-    """Append ``line`` on a line of its own (after a last line a killed run left unfinished)."""
-    with open(path, "ab+") as fh:
-        ended = fh.seek(0, os.SEEK_END) == 0 or (fh.seek(-1, os.SEEK_END) >= 0 and fh.read(1) == b"\n")
-        fh.write((("" if ended else "\n") + line + "\n").encode())
+def read_trials(path: str) -> list[Trial]:
+    """The trials of a ``--json`` file (lines a killed run left unfinished are left out: bench_plan's
+    :func:`read_lines`)."""
+    return [Trial(**{**d, "fits": {n: tuple(v) for n, v in d["fits"].items()}}) for d in read_lines(path)]
 
 
 def main() -> None:
@@ -263,7 +244,7 @@ def main() -> None:
     args = ap.parse_args()
     settings = DiagnosisSettings()
     if args.table:
-        summarise(read_lines(args.table), settings.alpha, settings.min_sigma)
+        summarise(read_trials(args.table), settings.alpha, settings.min_sigma)
         return
     trials = []
     keep = Path(args.sums) if args.sums else None
