@@ -339,7 +339,8 @@ def test_a_flight_that_moves_decides_a_small_lag_against_a_delay_among_hovers(tm
     the truth with and without the whitening filter and with the direction one sample back as the
     instrument (lag: t = -32.1, -3.6, -9.2; delay: +10.2, +8.0, +3.5, measured on the same flights
     through rates.timing_comparison), so the diagnosis ranks it first, separated at the angular-rate
-    level, and the planner's measured separation says the same. Before, leaving one flight out, the
+    level, and found there (held out against no timing effect), and the planner's measured
+    separation says the same. Before, leaving one flight out, the
     fold holding the circle out fitted both on the hovers alone (t_d at 2 ms) and the circle's blocks
     asked which biased fit was nearer: whitened the lag, unwhitened the delay whichever was true,
     tied by the noise-model rule (docs/timing.md, "The closed loop's share")."""
@@ -352,12 +353,17 @@ def test_a_flight_that_moves_decides_a_small_lag_against_a_delay_among_hovers(tm
     simulation.simulate_set(folder, configs, {name: {effects.get(name).parameters[0].name: 0.005}}, VEHICLE)
     tables = {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(folder)}
     spec = spec_from(VEHICLE, [])
-    diag = diagnosis.diagnose(tables, spec, candidates=list(TIMING))
+    diag = diagnosis.diagnose(tables, spec)  # the whole library
     rows = {c.effect: c for c in diag.candidates}
     rival = next(n for n in TIMING if n != name)
     assert not any("decides it" in n for n in (*rows[name].notes, *rows[rival].notes)), rows[name].notes
     assert rows[rival].separated_by.get(name) == rates.RATE_LEVEL, rows[rival].separated_by
     assert list(rows).index(name) < list(rows).index(rival) and rival not in rows[name].tied_with
+    # found, and ranked first, at the angular-rate level (before, decided on the torque channels, which the
+    # closed loop biases, neither was found and an effect that removes nothing ranked first: docs/timing.md,
+    # "Found at the angular-rate level")
+    assert diag.candidates[0].effect == name and rows[name].found, [(c.effect, c.reason) for c in diag.candidates]
+    assert "angular-rate level" in rows[name].reason and rows[name].held_out_t > 3, rows[name].reason
     comp = separation.measured(tables, spec, diag, name, rival)
     assert not comp.undecided and comp.sigma_for(name) > 5, comp
 
@@ -606,7 +612,8 @@ def test_in_cross_validation_each_folds_weights_come_from_its_training_flights(d
 
     def compare_spy(*args):
         per_flight, test = compare_pair(*args)
-        compared.append({f: g for f, (g, _) in per_flight.items()})
+        if args[2] is not args[3]:  # the pair's comparison (not a candidate's against no timing effect)
+            compared.append({f: g for f, (g, _) in per_flight.items()})
         return per_flight, test
 
     def noisier(f, inputs, compute):  # the held flight's noise floor changed, its sums the same
