@@ -71,6 +71,7 @@ class Trial:
     undecided_by: str  # "" or what decides the pair in the comparison's place
     fits: dict[str, tuple[float, float]]  # per candidate: the reported value and standard error, s
     seconds: float
+    found: dict[str, bool] | None = None  # per candidate: found by the full diagnosis (--found; None: not run)
 
     @property
     def truth(self) -> tuple[str, float]:
@@ -90,22 +91,25 @@ class Trial:
         return TIMING[0] if self.t > 0 else TIMING[1]
 
 
-def run(case: str, noise: str, seed: int, check: bool = False, keep: Path | None = None) -> Trial:
+def run(case: str, noise: str, seed: int, check: bool = False, keep: Path | None = None,
+        found: bool = False) -> Trial:
     """One trial: the hovers flown with ``case`` hidden, the rate level on them (module); ``keep``:
-    a folder to keep the flights' rate sums in, read back when there (no flight then)."""
+    a folder to keep the flights' rate sums in, read back when there (no flight then, unless the
+    full diagnosis is run: ``check``, its numbers against these; ``found``, which candidates it finds)."""
     veh = vehicle.load()
     settings = DiagnosisSettings()
     timing = [effects.get(n) for n in TIMING]
     t0 = time.perf_counter()
     kept = None if keep is None else keep / f"{case.replace(':', '_')}_{noise}_{seed}.pickle"
-    if kept is not None and kept.exists() and not check:
+    tables = fly(case, noise, seed, veh) if check or found or kept is None or not kept.exists() else None
+    if tables is None and kept is not None:
         sums = pickle.loads(kept.read_bytes())
     else:
-        tables = fly(case, noise, seed, veh)
+        assert tables is not None
         skip = evidence.memory_blocks(timing)
         sums = {f: rates.rate_sums(rates.rate_flight(flightdata.flight_data(f, tab, veh), veh, None, skip), timing)
                 for f, tab in tables.items()}
-        if kept is not None:
+        if kept is not None and not kept.exists():
             kept.parent.mkdir(parents=True, exist_ok=True)
             kept.with_suffix(".part").write_bytes(pickle.dumps(sums))
             kept.with_suffix(".part").replace(kept)
@@ -119,9 +123,12 @@ def run(case: str, noise: str, seed: int, check: bool = False, keep: Path | None
                   None if pair.unwhitened is None else pair.unwhitened.t,
                   None if pair.instrumented is None else pair.instrumented.t, pair.undecided_by, fits,
                   time.perf_counter() - t0)
-    if check:
-        tables = fly(case, noise, seed, veh)
-        print(f"  the full diagnosis against the rate level alone: {against_diagnosis(trial, tables, veh)}")
+    if tables is not None and (check or found):
+        rows, diagnosed_pair = diagnosed(tables, veh)
+        if check:
+            print(f"  the full diagnosis against the rate level alone: {difference(trial, rows, diagnosed_pair)}")
+        trial = dataclasses.replace(trial, found={n: bool(rows[n].found) for n in TIMING},
+                                    seconds=time.perf_counter() - t0)
     return trial
 
 
@@ -138,9 +145,9 @@ def fly(case: str, noise: str, seed: int, veh) -> dict:
         return {p.name: flight.decode_flight(p).tables["fixedFrequency"] for p in flight.discover_logs(Path(tmp))}
 
 
-def against_diagnosis(trial: Trial, tables: dict, veh) -> str:
-    """The largest relative difference between ``trial``'s numbers and the full diagnosis's on the
-    same flights (its reported values and standard errors, the comparison's t)."""
+def diagnosed(tables: dict, veh) -> tuple[dict, rates.PairComparison]:
+    """The full diagnosis of a trial's flights with the two timing candidates (nominal model): its
+    rows by candidate, and the pair's comparison as it made it."""
     from quadcore.identify import diagnosis
     from quadcore.identify.rates import judgement
     from quadcore.spec.model import spec_from
@@ -157,18 +164,33 @@ def against_diagnosis(trial: Trial, tables: dict, veh) -> str:
         diag = diagnosis.diagnose(tables, spec_from(veh, []), candidates=list(TIMING))
     finally:
         judgement.timing_comparison = compare
-    rows = {c.effect: c for c in diag.candidates}
+    (pair,) = seen
+    return {c.effect: c for c in diag.candidates}, pair
+
+
+def difference(trial: Trial, rows: dict, pair: rates.PairComparison) -> str:
+    """The largest relative difference between ``trial``'s numbers and the full diagnosis's on the
+    same flights (its reported values and standard errors, the comparison's t)."""
     ours, theirs = [], []
     for name, (v, s) in trial.fits.items():
         (p,) = effects.get(name).parameters
         ours += [v, s]
         theirs += [rows[name].parameters[p.name], rows[name].parameter_std[p.name]]
-    (pair,) = seen
     sign = 1.0 if pair.a == TIMING[0] else -1.0
     ours.append(trial.t)
     theirs.append(sign * pair.test.t)
     diff = max(abs(a - b) / max(abs(b), 1e-300) for a, b in zip(ours, theirs))
     return f"{diff:.1e} relative (values, standard errors, t)"
+
+
+def _found(ts: list[Trial], names: list[str], rival: str) -> str:
+    """How often the full diagnosis found each of ``names`` (and ``rival``) in the trials it ran on."""
+    ran = [tr.found for tr in ts if tr.found is not None]
+    if not ran:
+        return "not run"
+    label = len(names) > 1
+    out = [(f"{n}: " if label else "") + _rate(sum(f[n] for f in ran), len(ran)) for n in names]
+    return "; ".join(out + ([f"the rival {_rate(sum(f[rival] for f in ran), len(ran))}"] if rival else []))
 
 
 def _rate(k: int, n: int) -> str:
@@ -183,8 +205,8 @@ def summarise(trials: list[Trial], alpha: float, min_sigma: float) -> None:
     print(f"\nalpha {alpha}, min_sigma {min_sigma}; t > 0 favours {TIMING[0]}; z = (fitted - truth) / reported σ")
     print("| case | noise | seeds | decisions (truth / rival / undecided / not significant) | false decisions | "
           "t toward the truth: mean ± se (sd) | value − truth, ms: mean ± se | z: mean (sd) | within 1σ | within 2σ "
-          "| significant |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| significant | found by the diagnosis (--found) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for (case, noise), ts in sorted(by.items(), key=lambda kv: (CASES.index(kv[0][0]) if kv[0][0] in CASES else 99,
                                                                  kv[0][1])):
         n = len(ts)
@@ -219,9 +241,15 @@ def summarise(trials: list[Trial], alpha: float, min_sigma: float) -> None:
                           f"{label}{statistics.mean(finite) if finite else float('nan'):+.2f} ({z_sd:.2f})",
                           label + _rate(sum(abs(x) <= 1 for x in z), n), label + _rate(sum(abs(x) <= 2 for x in z), n),
                           label + _rate(sig, n)))
-        cols = ["; ".join(c[i] for c in cells) for i in range(5)]
+        found = _found(ts, names if truth else list(TIMING), "" if not truth else rival)
+        cols = ["; ".join(c[i] for c in cells) for i in range(5)] + [found]
         print(f"| {case} | {noise} | {n} | {said} | {_rate(false, n)} | {statistics.mean(toward):+.2f} ± "
               f"{t_sd / math.sqrt(n):.2f} ({t_sd:.2f}) | " + " | ".join(cols) + " |")
+
+
+def found_note(tr: Trial) -> str:
+    """"; found: ..." for a trial the full diagnosis ran on ("" otherwise)."""
+    return "" if tr.found is None else f"; found: {', '.join(n for n, f in tr.found.items() if f) or 'none'}"
 
 
 def read_trials(path: str) -> list[Trial]:
@@ -241,6 +269,8 @@ def main() -> None:
     ap.add_argument("--sums", help="keep each trial's rate sums in this folder and read them back when there "
                     "(a change to the comparison is then measured on the same flights without flying them again)")
     ap.add_argument("--check", action="store_true", help="also run the full diagnosis and print the difference")
+    ap.add_argument("--found", action="store_true",
+                    help="also run the full diagnosis and count the candidates it finds (the false-found rate)")
     args = ap.parse_args()
     settings = DiagnosisSettings()
     if args.table:
@@ -251,14 +281,14 @@ def main() -> None:
     for seed in range(args.first, args.first + args.seeds):  # every case's seed before the next seed
         for noise in args.noise.split(","):
             for case in args.cases.split(","):
-                tr = run(case, noise, seed, args.check, keep)
+                tr = run(case, noise, seed, args.check, keep, args.found)
                 trials.append(tr)
                 fits = ", ".join(f"{n} {1e3 * v:.2f} ± {1e3 * s:.2f} ms" for n, (v, s) in tr.fits.items())
                 extra = "".join(f", {k} {v:+.2f}" for k, v in (("unwhitened", tr.unwhitened_t),
                                                                ("instrumented", tr.instrumented_t)) if v is not None)
                 print(f"{case} {noise} seed {seed}: t {tr.t:+.2f} (p {tr.p_value:.3g}{extra}) -> "
-                      f"{tr.decision(settings.alpha)}{' by ' + tr.undecided_by if tr.undecided_by else ''}; {fits} "
-                      f"({tr.seconds:.0f} s)", flush=True)
+                      f"{tr.decision(settings.alpha)}{' by ' + tr.undecided_by if tr.undecided_by else ''}; {fits}"
+                      f"{found_note(tr)} ({tr.seconds:.0f} s)", flush=True)
                 if args.json:
                     append_line(args.json, json.dumps(dataclasses.asdict(tr)))
     summarise(trials, settings.alpha, settings.min_sigma)
