@@ -5,9 +5,10 @@ from the flights' statistics (:func:`quadcore.identify.diagnosis.held_out_of_mod
 flight's rows become statistics once, with the model's effects and the two candidates): in each
 fold both candidates are fitted on the training flights' residual of the model and predict the
 test flights' (signal vectors; a one-parameter nonlinear candidate from its profiles); then
-:func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks, which of the two
-fits the residual better, in the channels above the sensor-noise floor (and one at it where
-either adds error there: :func:`quadcore.identify.evidence.compared_weights`). Its ``t`` is the
+:func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks (its variance
+widened where the flights disagree), which of the two fits the residual better, in the channels
+above the sensor-noise floor (and one at it where either adds error there:
+:func:`quadcore.identify.evidence.compared_weights`). Its ``t`` is the
 separation in standard errors (positive: the first fits better).
 
 As the diagnosis, it compares the two on the same samples: each flight's first ``skip`` blocks
@@ -52,12 +53,12 @@ class ByFlight:
     flights ``a`` fits better, of how many, and the cluster-robust t of the mean block score with
     the flights as clusters (``t = ḡ / se``, ``se² = F/(F-1) Σ_f (S_f - n_f ḡ)² / N²``: ``S_f`` a
     flight's summed score over its ``n_f`` blocks, ``N`` blocks of ``F`` flights; Student's t with
-    ``F - 1`` degrees of freedom). The block test takes 1 s blocks as independent; where the
-    flights differ from each other more than their blocks do (a parameter that moves between
-    flights, what the model leaves out) that overstates the separation: on the 19 real flights
-    com_offset against rotor_imbalance is 5.0 σ by blocks, 1.6 by flights (11 of 19 prefer
-    com_offset; the flights' sums scatter about the common mean with 37 times the variance
-    independent blocks would give them, χ² 668 on 18 degrees of freedom)."""
+    ``F - 1`` degrees of freedom). The comparison itself takes its 1 s blocks as independent
+    where the flights agree and widens its variance by theirs where they disagree
+    in sign (:func:`quadcore.identify.evidence.slope_test`); this is the plainer count beside it:
+    on the 19 real flights com_offset against rotor_imbalance is 5.0 σ with blocks as independent,
+    2.2 σ in the comparison (the flights disagree in sign), 1.6 σ by flights (11 of 19 prefer
+    com_offset)."""
 
     flights: int
     for_first: int
@@ -132,18 +133,18 @@ def compare(tables: Mapping[str, pl.DataFrame], spec: ModelSpec, model: PhysicsM
     held = diagnosislib.held_out_of_model(tables, spec, model, [a, b], n_folds, skip, bounded=False, stats=stats)
     w = evidence.compared_weights(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], held.w, held.at_noise)
     test = evidence.compare(held.flights, held.resid, held.cand_pred[a], held.cand_pred[b], w)
-    available = test.blocks or len(evidence.block_sums(held.flights, held.resid, held.resid, w))
+    available = test.blocks or len(evidence.block_sums(held.flights, held.resid, held.resid, held.w))
     return Comparison(a, b, float(test.t), float(test.p_value), int(test.blocks),
                       by_flight=_by_flight(held, a, b, w) if test.blocks else None, available_blocks=available)
 
 
-def _by_flight(held, a: str, b: str, w) -> ByFlight:
-    """The comparison's block scores (:func:`quadcore.identify.evidence.compare`) summed per
-    evaluated flight (:class:`ByFlight`)."""
+def _by_flight(held, a: str, b: str, w: np.ndarray) -> ByFlight:
+    """The comparison's block scores (:func:`quadcore.identify.evidence.compare`, ``w`` its
+    weights per flight and channel) summed per evaluated flight (:class:`ByFlight`)."""
     sums, blocks = [], []
-    for f, fd in zip(held.ids, held.flights):
+    for f, fd, w_f in zip(held.ids, held.flights, w):
         pa, pb = held.cand_pred[a][f], held.cand_pred[b][f]
-        g = evidence.block_sums([fd], {f: pa - pb}, {f: held.resid[f] - 0.5 * (pa + pb)}, w)
+        g = evidence.block_sums([fd], {f: pa - pb}, {f: held.resid[f] - 0.5 * (pa + pb)}, w_f)
         sums.append(float(g.sum()))
         blocks.append(len(g))
     return ByFlight.of(sums, blocks)

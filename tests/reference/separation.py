@@ -15,9 +15,11 @@ score of a block ``b`` is
     g_b = Σ_{i∈b} Σ_c w_c 2 (a_ic - b_ic) (r_ic - (a_ic + b_ic)/2)     (= |r - b|² - |r - a|²)
 
 ``w_c`` the inverse mean square of the residual per force and torque, channels whose residual
-is within the noise margin of the sensor-noise floor left out unless either prediction adds error
-there (``Σ p·(p - 2 r) > 0``); ``t`` the one-sample t statistic
-of the ``g_b`` (> 0: ``a`` fits better).
+is within the noise margin of the sensor-noise floor left out of a flight unless either prediction
+adds error there on it (``Σ p·(p - 2 r) > 0`` over the flight); ``t`` the one-sample t statistic
+of the ``g_b`` (> 0: ``a`` fits better), widened where the flights disagree about its sign: the library's
+statistic (:func:`quadcore.identify.evidence.slope_test`, tested against its formulas in
+tests/test_held_out_flights.py) on the block scores made here from the rows.
 """
 
 from __future__ import annotations
@@ -78,29 +80,33 @@ def t_statistic(fds: Mapping[str, FlightData], model: PhysicsModel, a: str, b: s
     ss = sum((np.einsum("nc,nc->c", r[f], r[f]) for f in ids), np.zeros(6))
     floor = sum((fds[f].noise ** 2 * len(kept[f][0]) for f in ids), np.zeros(6))
     quiet = evidence.at_noise_level(ss, floor)
-    w = rows.channel_weights(list(r.values()))
-    mask = evidence.channel_mask([ch for ch, q in quiet.items() if not q])
-    for ch in (ch for ch, q in quiet.items() if q):  # at the floor: taken where either prediction adds error
-        sl = evidence.CHANNELS[ch]
-        worse = [sum(float(np.einsum("nc,nc->c", pred[n][f][kept[f][0]], pred[n][f][kept[f][0]] - 2 * r[f])[sl] @ w[sl])
-                     for f in ids) for n in (a, b)]
-        if max(worse) > 0:
-            mask[sl] = 1.0
-    w = w * mask
-    if _same_to_rounding([pred[a][f][kept[f][0]] for f in ids], [pred[b][f][kept[f][0]] for f in ids], w):
+    w_all = rows.channel_weights(list(r.values()))
+    w = {}
+    for f in ids:  # per flight: at the floor a channel is taken where either prediction adds error on it
+        mask = evidence.channel_mask([ch for ch, q in quiet.items() if not q])
+        for ch in (ch for ch, q in quiet.items() if q):
+            sl = evidence.CHANNELS[ch]
+            worse = [float(np.einsum("nc,nc->c", pred[n][f][kept[f][0]], pred[n][f][kept[f][0]] - 2 * r[f])[sl]
+                           @ w_all[sl]) for n in (a, b)]
+            mask[sl] = float(max(worse) > 0)
+        w[f] = w_all * mask
+    if _same_to_rounding([pred[a][f][kept[f][0]] for f in ids], [pred[b][f][kept[f][0]] for f in ids],
+                         [w[f] for f in ids]):
         return 0.0, 0  # the same signal written two ways: no test (evidence.same_prediction)
     g = []
     for f in ids:
         pa, pb = pred[a][f][kept[f][0]], pred[b][f][kept[f][0]]
-        per_sample = (2 * (pa - pb) * (r[f] - 0.5 * (pa + pb))) @ w
+        per_sample = (2 * (pa - pb) * (r[f] - 0.5 * (pa + pb))) @ w[f]
         g.append(np.bincount(kept[f][1], weights=per_sample))
     scores = np.concatenate(g)
-    return float(np.mean(scores) / (np.std(scores, ddof=1) / np.sqrt(len(scores)))), len(scores)
+    flight = np.repeat(np.arange(len(g)), [len(x) for x in g])
+    return evidence.slope_test(scores, np.ones(len(scores)), flight, two_sided=True).t, len(scores)
 
 
-def _same_to_rounding(pa: list[np.ndarray], pb: list[np.ndarray], w: np.ndarray) -> bool:
+def _same_to_rounding(pa: list[np.ndarray], pb: list[np.ndarray], w: list[np.ndarray]) -> bool:
     """Whether the two candidates' held-out predictions differ by no more than rounding, their
-    difference's weighted energy against theirs on the rows (the library's threshold)."""
-    diff = sum(float(np.einsum("nc,nc->c", x - y, x - y) @ w) for x, y in zip(pa, pb))
-    total = sum(float(np.einsum("nc,nc->c", x, x) @ w + np.einsum("nc,nc->c", y, y) @ w) for x, y in zip(pa, pb))
+    difference's weighted energy (``w`` per flight) against theirs on the rows (the library's threshold)."""
+    diff = sum(float(np.einsum("nc,nc->c", x - y, x - y) @ wf) for x, y, wf in zip(pa, pb, w))
+    total = sum(float(np.einsum("nc,nc->c", x, x) @ wf + np.einsum("nc,nc->c", y, y) @ wf)
+                for x, y, wf in zip(pa, pb, w))
     return evidence.same_prediction(diff, total)
