@@ -76,6 +76,7 @@ bench: $(STAMP)
 	$(VENV_PYTHON) benchmarks/bench_discover.py
 	$(VENV_PYTHON) benchmarks/bench_export_c.py
 	nice -n 10 $(VENV_PYTHON) benchmarks/bench_power.py
+	nice -n 10 $(VENV_PYTHON) benchmarks/bench_timing_calibration.py
 
 # The fuzz harness (tests/fuzz): 2,000 mutants of the real logs (simulated ones where absent), the
 # structure-aware cases of tests/fuzz/structure.py, 100 writers and 8 main jobs killed at random moments;

@@ -2,13 +2,16 @@
 the same length from the lab's trajectory files?
 
     python benchmarks/bench_plan.py [--seeds N] [--first S] [--scenarios drag,mass,lag,lag_small]
+                                    [--max-speed MPS] [--max-acc MPS2] [--max-tilt DEG]
 
 Per scenario of :mod:`quadcore.plan.bench` (rotor vs parasitic drag on flights at one speed;
 thrust scale vs added mass in hover; motor lag vs thrust delay in hover, at 10 ms and at 2 ms)
 and seed: three flights simulated with the hidden truth (alternating between the two sides with the seed), diagnosed;
 ``quadcore plan``'s planner asked to separate the two (``--between``, 10 s manoeuvre, default
-limits); the plan flown in the simulator with the truth and added to the old flights; and, for
-comparison, each of the lab's files (figure8, circle0, yaw0) flown for the same time instead.
+limits unless ``--max-speed``/``--max-acc``/``--max-tilt`` give others, as ``quadcore plan``'s
+options do: to allow the plan what a file flies; each trial's JSON line records them); the plan
+flown in the simulator with the truth and added to the old flights; and, for comparison, each of
+the lab's files (figure8, circle0, yaw0) flown for the same time instead.
 "decided" = the diagnosis ranks the truth first and no longer ties it with the other; "σ" the
 separation in favour of the truth in the statistic the diagnosis decides the pair by (the held-out
 comparison's t; for a lag against a delay the angular-rate level's,
@@ -34,6 +37,7 @@ import sys
 import time
 
 from quadcore.plan import bench
+from quadcore.plan.limits import Limits, LimitsError
 
 
 def main() -> None:
@@ -43,6 +47,9 @@ def main() -> None:
     ap.add_argument("--scenarios", default=",".join(bench.SCENARIOS))
     ap.add_argument("--files", default=",".join(bench.FILES),
                     help="comparison flights of the same length: " + ", ".join((*bench.FILES, "hover")) + " ('' none)")
+    ap.add_argument("--max-speed", type=float, help=f"the plan's speed limit, m/s (default {Limits().max_speed_mps})")
+    ap.add_argument("--max-acc", type=float, help="the plan's acceleration limit, m/s² (default: what the tilt allows)")
+    ap.add_argument("--max-tilt", type=float, help=f"the plan's tilt limit, degrees (default {Limits().max_tilt_deg})")
     ap.add_argument("--json", help="append each trial to this file as a JSON line")
     ap.add_argument("--table", help="print the tables of the trials in this --json file, run nothing")
     args = ap.parse_args()
@@ -50,15 +57,22 @@ def main() -> None:
         summarise([trial_from(d) for d in read_lines(args.table)])
         return
     files = tuple(f for f in args.files.split(",") if f)
+    try:
+        limits = Limits(**{k: v for k, v in (("max_speed_mps", args.max_speed), ("max_acc_mps2", args.max_acc),
+                                             ("max_tilt_deg", args.max_tilt)) if v is not None})
+    except LimitsError as exc:
+        ap.error(str(exc))
     trials = []
     for name in args.scenarios.split(","):
         for seed in range(args.first, args.first + args.seeds):
             t0 = time.perf_counter()
-            trial = bench.run(name, seed, files)
+            trial = bench.run(name, seed, files, limits=limits)
             trials.append(trial)
             described = "; ".join(f"{f}: {o.describe()}" for f, o in trial.files.items())
+            peaks = trial.checked
             print(f"{name} seed {seed} truth {trial.truth}: before {trial.before.describe()} (predicted "
-                  f"{trial.predicted_before:.1f} σ) | planned ({trial.manoeuvre}; predicted "
+                  f"{trial.predicted_before:.1f} σ) | planned ({trial.manoeuvre}; peaks {peaks['max_speed_mps']:.2f} "
+                  f"m/s, {peaks['max_acc_mps2']:.1f} m/s², {peaks['max_tilt_deg']:.1f}°; predicted "
                   f"{trial.predicted_sigma:.1f} σ): {trial.planned.describe()} | {described} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
             if trial.added:
@@ -114,14 +128,24 @@ def cell(o: bench.Outcome, rival: str) -> str:
     return f"{o.sigma:+.1f} {why}{noise}"
 
 
+def label(t: bench.Trial) -> str:
+    """The scenario's name, and the plan's limits where they are not the default ones."""
+    lim, default = t.limits, Limits().to_dict()
+    if all(lim.get(k, v) == v for k, v in default.items()):
+        return t.scenario
+    return (f"{t.scenario} (plan limits: {lim['max_speed_mps']:g} m/s, {lim['max_acc_mps2']:g} m/s², "
+            f"{lim['max_tilt_deg']:g}°)")
+
+
 def summarise(trials: list[bench.Trial]) -> None:
-    """Per scenario a table of each seed's σ per flight (markdown), then the counts and medians."""
+    """Per scenario (and the plan's limits, where not the default) a table of each seed's σ per
+    flight (markdown), then the counts and medians."""
     by_name: dict[str, list[bench.Trial]] = {}
     for t in trials:
-        by_name.setdefault(t.scenario, []).append(t)
+        by_name.setdefault(label(t), []).append(t)
     for name, ts in by_name.items():
         files = list(dict.fromkeys(f for t in ts for f in t.files))
-        pair = bench.SCENARIOS[name].pair
+        pair = bench.SCENARIOS[ts[0].scenario].pair
         print(f"\n{name}: σ for the truth per seed (decided unless marked: 'tied', 'wrong' = the rival first "
               "untied, or the effect ranked first; 'first against σ': decided, the comparison favouring the rival; "
               "(closed loop, t) / (noise model, t): the rate level prefers neither for that reason, σ 0, t set aside)")

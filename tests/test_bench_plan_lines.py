@@ -36,3 +36,26 @@ def test_a_resumed_run_appends_after_the_cut_short_line(bench_plan, tmp_path, ca
     bench_plan.append_line(str(path), json.dumps({"seed": 1}))
     assert bench_plan.read_lines(str(path)) == [{"seed": 0}, {"seed": 1}]
     assert "line 2 is not complete JSON" in capsys.readouterr().err
+
+
+def _line(**over) -> dict:
+    outcome = {"top": "motor_lag", "first": True, "tied": False, "alike": False, "sigma": 5.0}
+    return {"scenario": "lag_firmware_short", "seed": 0, "truth": "motor_lag", "before": outcome,
+            "planned": outcome, "files": {"circle0": outcome}, "manoeuvre": "m", "predicted_sigma": 1.0,
+            "predicted_before": 0.0, "added": [], **over}
+
+
+def test_a_run_at_other_limits_gets_its_own_table(bench_plan, tmp_path, capsys):
+    """``--max-speed`` and the like record the plan's limits in each line; ``--table`` keeps a run
+    at other limits apart from one at the default limits and from lines written before the
+    limits were recorded (read as the default)."""
+    from quadcore.plan.limits import Limits
+
+    faster = Limits(max_speed_mps=2.2, max_tilt_deg=45.0).to_dict()
+    trials = [bench_plan.trial_from(d) for d in (_line(), _line(limits=Limits().to_dict()), _line(limits=faster))]
+    assert [bench_plan.label(t) for t in trials[:2]] == ["lag_firmware_short"] * 2
+    assert bench_plan.label(trials[2]) == "lag_firmware_short (plan limits: 2.2 m/s, 9.80665 m/s², 45°)"
+    bench_plan.summarise(trials)
+    out = capsys.readouterr().out
+    assert out.count("\nlag_firmware_short: σ for the truth") == 1
+    assert out.count("\nlag_firmware_short (plan limits: 2.2 m/s, 9.80665 m/s², 45°): σ for the truth") == 1

@@ -207,7 +207,8 @@ def test_lag_against_delay_from_logs_below_the_command_rate_plans_nothing_and_sa
 # firmware's coloured noise the hover flights tied when the lag was true until the rate level
 # modelled the gyro's noise (now 1 of 5 lag-true seeds); every flight that moves decides it, the
 # plan designed at the angular-rate level by the largest separation (docs/flight-planning.md: at
-# 2 ms nothing is found, at 5 ms the diagnosis answers wrongly, below the command rate nothing decides).
+# 2 ms nothing is found, at 5 ms the hovers tie and the planned flight decides, below the command rate
+# nothing decides).
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["drag", "mass"])
 @pytest.mark.parametrize("seed", [0, 1])

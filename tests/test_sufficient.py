@@ -503,6 +503,41 @@ def test_the_decoder_digest_follows_the_decoders_code(tmp_path, monkeypatch):
     flight.decoder_digest.cache_clear()
 
 
+
+def test_the_decoder_digest_follows_the_code_not_its_comments_docstrings_or_layout(tmp_path, monkeypatch):
+    """An edit of a comment, a docstring or the layout of a module in
+    :data:`quadcore.logs.flight.DECODER_MODULES` keeps every decoded table current (before, any
+    byte of quadcore.logs.flight, the flight's assembly and its folder helpers alike, decoded every
+    flight again); an edit of its code does not: on the decoder's own source, and through the
+    digest of a probe module standing for one of them."""
+    from quadcore.store import codedigest
+
+    source = Path(flight.__file__).read_text()
+    assert '"""A decoded flight' in source and "# The code a decoded table's rows" in source
+    words = (source.replace('"""A decoded flight', '"""A flight decoded', 1)
+             .replace("# The code a decoded table's rows", "# The code that makes a decoded table's rows", 1)
+             .replace("\n\n\n", "\n\n\n\n", 1) + "\n# a last comment\n")
+    code = source.replace('TRUTH_SUFFIX = ".truth.json"', 'TRUTH_SUFFIX = ".true.json"', 1)
+    assert words != source and code != source
+    assert codedigest.code_of(words.encode()) == codedigest.code_of(source.encode())
+    assert codedigest.code_of(code.encode()) != codedigest.code_of(source.encode())
+
+    probe = tmp_path / "qc_probe_decoder.py"
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(flight, "DECODER_MODULES", (*flight.DECODER_MODULES, "qc_probe_decoder"))
+
+    def digest(text: str) -> str:
+        probe.write_text(text)
+        flight.decoder_digest.cache_clear()  # a new process
+        return flight.decoder_digest()
+
+    try:
+        first = digest('"""Unit scale."""\n\n\ndef scale(x):\n    """Times one."""\n    return x * 1.0  # SI\n')
+        assert digest('"""The unit\'s scale."""\n\n\ndef scale(x):\n    """x, as is."""\n\n    return x*1.0\n') == first
+        assert digest('"""Unit scale."""\n\n\ndef scale(x):\n    """Times one."""\n    return x * 2.0  # SI\n') != first
+    finally:
+        flight.decoder_digest.cache_clear()
+
 def _modules_that_run(work):
     """``work()``'s result and the quadcore modules whose functions it called (a profile hook)."""
     ran: set[str] = set()
@@ -808,16 +843,19 @@ def test_an_effects_source_digest_follows_its_modules_code_not_only_its_class(tm
     the code an effect's wrench runs changes: a module-level function its class calls (as
     motor_lag's wrench calls first_order_lag), and a plugin's file edited between two loads. Before,
     the digest was the class's source alone (the same text here), and every plugin's 'unknown'
-    (its module is in no sys.modules), so kept statistics of the old code stayed current."""
+    (its module is in no sys.modules), so kept statistics of the old code stayed current. A
+    comment or docstring edited in the module keeps it (quadcore.store.codedigest.code_of)."""
     monkeypatch.syspath_prepend(str(tmp_path))
     digests = []
-    for i, factor in enumerate(("1.0", "2.0")):  # the same class, another helper
-        (tmp_path / f"digest_mod_{i}.py").write_text(_PLUGIN.format(factor=factor, name="digest"))
+    comment = '"""An edited docstring."""\n# and a comment\n'
+    for i, (factor, words) in enumerate((("1.0", ""), ("2.0", ""), ("1.0", comment))):  # the same class, another helper
+        (tmp_path / f"digest_mod_{i}.py").write_text(words + _PLUGIN.format(factor=factor, name="digest"))
         try:
             digests.append(sufficient.source_digest(type(importlib.import_module(f"digest_mod_{i}").EFFECT)))
         finally:
             sys.modules.pop(f"digest_mod_{i}", None)
     assert digests[0] != digests[1] and "unknown" not in digests
+    assert digests[2] == digests[0]  # the words changed, not the code
     plugin = tmp_path / "edited_plugin.py"
     plugins = []
     for factor in ("1.0", "2.0"):  # one plugin file, edited between two loads

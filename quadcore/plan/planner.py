@@ -226,58 +226,93 @@ def _unlogged_timing(q: Question, flights: Mapping[str, flightdata.FlightData]) 
 
 def _separate(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: PlanRequest, sessions,
               log, stats: proof.StoredStats = None) -> FlightPlan:
+    """The flight that separates the question's two candidates: the pair (nothing to plan when no
+    flight tells them apart), the search on their objective, the design, the separation measured
+    on the logged flights and the proof."""
     vehicle, limits = spec.vehicle, request.limits
     flights = fitting_flights(tables, spec)
-    old = list(flights.values())
-    unlogged = _unlogged_timing(q, flights)
-    if unlogged:
-        return FlightPlan(unlogged, limits, request.duration_s)
-    if request.between is None:
-        q = _choose_rival(q, diag, flights, vehicle, limits, request.duration_s, log)
-        if q.kind == "none":
-            return FlightPlan(q, limits, request.duration_s)
+    q = _separable(q, diag, flights, request, vehicle, log)
+    if q.kind == "none":
+        return FlightPlan(q, limits, request.duration_s)
     a, b = (questionlib.explanation(diag, n) for n in q.candidates)
     sigma = noise_sigma(diag, list(q.candidates))
     obj = separation_objective(a, b, flights, diag, vehicle)
-    loop = signatures.activity(old)
-    best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle, limits,
-                         request.duration_s, log)
-    fd = signatures.planned_flight(best.trajectory, vehicle, loop)
-    before, after = obj.evaluate(), obj.evaluate(fd)
-    design: dict[str, Any] = {"before": before.to_dict(), "after": after.to_dict(),
-                              "expected_to_decide": bool(after.value >= 1.0),
-                              "noise_per_axis": [float(v) for v in sigma],
-                              "statistic": ("angular rate" if isinstance(obj, ratelevel.RateSeparation)
-                                            else "force and torque"),
-                              **_outlook(obj, fd, before, after, request.duration_s)}
+    best, fd = _search(obj.value, vehicle, signatures.activity(list(flights.values())), request, log)
+    design = _separation_design(obj, fd, sigma, request.duration_s)
     if design.get("advice"):
         log(f"plan: {design['advice']}")
     measured = proof.before(tables, spec, diag, (a.name, b.name), stats)
     if measured.undecided:
         log(f"plan: on the logged flights {measured.undecided}")
-    if isinstance(obj, ratelevel.RateSeparation) and abs(measured.t) < 0.5 * design["before"]["sigma"]:
-        design["note"] = (f"the logged flights separate the two by {abs(measured.t):.1f} σ at the angular-rate level "
-                          f"where the objective expects {design['before']['sigma']:.1f} σ: the gyro noise is not white "
-                          "there or biases the fits (docs/timing.md), so the prediction after is optimistic "
-                          "(docs/flight-planning.md)")
-        log(f"plan: {design['note']}")
-    elif measured.blocks == 0:
-        design["note"] = _no_comparison_note(diag, measured, design["before"]["sigma"])
-        log(f"plan: {design['note']}")
-    elif _flights_disagree(measured):
-        design["note"] = _flights_note(measured)
-        log(f"plan: {design['note']}")
+    note = _measured_note(obj, diag, measured, design["before"]["sigma"])
+    if note:
+        design["note"] = note
+        log(f"plan: {note}")
     log(f"plan: {best.manoeuvre.describe()}; predicted separation {design['before']['sigma']:.1f} -> "
         f"{design['after']['sigma']:.1f} σ (measured before: {abs(measured.sigma_for(a.name)):.1f} σ"
         f"{', undecided' if measured.undecided else ''})")
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [a, b], (a.name, b.name), request.seed, log,
                        sessions, stats) if request.prove else proof.Proof())
-    return FlightPlan(q, limits, request.duration_s, best.manoeuvre, best.trajectory,
-                      check(best.trajectory, vehicle, limits), design, abs(measured.sigma_for(a.name)),
-                      abs(proof.score_gap(diag, a.name, b.name) or 0.0), measured.by_flight, flown.flown,
-                      flown.left_out,
-                      _differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
-                      flatness.flat_path(best.trajectory, vehicle), measured.undecided)
+    return FlightPlan(
+        q, limits, request.duration_s, manoeuvre=best.manoeuvre, trajectory=best.trajectory,
+        checked=check(best.trajectory, vehicle, limits), design=design,
+        measured_before=abs(measured.sigma_for(a.name)),
+        gap_before=abs(proof.score_gap(diag, a.name, b.name) or 0.0), measured_by_flight=measured.by_flight,
+        proof=flown.flown, proof_left_out=flown.left_out,
+        differ=_differ_separate(a, b, signatures.planned_flight(best.trajectory, vehicle), vehicle, sigma),
+        path=flatness.flat_path(best.trajectory, vehicle), undecided_before=measured.undecided)
+
+
+def _separable(q: Question, diag: Diagnosis, flights: Mapping[str, flightdata.FlightData], request: PlanRequest,
+               vehicle: Vehicle, log) -> Question:
+    """The pair to separate: the question, with the rival a flight can separate from the top
+    candidate when none was asked; a question of kind ``"none"`` (with its reason) where the
+    flights' logging cannot tell the two apart or no flight of the family separates any rival."""
+    unlogged = _unlogged_timing(q, flights)
+    if unlogged:
+        return unlogged
+    if request.between is None:
+        return _choose_rival(q, diag, flights, vehicle, request.limits, request.duration_s, log)
+    return q
+
+
+def _search(value: Callable[[flightdata.FlightData], float], vehicle: Vehicle, loop: np.ndarray,
+            request: PlanRequest, log) -> tuple[search.Candidate, flightdata.FlightData]:
+    """The best flight of the family for the objective's ``value`` within the request's limits and
+    flight time, and that flight as the planner predicts it (flown by the logged flights' control
+    ``loop``)."""
+    best = search.search(lambda tr: value(signatures.planned_flight(tr, vehicle, loop)), vehicle, request.limits,
+                         request.duration_s, log)
+    return best, signatures.planned_flight(best.trajectory, vehicle, loop)
+
+
+def _separation_design(obj: objective.SeparationObjective | ratelevel.RateSeparation, fd: flightdata.FlightData,
+                       sigma: np.ndarray, duration_s: float) -> dict[str, Any]:
+    """The design's part of the plan: the objective's separation on the logged flights alone
+    (``before``) and with the planned flight ``fd`` (``after``), whether that is expected to
+    decide, the noise it fights, the statistic, and the outlook (:func:`_outlook`)."""
+    before, after = obj.evaluate(), obj.evaluate(fd)
+    return {"before": before.to_dict(), "after": after.to_dict(), "expected_to_decide": bool(after.value >= 1.0),
+            "noise_per_axis": [float(v) for v in sigma],
+            "statistic": "angular rate" if isinstance(obj, ratelevel.RateSeparation) else "force and torque",
+            **_outlook(obj, fd, before, after, duration_s)}
+
+
+def _measured_note(obj: objective.SeparationObjective | ratelevel.RateSeparation, diag: Diagnosis,
+                   measured: separation.Comparison, expected: float) -> str | None:
+    """Why the separation measured on the logged flights says less than the design's ``expected``
+    (σ before): at the rate level, non-white gyro noise or biased fits; else no comparison at all
+    (:func:`_no_comparison_note`), or flights that disagree (:func:`_flights_note`); None when
+    neither applies."""
+    if isinstance(obj, ratelevel.RateSeparation) and abs(measured.t) < 0.5 * expected:
+        return (f"the logged flights separate the two by {abs(measured.t):.1f} σ at the angular-rate level "
+                f"where the objective expects {expected:.1f} σ: the gyro noise is not white "
+                "there or biases the fits (docs/timing.md), so the prediction after is optimistic "
+                "(docs/flight-planning.md)")
+    if measured.blocks == 0:
+        return _no_comparison_note(diag, measured, expected)
+    by = _disagreeing_flights(measured)
+    return _flights_note(measured, by) if by is not None else None
 
 
 def _no_comparison_note(diag: Diagnosis, measured: separation.Comparison, expected: float) -> str:
@@ -302,16 +337,14 @@ def _no_comparison_note(diag: Diagnosis, measured: separation.Comparison, expect
                                               "evidence)" if quiet else "") + tail)
 
 
-def _flights_disagree(measured: separation.Comparison) -> bool:
-    """The held-out comparison separates the two at the diagnosis's level, the flights taken as the
-    clusters do not (:class:`quadcore.plan.separation.ByFlight`)."""
+def _disagreeing_flights(measured: separation.Comparison) -> separation.ByFlight | None:
+    """The comparison with the flights as the clusters (:class:`quadcore.plan.separation.ByFlight`)
+    where the held-out comparison separates the two at the diagnosis's level and it does not; else None."""
     by = measured.by_flight
-    return by is not None and measured.p_value < evidence.ALPHA <= by.p_value
+    return by if by is not None and measured.p_value < evidence.ALPHA <= by.p_value else None
 
 
-def _flights_note(measured: separation.Comparison) -> str:
-    by = measured.by_flight
-    assert by is not None
+def _flights_note(measured: separation.Comparison, by: separation.ByFlight) -> str:
     first, second = (measured.a, measured.b) if measured.t > 0 else (measured.b, measured.a)
     count = by.for_first if measured.t > 0 else by.flights - by.for_first
     return (f"the logged flights separate the two by {abs(measured.t):.1f} σ in the held-out comparison, "
@@ -366,9 +399,7 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
     else:
         obj = objective.InformationObjective(expl, name, std_before, vehicle, sigma)
     loop = signatures.activity(list(fitting_flights({f: tables[f] for f in sorted(tables)[:3]}, spec).values()))
-    best = search.search(lambda tr: obj.value(signatures.planned_flight(tr, vehicle, loop)), vehicle,
-                         request.limits, request.duration_s, log)
-    fd = signatures.planned_flight(best.trajectory, vehicle, loop)
+    best, fd = _search(obj.value, vehicle, loop, request, log)
     design: dict[str, Any] = {"std_before": std_before, "std_after": obj.std_after(fd),
                               "noise_per_axis": [float(v) for v in sigma]}
     log(f"plan: {best.manoeuvre.describe()}; predicted std of {q.parameter} {std_before:.3g} -> "
@@ -376,7 +407,8 @@ def _parameter(q: Question, tables, spec: ModelSpec, diag: Diagnosis, request: P
     flown = (proof.fly(best.trajectory, tables, spec, diag.model, [expl], None, request.seed, log, sessions, stats)
              if request.prove else proof.Proof())
     u = signatures.unit_wrench(expl, name, fd, vehicle)
-    return FlightPlan(q, request.limits, request.duration_s, best.manoeuvre, best.trajectory,
-                      check(best.trajectory, vehicle, request.limits), design, None, None, None, flown.flown,
-                      flown.left_out,
-                      (u**2) @ (1.0 / sigma**2), flatness.flat_path(best.trajectory, vehicle))
+    return FlightPlan(
+        q, request.limits, request.duration_s, manoeuvre=best.manoeuvre, trajectory=best.trajectory,
+        checked=check(best.trajectory, vehicle, request.limits), design=design, proof=flown.flown,
+        proof_left_out=flown.left_out, differ=(u**2) @ (1.0 / sigma**2),
+        path=flatness.flat_path(best.trajectory, vehicle))

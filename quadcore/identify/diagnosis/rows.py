@@ -13,8 +13,12 @@ The fields the later steps set start at "not yet decided" values; every step of
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
 
 from quadcore.identify.diagnosis.results import CandidateFields, CandidateScore
+
+if TYPE_CHECKING:  # the rate level imports this module's type for its annotations
+    from quadcore.identify.rates.judgement import RateEvidence
 
 
 @dataclass(eq=False)  # a row is itself: the steps compare rows by identity
@@ -24,6 +28,8 @@ class CandidateRow(CandidateFields):
 
     # ranked (_beyond_the_best): what it removes alone by the same screen as explained_after_top
     explained_alone_screen: float = 0.0
+    # a timing candidate (rates.judge): its found-ness decided at the angular-rate level; None: at its target channel
+    rate_level: RateEvidence | None = None
 
     def tier(self) -> int:
         """0: found (physical, significant, confirmed on held-out flights); 1: physical but not

@@ -219,7 +219,7 @@ def _outside_library(rows: list[CandidateRow], held: HeldOut, command: str, libr
         return {"channels": [], "command": command} if not all(held.at_noise.values()) else None
     top, out = found[0], []
     for ch, sl in TARGET_CHANNELS.items():
-        mine = [r for r in found if r.target == ch]
+        mine = [r for r in found if r.target == ch and r.rate_level is None]  # not one found at the rate level
         before, floor = float(held.before[sl].sum()), float(held.noise_ss[sl].sum())
         if not mine or before <= floor:
             continue

@@ -185,12 +185,19 @@ def _parameter_notes(bounds: _Bounds, active: dict[str, float], at_bound: list[s
 def _decide(r: CandidateRow, at_noise: dict[str, bool], n_candidates: int, settings: DiagnosisSettings) -> None:
     """``found`` (the JSON's older name ``useful``): physical, its parameters significant,
     confirmed on the held-out flights (:func:`quadcore.identify.evidence.held_out_test`),
-    removing some of a target residual that stands above the noise floor. ``grade`` says how
+    removing some of a target residual that stands above the noise floor. A timing candidate
+    decided at the angular-rate level (``r.rate_level``, :func:`quadcore.identify.rates.judge`):
+    its held-out test is there, against no timing effect, and not confirmed where the noise model
+    or the closed loop decides it; the torque residual's share and floor, which the closed loop
+    biases, do not decide it, and one the rate level prefers significantly to a found one counts as
+    significant (:func:`quadcore.identify.rates.judgement._better_than_found`). ``grade`` says how
     large it is."""
     r.held_out_alpha = evidence.alpha_each(n_candidates, settings.alpha)
-    confirmed = r.held_out_p_value < r.held_out_alpha and r.held_out_slope > 0
-    r.found = bool(r.physical and r.significant and confirmed and r.explained_variance > 0
-                   and not at_noise[r.target])
+    rate = r.rate_level
+    confirmed = r.held_out_p_value < r.held_out_alpha and r.held_out_slope > 0 and not (rate and rate.undecided)
+    above_noise = rate is not None or (r.explained_variance > 0 and not at_noise[r.target])
+    significant = r.significant or bool(rate and rate.better_than)
+    r.found = bool(r.physical and significant and confirmed and above_noise)
     if not r.physical:
         r.grade = "unphysical"
     elif not r.found:

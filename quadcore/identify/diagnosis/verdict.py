@@ -21,6 +21,8 @@ def _why_not(r: CandidateRow, at_noise: dict[str, bool], settings: DiagnosisSett
     ch = r.target
     if not r.physical:
         return "unphysical", "unphysical fit: " + "; ".join(n for n in r.notes if "outside" in n)
+    if r.rate_level is not None:
+        return "not_significant", _why_not_at_rate_level(r)
     if at_noise[ch]:
         return "noise_level", (f"no evidence: the held-out {ch} residual is within {settings.noise_margin:.0%} "
                                "of the sensor-noise floor")
@@ -30,6 +32,26 @@ def _why_not(r: CandidateRow, at_noise: dict[str, bool], settings: DiagnosisSett
         return "not_significant", (f"indistinguishable from noise on held-out flights "
                                    f"(p = {r.held_out_p_value:.2g}, needs p < {r.held_out_alpha:.2g})")
     return "not_significant", f"its fit is within noise of 'no effect' ({r.significance_sigma:.1f} σ)"
+
+
+def _why_not_at_rate_level(r: CandidateRow) -> str:
+    """Why a timing candidate decided at the angular-rate level (``r.rate_level``) is not found."""
+    if not r.significant:
+        return f"its fit is within noise of 'no effect' at the angular-rate level ({r.significance_sigma:.1f} σ)"
+    if r.rate_level is not None and r.rate_level.undecided:
+        return f"not confirmed against no timing effect at the angular-rate level: {r.rate_level.undecided}"
+    return (f"indistinguishable from no timing effect on held-out flights at the angular-rate level "
+            f"(p = {r.held_out_p_value:.2g}, needs p < {r.held_out_alpha:.2g})")
+
+
+def _size(r: CandidateRow) -> str:
+    """How large a found candidate is and what it removes, at the level it was decided at."""
+    if r.rate_level is not None:
+        return (f"{r.grade}: removes {_pct(r.rate_level.explained)} of the held-out {RATE_LEVEL} residual "
+                f"against no timing effect, p = {r.held_out_p_value:.2g} (found at the angular-rate level, where "
+                "the closed loop does not bias a timing fit: docs/timing.md)")
+    return (f"{r.grade}: removes {_pct(r.explained_variance)} of the held-out {r.target} residual "
+            f"({_pct(r.explained_above_noise)} of what lies above the noise floor), p = {r.held_out_p_value:.2g}")
 
 
 def rank_reasons(rows: list[CandidateRow], at_noise: dict[str, bool], settings: DiagnosisSettings = DEFAULT) -> None:
@@ -44,9 +66,7 @@ def rank_reasons(rows: list[CandidateRow], at_noise: dict[str, bool], settings: 
             if above and r.physical:
                 r.reason += f"; indistinguishable from {', '.join(above)}"
             continue
-        size = (f"{r.grade}: removes {_pct(r.explained_variance)} of the held-out {r.target} residual "
-                f"({_pct(r.explained_above_noise)} of what lies above the noise floor), "
-                f"p = {r.held_out_p_value:.2g}")
+        size = _size(r)
         assert top is not None  # rows are ranked: a found candidate never follows one not found
         if r is top:
             r.status, r.reason = "found", size
@@ -147,8 +167,14 @@ def _most_likely(top: CandidateRow, settings: DiagnosisSettings) -> str:
         grade, grade + " (confirmed on held-out flights") + f", p = {top.held_out_p_value:.2g})"
     params = _params(top)
     ch, other = top.target, _other(top.target)
-    text = (f"Most likely missing: {top.effect}: {size}: it removes {top.explained_variance:.0%} of the held-out "
-            f"{ch} residual ({_pct(top.explained_above_noise)} of what lies above the sensor-noise floor)")
+    if top.rate_level is not None:
+        text = (f"Most likely missing: {top.effect}: {size}: it removes {_pct(top.rate_level.explained)} of the "
+                f"held-out {RATE_LEVEL} residual against no timing effect (found at the angular-rate level, where "
+                f"the closed loop does not bias a timing fit; {_pct(top.explained_in(ch))} of the held-out {ch} "
+                "residual)")
+    else:
+        text = (f"Most likely missing: {top.effect}: {size}: it removes {top.explained_variance:.0%} of the held-out "
+                f"{ch} residual ({_pct(top.explained_above_noise)} of what lies above the sensor-noise floor)")
     if top.acts_on == "both" and top.explained_in(other) >= settings.min_explained:
         text += f" and {top.explained_in(other):.0%} of the {other} residual"
     text += f" ({params})."

@@ -28,7 +28,8 @@ The package, importing only downward:
   coloured by the firmware's low-pass);
 * :mod:`.sums`: a flight's sufficient sums (:class:`RateSums`), what the rate level keeps of a
   flight, and a timing parameter's fit from the sums (:func:`fit`);
-* :mod:`.compare`: the held-out comparison of two candidates (:func:`difference_test`) and when
+* :mod:`.compare`: the held-out comparison of two candidates (:func:`difference_test`), of one
+  against no timing effect (:func:`effect_comparison`), and when
   the noise model (:func:`noise_model_decides`) or the closed loop (:func:`closed_loop_decides`)
   decides it;
 * :mod:`.judgement`: the diagnosis's use of all of it (:func:`judge`).
@@ -40,12 +41,15 @@ derivation and the measurements.
 """
 
 from quadcore.identify.rates.compare import (
+    NO_TIMING,
     PairComparison,
     block_differences,
     closed_loop_decides,
     compare_pair,
     difference_test,
+    effect_comparison,
     held_out_comparison,
+    held_out_cost,
     instrument_test,
     instrumented_differences,
     noise_model_decides,
@@ -54,7 +58,16 @@ from quadcore.identify.rates.compare import (
     unwhitened_comparison,
 )
 from quadcore.identify.rates.increments import RateFlight, effect_increments, rate_flight
-from quadcore.identify.rates.judgement import NOT_SIGNIFICANT, RATE_LEVEL, TIE, Judged, judge
+from quadcore.identify.rates.judgement import (
+    NOT_SIGNIFICANT,
+    RATE_LEVEL,
+    TIE,
+    Judged,
+    RateEvidence,
+    fold_fits,
+    judge,
+    timing_fit,
+)
 from quadcore.identify.rates.noise import (
     MAX_AR_ORDER,
     NOISE_BAND_HZ,
@@ -89,10 +102,11 @@ from quadcore.identify.rates.sums import (
 )
 
 __all__ = ["MAX_AR_ORDER", "NOISE_BAND_HZ", "NOISE_FLAT_HZ", "NOISE_LAGS", "NOISE_MODEL_PASSES", "NOT_SIGNIFICANT",
-           "RATE_LEVEL", "TIE", "WHITE_FLOOR", "BelowCommandRate", "Filter", "FlightRates", "Judged", "NoiseModel",
-           "PairComparison", "RateFit", "RateFlight", "RateSums", "RatesCache", "below_command_rate",
-           "block_differences", "closed_loop_decides", "compare_pair", "difference_test", "effect_increments", "fit",
-           "fit_cost", "flight_inputs", "flight_rates", "flight_sums", "grid_weights", "gyro_noise_model",
-           "held_out_comparison", "instrument_test", "instrumented_differences", "judge", "noise_model",
-           "noise_model_decides", "pair_splits", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums",
-           "split_weights", "timing_comparison", "unwhitened_comparison", "weights", "whitened"]
+           "NO_TIMING", "RATE_LEVEL", "TIE", "WHITE_FLOOR", "BelowCommandRate", "Filter", "FlightRates", "Judged",
+           "NoiseModel", "PairComparison", "RateEvidence", "RateFit", "RateFlight", "RateSums", "RatesCache",
+           "below_command_rate", "block_differences", "closed_loop_decides", "compare_pair", "difference_test",
+           "effect_comparison", "effect_increments", "fit", "fit_cost", "flight_inputs", "flight_rates",
+           "flight_sums", "fold_fits", "grid_weights", "gyro_noise_model", "held_out_comparison", "held_out_cost",
+           "instrument_test", "instrumented_differences", "judge", "noise_model", "noise_model_decides",
+           "pair_splits", "piecewise_quadratic_minimum", "rate_flight", "rate_grid", "rate_sums", "split_weights",
+           "timing_comparison", "timing_fit", "unwhitened_comparison", "weights", "whitened"]

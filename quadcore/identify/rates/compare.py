@@ -29,7 +29,7 @@ then ask only which biased fit is nearer (docs/timing.md, "The closed loop's sha
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import stats
@@ -37,6 +37,8 @@ from scipy import stats
 from quadcore.effects import Effect
 from quadcore.identify import evidence
 from quadcore.identify.rates.sums import RateFit, RateSums, fit, split_weights
+
+NO_TIMING = "no timing effect"  # the other side of :func:`effect_comparison`
 
 
 def block_differences(flights: Sequence[RateSums], a: Effect, pa: dict[str, float], b: Effect,
@@ -222,6 +224,27 @@ def held_out_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[
     iv, shift = instrument_test(g, D, *lagged)
     closed_loop = not noise_model and closed_loop_decides(test, iv, shift, alpha)
     return PairComparison(a.name, b.name, per_flight, test, raw, noise_model or closed_loop, iv, closed_loop)
+
+
+def effect_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                      c: Effect, fits: Sequence[RateFit], ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
+    """The held-out test of a timing candidate ``c`` against no timing effect: ``c`` at each split's
+    fit (``fits``, on its training flights, weighted by ``ws``) against ``c`` at its parameter's
+    default (a nested pair), :func:`held_out_comparison` on the test flights of ``splits`` at
+    ``alpha`` with every rule that leaves a pair undecided (``t > 0``: the fitted effect fits
+    better; ``b``: ``"no timing effect"``). On held-out flights, not :func:`pair_splits`: a fit on
+    the flights it is scored on always favours the bigger of two nested models (in-sample only
+    where the diagnosis is: one flight)."""
+    (p,) = c.parameters
+    none = [RateFit(c.name, p.name, p.default, 0.0, 0.0, 0) for _ in fits]
+    return replace(held_out_comparison(flights, splits, c, c, fits, none, ws, alpha), b=NO_TIMING)
+
+
+def held_out_cost(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], c: Effect,
+                  value: float, ws: Sequence[np.ndarray]) -> float:
+    """``Σ J_rate,b`` over every block of the test flights of ``splits`` with ``c`` at ``value``
+    (its default: the residual with no timing effect), weighted as each split's (``ws``)."""
+    return sum(float((flights[f].costs(c, value) @ w).sum()) for (_, te), w in zip(splits, ws) for f in te)
 
 
 def pair_splits(splits: Sequence[tuple[Sequence[str], Sequence[str]]]) -> list[tuple[list[str], list[str]]]:

@@ -4,27 +4,29 @@
 made), fits each timing candidate's one parameter (:func:`quadcore.identify.rates.sums.fit`:
 ``θ̂ = argmin J_rate(θ)`` over the training flights, body-frame torques integrated to N m s) and
 compares every pair at fits on all the training flights, every flight's blocks scored
-(:func:`quadcore.identify.rates.compare.timing_comparison`): a significant difference
+(:func:`quadcore.identify.rates.compare.timing_comparison`), and decides whether each is found
+there (:class:`RateEvidence`: held out against no timing effect): a significant difference
 ranks the better one above the other, a pair the noise model decides, or one not significant
 where either is found, is tied (:data:`TIE`, :class:`Judged`). Used by
 :func:`quadcore.identify.diagnosis.diagnose` for the candidates that re-time the rotors'
-commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters and how they
-rank against each other come from here (docs/diagnosis.md).
+commanded thrust (:attr:`quadcore.effects.Effect.retimes_thrust`): their parameters, whether they
+are found and how they rank against each other come from here (docs/diagnosis.md).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import stats
 
 from quadcore.effects import Effect
 from quadcore.identify import evidence
 from quadcore.identify.fit import solve
 from quadcore.identify.flightdata import FlightData
-from quadcore.identify.rates.compare import timing_comparison
+from quadcore.identify.rates.compare import PairComparison, effect_comparison, held_out_cost, timing_comparison
 from quadcore.identify.rates.sums import (
     BelowCommandRate,
     FlightRates,
@@ -81,6 +83,25 @@ class Judged:
         return TIE.join(sorted(names - beaten) or sorted(names))
 
 
+@dataclass(frozen=True)
+class RateEvidence:
+    """What decides whether a timing candidate is found, at the rate level (:func:`_rate_evidence`):
+    its fit against no timing effect on held-out flights (:func:`effect_comparison`), ``test``
+    one-sided (``p`` of ``t`` or more, ``t > 0``: the fit predicts the held-out angular rates
+    better than no timing effect); ``explained`` the share of the held-out rate-level residual with
+    no timing effect (``Σ J_rate,b`` at the default) that the fits remove, ``size`` what they
+    remove in RMS of what is left (``√(removed / left)``: the rate level's residual is white, its
+    noise floor is what is left where the fit is right, so this is the size in noise floors where
+    nothing else is missing and less where something is); ``undecided`` the comparison's note when
+    the noise model or the closed loop decides it (then not confirmed), else ""."""
+
+    test: evidence.HeldOutTest
+    explained: float
+    size: float
+    undecided: str = ""
+    better_than: str = ""  # a found timing candidate it fits significantly better than (_better_than_found)
+
+
 def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],
           release: Callable[[str], None], model, splits: Sequence[tuple[list[str], list[str]]], train_all: list[str],
           settings: DiagnosisSettings, decide: Callable[[CandidateRow], None],
@@ -98,7 +119,10 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     training flights. Each flight's rows (``rows_of``) are read once, reduced to its
     :class:`RateSums` and let go (``release``); ``cache``: those kept from an earlier diagnosis,
     each flight's rows read only when its are missing or stale. ``decide``: the diagnosis's
-    decision (found, grade), taken again on a row whose significance changed."""
+    decision (found, grade), taken again on each timing row with its significance and its held-out
+    test from the rate level (:func:`_rate_evidence`: its folds' fits against no timing effect on
+    their test flights, :func:`effect_comparison`), and on one the rate level prefers to a found one
+    (:func:`_better_than_found`)."""
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
@@ -125,20 +149,18 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         first = sorted(slow)[0]
         return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
     flights = {f: s for f, s in reduced_flights.items() if s is not None}
-    w = weights([flights[f] for f in train_all])  # the training flights' noise: none of the held-out ones'
-    ws = split_weights(flights, splits)  # each fold's from its training flights: none of its test flights'
-    folds = {c.name: [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, ws)] for c in timing}
-    # the spread between flights: the folds' fits, or with one split, fits leaving out groups of its flights
-    groups = ([[f for f in train_all if f not in g] for g in solve.folds(train_all, settings.n_folds)]
-              if len(train_all) >= 3 else [])
+    ws = split_weights(flights, splits)  # each fold's from its training flights (fold_fits')
     for c in timing:
-        spread = folds[c.name] if len(splits) > 1 else [fit(c, [flights[f] for f in g], w) for g in groups]
-        _update_row(by_name[c.name], c, fit(c, [flights[f] for f in train_all], w), spread, settings.min_sigma)
+        held = fold_fits(c, flights, splits)
+        _update_row(by_name[c.name], c, *timing_fit(c, flights, splits, train_all, settings.n_folds, held),
+                    settings.min_sigma)
+        _rate_evidence(by_name[c.name], effect_comparison(flights, splits, c, held, ws, settings.alpha),
+                       held_out_cost(flights, splits, c, c.parameters[0].default, ws))
         decide(by_name[c.name])
-    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     wins: list[tuple[CandidateRow, CandidateRow]] = []
     undecided: set[tuple[str, str]] = set()
+    open_pairs: list[tuple[CandidateRow, CandidateRow, str]] = []  # tied where either is found (once all are decided)
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
             ra, rb = by_name[a.name], by_name[b.name]
@@ -148,13 +170,48 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
             if pair.undecided:
                 undecided.add((a.name, b.name))
-                _undecided_tie(ra, rb, pair.note())
+                open_pairs.append((ra, rb, pair.note()))
             elif pair.test.p_value < settings.alpha:
                 wins.append((ra, rb) if pair.test.t > 0 else (rb, ra))
                 _prefer(*wins[-1])
-            elif ra.found or rb.found:
-                _tie(ra, rb)
+            else:
+                open_pairs.append((ra, rb, ""))
+    for better, worse in wins:
+        _better_than_found(better, worse, decide)
+    for ra, rb, note in open_pairs:
+        if note:
+            _undecided_tie(ra, rb, note)
+        elif ra.found or rb.found:
+            _tie(ra, rb)
+    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
     return _ranked(rows, wins), Judged(differences, frozenset(undecided))
+
+
+def fold_fits(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]]
+              ) -> list[RateFit]:
+    """Per split, ``c`` fitted on its training flights, weighted by their noise
+    (:func:`split_weights`): what the split predicts its test flights with."""
+    return [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, split_weights(flights, splits))]
+
+
+def timing_fit(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+               train_all: Sequence[str], n_folds: int, folds: Sequence[RateFit] | None = None
+               ) -> tuple[RateFit, float]:
+    """A timing candidate's parameter as the diagnosis reports it: :func:`fit` on all the training
+    flights (weighted by their noise, none of the held-out ones'), and its spread between flights, the
+    grouped jackknife over the folds' fits (:func:`fold_fits`; ``folds``: made already), or with
+    one split, over fits that each leave out a group of its flights (``n_folds`` groups; none with
+    fewer than three flights). The row's standard error is the larger of the two (:func:`_update_row`)."""
+    w = weights([flights[f] for f in train_all])
+    if len(splits) > 1:
+        spread = list(folds) if folds is not None else fold_fits(c, flights, splits)
+    else:
+        groups = ([[f for f in train_all if f not in g] for g in solve.folds(list(train_all), n_folds)]
+                  if len(train_all) >= 3 else [])
+        spread = [fit(c, [flights[f] for f in g], w) for g in groups]
+    (p,) = c.parameters
+    return (fit(c, [flights[f] for f in train_all], w),
+            solve.jackknife_std([{p.name: f.value} for f in spread]).get(p.name, 0.0))
 
 
 def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[str], dt: float, hold_s: float
@@ -178,12 +235,11 @@ def _undecided(rows: list[CandidateRow], timing: list[CandidateRow], slow: list[
     return rows
 
 
-def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], min_sigma: float) -> None:
+def _update_row(r: CandidateRow, c: Effect, rf: RateFit, spread: float, min_sigma: float) -> None:
     """A candidate row with its parameter from the rate level (the torque level's in a note),
-    its standard error the larger of the profile's and the grouped jackknife's over ``folds``
-    (fits that each leave out a group of flights)."""
+    its standard error the larger of the profile's and ``spread``, the grouped jackknife's
+    between flights (:func:`timing_fit`)."""
     (p,) = c.parameters
-    spread = solve.jackknife_std([{p.name: f.value} for f in folds]).get(p.name, 0.0)
     std = max(rf.std, spread)
     torque_v, torque_s = r.parameters[p.name], r.parameter_std[p.name]
     r.parameters = {p.name: rf.value}
@@ -195,12 +251,57 @@ def _update_row(r: CandidateRow, c: Effect, rf: RateFit, folds: list[RateFit], m
     r.notes = (*(n for n in r.notes if not n.startswith(NOT_SIGNIFICANT)),
                f"{p.name} fitted at the angular-rate level, {rf.value:.4g} ± {std:.2g} (on the torque channels, which "
                f"the closed loop biases, {torque_v:.4g} ± {torque_s:.2g}: docs/timing.md)")
-    if rf.unwhitened is not None and abs(rf.value - rf.unwhitened) >= std:
+    if rf.unwhitened is not None and rf.depends_on_noise_model and rf.std >= spread:
         r.notes = (*r.notes, f"{p.name} depends on the gyro noise model: {rf.value:.4g} with it, {rf.unwhitened:.4g} "
                              "without; the standard error spans both (docs/timing.md, 'A small delay')")
     if not r.significant:
         r.notes = (*r.notes, f"{NOT_SIGNIFICANT} the fit is only {r.significance_sigma:.1f} standard errors from "
                              "'no effect'")
+
+
+def _rate_evidence(r: CandidateRow, comp: PairComparison, before: float) -> None:
+    """A timing row's held-out test and size from the rate level (:class:`RateEvidence`, ``comp``
+    its :func:`effect_comparison`, ``before`` the held-out blocks' cost with no timing effect),
+    the torque level's held-out test in a note: the closed loop biases it (a 5 ms lag fitted
+    5.000 ± 0.93 ms at the rate level removed none of the held-out torque residual, its score
+    −1.5: docs/timing.md, "Found at the angular-rate level")."""
+    test = comp.test
+    g = np.concatenate([d for d, _ in comp.per_flight.values()]) if comp.per_flight else np.zeros(0)
+    removed = float(g.sum())
+    one_sided = (evidence.HeldOutTest(test.beta, test.t, float(stats.t.sf(test.t, test.blocks - 1)), test.blocks)
+                 if test.blocks >= evidence.MIN_BLOCKS else evidence.NO_TEST)
+    left = before - removed
+    size = float(np.sqrt(removed / left)) if removed > 0 and left > 0 else 0.0
+    r.rate_level = RateEvidence(one_sided, removed / before if before > 0 else 0.0, size,
+                                comp.note() if comp.undecided else "")
+    r.notes = (*r.notes, f"found or not at the angular-rate level: held out against no timing effect, t = {test.t:.2f} "
+                         f"(on the torque channels, which the closed loop biases, t = {r.held_out_t:.2f}, "
+                         f"p = {r.held_out_p_value:.2g}: docs/timing.md)")
+    r.held_out_slope, r.held_out_t, r.held_out_p_value, r.held_out_blocks = (
+        one_sided.beta, one_sided.t, one_sided.p_value, one_sided.blocks)
+    r.signal_to_noise = size
+
+
+def _better_than_found(better: CandidateRow, worse: CandidateRow, decide: Callable[[CandidateRow], None]) -> None:
+    """``better``, which the rate level prefers significantly to ``worse``, decided again as
+    significant (:attr:`RateEvidence.better_than`) when ``worse`` is found and ``better`` is not
+    only because its fit is within ``min_sigma`` standard errors of 'no effect': its standard error
+    is at least the spread of the folds' fits, and a fold without the one flight that moves fits it
+    on hovers alone, which the closed loop biases (lag_firmware_5ms with the delay true: 4.997 ±
+    0.003 ms on all the flights, 2.0 ms without the planned flight, a spread of 2.2 ms, while the
+    lag, worse by t = 26, is found at 5.000 ± 0.26 ms). It must still be physical and confirmed
+    against no timing effect on held-out flights."""
+    ev = better.rate_level
+    if better.found or not worse.found or ev is None or better.significant:
+        return
+    better.rate_level = replace(ev, better_than=worse.effect)
+    decide(better)
+    if better.found:
+        better.notes = (*better.notes, f"found although its fit is {better.significance_sigma:.1f} standard errors "
+                                       f"from 'no effect': it fits the angular rates significantly better than "
+                                       f"{worse.effect}, which is found, and better than no timing effect on held-out "
+                                       f"flights (t = {better.held_out_t:.1f}); its standard error is the spread of "
+                                       "the folds' fits (docs/timing.md, 'Found at the angular-rate level')")
 
 
 def _prefer(better: CandidateRow, worse: CandidateRow) -> None:

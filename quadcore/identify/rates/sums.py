@@ -15,9 +15,9 @@ with one sample per independent one: right for a white residual; for a delay, wh
 quadratic between whole sample periods with a minimum in each,
 :func:`piecewise_quadratic_minimum`: every piece searched, the interval taken whole) and the
 blocks-as-clusters one (:func:`_clustered_variance`, right when the model's error within a block
-is not white), and at least the distance to the fit without the whitening filters (below about
-8 ms the whitened and the unwhitened fits of a delay disagree by up to 4 ms, the whitened one
-biased: docs/timing.md, "A small delay"; :attr:`RateFit.unwhitened`).
+is not white), and at least the distance to the fit without the whitening filters plus that fit's
+own standard error (below about 8 ms the whitened and the unwhitened fits of a delay disagree by up
+to 4 ms, the whitened one biased: docs/timing.md, "A small delay"; :attr:`RateFit.unwhitened`).
 
 **From sums, one flight's rows at a time.** Every cost is a quadratic form of per-block Gram
 sums (:class:`RateSums`, :func:`rate_sums`): ``R`` and each timing candidate's ``C`` at every
@@ -248,44 +248,90 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
     ones', quadcore.plan.ratelevel). ``model``: (label, increments (m, 3)) of each column of
     :attr:`RateSums.model` (the model's linear effects per unit of a coordinate, not in ``rf``'s
     increments; :func:`flight_sums`), at no value (:attr:`RateSums.at` zero)."""
-    st = rf.fd.state
-    use = rf.block >= 0
-    dt_s = float(np.median(np.diff(st.t_s)))
+    dt_s = float(np.median(np.diff(rf.fd.state.t_s)))
     grids = {e.name: rate_grid(e, dt_s) for e in timing}
-    k, slots = 1 + len(model), {}
-    for e in timing:
-        slots[e.name] = slice(k, k + len(grids[e.name]))
-        k += len(grids[e.name])
-    b = rf.segment[use]
-    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]])) if len(b) else np.zeros(1, int)
-    cluster = np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1) if len(b) else starts[:0]
-    size = np.diff(starts).astype(float)
-
-    def demeaned(running: np.ndarray) -> np.ndarray:
-        """(m, 3) running sums less their block's mean (which the block's offset takes)."""
-        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None], np.diff(starts),
-                                   axis=0) if len(b) else running
-
-    # (m, 3, K) block-demeaned, filled one column at a time; float32 (one flight's, the largest array here):
-    # the rounding perturbs each value by 6e-8 of itself, a residual by that of the values, not of their Gram
-    X = np.empty((len(b), 3, k), np.float32)
-    X[:, :, 0] = demeaned(np.cumsum(rf.increments, axis=0)[use])
-    for j, (_, increments) in enumerate(model, 1):
-        X[:, :, j] = demeaned(np.cumsum(increments, axis=0)[use])
-    for e in timing:
-        (p,) = e.parameters
-        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
-            X[:, :, j] = demeaned(np.cumsum(effect_increments(e, {p.name: float(v)}, rf), axis=0)[use])
+    slots = _slots(grids, len(model))
+    use = rf.block >= 0
+    starts, cluster = _segments(rf, use)
+    X = _running_sums(rf, use, starts, timing, grids, slots, model)
     ar, share = (noise if isinstance(noise, tuple) else gyro_noise_model(rf.fd) if noise == "gyro"
                  else noise_model(X, starts, rf.fd.noise[3:]) if noise == "residual"
                  else (np.zeros((3, 0)), np.ones(3)))
+    blocks, raw, lagged = _block_grams(X, starts, cluster, ar)
     lags = ar.shape[1]
+    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(X) else 0
+    total = blocks.sum(axis=0)
+    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
+                    samples=max(rf.fd.n, 1), dt_s=dt_s, n=used, unwhitened=raw.sum(axis=0) if lags else total,
+                    unwhitened_blocks=raw.astype(np.float32) if lags else None,
+                    lagged_blocks=lagged.astype(np.float32) if lags else None,
+                    model=tuple(label for label, _ in model), at=np.zeros(len(model)))
+
+
+def _slots(grids: Mapping[str, np.ndarray], linear: int) -> dict[str, slice]:
+    """Each timing effect's columns of the running sums (:attr:`RateSums.slots`): one per point of
+    its grid, in ``grids``' order, after the residual's column and the model's ``linear``
+    coordinates'."""
+    k, slots = 1 + linear, {}
+    for name, grid in grids.items():
+        slots[name] = slice(k, k + len(grid))
+        k += len(grid)
+    return slots
+
+
+def _segments(rf: RateFlight, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of ``rf``'s used rows (``use``) in one segment: their ``starts`` (S + 1,), each the
+    first row of a run in the used rows and the last the end, and (S,) each run's block as an
+    index of the flight's blocks that have one (the held-out tests' clusters)."""
+    b = rf.segment[use]
+    if not len(b):
+        return np.zeros(1, int), np.zeros(0, int)
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(b) != 0, [True]]))
+    return starts, np.unique(rf.block[use][starts[:-1]], return_inverse=True)[1].reshape(-1)
+
+
+def _running_sums(rf: RateFlight, use: np.ndarray, starts: np.ndarray, timing: Sequence[Effect],
+                  grids: Mapping[str, np.ndarray], slots: Mapping[str, slice],
+                  model: Sequence[tuple[str, np.ndarray]]) -> np.ndarray:
+    """(m, 3, K) the running sums of the used rows, each less its run's mean (which the block's
+    offset takes): the residual's, the model's linear coordinates', each timing effect's at every
+    point of its grid. float32, one flight's and the largest array here: the rounding perturbs
+    each value by 6e-8 of itself, a residual by that of the values, not of their Gram."""
+    k = 1 + len(model) + sum(len(g) for g in grids.values())
+    size = np.diff(starts)
+
+    def demeaned(increments: np.ndarray) -> np.ndarray:
+        running = np.cumsum(increments, axis=0)[use]
+        if not len(running):
+            return running
+        return running - np.repeat(np.add.reduceat(running, starts[:-1], axis=0) / size[:, None].astype(float),
+                                   size, axis=0)
+
+    X = np.empty((int(use.sum()), 3, k), np.float32)  # filled one column at a time
+    X[:, :, 0] = demeaned(rf.increments)
+    for j, (_, increments) in enumerate(model, 1):
+        X[:, :, j] = demeaned(increments)
+    for e in timing:
+        (p,) = e.parameters
+        for j, v in zip(range(slots[e.name].start, slots[e.name].stop), grids[e.name]):
+            X[:, :, j] = demeaned(effect_increments(e, {p.name: float(v)}, rf))
+    return X
+
+
+def _block_grams(X: np.ndarray, starts: np.ndarray, cluster: np.ndarray, ar: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block and axis the packed Gram of the running sums ``X`` through the whitening filter
+    ``ar`` (3, lags), each run demeaned after it (:attr:`RateSums.blocks`, float64 here), and where
+    there is a filter the same without it (:attr:`RateSums.unwhitened_blocks`) and each interval's
+    whitened sums with the one before's (:attr:`RateSums.lagged_blocks`, full (K, K)); with no
+    filter those two are zeros (of no block for the lagged)."""
+    k, lags = X.shape[2], ar.shape[1]
     iu = np.triu_indices(k)
     blocks = np.zeros((int(cluster.max()) + 1 if len(cluster) else 0, 3, len(iu[0])))
-    raw = np.zeros_like(blocks)  # the same without the filter (RateSums.unwhitened_blocks)
-    lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))  # each interval with the one before (lagged_blocks)
+    raw = np.zeros_like(blocks)
+    lagged = np.zeros((len(blocks) if lags else 0, 3, k, k))
     with one_blas_thread():  # the Gram products: the same numbers whatever BLAS's thread count
-        for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each segment's Gram into its block's
+        for i, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):  # each run's Gram into its block's
             x = whitened(X[lo:hi].astype(float), ar)
             if not len(x):
                 continue
@@ -296,12 +342,7 @@ def rate_sums(rf: RateFlight, timing: Sequence[Effect], noise: NoiseModel | Filt
                 r = X[lo:hi].astype(float)
                 r -= r.mean(axis=0)
                 raw[cluster[i]] += _gram(r, r)[:, iu[0], iu[1]]
-    used = int(np.maximum(np.diff(starts) - lags, 0).sum()) if len(b) else 0
-    total = blocks.sum(axis=0)
-    return RateSums(grids, slots, blocks.astype(np.float32), total, rf.fd.noise[3:] * np.sqrt(share),
-                    max(rf.fd.n, 1), dt_s, used, raw.sum(axis=0) if lags else total,
-                    raw.astype(np.float32) if lags else None, lagged.astype(np.float32) if lags else None,
-                    tuple(label for label, _ in model), np.zeros(len(model)))
+    return blocks, raw, lagged
 
 
 def weights(flights: Sequence[RateSums]) -> np.ndarray:
@@ -323,9 +364,10 @@ def split_weights(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequen
 class RateFit:
     """A timing effect's one parameter fitted at the rate level: value, standard error, and the
     weighted cost at it over ``n`` intervals; ``unwhitened``: the value fitted without the flights'
-    whitening filters (None: they had none), whose distance from ``value`` the standard error is
-    at least (the answer's dependence on the noise model, which the gyro cannot check: it holds
-    the loop's response to its own noise, docs/timing.md "A small delay")."""
+    whitening filters (None: they had none), and ``unwhitened_std`` its own standard error (the
+    profile's); the standard error is at least the distance from ``value`` to it plus that (the
+    answer's dependence on the noise model, which the gyro cannot check: it holds the loop's
+    response to its own noise, docs/timing.md "A small delay" and "Calibration")."""
 
     effect: str
     parameter: str
@@ -334,12 +376,26 @@ class RateFit:
     cost: float
     n: int
     unwhitened: float | None = None
+    unwhitened_std: float = 0.0
+
+    @property
+    def depends_on_noise_model(self) -> bool:
+        """Whether the two noise models' fits differ by more than the unwhitened one's own error and
+        that difference sets :attr:`std` (its note in the diagnosis, :mod:`.judgement`)."""
+        if self.unwhitened is None:
+            return False
+        d = abs(self.value - self.unwhitened)
+        return d >= self.unwhitened_std and d + self.unwhitened_std >= self.std
 
 
 def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
     """The value of ``effect``'s one parameter minimising ``J_rate`` over ``flights`` (module), its
     standard error (:func:`fit_cost`) at least the distance to the value fitted without the flights'
-    whitening filters (:attr:`RateFit.unwhitened`)."""
+    whitening filters (:attr:`RateFit.unwhitened`) plus that value's own standard error (the
+    profile's): the error bar reaches the far side of the other noise model's 1σ interval. With the
+    distance alone the truth sat at the bar's edge wherever the unwhitened fit was right (white gyro
+    noise, a 2 ms lag or delay: z = −1.02, 40-53 % of 30 seeds within 1σ;
+    benchmarks/bench_timing_calibration.py, docs/timing.md "Calibration")."""
     (p,) = effect.parameters
     memo: dict[float, float] = {}
     pooled = _pooled(flights, w)
@@ -365,9 +421,10 @@ def fit(effect: Effect, flights: Sequence[RateSums], w: np.ndarray) -> RateFit:
         v = float(min(max(v, p.lower), p.upper))
         return sum(float(t @ _packed_square(s.direction(effect, v))) for s, t in raw)
 
-    other = (piecewise_quadratic_minimum(J_raw, knots, n)[0] if effect.linear_between_samples
-             else solve.scalar_minimum(J_raw, n, p.lower, p.upper, samples_per_independent=1)[0])
-    return replace(out, std=max(out.std, abs(out.value - other)), unwhitened=other)
+    other, var = (piecewise_quadratic_minimum(J_raw, knots, n)[:2] if effect.linear_between_samples
+                  else solve.scalar_minimum(J_raw, n, p.lower, p.upper, samples_per_independent=1))
+    own = float(np.sqrt(var)) if np.isfinite(var) else 0.0  # no rise within the bounds: the distance alone
+    return replace(out, std=max(out.std, abs(out.value - other) + own), unwhitened=other, unwhitened_std=own)
 
 
 def fit_cost(effect: Effect, J: Callable[[float], float], per_block: Callable[[float], np.ndarray], n: int,

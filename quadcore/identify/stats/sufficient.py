@@ -495,18 +495,19 @@ def source_digest(effect_class: type) -> str:
     """A digest of the code an effect class's predictions come from (once per class and process:
     reading the source costs milliseconds, and a key is asked for every flight): the whole module
     it is defined in, as its wrench calls the module's own functions (``motor_lag``'s
-    ``first_order_lag``, ``thrust_delay``'s ``delayed``); for a plugin effect, the SHA-256 of the
-    module file's bytes that ran (:func:`quadcore.effects.plugin_source`: its module is in no
-    ``sys.modules``, where ``inspect`` finds none and every plugin had the digest ``unknown``, so
-    an edited plugin left statistics made by the old one current)."""
+    ``first_order_lag``, ``thrust_delay``'s ``delayed``), its code without comments and docstrings
+    (:func:`quadcore.store.codedigest.code_of`, as every digest of the project's code); for a plugin
+    effect, the SHA-256 of the module file's bytes that ran (:func:`quadcore.effects.plugin_source`:
+    its module is in no ``sys.modules``, where ``inspect`` finds none and every plugin had the digest
+    ``unknown``, so an edited plugin left statistics made by the old one current)."""
     plugin = effectlib.plugin_source(str(getattr(effect_class, "name", "")))
     module = sys.modules.get(effect_class.__module__)
     try:
         if plugin is not None and module is None:
-            text = plugin.sha256
+            code = plugin.sha256.encode()
         else:
-            text = inspect.getsource(module if module is not None else effect_class)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+            code = codedigest.code_of(inspect.getsource(module if module is not None else effect_class).encode())
+        return hashlib.sha256(code).hexdigest()[:16]
     except (OSError, TypeError):
         return "unknown"
 
