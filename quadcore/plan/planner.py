@@ -348,7 +348,7 @@ def _flights_note(measured: separation.Comparison, by: separation.ByFlight) -> s
     first, second = (measured.a, measured.b) if measured.t > 0 else (measured.b, measured.a)
     count = by.for_first if measured.t > 0 else by.flights - by.for_first
     return (f"the logged flights separate the two by {abs(measured.t):.1f} σ in the held-out comparison, "
-            f"but {first} fits {count} of {by.flights} flights better, {second} the others, and with "
+            f"but {first} fits {count} of {by.flights} better, {second} the others, and with "
             f"each flight as one cluster the separation is {abs(by.t):.1f} σ (p {by.p_value:.2g}), "
             "not significant (docs/flight-planning.md)")
 
