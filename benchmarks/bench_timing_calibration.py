@@ -72,6 +72,7 @@ class Trial:
     fits: dict[str, tuple[float, float]]  # per candidate: the reported value and standard error, s
     seconds: float
     found: dict[str, bool] | None = None  # per candidate: found by the full diagnosis (--found; None: not run)
+    held_out: dict[str, tuple[float, float]] | None = None  # per candidate: its row's held-out t and p (--found)
 
     @property
     def truth(self) -> tuple[str, float]:
@@ -128,7 +129,8 @@ def run(case: str, noise: str, seed: int, check: bool = False, keep: Path | None
         if check:
             print(f"  the full diagnosis against the rate level alone: {difference(trial, rows, diagnosed_pair)}")
         trial = dataclasses.replace(trial, found={n: bool(rows[n].found) for n in TIMING},
-                                    seconds=time.perf_counter() - t0)
+                                    held_out={n: (float(rows[n].held_out_t), float(rows[n].held_out_p_value))
+                                              for n in TIMING}, seconds=time.perf_counter() - t0)
     return trial
 
 
@@ -184,12 +186,19 @@ def difference(trial: Trial, rows: dict, pair: rates.PairComparison) -> str:
 
 
 def _found(ts: list[Trial], names: list[str], rival: str) -> str:
-    """How often the full diagnosis found each of ``names`` (and ``rival``) in the trials it ran on."""
+    """How often the full diagnosis found each of ``names`` (and ``rival``) in the trials it ran on,
+    and how often their rows' held-out test passed at the library's ``alpha`` per candidate (the
+    diagnosis's other condition, besides the fit's significance)."""
     ran = [tr.found for tr in ts if tr.found is not None]
     if not ran:
         return "not run"
     label = len(names) > 1
     out = [(f"{n}: " if label else "") + _rate(sum(f[n] for f in ran), len(ran)) for n in names]
+    confirmed = [tr.held_out for tr in ts if tr.held_out is not None]
+    if confirmed:  # the row's held-out test at the diagnosis's level per candidate (two candidates here)
+        alpha = evidence.alpha_each(len(TIMING), DiagnosisSettings().alpha)
+        out += [f"held out p < {alpha:g}, {n}: " + _rate(sum(h[n][1] < alpha for h in confirmed), len(confirmed))
+                for n in names]
     return "; ".join(out + ([f"the rival {_rate(sum(f[rival] for f in ran), len(ran))}"] if rival else []))
 
 
@@ -255,7 +264,10 @@ def found_note(tr: Trial) -> str:
 def read_trials(path: str) -> list[Trial]:
     """The trials of a ``--json`` file (lines a killed run left unfinished are left out: bench_plan's
     :func:`read_lines`)."""
-    return [Trial(**{**d, "fits": {n: tuple(v) for n, v in d["fits"].items()}}) for d in read_lines(path)]
+    def pairs(x: dict | None) -> dict | None:
+        return None if x is None else {n: tuple(v) for n, v in x.items()}
+
+    return [Trial(**{**d, "fits": pairs(d["fits"]), "held_out": pairs(d.get("held_out"))}) for d in read_lines(path)]
 
 
 def main() -> None:
