@@ -6,7 +6,10 @@ wrong about in about 5 % of the draws."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 from scipy import stats
 
 from quadcore.identify import evidence
@@ -126,3 +129,24 @@ def test_flights_that_differ_in_size_but_not_in_sign_keep_the_block_test():
     v = np.array([g[flight == f].var(ddof=1) / 16 for f in range(4)])
     q = np.sum((means - np.sum(means / v) / np.sum(1 / v)) ** 2 / v)
     assert stats.chi2.sf(q, 3) < 1e-3
+
+
+@pytest.mark.slow  # the 19 real flights, diagnosed with the committed model
+def test_on_the_real_flights_the_split_pair_is_no_longer_confident_and_the_agreed_find_stays(real_logs):
+    """com_offset against rotor_imbalance: 11 of 19 flights for com_offset, some of each side
+    significant on its own, 5.0 σ counting blocks: the comparison is widened (2.2 σ measured on
+    26 Nov, not significant at the diagnosis's 1 %). com_offset itself is confirmed by all 19
+    flights: its held-out test is the block test (t 26)."""
+    from quadcore import workflows
+    from quadcore.plan import separation
+    from quadcore.workflows import fleet as fleetlib, identify
+
+    model = Path(__file__).resolve().parents[1] / "examples" / "real-flights" / "model.toml"
+    spec = workflows.resolve_model(str(model))
+    fleet = fleetlib.fleet_from_logs([str(real_logs)], spec.vehicle)
+    diag = identify.diagnose(fleet, spec, [])
+    row = next(r for r in diag.candidates if r.effect == "com_offset")
+    assert row.found and row.held_out_t > 10
+    comp = separation.measured(fleet.tables, spec, diag, "com_offset", "rotor_imbalance")
+    assert comp.p_value > evidence.ALPHA and 1.0 < comp.t < 3.5
+    assert comp.by_flight is not None and comp.by_flight.for_first == 11 and comp.by_flight.flights == 19
