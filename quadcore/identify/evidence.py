@@ -101,15 +101,15 @@ TIE_MARGIN = DEFAULT.tie_margin
 LARGE_SNR = DEFAULT.large_snr
 CHANNELS = {"force": slice(0, 3), "torque": slice(3, 6)}
 SAME_TO_ROUNDING = 1e-18  # energy of a difference, relative: amplitudes equal to 1e-9 (rounding leaves ~1e-15)
-HETEROGENEITY_ALPHA = 0.05  # Cochran's Q at which the flights of a held-out test disagree (see the module)
+HETEROGENEITY_ALPHA = 0.05  # Gail and Simon's test at which a held-out test's flights disagree in sign (see the module)
 
 
 @dataclass(frozen=True)
 class HeldOutTest:
     """The held-out regression of the residual on a prediction: slope, t and p-value, over
-    ``blocks`` blocks; ``flights_disagree``: its flights' slopes scatter significantly
-    (Cochran's Q), so its variance was widened by theirs and its degrees of freedom are the
-    flights' (see the module)."""
+    ``blocks`` blocks; ``flights_disagree``: its flights disagree in sign beyond chance
+    (:func:`crossover_p`), so its variance was widened by theirs and its degrees of freedom are
+    the flights' (see the module)."""
 
     beta: float
     t: float

@@ -6,9 +6,9 @@ flight's rows become statistics once, with the model's effects and the two candi
 fold both candidates are fitted on the training flights' residual of the model and predict the
 test flights' (signal vectors; a one-parameter nonlinear candidate from its profiles); then
 :func:`quadcore.identify.evidence.compare` tests, over all held-out 1 s blocks (its variance
-widened where the flights disagree), which of the two fits the residual better, in the channels
-above the sensor-noise floor (and one at it where either adds error there:
-:func:`quadcore.identify.evidence.compared_weights`). Its ``t`` is the
+widened where the flights disagree in sign), which of the two fits the residual better, in the
+channels above the sensor-noise floor (and one at it on the flights where either adds error
+there: :func:`quadcore.identify.evidence.compared_weights`). Its ``t`` is the
 separation in standard errors (positive: the first fits better).
 
 As the diagnosis, it compares the two on the same samples: each flight's first ``skip`` blocks
