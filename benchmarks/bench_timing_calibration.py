@@ -1,7 +1,8 @@
 """Are the rate level's confident statements about rotor timing calibrated?
 
     python benchmarks/bench_timing_calibration.py [--seeds N] [--first S] [--cases none,motor_lag:2,...]
-                                                  [--noise white,firmware] [--json FILE] [--table FILE] [--check]
+                                                  [--noise white,firmware] [--json FILE] [--table FILE]
+                                                  [--sums DIR] [--check] [--found]
 
 Per case (a hidden ``motor_lag`` or ``thrust_delay`` of so many ms, or ``none``), sensor noise
 (``white``: the simulator's default; ``firmware``: through the Crazyflie's gyro low-pass,
@@ -23,8 +24,9 @@ diagnosis's significance). ``--json`` appends each trial as a JSON line (a run r
 ``--first`` adds to it); ``--table FILE`` prints the summary of such a file and runs nothing; ``--sums DIR`` keeps each
 trial's rate sums (pickles, about 3 MB a trial) and reads them back on the next run: a change to the
 comparison or the fit is then measured on the same flights without flying them (not a change to
-the sums).
-docs/benchmarks.md has the measured tables.
+the sums). ``--found`` runs the full diagnosis too and adds, per case, how often it finds each
+candidate and how often the row's held-out test passes at its level per candidate (on ``none``: the
+false-found rate). docs/benchmarks.md has the measured tables.
 """
 
 from __future__ import annotations
