@@ -364,6 +364,8 @@ def test_a_flight_that_moves_decides_a_small_lag_against_a_delay_among_hovers(tm
     # "Found at the angular-rate level")
     assert diag.candidates[0].effect == name and rows[name].found, [(c.effect, c.reason) for c in diag.candidates]
     assert "angular-rate level" in rows[name].reason and rows[name].held_out_t > 3, rows[name].reason
+    # and no fold answers 'nothing' where the torque level sees no timing effect but the rate level does
+    assert "no effect of the library" not in diag.verdict, diag.verdict
     comp = separation.measured(tables, spec, diag, name, rival)
     assert not comp.undecided and comp.sigma_for(name) > 5, comp
 

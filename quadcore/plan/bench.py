@@ -25,7 +25,7 @@ plan that merely favours one side fails half the seeds):
   by the largest separation (docs/flight-planning.md).
 * ``lag_firmware_5ms``: the same at 5 ms: the hovers tie (the closed loop decides it); with the
   planned flight added the truth ranks first since a timing candidate is found at the angular-rate
-  level (seeds 0-3; before, another effect ranked first: docs/flight-planning.md).
+  level (10 of 10 seeds; before, another effect ranked first: docs/flight-planning.md).
 * ``lag_firmware_short``: ``lag_firmware`` on three 3 s hovers (take-off and 1 s of hover, 9 s
   of flight in all) instead of three 8 s ones: a fleet on which the lag and the delay genuinely
   tie (tied in 9 of 10 seeds at 02e59b2; the 8 s hovers decide 9 of 10 at 06e986d), so the

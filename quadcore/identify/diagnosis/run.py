@@ -258,7 +258,7 @@ def _fold_answer(rows: list[CandidateRow], held: HeldOut, flights: list[str], se
         return NO_EVIDENCE
     best, best_score, best_ev = NOTHING, 0.0, 0.0
     for r in rows:
-        if not r.physical:
+        if not r.physical or r.rate_level is not None:  # a timing candidate answers at the rate level (_stability)
             continue
         pred = held.cand_pred[r.effect]
         after = _total(fd.sum_of_squares(held.resid[f] - pred[f]) for f, fd in zip(flights, fds))
@@ -274,11 +274,20 @@ def _stability(rows: list[CandidateRow], splits: list[tuple[list[str], list[str]
     """How many folds agree on the top answer (:class:`quadcore.identify.diagnosis.results.Stability`): the
     cross-validation's folds, or with one split each held-out flight. From the held-out
     predictions the scores already hold: no refit; between timing candidates, as the rate level
-    prefers on those flights (``timing``)."""
+    prefers on those flights (``timing``). A timing candidate decided at the rate level answers a
+    fold only there (its torque-level score, which the closed loop biases, is left out of
+    :func:`_fold_answer`): where no other candidate explains the fold's flights, the found one whose
+    held-out fits predict their angular rates better than no timing effect
+    (:meth:`quadcore.identify.rates.Judged.found_on`)."""
     top = rows[0] if rows and rows[0].found else None
     answer = top.effect if top else NOTHING
     group = (answer, *top.tied_with) if top else (NOTHING,)
     units, unit = (([test for _, test in splits], "fold") if len(splits) > 1
                    else ([[f] for f in held.ids], "held-out flight"))
-    votes = Counter(timing.answer(_fold_answer(rows, held, flights, settings), flights) for flights in units)
+
+    def vote(flights: list[str]) -> str:  # where no other candidate explains them, a timing one found at the rate level
+        fold = _fold_answer(rows, held, flights, settings)
+        return timing.answer(timing.found_on(flights) or fold if fold in (NOTHING, NO_EVIDENCE) else fold, flights)
+
+    votes = Counter(vote(flights) for flights in units)
     return Stability(answer, tuple(group), unit, dict(votes.most_common()), len(units))

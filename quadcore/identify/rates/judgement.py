@@ -16,7 +16,7 @@ are found and how they rank against each other come from here (docs/diagnosis.md
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -60,6 +60,16 @@ class Judged:
 
     differences: dict[tuple[str, str], dict[str, np.ndarray]]
     undecided: frozenset[tuple[str, str]] = frozenset()
+    # per timing candidate found at the rate level, each held-out flight's blocks' gain over no timing
+    # effect (RateEvidence.gains): what a fold whose flights no other candidate explains answers by
+    gains: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict)
+
+    def found_on(self, flights: Sequence[str]) -> str | None:
+        """A timing candidate found at the rate level whose held-out fits predict the angular rates of
+        ``flights`` better than no timing effect (its :attr:`gains` summed over them > 0), the first
+        by name (:meth:`answer` then takes it to the one the pairs prefer on ``flights``); None: none."""
+        better = sorted(n for n, per in self.gains.items() if sum(float(per[f].sum()) for f in flights if f in per) > 0)
+        return better[0] if better else None
 
     def answer(self, effect: str, flights: Sequence[str]) -> str:
         """A fold's answer ``effect`` (the torque level's), as the rate level has it on ``flights``
@@ -100,6 +110,7 @@ class RateEvidence:
     size: float
     undecided: str = ""
     better_than: str = ""  # a found timing candidate it fits significantly better than (_better_than_found)
+    gains: Mapping[str, np.ndarray] = field(default_factory=dict)  # per held-out flight, its blocks' g
 
 
 def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[str], FlightData],
@@ -184,7 +195,8 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         elif ra.found or rb.found:
             _tie(ra, rb)
     rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
-    return _ranked(rows, wins), Judged(differences, frozenset(undecided))
+    gains = {r.effect: r.rate_level.gains for r in (by_name[c.name] for c in timing) if r.found and r.rate_level}
+    return _ranked(rows, wins), Judged(differences, frozenset(undecided), gains)
 
 
 def fold_fits(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]]
@@ -273,7 +285,8 @@ def _rate_evidence(r: CandidateRow, comp: PairComparison, before: float) -> None
     left = before - removed
     size = float(np.sqrt(removed / left)) if removed > 0 and left > 0 else 0.0
     r.rate_level = RateEvidence(one_sided, removed / before if before > 0 else 0.0, size,
-                                comp.note() if comp.undecided else "")
+                                comp.note() if comp.undecided else "",
+                                gains={f: d for f, (d, _) in comp.per_flight.items()})
     r.notes = (*r.notes, f"found or not at the angular-rate level: held out against no timing effect, t = {test.t:.2f} "
                          f"(on the torque channels, which the closed loop biases, t = {r.held_out_t:.2f}, "
                          f"p = {r.held_out_p_value:.2g}: docs/timing.md)")
