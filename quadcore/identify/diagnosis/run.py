@@ -99,7 +99,7 @@ def diagnose(
         _decide(r, held.at_noise, len(rows), settings)
     span = _SpanOverlap(p.cands, held.cand_pred, held.flights, held.resid, held.w, p.vehicle)
     _mark_alike(rows, span, held, p, settings)
-    # a lag, a delay: fitted and compared at the angular-rate level, which the closed loop does not bias
+    # a lag, a delay: fitted and compared at the angular-rate level, which the closed loop biases less
     rows, timing = rates.judge(_rank(rows), p.cands, p.fl.rows, p.fl.release, model, splits, train_all, settings,
                                lambda r: _decide(r, held.at_noise, len(rows), settings), rate_cache)
     for f in p.ids:

@@ -49,7 +49,7 @@ def _size(r: CandidateRow) -> str:
     if r.rate_level is not None:
         return (f"{r.grade}: removes {_pct(r.rate_level.explained)} of the held-out {RATE_LEVEL} residual "
                 f"against no timing effect, p = {r.held_out_p_value:.2g} (found at the angular-rate level, where "
-                "the closed loop does not bias a timing fit: docs/timing.md)")
+                "the closed loop biases a timing fit less than in the torque channels: docs/timing.md)")
     return (f"{r.grade}: removes {_pct(r.explained_variance)} of the held-out {r.target} residual "
             f"({_pct(r.explained_above_noise)} of what lies above the noise floor), p = {r.held_out_p_value:.2g}")
 
@@ -170,8 +170,8 @@ def _most_likely(top: CandidateRow, settings: DiagnosisSettings) -> str:
     if top.rate_level is not None:
         text = (f"Most likely missing: {top.effect}: {size}: it removes {_pct(top.rate_level.explained)} of the "
                 f"held-out {RATE_LEVEL} residual against no timing effect (found at the angular-rate level, where "
-                f"the closed loop does not bias a timing fit; {_pct(top.explained_in(ch))} of the held-out {ch} "
-                "residual)")
+                f"the closed loop biases a timing fit less than in the torque channels; "
+                f"{_pct(top.explained_in(ch))} of the held-out {ch} residual)")
     else:
         text = (f"Most likely missing: {top.effect}: {size}: it removes {top.explained_variance:.0%} of the held-out "
                 f"{ch} residual ({_pct(top.explained_above_noise)} of what lies above the sensor-noise floor)")
@@ -201,7 +201,7 @@ def _alike(top: CandidateRow, by_name: dict[str, CandidateRow], settings: Diagno
             continue
         if by == RATE_LEVEL:
             text += (f" In {ch} alone it is indistinguishable from {o}; on the held-out flights' angular rates, "
-                     f"where the closed loop does not bias a timing fit (docs/timing.md), {top.effect} fits "
+                     f"where the closed loop biases a timing fit less (docs/timing.md), {top.effect} fits "
                      f"better.")
             continue
         if by == ch:

@@ -1,5 +1,5 @@
 """Rotor timing (a lag, a delay) fitted and compared at the angular-rate level, where the closed
-loop does not bias it.
+loop biases it less than at the torque level (not nothing: docs/timing.md, "Calibration").
 
 **Why not at the torque level.** The torque residual is ``J D[ω + ε] − M[A f]`` (docs/timing.md):
 the gyro's noise ``ε`` enters through the derivative filter ``D``, which spans the samples on
