@@ -21,16 +21,17 @@ plan that merely favours one side fails half the seeds):
 * ``lag_firmware``: the ``lag`` scenario with the sensor noise the Crazyflie's firmware leaves
   (``SensorNoise.lowpass_hz`` = 80 Hz, as the real logs' gyro noise is coloured): every flight,
   the old ones and the added one. The hover flights tied the lag-true seeds until the rate level
-  whitened with the gyro's own noise (fa7af71; since, 1 of 5); a manoeuvre decides them, the plan
-  by the largest separation (docs/flight-planning.md).
+  whitened with the gyro's own noise (fa7af71; since, 1 of 5; none at 8171260, where the hovers
+  decide 10 of 10); every manoeuvre decides them, the plan and circle0 by the largest separations
+  (docs/flight-planning.md).
 * ``lag_firmware_5ms``: the same at 5 ms: the hovers tie (the closed loop decides it); with the
   planned flight added the truth ranks first since a timing candidate is found at the angular-rate
   level (10 of 10 seeds; before, another effect ranked first: docs/flight-planning.md).
 * ``lag_firmware_short``: ``lag_firmware`` on three 3 s hovers (take-off and 1 s of hover, 9 s
   of flight in all) instead of three 8 s ones: a fleet on which the lag and the delay genuinely
-  tie (tied in 9 of 10 seeds at 02e59b2; the 8 s hovers decide 9 of 10 at 06e986d), so the
-  bench shows whether one added flight decides what the logged flights
-  leave open rather than a margin on a decided question (docs/flight-planning.md).
+  tie (undecided in 9 of 10 seeds at 02e59b2 and 8f19a99; the 8 s hovers decide 10 of 10 at
+  8171260), so the bench shows whether one added flight decides what the logged flights leave
+  open rather than a margin on a decided question (docs/flight-planning.md).
 
 Each outcome carries the separation in σ in favour of the truth, in the statistic the diagnosis
 decides the pair by (:func:`quadcore.plan.separation.measured`); a timing trial also the
