@@ -289,7 +289,8 @@ def _rate_evidence(r: CandidateRow, comp: PairComparison, before: float) -> None
                                 gains={f: d for f, (d, _) in comp.per_flight.items()})
     r.notes = (*r.notes, f"found or not at the angular-rate level: held out against no timing effect, t = {test.t:.2f} "
                          f"(on the torque channels, which the closed loop biases, t = {r.held_out_t:.2f}, "
-                         f"p = {r.held_out_p_value:.2g}: docs/timing.md)")
+                         f"p = {r.held_out_p_value:.2g}: docs/timing.md)"
+                         + (f"; not confirmed, set aside: {comp.note()}" if comp.undecided else ""))
     r.held_out_slope, r.held_out_t, r.held_out_p_value, r.held_out_blocks = (
         one_sided.beta, one_sided.t, one_sided.p_value, one_sided.blocks)
     r.signal_to_noise = size
