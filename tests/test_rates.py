@@ -686,6 +686,42 @@ def test_the_rate_levels_ranking_of_three_timing_candidates_does_not_depend_on_t
     assert rates.judgement._ranked([g, f], [(f, g)]) == [g, f]  # found ones first, whatever the rate level says
 
 
+def test_a_timing_candidate_the_rate_level_prefers_to_a_found_one_counts_as_significant_and_only_then():
+    """``rates.judgement._better_than_found``, the one path to found that skips the fit's significance
+    (the delay true on lag_firmware_5ms with the planned flight: fitted 4.997 ± 2.2 ms, 2.2 σ, while
+    the lag it beats at the rate level is found: docs/timing.md, "Found at the angular-rate level"),
+    decided by the diagnosis's own rule (``scoring._decide``): found, with a note, where the rival
+    is found and its own held-out test against no timing effect confirms it; not found where the
+    rival is not found, where that test is set aside (the closed loop decides it) or not confirmed."""
+    from functools import partial
+
+    from quadcore.identify.diagnosis.scoring import _decide
+    from quadcore.identify.rates.judgement import RateEvidence, _better_than_found
+
+    settings = DiagnosisSettings()
+    decide = partial(_decide, at_noise={"force": False, "torque": False}, n_candidates=2, settings=settings)
+
+    def row(name: str, found: bool, sigma: float, p: float, undecided: str = ""):
+        (r,) = _rows(name, found=found)
+        r.target, r.explained_variance, r.notes, r.signal_to_noise = "torque", 0.0, (), 2.0
+        r.significance_sigma, r.significant = sigma, sigma >= settings.min_sigma
+        r.held_out_slope, r.held_out_t, r.held_out_p_value = 1.0, 30.0, p
+        r.rate_level = RateEvidence(evidence.NO_TEST, 0.6, 2.0, undecided)
+        return r
+
+    delay = row("thrust_delay", False, 2.2, 1e-40)
+    _better_than_found(delay, row("motor_lag", True, 19.0, 1e-30), decide)
+    assert delay.found and delay.rate_level is not None and delay.rate_level.better_than == "motor_lag"
+    assert "found although its fit is 2.2 standard errors" in delay.notes[-1], delay.notes
+    for rival_found, undecided, p in ((False, "", 1e-40), (True, "the closed loop decides it", 1e-40), (True, "", 0.2)):
+        other = row("thrust_delay", False, 2.2, p, undecided)
+        _better_than_found(other, row("motor_lag", rival_found, 19.0, 1e-30), decide)
+        assert not other.found and not other.notes, (rival_found, undecided, p)
+    lone = row("thrust_delay", False, 2.2, 1e-40)  # without a preferred-to-found rival, 2.2 σ is not significant
+    decide(lone)
+    assert not lone.found
+
+
 def test_the_rate_levels_blocks_are_the_diagnosiss(tmp_path):
     """The rate level's clusters are the diagnosis's blocks (flightdata.block_index of the usable
     samples, the torque level's held-out clusters): each used interval in the block of its end
