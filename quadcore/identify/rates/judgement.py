@@ -137,10 +137,33 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
     timing = [c for c in cands if c.retimes_thrust and len(c.parameters) == 1]
     if not timing:
         return rows, Judged({})
-    skip = evidence.memory_blocks(timing)
-    ids = sorted({f for tr, te in splits for f in (*tr, *te)})
+    flights, slow = _reduced_flights(timing, splits, rows_of, release, model, cache)
+    by_name = {r.effect: r for r in rows}
+    if slow:
+        first = sorted(slow)[0]
+        return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
+    _fit_rows(timing, by_name, flights, splits, train_all, settings, decide)
+    pairs = _compared_pairs(timing, by_name, flights, splits, settings.alpha)
+    for better, worse in pairs.wins:
+        _better_than_found(better, worse, decide)
+    for ra, rb, note in pairs.open:
+        if note:
+            _undecided_tie(ra, rb, note)
+        elif ra.found or rb.found:
+            _tie(ra, rb)
+    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
+    gains = {r.effect: r.rate_level.gains for r in (by_name[c.name] for c in timing) if r.found and r.rate_level}
+    return _ranked(rows, pairs.wins), Judged(pairs.differences, frozenset(pairs.undecided), gains)
 
-    slow: dict[str, tuple[float, float]] = {}  # flights below the command rate: their log period and hold
+
+def _reduced_flights(timing: Sequence[Effect], splits: Sequence[tuple[list[str], list[str]]],
+                     rows_of: Callable[[str], FlightData], release: Callable[[str], None], model,
+                     cache: RatesCache | None) -> tuple[dict[str, RateSums], dict[str, tuple[float, float]]]:
+    """Every flight of ``splits`` as its :class:`RateSums` for ``timing`` (kept in ``cache`` or made
+    from its rows, read once and let go), at the model's values; and the flights below the command
+    rate, with their log period and the firmware's hold (they have no sums)."""
+    skip = evidence.memory_blocks(timing)
+    slow: dict[str, tuple[float, float]] = {}
 
     def compute(f: str) -> FlightRates:  # one flight's rows at a time, let go once its sums are taken
         out = flight_rates(rows_of(f), model, f, timing, skip)
@@ -154,12 +177,16 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
             return None
         return out.at_model(model, f)  # kept sums hold no value of the model's linear effects
 
-    reduced_flights = {f: reduced(f) for f in ids}
-    by_name = {r.effect: r for r in rows}
-    if slow:
-        first = sorted(slow)[0]
-        return _undecided(rows, [by_name[c.name] for c in timing], sorted(slow), *slow[first]), Judged({})
-    flights = {f: s for f, s in reduced_flights.items() if s is not None}
+    every = {f: reduced(f) for f in sorted({f for tr, te in splits for f in (*tr, *te)})}
+    return {f: s for f, s in every.items() if s is not None}, slow
+
+
+def _fit_rows(timing: Sequence[Effect], by_name: Mapping[str, CandidateRow], flights: Mapping[str, RateSums],
+              splits: Sequence[tuple[list[str], list[str]]], train_all: list[str], settings: DiagnosisSettings,
+              decide: Callable[[CandidateRow], None]) -> None:
+    """Each timing candidate's row with its parameter and standard error from the rate level
+    (:func:`timing_fit`), its held-out test against no timing effect (:func:`_rate_evidence`), and
+    the diagnosis's decision on it taken again."""
     ws = split_weights(flights, splits)  # each fold's from its training flights (fold_fits')
     for c in timing:
         held = fold_fits(c, flights, splits)
@@ -168,35 +195,41 @@ def judge(rows: list[CandidateRow], cands: Sequence[Effect], rows_of: Callable[[
         _rate_evidence(by_name[c.name], effect_comparison(flights, splits, c, held, ws, settings.alpha),
                        held_out_cost(flights, splits, c, c.parameters[0].default, ws))
         decide(by_name[c.name])
-    differences: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-    wins: list[tuple[CandidateRow, CandidateRow]] = []
-    undecided: set[tuple[str, str]] = set()
-    open_pairs: list[tuple[CandidateRow, CandidateRow, str]] = []  # tied where either is found (once all are decided)
+
+
+@dataclass
+class _Pairs:
+    """Every pair of physical timing candidates compared (:func:`_compared_pairs`): per pair its
+    flights' block differences, the ``wins`` (better, worse), the ``undecided`` pairs, and the
+    ``open`` ones (a note: undecided, with why; "": not significant), tied once all are decided."""
+
+    differences: dict[tuple[str, str], dict[str, np.ndarray]] = field(default_factory=dict)
+    wins: list[tuple[CandidateRow, CandidateRow]] = field(default_factory=list)
+    undecided: set[tuple[str, str]] = field(default_factory=set)
+    open: list[tuple[CandidateRow, CandidateRow, str]] = field(default_factory=list)
+
+
+def _compared_pairs(timing: Sequence[Effect], by_name: Mapping[str, CandidateRow], flights: Mapping[str, RateSums],
+                    splits: Sequence[tuple[list[str], list[str]]], alpha: float) -> _Pairs:
+    """Each pair of physical timing candidates by :func:`timing_comparison` at ``alpha``: the
+    better one of a significant pair preferred (:func:`_prefer`), the others left open."""
+    out = _Pairs()
     for i, a in enumerate(timing):
         for b in timing[i + 1:]:
             ra, rb = by_name[a.name], by_name[b.name]
             if not (ra.physical and rb.physical):
                 continue
-            pair = timing_comparison(flights, splits, a, b, settings.alpha)
-            differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
+            pair = timing_comparison(flights, splits, a, b, alpha)
+            out.differences[(a.name, b.name)] = {f: g for f, (g, _) in pair.per_flight.items()}
             if pair.undecided:
-                undecided.add((a.name, b.name))
-                open_pairs.append((ra, rb, pair.note()))
-            elif pair.test.p_value < settings.alpha:
-                wins.append((ra, rb) if pair.test.t > 0 else (rb, ra))
-                _prefer(*wins[-1])
+                out.undecided.add((a.name, b.name))
+                out.open.append((ra, rb, pair.note()))
+            elif pair.test.p_value < alpha:
+                out.wins.append((ra, rb) if pair.test.t > 0 else (rb, ra))
+                _prefer(*out.wins[-1])
             else:
-                open_pairs.append((ra, rb, ""))
-    for better, worse in wins:
-        _better_than_found(better, worse, decide)
-    for ra, rb, note in open_pairs:
-        if note:
-            _undecided_tie(ra, rb, note)
-        elif ra.found or rb.found:
-            _tie(ra, rb)
-    rows = sorted(rows, key=lambda r: r.tier())  # found ones first, as ranked (stable)
-    gains = {r.effect: r.rate_level.gains for r in (by_name[c.name] for c in timing) if r.found and r.rate_level}
-    return _ranked(rows, wins), Judged(differences, frozenset(undecided), gains)
+                out.open.append((ra, rb, ""))
+    return out
 
 
 def fold_fits(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]]
