@@ -645,7 +645,7 @@ def test_in_cross_validation_each_folds_weights_come_from_its_training_flights(d
         return replace(s, noise=s.noise * np.array([3.0, 1 / 3, 1 / 3])) if f == held else s
 
     monkeypatch.setattr(rates.judgement, "fit", fit_spy)
-    monkeypatch.setattr(rates.compare, "compare_pair", compare_spy)  # where held_out_comparison looks it up
+    monkeypatch.setattr(rates.compare, "compare_pair", compare_spy)  # where pair_comparison looks it up
     for cache in (None, noisier):
         fold_weights.append([])
         diagnosis.diagnose(tables, spec_from(VEHICLE, []), candidates=list(TIMING), rate_cache=cache)

@@ -207,13 +207,17 @@ class PairComparison:
                 "decides it, so neither is preferred (docs/timing.md, 'A small delay')")
 
 
-def held_out_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
-                        a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
-                        ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
-    """The comparison the diagnosis decides two timing candidates by (and the planner measures
-    them by): :func:`compare_pair`, :func:`unwhitened_comparison` and :func:`instrumented_differences`
-    on the same folds, and whether the noise model (:func:`noise_model_decides`) or else the closed
-    loop (:func:`closed_loop_decides`) decides it at ``alpha``."""
+def pair_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+                    a: Effect, b: Effect, fits_a: Sequence[RateFit], fits_b: Sequence[RateFit],
+                    ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
+    """Two timing candidates at the given fits compared on the test flights of ``splits``, with
+    every rule that leaves a pair undecided: :func:`compare_pair`, :func:`unwhitened_comparison`
+    and :func:`instrumented_differences` on the same splits, and whether the noise model
+    (:func:`noise_model_decides`) or else the closed loop (:func:`closed_loop_decides`) decides it
+    at ``alpha``. Held out or in-sample as the splits are: the diagnosis's folds for a candidate
+    against no timing effect (:func:`effect_comparison`), :func:`pair_splits` (fits on all the
+    flights, every one scored) for two candidates (:func:`timing_comparison`, which the diagnosis
+    decides them by and the planner measures them by)."""
     per_flight, test = compare_pair(flights, splits, a, b, fits_a, fits_b, ws)
     raw = unwhitened_comparison(flights, splits, a, b, fits_a, fits_b, ws)
     noise_model = raw is not None and noise_model_decides(test, raw, alpha)
@@ -230,14 +234,14 @@ def effect_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Se
                       c: Effect, fits: Sequence[RateFit], ws: Sequence[np.ndarray], alpha: float) -> PairComparison:
     """The held-out test of a timing candidate ``c`` against no timing effect: ``c`` at each split's
     fit (``fits``, on its training flights, weighted by ``ws``) against ``c`` at its parameter's
-    default (a nested pair), :func:`held_out_comparison` on the test flights of ``splits`` at
+    default (a nested pair), :func:`pair_comparison` on the test flights of ``splits`` at
     ``alpha`` with every rule that leaves a pair undecided (``t > 0``: the fitted effect fits
     better; ``b``: ``"no timing effect"``). On held-out flights, not :func:`pair_splits`: a fit on
     the flights it is scored on always favours the bigger of two nested models (in-sample only
     where the diagnosis is: one flight)."""
     (p,) = c.parameters
     none = [RateFit(c.name, p.name, p.default, 0.0, 0.0, 0) for _ in fits]
-    return replace(held_out_comparison(flights, splits, c, c, fits, none, ws, alpha), b=NO_TIMING)
+    return replace(pair_comparison(flights, splits, c, c, fits, none, ws, alpha), b=NO_TIMING)
 
 
 def held_out_cost(flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]], c: Effect,
@@ -264,9 +268,9 @@ def timing_comparison(flights: Mapping[str, RateSums], splits: Sequence[tuple[Se
     (:func:`quadcore.plan.separation.rate_compare`) decide two timing candidates: on
     :func:`pair_splits` of the diagnosis's ``splits``, each candidate fitted on the split's training
     flights and weighted by their noise (:func:`~quadcore.identify.rates.sums.fit`,
-    :func:`~quadcore.identify.rates.sums.split_weights`), :func:`held_out_comparison` at ``alpha``
+    :func:`~quadcore.identify.rates.sums.split_weights`), :func:`pair_comparison` at ``alpha``
     with every rule that leaves the pair undecided."""
     pair = pair_splits(splits)
     ws = split_weights(flights, pair)
     fits_a, fits_b = ([fit(e, [flights[f] for f in tr], w) for (tr, _), w in zip(pair, ws)] for e in (a, b))
-    return held_out_comparison(flights, pair, a, b, fits_a, fits_b, ws, alpha)
+    return pair_comparison(flights, pair, a, b, fits_a, fits_b, ws, alpha)
