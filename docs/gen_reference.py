@@ -65,7 +65,23 @@ def json_keys_page() -> str:
     for line in keys:
         path, _, kind = line.partition(": ")
         out.append(f"| `{path}` | {kind or ('list' if path.endswith(']') else 'object')} |\n")
-    return "".join(out) + _discovery_keys()
+    return "".join(out) + OUTSIDE_LIBRARY + _discovery_keys()
+
+
+OUTSIDE_LIBRARY = (
+    "\n`.outside_library` (null on the pinned fleet, whose drag the library explains) is null when the library "
+    "explains most of what lies above the sensor-noise floor, or there is nothing above it; otherwise "
+    "`{\"channels\": [...], \"command\": str}`, `command` the `quadcore discover` command that searches the "
+    "same flights outside the library ([diagnosis](../diagnosis.md), step 6). Each channel entry:\n\n"
+    "| key | type | meaning |\n|---|---|---|\n"
+    "| `channel` | str | `force` or `torque` |\n"
+    "| `best` | str or null | the channel's best found candidate, now `partial`; null: nothing in the library is "
+    "confirmed in this channel, which stands above its noise floor while a candidate is found in the other |\n"
+    "| `explained_above_noise` | number | the share of the residual above the floor the found candidates "
+    "remove (0 where `best` is null) |\n"
+    "| `residual_to_noise_after` | number or null | the residual's RMS over the floor's after `best` "
+    "(where `best` is null: as it stands) |\n"
+    "| `held_out_p_value` | number or null | `best`'s held-out p-value; null with `best` |\n\n")
 
 
 def parquet_page(root: Path) -> str:

@@ -15,6 +15,7 @@ import math
 import re
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -899,3 +900,51 @@ def test_the_stability_of_the_top_answer_says_undecided_when_it_flips_between_fo
     assert apart.agree == 4 and apart.undecided_between == ("thrust_delay", tie)
     assert ("Undecided between thrust_delay and a tie (motor_lag = thrust_delay, at the angular-rate level)"
             in apart.sentence())
+
+
+def _row(effect: str, target: str, found: bool, explained: float, reason: str = "") -> Any:
+    """A physical candidate row of the diagnosis, decided: ``found`` or not, removing ``explained``
+    of its ``target`` channel's held-out residual (the same share above the noise floor)."""
+    from dataclasses import fields
+
+    from quadcore.identify.diagnosis.rows import CandidateRow
+
+    blank: dict[str, Any] = {f.name: None for f in fields(CandidateRow) if f.name != "explained_alone_screen"}
+    ev = {"force": explained if target == "force" else 0.0, "torque": explained if target == "torque" else 0.0}
+    return CandidateRow(**{**blank, "effect": effect, "target": target, "acts_on": target, "found": found,
+                           "physical": True, "status": "found" if found else "not_significant", "reason": reason,
+                           "grade": "large", "explained_variance": explained, "explained_above_noise": explained,
+                           "explained_variance_force": ev["force"], "explained_variance_torque": ev["torque"],
+                           "held_out_p_value": 1e-20 if found else 0.4, "parameters": {"k": 1.0},
+                           "parameter_std": {"k": 0.1}, "notes": (), "tied_with": (), "separated_by": {},
+                           "indistinguishable_from": (), "explained_after_top": 0.0, "rate_level": None})
+
+
+def test_a_channel_above_its_floor_with_nothing_confirmed_points_outside_the_library():
+    """The torque residual is mostly explained by a found candidate; the force residual stands 8
+    noise floors above its floor (RMS) and nothing in the library is confirmed there: the outside
+    section gets a force entry with no best candidate, and the verdict says what is left there
+    and gives the discover command. With force at its floor, no such entry."""
+    from types import SimpleNamespace
+
+    from quadcore.identify.diagnosis import run
+    from quadcore.identify.diagnosis.verdict import verdict
+
+    rows = [_row("com_offset", "torque", True, 0.6), _row("ground_effect", "force", False, 0.03, "not significant")]
+    command = "quadcore discover LOGS --model m.toml --json discovery.json"
+    # sums of squares per axis: force 3 x 64 over a floor of 3 x 1 (8 floors RMS), torque 3 x 100 over 3 x 1
+    held = SimpleNamespace(before=np.array([64.0] * 3 + [100.0] * 3), noise_ss=np.ones(6),
+                           at_noise={"force": False, "torque": False})
+    outside = run._outside_library(rows, held, command, evidence.LIBRARY_SHARE)
+    assert outside is not None and outside["command"] == command
+    (part,) = outside["channels"]
+    assert part["channel"] == "force" and part["best"] is None and part["held_out_p_value"] is None
+    assert part["explained_above_noise"] == 0.0
+    assert part["residual_to_noise_after"] == pytest.approx(8.0, rel=1e-12)
+    assert rows[0].found and rows[0].status == "found"  # the torque finding stays what is missing
+    text = verdict(rows, held.at_noise, None, outside)
+    assert text.startswith("Most likely missing: com_offset"), text
+    assert "Nothing in the library is confirmed in the force channel" in text and "8.0 times" in text, text
+    assert f"`{command}`" in text
+    at_floor = SimpleNamespace(before=held.before, noise_ss=held.noise_ss, at_noise={"force": True, "torque": False})
+    assert run._outside_library(rows, at_floor, command, evidence.LIBRARY_SHARE) is None

@@ -213,11 +213,15 @@ def _outside_library(rows: list[CandidateRow], held: HeldOut, command: str, libr
     ``{"channels": [{channel, best, explained_above_noise, residual_to_noise_after,
     held_out_p_value}, ...], "command"}``; None when the library explains most of what is
     above the floor (or there is nothing above it), ``{"channels": [], "command"}`` when nothing
-    is found in a channel above the floor."""
+    is found in a channel above the floor. A channel above its floor (not at the noise level)
+    where nothing is found while something is found in the other gets an entry too, after the
+    others, with ``best``/``held_out_p_value`` None, ``explained_above_noise`` 0 and the
+    residual's RMS over the floor's (:func:`_nothing_confirmed`)."""
     found = [r for r in rows if r.found]
     if not found:
         return {"channels": [], "command": command} if not all(held.at_noise.values()) else None
     top, out = found[0], []
+    bare = _nothing_confirmed(found, held)
     for ch, sl in TARGET_CHANNELS.items():
         mine = [r for r in found if r.target == ch and r.rate_level is None]  # not one found at the rate level
         before, floor = float(held.before[sl].sum()), float(held.noise_ss[sl].sum())
@@ -238,7 +242,24 @@ def _outside_library(rows: list[CandidateRow], held: HeldOut, command: str, libr
         out.append({"channel": ch, "best": best.effect, "explained_above_noise": float(min(share, 1.0)),
                     "residual_to_noise_after": float(np.sqrt(max(left, 0.0) / floor)) if floor > 0 else None,
                     "held_out_p_value": best.held_out_p_value})
+    out += bare
     return {"channels": out, "command": command} if out else None
+
+
+def _nothing_confirmed(found: list[CandidateRow], held: HeldOut) -> list[dict[str, Any]]:
+    """The channels above their sensor-noise floor (not ``held.at_noise``) in which no candidate
+    is ``found`` (at either level), while one is found in another channel: what is left there,
+    ``residual_to_noise_after`` = sqrt(SS_residual / SS_floor) of the held-out residual, is
+    outside the library or below what these flights detect (an entry of
+    :func:`_outside_library` with no best candidate)."""
+    out: list[dict[str, Any]] = []
+    for ch, sl in TARGET_CHANNELS.items():
+        before, floor = float(held.before[sl].sum()), float(held.noise_ss[sl].sum())
+        if held.at_noise[ch] or floor <= 0 or before <= floor or any(r.target == ch for r in found):
+            continue
+        out.append({"channel": ch, "best": None, "explained_above_noise": 0.0,
+                    "residual_to_noise_after": float(np.sqrt(before / floor)), "held_out_p_value": None})
+    return out
 
 
 def _fold_answer(rows: list[CandidateRow], held: HeldOut, flights: list[str], settings: DiagnosisSettings) -> str:

@@ -127,9 +127,14 @@ def _search_with(outside: Mapping[str, Any] | None) -> str:
 
 def _outside_library(rows: list[CandidateRow], part: dict, headline: bool) -> str:
     """What the library finds in a channel is a small part of what is left there (see
-    :func:`quadcore.identify.diagnosis.run._outside_library`)."""
-    best = next(r for r in rows if r.effect == part["best"])
+    :func:`quadcore.identify.diagnosis.run._outside_library`), or nothing in the library is
+    confirmed in a channel above its noise floor (``best`` None)."""
     ch, left = part["channel"], part.get("residual_to_noise_after")
+    if part["best"] is None:
+        return (f" Nothing in the library is confirmed in the {ch} channel on held-out flights, and the {ch} residual "
+                f"stands {left:.1f} times the sensor-noise floor (RMS): what is left there is a physical effect "
+                "outside the library, or one below what these flights can detect.")
+    best = next(r for r in rows if r.effect == part["best"])
     return (("Mostly outside the library: the best candidate, " if headline
              else f" The {ch} residual is mostly outside the library: its best candidate, ")
             + f"{best.effect} (confirmed on held-out flights, p = {best.held_out_p_value:.2g}; {_params(best)}), "
