@@ -189,7 +189,7 @@ def _fit_rows(timing: Sequence[Effect], by_name: Mapping[str, CandidateRow], fli
     the diagnosis's decision on it taken again."""
     ws = split_weights(flights, splits)  # each fold's from its training flights (fold_fits')
     for c in timing:
-        held = fold_fits(c, flights, splits)
+        held = fold_fits(c, flights, splits, ws)
         _update_row(by_name[c.name], c, *timing_fit(c, flights, splits, train_all, settings.n_folds, held),
                     settings.min_sigma)
         _rate_evidence(by_name[c.name], effect_comparison(flights, splits, c, held, ws, settings.alpha),
@@ -232,11 +232,11 @@ def _compared_pairs(timing: Sequence[Effect], by_name: Mapping[str, CandidateRow
     return out
 
 
-def fold_fits(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]]
-              ) -> list[RateFit]:
-    """Per split, ``c`` fitted on its training flights, weighted by their noise
-    (:func:`split_weights`): what the split predicts its test flights with."""
-    return [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, split_weights(flights, splits))]
+def fold_fits(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
+              ws: Sequence[np.ndarray]) -> list[RateFit]:
+    """Per split, ``c`` fitted on its training flights, weighted by their noise (``ws``, the
+    splits' :func:`split_weights`): what the split predicts its test flights with."""
+    return [fit(c, [flights[f] for f in tr], wk) for (tr, _), wk in zip(splits, ws)]
 
 
 def timing_fit(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tuple[Sequence[str], Sequence[str]]],
@@ -249,7 +249,7 @@ def timing_fit(c: Effect, flights: Mapping[str, RateSums], splits: Sequence[tupl
     fewer than three flights). The row's standard error is the larger of the two (:func:`_update_row`)."""
     w = weights([flights[f] for f in train_all])
     if len(splits) > 1:
-        spread = list(folds) if folds is not None else fold_fits(c, flights, splits)
+        spread = list(folds) if folds is not None else fold_fits(c, flights, splits, split_weights(flights, splits))
     else:
         groups = ([[f for f in train_all if f not in g] for g in solve.folds(list(train_all), n_folds)]
                   if len(train_all) >= 3 else [])
