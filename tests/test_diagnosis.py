@@ -482,6 +482,7 @@ def _check_evidence(d: dict) -> None:
                                "not_significant", "partial"), r["status"]
         assert isinstance(r["reason"], str) and r["reason"]
         assert 0.0 <= r["held_out_p_value"] <= 1.0 and 0.0 <= r["explained_above_noise"] <= 1.0
+        assert r["held_out_level"] in (r["target"], "angular rate"), r["held_out_level"]
         if r["found"]:
             assert r["physical"] and r["significant"] and r["held_out_p_value"] < r["held_out_alpha"]
             assert r["grade"] in ("large", "clear", "small but certain")

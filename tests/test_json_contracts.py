@@ -6,6 +6,8 @@ for byte (another machine or BLAS thread count moves the last digits)."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import snapshot
 
@@ -34,6 +36,21 @@ def test_the_json_documents_are_pinned(drag_fleet, tmp_path, capsys, builtin_eff
     assert list(effects.registry()) == list(effects.builtin_names())
     snapshot.assert_json_matches(out.read_text(), name, f"the JSON of `quadcore {verb}` on drag_fleet",
                                  "tests/test_json_contracts.py")
+    if verb == "diagnose":
+        _assert_held_out_levels(json.loads(out.read_text())["candidates"])
+
+
+def _assert_held_out_levels(rows: list[dict]) -> None:
+    """Each candidate's ``held_out_level`` names where its ``held_out_*`` fields and
+    ``signal_to_noise`` were measured: a timing candidate (``Effect.retimes_thrust``, decided by
+    ``rates.judge``) at the angular rates, every other one in its ``target`` channel."""
+    from quadcore.identify.rates import RATE_LEVEL
+
+    timing = {r["effect"] for r in rows if effects.get(r["effect"]).retimes_thrust}
+    assert timing and len(timing) < len(rows), [r["effect"] for r in rows]
+    for r in rows:
+        assert r["held_out_level"] == (RATE_LEVEL if r["effect"] in timing else r["target"]), r
+        assert r["target"] in ("force", "torque"), r
 
 
 def test_the_pinned_documents_compare_numbers_to_a_tolerance_and_text_exactly():
@@ -52,7 +69,6 @@ def test_a_pinned_documents_candidates_read_back_as_typed_rows_that_stay_as_read
     and the report read one) gives its JSON object again, key for key and in order, and the typed row
     is read-only: a field assigned after it is made is an error, not a silent change."""
     import dataclasses
-    import json
 
     from quadcore.identify.diagnosis import CandidateScore
 
@@ -64,3 +80,6 @@ def test_a_pinned_documents_candidates_read_back_as_typed_rows_that_stay_as_read
         with pytest.raises(dataclasses.FrozenInstanceError):
             score.found = not score.found
         assert score.found == row["found"]
+    # a row without held_out_level (a document written before it) reads back with its target channel's
+    row = {k: v for k, v in doc["candidates"][0].items() if k != "held_out_level"}
+    assert CandidateScore.from_dict(row).held_out_level == row["target"]

@@ -35,8 +35,10 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
           + "   torque [mN m]: " + " ".join(f"{v * 1e3:.4f}" for v in b.torque_rmse_Nm))
     print()
     print_table([[r["effect"], r["status"], r["target"], f"{r['explained']:.1%}", f"{r['above_noise']:.1%}",
-                  f"{r['held_out_p']:.2g}", r["why"]] for r in verdict.candidate_summary(result.candidates)],
-                ["candidate", "status", "target", "explained", "above noise", "held-out p", "why it is ranked here"])
+                  f"{r['held_out_p']:.2g}", r["held_out_level"], r["why"]]
+                 for r in verdict.candidate_summary(result.candidates)],
+                ["candidate", "status", "target", "explained", "above noise", "held-out p", "held out in",
+                 "why it is ranked here"])
     print("\nsmallest effect these flights would detect "
           f"({result.sensitivity_basis['detection_probability']:.0%} of the time):")
     print_table([[r["effect"], r["of"], "not in range" if r["undetected_below"] is None

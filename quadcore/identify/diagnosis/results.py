@@ -48,8 +48,12 @@ class CandidateFields:
     significance_sigma: float
     significant: bool
     notes: tuple[str, ...]
-    # the held-out test in its target channel (evidence.held_out_test_of), the share of the
-    # residual above the noise floor it removes, and the size of what it removes in noise floors (RMS)
+    # the held-out test (evidence.held_out_test_of), the share of the residual above the noise floor
+    # it removes, and the size of what it removes in noise floors (RMS), in its target channel; a
+    # timing candidate's test and signal_to_noise are the angular-rate level's (rates.judgement).
+    # held_out_level names the level of held_out_* and signal_to_noise: the target ("force",
+    # "torque") or rates.RATE_LEVEL ("angular rate"); explained_* stay the target channel's
+    held_out_level: str
     held_out_slope: float
     held_out_t: float
     held_out_p_value: float
@@ -95,8 +99,9 @@ class CandidateScore(CandidateFields):
     @classmethod
     def from_dict(cls, row: Mapping[str, Any]) -> CandidateScore:
         """From its JSON object (a document as `quadcore diagnose --json` writes it)."""
-        values = {name: row[name] for name in cls.__dataclass_fields__ if name != "active_bounds"}
-        values["active_bounds"] = row.get("active_bounds", {})  # absent from documents written before it
+        absent = {"active_bounds": {}, "held_out_level": row["target"]}  # from documents written before them
+        values = {name: row.get(name, absent[name]) if name in absent else row[name]
+                  for name in cls.__dataclass_fields__}
         for name in ("force_rmse_N", "torque_rmse_Nm", "notes", "indistinguishable_from", "tied_with"):
             values[name] = tuple(values[name])
         return cls(**values)

@@ -279,6 +279,7 @@ def candidate_summary(candidates: Iterable[CandidateScore]) -> list[dict]:
         "explained": round(c.explained_variance, 3),
         "above_noise": round(c.explained_above_noise, 3),
         "held_out_p": float(f"{c.held_out_p_value:.2g}"),
+        "held_out_level": c.held_out_level,  # where held_out_p was measured: target channel or angular rate
         "parameters": ", ".join(f"{k}={v:.4g}±{c.parameter_std.get(k, float('nan')):.2g}"
                                 for k, v in c.parameters.items()),
         "why": c.reason,

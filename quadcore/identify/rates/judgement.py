@@ -44,7 +44,9 @@ if TYPE_CHECKING:  # the diagnosis imports this module: its types only for the a
     from quadcore.identify.diagnosis.rows import CandidateRow
     from quadcore.identify.settings import DiagnosisSettings
 
-RATE_LEVEL = "angular rate"  # what separates two timing candidates (a row's ``separated_by``)
+# what separates two timing candidates (a row's ``separated_by``), and the level a timing row's held-out
+# test and signal_to_noise are measured at (its ``held_out_level``; otherwise its target channel)
+RATE_LEVEL = "angular rate"
 NOT_SIGNIFICANT = "not significant:"  # how a row's note on its significance begins (quadcore.identify.diagnosis)
 
 TIE = " = "  # joins the timing candidates a fold's answer names when the rate level prefers none of them
@@ -321,9 +323,10 @@ def _rate_evidence(r: CandidateRow, comp: PairComparison, before: float) -> None
                                 comp.note() if comp.undecided else "",
                                 gains={f: d for f, (d, _) in comp.per_flight.items()})
     r.notes = (*r.notes, f"found or not at the angular-rate level: held out against no timing effect, t = {test.t:.2f} "
-                         f"(on the torque channels, which the closed loop biases, t = {r.held_out_t:.2f}, "
+                         f"(on the {r.held_out_level} channels, which the closed loop biases, t = {r.held_out_t:.2f}, "
                          f"p = {r.held_out_p_value:.2g}: docs/timing.md)"
                          + (f"; not confirmed, set aside: {comp.note()}" if comp.undecided else ""))
+    r.held_out_level = RATE_LEVEL
     r.held_out_slope, r.held_out_t, r.held_out_p_value, r.held_out_blocks = (
         one_sided.beta, one_sided.t, one_sided.p_value, one_sided.blocks)
     r.signal_to_noise = size
