@@ -75,7 +75,6 @@ class Trial:
     seconds: float
     found: dict[str, bool] | None = None  # per candidate: found by the full diagnosis (--found; None: not run)
     held_out: dict[str, tuple[float, float]] | None = None  # per candidate: its row's held-out t and p (--found)
-    set_aside: dict[str, bool] | None = None  # per candidate: its held-out test set aside (noise model, closed loop)
 
     @property
     def truth(self) -> tuple[str, float]:
@@ -133,9 +132,7 @@ def run(case: str, noise: str, seed: int, check: bool = False, keep: Path | None
             print(f"  the full diagnosis against the rate level alone: {difference(trial, rows, diagnosed_pair)}")
         trial = dataclasses.replace(trial, found={n: bool(rows[n].found) for n in TIMING},
                                     held_out={n: (float(rows[n].held_out_t), float(rows[n].held_out_p_value))
-                                              for n in TIMING},
-                                    set_aside={n: bool(rows[n].rate_level is not None and rows[n].rate_level.undecided)
-                                               for n in TIMING}, seconds=time.perf_counter() - t0)
+                                              for n in TIMING}, seconds=time.perf_counter() - t0)
     return trial
 
 
@@ -193,8 +190,7 @@ def difference(trial: Trial, rows: dict, pair: rates.PairComparison) -> str:
 def _found(ts: list[Trial], names: list[str], rival: str) -> str:
     """How often the full diagnosis found each of ``names`` (and ``rival``) in the trials it ran on,
     and how often their rows' held-out test passed at the library's ``alpha`` per candidate (the
-    diagnosis's other condition, besides the fit's significance), and of those how often the
-    comparison's rules set it aside (not confirmed: the rate level's found)."""
+    diagnosis's other condition, besides the fit's significance)."""
     ran = [tr.found for tr in ts if tr.found is not None]
     if not ran:
         return "not run"
@@ -204,11 +200,6 @@ def _found(ts: list[Trial], names: list[str], rival: str) -> str:
     if confirmed:  # the row's held-out test at the diagnosis's level per candidate (two candidates here)
         alpha = evidence.alpha_each(len(TIMING), DiagnosisSettings().alpha)
         out += [f"held out p < {alpha:g}, {n}: " + _rate(sum(h[n][1] < alpha for h in confirmed), len(confirmed))
-                for n in names]
-    aside = [(tr.held_out, tr.set_aside) for tr in ts if tr.held_out is not None and tr.set_aside is not None]
-    if aside:  # the held-out test's answer set aside by the comparison's rules (the rate level's found)
-        out += [f"of those set aside (the noise model or the closed loop decides), {n}: "
-                + _rate(sum(h[n][1] < alpha and a[n] for h, a in aside), sum(h[n][1] < alpha for h, _ in aside))
                 for n in names]
     return "; ".join(out + ([f"the rival {_rate(sum(f[rival] for f in ran), len(ran))}"] if rival else []))
 
